@@ -1,0 +1,57 @@
+"""Position commands on the acquisition grid."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+
+@dataclass(frozen=True)
+class Chirp:
+    """Linear chirp theta_cmd(t) = A sin(2 pi (f0 t + (f1 - f0) t^2 / (2 T))) (the paper's test command).
+
+    Attributes:
+        amplitude: A [rad, user side].  f_start, f_end: [Hz].  duration: T [s].
+    """
+
+    amplitude: float = 5e-3
+    f_start: float = 0.0
+    f_end: float = 15.0
+    duration: float = 0.5
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.amplitude) and self.amplitude > 0):
+            raise ValueError(f"command.amplitude must be > 0, got {self.amplitude}")
+        if not (self.duration > 0 and math.isfinite(self.duration)):
+            raise ValueError(f"command.duration must be > 0, got {self.duration}")
+        if self.f_start < 0 or self.f_end < 0:
+            raise ValueError(f"command frequencies must be >= 0, got {self.f_start}, {self.f_end}")
+
+    def __call__(self, t: torch.Tensor) -> torch.Tensor:
+        """Command [rad] at times t [s] (any shape)."""
+        rate = (self.f_end - self.f_start) / self.duration
+        return self.amplitude * torch.sin(2.0 * math.pi * (self.f_start * t + 0.5 * rate * t * t))
+
+
+@dataclass(frozen=True)
+class Sine:
+    """theta_cmd(t) = offset + A sin(2 pi f t): a single-frequency test (frequency response)."""
+
+    amplitude: float
+    frequency: float
+    duration: float
+    offset: float = 0.0
+
+    def __call__(self, t: torch.Tensor) -> torch.Tensor:
+        return self.offset + self.amplitude * torch.sin(2.0 * math.pi * self.frequency * t)
+
+
+def time_grid(duration: float, sample_rate: float, dtype: torch.dtype = torch.float64,
+              device: str | torch.device = "cpu") -> torch.Tensor:
+    """Uniform acquisition grid [s]: round(duration * f_s) + 1 samples, both ends included."""
+    n = int(round(duration * sample_rate))
+    if n < 2:
+        raise ValueError(f"duration {duration} s at {sample_rate} Hz gives fewer than 2 samples")
+    return torch.arange(n + 1, dtype=dtype, device=device) / sample_rate

@@ -1,0 +1,79 @@
+"""Low-fidelity motor: first-order DC equivalent with shape functions (seed paper, LF model).
+
+R_eq I + L_eq dI/dt = V - k_eq omega_m,  T = k_eq I,  envelope = |I|.
+
+The inverter is replaced by its period average V = d V_dc and the three phases by the conducting
+pair. Short circuits and eccentricity enter through shape functions of the rotor angle: each phase x
+carries a weight w_x(theta_e) in [0, 1] (1 while it conducts, blended over ``commutation_width``
+around the Hall edges, sum of weights 2), and
+
+  k_eq = sum_x w_x k_e (1 - a_k s_x)(1 + eps cos(theta_m - phi - alpha_x)),
+  R_eq = sum_x w_x R (1 - a_R s_x),    L_eq = sum_x w_x L (1 - s_x) ** a_L,
+
+with a_k, a_R, a_L and the width fitted to the HF model (``scripts/fit_lf_shapes.py``; values in
+``conf/actuator/*.yaml: lf_shape``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from .commutation import PHASE_OFFSETS
+
+
+def conduction_weights(theta_e: torch.Tensor, width: float) -> torch.Tensor:
+    """Shape functions w_x(theta_e) (B,) -> (B, 3): smoothed indicator that phase x is driven.
+
+    Phase A is driven (high or low) for theta_e in [30°, 150°] and [210°, 330°], i.e. while its
+    trapezoid is flat; a raised-cosine blend of total width ``width`` [rad] smooths the edges.
+    """
+    x = theta_e.unsqueeze(-1) - theta_e.new_tensor(PHASE_OFFSETS)
+    # distance to the nearest transition centre (0° or 180°, mod 180°), in [0, 90°]
+    d = torch.remainder(x, math.pi)
+    d = torch.minimum(d, math.pi - d)
+    edge = math.pi / 6
+    if width <= 0:
+        return (d >= edge).to(theta_e.dtype)
+    u = ((d - (edge - 0.5 * width)) / width).clamp(0.0, 1.0)
+    return 0.5 - 0.5 * torch.cos(math.pi * u)
+
+
+class DCMotor:
+    """DC-equivalent motor; state = equivalent current (B,) [A]."""
+
+    fidelity = "lf"
+
+    def __init__(self, substeps: int = 2):
+        if substeps < 1:
+            raise ValueError(f"lf.substeps must be >= 1, got {substeps}")
+        self.substeps = substeps
+
+    def init_state(self, plant) -> torch.Tensor:
+        return plant.phase_resistance.new_zeros(plant.batch)
+
+    def feedback_current(self, current: torch.Tensor, theta_m: torch.Tensor, plant) -> torch.Tensor:
+        return current
+
+    def equivalent(self, theta_m: torch.Tensor, plant) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(k_eq [V s/rad], R_eq [ohm], L_eq [H]) at motor angle theta_m, each (B,)."""
+        shape = plant.params.lf_shape
+        w = conduction_weights(plant.pole_pairs_f * theta_m, shape.commutation_width)
+        s = plant.short
+        arg = (theta_m - plant.ecc_phase).unsqueeze(-1) - theta_m.new_tensor(PHASE_OFFSETS)
+        ecc = 1.0 + plant.eccentricity.unsqueeze(-1) * torch.cos(arg)
+        k_eq = (w * plant.back_emf_constant.unsqueeze(-1) * (1.0 - shape.emf_short_gain * s) * ecc).sum(-1)
+        r_eq = (w * plant.phase_resistance.unsqueeze(-1) * (1.0 - shape.resistance_short_gain * s)).sum(-1)
+        l_eq = (w * plant.phase_inductance.unsqueeze(-1) * (1.0 - s) ** shape.inductance_short_exponent).sum(-1)
+        return k_eq, r_eq, l_eq
+
+    def step(self, current: torch.Tensor, duty: torch.Tensor, t_in_period: float, theta_m: torch.Tensor,
+             omega_m: torch.Tensor, emf_scale, plant, h: float, period: float
+             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+        """Backward-Euler step of the DC equivalent; same signature as ``BLDCMotor.step``."""
+        k_eq, r_eq, l_eq = self.equivalent(theta_m, plant)
+        k_eq = k_eq * emf_scale
+        volts = duty * plant.supply_voltage
+        new = (l_eq / h * current + volts - k_eq * omega_m) / (l_eq / h + r_eq)
+        return new, k_eq * new, new.abs(), {"power_in": volts * new}

@@ -1,0 +1,246 @@
+"""The EMA simulator: one init/step interface shared by every fidelity.
+
+The fidelity is only the motor model (``BLDCMotor`` = HF test bench, ``DCMotor`` = LF); control,
+mechanics, sensors, faults and effects are the same code. ``step`` advances one PWM/control period in
+``motor.substeps`` substeps and returns the acquisition samples that fall inside it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Iterable, Mapping, Sequence
+
+import torch
+
+from .effects import Effect, EffectContext, build_effects
+from .faults import as_fault_tensor
+from .params import ActuatorParams
+from .physics.bldc import BLDCMotor
+from .physics.controller import ControlState, controller_step
+from .physics.dc_motor import DCMotor
+from .physics.mechanics import MechState, mechanics_step
+from .physics.sensors import ButterworthFilter, lvdt_step
+from .plant import Plant, build_plant
+
+MOTORS: dict[str, Callable[..., object]] = {"hf": BLDCMotor, "lf": DCMotor}
+DEFAULT_SUBSTEPS = {"hf": 10, "lf": 2}
+
+
+@dataclass
+class SimState:
+    """Everything that evolves; tensors are batch-first."""
+
+    plant: Plant
+    mech: MechState
+    ctrl: ControlState
+    elec: torch.Tensor          # motor-model state: phase currents (B, 3) [A] or DC current (B,) [A]
+    lvdt: torch.Tensor          # LVDT reading (B,) [rad]
+    filt: torch.Tensor          # Butterworth state (B, 2) [A, A/s]
+    envelope: torch.Tensor      # unfiltered envelope at the last substep end (B,) [A]
+    period: int = 0
+    energy: dict[str, torch.Tensor] | None = None
+
+
+@dataclass
+class Signals:
+    """Simulated acquisition, every channel (B, n) on the uniform grid ``time`` (n,) [s].
+
+    Channels: ``command`` [rad], ``position`` (LVDT) [rad], ``current`` (filtered envelope) [A],
+    ``speed`` (motor) [rad/s], ``motor_angle`` [rad], ``user_angle`` [rad]; HF adds ``ia``, ``ib``,
+    ``ic`` [A] (unfiltered phase currents).
+    """
+
+    time: torch.Tensor
+    channels: dict[str, torch.Tensor]
+    faults: torch.Tensor
+    fidelity: str
+    energy: dict[str, torch.Tensor] | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __getitem__(self, name: str) -> torch.Tensor:
+        if name == "time":
+            return self.time
+        if name not in self.channels:
+            raise KeyError(f"no channel {name!r}; available: {sorted(self.channels)}")
+        return self.channels[name]
+
+
+class EMASimulator:
+    """Batched EMA simulator.
+
+    Args:
+        params: actuator datasheet.
+        fidelity: ``"hf"`` or ``"lf"`` (or pass ``motor`` directly).
+        effects: list of effects or a ``{name: {param: value}}`` mapping.
+        substeps: substeps per PWM period (default 10 for HF -> 10 us, 2 for LF -> 50 us).
+        dtype, device: tensor placement; float64 by default (the backlash is ~1e-3 of the stroke).
+    """
+
+    def __init__(self, params: ActuatorParams, fidelity: str = "hf", effects: Iterable[Effect] |
+                 Mapping[str, Mapping] | None = None, substeps: int | None = None,
+                 dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu"):
+        if fidelity not in MOTORS:
+            raise ValueError(f"fidelity must be one of {sorted(MOTORS)}, got {fidelity!r}")
+        self.params = params
+        self.fidelity = fidelity
+        self.motor = MOTORS[fidelity](substeps or DEFAULT_SUBSTEPS[fidelity])
+        self.effects = build_effects(effects) if effects is None or isinstance(effects, Mapping) else list(effects)
+        self.dtype, self.device = dtype, torch.device(device)
+        self.period = params.control_period
+        self.h = self.period / self.motor.substeps
+        per_sample = self.motor.substeps * params.pwm_frequency / params.sample_rate
+        if abs(per_sample - round(per_sample)) > 1e-9 or round(per_sample) < 1:
+            raise ValueError(f"{fidelity}.substeps={self.motor.substeps}: the acquisition period "
+                             f"1/{params.sample_rate} s must be a whole number of substeps of {self.h:.3g} s")
+        self.substeps_per_sample = int(round(per_sample))
+        self.filter = ButterworthFilter(params.filter_cutoff, self.h, dtype, self.device)
+
+    # ---- init / step -------------------------------------------------------------------------
+    def init(self, faults, scales: Mapping[str, torch.Tensor] | None = None, energy: bool = False) -> SimState:
+        """Actuator at rest at zero position, controller integrators empty."""
+        k = as_fault_tensor(faults, self.dtype, self.device)
+        plant = build_plant(self.params, k, scales)
+        for eff in self.effects:
+            eff.modify_plant(plant)
+        b = k.shape[0]
+        z = torch.zeros(b, dtype=self.dtype, device=self.device)
+        acc = {key: z.clone() for key in ("input", "copper", "friction", "viscous", "damping", "end_stop",
+                                          "load", "effect_work")} if energy else None
+        return SimState(plant, MechState.zeros(b, self.dtype, self.device), ControlState.zeros(b, self.dtype, self.device),
+                        self.motor.init_state(plant), z.clone(), torch.zeros(b, 2, dtype=self.dtype, device=self.device),
+                        z.clone(), 0, acc)
+
+    def _ctx(self, state: SimState, t: float, current: torch.Tensor) -> EffectContext:
+        m = state.mech
+        return EffectContext(t, m.theta_m, m.omega_m, m.theta_u, m.omega_u, current, state.plant)
+
+    def step(self, state: SimState, command: torch.Tensor) -> tuple[SimState, list[dict[str, torch.Tensor]]]:
+        """Advance one control period.
+
+        Args:
+            command: position command sampled at this period's start [rad] (B,) or scalar.
+        Returns:
+            The new state and the acquisition samples taken at the substep boundaries of this period
+            that fall on the acquisition grid (raw: the filter output, before any noise).
+        """
+        plant, p = state.plant, self.params
+        t_start = state.period * self.period
+        i_fb = self.motor.feedback_current(state.elec, state.mech.theta_m, plant)
+        ctrl, _ = controller_step(state.ctrl, command, state.lvdt, state.mech.omega_m, i_fb, plant, self.period)
+        duty = state.ctrl.duty  # computed one period ago (computation delay)
+        mech, elec, lvdt, filt, env = state.mech, state.elec, state.lvdt, state.filt, state.envelope
+        samples = []
+        for j in range(self.motor.substeps):
+            t = t_start + j * self.h
+            if j % self.substeps_per_sample == 0:
+                samples.append(self._sample(mech, elec, lvdt, filt))
+            eff_motor = eff_fric = eff_break = eff_load = 0.0
+            emf_scale, d = 1.0, duty
+            if self.effects:
+                ctx = self._ctx(SimState(plant, mech, ctrl, elec, lvdt, filt, env), t,
+                                self.motor.feedback_current(elec, mech.theta_m, plant))
+                for eff in self.effects:
+                    emf_scale = emf_scale * eff.emf_scale(ctx)
+                    d = d + eff.voltage_error(ctx) / plant.supply_voltage
+                    eff_motor = eff_motor + eff.motor_torque(ctx)
+                    eff_fric = eff_fric + eff.friction_torque(ctx)
+                    eff_break = eff_break + eff.breakaway_torque(ctx)
+                    eff_load = eff_load + eff.load_torque(ctx)
+                d = d.clamp(-1.0, 1.0)
+            elec_new, torque, env_new, extra = self.motor.step(elec, d, j * self.h, mech.theta_m, mech.omega_m,
+                                                               emf_scale, plant, self.h, self.period)
+            filt = self.filter.step(filt, 0.5 * (env + env_new))
+            kinetic = plant.coulomb_friction + eff_fric
+            breakaway = plant.static_friction + eff_break
+            load = torch.zeros_like(torque) + eff_load
+            mech_new, torques = mechanics_step(mech, torque + eff_motor, load, kinetic, breakaway, plant, self.h)
+            if state.energy is not None:
+                self._account(state.energy, extra, elec_new, mech, mech_new, torques, eff_motor, load, plant)
+            mech, elec, env = mech_new, elec_new, env_new
+            lvdt = lvdt_step(lvdt, mech.theta_u, plant.lvdt_time_constant, self.h)
+        return SimState(plant, mech, ctrl, elec, lvdt, filt, env, state.period + 1, state.energy), samples
+
+    def _sample(self, mech: MechState, elec: torch.Tensor, lvdt: torch.Tensor, filt: torch.Tensor
+                ) -> dict[str, torch.Tensor]:
+        out = {"position": lvdt, "current": filt[:, 0], "speed": mech.omega_m,
+               "motor_angle": mech.theta_m, "user_angle": mech.theta_u}
+        if elec.ndim == 2:
+            out.update(ia=elec[:, 0], ib=elec[:, 1], ic=elec[:, 2])
+        return out
+
+    def _account(self, acc, extra, elec, old: MechState, new: MechState, torques, eff_motor, load, plant) -> None:
+        """Accumulate energies [J] over a substep for the power-balance check."""
+        h, n = self.h, plant.gear_ratio
+        r = plant.resistance if elec.ndim == 2 else self.motor.equivalent(old.theta_m, plant)[1]
+        i2 = elec * elec
+        acc["input"] += h * extra["power_in"]
+        acc["copper"] += h * (r * i2).sum(-1) if elec.ndim == 2 else h * r * i2
+        acc["friction"] += h * torques["friction"] * new.omega_m
+        acc["viscous"] += h * plant.motor_viscous * old.omega_m * new.omega_m
+        rate_new = new.omega_m / n - new.omega_u
+        contact = torques["transmission"] != 0
+        acc["damping"] += h * torch.where(contact, plant.output_damping * (old.omega_m / n - old.omega_u) * rate_new,
+                                          torch.zeros_like(rate_new))
+        acc["damping"] += h * plant.user_damping * old.omega_u * new.omega_u
+        acc["end_stop"] += h * torques["end_stop"] * new.omega_u
+        acc["load"] += h * load * new.omega_u
+        acc["effect_work"] += h * eff_motor * new.omega_m if torch.is_tensor(eff_motor) else 0.0
+
+    # ---- whole runs --------------------------------------------------------------------------
+    def run(self, faults, command: Callable[[torch.Tensor], torch.Tensor] | torch.Tensor, duration: float,
+            scales: Mapping[str, torch.Tensor] | None = None, energy: bool = False) -> Signals:
+        """Simulate ``duration`` seconds from rest.
+
+        Args:
+            faults: (B, 8) or (8,) fault vectors in [0, 1].
+            command: a callable of time [s] -> [rad] (e.g. ``Chirp``), or a tensor (n,) / (B, n) of the
+                command on the acquisition grid (linearly interpolated at the control instants).
+            duration: [s]; the grid has round(duration * f_s) + 1 samples.
+        """
+        from .command import time_grid
+
+        p = self.params
+        grid = time_grid(duration, p.sample_rate, self.dtype, self.device)
+        n_periods = int(round(duration * p.pwm_frequency))
+        t_ctrl = torch.arange(n_periods, dtype=self.dtype, device=self.device) * self.period
+        if callable(command):
+            cmd_grid = command(grid)
+            cmd_ctrl = command(t_ctrl)
+        else:
+            cmd_grid = torch.as_tensor(command, dtype=self.dtype, device=self.device)
+            if cmd_grid.shape[-1] != grid.numel():
+                raise ValueError(f"command has {cmd_grid.shape[-1]} samples, the grid of {duration} s at "
+                                 f"{p.sample_rate} Hz has {grid.numel()}")
+            cmd_ctrl = _interp(t_ctrl, grid, cmd_grid)
+        state = self.init(faults, scales, energy)
+        b = state.plant.batch
+        records: list[dict[str, torch.Tensor]] = []
+        for n in range(n_periods):
+            state, samples = self.step(state, cmd_ctrl[..., n])
+            records.extend(samples)
+        records.append(self._sample(state.mech, state.elec, state.lvdt, state.filt))
+        channels = {key: torch.stack([r[key] for r in records], dim=-1) for key in records[0]}
+        channels["command"] = cmd_grid.expand(b, -1) if cmd_grid.ndim == 1 else cmd_grid.expand(b, -1)
+        k = as_fault_tensor(faults, self.dtype, self.device)
+        return Signals(grid, channels, k, self.fidelity, state.energy,
+                       {"substeps": self.motor.substeps, "effects": [repr(e) for e in self.effects]})
+
+
+def _interp(x: torch.Tensor, xp: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
+    """Linear interpolation of fp (..., n) given on the uniform grid xp (n,) at points x (m,)."""
+    pos = (x - xp[0]) / (xp[1] - xp[0])
+    i0 = pos.floor().long().clamp(0, xp.numel() - 2)
+    w = (pos - i0.to(pos.dtype)).clamp(0.0, 1.0)
+    return fp[..., i0] * (1 - w) + fp[..., i0 + 1] * w
+
+
+def simulate(params: ActuatorParams, faults, command, duration: float | None = None, fidelity: str = "hf",
+             effects: Iterable[Effect] | Mapping[str, Mapping] | None = None, **kwargs) -> Signals:
+    """Convenience wrapper: ``EMASimulator(params, fidelity, effects, **kwargs).run(faults, command, duration)``."""
+    duration = duration if duration is not None else getattr(command, "duration", None)
+    if duration is None:
+        raise ValueError("duration is required when the command has no 'duration'")
+    return EMASimulator(params, fidelity, effects, **kwargs).run(faults, command, duration)
+
+
+__all__: Sequence[str] = ("EMASimulator", "Signals", "SimState", "simulate", "MOTORS")
