@@ -22,6 +22,9 @@ import torch
 
 from .commutation import PHASE_OFFSETS
 
+_COS = tuple(math.cos(a) for a in PHASE_OFFSETS)
+_SIN = tuple(math.sin(a) for a in PHASE_OFFSETS)
+
 
 def conduction_weights(theta_e: torch.Tensor, width: float) -> torch.Tensor:
     """Shape functions w_x(theta_e) (B,) -> (B, 3): smoothed indicator that phase x is driven.
@@ -59,16 +62,19 @@ class DCMotor:
     def equivalent(self, theta_m: torch.Tensor, plant) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(k_eq [V s/rad], R_eq [ohm], L_eq [H]) at motor angle theta_m, each (B,)."""
         shape = plant.params.lf_shape
-        w = conduction_weights(plant.pole_pairs_f * theta_m, shape.commutation_width)
-        s = plant.short
-        arg = (theta_m - plant.ecc_phase).unsqueeze(-1) - theta_m.new_tensor(PHASE_OFFSETS)
-        ecc = 1.0 + plant.eccentricity.unsqueeze(-1) * torch.cos(arg)
-        k_eq = (w * plant.back_emf_constant.unsqueeze(-1) * (1.0 - shape.emf_short_gain * s) * ecc).sum(-1)
-        r_eq = (w * plant.phase_resistance.unsqueeze(-1) * (1.0 - shape.resistance_short_gain * s)).sum(-1)
-        l_eq = (w * plant.phase_inductance.unsqueeze(-1) * (1.0 - s) ** shape.inductance_short_exponent).sum(-1)
-        return k_eq, r_eq, l_eq
+        w = conduction_weights(plant.pole_pairs_f * theta_m, shape.commutation_width).unbind(-1)
+        arg = theta_m - plant.ecc_phase
+        c, sn = torch.cos(arg), torch.sin(arg)
+        k_eq = r_eq = l_eq = 0.0
+        for x in range(3):  # phases unrolled: reductions over a trailing 3 are slow on CPU
+            s = plant.short[:, x]
+            ecc = 1.0 + plant.eccentricity * (c * _COS[x] + sn * _SIN[x])  # cos(theta_m - phi - alpha_x)
+            k_eq = k_eq + w[x] * (1.0 - shape.emf_short_gain * s) * ecc
+            r_eq = r_eq + w[x] * (1.0 - shape.resistance_short_gain * s)
+            l_eq = l_eq + w[x] * (1.0 - s) ** shape.inductance_short_exponent
+        return (k_eq * plant.back_emf_constant, r_eq * plant.phase_resistance, l_eq * plant.phase_inductance)
 
-    def step(self, current: torch.Tensor, duty: torch.Tensor, t_in_period: float, theta_m: torch.Tensor,
+    def step(self, current: torch.Tensor, duty: torch.Tensor, t_in_period: torch.Tensor, theta_m: torch.Tensor,
              omega_m: torch.Tensor, emf_scale, plant, h: float, period: float
              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
         """Backward-Euler step of the DC equivalent; same signature as ``BLDCMotor.step``."""

@@ -23,7 +23,7 @@ def lvdt_step(reading: torch.Tensor, position: torch.Tensor, tau: torch.Tensor, 
 class ButterworthFilter:
     """Continuous 2nd-order Butterworth low-pass, discretised exactly (zero-order hold) at step h.
 
-    State (B, 2) = [y, dy/dt]; ``step`` takes the input averaged over the step [A] (B,).
+    State = (y, dy/dt), each (B,); ``step`` takes the input averaged over the step [A] (B,).
     """
 
     def __init__(self, cutoff_hz: float, h: float, dtype: torch.dtype, device: torch.device):
@@ -33,8 +33,12 @@ class ButterworthFilter:
         m = np.zeros((3, 3))
         m[:2, :2], m[:2, 2:] = a * h, b * h
         e = scipy.linalg.expm(m)
-        self.ad = torch.tensor(e[:2, :2].T, dtype=dtype, device=device)  # transposed for row vectors
-        self.bd = torch.tensor(e[:2, 2], dtype=dtype, device=device)
+        # Python floats: elementwise updates fuse, a (B, 2) @ (2, 2) product would not.
+        self.ad = [[float(v) for v in row] for row in e[:2, :2]]
+        self.bd = [float(v) for v in e[:2, 2]]
 
-    def step(self, state: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        return state @ self.ad + u.unsqueeze(-1) * self.bd
+    def step(self, state: tuple[torch.Tensor, torch.Tensor], u: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Advance (y [A], dy/dt [A/s]), each (B,), by one step with input u (B,) [A]."""
+        y, dy = state
+        (a00, a01), (a10, a11) = self.ad
+        return a00 * y + a01 * dy + self.bd[0] * u, a10 * y + a11 * dy + self.bd[1] * u

@@ -1,0 +1,204 @@
+"""Shared pieces of the Hydra entry points: config validation, noise, metrics, error reporting.
+
+Every validator raises :class:`ValueError` naming the config field, so that the command line can print
+one clear line (see :func:`report_errors`).
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import math
+import os
+import sys
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from hydra.errors import HydraException, InstantiationException
+from hydra.utils import instantiate
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from ..effects import Effect, build_effects
+from ..faults import FAULT_NAMES, N_FAULTS, as_fault_tensor
+from ..io.atomic import atomic_open
+from ..params import CONF_DIR, ActuatorParams
+from ..simulator import MOTORS
+
+CONFIG_PATH = str(CONF_DIR)
+
+# Errors that are the user's input, reported as one line instead of a traceback.
+USER_ERRORS = (ValueError, OmegaConfBaseException, HydraException)
+
+
+def plain(node: Any) -> Any:
+    """A resolved plain-Python copy of a config node (or the value itself)."""
+    if isinstance(node, (DictConfig, ListConfig)):
+        return OmegaConf.to_container(node, resolve=True)
+    return node
+
+
+def number(value: Any, name: str, minimum: float | None = None, strict: bool = False) -> float:
+    """A finite float from a config value, optionally bounded below (``strict``: > minimum)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise ValueError(f"{name} must be a number, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise ValueError(f"{name} must be finite, got {value!r}")
+    if minimum is not None and (value <= minimum if strict else value < minimum):
+        raise ValueError(f"{name} must be {'>' if strict else '>='} {minimum:g}, got {value!r}")
+    return value
+
+
+def integer(value: Any, name: str, minimum: int | None = None) -> int:
+    """An int from a config value (no bools, no fractional floats)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"{name} must be an integer, got {value!r}")
+    if minimum is not None and value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def fault_vector(value: Any, name: str = "faults") -> list[float]:
+    """Validate one fault vector k1..k8 in [0, 1]; the message names the entry (``faults[2] (k3, short_a)``)."""
+    value = plain(value)
+    if not isinstance(value, (list, tuple)):
+        raise ValueError(f"{name} must be a list of {N_FAULTS} numbers k1..k{N_FAULTS} in [0, 1], got {value!r}")
+    if len(value) != N_FAULTS:
+        raise ValueError(f"{name} must have {N_FAULTS} entries (k1..k{N_FAULTS}), got {len(value)}: {value!r}")
+    out = []
+    for i, v in enumerate(value):
+        label = f"{name}[{i}] (k{i + 1}, {FAULT_NAMES[i]})"
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ValueError(f"{label} must be a number, got {v!r}")
+        if not math.isfinite(v):
+            raise ValueError(f"{label} is not finite: {v!r}")
+        if not 0.0 <= v <= 1.0:
+            raise ValueError(f"{label} = {v!r} is outside [0, 1]")
+        out.append(float(v))
+    as_fault_tensor(out)  # the simulator's own check, kept in step
+    return out
+
+
+def actuator(cfg: DictConfig) -> ActuatorParams:
+    """The ``actuator`` node as validated :class:`ActuatorParams`."""
+    return ActuatorParams.from_mapping(plain(cfg.actuator))
+
+
+def fidelity(value: Any) -> str:
+    if value not in MOTORS:
+        raise ValueError(f"fidelity must be one of {sorted(MOTORS)}, got {value!r}")
+    return str(value)
+
+
+def device(value: Any) -> torch.device:
+    try:
+        dev = torch.device(str(value))
+    except RuntimeError as e:
+        raise ValueError(f"device: invalid device {value!r} ({e})") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device={value!r} but CUDA is not available on this machine; use device=cpu")
+    return dev
+
+
+def effects(value: Any) -> list[Effect]:
+    """Instantiate the ``effects`` mapping (``{name: {param: value}}``); unknown names are errors."""
+    spec = plain(value) or {}
+    if not isinstance(spec, Mapping):
+        raise ValueError(f"effects must be a mapping {{name: {{param: value}}}}, got {spec!r}")
+    for key, params in spec.items():
+        if params is not None and not isinstance(params, Mapping):
+            raise ValueError(f"effects.{key} must be a mapping of parameters (e.g. +effects.{key}={{}}), "
+                             f"got {params!r}")
+    return build_effects(spec)
+
+
+def command(node: Any) -> Callable[[torch.Tensor], torch.Tensor]:
+    """Instantiate the ``command`` node; a constructor error is reported as ``command: ...``."""
+    try:
+        return instantiate(node)
+    except InstantiationException as e:
+        cause = e.__cause__ if e.__cause__ is not None else e
+        raise ValueError(f"command: {cause}") from None
+
+
+def noise(cfg: DictConfig) -> dict[str, float]:
+    """Noise standard deviations by channel, validated (>= 0)."""
+    node = plain(cfg.get("noise")) or {}
+    unknown = sorted(set(node) - {"current", "position"})
+    if unknown:
+        raise ValueError(f"noise: unknown channel(s) {unknown}; known: ['current', 'position']")
+    return {"current": number(node.get("current", 0.0), "noise.current", 0.0),
+            "position": number(node.get("position", 0.0), "noise.position", 0.0)}
+
+
+def add_noise(channels: Mapping[str, torch.Tensor], std: Mapping[str, float], seed: int) -> dict[str, torch.Tensor]:
+    """Copy of ``channels`` with Gaussian noise on ``current`` then ``position`` (torch.Generator(seed)).
+
+    Both draws are always made, in that order, so each channel's noise depends only on the seed and the
+    shape, not on the other channel's setting.
+    """
+    out = dict(channels)
+    ref = channels["current"]
+    gen = torch.Generator(device=ref.device).manual_seed(seed)
+    for name in ("current", "position"):
+        x = channels[name]
+        draw = torch.randn(x.shape, generator=gen, dtype=x.dtype, device=x.device)
+        out[name] = x + std.get(name, 0.0) * draw
+    return out
+
+
+def signal_metrics(channels: Mapping[str, torch.Tensor]) -> dict[str, list[float]]:
+    """Per-run tracking error RMS/max [rad], peak current [A] and peak motor speed [rad/s] of (B, n) channels."""
+    err = channels["command"] - channels["position"]
+    return {"tracking_error_rms": err.pow(2).mean(-1).sqrt().tolist(),
+            "tracking_error_max": err.abs().amax(-1).tolist(),
+            "peak_current": channels["current"].abs().amax(-1).tolist(),
+            "peak_speed": channels["speed"].abs().amax(-1).tolist()}
+
+
+def nrmse(x: torch.Tensor, ref: torch.Tensor) -> float | None:
+    """RMS of x - ref divided by the range of ref (a fraction); ``None`` when ref is constant."""
+    span = float(ref.max() - ref.min())
+    if span <= 0:
+        return None
+    return float((x - ref).pow(2).mean().sqrt()) / span
+
+
+def write_json(path: Path, data: Any) -> Path:
+    """Write JSON atomically."""
+    with atomic_open(path, "w") as fh:
+        json.dump(data, fh, indent=2)
+        fh.write("\n")
+    return path
+
+
+def hydra_output_dir() -> Path | None:
+    """The Hydra run directory when running under ``@hydra.main``, else ``None``."""
+    from hydra.core.hydra_config import HydraConfig
+
+    if not HydraConfig.initialized():
+        return None
+    return Path(HydraConfig.get().runtime.output_dir)
+
+
+def report_errors(prog: str) -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """Decorator for a Hydra task function: a user error prints ``prog: error: <message>`` on stderr and
+    exits with status 2, without a traceback (set HYDRA_FULL_ERROR=1 to get the traceback)."""
+
+    def wrap(func: Callable[..., Any]) -> Callable[..., Any]:
+        @functools.wraps(func)
+        def inner(*args: Any, **kwargs: Any) -> Any:
+            try:
+                return func(*args, **kwargs)
+            except USER_ERRORS as e:
+                if os.environ.get("HYDRA_FULL_ERROR") == "1":
+                    raise
+                print(f"{prog}: error: {e}", file=sys.stderr, flush=True)
+                raise SystemExit(2) from None
+
+        return inner
+
+    return wrap

@@ -1,0 +1,258 @@
+"""Measurement CSV files: the exchange format between the test bench (or the simulator) and the tools.
+
+Format (one file = one acquisition):
+
+* a header row naming the columns, then one row per sample, comma separated;
+* uniform sampling; the columns ``time`` [s], ``command`` [rad, user side], ``position`` [rad, LVDT]
+  and ``current`` [A, filtered envelope of the phase currents] are required, in any order;
+* any further numeric columns are optional channels, e.g. ``ia``, ``ib``, ``ic`` [A], ``speed``
+  [rad/s, motor], ``motor_angle`` [rad].
+
+Reading validates everything and raises :class:`ValueError` naming the file, the column and the line
+(line 1 is the header) of the first problem found.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .atomic import atomic_open
+
+REQUIRED = ("time", "command", "position", "current")
+UNITS = {"time": "s", "command": "rad", "position": "rad", "current": "A", "ia": "A", "ib": "A", "ic": "A",
+         "speed": "rad/s", "motor_angle": "rad", "user_angle": "rad"}
+
+# Relative tolerances: a time step may differ from the median step by this fraction of it (timestamps
+# written with a few decimals are quantised); the sample rate may differ from the expected one by this.
+TIME_STEP_TOLERANCE = 0.05
+RATE_TOLERANCE = 1e-4
+
+
+@dataclass
+class Measurement:
+    """One acquisition on a uniform grid; every channel is a float64 array (n,).
+
+    Attributes:
+        time: [s].  command: [rad, user side].  position: LVDT [rad].  current: filtered envelope [A].
+        extra: further channels by name (``ia``, ``ib``, ``ic``, ``speed``, ``motor_angle``...).
+        sample_rate: [Hz].
+        source_rate: the file's own rate [Hz] when the data were resampled on reading, else ``None``.
+    """
+
+    time: np.ndarray
+    command: np.ndarray
+    position: np.ndarray
+    current: np.ndarray
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+    sample_rate: float = float("nan")
+    source_rate: float | None = None
+
+    def __len__(self) -> int:
+        return int(self.time.shape[0])
+
+    @property
+    def channels(self) -> dict[str, np.ndarray]:
+        """Every channel except time: command, position, current, then the extras."""
+        return {"command": self.command, "position": self.position, "current": self.current, **self.extra}
+
+    def __getitem__(self, name: str) -> np.ndarray:
+        if name == "time":
+            return self.time
+        chans = self.channels
+        if name not in chans:
+            raise KeyError(f"no channel {name!r}; available: {['time', *chans]}")
+        return chans[name]
+
+
+# ---- writing --------------------------------------------------------------------------------------
+def _to_numpy(value: Any) -> np.ndarray:
+    if hasattr(value, "detach"):  # torch tensor
+        value = value.detach().cpu().numpy()
+    return np.asarray(value, dtype=np.float64)
+
+
+def _collect(data: Any, index: int | None) -> dict[str, np.ndarray]:
+    """Columns {name: (n,) array} from a Measurement, a ``Signals``-like object or a mapping."""
+    if isinstance(data, Measurement):
+        return {"time": data.time, **data.channels}
+    if hasattr(data, "time") and hasattr(data, "channels"):  # phm_torch.simulator.Signals
+        raw = {"time": data.time, **data.channels}
+    elif isinstance(data, Mapping):
+        raw = dict(data)
+    else:
+        raise TypeError(f"write_measurement: expected a Measurement, Signals or mapping, got {type(data).__name__}")
+    if "time" not in raw:
+        raise ValueError("write_measurement: missing column 'time'")
+    time = _to_numpy(raw["time"])
+    if time.ndim != 1:
+        raise ValueError(f"write_measurement: 'time' must be 1-D, got shape {time.shape}")
+    cols = {"time": time}
+    for name, value in raw.items():
+        if name == "time":
+            continue
+        arr = _to_numpy(value)
+        if arr.ndim == 2:
+            if index is None:
+                if arr.shape[0] != 1:
+                    raise ValueError(f"write_measurement: column {name!r} holds a batch of {arr.shape[0]} runs; "
+                                     "pass index= to choose one")
+                arr = arr[0]
+            else:
+                if not -arr.shape[0] <= index < arr.shape[0]:
+                    raise ValueError(f"write_measurement: index {index} out of range for a batch of {arr.shape[0]}")
+                arr = arr[index]
+        if arr.ndim != 1:
+            raise ValueError(f"write_measurement: column {name!r} must be (n,) or (B, n), got shape {arr.shape}")
+        cols[str(name)] = arr
+    return cols
+
+
+def write_measurement(path: str | os.PathLike, data: Any, index: int | None = None,
+                      columns: Iterable[str] | None = None) -> Path:
+    """Write one acquisition to a measurement CSV, atomically (temporary file + ``os.replace``).
+
+    Args:
+        path: destination file; its parent directory is created if needed.
+        data: a :class:`Measurement`, a simulator ``Signals`` (channels (B, n)), or a mapping
+            {column: (n,) or (B, n) array/tensor} that includes ``time``.
+        index: which run of a batch to write (required when the batch holds more than one run).
+        columns: optional channels to write besides the required four (default: every channel given),
+            written in this order after ``time, command, position, current``.
+
+    Returns:
+        The path written.
+
+    Raises:
+        ValueError: a required column or a requested one is missing, lengths differ, a value is NaN/inf,
+            the time is not strictly increasing, or there are fewer than 2 samples.
+    """
+    cols = _collect(data, index)
+    missing = [c for c in REQUIRED if c not in cols]
+    if missing:
+        raise ValueError(f"write_measurement: missing required column(s) {missing}")
+    extras = [c for c in cols if c not in REQUIRED] if columns is None else [c for c in columns if c not in REQUIRED]
+    unknown = [c for c in extras if c not in cols]
+    if unknown:
+        raise ValueError(f"write_measurement: requested column(s) {unknown} not in the data; available: {list(cols)}")
+    names = [*REQUIRED, *extras]
+    n = cols["time"].shape[0]
+    for name in names:
+        if cols[name].shape[0] != n:
+            raise ValueError(f"write_measurement: column {name!r} has {cols[name].shape[0]} samples, 'time' has {n}")
+        bad = np.flatnonzero(~np.isfinite(cols[name]))
+        if bad.size:
+            raise ValueError(f"write_measurement: column {name!r} has a non-finite value at sample {bad[0]}")
+    if n < 2:
+        raise ValueError(f"write_measurement: need at least 2 samples, got {n}")
+    if not (np.diff(cols["time"]) > 0).all():
+        raise ValueError("write_measurement: 'time' must be strictly increasing")
+
+    path = Path(path)
+    table = np.stack([cols[c] for c in names], axis=1).tolist()  # Python floats: repr round-trips exactly
+    with atomic_open(path, "w", newline="") as fh:
+        writer = csv.writer(fh, lineterminator="\n")
+        writer.writerow(names)
+        writer.writerows([repr(v) for v in row] for row in table)
+    return path
+
+
+# ---- reading --------------------------------------------------------------------------------------
+def read_measurement(path: str | os.PathLike, expected_rate: float | None = None, resample: bool = False
+                     ) -> Measurement:
+    """Read and validate a measurement CSV.
+
+    Args:
+        path: the file.
+        expected_rate: sample rate the caller needs [Hz] (e.g. the actuator's acquisition rate); ``None``
+            accepts any uniform rate.
+        resample: when the file's rate differs from ``expected_rate``, interpolate linearly onto the grid
+            ``t0 + i / expected_rate`` covering the file's time span instead of raising. (No anti-alias
+            filter is applied: downsampling by a large factor should be filtered beforehand.)
+
+    Raises:
+        ValueError: naming the file and the field: missing file, empty file or header, duplicate or
+            missing required columns, a row with the wrong number of cells, a non-numeric cell (line and
+            column), a NaN/inf value (column and line), non-increasing or non-uniform time (line), fewer
+            than 2 samples, or a sample rate different from ``expected_rate`` (when not resampling).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: no such measurement file")
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    while rows and not any(cell.strip() for cell in rows[-1]):
+        rows.pop()  # trailing blank lines
+    if not rows:
+        raise ValueError(f"{path}: empty file (expected a header row with columns {list(REQUIRED)})")
+    header = [h.strip() for h in rows[0]]
+    for i, name in enumerate(header):
+        if not name:
+            raise ValueError(f"{path}: header column {i + 1} is empty")
+        if header.index(name) != i:
+            raise ValueError(f"{path}: duplicate column {name!r} in the header")
+    missing = [c for c in REQUIRED if c not in header]
+    if missing:
+        raise ValueError(f"{path}: missing required column(s) {missing}; header has {header}")
+    body = rows[1:]
+    if len(body) < 2:
+        raise ValueError(f"{path}: need at least 2 data rows, got {len(body)}")
+
+    data = np.empty((len(body), len(header)), dtype=np.float64)
+    for r, row in enumerate(body):
+        line = r + 2
+        if len(row) != len(header):
+            raise ValueError(f"{path}: line {line} has {len(row)} cells, the header has {len(header)}")
+        for c, cell in enumerate(row):
+            try:
+                value = float(cell)
+            except ValueError:
+                raise ValueError(f"{path}: line {line}, column {header[c]!r}: non-numeric value {cell!r}") from None
+            if not math.isfinite(value):
+                raise ValueError(f"{path}: line {line}, column {header[c]!r}: value {cell.strip()!r} is not finite")
+            data[r, c] = value
+
+    cols = {name: data[:, i].copy() for i, name in enumerate(header)}
+    time = cols["time"]
+    step = np.diff(time)
+    bad = np.flatnonzero(step <= 0)
+    if bad.size:
+        line = int(bad[0]) + 3
+        raise ValueError(f"{path}: column 'time' is not strictly increasing at line {line} "
+                         f"({time[bad[0]]!r} -> {time[bad[0] + 1]!r})")
+    median = float(np.median(step))
+    bad = np.flatnonzero(np.abs(step - median) > TIME_STEP_TOLERANCE * median)
+    if bad.size:
+        line = int(bad[0]) + 3
+        raise ValueError(f"{path}: column 'time' is not uniformly sampled at line {line}: step "
+                         f"{step[bad[0]]:.6g} s, median step {median:.6g} s")
+    rate = (len(time) - 1) / float(time[-1] - time[0])
+
+    source_rate = None
+    if expected_rate is not None:
+        if not (math.isfinite(expected_rate) and expected_rate > 0):
+            raise ValueError(f"expected_rate must be a positive number, got {expected_rate!r}")
+        if abs(rate - expected_rate) > RATE_TOLERANCE * expected_rate:
+            if not resample:
+                raise ValueError(f"{path}: sample rate {rate:.6g} Hz (from column 'time') differs from the "
+                                 f"expected {expected_rate:.6g} Hz; pass resample=True to interpolate")
+            source_rate = rate
+            n_new = math.floor((time[-1] - time[0]) * expected_rate * (1 + 1e-12)) + 1
+            if n_new < 2:
+                raise ValueError(f"{path}: resampling {time[-1] - time[0]:.6g} s at {expected_rate:.6g} Hz "
+                                 "gives fewer than 2 samples")
+            new_time = time[0] + np.arange(n_new) / expected_rate
+            cols = {name: np.interp(new_time, time, values) for name, values in cols.items() if name != "time"}
+            cols["time"] = new_time
+            rate = float(expected_rate)
+
+    extra = {name: cols[name] for name in header if name not in REQUIRED}
+    return Measurement(cols["time"], cols["command"], cols["position"], cols["current"], extra,
+                       float(rate), source_rate)

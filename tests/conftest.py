@@ -1,0 +1,69 @@
+"""Shared test fixtures: the default actuator, Hydra config composition, command-line runs."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+from omegaconf import DictConfig
+
+from phm_torch.params import CONF_DIR, ActuatorParams, load_actuator
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture(scope="session")
+def params() -> ActuatorParams:
+    """The default actuator (conf/actuator/ema_reference.yaml)."""
+    return load_actuator()
+
+
+@contextmanager
+def _hydra_context() -> Iterator[None]:
+    from hydra import initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        yield
+
+
+@pytest.fixture
+def compose() -> Callable[..., DictConfig]:
+    """compose(config_name, overrides) -> the composed config, as the command line would build it."""
+    from hydra import compose as hydra_compose
+
+    def _compose(config_name: str, overrides: Sequence[str] = ()) -> DictConfig:
+        with _hydra_context():
+            return hydra_compose(config_name=config_name, overrides=list(overrides))
+
+    return _compose
+
+
+def cli_command(module: str, *overrides: str, run_dir: Path) -> list[str]:
+    """The command line of a Hydra app run as ``python -m``, its Hydra run directory under ``run_dir``."""
+    return [sys.executable, "-m", module, *overrides, f"hydra.run.dir={run_dir}"]
+
+
+def cli_env() -> dict[str, str]:
+    """Environment for subprocesses: the repository importable whether or not it is pip-installed."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO_ROOT), env.get("PYTHONPATH", "")) if p)
+    env.pop("HYDRA_FULL_ERROR", None)
+    return env
+
+
+@pytest.fixture
+def run_cli(tmp_path: Path) -> Callable[..., subprocess.CompletedProcess]:
+    """run_cli(module, *overrides) runs a Hydra app in a subprocess with cwd = tmp_path."""
+
+    def _run(module: str, *overrides: str, timeout: float = 120) -> subprocess.CompletedProcess:
+        return subprocess.run(cli_command(module, *overrides, run_dir=tmp_path / "hydra"), cwd=tmp_path,
+                              env=cli_env(), capture_output=True, text=True, timeout=timeout, check=False)
+
+    return _run
