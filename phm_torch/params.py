@@ -32,14 +32,12 @@ class LFShape:
         resistance_short_gain: a_R, the pair resistance falls as R * (1 - a_R * s).
         inductance_short_exponent: a_L, the pair inductance falls as L * (1 - s) ** a_L.
         commutation_width: electrical angle [rad] over which the shape functions blend between sectors.
-        ripple_gain: scale of the commutation (freewheeling) current added to the LF envelope [-].
     """
 
     emf_short_gain: float = 1.0
     resistance_short_gain: float = 1.0
     inductance_short_exponent: float = 2.0
     commutation_width: float = 0.0
-    ripple_gain: float = 0.0
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,10 @@ class Plant:
         self.params = params
         self.batch = batch
         self.pole_pairs_f = float(params.pole_pairs)
+        # LF shape-function coefficients, per sample so that a fit can batch candidate values.
+        for f in fields(params.lf_shape):
+            setattr(self, f"lf_{f.name}", torch.full((batch,), float(getattr(params.lf_shape, f.name)),
+                                                     dtype=dtype, device=device))
         for name in TENSOR_FIELDS:
             setattr(self, name, torch.full((batch,), float(getattr(params, name)), dtype=dtype, device=device))
 
@@ -45,6 +49,9 @@ def build_plant(params: ActuatorParams, faults: torch.Tensor, scales: Mapping[st
                 ) -> Plant:
     """Nominal parameters, times optional ``scales`` (calibration), then the faults.
 
+    ``scales`` may also name the LF shape coefficients as ``lf_<coefficient>`` (values replace, not
+    multiply, since some are zero by default).
+
     Args:
         params: the actuator datasheet.
         faults: (B, 8) fault vectors in [0, 1].
@@ -55,6 +62,12 @@ def build_plant(params: ActuatorParams, faults: torch.Tensor, scales: Mapping[st
                         device=faults.device if torch.is_tensor(faults) else "cpu")
     plant = Plant(params, k.shape[0], k.dtype, k.device)
     for name, scale in (scales or {}).items():
+        if name.startswith("lf_") and hasattr(plant, name):
+            value = torch.as_tensor(scale, dtype=k.dtype, device=k.device)
+            if not torch.isfinite(value).all():
+                raise ValueError(f"scales.{name} must be finite, got {value.detach().cpu().tolist()}")
+            setattr(plant, name, getattr(plant, name) * 0 + value)
+            continue
         if name not in TENSOR_FIELDS:
             raise ValueError(f"scales: unknown parameter {name!r}; known: {list(TENSOR_FIELDS)}")
         scale = torch.as_tensor(scale, dtype=k.dtype, device=k.device)

@@ -8,11 +8,12 @@ mechanics, sensors, faults and effects are the same code. ``step`` advances one 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Mapping, Sequence
+from typing import Callable, Iterable, Iterator, Mapping, Sequence
 
 import torch
 
 from .effects import Effect, EffectContext, build_effects
+from .command import time_grid
 from .faults import as_fault_tensor
 from .params import ActuatorParams
 from .physics.bldc import BLDCMotor
@@ -110,7 +111,7 @@ class EMASimulator:
         b = k.shape[0]
         z = torch.zeros(b, dtype=self.dtype, device=self.device)
         acc = {key: z.clone() for key in ("input", "copper", "friction", "viscous", "damping", "end_stop",
-                                          "load", "effect_work")} if energy else None
+                                          "load", "effect_work", "numerical")} if energy else None
         return SimState(plant, MechState.zeros(b, self.dtype, self.device), ControlState.zeros(b, self.dtype, self.device),
                         self.motor.init_state(plant), z.clone(), (z.clone(), z.clone()),
                         z.clone(), 0, acc)
@@ -166,7 +167,7 @@ class EMASimulator:
         mech_new, torques = mechanics_step(mech, torque + eff_motor, load, plant.coulomb_friction + eff_fric,
                                            plant.static_friction + eff_break, plant, self.h)
         if energy is not None:
-            self._account(energy, extra, elec_new, mech, mech_new, torques, eff_motor, load, plant)
+            self._account(energy, extra, elec, elec_new, mech, mech_new, torques, eff_motor, load, plant)
         lvdt = lvdt_step(lvdt, mech_new.theta_u, plant.lvdt_time_constant, self.h)
         return mech_new, elec_new, lvdt, filt, env_new
 
@@ -178,11 +179,32 @@ class EMASimulator:
             out.update(ia=elec[:, 0], ib=elec[:, 1], ic=elec[:, 2])
         return out
 
-    def _account(self, acc, extra, elec, old: MechState, new: MechState, torques, eff_motor, load, plant) -> None:
+    def stored_energy(self, state: SimState) -> torch.Tensor:
+        """Kinetic + magnetic + elastic energy [J] (B,) of a state (zero at rest)."""
+        m, pl = state.mech, state.plant
+        kinetic = 0.5 * pl.motor_inertia * m.omega_m ** 2 + 0.5 * pl.user_inertia * m.omega_u ** 2
+        if state.elec.ndim == 2:
+            magnetic = 0.5 * (pl.inductance * state.elec ** 2).sum(-1)
+        else:
+            magnetic = 0.5 * self.motor.equivalent(m.theta_m, pl)[2] * state.elec ** 2
+        delta = m.theta_m / pl.gear_ratio - m.theta_u
+        twist = (delta.abs() - 0.5 * pl.backlash).clamp(min=0.0)
+        over = (m.theta_u.abs() - pl.end_stop_angle).clamp(min=0.0)
+        elastic = 0.5 * pl.output_stiffness * twist ** 2 + 0.5 * pl.end_stop_stiffness * over ** 2
+        return kinetic + magnetic + elastic
+
+    def _account(self, acc, extra, elec_old, elec, old: MechState, new: MechState, torques, eff_motor, load, plant) -> None:
         """Accumulate energies [J] over a substep for the power-balance check."""
         h, n = self.h, plant.gear_ratio
-        r = plant.resistance if elec.ndim == 2 else self.motor.equivalent(old.theta_m, plant)[1]
-        i2 = elec * elec
+        if elec.ndim == 2:
+            r, ind = plant.resistance, plant.inductance
+        else:
+            _, r, ind = self.motor.equivalent(old.theta_m, plant)
+        i2 = (0.5 * (elec + elec_old)) ** 2  # the trapezoidal rule's mid-step current
+        # Inductance changing with rotor angle (LF shape functions) exchanges energy not otherwise
+        # accounted: 0.5 (L_new - L_old) i^2; it is zero for the HF phases.
+        if elec.ndim == 1:
+            acc["numerical"] += 0.5 * (self.motor.equivalent(new.theta_m, plant)[2] - ind) * elec * elec
         acc["input"] += h * extra["power_in"]
         acc["copper"] += h * (r * i2).sum(-1) if elec.ndim == 2 else h * r * i2
         acc["friction"] += h * torques["friction"] * new.omega_m
@@ -198,7 +220,8 @@ class EMASimulator:
 
     # ---- whole runs --------------------------------------------------------------------------
     def run(self, faults, command: Callable[[torch.Tensor], torch.Tensor] | torch.Tensor, duration: float,
-            scales: Mapping[str, torch.Tensor] | None = None, energy: bool = False) -> Signals:
+            scales: Mapping[str, torch.Tensor] | None = None, energy: bool = False,
+            channels: Sequence[str] | None = None, out_dtype: torch.dtype | None = None) -> Signals:
         """Simulate ``duration`` seconds from rest.
 
         Args:
@@ -206,34 +229,76 @@ class EMASimulator:
             command: a callable of time [s] -> [rad] (e.g. ``Chirp``), or a tensor (n,) / (B, n) of the
                 command on the acquisition grid (linearly interpolated at the control instants).
             duration: [s]; the grid has round(duration * f_s) + 1 samples.
+            scales: multipliers on nominal parameters (see ``build_plant``), may require grad.
+            energy: also accumulate the energy terms of the power balance (``Signals.energy``).
+            channels: channels to keep (default all); fewer channels, less memory.
+            out_dtype: dtype of the stored channels (default the simulation dtype).
         """
-        from .command import time_grid
-
         p = self.params
         grid = time_grid(duration, p.sample_rate, self.dtype, self.device)
         n_periods = int(round(duration * p.pwm_frequency))
         t_ctrl = torch.arange(n_periods, dtype=self.dtype, device=self.device) * self.period
         if callable(command):
-            cmd_grid = command(grid)
-            cmd_ctrl = command(t_ctrl)
+            cmd_grid, cmd_ctrl = command(grid), command(t_ctrl)
         else:
             cmd_grid = torch.as_tensor(command, dtype=self.dtype, device=self.device)
             if cmd_grid.shape[-1] != grid.numel():
                 raise ValueError(f"command has {cmd_grid.shape[-1]} samples, the grid of {duration} s at "
                                  f"{p.sample_rate} Hz has {grid.numel()}")
+            if not torch.isfinite(cmd_grid).all():
+                raise ValueError("command contains NaN or inf")
             cmd_ctrl = _interp(t_ctrl, grid, cmd_grid)
         state = self.init(faults, scales, energy)
-        b = state.plant.batch
+        b, n = state.plant.batch, grid.numel()
+        available = ("position", "current", "speed", "motor_angle", "user_angle") + (
+            ("ia", "ib", "ic") if self.fidelity == "hf" else ())
+        keep = list(channels) if channels is not None else list(available)
+        unknown = sorted(set(keep) - set(available) - {"command"})
+        if unknown:
+            raise ValueError(f"channels: unknown {unknown}; available: {list(available)}")
+        keep = [c for c in keep if c != "command"]
+        dtype = out_dtype or self.dtype
+        grad = torch.is_grad_enabled() and any(t.requires_grad for t in state.plant.to_dict().values())
+        # Without autograd, write into preallocated buffers: no list of 10^4 tensors, no stacking copy.
+        bufs = None if grad else {c: torch.empty(b, n, dtype=dtype, device=self.device) for c in keep}
         records: list[dict[str, torch.Tensor]] = []
-        for n in range(n_periods):
-            state, samples = self.step(state, cmd_ctrl[..., n])
-            records.extend(samples)
-        records.append(self._sample(state.mech, state.elec, state.lvdt, state.filt))
-        channels = {key: torch.stack([r[key] for r in records], dim=-1) for key in records[0]}
-        channels["command"] = cmd_grid.expand(b, -1) if cmd_grid.ndim == 1 else cmd_grid.expand(b, -1)
-        k = as_fault_tensor(faults, self.dtype, self.device)
-        return Signals(grid, channels, k, self.fidelity, state.energy,
+        idx = 0
+
+        def store(sample: dict[str, torch.Tensor]) -> None:
+            nonlocal idx
+            if bufs is None:
+                records.append({c: sample[c] for c in keep})
+            else:
+                for c in keep:
+                    bufs[c][:, idx] = sample[c]
+            idx += 1
+
+        for k in range(n_periods):
+            state, samples = self.step(state, cmd_ctrl[..., k])
+            for smp in samples:
+                store(smp)
+        store(self._sample(state.mech, state.elec, state.lvdt, state.filt))
+        if state.energy is not None:
+            state.energy["stored"] = self.stored_energy(state)
+        if bufs is None:
+            out = {c: torch.stack([r[c] for r in records], dim=-1).to(dtype) for c in keep}
+        else:
+            out = bufs
+        out["command"] = cmd_grid.to(dtype).expand(b, -1)
+        k_t = as_fault_tensor(faults, self.dtype, self.device)
+        return Signals(grid, out, k_t, self.fidelity, state.energy,
                        {"substeps": self.motor.substeps, "effects": [repr(e) for e in self.effects]})
+
+    def iter_chunks(self, faults, command, duration: float, chunk_size: int, **kwargs) -> Iterator[Signals]:
+        """Simulate a large batch ``chunk_size`` samples at a time, yielding each chunk's signals.
+
+        Memory stays bounded by one chunk whatever the batch size; results equal those of one call.
+        """
+        if chunk_size < 1:
+            raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
+        k = as_fault_tensor(faults, self.dtype, self.device)
+        for start in range(0, k.shape[0], chunk_size):
+            yield self.run(k[start:start + chunk_size], command, duration, **kwargs)
 
 
 def _interp(x: torch.Tensor, xp: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:

@@ -33,7 +33,7 @@ def _hydra_context() -> Iterator[None]:
         yield
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def compose() -> Callable[..., DictConfig]:
     """compose(config_name, overrides) -> the composed config, as the command line would build it."""
     from hydra import compose as hydra_compose
@@ -45,25 +45,39 @@ def compose() -> Callable[..., DictConfig]:
     return _compose
 
 
-def cli_command(module: str, *overrides: str, run_dir: Path) -> list[str]:
-    """The command line of a Hydra app run as ``python -m``, its Hydra run directory under ``run_dir``."""
+def _cli_command(module: str, overrides: Sequence[str], run_dir: Path) -> list[str]:
     return [sys.executable, "-m", module, *overrides, f"hydra.run.dir={run_dir}"]
 
 
-def cli_env() -> dict[str, str]:
-    """Environment for subprocesses: the repository importable whether or not it is pip-installed."""
+def _cli_env() -> dict[str, str]:
+    """The repository importable whether or not it is pip-installed; one thread per (short) run."""
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(p for p in (str(REPO_ROOT), env.get("PYTHONPATH", "")) if p)
     env.pop("HYDRA_FULL_ERROR", None)
+    env.setdefault("OMP_NUM_THREADS", "1")  # several short runs side by side: no thread oversubscription
     return env
+
+
+@pytest.fixture(scope="session")
+def spawn_cli() -> Callable[..., subprocess.Popen]:
+    """spawn_cli(module, overrides, cwd) starts a Hydra app as ``python -m module`` (Hydra run directory
+    cwd/hydra/<n>) and returns the Popen with text stdout/stderr pipes; start several, then communicate()."""
+    counter = iter(range(10**6))
+
+    def _spawn(module: str, overrides: Sequence[str], cwd: Path) -> subprocess.Popen:
+        run_dir = Path(cwd) / "hydra" / str(next(counter))
+        return subprocess.Popen(_cli_command(module, overrides, run_dir), cwd=cwd, env=_cli_env(),
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    return _spawn
 
 
 @pytest.fixture
 def run_cli(tmp_path: Path) -> Callable[..., subprocess.CompletedProcess]:
-    """run_cli(module, *overrides) runs a Hydra app in a subprocess with cwd = tmp_path."""
+    """run_cli(module, *overrides) runs a Hydra app to completion in a subprocess with cwd = tmp_path."""
 
     def _run(module: str, *overrides: str, timeout: float = 120) -> subprocess.CompletedProcess:
-        return subprocess.run(cli_command(module, *overrides, run_dir=tmp_path / "hydra"), cwd=tmp_path,
-                              env=cli_env(), capture_output=True, text=True, timeout=timeout, check=False)
+        return subprocess.run(_cli_command(module, overrides, tmp_path / "hydra"), cwd=tmp_path, env=_cli_env(),
+                              capture_output=True, text=True, timeout=timeout, check=False)
 
     return _run

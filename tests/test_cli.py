@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import cli_command, cli_env
 from phm_torch.apps.run import parse_cases, run_cases
 from phm_torch.apps.simulate import simulate_to_csv
 from phm_torch.io import read_measurement
@@ -24,22 +23,18 @@ NOISY = ("seed=7", "noise.current=0.05", "noise.position=1e-5")
 LF_COLUMNS = ["time", "command", "position", "current", "speed", "motor_angle"]
 
 CLI_RUNS = {
-    "plain": (*QUICK, "out=plain.csv"),
     "noisy_a": (*QUICK, *NOISY, "out=noisy_a.csv"),
     "noisy_b": (*QUICK, *NOISY, "out=sub/noisy_b.csv"),
     "bad_fault": (*QUICK, "faults=[0,0,1.5,0,0,0,0.5,0.5]", "out=x.csv"),
     "bad_effect": (*QUICK, "+effects.no_such_effect={}", "out=x.csv"),
-    "bad_noise": (*QUICK, "noise.current=-0.1", "out=x.csv"),
 }
 
 
 @pytest.fixture(scope="module")
-def cli(tmp_path_factory) -> tuple[Path, dict[str, subprocess.CompletedProcess]]:
+def cli(tmp_path_factory, spawn_cli) -> tuple[Path, dict[str, subprocess.CompletedProcess]]:
     """Every subprocess run of CLI_RUNS, in parallel; (working directory, {name: completed process})."""
     cwd = tmp_path_factory.mktemp("cli")
-    procs = {name: subprocess.Popen(cli_command(SIM, *args, run_dir=cwd / "hydra" / name), cwd=cwd, env=cli_env(),
-                                    stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-             for name, args in CLI_RUNS.items()}
+    procs = {name: spawn_cli(SIM, args, cwd) for name, args in CLI_RUNS.items()}
     done = {}
     for name, proc in procs.items():
         out, err = proc.communicate(timeout=180)
@@ -47,41 +42,47 @@ def cli(tmp_path_factory) -> tuple[Path, dict[str, subprocess.CompletedProcess]]
     return cwd, done
 
 
-def test_cli_writes_csv_png_and_metrics(cli):
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory, compose) -> dict[str, np.ndarray]:
+    """The same LF run as the CLI runs, noise-free, in process: {channel: (n,)}."""
+    out = tmp_path_factory.mktemp("clean") / "clean.csv"
+    _, objects = simulate_to_csv(compose("simulate", [*QUICK, f"out={out}", "plot=false"]))
+    return {k: v[0].numpy() for k, v in objects["signals"].channels.items()}
+
+
+def test_cli_writes_csv_png_and_metrics(cli, clean):
     cwd, runs = cli
-    run = runs["plain"]
+    run = runs["noisy_a"]
     assert run.returncode == 0, run.stderr
-    csv = cwd / "plain.csv"
+    csv = cwd / "noisy_a.csv"
     assert csv.read_text().splitlines()[0].split(",") == LF_COLUMNS
     m = read_measurement(csv, expected_rate=20000.0)
     assert len(m) == 1001                                   # 0.05 s at 20 kHz, both ends
     assert m.time[-1] == pytest.approx(0.05)
-    assert (cwd / "plain.png").stat().st_size > 10_000
+    assert (cwd / "noisy_a.png").stat().st_size > 10_000
     metrics = json.loads(run.stdout[run.stdout.index("{"):])
-    err = m.command - m.position
+    err = clean["command"] - clean["position"]              # metrics describe the noise-free simulation
     assert metrics["tracking_error_rms"] == pytest.approx(float(np.sqrt(np.mean(err**2))), rel=1e-9)
-    assert metrics["peak_current"] == pytest.approx(float(np.abs(m.current).max()), rel=1e-9)
-    assert metrics["samples"] == 1001 and metrics["fidelity"] == "lf"
-    assert (cwd / "hydra" / "plain" / ".hydra" / "config.yaml").is_file()
+    assert metrics["peak_current"] == pytest.approx(float(np.abs(clean["current"]).max()), rel=1e-9)
+    assert metrics["samples"] == 1001 and metrics["fidelity"] == "lf" and metrics["seed"] == 7
+    assert len(list(cwd.glob("hydra/*/.hydra/config.yaml"))) == len(CLI_RUNS)
 
 
-def test_cli_seed_reproducible_with_noise(cli):
+def test_cli_seed_reproducible_with_noise(cli, clean):
     cwd, runs = cli
     assert runs["noisy_a"].returncode == 0, runs["noisy_a"].stderr
     assert runs["noisy_b"].returncode == 0, runs["noisy_b"].stderr
     a, b = read_measurement(cwd / "noisy_a.csv"), read_measurement(cwd / "sub" / "noisy_b.csv")
-    plain = read_measurement(cwd / "plain.csv")
     for name in ("current", "position", "command", "speed"):
         np.testing.assert_array_equal(a[name], b[name])
-    np.testing.assert_array_equal(a.command, plain.command)
-    np.testing.assert_array_equal(a.speed, plain.speed)            # noise only on current and position
-    assert np.std(a.current - plain.current) == pytest.approx(0.05, rel=0.15)
-    assert np.std(a.position - plain.position) == pytest.approx(1e-5, rel=0.15)
+    np.testing.assert_array_equal(a.command, clean["command"])
+    np.testing.assert_array_equal(a["speed"], clean["speed"])      # noise only on current and position
+    assert np.std(a.current - clean["current"]) == pytest.approx(0.05, rel=0.15)
+    assert np.std(a.position - clean["position"]) == pytest.approx(1e-5, rel=0.15)
 
 
 @pytest.mark.parametrize(("name", "field"), [("bad_fault", "faults[2] (k3, short_a) = 1.5 is outside [0, 1]"),
-                                             ("bad_effect", "no_such_effect"),
-                                             ("bad_noise", "noise.current must be >= 0")])
+                                             ("bad_effect", "effects: unknown effect 'no_such_effect'")])
 def test_cli_bad_input_exits_nonzero_with_message(cli, name, field):
     cwd, runs = cli
     run = runs[name]
@@ -162,12 +163,17 @@ def test_run_job_tiny(compose, tmp_path):
 
 def test_run_job_custom_cases(compose, tmp_path):
     cfg = compose("run", ["fidelity=lf", "command.duration=0.01", f"out_dir={tmp_path}", "plot=false",
-                          "cases={heavy: {k1: 1.0, k2: 1.0}, full: [0,0,0,0.2,0,0,0.5,0.5]}"])
+                          "~cases", "+cases={heavy: {k1: 1.0, k2: 1.0}, full: [0,0,0,0.2,0,0,0.5,0.5]}"])
     metrics, _ = run_cases(cfg)
+    assert list(metrics["cases"]) == ["heavy", "full"]
     assert metrics["cases"]["heavy"]["faults"] == [1.0, 1.0, 0, 0, 0, 0, 0.5, 0.5]
     assert metrics["cases"]["full"]["faults"][3] == 0.2
     assert metrics["cases"]["heavy"]["nrmse_current"] > 0
     assert not list(tmp_path.glob("*.png"))
+    cfg = compose("run", ["fidelity=lf", "command.duration=0.01", f"out_dir={tmp_path / 'sub'}", "plot=false",
+                          "only=[k8_gain_drift,k2_backlash]", "+cases.extra={k1: 0.1}"])
+    metrics, _ = run_cases(cfg)
+    assert list(metrics["cases"]) == ["k2_backlash", "k8_gain_drift"]
 
 
 @pytest.mark.parametrize(("cases", "message"), [
@@ -182,6 +188,11 @@ def test_run_cases_validation(cases, message):
     with pytest.raises(ValueError) as info:
         parse_cases(cases, [0, 0, 0, 0, 0, 0, 0.5, 0.5])
     assert message in str(info.value)
+
+
+def test_run_only_unknown_case():
+    with pytest.raises(ValueError, match=r"only: unknown case\(s\) \['k9'\]"):
+        parse_cases({"a": {"k1": 0.5}}, [0, 0, 0, 0, 0, 0, 0.5, 0.5], only=["k9"])
 
 
 def test_console_scripts_registered():

@@ -83,8 +83,13 @@ def fault_vector(value: Any, name: str = "faults") -> list[float]:
 
 
 def actuator(cfg: DictConfig) -> ActuatorParams:
-    """The ``actuator`` node as validated :class:`ActuatorParams`."""
-    return ActuatorParams.from_mapping(plain(cfg.actuator))
+    """The ``actuator`` node as validated :class:`ActuatorParams` (every error message starts ``actuator``)."""
+    try:
+        return ActuatorParams.from_mapping(plain(cfg.actuator))
+    except (ValueError, TypeError) as e:
+        if str(e).startswith("actuator"):
+            raise
+        raise ValueError(f"actuator: {e}") from None
 
 
 def fidelity(value: Any) -> str:

@@ -14,7 +14,9 @@ Examples::
 
     phm-run                                             # HF, paper chirp, results/run
     phm-run fidelity=lf out_dir=results/lf
-    phm-run 'cases={k1_high: {k1: 1.0}, k2_high: {k2: 1.0}}'
+    phm-run 'only=[k1_friction,k8_gain_drift]'          # a subset of the configured cases
+    phm-run '+cases.k2_full={k2: 1.0}'                  # one more case
+    phm-run '~cases' '+cases={k1_full: {k1: 1.0}, k2_full: {k2: 1.0}}'   # other cases only
 """
 
 from __future__ import annotations
@@ -32,7 +34,6 @@ from omegaconf import DictConfig
 
 from ..faults import N_FAULTS
 from ..io import write_measurement
-from ..plotting import plot_signals
 from ..simulator import EMASimulator
 from . import common
 from .simulate import CSV_COLUMNS
@@ -43,17 +44,26 @@ _CASE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 _FAULT_KEY = re.compile(r"^k([1-9])$")
 
 
-def parse_cases(node: Any, nominal: list[float]) -> dict[str, list[float]]:
+def parse_cases(node: Any, nominal: list[float], only: Any = None) -> dict[str, list[float]]:
     """Fault vectors of the cases.
 
     Each case is either ``{kN: value, ...}`` (the nominal vector with those entries replaced) or a full
-    list of 8 values. Names must be usable as file names and may not be ``nominal``.
+    list of 8 values. Names must be usable as file names and may not be ``nominal``. ``only``: optional
+    list of case names to keep (in the order of ``cases``).
     """
     spec = common.plain(node)
     if spec is None:
-        return {}
+        spec = {}
     if not isinstance(spec, Mapping):
         raise ValueError(f"cases must be a mapping {{name: {{kN: value}}}}, got {spec!r}")
+    only = common.plain(only)
+    if only is not None:
+        if not isinstance(only, (list, tuple)):
+            raise ValueError(f"only must be a list of case names or null, got {only!r}")
+        unknown = [str(n) for n in only if str(n) not in spec]
+        if unknown:
+            raise ValueError(f"only: unknown case(s) {unknown}; cases: {list(spec)}")
+        spec = {name: case for name, case in spec.items() if name in {str(n) for n in only}}
     cases: dict[str, list[float]] = {}
     for name, case in spec.items():
         name = str(name)
@@ -91,7 +101,7 @@ def run_cases(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     effects = common.effects(cfg.get("effects"))
     dev = common.device(cfg.get("device", "cpu"))
     nominal = common.fault_vector(list(params.nominal_faults), "actuator.nominal_faults")
-    cases = parse_cases(cfg.get("cases"), nominal)
+    cases = parse_cases(cfg.get("cases"), nominal, cfg.get("only"))
     out_value = cfg.get("out_dir")
     if not isinstance(out_value, str) or not out_value.strip():
         raise ValueError(f"out_dir must be a directory path, got {out_value!r}")
@@ -119,6 +129,8 @@ def run_cases(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         entry.update({key: values[i] for key, values in stats.items()})
         entry["csv"] = csv_path.name
         if i > 0 and cfg.get("plot", True):
+            from ..plotting import plot_signals  # matplotlib only when plotting
+
             runs = {"nominal": {c: noisy[c][0] for c in ("command", "position", "current")},
                     name: {c: noisy[c][i] for c in ("command", "position", "current")}}
             plot = plot_signals(signals.time, runs, out_dir / f"{name}.png",

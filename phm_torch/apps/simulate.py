@@ -23,7 +23,6 @@ import hydra
 from omegaconf import DictConfig
 
 from ..io import write_measurement
-from ..plotting import plot_signals
 from ..simulator import EMASimulator
 from . import common
 
@@ -77,6 +76,8 @@ def simulate_to_csv(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     write_measurement(csv_path, {"time": signals.time, **channels}, index=0, columns=columns)
     plot_path = None
     if cfg.get("plot", True):
+        from ..plotting import plot_signals  # matplotlib only when plotting
+
         plot_path = plot_signals(signals.time, {"simulation": {k: channels[k][0] for k in
                                                                ("command", "position", "current")}},
                                  csv_path.with_suffix(".png"), title=f"{fid.upper()} simulation, faults={faults}")

@@ -20,7 +20,7 @@ class WindingTemperature(Effect):
 
     name = "winding_temperature"
     PARAMS: ClassVar[dict[str, EffectParam]] = {
-        "temperature_rise": EffectParam(40.0, "K", "temperature rise dT above the datasheet reference", None, 40.0),
+        "temperature_rise": EffectParam(40.0, "K", "temperature rise dT above the datasheet reference", -100.0, 40.0),
         "alpha_copper": EffectParam(3.93e-3, "1/K", "resistance temperature coefficient of copper", 0.0, 3.93e-3),
         "alpha_magnet": EffectParam(-1.2e-3, "1/K", "remanence temperature coefficient of the magnets", None, 1.2e-3),
     }

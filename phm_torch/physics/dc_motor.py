@@ -26,7 +26,7 @@ _COS = tuple(math.cos(a) for a in PHASE_OFFSETS)
 _SIN = tuple(math.sin(a) for a in PHASE_OFFSETS)
 
 
-def conduction_weights(theta_e: torch.Tensor, width: float) -> torch.Tensor:
+def conduction_weights(theta_e: torch.Tensor, width: torch.Tensor) -> torch.Tensor:
     """Shape functions w_x(theta_e) (B,) -> (B, 3): smoothed indicator that phase x is driven.
 
     Phase A is driven (high or low) for theta_e in [30°, 150°] and [210°, 330°], i.e. while its
@@ -37,9 +37,8 @@ def conduction_weights(theta_e: torch.Tensor, width: float) -> torch.Tensor:
     d = torch.remainder(x, math.pi)
     d = torch.minimum(d, math.pi - d)
     edge = math.pi / 6
-    if width <= 0:
-        return (d >= edge).to(theta_e.dtype)
-    u = ((d - (edge - 0.5 * width)) / width).clamp(0.0, 1.0)
+    w = width.unsqueeze(-1)
+    u = ((d - (edge - 0.5 * w)) / w.clamp(min=1e-9)).clamp(0.0, 1.0)  # width 0 -> a step at the edge
     return 0.5 - 0.5 * torch.cos(math.pi * u)
 
 
@@ -61,25 +60,26 @@ class DCMotor:
 
     def equivalent(self, theta_m: torch.Tensor, plant) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(k_eq [V s/rad], R_eq [ohm], L_eq [H]) at motor angle theta_m, each (B,)."""
-        shape = plant.params.lf_shape
-        w = conduction_weights(plant.pole_pairs_f * theta_m, shape.commutation_width).unbind(-1)
+        w = conduction_weights(plant.pole_pairs_f * theta_m, plant.lf_commutation_width).unbind(-1)
         arg = theta_m - plant.ecc_phase
         c, sn = torch.cos(arg), torch.sin(arg)
         k_eq = r_eq = l_eq = 0.0
         for x in range(3):  # phases unrolled: reductions over a trailing 3 are slow on CPU
             s = plant.short[:, x]
             ecc = 1.0 + plant.eccentricity * (c * _COS[x] + sn * _SIN[x])  # cos(theta_m - phi - alpha_x)
-            k_eq = k_eq + w[x] * (1.0 - shape.emf_short_gain * s) * ecc
-            r_eq = r_eq + w[x] * (1.0 - shape.resistance_short_gain * s)
-            l_eq = l_eq + w[x] * (1.0 - s) ** shape.inductance_short_exponent
+            k_eq = k_eq + w[x] * (1.0 - plant.lf_emf_short_gain * s) * ecc
+            r_eq = r_eq + w[x] * (1.0 - plant.lf_resistance_short_gain * s)
+            l_eq = l_eq + w[x] * (1.0 - s) ** plant.lf_inductance_short_exponent
         return (k_eq * plant.back_emf_constant, r_eq * plant.phase_resistance, l_eq * plant.phase_inductance)
 
     def step(self, current: torch.Tensor, duty: torch.Tensor, t_in_period: torch.Tensor, theta_m: torch.Tensor,
              omega_m: torch.Tensor, emf_scale, plant, h: float, period: float
              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
-        """Backward-Euler step of the DC equivalent; same signature as ``BLDCMotor.step``."""
+        """Trapezoidal-rule step of the DC equivalent; same signature as ``BLDCMotor.step``."""
         k_eq, r_eq, l_eq = self.equivalent(theta_m, plant)
         k_eq = k_eq * emf_scale
         volts = duty * plant.supply_voltage
-        new = (l_eq / h * current + volts - k_eq * omega_m) / (l_eq / h + r_eq)
-        return new, k_eq * new, new.abs(), {"power_in": volts * new}
+        lh = l_eq / h
+        new = ((lh - 0.5 * r_eq) * current + volts - k_eq * omega_m) / (lh + 0.5 * r_eq)
+        mid = 0.5 * (current + new)
+        return new, k_eq * mid, new.abs(), {"power_in": volts * mid}
