@@ -88,6 +88,8 @@ class EMASimulator:
         self.fidelity = fidelity
         self.motor = MOTORS[fidelity](substeps or DEFAULT_SUBSTEPS[fidelity])
         self.effects = build_effects(effects) if effects is None or isinstance(effects, Mapping) else list(effects)
+        for eff in self.effects:  # keep grads: .to() is differentiable
+            eff.values = {k: v.to(dtype=dtype, device=device) for k, v in eff.values.items()}
         self.dtype, self.device = dtype, torch.device(device)
         self.period = params.control_period
         self.h = self.period / self.motor.substeps
@@ -139,12 +141,13 @@ class EMASimulator:
         for j in range(self.motor.substeps):
             if j % self.substeps_per_sample == 0:
                 samples.append(self._sample(mech, elec, lvdt, filt))
+            time = torch.tensor(t_start + j * self.h, dtype=self.dtype, device=self.device)
             mech, elec, lvdt, filt, env = self._substep_fn(plant, mech, elec, lvdt, filt, env, duty,
-                                                           self._offsets[j], t_start + j * self.h, state.energy)
+                                                           self._offsets[j], time, state.energy)
         return SimState(plant, mech, ctrl, elec, lvdt, filt, env, state.period + 1, state.energy), samples
 
     def _substep(self, plant: Plant, mech: MechState, elec: torch.Tensor, lvdt: torch.Tensor, filt: tuple,
-                 env: torch.Tensor, duty: torch.Tensor, offset: torch.Tensor, time: float,
+                 env: torch.Tensor, duty: torch.Tensor, offset: torch.Tensor, time: torch.Tensor,
                  energy: dict[str, torch.Tensor] | None):
         """One substep of motor, effects, mechanics and sensors (the unit that ``compile`` fuses)."""
         eff_motor = eff_fric = eff_break = eff_load = 0.0
@@ -168,7 +171,8 @@ class EMASimulator:
                                            plant.static_friction + eff_break, plant, self.h)
         if energy is not None:
             self._account(energy, extra, elec, elec_new, mech, mech_new, torques, eff_motor, load, plant)
-        lvdt = lvdt_step(lvdt, mech_new.theta_u, plant.lvdt_time_constant, self.h)
+        # Mid-step user angle: the exact lag of a linearly varying input to second order in h.
+        lvdt = lvdt_step(lvdt, 0.5 * (mech.theta_u + mech_new.theta_u), plant.lvdt_time_constant, self.h)
         return mech_new, elec_new, lvdt, filt, env_new
 
     def _sample(self, mech: MechState, elec: torch.Tensor, lvdt: torch.Tensor, filt: tuple[torch.Tensor, ...]
@@ -284,7 +288,7 @@ class EMASimulator:
             out = {c: torch.stack([r[c] for r in records], dim=-1).to(dtype) for c in keep}
         else:
             out = bufs
-        out["command"] = cmd_grid.to(dtype).expand(b, -1)
+        out["command"] = cmd_grid.to(dtype).expand(b, -1)  # (n,) or (B, n) -> (B, n)
         k_t = as_fault_tensor(faults, self.dtype, self.device)
         return Signals(grid, out, k_t, self.fidelity, state.energy,
                        {"substeps": self.motor.substeps, "effects": [repr(e) for e in self.effects]})

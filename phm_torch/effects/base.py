@@ -39,12 +39,12 @@ class EffectContext:
     """State seen by the per-substep hooks; every tensor is (B,).
 
     Attributes:
-        time: [s].  theta_m, omega_m: motor angle [rad], speed [rad/s].
+        time: 0-d tensor [s].  theta_m, omega_m: motor angle [rad], speed [rad/s].
         theta_u, omega_u: user angle [rad], speed [rad/s].  current: driven-pair (HF) or DC (LF) current [A].
         plant: the per-sample parameters.
     """
 
-    time: float
+    time: torch.Tensor
     theta_m: torch.Tensor
     omega_m: torch.Tensor
     theta_u: torch.Tensor
