@@ -51,7 +51,7 @@ class Sine:
 def time_grid(duration: float, sample_rate: float, dtype: torch.dtype = torch.float64,
               device: str | torch.device = "cpu") -> torch.Tensor:
     """Uniform acquisition grid [s]: round(duration * f_s) + 1 samples, both ends included."""
-    n = int(round(duration * sample_rate))
+    n = round(duration * sample_rate)
     if n < 2:
         raise ValueError(f"duration {duration} s at {sample_rate} Hz gives fewer than 2 samples")
     return torch.arange(n + 1, dtype=dtype, device=device) / sample_rate

@@ -6,11 +6,10 @@ Every fidelity uses this one mapping (ema_reference.md §2), so HF and LF see th
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import torch
-
-from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from .plant import Plant
@@ -49,7 +48,7 @@ def as_fault_tensor(k: torch.Tensor | Sequence[float] | Sequence[Sequence[float]
     return t
 
 
-def apply_faults(plant: "Plant", k: torch.Tensor, short_circuit_max: float) -> None:
+def apply_faults(plant: Plant, k: torch.Tensor, short_circuit_max: float) -> None:
     """Apply a validated (B, 8) fault tensor to a plant in place (ema_reference.md §2).
 
     Sets the per-phase tensors ``resistance``, ``inductance``, ``emf`` (B, 3) and ``short`` (B, 3), the

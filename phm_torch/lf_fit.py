@@ -43,10 +43,19 @@ def design_faults(nominal: tuple[float, ...]) -> torch.Tensor:
     return torch.tensor(cases, dtype=torch.float64)
 
 
-def random_faults(n: int, seed: int) -> torch.Tensor:
-    """Independent check set: uniform random fault vectors, (n, 8)."""
+def random_faults(n: int, seed: int, importance: bool) -> torch.Tensor:
+    """Independent check set, (n, 8): uniform in [0, 1]^8 (k8 = 0.5), or concentrated near nominal as
+    the training data are (k_i = u^8 for the damages, k7 uniform, k8 = 0.5 +- 0.5 u^8)."""
     g = torch.Generator().manual_seed(seed)
-    return torch.rand(n, 8, generator=g, dtype=torch.float64)
+    u = torch.rand(n, 8, generator=g, dtype=torch.float64)
+    if not importance:
+        u[:, 7] = 0.5
+        return u
+    k = u ** 8
+    k[:, 6] = u[:, 6]
+    sign = torch.where(torch.rand(n, generator=g, dtype=torch.float64) < 0.5, -1.0, 1.0)
+    k[:, 7] = 0.5 + 0.5 * sign * k[:, 7]
+    return k
 
 
 def discrepancy(lf: torch.Tensor, hf: torch.Tensor) -> torch.Tensor:
@@ -94,7 +103,7 @@ def evaluate(params: ActuatorParams, faults: torch.Tensor, command: Chirp, hf: t
     return {"per_case": d.tolist(), "mean": float(d.mean()), "median": float(d.median()), "max": float(d.max())}
 
 
-def run_fit(params: ActuatorParams, command: Chirp | None = None, n_check: int = 16, seed: int = 0) -> dict:
+def run_fit(params: ActuatorParams, command: Chirp | None = None, n_check: int = 24, seed: int = 0) -> dict:
     """Full procedure; returns a JSON-able report including the fitted coefficients."""
     command = command or Chirp()
     design = design_faults(params.nominal_faults)
@@ -103,11 +112,12 @@ def run_fit(params: ActuatorParams, command: Chirp | None = None, n_check: int =
     fitted, info = fit_shapes(params, hf_design, design, command)
     tuned = replace(params, lf_shape=fitted)
     after = evaluate(tuned, design, command, hf_design)
-    check = random_faults(n_check, seed)
-    check[:, 7] = 0.5 + 0.0 * check[:, 7]
-    check_before = evaluate(params, check, command)
-    check_after = evaluate(tuned, check, command)
+    checks = {}
+    for name, importance in (("importance_sampled", True), ("uniform", False)):
+        k = random_faults(n_check, seed, importance)
+        checks[name] = {"faults": k.tolist(), "before": evaluate(params, k, command),
+                        "after": evaluate(tuned, k, command)}
     return {"fitted": {c: getattr(fitted, c) for c in COEFFICIENTS}, "fit": info,
             "design": {"before": before, "after": after, "nominal_before": before["per_case"][0],
                        "nominal_after": after["per_case"][0]},
-            "random_check": {"before": check_before, "after": check_after}}
+            "random_check": checks}

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 from omegaconf import OmegaConf
 
@@ -111,12 +112,12 @@ class ActuatorParams:
         """Period of the discrete controller and of the PWM carrier [s]."""
         return 1.0 / self.pwm_frequency
 
-    def replace(self, **changes: Any) -> "ActuatorParams":
+    def replace(self, **changes: Any) -> ActuatorParams:
         """Return a copy with some fields changed (validated again)."""
         return dataclasses.replace(self, **changes)
 
     @classmethod
-    def from_mapping(cls, data: Mapping[str, Any]) -> "ActuatorParams":
+    def from_mapping(cls, data: Mapping[str, Any]) -> ActuatorParams:
         """Build from a plain mapping (e.g. a Hydra ``actuator`` node); unknown keys are errors."""
         data = dict(data)
         data.pop("_target_", None)

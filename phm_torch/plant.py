@@ -7,8 +7,8 @@ differentiably. Structural integers (pole pairs, slots) and the timing rates sta
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import fields
-from typing import Mapping
 
 import torch
 

@@ -7,13 +7,13 @@ mechanics, sensors, faults and effects are the same code. ``step`` advances one 
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Iterator, Mapping, Sequence
 
 import torch
 
-from .effects import Effect, EffectContext, build_effects
 from .command import time_grid
+from .effects import Effect, EffectContext, build_effects
 from .faults import as_fault_tensor
 from .params import ActuatorParams
 from .physics.bldc import BLDCMotor
@@ -97,7 +97,7 @@ class EMASimulator:
         if abs(per_sample - round(per_sample)) > 1e-9 or round(per_sample) < 1:
             raise ValueError(f"{fidelity}.substeps={self.motor.substeps}: the acquisition period "
                              f"1/{params.sample_rate} s must be a whole number of substeps of {self.h:.3g} s")
-        self.substeps_per_sample = int(round(per_sample))
+        self.substeps_per_sample = round(per_sample)
         self.filter = ButterworthFilter(params.filter_cutoff, self.h, dtype, self.device)
         self._offsets = [torch.tensor(j * self.h, dtype=dtype, device=self.device) for j in range(self.motor.substeps)]
         self.compiled = compile
@@ -240,7 +240,7 @@ class EMASimulator:
         """
         p = self.params
         grid = time_grid(duration, p.sample_rate, self.dtype, self.device)
-        n_periods = int(round(duration * p.pwm_frequency))
+        n_periods = round(duration * p.pwm_frequency)
         t_ctrl = torch.arange(n_periods, dtype=self.dtype, device=self.device) * self.period
         if callable(command):
             cmd_grid, cmd_ctrl = command(grid), command(t_ctrl)
@@ -322,4 +322,4 @@ def simulate(params: ActuatorParams, faults, command, duration: float | None = N
     return EMASimulator(params, fidelity, effects, **kwargs).run(faults, command, duration)
 
 
-__all__: Sequence[str] = ("EMASimulator", "Signals", "SimState", "simulate", "MOTORS")
+__all__: Sequence[str] = ("MOTORS", "EMASimulator", "Signals", "SimState", "simulate")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import numpy as np
 import pytest
@@ -158,7 +159,7 @@ def test_eccentricity_current_follows_inverse_torque_constant(hf):
 
 class ConstantLoad(Effect):
     name = "constant_load_test"
-    PARAMS = {"torque": EffectParam(0.0, "N m", "constant user-side load", minimum=None)}
+    PARAMS: ClassVar[dict[str, EffectParam]] = {"torque": EffectParam(0.0, "N m", "constant load", minimum=None)}
     STRENGTH = ("torque",)
 
     def load_torque(self, ctx):

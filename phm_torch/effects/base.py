@@ -9,8 +9,9 @@ that is what lets the workbench run a score test at zero for effects not in the 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar, Mapping
+from typing import Any, ClassVar
 
 import torch
 

@@ -7,8 +7,8 @@ through a 10^4-step simulation takes seconds, with no graph to keep for backprop
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import torch
 

@@ -21,7 +21,7 @@ class ControlState:
     duty: torch.Tensor
 
     @classmethod
-    def zeros(cls, batch: int, dtype: torch.dtype, device: torch.device) -> "ControlState":
+    def zeros(cls, batch: int, dtype: torch.dtype, device: torch.device) -> ControlState:
         z = torch.zeros(batch, dtype=dtype, device=device)
         return cls(z, z, z)
 

@@ -24,7 +24,7 @@ class MechState:
     omega_u: torch.Tensor
 
     @classmethod
-    def zeros(cls, batch: int, dtype: torch.dtype, device: torch.device) -> "MechState":
+    def zeros(cls, batch: int, dtype: torch.dtype, device: torch.device) -> MechState:
         z = torch.zeros(batch, dtype=dtype, device=device)
         return cls(z, z, z, z)
 
