@@ -1,0 +1,105 @@
+"""Damage propagation dk/dt = F (k - k0) + eps, integrated with torchdiffeq (seed paper, §5 of the datasheet).
+
+Time is in flight hours. eps is i.i.d. normal per component, held constant over blocks of
+``noise_correlation_hours`` and redrawn between them (a rate disturbance of finite correlation time,
+which a deterministic ODE solver can integrate exactly block by block).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import torch
+from torchdiffeq import odeint
+
+N_FAULTS = 8
+PHASE_INDEX = 6  # k7 is a phase, never a damage
+
+
+class DamageModel:
+    """Linear damage growth with per-block random rates.
+
+    Args:
+        rate: F (8, 8) [1/h]; row i = growth of k_i, column j = influence of Delta k_j.
+        noise_std: std of eps per component (8,) [1/h].
+        noise_correlation_hours: length of the blocks over which eps is constant [h].
+        horizon_hours: longest time integrated [h].
+        step_hours: integration / event-search grid [h].
+        nominal: k0 (8,); default the reference nominal vector.
+    """
+
+    def __init__(self, rate: Sequence[Sequence[float]], noise_std: Sequence[float], noise_correlation_hours: float,
+                 horizon_hours: float, step_hours: float, nominal: Sequence[float] | None = None):
+        f = torch.as_tensor(rate, dtype=torch.float64)
+        if f.shape != (N_FAULTS, N_FAULTS) or not torch.isfinite(f).all():
+            raise ValueError(f"damage.rate must be a finite 8x8 matrix, got shape {tuple(f.shape)}")
+        if f[PHASE_INDEX].abs().sum() > 0 or f[:, PHASE_INDEX].abs().sum() > 0:
+            raise ValueError("damage.rate: row and column 7 (eccentricity phase k7) must be zero")
+        sd = torch.as_tensor(noise_std, dtype=torch.float64)
+        if sd.shape != (N_FAULTS,) or (sd < 0).any() or not torch.isfinite(sd).all():
+            raise ValueError(f"damage.noise_std must be 8 finite values >= 0, got {list(noise_std)}")
+        if sd[PHASE_INDEX] != 0:
+            raise ValueError(f"damage.noise_std[6] (k7) must be 0, got {float(sd[PHASE_INDEX])}")
+        for name, v in (("noise_correlation_hours", noise_correlation_hours), ("horizon_hours", horizon_hours),
+                        ("step_hours", step_hours)):
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"damage.{name} must be > 0, got {v}")
+        if step_hours > horizon_hours:
+            raise ValueError(f"damage.step_hours ({step_hours}) must not exceed horizon_hours ({horizon_hours})")
+        self.rate, self.noise_std = f, sd
+        self.block = float(noise_correlation_hours)
+        self.horizon, self.step = float(horizon_hours), float(step_hours)
+        k0 = nominal if nominal is not None else (0, 0, 0, 0, 0, 0, 0.5, 0.5)
+        self.nominal = torch.as_tensor(k0, dtype=torch.float64)
+
+    @property
+    def grid(self) -> torch.Tensor:
+        """Time grid [h] (T,) from 0 to the horizon."""
+        n = math.ceil(self.horizon / self.step)
+        return torch.arange(n + 1, dtype=torch.float64) * self.step
+
+    def sample_noise(self, batch: int, generator: torch.Generator | None = None) -> torch.Tensor:
+        """eps per block: (batch, n_blocks, 8) [1/h]."""
+        n_blocks = math.ceil(self.horizon / self.block) + 1
+        z = torch.randn(batch, n_blocks, N_FAULTS, generator=generator, dtype=torch.float64)
+        return z * self.noise_std
+
+    def _rhs(self, eps: torch.Tensor | None):
+        f, k0, block = self.rate, self.nominal, self.block
+
+        def rhs(t: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+            dk = (k - k0.to(k)) @ f.to(k).T
+            if eps is not None:
+                i = torch.clamp((t / block).floor().long(), max=eps.shape[1] - 1)
+                dk = dk + eps[:, i].to(k)
+            return dk
+
+        return rhs
+
+    def integrate(self, k0: torch.Tensor, eps: torch.Tensor | None = None, t: torch.Tensor | None = None,
+                  method: str = "rk4") -> torch.Tensor:
+        """k(t) on the grid with torchdiffeq: k0 (B, 8) -> (T, B, 8).
+
+        The fixed-step solver steps exactly on the grid; the grid step divides the noise block, so each
+        step sees one eps (exact for RK4 up to its truncation error, negligible at F * step << 1).
+        """
+        t = self.grid if t is None else t
+        if eps is not None and abs(self.block / self.step - round(self.block / self.step)) > 1e-9:
+            raise ValueError(f"damage.noise_correlation_hours ({self.block}) must be a multiple of step_hours "
+                             f"({self.step})")
+        return odeint(self._rhs(eps), k0.to(torch.float64), t.to(torch.float64), method=method,
+                      options={"step_size": self.step} if method in ("rk4", "euler", "midpoint") else None)
+
+    def transitions(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Exact propagators of the linear ODE with constant eps: k(t) - k0 = A(t) dk0 + B(t) eps.
+
+        Returns A(t) = expm(F t) and B(t) = int_0^t expm(F s) ds, each (T, 8, 8). Used by the online
+        pipeline (no solver loop at run time); tests check them against :meth:`integrate`.
+        """
+        n = N_FAULTS
+        m = torch.zeros(t.numel(), 2 * n, 2 * n, dtype=torch.float64)
+        m[:, :n, :n] = self.rate * t.view(-1, 1, 1)
+        m[:, :n, n:] = torch.eye(n, dtype=torch.float64) * t.view(-1, 1, 1)
+        e = torch.linalg.matrix_exp(m)
+        return e[:, :n, :n], e[:, :n, n:]
