@@ -1,0 +1,104 @@
+"""Online pipeline: RUL against the Monte-Carlo-free torchdiffeq reference, bad input, TorchScript export."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import pytest
+import torch
+
+from phm_torch.online import OnlinePipeline
+from phm_torch.online.export import export_torchscript
+from phm_torch.prognostics import DamageModel, RULEstimator
+from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
+from phm_torch.surrogates.fdi_mlp import FDIMLP
+from phm_torch.surrogates.gappy_pod import GappyPOD
+
+N_FULL, N_MODES = 2001, 6
+
+
+def damage() -> DamageModel:
+    f = torch.diag(torch.tensor([5e-4] * 6 + [0.0, 3e-4], dtype=torch.float64))
+    f[1, 0] = 2e-4
+    return DamageModel(f.tolist(), [1e-6] * 6 + [0.0, 1e-6], 100.0, 20000.0, 50.0)
+
+
+@pytest.fixture(scope="module")
+def pipeline() -> OnlinePipeline:
+    g = torch.Generator().manual_seed(0)
+    t = torch.linspace(0, 1, N_FULL, dtype=torch.float64)
+    modes = torch.linalg.qr(torch.stack([torch.sin((i + 1) * 3.0 * t + i) for i in range(N_MODES)], 1))[0]
+    mean = 1.0 + 0.5 * torch.sin(9 * t)
+    idx = torch.linspace(0, N_FULL - 1, 24).round().long()
+    gappy = GappyPOD(modes, mean, idx)
+    fdi = FDIMLP(N_MODES, 10).double()
+    k = torch.rand(400, 8, generator=g, dtype=torch.float64) ** 3
+    k[:, 6:] = 0.5
+    clf = PolynomialSVM(degree=2).fit(k, k[:, :6].amax(1) < 0.3)
+    pipe = OnlinePipeline(gappy, fdi, clf, damage(), torch.tensor([0.02, 0.0, -0.02]),
+                          torch.tensor([1.0] * 6 + [0.0, 1.0]), N_FULL, residual_threshold=0.05)
+    pipe.modes, pipe.mean_signal = modes, mean  # for the tests
+    return pipe.eval()
+
+
+def signals(pipe, n: int, seed: int = 1) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    alpha = torch.randn(n, N_MODES, generator=g, dtype=torch.float64)
+    return pipe.mean_signal + alpha @ pipe.modes.T
+
+
+def test_rul_equals_torchdiffeq_propagation_with_the_same_score(pipeline):
+    k = torch.tensor([[0.05, 0.0, 0.02, 0.0, 0.0, 0.0, 0.5, 0.5], [0.01] * 6 + [0.5, 0.5],
+                      [0.9] + [0.0] * 5 + [0.5, 0.5]], dtype=torch.float64)
+    fast = pipeline.rul(k)
+    est = RULEstimator(damage(), lambda x: pipeline.classifier(x) - pipeline.classifier.threshold,
+                       refine_iterations=14)
+    for j, d in enumerate(pipeline.deltas):
+        ref, _ = est.first_crossing(k + d * pipeline.direction)
+        torch.testing.assert_close(fast[:, j], ref, rtol=0.01, atol=5.0)
+    assert fast[2].eq(0).all()                                     # already faulty
+    assert (fast[:2, 0] <= fast[:2, 1]).all() and (fast[:2, 1] <= fast[:2, 2]).all()
+
+
+def test_full_signal_and_selected_samples_agree(pipeline):
+    x = signals(pipeline, 5)
+    a = pipeline(x)
+    b = pipeline(x.index_select(1, pipeline.gappy.indices))
+    for u, v in zip(a, b):
+        torch.testing.assert_close(u, v, equal_nan=True)
+    assert not a[3].any()                                          # in-span signals are in distribution
+
+
+def test_garbage_never_gets_a_confident_rul(pipeline):
+    x = signals(pipeline, 5)
+    x[0] = 0.7                                                     # flat line
+    x[1, pipeline.gappy.indices[:20]] = float("nan")               # most samples missing
+    x[2] = x[2].clamp(max=x[2].median())                           # clipped
+    x[3] = torch.randn(N_FULL, dtype=torch.float64)                # unlike anything in training
+    k, score, rul, ood, resid = pipeline(x)
+    assert ood[:4].all() and not ood[4]
+    assert torch.isnan(rul[:4]).all() and torch.isfinite(rul[4]).all()
+    with pytest.raises(Exception, match="input length"):
+        pipeline(torch.zeros(1, 123, dtype=torch.float64))
+
+
+def test_torchscript_export_reloads_without_phm_torch(pipeline, tmp_path):
+    path = tmp_path / "online.pt"
+    export_torchscript(pipeline, path)
+    x = signals(pipeline, 4)
+    x[1, 5] = float("nan")
+    torch.save(x, tmp_path / "x.pt")
+    eager = pipeline(x)
+    code = textwrap.dedent(f"""
+        import sys, torch
+        m = torch.jit.load({str(path)!r})
+        out = m(torch.load({str(tmp_path / 'x.pt')!r}, weights_only=True))
+        torch.save(list(out), {str(tmp_path / 'out.pt')!r})
+        assert not any(name.startswith('phm_torch') for name in sys.modules), 'phm_torch was imported'
+    """)
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=tmp_path)
+    loaded = torch.load(tmp_path / "out.pt", weights_only=True)
+    for u, v in zip(eager, loaded):
+        torch.testing.assert_close(v, u, rtol=1e-5, atol=1e-5, equal_nan=True)
