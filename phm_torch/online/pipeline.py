@@ -55,6 +55,13 @@ class OnlinePipeline(nn.Module):
         self.residual_threshold = float(residual_threshold)
         self.min_count = max(self.n_modes + 1, round(min_present * self.n_points))
 
+    @classmethod
+    def from_bundle(cls, bundle: nn.Module, damage: DamageModel, deltas: torch.Tensor, direction: torch.Tensor,
+                    min_present: float = 0.8) -> OnlinePipeline:
+        """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifier, OOD threshold)."""
+        return cls(bundle.gappy, bundle.network, bundle.classifier, damage, deltas, direction,
+                   int(bundle.pod.mean_.shape[0]), float(bundle.residual_threshold), min_present)
+
     def rul(self, k: torch.Tensor) -> torch.Tensor:
         """Deterministic RUL 5/50/95 % [h] (B, 3) from fault vectors (B, 8); 0 if already faulty,
         the horizon if still healthy there."""
