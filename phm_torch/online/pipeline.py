@@ -30,11 +30,12 @@ class OnlinePipeline(nn.Module):
         n_full: samples of a full acquisition (10001).
         residual_threshold: gappy residual above which the input is out of distribution [A].
         min_present: fraction of the selected samples that must be finite.
+        sample_rate: acquisition rate of the input [Hz] (a reader's check; not used in the computation).
     """
 
     def __init__(self, gappy: nn.Module, fdi: nn.Module, classifier: nn.Module, damage: DamageModel,
                  deltas: torch.Tensor, direction: torch.Tensor, n_full: int, residual_threshold: float,
-                 min_present: float = 0.8):
+                 min_present: float = 0.8, sample_rate: float = 20000.0):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
@@ -50,6 +51,7 @@ class OnlinePipeline(nn.Module):
         self.register_buffer("deltas", torch.as_tensor(deltas, dtype=dtype).reshape(3))
         self.register_buffer("direction", torch.as_tensor(direction, dtype=dtype).reshape(8))
         self.n_full = int(n_full)
+        self.sample_rate = float(sample_rate)
         self.n_points = int(gappy.modes_hat.shape[0])
         self.n_modes = int(gappy.modes_hat.shape[1])
         self.residual_threshold = float(residual_threshold)
@@ -60,7 +62,8 @@ class OnlinePipeline(nn.Module):
                     min_present: float = 0.8) -> OnlinePipeline:
         """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifier, OOD threshold)."""
         return cls(bundle.gappy, bundle.network, bundle.classifier, damage, deltas, direction,
-                   int(bundle.pod.mean_.shape[0]), float(bundle.residual_threshold), min_present)
+                   int(bundle.pod.mean_.shape[0]), float(bundle.residual_threshold), min_present,
+                   float(bundle.sample_rate))
 
     def rul(self, k: torch.Tensor) -> torch.Tensor:
         """Deterministic RUL 5/50/95 % [h] (B, 3) from fault vectors (B, 8); 0 if already faulty,

@@ -1,0 +1,122 @@
+"""``phm-evaluate``: RUL on the ``rul`` split from the true k and from the full online flow, against the
+physics reference; writes metrics.json, the figures, rul_calibration.json and the TorchScript pipeline.
+
+The work is done by :func:`evaluate_rul` (a plain function of the composed config).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+import hydra
+import torch
+from omegaconf import DictConfig
+
+from ..data.store import DatasetStore
+from ..online import OnlinePipeline
+from ..online.export import export_torchscript
+from ..prognostics import DeterministicRUL, RULEstimator
+from ..prognostics.evaluation import RULComparison
+from ..prognostics.plots import error_panels, rul_vs_expected
+from ..prognostics.reference import margin_score, reference_rul
+from ..surrogates.bundle import SurrogateBundle
+from . import common
+from .generate import _build
+
+log = logging.getLogger(__name__)
+
+
+def _reference(cfg: DictConfig, params, damage, k: torch.Tensor, deltas: torch.Tensor, cache: Path) -> torch.Tensor:
+    """Reference RULs, cached in ``cache`` under a key of everything they depend on."""
+    key_data = {"damage": common.plain(cfg.damage), "assessment": common.plain(cfg.assessment),
+                "actuator": common.plain(cfg.actuator), "reference": common.plain(cfg.reference),
+                "deltas": [round(float(d), 12) for d in deltas],
+                "k": hashlib.sha256(k.numpy().tobytes()).hexdigest()}
+    key = hashlib.sha256(json.dumps(key_data, sort_keys=True).encode()).hexdigest()
+    if cache.is_file():
+        stored = json.loads(cache.read_text())
+        if stored.get("key") == key:
+            return torch.tensor(stored["rul"], dtype=torch.float64)
+    assess = _build(cfg.assessment, "assessment", params=params)
+    ref = reference_rul(damage, margin_score(assess), k, deltas,
+                        common.number(cfg.reference.step_hours, "reference.step_hours", 0.0, strict=True),
+                        common.integer(cfg.reference.refine_iterations, "reference.refine_iterations", 0))
+    common.write_json(cache, {"key": key, "rul": ref.tolist()})
+    return ref
+
+
+def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Evaluate the RUL estimation (see :mod:`phm_torch.prognostics.evaluation` for the definitions)."""
+    params = common.actuator(cfg)
+    damage = _build(cfg.damage, "damage", nominal=list(params.nominal_faults))
+    out_dir = Path(cfg.out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    bundle = SurrogateBundle.load(cfg.bundle)
+    with DatasetStore(cfg.data_dir) as store:
+        view = store.split(cfg.split)
+        k = torch.as_tensor(view.K[()], dtype=torch.float64)
+        signals = torch.as_tensor(view.current[()], dtype=torch.float64)
+    if k.shape[0] == 0:
+        raise ValueError(f"split {cfg.split!r} of {cfg.data_dir} is empty")
+    t0 = time.perf_counter()
+    est = RULEstimator(damage, bundle.health_score, common.integer(cfg.rul.n_samples, "rul.n_samples", 2),
+                       common.integer(cfg.rul.refine_iterations, "rul.refine_iterations", 0))
+    det = DeterministicRUL(est)
+    deltas = det.calibrate(k, torch.Generator().manual_seed(int(cfg.seed)))
+    mc = est.estimate(k, torch.Generator().manual_seed(int(cfg.seed) + 1))
+    pipeline = OnlinePipeline.from_bundle(bundle, damage, deltas, det.direction,
+                                          common.number(cfg.online.min_present, "online.min_present", 0.0, True))
+    pipeline.eval()
+    with torch.no_grad():
+        true_k = pipeline.rul(k.to(pipeline.times.dtype)).to(torch.float64)
+        k_hat, _, full_flow, ood, _ = pipeline(signals)
+    t_est = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    reference = _reference(cfg, params, damage, k, deltas, Path(cfg.data_dir) / f"rul_reference_{cfg.split}.json")
+    t_ref = time.perf_counter() - t0
+    comparison = RULComparison(reference, true_k, full_flow.to(torch.float64))
+    metrics: dict[str, Any] = comparison.metrics()
+    gauss = RULComparison(reference, mc.gaussian, full_flow.to(torch.float64)).metrics()
+    metrics.update(rul_err_median_true_k_monte_carlo=gauss["rul_err_median_true_k"],
+                   rul_band_coverage_true_k_monte_carlo=gauss["rul_band_coverage_true_k"],
+                   deltas=deltas.tolist(), estimate_wall_s=round(t_est, 3), reference_wall_s=round(t_ref, 3),
+                   ood_fraction=float(ood.double().mean()))
+    figures = {"rul_vs_expected": rul_vs_expected(reference, {"RUL from true k": true_k, "full online flow":
+                                                              full_flow.to(torch.float64)},
+                                                  out_dir / "rul_vs_expected.png"),
+               "rul_errors": error_panels(reference, true_k, full_flow.to(torch.float64), out_dir / "rul_errors.png")}
+    common.write_json(out_dir / "rul_calibration.json",
+                      {"deltas": deltas.tolist(), "direction": det.direction.tolist(),
+                       "damage": common.plain(cfg.damage)})
+    common.write_json(out_dir / "rul_predictions.json",
+                      {"k": k.tolist(), "k_hat": k_hat.tolist(), "reference": reference.tolist(),
+                       "true_k": true_k.tolist(), "full_flow": torch.nan_to_num(full_flow, nan=-1.0).tolist(),
+                       "out_of_distribution": ood.tolist()})
+    if cfg.export:
+        path = out_dir / "online.pt"
+        export_torchscript(pipeline, path)
+        reloaded = torch.jit.load(str(path))
+        with torch.no_grad():
+            again = reloaded(signals[:8])
+            eager = pipeline(signals[:8])
+        diff = max(float((a.double() - b.double()).abs().nan_to_num(0.0).max()) for a, b in zip(again, eager))
+        metrics["export_max_abs_diff"] = diff
+        metrics["export"] = str(path)
+    common.write_json(out_dir / "metrics.json", metrics)
+    return metrics, {"pipeline": pipeline, "comparison": comparison, "figures": figures, "reference": reference}
+
+
+@hydra.main(config_path=common.CONFIG_PATH, config_name="evaluate", version_base="1.3")
+@common.report_errors("phm-evaluate")
+def main(cfg: DictConfig) -> None:
+    metrics, _ = evaluate_rul(cfg)
+    print(json.dumps(metrics, indent=2), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,52 @@
+"""``phm-export``: the online pipeline as TorchScript (see :mod:`phm_torch.online.export`)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import hydra
+import torch
+from omegaconf import DictConfig
+
+from ..online import OnlinePipeline
+from ..online.export import export_torchscript
+from ..surrogates.bundle import SurrogateBundle
+from . import common
+from .generate import _build
+
+
+def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Build the pipeline from the bundle, the damage model and the RUL calibration; write and re-check it."""
+    bundle = SurrogateBundle.load(cfg.bundle)
+    cal_path = Path(cfg.calibration)
+    if not cal_path.is_file():
+        raise ValueError(f"calibration: no such file {str(cal_path)!r}; run phm-evaluate first (it writes "
+                         f"rul_calibration.json)")
+    cal = json.loads(cal_path.read_text())
+    for key in ("deltas", "direction"):
+        if key not in cal:
+            raise ValueError(f"calibration {str(cal_path)!r} has no {key!r}")
+    damage = _build(cfg.damage, "damage")
+    pipeline = OnlinePipeline.from_bundle(bundle, damage, torch.tensor(cal["deltas"]), torch.tensor(cal["direction"]),
+                                          common.number(cfg.min_present, "min_present", 0.0, strict=True))
+    out = Path(cfg.out)
+    scripted = export_torchscript(pipeline, out)
+    probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)
+    with torch.no_grad():
+        diff = max(float((a.double() - b.double()).abs().nan_to_num(0.0).max())
+                   for a, b in zip(torch.jit.load(str(out))(probe), pipeline(probe)))
+    del scripted
+    return {"out": str(out), "max_abs_diff_reloaded": diff}, {"pipeline": pipeline}
+
+
+@hydra.main(config_path=common.CONFIG_PATH, config_name="export", version_base="1.3")
+@common.report_errors("phm-export")
+def main(cfg: DictConfig) -> None:
+    metrics, _ = export(cfg)
+    print(json.dumps(metrics, indent=2), flush=True)
+
+
+if __name__ == "__main__":
+    main()
