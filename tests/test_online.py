@@ -11,18 +11,20 @@ import torch
 
 from phm_torch.online import OnlinePipeline
 from phm_torch.online.export import export_torchscript
+from phm_torch.params import load_actuator
 from phm_torch.prognostics import DamageModel, RULEstimator
 from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
 from phm_torch.surrogates.fdi_mlp import FDIMLP
 from phm_torch.surrogates.gappy_pod import GappyPOD
 
 N_FULL, N_MODES = 2001, 6
+NOMINAL = list(load_actuator().nominal_faults)
 
 
 def damage() -> DamageModel:
     f = torch.diag(torch.tensor([5e-4] * 6 + [0.0, 3e-4], dtype=torch.float64))
     f[1, 0] = 2e-4
-    return DamageModel(f.tolist(), [1e-6] * 6 + [0.0, 1e-6], 100.0, 20000.0, 50.0)
+    return DamageModel(f.tolist(), [1e-6] * 6 + [0.0, 1e-6], 100.0, 20000.0, 50.0, NOMINAL)
 
 
 @pytest.fixture(scope="module")
@@ -77,7 +79,7 @@ def test_garbage_never_gets_a_confident_rul(pipeline):
     x[1, pipeline.gappy.indices[:20]] = float("nan")               # most samples missing
     x[2] = x[2].clamp(max=x[2].median())                           # clipped
     x[3] = torch.randn(N_FULL, dtype=torch.float64)                # unlike anything in training
-    k, score, rul, ood, resid = pipeline(x)
+    _, _, rul, ood, _ = pipeline(x)
     assert ood[:4].all() and not ood[4]
     assert torch.isnan(rul[:4]).all() and torch.isfinite(rul[4]).all()
     with pytest.raises(Exception, match="input length"):

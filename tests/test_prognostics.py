@@ -8,16 +8,17 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from phm_torch.params import CONF_DIR
+from phm_torch.params import CONF_DIR, load_actuator
 from phm_torch.prognostics import DamageModel, DeterministicRUL, RULEstimator
 
 LAM = 5e-4  # 1/h
+NOMINAL = list(load_actuator().nominal_faults)
 
 
 def diagonal_model(noise: float = 0.0, **kw) -> DamageModel:
     f = torch.diag(torch.tensor([LAM] * 6 + [0.0, LAM], dtype=torch.float64))
     sd = [noise] * 6 + [0.0, noise]
-    args = {"noise_correlation_hours": 100.0, "horizon_hours": 20000.0, "step_hours": 50.0} | kw
+    args = {"noise_correlation_hours": 100.0, "horizon_hours": 20000.0, "step_hours": 50.0, "nominal": NOMINAL} | kw
     return DamageModel(f.tolist(), sd, **args)
 
 
@@ -28,7 +29,7 @@ def threshold_score(k: torch.Tensor, thr: float = 0.3) -> torch.Tensor:
 def shipped_model() -> DamageModel:
     cfg = OmegaConf.to_container(OmegaConf.load(CONF_DIR / "damage" / "coupled.yaml"))
     cfg.pop("_target_")
-    return DamageModel(**cfg)
+    return DamageModel(**cfg, nominal=NOMINAL)
 
 
 def test_torchdiffeq_matches_exact_propagators():
@@ -99,7 +100,7 @@ def test_deterministic_variant_reproduces_monte_carlo_quantiles():
 ])
 def test_bad_damage_config(field, kwargs, match):
     base = {"rate": [[0.0] * 8] * 8, "noise_std": [0.0] * 8, "noise_correlation_hours": 100.0,
-            "horizon_hours": 1000.0, "step_hours": 10.0}
+            "horizon_hours": 1000.0, "step_hours": 10.0, "nominal": NOMINAL}
     with pytest.raises(ValueError, match=match):
         DamageModel(**(base | kwargs))
     rate = [[0.0] * 8 for _ in range(8)]

@@ -26,11 +26,11 @@ class DamageModel:
         noise_correlation_hours: length of the blocks over which eps is constant [h].
         horizon_hours: longest time integrated [h].
         step_hours: integration / event-search grid [h].
-        nominal: k0 (8,); default the reference nominal vector.
+        nominal: k0 (8,), the actuator's nominal fault vector (``ActuatorParams.nominal_faults``).
     """
 
     def __init__(self, rate: Sequence[Sequence[float]], noise_std: Sequence[float], noise_correlation_hours: float,
-                 horizon_hours: float, step_hours: float, nominal: Sequence[float] | None = None):
+                 horizon_hours: float, step_hours: float, nominal: Sequence[float]):
         f = torch.as_tensor(rate, dtype=torch.float64)
         if f.shape != (N_FAULTS, N_FAULTS) or not torch.isfinite(f).all():
             raise ValueError(f"damage.rate must be a finite 8x8 matrix, got shape {tuple(f.shape)}")
@@ -50,8 +50,9 @@ class DamageModel:
         self.rate, self.noise_std = f, sd
         self.block = float(noise_correlation_hours)
         self.horizon, self.step = float(horizon_hours), float(step_hours)
-        k0 = nominal if nominal is not None else (0, 0, 0, 0, 0, 0, 0.5, 0.5)
-        self.nominal = torch.as_tensor(k0, dtype=torch.float64)
+        self.nominal = torch.as_tensor(nominal, dtype=torch.float64)
+        if self.nominal.shape != (N_FAULTS,):
+            raise ValueError(f"damage.nominal must have 8 entries, got {list(nominal)}")
 
     @property
     def grid(self) -> torch.Tensor:
