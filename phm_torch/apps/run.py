@@ -1,162 +1,175 @@
-"""``phm-run``: the main job. At this stage: the nominal actuator and a list of faulty ones, side by side.
+"""``phm-run``: the main job, every stage of phm_torch end to end, and a report against the seed paper.
 
-All cases (nominal first) are simulated in ONE batched simulator call (an HF call costs about the same
-for 1 or ~100 actuators). Written to ``out_dir``:
-
-* ``<case>.csv`` for the nominal run and every case (measurement CSV format, noise as configured);
-* ``<case>.png``: the case overlaid on the nominal run;
-* ``metrics.json``: per case the fault vector, the NRMSE of the current and of the position against the
-  nominal run (noise-free signals, RMS difference / range of the nominal signal, fractions), tracking
-  error and peak current;
-* ``.hydra/`` (composed config) and ``run.log`` when run from the command line.
-
-Examples::
-
-    phm-run                                             # HF, paper chirp, results/run
-    phm-run fidelity=lf out_dir=results/lf
-    phm-run 'only=[k1_friction,k8_gain_drift]'          # a subset of the configured cases
-    phm-run '+cases.k2_full={k2: 1.0}'                  # one more case
-    phm-run '~cases' '+cases={k1_full: {k1: 1.0}, k2_full: {k2: 1.0}}'   # other cases only
+Stages (each the plain function of its own app, composed from its own config plus the overrides listed
+under its name in conf/run.yaml): cases (virtual bench), generate, train, evaluate (RUL + TorchScript
+export and reload), workbench (hidden-effect demo), report (report/index.html). ``metrics.json`` merges
+every stage's metrics under the stage's name.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import re
+import statistics
 import time
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import hydra
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig
 
-from ..faults import N_FAULTS
-from ..io import write_measurement
-from ..simulator import EMASimulator
+from ..data.store import DatasetStore
+from ..params import CONF_DIR
+from ..report.figures import err_alpha_vs_modes, fdi_per_parameter, hidden_neuron_study, placement
+from ..report.paper import build_report
+from ..surrogates.bundle import SurrogateBundle
 from . import common
-from .simulate import CSV_COLUMNS
 
 log = logging.getLogger(__name__)
-
-_CASE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
-_FAULT_KEY = re.compile(r"^k([1-9])$")
+STAGES = ("cases", "generate", "train", "evaluate", "workbench", "report")
 
 
-def parse_cases(node: Any, nominal: list[float], only: Any = None) -> dict[str, list[float]]:
-    """Fault vectors of the cases.
-
-    Each case is either ``{kN: value, ...}`` (the nominal vector with those entries replaced) or a full
-    list of 8 values. Names must be usable as file names and may not be ``nominal``. ``only``: optional
-    list of case names to keep (in the order of ``cases``).
-    """
-    spec = common.plain(node)
-    if spec is None:
-        spec = {}
-    if not isinstance(spec, Mapping):
-        raise ValueError(f"cases must be a mapping {{name: {{kN: value}}}}, got {spec!r}")
-    only = common.plain(only)
-    if only is not None:
-        if not isinstance(only, (list, tuple)):
-            raise ValueError(f"only must be a list of case names or null, got {only!r}")
-        unknown = [str(n) for n in only if str(n) not in spec]
-        if unknown:
-            raise ValueError(f"only: unknown case(s) {unknown}; cases: {list(spec)}")
-        spec = {name: case for name, case in spec.items() if name in {str(n) for n in only}}
-    cases: dict[str, list[float]] = {}
-    for name, case in spec.items():
-        name = str(name)
-        if not _CASE_NAME.match(name) or name == "nominal":
-            raise ValueError(f"cases: invalid case name {name!r} (letters, digits, '_', '.', '-'; not 'nominal')")
-        if isinstance(case, (list, tuple)):
-            cases[name] = common.fault_vector(case, f"cases.{name}")
-            continue
-        if not isinstance(case, Mapping) or not case:
-            raise ValueError(f"cases.{name} must be a non-empty mapping {{kN: value}} or a list of {N_FAULTS} "
-                             f"values, got {case!r}")
-        k = list(nominal)
-        for key, value in case.items():
-            m = _FAULT_KEY.match(str(key))
-            if not m or not 1 <= int(m.group(1)) <= N_FAULTS:
-                raise ValueError(f"cases.{name}: unknown fault {key!r}; use k1..k{N_FAULTS}")
-            k[int(m.group(1)) - 1] = value
-        cases[name] = common.fault_vector(k, f"cases.{name}")
-    return cases
+def compose_stage(app: str, overrides: list[str]) -> DictConfig:
+    """The composed config of ``app`` (conf/<app>.yaml) with ``overrides``, inside or outside a Hydra app."""
+    if GlobalHydra.instance().is_initialized():
+        return compose(config_name=app, overrides=overrides)
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        return compose(config_name=app, overrides=overrides)
 
 
-def run_cases(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Simulate nominal + cases in one batch, write CSVs, plots and ``metrics.json`` into ``cfg.out_dir``.
+def _overrides(value: Any, name: str) -> list[str]:
+    items = common.plain(value) or []
+    if not isinstance(items, list) or not all(isinstance(v, str) for v in items):
+        raise ValueError(f"{name} must be a list of Hydra overrides (strings), got {items!r}")
+    out = []
+    for item in items:  # a shipped example file is found from any working directory
+        key, _, path = item.partition("=")
+        shipped = CONF_DIR.parent / path
+        if key == "measurements" and path and not Path(path).exists() and shipped.is_file():
+            item = f"{key}={shipped}"
+        out.append(item)
+    return out
 
-    Returns:
-        ``metrics`` (the content of metrics.json) and ``objects`` (``signals``: the noise-free simulator
-        output, batch order ``names``; ``out_dir``; ``params``; ``command``).
-    """
-    params = common.actuator(cfg)
-    fid = common.fidelity(cfg.fidelity)
-    command = common.command(cfg.command)
-    duration = common.number(cfg.get("duration", getattr(command, "duration", None)), "duration", 0.0, strict=True)
-    seed = common.integer(cfg.seed, "seed", 0)
-    std = common.noise(cfg)
-    effects = common.effects(cfg.get("effects"))
-    dev = common.device(cfg.get("device", "cpu"))
-    nominal = common.fault_vector(list(params.nominal_faults), "actuator.nominal_faults")
-    cases = parse_cases(cfg.get("cases"), nominal, cfg.get("only"))
-    out_value = cfg.get("out_dir")
-    if not isinstance(out_value, str) or not out_value.strip():
-        raise ValueError(f"out_dir must be a directory path, got {out_value!r}")
-    out_dir = Path(out_value).expanduser()
 
-    names = ["nominal", *cases]
-    faults = [nominal, *cases.values()]
-    t0 = time.perf_counter()
-    signals = EMASimulator(params, fid, effects=effects, device=dev).run(faults, command, duration)
-    wall = time.perf_counter() - t0
-    log.info("simulated %d actuators (%s, %.3g s) in %.1f s", len(names), fid, duration, wall)
+def _latency(model_path: Path, signals: torch.Tensor, repeats: int) -> dict[str, float]:
+    """p50/p99 of the reloaded TorchScript step on one signal (one thread), and batched throughput."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        model = torch.jit.load(str(model_path))
+        one = signals[:1].to(model.times.dtype)
+        times = []
+        with torch.no_grad():
+            for _ in range(20):
+                model(one)
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                model(one)
+                times.append(time.perf_counter() - t0)
+            batch = signals[:1].expand(1024, -1).to(model.times.dtype).contiguous()
+            t0 = time.perf_counter()
+            model(batch)
+            throughput = 1024 / (time.perf_counter() - t0)
+    finally:
+        torch.set_num_threads(threads)
+    times.sort()
+    return {"online_step_us_p50": 1e6 * statistics.median(times),
+            "online_step_us_p99": 1e6 * times[min(len(times) - 1, int(0.99 * len(times)))],
+            "online_batched_signals_per_s": throughput}
 
-    noisy = common.add_noise(signals.channels, std, seed)
-    columns = [c for c in CSV_COLUMNS if c in noisy]
-    stats = common.signal_metrics(signals.channels)
-    clean = signals.channels
-    results: dict[str, Any] = {}
-    for i, name in enumerate(names):
-        csv_path = write_measurement(out_dir / f"{name}.csv", {"time": signals.time, **noisy}, index=i,
-                                     columns=columns)
-        entry: dict[str, Any] = {"faults": faults[i]}
-        if i > 0:
-            entry["nrmse_current"] = common.nrmse(clean["current"][i], clean["current"][0])
-            entry["nrmse_position"] = common.nrmse(clean["position"][i], clean["position"][0])
-        entry.update({key: values[i] for key, values in stats.items()})
-        entry["csv"] = csv_path.name
-        if i > 0 and cfg.get("plot", True):
-            from ..plotting import plot_signals  # matplotlib only when plotting
 
-            runs = {"nominal": {c: noisy[c][0] for c in ("command", "position", "current")},
-                    name: {c: noisy[c][i] for c in ("command", "position", "current")}}
-            plot = plot_signals(signals.time, runs, out_dir / f"{name}.png",
-                                title=f"{name} vs nominal ({fid.upper()}), faults={faults[i]}")
-            entry["plot"] = plot.name
-        results[name] = entry
+def _studies(cfg: DictConfig, run_dir: Path, data_dir: Path, train_dir: Path, eval_dir: Path,
+             metrics: dict[str, Any]) -> dict[str, Any]:
+    fig_dir = run_dir / "report"
+    fig_dir.mkdir(parents=True, exist_ok=True)
+    studies: dict[str, Any] = {}
+    bundle_path = train_dir / "surrogates.pt"
+    if bundle_path.is_file() and (data_dir / "manifest.json").is_file():
+        bundle = SurrogateBundle.load(bundle_path)
+        with DatasetStore(data_dir) as store:
+            tr, va = store.split("train"), store.split("val")
+            n_tr = min(len(tr), 2000)
+            ktr, ytr = torch.as_tensor(tr.K[:n_tr]), torch.as_tensor(tr.current[:n_tr])
+            kva, yva = torch.as_tensor(va.K[()]), torch.as_tensor(va.current[()])
+            healthy = [int(store.split(s).healthy[()].sum()) for s in ("train", "val")]
+            studies["healthy_fraction"] = healthy[0] / max(len(tr), 1)
+        studies["err_alpha"] = err_alpha_vs_modes(bundle, yva, fig_dir / "err_alpha_vs_modes.png")
+        studies["placement"] = placement(bundle, bundle.sample_rate, fig_dir / "placement.png")
+        sizes = [common.integer(h, "report.hidden_neurons[]", 1) for h in common.plain(cfg.report.hidden_neurons)]
+        studies["hidden"] = {"rows": hidden_neuron_study(bundle, ytr, ktr, yva, kva, sizes,
+                                                         common.integer(cfg.report.hidden_epochs, "report.hidden_epochs", 1),
+                                                         fig_dir / "hidden_neurons.png"),
+                             "figure": fig_dir / "hidden_neurons.png"}
+        if metrics.get("train", {}).get("fdi_mae"):
+            studies["fdi_per_parameter"] = fdi_per_parameter(metrics["train"]["fdi_mae"], fig_dir / "fdi_mae.png")
+        model = eval_dir / "online.pt"
+        if model.is_file():
+            studies["latency"] = _latency(model, yva, common.integer(cfg.report.latency_repeats,
+                                                                     "report.latency_repeats", 10))
+    return studies
 
-    metrics = {"fidelity": fid, "duration": duration, "samples": int(signals.time.numel()),
-               "sample_rate": params.sample_rate, "seed": seed, "noise": std,
-               "effects": sorted(common.plain(cfg.get("effects")) or {}),
-               "nrmse_definition": "RMS(case - nominal) / (max(nominal) - min(nominal)), noise-free, fraction",
-               "wall_time_s": round(wall, 3),
-               "nominal": results["nominal"], "cases": {n: results[n] for n in names[1:]}}
-    common.write_json(out_dir / "metrics.json", metrics)
-    objects = {"signals": signals, "names": names, "out_dir": out_dir, "params": params, "command": command}
+
+def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Run the configured stages under ``cfg.out_dir``; returns (merged metrics, objects)."""
+    stages = common.plain(cfg.stages)
+    if not isinstance(stages, list) or not stages:
+        raise ValueError(f"stages must be a non-empty list from {list(STAGES)}, got {stages!r}")
+    unknown = [s for s in stages if s not in STAGES]
+    if unknown:
+        raise ValueError(f"stages: unknown {unknown}; known: {list(STAGES)}")
+    if cfg.experiment not in (None, "paper"):
+        raise ValueError(f"experiment must be null or 'paper', got {cfg.experiment!r}")
+    run_dir = Path(str(cfg.out_dir)).expanduser().resolve()
+    run_dir.mkdir(parents=True, exist_ok=True)
+    data_dir, train_dir, eval_dir = run_dir / "data", run_dir / "train", run_dir / "evaluate"
+    gen_over = ["experiment=paper"] if cfg.experiment == "paper" else _overrides(cfg.generate, "generate")
+    plan = {
+        "cases": ("cases", [f"out_dir={run_dir / 'cases'}", *_overrides(cfg.cases, "cases")]),
+        "generate": ("generate", [f"data_dir={data_dir}", *gen_over]),
+        "train": ("train", [f"data_dir={data_dir}", f"out_dir={train_dir}", *_overrides(cfg.train, "train")]),
+        "evaluate": ("evaluate", [f"data_dir={data_dir}", f"bundle={train_dir / 'surrogates.pt'}",
+                                  f"out_dir={eval_dir}", *_overrides(cfg.evaluate, "evaluate")]),
+        "workbench": ("workbench", [f"out_dir={run_dir / 'workbench'}", *_overrides(cfg.workbench, "workbench")]),
+    }
+    from .cases import run_cases
+    from .evaluate import evaluate_rul
+    from .generate import generate
+    from .train import train_surrogates
+    from .workbench import run_workbench
+
+    functions = {"cases": run_cases, "generate": generate, "train": train_surrogates, "evaluate": evaluate_rul,
+                 "workbench": run_workbench}
+    metrics: dict[str, Any] = {}
+    timings: dict[str, float] = {}
+    objects: dict[str, Any] = {}
+    for i, stage in enumerate(stages, 1):
+        log.info("[phm-run] stage %d/%d: %s", i, len(stages), stage)
+        print(f"[phm-run] stage {i}/{len(stages)}: {stage}", flush=True)
+        t0 = time.perf_counter()
+        if stage == "report":
+            studies = _studies(cfg, run_dir, data_dir, train_dir, eval_dir, metrics)
+            metrics["report"] = {k: v for k, v in studies.items() if k in ("latency", "healthy_fraction")}
+            metrics["report"]["hidden_neurons"] = studies.get("hidden", {}).get("rows")
+            objects["report"] = build_report(run_dir, metrics, studies)
+        else:
+            app, overrides = plan[stage]
+            stage_metrics, _ = functions[stage](compose_stage(app, overrides))
+            metrics[stage] = stage_metrics
+        timings[stage] = round(time.perf_counter() - t0, 2)
+        print(f"[phm-run] {stage} done in {timings[stage]:.1f} s", flush=True)
+    metrics["wall_s"] = timings
+    common.write_json(run_dir / "metrics.json", json.loads(json.dumps(metrics, default=str)))
     return metrics, objects
 
 
 @hydra.main(config_path=common.CONFIG_PATH, config_name="run", version_base="1.3")
 @common.report_errors("phm-run")
 def main(cfg: DictConfig) -> None:
-    metrics, objects = run_cases(cfg)
-    summary = {name: {"nrmse_current": c["nrmse_current"], "nrmse_position": c["nrmse_position"]}
-               for name, c in metrics["cases"].items()}
-    print(json.dumps(summary, indent=2), flush=True)
-    print(f"results in {objects['out_dir']}", flush=True)
+    metrics, objects = run_all(cfg)
+    print(json.dumps({"report": str(objects.get("report")), "wall_s": metrics["wall_s"]}, indent=2), flush=True)
 
 
 if __name__ == "__main__":

@@ -31,11 +31,12 @@ class OnlinePipeline(nn.Module):
         residual_threshold: gappy residual above which the input is out of distribution [A].
         min_present: fraction of the selected samples that must be finite.
         sample_rate: acquisition rate of the input [Hz] (a reader's check; not used in the computation).
+        coarse: grid steps between the coarse event-search points (then bisection to one step).
     """
 
     def __init__(self, gappy: nn.Module, fdi: nn.Module, classifier: nn.Module, damage: DamageModel,
                  deltas: torch.Tensor, direction: torch.Tensor, n_full: int, residual_threshold: float,
-                 min_present: float = 0.8, sample_rate: float = 20000.0):
+                 min_present: float = 0.8, sample_rate: float = 20000.0, coarse: int = 10):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
@@ -56,6 +57,10 @@ class OnlinePipeline(nn.Module):
         self.n_modes = int(gappy.modes_hat.shape[1])
         self.residual_threshold = float(residual_threshold)
         self.min_count = max(self.n_modes + 1, round(min_present * self.n_points))
+        self.coarse = int(coarse)
+        if self.coarse < 1:
+            raise ValueError(f"online.coarse must be >= 1, got {coarse}")
+        self.bisections = max(0, (self.coarse - 1).bit_length())   # down to one grid step
 
     @classmethod
     def from_bundle(cls, bundle: nn.Module, damage: DamageModel, deltas: torch.Tensor, direction: torch.Tensor,
@@ -65,21 +70,41 @@ class OnlinePipeline(nn.Module):
                    int(bundle.pod.mean_.shape[0]), float(bundle.residual_threshold), min_present,
                    float(bundle.sample_rate))
 
+    def _score_at(self, dk: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+        """Score of k0 + A(t_index) dk for per-(sample, quantile) grid indices: dk (B, 3, 8), index (B, 3)."""
+        a = self.propagators[index]                                                        # (B, 3, 8, 8)
+        k = self.nominal + (a @ dk.unsqueeze(-1)).squeeze(-1)
+        b = dk.shape[0]
+        return self.classifier(k.reshape(-1, 8).clamp(0.0, 1.0)).reshape(b, 3) - self.classifier.threshold
+
     def rul(self, k: torch.Tensor) -> torch.Tensor:
         """Deterministic RUL 5/50/95 % [h] (B, 3) from fault vectors (B, 8); 0 if already faulty,
-        the horizon if still healthy there."""
+        the horizon if still healthy there.
+
+        The score is evaluated on a coarse grid (every ``coarse`` grid steps), the first faulty coarse
+        interval is bisected down to one grid step, and the crossing is interpolated linearly in that step.
+        """
         b = k.shape[0]
         dk = (k - self.nominal).unsqueeze(1) + self.deltas.view(1, 3, 1) * self.direction       # (B, 3, 8)
-        traj = self.nominal + torch.einsum("tij,bqj->tbqi", self.propagators, dk)              # (T, B, 3, 8)
-        n_t = traj.shape[0]
-        score = self.classifier(traj.reshape(-1, 8).clamp(0.0, 1.0)).reshape(n_t, b, 3) - self.classifier.threshold
+        n_t = self.propagators.shape[0]
+        coarse = torch.arange(0, n_t, self.coarse, device=k.device)
+        if int(coarse[-1]) != n_t - 1:
+            coarse = torch.cat([coarse, torch.tensor([n_t - 1], device=k.device)])
+        traj = self.nominal + torch.einsum("tij,bqj->tbqi", self.propagators[coarse], dk)      # (Tc, B, 3, 8)
+        n_c = traj.shape[0]
+        score = self.classifier(traj.reshape(-1, 8).clamp(0.0, 1.0)).reshape(n_c, b, 3) - self.classifier.threshold
         faulty = score <= 0
         any_faulty = faulty.any(0)
         first = torch.argmax(faulty.to(torch.int64), dim=0)                                     # (B, 3)
-        prev = (first - 1).clamp(min=0)
-        s1 = score.gather(0, first.unsqueeze(0)).squeeze(0)
-        s0 = score.gather(0, prev.unsqueeze(0)).squeeze(0)
-        t0, t1 = self.times[prev], self.times[first]
+        hi = coarse[first]                                           # faulty grid index
+        lo = coarse[(first - 1).clamp(min=0)]                        # healthy grid index (or 0)
+        for _ in range(self.bisections):
+            mid = torch.div(lo + hi, 2, rounding_mode="floor")
+            bad = self._score_at(dk, mid) <= 0
+            hi = torch.where(bad & (mid > lo), mid, hi)
+            lo = torch.where(bad | (mid <= lo), lo, mid)
+        s0, s1 = self._score_at(dk, lo), self._score_at(dk, hi)
+        t0, t1 = self.times[lo], self.times[hi]
         frac = (s0 / (s0 - s1).clamp(min=1e-12)).clamp(0.0, 1.0)                             # linear zero
         crossing = torch.where(first > 0, t0 + frac * (t1 - t0), torch.zeros_like(t0))
         return torch.where(any_faulty, crossing, torch.full_like(crossing, float(self.times[-1])))

@@ -18,9 +18,11 @@ def rul_vs_expected(reference: torch.Tensor, estimates: dict[str, torch.Tensor],
     fig, axes = plt.subplots(1, len(estimates), figsize=(6 * len(estimates), 5), squeeze=False)
     for ax, (label, est) in zip(axes[0], estimates.items()):
         e = est[order].numpy()
+        low = (e[:, 1] - e[:, 0]).clip(min=0)     # a band may be degenerate (or NaN when untrustworthy)
+        high = (e[:, 2] - e[:, 1]).clip(min=0)
         ax.fill_between(x, reference[order, 0].numpy(), reference[order, 2].numpy(), color="0.85",
                         label="reference 5-95 % (physics model)")
-        ax.errorbar(x, e[:, 1], yerr=[e[:, 1] - e[:, 0], e[:, 2] - e[:, 1]], fmt="x", color="C0", ms=4,
+        ax.errorbar(x, e[:, 1], yerr=[low, high], fmt="x", color="C0", ms=4,
                     elinewidth=0.6, label=f"{label}: median and 5-95 %")
         top = max(float(x.max(initial=1.0)), 1.0)
         ax.plot([0, top], [0, top], "r--", lw=1, label="ideal")

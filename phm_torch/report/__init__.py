@@ -1,0 +1,5 @@
+"""Self-contained HTML reports (figures embedded, readable offline)."""
+
+from .html import HtmlReport
+
+__all__ = ["HtmlReport"]
