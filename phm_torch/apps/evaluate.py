@@ -67,7 +67,8 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     est = RULEstimator(damage, bundle.health_score, common.integer(cfg.rul.n_samples, "rul.n_samples", 2),
                        common.integer(cfg.rul.refine_iterations, "rul.refine_iterations", 0))
     det = DeterministicRUL(est)
-    deltas = det.calibrate(k, torch.Generator().manual_seed(int(cfg.seed)))
+    deltas = det.calibrate(k, torch.Generator().manual_seed(int(cfg.seed)),
+                           bracket=common.number(cfg.rul.delta_bracket, "rul.delta_bracket", 0.0, strict=True))
     mc = est.estimate(k, torch.Generator().manual_seed(int(cfg.seed) + 1))
     pipeline = OnlinePipeline.from_bundle(bundle, damage, deltas, det.direction,
                                           common.number(cfg.online.min_present, "online.min_present", 0.0, True))
@@ -84,7 +85,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     gauss = RULComparison(reference, mc.gaussian, full_flow.to(torch.float64)).metrics()
     metrics.update(rul_err_median_true_k_monte_carlo=gauss["rul_err_median_true_k"],
                    rul_band_coverage_true_k_monte_carlo=gauss["rul_band_coverage_true_k"],
-                   deltas=deltas.tolist(), estimate_wall_s=round(t_est, 3), reference_wall_s=round(t_ref, 3),
+                   deltas=deltas.tolist(), deltas_saturated=det.saturated_, estimate_wall_s=round(t_est, 3), reference_wall_s=round(t_ref, 3),
                    ood_fraction=float(ood.double().mean()))
     figures = {"rul_vs_expected": rul_vs_expected(reference, {"RUL from true k": true_k, "full online flow":
                                                               full_flow.to(torch.float64)},

@@ -145,6 +145,7 @@ class DeterministicRUL:
         sd = estimator.damage.noise_std
         self.direction = sd / sd.max().clamp(min=1e-300)
         self.deltas_: torch.Tensor | None = None
+        self.saturated_: list[bool] = []
 
     def rul(self, k0: torch.Tensor, delta: torch.Tensor | float) -> torch.Tensor:
         """Noise-free RUL [h] (B,) from k0 + delta u (delta scalar or (B,))."""
@@ -153,8 +154,12 @@ class DeterministicRUL:
         return self.estimator.first_crossing(k)[0]
 
     def calibrate(self, k_calib: torch.Tensor, generator: torch.Generator | None = None, iterations: int = 30,
-                  bracket: float = 0.5) -> torch.Tensor:
-        """Find delta_5, delta_50, delta_95 (fitted to ``deltas_``, (3,)) on calibration vectors (N, 8)."""
+                  bracket: float = 0.05) -> torch.Tensor:
+        """Find delta_5, delta_50, delta_95 (fitted to ``deltas_``, (3,)) on calibration vectors (N, 8).
+
+        ``bracket`` bounds |delta| (in units of the damage k); ``saturated_`` records, per quantile,
+        whether the bisection ended on the bracket (the target RUL not reachable within it).
+        """
         mc = self.estimator.estimate(k_calib, generator).empirical          # (N, 3)
         usable = mc[:, 1] > 0
         if not usable.any():
@@ -172,6 +177,7 @@ class DeterministicRUL:
                     hi = mid
             deltas.append(0.5 * (lo + hi))
         self.deltas_ = torch.tensor(deltas, dtype=torch.float64)
+        self.saturated_ = [bool(abs(abs(d) - bracket) < 1e-6 * bracket) for d in deltas]
         return self.deltas_
 
     def predict(self, k0: torch.Tensor) -> torch.Tensor:
