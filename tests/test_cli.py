@@ -1,4 +1,4 @@
-"""Command-line apps: ``phm-simulate`` (subprocess and in-process) and the ``phm-run`` job at tiny scale.
+"""Command-line apps: ``phm-simulate`` (subprocess and in-process) and the ``phm-cases`` job at tiny scale.
 
 The subprocess runs (each pays the torch/Hydra import, ~4 s) are started together in one module fixture.
 """
@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from phm_torch.apps.run import parse_cases, run_cases
+from phm_torch.apps.cases import parse_cases, run_cases
 from phm_torch.apps.simulate import simulate_to_csv
 from phm_torch.io import read_measurement
 
@@ -141,10 +141,10 @@ def test_bad_config_names_the_field(compose, tmp_path, overrides, message):
     assert not (tmp_path / "x.csv").exists()
 
 
-# ---- phm-run ----------------------------------------------------------------------------------------
+# ---- phm-cases --------------------------------------------------------------------------------------
 def test_run_job_tiny(compose, tmp_path):
     out = tmp_path / "run"
-    cfg = compose("run", ["fidelity=lf", "command.duration=0.02", f"out_dir={out}"])
+    cfg = compose("cases", ["fidelity=lf", "command.duration=0.02", f"out_dir={out}"])
     metrics, objects = run_cases(cfg)
     names = list(cfg.cases)
     assert objects["names"] == ["nominal", *names] and len(names) == 8
@@ -162,7 +162,7 @@ def test_run_job_tiny(compose, tmp_path):
 
 
 def test_run_job_custom_cases(compose, tmp_path):
-    cfg = compose("run", ["fidelity=lf", "command.duration=0.01", f"out_dir={tmp_path}", "plot=false",
+    cfg = compose("cases", ["fidelity=lf", "command.duration=0.01", f"out_dir={tmp_path}", "plot=false",
                           "~cases", "+cases={heavy: {k1: 1.0, k2: 1.0}, full: [0,0,0,0.2,0,0,0.5,0.5]}"])
     metrics, _ = run_cases(cfg)
     assert list(metrics["cases"]) == ["heavy", "full"]
@@ -170,7 +170,7 @@ def test_run_job_custom_cases(compose, tmp_path):
     assert metrics["cases"]["full"]["faults"][3] == 0.2
     assert metrics["cases"]["heavy"]["nrmse_current"] > 0
     assert not list(tmp_path.glob("*.png"))
-    cfg = compose("run", ["fidelity=lf", "command.duration=0.01", f"out_dir={tmp_path / 'sub'}", "plot=false",
+    cfg = compose("cases", ["fidelity=lf", "command.duration=0.01", f"out_dir={tmp_path / 'sub'}", "plot=false",
                           "only=[k8_gain_drift,k2_backlash]", "+cases.extra={k1: 0.1}"])
     metrics, _ = run_cases(cfg)
     assert list(metrics["cases"]) == ["k2_backlash", "k8_gain_drift"]
@@ -203,4 +203,4 @@ def test_console_scripts_registered():
     if "phm-simulate" not in eps:
         pytest.skip("phm_torch is not pip-installed (pip install -e .)")
     assert eps["phm-simulate"] == "phm_torch.apps.simulate:main"
-    assert eps["phm-run"] == "phm_torch.apps.run:main"
+    assert eps["phm-cases"] == "phm_torch.apps.cases:main"

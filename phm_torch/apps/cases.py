@@ -1,4 +1,4 @@
-"""``phm-run``: the main job. At this stage: the nominal actuator and a list of faulty ones, side by side.
+"""``phm-cases``: the virtual bench: the nominal actuator and a list of faulty ones, side by side.
 
 All cases (nominal first) are simulated in ONE batched simulator call (an HF call costs about the same
 for 1 or ~100 actuators). Written to ``out_dir``:
@@ -12,11 +12,11 @@ for 1 or ~100 actuators). Written to ``out_dir``:
 
 Examples::
 
-    phm-run                                             # HF, paper chirp, results/run
-    phm-run fidelity=lf out_dir=results/lf
-    phm-run 'only=[k1_friction,k8_gain_drift]'          # a subset of the configured cases
-    phm-run '+cases.k2_full={k2: 1.0}'                  # one more case
-    phm-run '~cases' '+cases={k1_full: {k1: 1.0}, k2_full: {k2: 1.0}}'   # other cases only
+    phm-cases                                             # HF, paper chirp, results/cases
+    phm-cases fidelity=lf out_dir=results/lf
+    phm-cases 'only=[k1_friction,k8_gain_drift]'          # a subset of the configured cases
+    phm-cases '+cases.k2_full={k2: 1.0}'                  # one more case
+    phm-cases '~cases' '+cases={k1_full: {k1: 1.0}, k2_full: {k2: 1.0}}'   # other cases only
 """
 
 from __future__ import annotations
@@ -149,8 +149,8 @@ def run_cases(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     return metrics, objects
 
 
-@hydra.main(config_path=common.CONFIG_PATH, config_name="run", version_base="1.3")
-@common.report_errors("phm-run")
+@hydra.main(config_path=common.CONFIG_PATH, config_name="cases", version_base="1.3")
+@common.report_errors("phm-cases")
 def main(cfg: DictConfig) -> None:
     metrics, objects = run_cases(cfg)
     summary = {name: {"nrmse_current": c["nrmse_current"], "nrmse_position": c["nrmse_position"]}

@@ -1,0 +1,20 @@
+"""Health assessment of an actuator from its LF frequency response (ema_reference.md §4)."""
+
+from .frequency_response import FrequencyResponse, LoopResponse, SineSweep
+from .health import Assessment, AssessmentFunction, HealthRequirements
+from .linear import LinearLoop, linear_loop
+from .margins import MARGIN_NAMES, Margins, margins
+
+__all__ = [
+           "MARGIN_NAMES",
+           "Assessment",
+           "AssessmentFunction",
+           "FrequencyResponse",
+           "HealthRequirements",
+           "LinearLoop",
+           "LoopResponse",
+           "Margins",
+           "SineSweep",
+           "linear_loop",
+           "margins",
+]

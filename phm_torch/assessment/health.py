@@ -1,0 +1,115 @@
+"""The assessment function phi_a(k): is the actuator still meeting its control requirements?
+
+ema_reference.md §4: measured on the LF model's frequency response, "healthy" when the phase margin
+and the gain margin reach their minima and the closed-loop -3 dB bandwidth is at least a set fraction
+of the nominal actuator's (measured the same way, so that the measurement's own bias cancels).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import torch
+
+from ..faults import as_fault_tensor
+from ..params import ActuatorParams
+from .frequency_response import FrequencyResponse, SineSweep
+from .margins import Margins, margins
+
+
+@dataclass(frozen=True)
+class HealthRequirements:
+    """Requirement thresholds.
+
+    Attributes:
+        phase_margin_deg: minimum phase margin [deg].
+        gain_margin_db: minimum gain margin [dB].
+        bandwidth_fraction: minimum closed-loop bandwidth as a fraction of the nominal one [-].
+    """
+
+    phase_margin_deg: float
+    gain_margin_db: float
+    bandwidth_fraction: float
+
+    def __post_init__(self) -> None:
+        for name in ("phase_margin_deg", "gain_margin_db", "bandwidth_fraction"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"assessment.requirements.{name} must be a finite number, got {value!r}")
+        if not 0.0 <= self.phase_margin_deg < 180.0:
+            raise ValueError(f"assessment.requirements.phase_margin_deg must be in [0, 180), "
+                             f"got {self.phase_margin_deg}")
+        if self.gain_margin_db < 0:
+            raise ValueError(f"assessment.requirements.gain_margin_db must be >= 0, got {self.gain_margin_db}")
+        if not 0.0 < self.bandwidth_fraction <= 1.0:
+            raise ValueError(f"assessment.requirements.bandwidth_fraction must be in (0, 1], "
+                             f"got {self.bandwidth_fraction}")
+
+    def healthy(self, m: Margins, nominal_bandwidth_hz: float) -> torch.Tensor:
+        """(B,) bool: every requirement met (a nan margin, i.e. not measurable, fails)."""
+        return ((m.phase_margin_deg >= self.phase_margin_deg) & (m.gain_margin_db >= self.gain_margin_db)
+                & (m.bandwidth_hz >= self.bandwidth_fraction * nominal_bandwidth_hz))
+
+
+@dataclass
+class Assessment:
+    """phi_a of a batch: ``healthy`` (B,) bool and the measured ``margins``."""
+
+    healthy: torch.Tensor
+    margins: Margins
+
+
+class AssessmentFunction:
+    """phi_a(k) from the LF model's measured frequency response.
+
+    Args:
+        params: actuator datasheet.
+        sweep: test signals (frequencies, amplitude, ...).
+        requirements: thresholds.
+        device: simulation device.
+
+    The nominal bandwidth is measured once, on first use, with an uncompiled batch of one.
+    """
+
+    def __init__(self, params: ActuatorParams, sweep: SineSweep, requirements: HealthRequirements,
+                 device: str | torch.device = "cpu"):
+        self.params = params
+        self.sweep = sweep
+        self.requirements = requirements
+        self.response = FrequencyResponse(params, sweep, device)
+        self._nominal: Margins | None = None
+        self.wall_s = 0.0          # time spent simulating [s]
+        self.vectors = 0           # fault vectors assessed
+
+    @property
+    def nominal(self) -> Margins:
+        """Margins of the nominal actuator (batch of one)."""
+        if self._nominal is None:
+            eager = FrequencyResponse(self.params, SineSweep(**{**vars(self.sweep), "compile": False}),
+                                      self.response.device)
+            k0 = torch.tensor([self.params.nominal_faults], dtype=torch.float64)
+            r = eager.measure(k0)
+            self._nominal = margins(r.frequencies, r.open_loop, r.closed_loop)
+        return self._nominal
+
+    @property
+    def nominal_bandwidth_hz(self) -> float:
+        bw = float(self.nominal.bandwidth_hz[0])
+        if not math.isfinite(bw):
+            f = self.sweep.frequencies
+            raise ValueError(f"assessment.sweep.frequencies: the nominal bandwidth is not on the grid "
+                             f"[{f[0]}, {f[-1]}] Hz (got {bw}); extend the grid")
+        return bw
+
+    def __call__(self, faults: torch.Tensor) -> Assessment:
+        """Assess (B, 8) fault vectors."""
+        k = as_fault_tensor(faults, torch.float64, self.response.device)
+        bw0 = self.nominal_bandwidth_hz
+        t0 = time.perf_counter()
+        r = self.response.measure(k)
+        m = margins(r.frequencies, r.open_loop, r.closed_loop)
+        self.wall_s += time.perf_counter() - t0
+        self.vectors += k.shape[0]
+        return Assessment(self.requirements.healthy(m, bw0), m)

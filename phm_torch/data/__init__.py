@@ -1,0 +1,6 @@
+"""Training data: importance sampling, the dataset store, its generation and its LightningDataModule."""
+
+from .sampling import ImportanceSampler
+from .store import DatasetStore
+
+__all__ = ["DatasetStore", "ImportanceSampler"]

@@ -1,0 +1,42 @@
+"""Learned surrogates of the seed paper: POD layer, sample-time selectors, differentiable gappy POD,
+FDI network (Levenberg-Marquardt or Adam, optionally end to end), health classifiers, metrics, and
+the :class:`SurrogateBundle` that the online pipeline loads."""
+
+from .augment import SignalAugment, add_noise, drop_samples, rms
+from .bundle import SurrogateBundle
+from .classifiers import CLASSIFIERS, RBFSVM, HealthClassifier, PolynomialSVM, build_classifier
+from .fdi_mlp import FDIMLP
+from .gappy_pod import GappyPOD
+from .levenberg_marquardt import LevenbergMarquardt
+from .lightning_fdi import FDIModule, KeepBest
+from .metrics import confusion, err_alpha, err_k, err_k_per_signal, err_k_weights, fdi_mae
+from .pod import POD
+from .selectors import SELECTORS, Selector, build_selector
+
+__all__ = [
+           "CLASSIFIERS",
+           "FDIMLP",
+           "POD",
+           "RBFSVM",
+           "SELECTORS",
+           "FDIModule",
+           "GappyPOD",
+           "HealthClassifier",
+           "KeepBest",
+           "LevenbergMarquardt",
+           "PolynomialSVM",
+           "Selector",
+           "SignalAugment",
+           "SurrogateBundle",
+           "add_noise",
+           "build_classifier",
+           "build_selector",
+           "confusion",
+           "drop_samples",
+           "err_alpha",
+           "err_k",
+           "err_k_per_signal",
+           "err_k_weights",
+           "fdi_mae",
+           "rms",
+]

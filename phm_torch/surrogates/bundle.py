@@ -1,0 +1,208 @@
+"""The trained surrogates as one object: what the online pipeline (and its export) loads.
+
+``SurrogateBundle`` holds the POD basis, the selected sample indices (as a :class:`GappyPOD` layer), the
+FDI network and the health classifier, and answers the online questions:
+
+* ``bundle.compress(signals (B, n_e)) -> samples (B, n_w)``: keep the selected samples of full records;
+* ``bundle.coefficients(samples, mask=None) -> (alpha (B, n_m), residual (B,) [A])``: gappy POD;
+* ``bundle.fdi(samples, mask=None) -> k_hat (B, 8)`` in [0, 1]: the fault vector (also ``forward``);
+* ``bundle.diagnose(samples, mask=None) -> dict``: k_hat, alpha, residual and the ``out_of_distribution``
+  flag (residual above ``residual_threshold``);
+* ``bundle.health_score(k (B, 8)) -> f (B,)`` float64: **positive = healthy**, negative = faulty, zero on
+  the learned boundary (the classifier's score minus its calibrated ``threshold``); smooth in k (RUL
+  stopping event); ``bundle.is_healthy(k)`` is f > 0.
+
+Samples are the raw measured current [A] at ``bundle.sample_times`` [s] (indices ``bundle.indices``
+into the 20 kHz record of n_e samples); NaN marks a missing sample.
+
+File format (``save``/``load``): one ``torch.save`` file holding only plain containers of str, int,
+float, bool, None and tensors, read back with ``torch.load(weights_only=True)`` (never unpickled)::
+
+    {"format": "phm_torch.surrogate_bundle", "version": 1,
+     "meta": {"n_samples", "n_modes", "n_points", "n_hidden", "input_scaling", "sample_rate", "signal", "unit",
+              "fault_names", "health_convention", "selector": {"name", "params"},
+              "classifier": {"name", "params"}, "gappy_ridge", "phm_torch_version", "extra": {...}},
+     "tensors": {"pod.mean_", "pod.modes_", "pod.singular_values_", "pod.energy_", "indices",
+                 "sample_times", "residual_threshold", "network.<state_dict>", "classifier.<state_dict>"}}
+"""
+
+from __future__ import annotations
+
+import io
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from .. import __version__
+from ..faults import FAULT_NAMES
+from ..io.atomic import atomic_open
+from .classifiers import CLASSIFIERS, HealthClassifier
+from .fdi_mlp import FDIMLP
+from .gappy_pod import GappyPOD
+from .pod import POD
+
+FORMAT = "phm_torch.surrogate_bundle"
+VERSION = 1
+HEALTH_CONVENTION = "health_score > 0: healthy; < 0: faulty"
+COMPARED = ("n_samples", "n_modes", "n_points", "n_hidden")
+
+
+class SurrogateBundle(nn.Module):
+    """POD + gappy layer + FDI network + health classifier (see the module docstring for the API).
+
+    Args:
+        pod: fitted :class:`POD` (n_e samples, n_m modes).
+        indices: (n_w,) selected sample indices.
+        network: trained :class:`FDIMLP` with n_m inputs.
+        classifier: fitted :class:`HealthClassifier`.
+        sample_rate: acquisition rate [Hz] (sample i is at t = i / sample_rate).
+        residual_threshold: gappy residual [A] above which a signal is flagged out of distribution.
+        gappy_ridge: ridge of the gappy layer.
+        meta: extra JSON-able provenance (selector, config, data) kept in ``meta["extra"]``.
+    """
+
+    def __init__(self, pod: POD, indices: torch.Tensor, network: FDIMLP, classifier: HealthClassifier,
+                 sample_rate: float, residual_threshold: float = float("inf"), gappy_ridge: float = 0.0,
+                 selector: Mapping[str, Any] | None = None, meta: Mapping[str, Any] | None = None):
+        super().__init__()
+        if network.n_inputs != pod.n_modes:
+            raise ValueError(f"network has {network.n_inputs} inputs but the POD has {pod.n_modes} modes")
+        self.pod = pod
+        self.gappy = GappyPOD(pod.modes_, pod.mean_, indices, ridge=gappy_ridge)
+        self.network = network
+        self.classifier = classifier
+        self.sample_rate = float(sample_rate)
+        self.selector_info = dict(selector or {})
+        self.extra = dict(meta or {})
+        self.register_buffer("sample_times", self.gappy.indices.to(torch.float64) / self.sample_rate)
+        self.register_buffer("residual_threshold", torch.tensor(float(residual_threshold)))
+
+    # ---- online API -------------------------------------------------------------------------------
+    @property
+    def indices(self) -> torch.Tensor:
+        return self.gappy.indices
+
+    def compress(self, signals: torch.Tensor) -> torch.Tensor:
+        """Selected samples (B, n_w) of full records (B, n_e) [A]."""
+        if signals.shape[-1] != self.pod.mean_.shape[0]:
+            raise ValueError(f"signals must have {self.pod.mean_.shape[0]} samples, got shape {tuple(signals.shape)}")
+        return self.gappy.select(signals)
+
+    def coefficients(self, samples: torch.Tensor, mask: torch.Tensor | None = None
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Gappy POD: alpha (B, n_m) and residual (B,) [A] from samples (B, n_w) [A]."""
+        return self.gappy(samples, mask)
+
+    def fdi(self, samples: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """Estimated fault vector k_hat (B, 8) in [0, 1] from samples (B, n_w) [A]."""
+        alpha, _ = self.gappy(samples, mask)
+        return self.network(alpha)
+
+    def forward(self, samples: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """Same as :meth:`fdi` (the exported entry point)."""
+        return self.fdi(samples, mask)
+
+    def diagnose(self, samples: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """k_hat (B, 8), alpha (B, n_m), residual (B,) [A], out_of_distribution (B,) bool."""
+        alpha, residual = self.gappy(samples, mask)
+        return {"k_hat": self.network(alpha), "alpha": alpha, "residual": residual,
+                "out_of_distribution": residual > self.residual_threshold}
+
+    def health_score(self, k: torch.Tensor) -> torch.Tensor:
+        """Score f(k) - threshold (B,) float64 for fault vectors (B, 8): > 0 healthy, < 0 faulty."""
+        return self.classifier(k) - self.classifier.threshold
+
+    def is_healthy(self, k: torch.Tensor) -> torch.Tensor:
+        """(B,) bool, the classifier's decision (f(k) > its threshold)."""
+        return self.classifier.predict(k)
+
+    # ---- persistence ------------------------------------------------------------------------------
+    def metadata(self) -> dict[str, Any]:
+        """The ``meta`` block of the file (plain JSON-able values)."""
+        return {"n_samples": int(self.pod.mean_.shape[0]), "n_modes": self.pod.n_modes,
+                "n_points": self.gappy.n_points, "n_hidden": self.network.n_hidden,
+                "input_scaling": self.network.input_scaling, "sample_rate": self.sample_rate,
+                "signal": "current", "unit": "A", "fault_names": list(FAULT_NAMES),
+                "health_convention": HEALTH_CONVENTION, "selector": self.selector_info,
+                "classifier": {"name": self.classifier.name, "params": self.classifier.get_params()},
+                "gappy_ridge": self.gappy.ridge, "phm_torch_version": __version__, "extra": self.extra}
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the bundle atomically to ``path`` (conventionally ``surrogates.pt``)."""
+        tensors = {f"pod.{k}": getattr(self.pod, k).detach().cpu()
+                   for k in ("mean_", "modes_", "singular_values_", "energy_")}
+        tensors.update(indices=self.indices.cpu(), sample_times=self.sample_times.cpu(),
+                       residual_threshold=self.residual_threshold.cpu())
+        tensors.update({f"network.{k}": v.detach().cpu() for k, v in self.network.state_dict().items()})
+        tensors.update({f"classifier.{k}": v.detach().cpu() for k, v in self.classifier.state_dict().items()})
+        buf = io.BytesIO()
+        torch.save({"format": FORMAT, "version": VERSION, "meta": self.metadata(), "tensors": tensors}, buf)
+        path = Path(path)
+        with atomic_open(path, "wb") as fh:
+            fh.write(buf.getvalue())
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, expect: Mapping[str, Any] | None = None,
+             map_location: str | torch.device = "cpu") -> SurrogateBundle:
+        """Read a bundle written by :meth:`save` (``weights_only=True``).
+
+        Args:
+            expect: values the caller's configuration requires, e.g. ``{"n_modes": 22, "n_points": 30}``
+                (keys among n_samples, n_modes, n_points, n_hidden); a mismatch is a ValueError naming
+                the field (a checkpoint from another configuration).
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"surrogate bundle {str(path)!r} does not exist")
+        try:
+            blob = torch.load(path, map_location=map_location, weights_only=True)
+        except Exception as e:  # noqa: BLE001 - any unreadable file is the same user error
+            raise ValueError(f"{path}: not a readable surrogate bundle ({type(e).__name__}: {e})") from None
+        if not isinstance(blob, dict) or blob.get("format") != FORMAT:
+            raise ValueError(f"{path}: not a surrogate bundle (format {blob.get('format') if isinstance(blob, dict) else None!r}, "
+                             f"expected {FORMAT!r})")
+        if blob.get("version") != VERSION:
+            raise ValueError(f"{path}: bundle version {blob.get('version')!r} is not supported (expected {VERSION})")
+        meta, t = blob.get("meta"), blob.get("tensors")
+        required = (*COMPARED, "input_scaling", "sample_rate", "selector", "classifier", "gappy_ridge", "extra")
+        missing = [k for k in required if not isinstance(meta, dict) or k not in meta]
+        if missing or not isinstance(t, dict):
+            raise ValueError(f"{path}: incomplete surrogate bundle (meta lacks {missing})")
+        for key, want in (expect or {}).items():
+            if key not in COMPARED:
+                raise ValueError(f"expect: unknown field {key!r}; known: {list(COMPARED)}")
+            if want is not None and meta[key] != want:
+                raise ValueError(f"{path}: bundle from another configuration: {key}={meta[key]} in the file, "
+                                 f"{want} expected")
+        n_m = meta["n_modes"]
+        pod = POD(n_m)
+        for k in ("mean_", "modes_", "singular_values_", "energy_"):
+            setattr(pod, k, t[f"pod.{k}"])
+        if tuple(pod.modes_.shape) != (meta["n_samples"], n_m):
+            raise ValueError(f"{path}: pod.modes_ has shape {tuple(pod.modes_.shape)}, meta says "
+                             f"({meta['n_samples']}, {n_m})")
+        network = FDIMLP(n_m, meta["n_hidden"], input_scaling=meta["input_scaling"])
+        network.load_state_dict(_prefixed(t, "network."))
+        spec = meta["classifier"]
+        if spec["name"] not in CLASSIFIERS:
+            raise ValueError(f"{path}: unknown classifier {spec['name']!r}; known: {sorted(CLASSIFIERS)}")
+        classifier = CLASSIFIERS[spec["name"]](**spec["params"])
+        state = _prefixed(t, "classifier.")
+        known = dict(classifier.named_buffers())
+        if set(state) != set(known):
+            raise ValueError(f"{path}: classifier tensors {sorted(state)} do not match {spec['name']}'s "
+                             f"{sorted(known)}")
+        for k, v in state.items():  # fitted buffers may have other shapes than the unfitted twin's
+            setattr(classifier, k, v)
+        bundle = cls(pod, t["indices"], network, classifier, meta["sample_rate"],
+                     float(t["residual_threshold"]), meta["gappy_ridge"], meta["selector"], meta["extra"])
+        return bundle.eval()
+
+
+def _prefixed(tensors: Mapping[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
+    return {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}

@@ -1,0 +1,8 @@
+"""Health classifiers: smooth scores f(k) > 0 for a healthy actuator (surrogates of phi_a(k))."""
+
+from .base import HealthClassifier
+from .polynomial_svm import PolynomialSVM
+from .rbf_svm import RBFSVM
+from .registry import CLASSIFIERS, build_classifier
+
+__all__ = ["CLASSIFIERS", "RBFSVM", "HealthClassifier", "PolynomialSVM", "build_classifier"]

@@ -1,0 +1,79 @@
+"""Health-classifier interface: a smooth score f(k) of the fault vector, positive = healthy.
+
+The score replaces the assessment function phi_a(k) (seed paper, "Offline: learning a model for the
+assessment of the health status"): sign(f(k)) is the predicted label, and f itself, being smooth and
+cheap, can serve as the event function that stops the damage-propagation integration (RUL) where it
+crosses zero. Classifiers are ``nn.Module``s whose ``forward`` is the score, so they move to a device and
+export with the rest of the surrogates; ``fit`` is plain Python (float64, deterministic).
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any, ClassVar
+
+import torch
+from torch import nn
+
+N_FAULTS = 8
+
+
+def check_training_set(k: torch.Tensor, healthy: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Validated float64 (N, 8) fault vectors and float64 (N,) labels +1 (healthy) / -1 (faulty)."""
+    if k.ndim != 2 or k.shape[1] != N_FAULTS:
+        raise ValueError(f"classifier: k must be (N, {N_FAULTS}), got {tuple(k.shape)}")
+    if healthy.shape != k.shape[:1]:
+        raise ValueError(f"classifier: labels must be ({k.shape[0]},) like k, got {tuple(healthy.shape)}")
+    if not torch.isfinite(k).all():
+        raise ValueError("classifier: k contains NaN or inf")
+    h = healthy.bool()
+    if bool(h.all()) or not bool(h.any()):
+        raise ValueError(f"classifier: the training labels must contain both classes, got {int(h.sum())} healthy "
+                         f"of {h.numel()}")
+    return k.to(torch.float64), torch.where(h, 1.0, -1.0).to(torch.float64)
+
+
+class HealthClassifier(nn.Module, abc.ABC):
+    """Base class: ``fit(k, healthy)``, ``forward(k) -> score`` (B,), ``predict(k) -> healthy`` (B,) bool.
+
+    Subclasses set ``name``, implement :meth:`fit`, :meth:`forward` and :meth:`get_params` (constructor
+    arguments, so that the registry can rebuild an unfitted twin and load the fitted buffers into it).
+    Every fitted quantity is a buffer; ``threshold`` (buffer, 0 unless :meth:`calibrate` moved it) shifts
+    the decision: healthy iff f(k) > threshold, so f(k) - threshold is the score with the sign convention.
+    """
+
+    name: ClassVar[str] = ""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.n_features = N_FAULTS
+        self.register_buffer("threshold", torch.zeros((), dtype=torch.float64))
+
+    @abc.abstractmethod
+    def fit(self, k: torch.Tensor, healthy: torch.Tensor) -> HealthClassifier:
+        """Fit to fault vectors k (N, 8) in [0, 1] and labels ``healthy`` (N,) bool; returns self."""
+
+    @abc.abstractmethod
+    def get_params(self) -> dict[str, Any]:
+        """Constructor arguments."""
+
+    @torch.no_grad()
+    def calibrate(self, k: torch.Tensor, healthy: torch.Tensor, max_missed_fault_rate: float) -> HealthClassifier:
+        """Raise ``threshold`` (never lower it below 0) until at most ``max_missed_fault_rate`` of the faulty
+        vectors of (k (N, 8), healthy (N,)) score above it: fewer missed faults for more false alarms."""
+        if not 0.0 <= max_missed_fault_rate < 1.0:
+            raise ValueError(f"calibration.max_missed_fault_rate must be in [0, 1), got {max_missed_fault_rate!r}")
+        faulty = self(k)[~healthy.bool()]
+        if faulty.numel() == 0:
+            raise ValueError("classifier.calibrate: no faulty vector in the calibration set")
+        level = torch.quantile(faulty.to(torch.float64), 1.0 - max_missed_fault_rate)
+        self.threshold = torch.clamp(level, min=0.0).to(self.threshold)
+        return self
+
+    def predict(self, k: torch.Tensor) -> torch.Tensor:
+        """(B,) True where the score says healthy."""
+        return self(k) > self.threshold
+
+    def check_input(self, k: torch.Tensor) -> None:
+        if k.dim() != 2 or k.shape[1] != self.n_features:
+            raise ValueError(f"k must be (B, {self.n_features}), got {list(k.shape)}")

@@ -1,0 +1,104 @@
+"""Evaluation of trained surrogates on a split: the figures of ``metrics.json``. Fractions, not percent."""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+from .augment import add_noise, drop_samples, rms
+from .classifiers import HealthClassifier
+from .fdi_mlp import FDIMLP
+from .gappy_pod import GappyPOD
+from .metrics import confusion, err_alpha, err_k, err_k_per_signal, fdi_mae
+from .pod import POD
+
+
+def quartiles(x: torch.Tensor) -> dict[str, float]:
+    q = torch.quantile(x.to(torch.float64), torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64))
+    return {"median": float(q[1]), "iqr": float(q[2] - q[0]), "q1": float(q[0]), "q3": float(q[2])}
+
+
+@torch.no_grad()
+def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tensor, k: torch.Tensor, noise: float,
+                 missing: int, seed: int) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+    """Coefficient and fault-identification errors on full records ``current`` (n, n_e) with faults k (n, 8):
+    clean, with relative noise ``noise`` (fraction of each signal's RMS current) and with ``missing``
+    random samples missing per signal (skipped, its metrics None, when fewer samples than modes would
+    remain). Returns (metrics, arrays for plots)."""
+    alpha_full = pod(current)
+    samples = gappy.select(current)
+    gen = torch.Generator().manual_seed(seed)
+    cases = {"": samples, "_noise": add_noise(samples, rms(current), noise, gen)}
+    out: dict[str, Any] = {}
+    if gappy.n_points - missing >= gappy.n_modes or gappy.ridge > 0:
+        cases["_missing"] = drop_samples(samples, missing, gen)
+    else:
+        out.update(err_alpha_median_missing=None, err_alpha_iqr_missing=None, err_k_missing=None,
+                   fdi_mae_missing=None)
+    arrays: dict[str, torch.Tensor] = {"k": k, "alpha_full": alpha_full}
+    for suffix, s in cases.items():
+        alpha, resid = gappy(s)
+        k_hat = network(alpha)
+        ea = quartiles(err_alpha(alpha, alpha_full))
+        out[f"err_alpha_median{suffix}"], out[f"err_alpha_iqr{suffix}"] = ea["median"], ea["iqr"]
+        out[f"err_k{suffix}"] = err_k(k_hat, k)
+        arrays[f"k_hat{suffix}"] = k_hat
+        arrays[f"err_alpha{suffix}"] = err_alpha(alpha, alpha_full)
+        arrays[f"residual{suffix}"] = resid
+    out["fdi_mae"] = fdi_mae(arrays["k_hat"], k)
+    out["fdi_mae_weighted"] = fdi_mae(arrays["k_hat"], k, weighted=True)
+    out["err_k_median_per_signal"] = float(err_k_per_signal(arrays["k_hat"], k).median())
+    out["fdi_mae_noise"] = fdi_mae(arrays["k_hat_noise"], k)
+    if "k_hat_missing" in arrays:
+        out["fdi_mae_missing"] = fdi_mae(arrays["k_hat_missing"], k)
+    return out, arrays
+
+
+@torch.no_grad()
+def evaluate_classifier(classifier: HealthClassifier, k: torch.Tensor, healthy: torch.Tensor,
+                        k_hat: torch.Tensor | None = None) -> dict[str, Any]:
+    """Confusion of the classifier on the actual k, and (``k_hat`` given) on the FDI estimates."""
+    conf = confusion(classifier.predict(k), healthy)
+    out: dict[str, Any] = {"classifier_accuracy": conf["accuracy"], "missed_fault_rate": conf["missed_fault_rate"],
+                           "false_alarm_rate": conf["false_alarm_rate"], "classifier_confusion": conf}
+    if k_hat is not None:
+        chain = confusion(classifier.predict(k_hat), healthy)
+        out.update(chain_accuracy=chain["accuracy"], chain_missed_fault_rate=chain["missed_fault_rate"],
+                   chain_false_alarm_rate=chain["false_alarm_rate"])
+    return out
+
+
+def latency_us(fn: Callable[[], Any], repeats: int, warmup: int = 50) -> float:
+    """Median wall time of ``fn()`` [us] over ``repeats`` calls (after ``warmup`` calls)."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter_ns()
+        fn()
+        times.append(time.perf_counter_ns() - t0)
+    return statistics.median(times) / 1e3
+
+
+@torch.inference_mode()
+def measure_latency(gappy: GappyPOD, network: FDIMLP, classifier: HealthClassifier, samples: torch.Tensor,
+                    repeats: int) -> dict[str, float]:
+    """Single-signal latencies [us] on one thread: gappy POD + FDI network, and the health score."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        one = samples[:1].contiguous()
+        k = network(gappy(one)[0])
+
+        def fdi() -> torch.Tensor:
+            return network(gappy(one)[0])
+
+        return {"fdi_latency_us_p50": latency_us(fdi, repeats),
+                "gappy_latency_us_p50": latency_us(lambda: gappy(one), repeats),
+                "health_score_latency_us_p50": latency_us(lambda: classifier(k), repeats)}
+    finally:
+        torch.set_num_threads(threads)

@@ -1,0 +1,75 @@
+"""Accuracy measures of the surrogates, as the seed paper defines them. Fractions, not percent.
+
+* ``err_alpha`` (paper eq. for err_alpha): per signal, the RMS difference between the gappy and the
+  full-projection POD coefficients divided by the range (max - min) of that signal's full coefficients.
+  The paper's formula omits the square inside the root; the RMS is meant and used here.
+* ``err_k`` (paper eq. for err_k): sqrt(mean over signals and the 8 parameters of w_i (k_est - k_act)^2),
+  with w_i = 1 except w_7 = k6_actual (the eccentricity-phase error weighted by the actual eccentricity).
+  The paper's formula also omits the square; again the root-mean-square is meant and used.
+* Classifier rates: "healthy" is the positive class of the score; a *missed fault* is a faulty
+  actuator classified healthy (rate over the faulty ones), a *false alarm* a healthy actuator
+  classified faulty (rate over the healthy ones).
+"""
+
+from __future__ import annotations
+
+import torch
+
+ECC_AMPLITUDE, ECC_PHASE = 5, 6  # 0-based columns of k6 (eccentricity) and k7 (its phase)
+
+
+def err_alpha(alpha_gappy: torch.Tensor, alpha_full: torch.Tensor) -> torch.Tensor:
+    """(B,) normalised RMS error of gappy coefficients (B, n_m) against the full projection (B, n_m)."""
+    if alpha_gappy.shape != alpha_full.shape or alpha_full.ndim != 2:
+        raise ValueError(f"alpha_gappy {tuple(alpha_gappy.shape)} and alpha_full {tuple(alpha_full.shape)} "
+                         f"must both be (B, n_m)")
+    span = (alpha_full.amax(-1) - alpha_full.amin(-1)).clamp(min=torch.finfo(alpha_full.dtype).tiny)
+    return (alpha_gappy - alpha_full).pow(2).mean(-1).sqrt() / span
+
+
+def err_k_weights(k_actual: torch.Tensor) -> torch.Tensor:
+    """(B, 8) weights w_i: ones, with w_7 = k6_actual."""
+    w = torch.ones_like(k_actual)
+    w[:, ECC_PHASE] = k_actual[:, ECC_AMPLITUDE]
+    return w
+
+
+def _check_k(k_est: torch.Tensor, k_act: torch.Tensor) -> None:
+    if k_est.shape != k_act.shape or k_act.ndim != 2 or k_act.shape[1] != 8:
+        raise ValueError(f"k_est {tuple(k_est.shape)} and k_act {tuple(k_act.shape)} must both be (B, 8)")
+
+
+def err_k(k_est: torch.Tensor, k_act: torch.Tensor) -> float:
+    """The paper's err_k over a set of signals (fraction of the [0, 1] range of k)."""
+    _check_k(k_est, k_act)
+    return float((err_k_weights(k_act) * (k_est - k_act).pow(2)).mean().sqrt())
+
+
+def err_k_per_signal(k_est: torch.Tensor, k_act: torch.Tensor) -> torch.Tensor:
+    """(B,) err_k of each signal alone."""
+    _check_k(k_est, k_act)
+    return (err_k_weights(k_act) * (k_est - k_act).pow(2)).mean(-1).sqrt()
+
+
+def fdi_mae(k_est: torch.Tensor, k_act: torch.Tensor, weighted: bool = False) -> list[float]:
+    """Mean |k_est - k_act| of each of the 8 parameters; ``weighted`` multiplies the k7 error by k6."""
+    _check_k(k_est, k_act)
+    err = (k_est - k_act).abs()
+    if weighted:
+        err = err * err_k_weights(k_act)
+    return err.mean(0).tolist()
+
+
+def confusion(predicted_healthy: torch.Tensor, healthy: torch.Tensor) -> dict[str, float | int]:
+    """Confusion counts and rates of a health classifier; both arguments (B,) bool."""
+    if predicted_healthy.shape != healthy.shape or healthy.ndim != 1:
+        raise ValueError(f"predicted {tuple(predicted_healthy.shape)} and actual {tuple(healthy.shape)} "
+                         f"labels must both be (B,)")
+    p, h = predicted_healthy.bool(), healthy.bool()
+    tp, tn = int((p & h).sum()), int((~p & ~h).sum())
+    missed, false_alarm = int((p & ~h).sum()), int((~p & h).sum())
+    n_h, n_f = int(h.sum()), int((~h).sum())
+    return {"healthy_correct": tp, "faulty_correct": tn, "missed_faults": missed, "false_alarms": false_alarm,
+            "n_healthy": n_h, "n_faulty": n_f, "accuracy": (tp + tn) / max(h.numel(), 1),
+            "missed_fault_rate": missed / n_f if n_f else 0.0,
+            "false_alarm_rate": false_alarm / n_h if n_h else 0.0}

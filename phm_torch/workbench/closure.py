@@ -1,0 +1,248 @@
+"""Neural closure: a small MLP of the state added to the torque (or voltage) equation, fitted through the
+simulator, for a residual that no library effect explains.
+
+Inputs (features) f: sin/cos(h theta_m) for the mechanical harmonics h of the rotor angle (the electrical
+harmonics are h / p), the motor speed, the driven-pair current and the surface angle, each scaled to
+O(1). Output: T = s (w_0 + w_lin . f + w_hid . tanh(W f + b)) [N m] (or [V]), s = ``output_scale``.
+The hidden layer (W, b) is random and fixed (seeded); the output weights w are fitted through the
+simulator by batched Gauss-Newton with a ridge prior, the calibrated model frozen (a random-feature
+network: its output is linear in w, so the fit converges in a few iterations, each one batched simulator
+call of n_weights + 1 rows). The closure is an
+:class:`~phm_torch.effects.Effect` whose hook is the network, so the simulator is unchanged.
+
+Attribution: mean |dT/df_j| * std(f_j) over the fitted trajectory (input-gradient x input spread, by
+autograd through the network), summed per input group (one group per harmonic: its sin and cos) and
+normalised to shares. The dominant groups are the lead for writing the missing effect.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import torch
+from torch import nn
+
+from ..effects import EFFECTS, Effect, EffectContext
+from ..simulator import EMASimulator
+from .calibrate import Calibration, FitSettings, fit_models
+from .model import threads
+from .parameters import FreeParameter, ParameterSpace
+
+log = logging.getLogger(__name__)
+
+EQUATIONS = ("torque", "voltage")
+
+
+class ClosureNet(nn.Module):
+    """Random-feature MLP; ``forward(features (B, d), weights (B, n_weights) or (n_weights,)) -> (B,)``.
+
+    Args:
+        harmonics: mechanical harmonic orders of theta_m used as inputs.
+        hidden: number of hidden tanh units.
+        speed_scale [rad/s], current_scale [A], angle_scale [rad]: input normalisers.
+        equation: ``torque`` (motor shaft [N m]) or ``voltage`` (driven-pair voltage error [V]).
+        output_scale: unit of the output weights [N m] or [V].
+        seed: seeds the hidden layer.
+    """
+
+    def __init__(self, harmonics: Sequence[int], hidden: int, speed_scale: float, current_scale: float,
+                 angle_scale: float, equation: str = "torque", output_scale: float = 1e-3, seed: int = 0):
+        super().__init__()
+        if equation not in EQUATIONS:
+            raise ValueError(f"closure.equation must be one of {list(EQUATIONS)}, got {equation!r}")
+        if not harmonics or any(int(h) != h or h < 1 for h in harmonics):
+            raise ValueError(f"closure.harmonics must be positive integers, got {list(harmonics)}")
+        if hidden < 0:
+            raise ValueError(f"closure.hidden must be >= 0, got {hidden}")
+        for name, v in (("speed_scale", speed_scale), ("current_scale", current_scale),
+                        ("angle_scale", angle_scale), ("output_scale", output_scale)):
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"closure.{name} must be > 0, got {v!r}")
+        self.harmonics = [int(h) for h in harmonics]
+        self.equation, self.output_scale = equation, float(output_scale)
+        self.scales = (float(speed_scale), float(current_scale), float(angle_scale))
+        d = 2 * len(self.harmonics) + 3
+        gen = torch.Generator().manual_seed(int(seed))
+        self.register_buffer("w1", torch.randn(hidden, d, generator=gen, dtype=torch.float64) / math.sqrt(d))
+        self.register_buffer("b1", 0.5 * torch.randn(hidden, generator=gen, dtype=torch.float64))
+        self.n_features, self.hidden = d, int(hidden)
+        self.n_weights = 1 + d + self.hidden
+
+    def feature_names(self) -> list[str]:
+        names = []
+        for h in self.harmonics:
+            names += [f"sin({h} theta_m)", f"cos({h} theta_m)"]
+        return [*names, "motor speed", "current", "surface angle"]
+
+    def groups(self) -> dict[str, list[int]]:
+        """Input groups for attribution: one per harmonic (sin and cos), then speed, current, surface angle."""
+        out = {f"theta_m harmonic {h}": [2 * i, 2 * i + 1] for i, h in enumerate(self.harmonics)}
+        d = self.n_features
+        out.update({"motor speed": [d - 3], "current": [d - 2], "surface angle": [d - 1]})
+        return out
+
+    def features(self, theta_m: torch.Tensor, omega_m: torch.Tensor, current: torch.Tensor,
+                 theta_u: torch.Tensor) -> torch.Tensor:
+        """(B,) states -> (B, d) features."""
+        cols = []
+        for h in self.harmonics:
+            cols += [torch.sin(h * theta_m), torch.cos(h * theta_m)]
+        ws, cs, us = self.scales
+        cols += [omega_m / ws, current / cs, theta_u / us]
+        return torch.stack(cols, dim=-1)
+
+    def forward(self, feats: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        d = self.n_features
+        out = weights[..., 0] + (feats * weights[..., 1:1 + d]).sum(-1)
+        if self.hidden:
+            # broadcast multiply-sum, not a matmul: a BLAS call per substep on (B, d) x (d, H) costs ~100x
+            # more when its threads compete for the cores (measured 1.6 ms vs 30 us on a loaded 2-core host)
+            pre = (feats.unsqueeze(-2) * self.w1).sum(-1) + self.b1
+            out = out + (torch.tanh(pre) * weights[..., 1 + d:]).sum(-1)
+        return out
+
+
+class NeuralClosure(Effect):
+    """The closure as an effect (not registered in the library): per-sample output weights (B, n_weights).
+
+    With ``trace`` a list, the features of sample 0 are appended at every substep (for attribution).
+    """
+
+    name = "neural_closure"
+    explains = "a learned torque or voltage term of the state, for what no library effect explains"
+
+    def __init__(self, net: ClosureNet, weights: torch.Tensor, trace: list | None = None):
+        super().__init__()
+        self.net = net
+        self.values = {"weights": weights}
+        self.trace = trace
+
+    def _output(self, ctx: EffectContext) -> torch.Tensor:
+        feats = self.net.features(ctx.theta_m, ctx.omega_m, ctx.current, ctx.theta_u)
+        if self.trace is not None:
+            self.trace.append(feats[0].detach().clone())
+        return self.net.output_scale * self.net(feats, self.values["weights"])
+
+    def motor_torque(self, ctx: EffectContext) -> torch.Tensor | float:
+        return self._output(ctx) if self.net.equation == "torque" else 0.0
+
+    def voltage_error(self, ctx: EffectContext) -> torch.Tensor | float:
+        return self._output(ctx) if self.net.equation == "voltage" else 0.0
+
+
+@dataclass
+class Attribution:
+    """Shares of the closure output's sensitivity per input group (sum 1), largest first, and its RMS."""
+
+    shares: dict[str, float]
+    output_rms: float
+    unit: str
+
+
+def attribute(net: ClosureNet, weights: torch.Tensor, feats: torch.Tensor) -> Attribution:
+    """Input-gradient attribution of the fitted closure over trajectory features (T, d)."""
+    with torch.enable_grad():
+        f = feats.detach().clone().requires_grad_(True)
+        y = net(f, weights.detach().to(f.dtype))
+        (grad,) = torch.autograd.grad(y.sum(), f)
+    score = grad.abs().mean(0) * f.detach().std(0)
+    total = {g: float(score[idx].sum()) for g, idx in net.groups().items()}
+    s = sum(total.values())
+    shares = {g: v / s if s > 0 else 0.0 for g, v in sorted(total.items(), key=lambda t: -t[1])}
+    rms = float(net.output_scale * y.detach().pow(2).mean().sqrt())
+    return Attribution(shares, rms, "N m" if net.equation == "torque" else "V")
+
+
+def scales_from(simulated: Sequence[dict[str, torch.Tensor]]) -> tuple[float, float, float]:
+    """Input normalisers (max |speed|, max |current|, max |surface angle|) from simulated records."""
+    def top(c: str) -> float:
+        return max(float(np.max(np.abs(s[c].numpy()))) for s in simulated) or 1.0
+
+    return top("speed"), top("current"), top("user_angle")
+
+
+@dataclass(frozen=True)
+class ClosureSettings:
+    """Neural closure: ``enabled`` ``auto`` (when no candidate is significant, the residual is not white and the
+    NRMSE exceeds ``ratio`` x the noise floor), ``always`` or ``never``; the network (see :class:`ClosureNet`),
+    its ridge prior weight, finite-difference step and fit settings."""
+
+    enabled: str = "auto"
+    equation: str = "torque"
+    harmonics: tuple[int, ...] = (1, 2, 4, 8, 24, 48)
+    hidden: int = 8
+    output_scale: float = 1e-3
+    ridge: float = 1.0
+    fd_step: float = 0.05
+    ratio: float = 1.5
+    seed: int = 0
+    fit: FitSettings = field(default_factory=lambda: FitSettings(max_iter=4, lambdas=(1.0,)))
+
+    def __post_init__(self) -> None:
+        if self.enabled not in ("auto", "always", "never"):
+            raise ValueError(f"closure.enabled must be auto, always or never, got {self.enabled!r}")
+        if self.equation not in EQUATIONS:
+            raise ValueError(f"closure.equation must be one of {list(EQUATIONS)}, got {self.equation!r}")
+        if not (self.ridge >= 0 and self.fd_step > 0 and self.ratio > 0):
+            raise ValueError(f"closure.ridge >= 0, fd_step > 0, ratio > 0 required, got {self.ridge}, "
+                             f"{self.fd_step}, {self.ratio}")
+
+
+@dataclass
+class ClosureResult:
+    """The model with the fitted closure, and what the closure depends on."""
+
+    calibration: Calibration
+    attribution: Attribution
+
+
+def fit_closure(cal: Calibration, cs: ClosureSettings, noise: Callable[[np.ndarray, float], float], fidelity: str,
+                device: str | torch.device = "cpu") -> ClosureResult:
+    """Fit a closure on top of ``cal``'s calibrated model and attribute it.
+
+    The calibrated parameters are frozen at their values (they become part of the fixed model) and only the
+    closure's output weights are fitted: the network's output is linear in them, so Gauss-Newton with a
+    ridge prior converges in a few iterations of (n_weights + 1) simulated rows each.
+    """
+    net = ClosureNet(cs.harmonics, cs.hidden, *scales_from(cal.simulated), equation=cs.equation,
+                     output_scale=cs.output_scale, seed=cs.seed)
+    unit = "N m" if cs.equation == "torque" else "V"
+    weights = tuple(FreeParameter(f"closure.w{i}", "closure", (i,), 0.0, -1e3, 1e3, cs.fd_step, unit,
+                                  factor=cs.output_scale) for i in range(net.n_weights))
+    base = freeze(cal)
+    sp = replace(base, closure=net, free=weights, label=f"{cal.label} + closure")
+    prior = torch.full((net.n_weights,), math.sqrt(cs.ridge), dtype=torch.float64)
+
+    def progress(it: int, costs: list[float]) -> None:
+        log.info("closure: iteration %d, chi2/2 + prior %.1f", it, costs[0])
+
+    fitted = fit_models(cal.evaluator, [sp], [None], cal.sigma, noise, cs.fit, priors=[prior],
+                        on_iteration=progress)[0]
+    feats = trace_features(fitted, net, fidelity, device)
+    return ClosureResult(fitted, attribute(net, fitted.x, feats))
+
+
+def freeze(cal: Calibration) -> ParameterSpace:
+    """``cal``'s model with its free parameters fixed at the fitted values (no free parameter left)."""
+    k, scales, eff, _ = cal.space.settings(cal.x.reshape(1, -1))
+    params = cal.space.params.replace(**{f: float(getattr(cal.space.params, f)) * float(v[0])
+                                         for f, v in scales.items()})
+    effects = {n: {key: float(v[0]) for key, v in vals.items()} for n, vals in eff.items()}
+    return replace(cal.space, params=params, faults=tuple(float(v) for v in k[0]), effects=effects, free=())
+
+
+def trace_features(cal: Calibration, net: ClosureNet, fidelity: str, device: str | torch.device = "cpu"
+                   ) -> torch.Tensor:
+    """Closure input features along the fitted trajectory of the first record, (T, d) (one short B = 1 run)."""
+    rec = cal.evaluator.records[0]
+    k, scales, eff, w = cal.space.settings(cal.x.reshape(1, -1))
+    trace: list[torch.Tensor] = []
+    effects = [EFFECTS[n](**v) for n, v in eff.items()] + [NeuralClosure(net, w, trace)]
+    sim = EMASimulator(cal.space.params, fidelity, effects=effects, device=device)
+    with torch.no_grad(), threads(cal.evaluator.threads):
+        sim.run(k, rec.command, rec.duration, scales=scales, channels=["position"])
+    return torch.stack(trace)

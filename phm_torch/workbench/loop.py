@@ -1,0 +1,348 @@
+"""The workbench loop: calibrate, compare, locate the failure, rank the missing effects, add the best one and
+watch the error fall; a neural closure when no library effect explains the residual.
+
+Cost plan (LF, 0.5 s record, eager): a batched simulator call costs ~5 s whatever the batch up to ~100 rows,
+so every stage is one call per iteration: calibration (one call per Levenberg-Marquardt iteration, trials
+and their Jacobians batched), all score tests (one call), the refits of the top candidates (fitted
+together, one call per iteration).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from ..effects import EFFECTS
+from ..params import ActuatorParams
+from ..plant import build_plant
+from .calibrate import Calibration, FitSettings, estimate_sigma, fit_models
+from .candidates import Candidate, ScoreSettings, score_tests
+from .closure import ClosureResult, ClosureSettings, fit_closure
+from .data import Record, load_records
+from .diagnostics import (
+    Coordinates,
+    DiagnosticSettings,
+    cross_correlation,
+    error_metrics,
+    harmonics,
+    profiles,
+    spectrum,
+    whiteness,
+    worst_windows,
+)
+from .evidence import evidence, groups
+from .model import Evaluator
+from .noise import HighBandNoise
+from .parameters import ParameterSpace, build_space
+
+log = logging.getLogger(__name__)
+
+DEFAULT_FREE = ("motor_inertia", "dry_friction", "k8")
+DEFAULT_GROUPS = {"dry_friction": ("coulomb_friction", "static_friction")}
+
+
+@dataclass(frozen=True)
+class WorkbenchSettings:
+    """Every tunable of the loop (see ``conf/workbench.yaml`` for the meaning of each)."""
+
+    calibration: FitSettings = field(default_factory=FitSettings)
+    refit: FitSettings = field(default_factory=lambda: FitSettings(max_iter=6))
+    score: ScoreSettings = field(default_factory=ScoreSettings)
+    diagnostics: DiagnosticSettings = field(default_factory=DiagnosticSettings)
+    closure: ClosureSettings = field(default_factory=ClosureSettings)
+    refit_top: int = 3
+    rounds: int = 2
+    refit_free: Mapping[str, Sequence[str]] = field(default_factory=dict)
+    library: Sequence[str] | None = None
+    before_after: bool = True
+    fd_step: float = 1e-2
+
+    def __post_init__(self) -> None:
+        if self.refit_top < 0 or self.rounds < 0:
+            raise ValueError(f"refit_top and rounds must be >= 0, got {self.refit_top}, {self.rounds}")
+        for name, keys in self.refit_free.items():
+            if name not in EFFECTS:
+                raise ValueError(f"refit_free: unknown effect {name!r}; available: {sorted(EFFECTS)}")
+            bad = [k for k in keys if k not in EFFECTS[name].PARAMS]
+            if bad:
+                raise ValueError(f"refit_free.{name}: unknown parameter(s) {bad}; known: {sorted(EFFECTS[name].PARAMS)}")
+        bad = [n for n in (self.library or []) if n not in EFFECTS]
+        if bad:
+            raise ValueError(f"library: unknown effect(s) {bad}; available: {sorted(EFFECTS)}")
+
+
+@dataclass
+class Round:
+    """One ranking round: the model tested and its candidates (best first)."""
+
+    model: Calibration
+    candidates: list[Candidate]
+    added: str | None = None
+    added_model: Calibration | None = None
+
+
+@dataclass
+class WorkbenchResult:
+    """Everything the report shows (see :mod:`phm_torch.workbench.report`)."""
+
+    records: list[Record]
+    model: Calibration
+    final: Calibration
+    rounds: list[Round]
+    before_after: list[Calibration]
+    closure: ClosureResult | None
+    diagnostics: dict[str, dict]
+    metrics: dict[str, dict]
+    noise: list[dict[str, float]]
+    timing: dict[str, float]
+    settings: WorkbenchSettings
+    fidelity: str
+
+    @property
+    def candidates(self) -> list[Candidate]:
+        """Candidates of the first round (against the configured model), best first."""
+        return self.rounds[0].candidates if self.rounds else []
+
+    @property
+    def added(self) -> list[str]:
+        return [r.added for r in self.rounds if r.added]
+
+
+class Workbench:
+    """Model-vs-measurement workbench.
+
+    Args:
+        params: the datasheet.  fidelity: model fidelity (``lf`` by default: ~10x faster than ``hf``).
+        effects: the model's effects {name: {param: value}}.
+        free: free parameters (see :func:`~phm_torch.workbench.parameters.build_space`).
+        groups: named groups of datasheet fields sharing a multiplier.
+        faults: base fault vector (default nominal).  channels: compared channels.
+        settings: the loop's tunables.  noise: noise-floor estimator (strategy; default high-band PSD).
+        scale_bounds: bounds of the datasheet multipliers.  device: simulation device.
+        threads: intra-op threads while simulating (1: fastest for these small batched tensors).
+    """
+
+    def __init__(self, params: ActuatorParams, fidelity: str = "lf", effects: Mapping[str, Mapping | None] | None = None,
+                 free: Sequence[str] = DEFAULT_FREE, groups: Mapping[str, Sequence[str]] | None = None,
+                 faults: Sequence[float] | None = None, channels: Sequence[str] = ("position", "current"),
+                 settings: WorkbenchSettings | None = None, noise: Callable[[np.ndarray, float], float] | None = None,
+                 scale_bounds: tuple[float, float] = (0.2, 5.0), device: str | torch.device = "cpu",
+                 threads: int | None = 1):
+        self.params, self.fidelity = params, fidelity
+        self.effects = {k: dict(v or {}) for k, v in (effects or {}).items()}
+        self.free, self.groups = list(free), dict(DEFAULT_GROUPS if groups is None else groups)
+        self.faults, self.channels = faults, tuple(channels)
+        if not self.channels:
+            raise ValueError("channels: at least one channel to compare is required")
+        self.settings = settings or WorkbenchSettings()
+        self.noise = noise or HighBandNoise()
+        self.scale_bounds, self.device, self.threads = scale_bounds, device, threads
+        self.space()  # validate the configuration before any simulation
+
+    # ---- building blocks ------------------------------------------------------------------------------
+    def space(self, effects: Mapping[str, Mapping] | None = None, label: str = "model") -> ParameterSpace:
+        """The model with ``effects`` (default the configured ones) and its free parameters."""
+        effects = self.effects if effects is None else effects
+        free = [f for f in self.free if "." not in f or f.split(".", 1)[0] in effects]
+        extra = {n: self.settings.refit_free.get(n, EFFECTS[n].STRENGTH) for n in effects if n in EFFECTS}
+        return build_space(self.params, free, self.groups, self.faults, effects, extra, self.scale_bounds,
+                           self.settings.fd_step, label)
+
+    def load(self, paths: Any, resample: bool = False) -> list[Record]:
+        return load_records(paths, self.params, self.channels, resample)
+
+    def evaluator(self, records: Sequence[Record]) -> Evaluator:
+        return Evaluator(self.params, self.fidelity, records, self.channels, self.device, self.threads)
+
+    def calibrate(self, ev: Evaluator, space: ParameterSpace | None = None,
+                  sigma: Sequence[dict[str, float]] | None = None) -> Calibration:
+        """Fit the free parameters of ``space`` (default: the configured model)."""
+        return fit_models(ev, [space or self.space()], [None], sigma, self.noise, self.settings.calibration,
+                          on_iteration=_progress("calibrate"))[0]
+
+    def library(self, cal: Calibration) -> list[str]:
+        names = self.settings.library if self.settings.library is not None else sorted(EFFECTS)
+        return [n for n in names if n not in cal.space.effects]
+
+    def rank(self, cal: Calibration) -> list[Candidate]:
+        """Score-test every library effect missing from ``cal``'s model; attach the evidence."""
+        cands = score_tests(cal, self.library(cal), self.settings.score)
+        ds, p = self.settings.diagnostics, self.params
+        grp = groups(coordinates(cal), [s["user_angle"].numpy() for s in cal.simulated], 2 * ds.bins,
+                     p.pole_pairs, p.sample_rate, ds.reversal_window, p.stator_slots)
+        normed = cal.normalised()
+        for c in cands:
+            if c.aliased_with is not None:
+                c.evidence = {"summary": f"not testable: its signature is a combination of the free parameters "
+                                         f"({c.aliased_with})", "pattern": None, "explains": EFFECTS[c.effect].explains}
+                continue
+            if not bool(c.contribution.abs().max() > 0):
+                c.evidence = {"summary": "explains nothing: the residual asks for a negative strength, which this "
+                                         "effect cannot have", "pattern": None, "explains": EFFECTS[c.effect].explains}
+                continue
+            parts = cal.evaluator.split((-c.contribution).unsqueeze(0))
+            explained = [{ch: v[0].numpy() for ch, v in part.items()} for part in parts]
+            c.evidence = evidence(c.effect, explained, normed, grp, ds.max_harmonic, p.pole_pairs)
+        return cands
+
+    def confirm(self, cal: Calibration, cands: list[Candidate]) -> list[Candidate]:
+        """Refit the model with each of the top ``refit_top`` testable candidates (together), set their
+        ΔBIC, keep ``significant`` only where the refit lowers the BIC and the residual sum of squares by
+        ``score.min_gain``, and reorder best first."""
+        top = [c for c in cands if c.aliased_with is None][:self.settings.refit_top]
+        if top:
+            spaces, starts = [], []
+            for c in top:
+                keys = self.settings.refit_free.get(c.effect, EFFECTS[c.effect].STRENGTH)
+                sp, x0 = cal.space.with_effect(c.effect, c.start, list(keys), cal.x, self.settings.fd_step)
+                spaces.append(sp)
+                starts.append(x0)
+            refits = fit_models(cal.evaluator, spaces, starts, cal.sigma, self.noise, self.settings.refit,
+                                on_iteration=_progress("refit"))
+            for c, rf in zip(top, refits, strict=True):
+                c.refit, c.delta_bic = rf, rf.bic - cal.bic
+                gain = (cal.chi2 - rf.chi2) / cal.chi2
+                c.significant = c.significant and c.delta_bic < 0 and gain >= self.settings.score.min_gain
+        return sorted(cands, key=_order)
+
+    def add(self, cal: Calibration, name: str, values: Mapping[str, float] | None = None) -> Calibration:
+        """Refit ``cal``'s model with effect ``name`` added (its strength and ``refit_free`` parameters free)."""
+        keys = self.settings.refit_free.get(name, EFFECTS[name].STRENGTH)
+        sp, x0 = cal.space.with_effect(name, dict(values or {}), list(keys), cal.x, self.settings.fd_step)
+        return fit_models(cal.evaluator, [sp], [x0], cal.sigma, self.noise, self.settings.refit,
+                          on_iteration=_progress(f"add {name}"))[0]
+
+    def fit_closure(self, cal: Calibration) -> ClosureResult:
+        """Fit a neural closure on top of ``cal``'s calibrated model (frozen) and attribute it to its inputs."""
+        return fit_closure(cal, self.settings.closure, self.noise, self.fidelity, self.device)
+
+    def diagnose(self, cal: Calibration) -> dict:
+        """Where ``cal`` fails: worst windows, residual maps, harmonics, spectrum, whiteness, cross-correlation."""
+        ds, p = self.settings.diagnostics, self.params
+        recs = cal.evaluator.records
+        errors, normed = cal.errors(), cal.normalised()
+        coords = coordinates(cal)
+        measured = [{c: r.measured[c].numpy() for c in self.channels} for r in recs]
+        return {"worst_windows": worst_windows(errors, measured, [r.name for r in recs], p.sample_rate, ds.window,
+                                               ds.worst),
+                "profiles": profiles(normed, coords, ds, p.pole_pairs, p.sample_rate),
+                "harmonics": harmonics(normed, coords, ds.max_harmonic),
+                "spectrum": spectrum(errors, p.sample_rate),
+                "whiteness": whiteness(normed, ds),
+                "cross_correlation": cross_correlation(normed, [r.command.numpy() for r in recs], ds)}
+
+    def metrics(self, cal: Calibration, sigma: Sequence[dict[str, float]]) -> dict:
+        measured = [{c: r.measured[c].numpy() for c in self.channels} for r in cal.evaluator.records]
+        return error_metrics(cal.errors(), measured, sigma)
+
+    # ---- the whole loop -----------------------------------------------------------------------------
+    def run(self, records: Sequence[Record]) -> WorkbenchResult:
+        """Calibrate the configured model, rank the missing effects, refit the top ones, add the best (up to
+        ``rounds`` times), fit a closure if needed, diagnose before and after."""
+        s = self.settings
+        t0, c0 = time.perf_counter(), time.process_time()
+        ev = self.evaluator(records)
+        model = self.calibrate(ev)
+        timing = {"calibrate_s": time.perf_counter() - t0}
+        current, rounds = model, []
+        for k in range(s.rounds):
+            t1 = time.perf_counter()
+            cands = self.rank(current)
+            t2 = time.perf_counter()
+            cands = self.confirm(current, cands)
+            t3 = time.perf_counter()
+            if k == 0:
+                timing.update(rank_s=t2 - t1, refit_s=t3 - t2, loop_s=t3 - t0, loop_cpu_s=time.process_time() - c0)
+            best = next((c for c in cands if c.significant and c.refit is not None), None)
+            rounds.append(Round(current, cands, best.effect if best else None, best.refit if best else None))
+            if best is None:
+                break
+            log.info("round %d: adding %s (ΔBIC %.1f)", k + 1, best.effect, best.delta_bic)
+            current = best.refit
+        timing.setdefault("loop_s", time.perf_counter() - t0)
+        timing.setdefault("loop_cpu_s", time.process_time() - c0)
+        _explain_away(rounds)
+        noise = estimate_sigma(ev, current.simulated, self.noise)
+        closure = None
+        if self._wants_closure(current, rounds, noise):
+            t1 = time.perf_counter()
+            closure = self.fit_closure(current)
+            timing["closure_s"] = time.perf_counter() - t1
+        before_after = [model, *[r.added_model for r in rounds if r.added_model is not None]]
+        if model.space.effects and s.before_after:
+            t1 = time.perf_counter()
+            bare = self.calibrate(ev, self.space({}, "datasheet model"), sigma=model.sigma)
+            before_after.insert(0, bare)
+            timing["before_s"] = time.perf_counter() - t1
+        if closure is not None:
+            before_after.append(closure.calibration)
+        shown = list({id(c): c for c in [model, *before_after]}.values())
+        diags = {c.label: self.diagnose(c) for c in shown}
+        metrics = {c.label: self.metrics(c, noise) for c in shown}
+        timing["total_s"] = time.perf_counter() - t0
+        timing["total_cpu_s"] = time.process_time() - c0
+        timing["simulator_calls"] = float(ev.calls)
+        return WorkbenchResult(list(records), model, current, rounds, before_after, closure, diags, metrics, noise,
+                               timing, s, self.fidelity)
+
+    def _wants_closure(self, cal: Calibration, rounds: list[Round], noise: list[dict[str, float]]) -> bool:
+        mode = self.settings.closure.enabled
+        if mode != "auto":
+            return mode == "always"
+        if rounds and (rounds[-1].added is not None or any(c.significant for c in rounds[-1].candidates)):
+            return False  # the library still explains something (more rounds may find more)
+        white = all(v["white"] for v in whiteness(cal.normalised(), self.settings.diagnostics).values())
+        m = self.metrics(cal, noise)
+        return not white and m["nrmse"]["total"] > self.settings.closure.ratio * m["noise_floor"]["total"]
+
+
+def coordinates(cal: Calibration) -> list[Coordinates]:
+    """Motor speed, angle and torque sign of the calibrated model and the measured current, per record.
+
+    The motor torque is rebuilt from the model's states with its calibrated parameters:
+    J_m dω/dt + c_m ω + T_c sign(ω) + K_t (θ_m / N - θ_u) / N (backlash and output damping neglected: only
+    its sign is used).
+    """
+    k, scales, _, _ = cal.space.settings(cal.x.reshape(1, -1))
+    plant = build_plant(cal.space.params, k, scales)
+    jm, cm, tc = (float(getattr(plant, f)[0]) for f in ("motor_inertia", "motor_viscous", "coulomb_friction"))
+    kt, n = float(plant.output_stiffness[0]), float(plant.gear_ratio[0])
+    out = []
+    for s, rec in zip(cal.simulated, cal.evaluator.records, strict=True):
+        w, th, thu = (s[c].numpy() for c in ("speed", "motor_angle", "user_angle"))
+        torque = jm * np.gradient(w) * rec.sample_rate + cm * w + tc * np.sign(w) + kt * (th / n - thu) / n
+        out.append(Coordinates(w, th, rec.measured.get("current", s["current"]).numpy(),
+                               np.where(torque >= 0, 1.0, -1.0)))
+    return out
+
+
+def _explain_away(rounds: list[Round]) -> None:
+    """A candidate significant in a round but not in a later one (tested against the model with the effects
+    added since) is explained away by them: its significance was borrowed from their residual."""
+    for k, rnd in enumerate(rounds[:-1]):
+        later = {c.effect: c for c in rounds[-1].candidates}
+        added = [r.added for r in rounds[k:] if r.added]
+        for c in rnd.candidates:
+            if c.significant and c.effect not in added and c.effect in later and not later[c.effect].significant:
+                c.significant = False
+                c.evidence["explained_away_by"] = added
+
+
+def _order(c: Candidate) -> tuple:
+    """Sort key: significant first; refitted by BIC after the refit; then by p-value."""
+    refit_bic = c.refit.bic if c.refit is not None else math.inf
+    return (not c.significant, c.refit is None, refit_bic, c.log10_p)
+
+
+def _progress(stage: str) -> Callable[[int, list[float]], None]:
+    def cb(it: int, costs: list[float]) -> None:
+        log.info("%s: iteration %d, chi2/2 %s", stage, it, ", ".join(f"{c:.1f}" for c in costs))
+
+    return cb

@@ -1,0 +1,263 @@
+"""The workbench report: ``report.json`` (numbers), PNG figures and ``report.html`` (figures embedded as
+base64), all written atomically.
+
+``report.json`` keys: ``nrmse`` / ``fit_percent`` / ``noise_floor`` ({channel: value, "total": value}, NRMSE
+as fractions) of the calibrated configured model; ``worst_windows`` [{record, t_start, t_end, nrmse}];
+``candidates`` [{effect, score, dof, p_value, significant, nrmse_after_refit, delta_bic, evidence...}] best
+first; ``fitted`` {parameter: [value, std]}; ``before_after`` rows; ``closure``; ``diagnostics``; ``timing``.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..io.atomic import atomic_open
+from . import plots
+from .calibrate import Calibration
+from .candidates import Candidate
+from .diagnostics import error_metrics
+from .loop import WorkbenchResult
+
+TOP_HARMONICS = 5
+
+
+def calibration_metrics(cal: Calibration, sigma: list[dict[str, float]]) -> dict:
+    """NRMSE / fit % / noise floor of a calibrated model (see :func:`error_metrics`)."""
+    measured = [{c: r.measured[c].numpy() for c in cal.evaluator.channels} for r in cal.evaluator.records]
+    return error_metrics(cal.errors(), measured, sigma)
+
+
+def _clean(obj: Any) -> Any:
+    """JSON-safe copy: numpy -> lists/floats, NaN/inf -> None."""
+    if isinstance(obj, Mapping):
+        return {str(k): _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _clean(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        return plots.finite(float(obj))
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+def _fitted(cal: Calibration) -> dict[str, list[float]]:
+    return {k: [v, s] for k, (v, s) in cal.fitted().items()}
+
+
+def _tests(diag: dict) -> dict:
+    return {"whiteness": {c: {k: v[k] for k in ("p_value", "white", "q", "dof", "outside_fraction")}
+                          for c, v in diag["whiteness"].items()},
+            "cross_correlation": {c: {k: v[k] for k in ("p_value", "uncorrelated", "statistic", "outside_fraction")}
+                                  for c, v in diag["cross_correlation"].items()}}
+
+
+def _candidate(c: Candidate, base: dict, noise: list[dict[str, float]]) -> dict:
+    row: dict[str, Any] = {"effect": c.effect, "score": c.score, "dof": c.dof, "p_value": c.p_value,
+                           "log10_p_value": c.log10_p, "significant": c.significant, "nrmse_after_refit": None,
+                           "nrmse_after_refit_channels": None, "delta_nrmse": None, "delta_bic": c.delta_bic,
+                           "explained_fraction": c.explained_fraction, "aliased_with": c.aliased_with,
+                           "evidence": c.evidence, "fitted": None}
+    if c.refit is not None:
+        m = calibration_metrics(c.refit, noise)
+        row.update(nrmse_after_refit=m["nrmse"]["total"], nrmse_after_refit_channels=m["nrmse"],
+                   delta_nrmse=m["nrmse"]["total"] - base["nrmse"]["total"],
+                   fitted={k: v for k, v in _fitted(c.refit).items() if k.startswith(f"{c.effect}.")})
+    return row
+
+
+def report_dict(res: WorkbenchResult) -> dict:
+    """Every number of the report, JSON-able (NaN as null)."""
+    model, noise = res.model, res.noise
+    m0 = res.metrics[model.label]
+    d0 = res.diagnostics[model.label]
+    k = max(1, len(res.candidates))
+    rows = []
+    for cal in res.before_after:
+        m = res.metrics[cal.label]
+        t = _tests(res.diagnostics[cal.label])
+        rows.append({"model": cal.label, "effects": sorted(cal.space.effects), "nrmse": m["nrmse"],
+                     "fit_percent": m["fit_percent"], "chi2": cal.chi2, "bic": cal.bic, "parameters": cal.space.n,
+                     "whiteness_p": {c: v["p_value"] for c, v in t["whiteness"].items()},
+                     "white": all(v["white"] for v in t["whiteness"].values()),
+                     "fitted": {kk: v for kk, v in _fitted(cal).items() if not kk.startswith("closure.")}})
+    harm = {c: [{"order": int(i + 1), "electrical_order": (i + 1) / res.model.space.params.pole_pairs,
+                 "amplitude": float(a[i])} for i in np.argsort(a)[::-1][:TOP_HARMONICS]]
+            for c, a in d0["harmonics"].items()}
+    closure = None
+    if res.closure is not None:
+        cm = res.metrics[res.closure.calibration.label]
+        gain = (res.final.chi2 - res.closure.calibration.chi2) / res.final.chi2
+        closure = {"equation": res.settings.closure.equation, "inputs": res.closure.attribution.shares,
+                   "output_rms": res.closure.attribution.output_rms, "unit": res.closure.attribution.unit,
+                   "nrmse": cm["nrmse"], "lead": next(iter(res.closure.attribution.shares), None),
+                   "explained_fraction": gain, "explains": gain >= res.settings.score.min_gain}
+    out = {
+        "measurements": [str(r.path) if r.path else r.name for r in res.records],
+        "records": [{"name": r.name, "samples": len(r), "duration_s": r.duration, "t0": r.t0} for r in res.records],
+        "fidelity": res.fidelity, "channels": list(model.evaluator.channels),
+        "model": {"label": model.label, "effects": model.space.effect_values(model.x)},
+        "nrmse": m0["nrmse"], "fit_percent": m0["fit_percent"], "noise_floor": m0["noise_floor"],
+        "noise_std": m0["noise_std"], "worst_windows": d0["worst_windows"],
+        "tests": _tests(d0), "harmonics": harm,
+        "candidates": [_candidate(c, m0, noise) for c in res.candidates],
+        "significance_level": res.settings.score.alpha / k,
+        "added": res.added,
+        "rounds": [{"model": r.model.label, "added": r.added, "ranking": [c.effect for c in r.candidates],
+                    "significant": [c.effect for c in r.candidates if c.significant]} for r in res.rounds],
+        "fitted": _fitted(model),
+        "final": {"label": res.final.label, "effects": res.final.space.effect_values(res.final.x),
+                  "nrmse": res.metrics[res.final.label]["nrmse"] if res.final.label in res.metrics else None,
+                  "fitted": _fitted(res.final)},
+        "before_after": rows,
+        "closure": closure,
+        "timing": res.timing,
+    }
+    return _clean(out)
+
+
+def figures(res: WorkbenchResult, report: dict) -> dict[str, bytes]:
+    """The report's PNG figures {file name: bytes}."""
+    shown = res.before_after
+    chans = list(res.model.evaluator.channels)
+    rec = res.records[0]
+    sigma0 = {c: res.noise[0][c] for c in chans}
+    p = res.model.space.params
+    figs = {"overlay.png": plots.overlay(rec.time.numpy(), {c: rec.measured[c].numpy() for c in chans},
+                                         {cal.label: {c: cal.simulated[0][c].numpy() for c in chans} for cal in shown},
+                                         sigma0, [w for w in report["worst_windows"] if w["record"] == rec.name],
+                                         f"{rec.name}: measured vs simulated ({res.fidelity.upper()} model)"),
+            "residual_maps.png": plots.maps({c.label: res.diagnostics[c.label]["profiles"] for c in shown}, chans),
+            "harmonics.png": plots.harmonic_bars({c.label: res.diagnostics[c.label]["harmonics"] for c in shown}, chans,
+                                                 p.pole_pairs, p.stator_slots),
+            "spectrum.png": plots.spectra({c.label: res.diagnostics[c.label]["spectrum"] for c in shown}, sigma0,
+                                          p.sample_rate),
+            "correlations.png": plots.correlations({c.label: res.diagnostics[c.label]["whiteness"] for c in shown},
+                                                   {c.label: res.diagnostics[c.label]["cross_correlation"]
+                                                    for c in shown}, p.sample_rate),
+            "before_after.png": plots.before_after(report["before_after"], report["noise_floor"])}
+    if report["candidates"]:
+        figs["candidates.png"] = plots.candidate_bars(report["candidates"], math.log10(report["significance_level"]))
+    if res.closure is not None:
+        figs["closure.png"] = plots.attribution(res.closure.attribution.shares, "Neural closure: what it depends on")
+    return figs
+
+
+def _table(head: list[str], rows: list[list[Any]]) -> str:
+    def cell(v: Any) -> str:
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        return html.escape(str(v)) if v is not None else "–"
+
+    h = "".join(f"<th>{html.escape(x)}</th>" for x in head)
+    body = "".join("<tr>" + "".join(f"<td>{cell(v)}</td>" for v in r) + "</tr>" for r in rows)
+    return f"<table><tr>{h}</tr>{body}</table>"
+
+
+def _pct(d: Mapping[str, float] | None, key: str) -> str:
+    return f"{100 * d[key]:.3f} %" if d and d.get(key) is not None else "–"
+
+
+def html_page(report: dict, figs: dict[str, bytes]) -> str:
+    """Self-contained HTML page (figures inline as base64 PNG)."""
+    chans = report["channels"]
+
+    def img(name: str) -> str:
+        if name not in figs:
+            return ""
+        return f'<img alt="{name}" src="data:image/png;base64,{base64.b64encode(figs[name]).decode()}">'
+
+    best = next((c for c in report["candidates"] if c["significant"]), None)
+    summary = (f"Calibrated model NRMSE {_pct(report['nrmse'], 'total')} against a noise floor of "
+               f"{_pct(report['noise_floor'], 'total')}. ")
+    if best:
+        summary += (f"Most likely missing effect: <b>{html.escape(best['effect'])}</b> (p = {best['p_value']:.3g}; "
+                    f"{html.escape(best['evidence'].get('summary', ''))}); with it the NRMSE falls to "
+                    f"{_pct(best, 'nrmse_after_refit')}.")
+    else:
+        summary += "No library effect explains the residual beyond noise."
+    ba = _table(["model", *[f"NRMSE {c}" for c in chans], "NRMSE total", "white residual", "BIC", "fitted"],
+                [[r["model"], *[_pct(r["nrmse"], c) for c in chans], _pct(r["nrmse"], "total"),
+                  "yes" if r["white"] else "no", r["bic"],
+                  "; ".join(f"{k} = {v[0]:.4g} ± {v[1]:.2g}" for k, v in r["fitted"].items() if v[0] is not None)]
+                 for r in report["before_after"]])
+    cand = _table(["effect", "score T", "dof", "p-value", "significant", "NRMSE after refit", "ΔBIC", "evidence",
+                   "physics"],
+                  [[c["effect"], c["score"], c["dof"], c["p_value"], "yes" if c["significant"] else "no",
+                    _pct(c, "nrmse_after_refit"), c["delta_bic"],
+                    c["evidence"].get("summary") if c["evidence"] else None,
+                    c["evidence"].get("explains") if c["evidence"] else None] for c in report["candidates"]])
+    compare = _table(["channel", "NRMSE", "fit %", "noise floor (NRMSE of a perfect model)", "noise std"],
+                     [[c, _pct(report["nrmse"], c), report["fit_percent"][c], _pct(report["noise_floor"], c),
+                       report["noise_std"][c]] for c in chans])
+    worst = _table(["record", "t start [s]", "t end [s]", "NRMSE"],
+                   [[w["record"], w["t_start"], w["t_end"], _pct(w, "nrmse")] for w in report["worst_windows"]])
+    tests = _table(["channel", "whiteness p (Ljung-Box)", "white", "residual–command p", "uncorrelated"],
+                   [[c, report["tests"]["whiteness"][c]["p_value"], report["tests"]["whiteness"][c]["white"],
+                     report["tests"]["cross_correlation"][c]["p_value"],
+                     report["tests"]["cross_correlation"][c]["uncorrelated"]] for c in chans])
+    fitted = _table(["parameter", "value", "std"], [[k, v[0], v[1]] for k, v in report["fitted"].items()])
+    harm = _table(["channel", "top mechanical harmonics (order: amplitude r/σ)"],
+                  [[c, ", ".join(f"{h['order']}: {h['amplitude']:.3g}" for h in hs)] for c, hs in report["harmonics"].items()])
+    closure = ""
+    if report["closure"]:
+        cl = report["closure"]
+        verdict = (f"It depends mostly on <b>{html.escape(str(cl['lead']))}</b>: the lead for writing the missing "
+                   "effect." if cl["explains"] else "It does not explain the residual either: what is missing is not "
+                   "a simple function of the state (e.g. a structural difference of the model).")
+        closure = (f"<h2>Neural closure</h2><p>No library effect explained the residual; a small network of the state "
+                   f"added to the {cl['equation']} equation explains {100 * cl['explained_fraction']:.1f} % of the "
+                   f"residual sum of squares (NRMSE {_pct(cl['nrmse'], 'total')}). {verdict}</p>"
+                   + _table(["input", "share"], [[k, f"{100 * v:.1f} %"] for k, v in cl["inputs"].items()])
+                   + img("closure.png"))
+    timing = ", ".join(f"{k} {v:.1f}" for k, v in report["timing"].items())
+    return f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>phm_torch workbench report</title>
+<style>body{{font-family:sans-serif;max-width:1200px;margin:auto;padding:1em}}table{{border-collapse:collapse;
+margin:0.5em 0}}td,th{{border:1px solid #bbb;padding:3px 6px;font-size:90%;text-align:left}}img{{max-width:100%}}
+</style></head><body><h1>Model vs measurement</h1>
+<p>Measurements: {html.escape(", ".join(report["measurements"]))}; model fidelity {report["fidelity"].upper()};
+channels {", ".join(chans)}.</p><p>{summary}</p>
+<h2>Add it and watch the error fall</h2>{ba}{img("before_after.png")}
+<h2>Compare</h2><p>Calibrated model (configured effects) against the measurement.</p>{compare}{img("overlay.png")}
+<h2>Where it fails</h2><h3>Worst windows</h3>{worst}<h3>Residual maps</h3>{img("residual_maps.png")}
+<h3>Harmonic content (rotor angle)</h3>{harm}{img("harmonics.png")}<h3>Residual spectrum</h3>{img("spectrum.png")}
+<h3>Residual tests</h3>{tests}{img("correlations.png")}
+<h2>Which effect is missing</h2><p>Score test per library effect (Bonferroni level
+{report["significance_level"]:.3g}); the top candidates refitted.</p>{cand}{img("candidates.png")}
+{closure}<h2>Calibrated parameters (configured model)</h2>{fitted}
+<p style="color:#666">Timing [s]: {html.escape(timing)}</p></body></html>
+"""
+
+
+def write_report(res: WorkbenchResult, out_dir: str | os.PathLike, plot: bool = True) -> dict[str, Path]:
+    """Write ``report.json`` (and, with ``plot``, the PNGs and ``report.html``) into ``out_dir``, atomically."""
+    out = Path(out_dir)
+    report = report_dict(res)
+    paths = {}
+    if plot:
+        figs = figures(res, report)
+        for name, data in figs.items():
+            with atomic_open(out / name, "wb") as fh:
+                fh.write(data)
+            paths[name] = out / name
+        with atomic_open(out / "report.html", "w", encoding="utf-8") as fh:
+            fh.write(html_page(report, figs))
+        paths["report.html"] = out / "report.html"
+    report["files"] = {k: str(v) for k, v in paths.items()}
+    with atomic_open(out / "report.json", "w") as fh:
+        json.dump(report, fh, indent=2)
+        fh.write("\n")
+    paths["report.json"] = out / "report.json"
+    return paths

@@ -1,0 +1,122 @@
+"""Benchmark of the paper-scale data generation (phm-generate experiment=paper); writes JSON.
+
+Measures, with the shipped config (conf/generate.yaml + conf/experiment/paper.yaml):
+
+* the assessment function: ms per fault vector amortised over a batch of ``chunk_size`` importance-
+  sampled vectors (compiled, after a warm-up batch that pays the compilation), and the healthy fraction;
+* the HF signals: signals/s at the batch ``chunk_size`` (compiled, after a warm-up batch);
+* the extrapolated time of the full paper dataset: compilations + n_chunks x (signals + assessment);
+* with ``--full DATA_DIR``: the real paper-scale generation, its wall time and CPU time.
+
+Wall and CPU (user + system of this process) times are both recorded: on a shared machine the wall
+time includes the waits for other processes.
+
+Usage: python scripts/bench_generate.py [--out scripts/bench_generate.json] [--batches 2] [--full DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Self
+
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
+from phm_torch.apps import common
+from phm_torch.apps.generate import generate
+from phm_torch.data.generation import make_plan
+from phm_torch.io.atomic import atomic_open
+from phm_torch.params import CONF_DIR
+from phm_torch.simulator import EMASimulator
+
+
+class Clock:
+    def __enter__(self) -> Self:
+        self.wall, self.cpu = time.perf_counter(), time.process_time()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.wall = time.perf_counter() - self.wall
+        self.cpu = time.process_time() - self.cpu
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default=str(Path(__file__).with_suffix(".json")))
+    ap.add_argument("--batches", type=int, default=2, help="timed assessment batches (after the warm-up)")
+    ap.add_argument("--full", default=None, help="also run phm-generate experiment=paper into this data_dir")
+    args = ap.parse_args()
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("generate", ["experiment=paper"])
+    params = common.actuator(cfg)
+    command = common.command(cfg.command)
+    spec = instantiate(cfg.dataset)
+    assessment = instantiate(cfg.assessment, _partial_=True)(params=params)
+    plan = make_plan(spec, params.nominal_faults, int(cfg.seed))
+    cs = spec.chunk_size
+    train = plan.K[plan.offsets["train"][0]:plan.offsets["train"][1]]
+    out: dict = {"machine": {"cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(),
+                             "platform": platform.platform(), "torch": torch.__version__,
+                             "load_avg_start": os.getloadavg()},
+                 "config": {"chunk_size": cs, "rows": plan.n_rows, "chunks": plan.n_chunks,
+                            "test_frequencies": len(assessment.sweep.frequencies),
+                            "periods_per_vector": assessment.response.periods_per_vector}}
+
+    # assessment
+    _ = assessment.nominal_bandwidth_hz
+    with Clock() as warm:
+        assessment(torch.as_tensor(train[:cs]))
+    healthy, wall, cpu = 0, 0.0, 0.0
+    for b in range(1, args.batches + 1):
+        with Clock() as c:
+            res = assessment(torch.as_tensor(train[b * cs:(b + 1) * cs]))
+        healthy += int(res.healthy.sum())
+        wall, cpu = wall + c.wall, cpu + c.cpu
+    n = args.batches * cs
+    out["assessment"] = {"vectors": n, "warmup_compile_wall_s": round(warm.wall, 2),
+                         "ms_per_vector_wall": round(1000 * wall / n, 3), "ms_per_vector_cpu": round(1000 * cpu / n, 3),
+                         "healthy_fraction": round(healthy / n, 4)}
+    print(json.dumps(out["assessment"]), flush=True)
+
+    # HF signals
+    sim = EMASimulator(params, spec.fidelity, substeps=spec.substeps, compile=spec.compile)
+    k = torch.as_tensor(train[:cs])
+    timings = []
+    for _ in range(2):
+        with Clock() as c, torch.no_grad():
+            sim.run(k, command, command.duration, channels=["current", "position"], out_dtype=torch.float32)
+        timings.append(c)
+    out["signals"] = {"batch": cs, "warmup_compile_wall_s": round(timings[0].wall, 2),
+                      "signals_per_s_wall": round(cs / timings[1].wall, 2),
+                      "signals_per_s_cpu": round(cs / timings[1].cpu, 2)}
+    print(json.dumps(out["signals"]), flush=True)
+
+    per_chunk_wall = cs / out["signals"]["signals_per_s_wall"] + cs * out["assessment"]["ms_per_vector_wall"] / 1000
+    compile_wall = out["signals"]["warmup_compile_wall_s"] - cs / out["signals"]["signals_per_s_wall"] + \
+        out["assessment"]["warmup_compile_wall_s"] - cs * out["assessment"]["ms_per_vector_wall"] / 1000
+    out["paper_extrapolated"] = {"note": "extrapolated from the batches above: compilations + chunks x "
+                                         "(signals + assessment); merge and I/O not included",
+                                 "wall_s": round(compile_wall + plan.n_chunks * per_chunk_wall, 1)}
+
+    if args.full:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            full_cfg = compose("generate", ["experiment=paper", f"data_dir={args.full}", "progress=false"])
+        with Clock() as c:
+            metrics, _ = generate(full_cfg)
+        out["paper_full"] = {"wall_s": round(c.wall, 1), "cpu_s": round(c.cpu, 1), "metrics": metrics}
+    out["machine"]["load_avg_end"] = os.getloadavg()
+    with atomic_open(args.out, "w") as fh:
+        json.dump(out, fh, indent=2)
+        fh.write("\n")
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,153 @@
+"""Benchmark of the model-vs-measurement workbench: loop time and hit rate on randomised hidden effects.
+
+1. Loop time: one 0.5 s LF record with a hidden cogging torque, default settings (conf/workbench.yaml):
+   wall and CPU time of calibrate + rank every candidate + refit the top 3 (the issue's 2-minute target on
+   2 cores), and of the whole run (second round, diagnostics).
+2. Hit rate: ``--cases`` random measurements (LF simulation, ``--duration`` s of the test chirp): one hidden
+   library effect with random strength (0.5x..2x its default, log-uniform) and shape, random noise
+   (current 0.01..0.04 A, position 1e-5..4e-5 rad) and a datasheet off nominal in the free parameters
+   (inertia x0.9..1.1, dry friction x0.8..1.3, k8 0.4..0.6); a fraction are controls with nothing hidden.
+   A hit: the true effect ranks first and is significant. Also reported: top-3 rate, the NRMSE after adding
+   it over the noise floor, false positives (controls with a significant candidate; other effects left
+   significant next to a hit).
+
+Usage: python scripts/bench_workbench.py [--cases 12] [--duration 0.25] [--seed 0] [--out results/bench_workbench.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import random
+import time
+from pathlib import Path
+
+import torch
+from omegaconf import OmegaConf
+
+from phm_torch.apps.workbench import settings_from_config
+from phm_torch.command import Chirp
+from phm_torch.effects import EFFECTS
+from phm_torch.io.atomic import atomic_open
+from phm_torch.params import CONF_DIR, load_actuator
+from phm_torch.workbench import Case, Workbench, WorkbenchSettings, record_from_measurement, synthesize
+
+# winding_temperature is left out: with back_emf/inertia/friction multipliers free it is aliased with them
+# (reported as "not testable"), so it cannot be a hit by construction.
+POOL = ("cogging_torque", "stribeck_friction", "aero_hinge_load", "inverter_dead_time", "position_sensor_lag",
+        "transmission_compliance", "torque_constant_saturation", "viscous_friction")
+CHANNELS = ("position", "current")
+
+
+def random_case(rng: random.Random, params, control: bool, seed: int) -> tuple[Case, dict]:
+    faults = list(params.nominal_faults)
+    faults[7] = rng.uniform(0.4, 0.6)
+    fric = rng.uniform(0.8, 1.3)
+    scales = {"motor_inertia": rng.uniform(0.9, 1.1), "coulomb_friction": fric, "static_friction": fric}
+    noise = {"current": rng.uniform(0.01, 0.04), "position": rng.uniform(1e-5, 4e-5)}
+    effects: dict[str, dict[str, float]] = {}
+    name = None
+    if not control:
+        name = rng.choice(POOL)
+        cls = EFFECTS[name]
+        vals = {s: cls.PARAMS[s].default * math.exp(rng.uniform(math.log(0.5), math.log(2.0))) for s in cls.STRENGTH}
+        if name == "cogging_torque":
+            vals["phase"] = rng.uniform(0.0, 2 * math.pi)
+        if name == "stribeck_friction":
+            vals["velocity"] = rng.uniform(3.0, 10.0)
+        effects[name] = vals
+    info = {"effect": name, "values": effects.get(name, {}), "noise": noise, "k8": faults[7],
+            "scales": scales}
+    return Case(effects, noise, faults, scales, seed), info
+
+
+def settings(rounds: int) -> WorkbenchSettings:
+    base, _ = settings_from_config(OmegaConf.load(CONF_DIR / "workbench.yaml"))
+    return WorkbenchSettings(**{**base.__dict__, "rounds": rounds})
+
+
+def run_case(params, m, info: dict, rounds: int) -> dict:
+    wb = Workbench(params, settings=settings(rounds))
+    rec = record_from_measurement(m, params, CHANNELS, "bench")
+    res = wb.run([rec])
+    ranking = [c.effect for c in res.candidates]
+    significant = [c.effect for c in res.candidates if c.significant]
+    out = {**info, "ranking": ranking[:3], "significant": significant, "added": res.added,
+           "timing": {k: round(v, 2) for k, v in res.timing.items()}}
+    model = res.metrics["model"]
+    out["nrmse_over_floor_before"] = model["nrmse"]["total"] / model["noise_floor"]["total"]
+    final = res.metrics[res.final.label]
+    out["nrmse_over_floor_after"] = final["nrmse"]["total"] / final["noise_floor"]["total"]
+    if info["effect"] is None:
+        out["false_positive"] = bool(significant)
+    else:
+        out["hit"] = bool(ranking and ranking[0] == info["effect"] and info["effect"] in significant)
+        out["top3"] = info["effect"] in ranking[:3]
+        out["extra_significant"] = [e for e in significant if e != info["effect"]]
+        out["at_floor"] = out["hit"] and out["nrmse_over_floor_after"] <= 1.2
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--cases", type=int, default=12)
+    ap.add_argument("--controls", type=float, default=0.25, help="fraction of controls (nothing hidden)")
+    ap.add_argument("--duration", type=float, default=0.25, help="[s] records of the hit-rate cases")
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--skip-timing", action="store_true", help="skip the 0.5 s loop-time case")
+    ap.add_argument("--out", default="results/bench_workbench.json")
+    args = ap.parse_args()
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    params = load_actuator()
+    report: dict = {"machine": {"cpus": torch.get_num_threads(), "platform": platform.platform(),
+                                "torch": torch.__version__}, "args": vars(args)}
+    if not args.skip_timing:
+        m = synthesize(params, [Case({"cogging_torque": {"amplitude": 4e-3, "phase": 0.7}}, seed=99)], Chirp(), 0.5)[0]
+        t0 = time.perf_counter()
+        case = run_case(params, m, {"effect": "cogging_torque", "values": {}, "noise": {}, "k8": 0.5, "scales": {}}, 2)
+        report["loop_time"] = {"record_s": 0.5, "hit": case["hit"], **case["timing"],
+                               "wall_with_report_s": round(time.perf_counter() - t0, 2)}
+        print("loop time:", json.dumps(report["loop_time"]), flush=True)
+    rng = random.Random(args.seed)
+    n_controls = round(args.controls * args.cases)
+    kinds = [True] * n_controls + [False] * (args.cases - n_controls)
+    rng.shuffle(kinds)
+    built = [random_case(rng, params, control, 1000 + i) for i, control in enumerate(kinds)]
+    ms = synthesize(params, [c for c, _ in built], Chirp(duration=args.duration), args.duration)
+    cases = []
+    for i, ((_, info), m) in enumerate(zip(built, ms, strict=True)):
+        out = run_case(params, m, info, args.rounds)
+        cases.append(out)
+        print(f"[{i + 1}/{len(built)}]", json.dumps({k: out.get(k) for k in ("effect", "ranking", "significant", "hit",
+                                                                                  "nrmse_over_floor_after")}),
+              flush=True)
+    hits = [c for c in cases if c["effect"] is not None]
+    ctrl = [c for c in cases if c["effect"] is None]
+    per_effect: dict[str, list[bool]] = {}
+    for c in hits:
+        per_effect.setdefault(c["effect"], []).append(c["hit"])
+    report["cases"] = cases
+    report["summary"] = {
+        "effects": len(hits), "controls": len(ctrl),
+        "hit_rate": sum(c["hit"] for c in hits) / max(len(hits), 1),
+        "top3_rate": sum(c["top3"] for c in hits) / max(len(hits), 1),
+        "at_floor_rate": sum(c["at_floor"] for c in hits) / max(len(hits), 1),
+        "extra_significant_rate": sum(bool(c["extra_significant"]) for c in hits) / max(len(hits), 1),
+        "false_positive_rate": sum(c["false_positive"] for c in ctrl) / max(len(ctrl), 1),
+        "per_effect": {k: f"{sum(v)}/{len(v)}" for k, v in sorted(per_effect.items())},
+        "mean_loop_s": sum(c["timing"]["loop_s"] for c in cases) / len(cases),
+        "mean_loop_cpu_s": sum(c["timing"]["loop_cpu_s"] for c in cases) / len(cases),
+    }
+    print("summary:", json.dumps(report["summary"], indent=2), flush=True)
+    out = Path(args.out)
+    with atomic_open(out, "w") as fh:
+        json.dump(report, fh, indent=2)
+        fh.write("\n")
+    print("wrote", out)
+
+
+if __name__ == "__main__":
+    main()

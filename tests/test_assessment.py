@@ -1,0 +1,160 @@
+"""Assessment function: linearised reference loop, frequency-response measurement, margins, labels."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hydra.utils import instantiate
+
+from phm_torch.assessment import (
+    AssessmentFunction,
+    FrequencyResponse,
+    HealthRequirements,
+    SineSweep,
+    linear_loop,
+    margins,
+)
+from phm_torch.physics import mechanics
+
+FINE = np.geomspace(5.0, 300.0, 3000)
+
+
+def _margins(freqs, l_resp, t_resp):
+    m = margins(torch.as_tensor(freqs), torch.as_tensor(l_resp)[None], torch.as_tensor(t_resp)[None])
+    return {k: float(v[0]) for k, v in m.as_dict().items()}
+
+
+@pytest.fixture(scope="module")
+def shipped(compose):
+    """The shipped assessment config (conf/assessment/frequency_response.yaml), uncompiled."""
+    cfg = compose("generate")
+    return cfg.assessment
+
+
+def _assessment(params, node, **sweep_changes) -> AssessmentFunction:
+    sweep = instantiate(node.sweep)
+    sweep = SineSweep(**{**vars(sweep), **sweep_changes})
+    return AssessmentFunction(params, sweep, instantiate(node.requirements))
+
+
+def test_linear_loop_matches_datasheet(params):
+    # ema_reference.md §1: crossover ~28 Hz, PM ~74 deg, GM ~10 dB (linear sampled-data analysis).
+    lp = linear_loop(params)
+    assert np.abs(np.linalg.eigvals(lp.closed.A)).max() < 1.0       # stable closed loop
+    m = _margins(FINE, *lp.response(FINE))
+    assert m["crossover_hz"] == pytest.approx(28.0, abs=1.0)
+    assert m["phase_margin_deg"] == pytest.approx(74.0, abs=2.0)
+    assert m["gain_margin_db"] == pytest.approx(10.0, abs=0.7)
+    # K_pos x 1.5 (k8 = 1) costs 20 log10(1.5) = 3.5 dB of gain margin, the phase crossover unchanged
+    m15 = _margins(FINE, *linear_loop(params, 1.5).response(FINE))
+    assert m["gain_margin_db"] - m15["gain_margin_db"] == pytest.approx(20 * math.log10(1.5), abs=0.05)
+
+
+def test_margin_interpolation_on_the_shipped_grid(params, shipped):
+    # The coarse shipped grid recovers the fine-grid margins of the linear loop.
+    lp = linear_loop(params)
+    coarse = np.asarray(shipped.sweep.frequencies, dtype=float)
+    fine, got = _margins(FINE, *lp.response(FINE)), _margins(coarse, *lp.response(coarse))
+    assert got["crossover_hz"] == pytest.approx(fine["crossover_hz"], rel=0.01)
+    assert got["phase_margin_deg"] == pytest.approx(fine["phase_margin_deg"], abs=0.5)
+    assert got["gain_margin_db"] == pytest.approx(fine["gain_margin_db"], abs=0.2)
+    assert got["bandwidth_hz"] == pytest.approx(fine["bandwidth_hz"], rel=0.03)
+
+
+def test_margin_conventions():
+    f = torch.tensor([1.0, 10.0, 100.0])
+    never = torch.tensor([[0.5 + 0j, 0.4 + 0j, 0.3 + 0j]])            # |L| < 1 everywhere, phase 0
+    t_high = torch.tensor([[1.0 + 0j, 0.9 + 0j, 0.8 + 0j]])           # |T| never below -3 dB
+    m = margins(f, never, t_high)
+    assert math.isnan(float(m.crossover_hz[0])) and math.isnan(float(m.gain_margin_db[0]))
+    assert math.isinf(float(m.bandwidth_hz[0]))
+    t_low = torch.tensor([[0.5 + 0j, 0.4 + 0j, 0.3 + 0j]])            # already below at the first point
+    assert math.isnan(float(margins(f, never, t_low).bandwidth_hz[0]))
+    ph = torch.tensor([-90.0, -170.0, -190.0]) * math.pi / 180
+    loop = torch.polar(torch.tensor([2.0, 0.5, 0.25]), ph)[None]
+    m = margins(f, loop, t_high)
+    assert float(m.crossover_hz[0]) == pytest.approx(10 ** (1 / 2), rel=1e-6)   # |L| dB falls 6 -> -6 over a decade
+    assert float(m.phase_crossover_hz[0]) == pytest.approx(10 ** 1.5, rel=1e-6)
+    assert float(m.gain_margin_db[0]) == pytest.approx(-20 * math.log10(math.sqrt(0.5 * 0.25)), abs=1e-5)
+
+
+def _linear_transmission(state, plant):
+    n = plant.gear_ratio
+    return plant.output_stiffness * (state.theta_m / n - state.theta_u) + \
+        plant.output_damping * (state.omega_m / n - state.omega_u)
+
+
+def test_measurement_recovers_the_linear_loop(params, monkeypatch):
+    # With the nonlinearities removed (no dry friction, no backlash, a bilateral output-stage contact),
+    # the sine-sweep measurement of the LF simulation equals the linear sampled-data analysis.
+    monkeypatch.setattr(mechanics, "transmission_torque", _linear_transmission)
+    lin_params = params.replace(coulomb_friction=0.0, static_friction=0.0, backlash=0.0)
+    sweep = SineSweep((20.0, 40.0, 80.0, 110.0), 2e-4, 4, 2, 0.02, 1, 4, False)
+    fr = FrequencyResponse(lin_params, sweep)
+    r = fr.measure(torch.tensor([params.nominal_faults]))
+    l_ref, t_ref = linear_loop(params).response(fr.frequencies.numpy())
+    gain_err = 20 * np.log10(np.abs(r.open_loop[0].numpy()) / np.abs(l_ref))
+    phase_err = np.degrees(np.angle(r.open_loop[0].numpy() / l_ref))
+    assert np.abs(gain_err).max() < 0.3           # dB
+    assert np.abs(phase_err).max() < 2.5          # deg (semi-implicit mechanics at 100 us)
+    assert np.abs(r.closed_loop[0].numpy() - t_ref).max() < 0.04
+
+
+def test_nominal_against_linear_analysis_and_labels(params, shipped):
+    # The shipped assessment (nonlinear LF at the 8e-5 rad test amplitude) against the linear analysis,
+    # with the tolerances of docs/dataset.md: dry friction lowers the low-frequency loop gain (crossover
+    # -30 %, PM +5 deg), the unilateral output-stage contact lowers the gain margin (-2 dB).
+    af = _assessment(params, shipped)
+    lin = _margins(FINE, *linear_loop(params).response(FINE))
+    nom = {k: float(v[0]) for k, v in af.nominal.as_dict().items()}
+    assert nom["crossover_hz"] == pytest.approx(lin["crossover_hz"], rel=0.35)
+    assert nom["phase_margin_deg"] == pytest.approx(lin["phase_margin_deg"], abs=8.0)
+    assert nom["gain_margin_db"] == pytest.approx(lin["gain_margin_db"], abs=2.5)
+    assert nom["phase_crossover_hz"] == pytest.approx(lin["phase_crossover_hz"], rel=0.1)
+    # labels: nominal healthy with margin; too much gain (GM), too little gain (bandwidth), big backlash
+    k0 = list(params.nominal_faults)
+    cases = [k0, k0[:7] + [1.0], k0[:7] + [0.0], [0.0, 1.0] + k0[2:]]
+    res = af(torch.tensor(cases))
+    assert res.healthy.tolist() == [True, False, False, False]
+    m = res.margins
+    assert float(m.gain_margin_db[0]) >= 6.0 + 2.0 and float(m.phase_margin_deg[0]) >= 45.0 + 20.0
+    assert float(m.gain_margin_db[1]) < 6.0
+    assert not float(m.bandwidth_hz[2]) >= 0.9 * af.nominal_bandwidth_hz   # nan: below -3 dB already at 12 Hz
+    assert af.vectors == 4 and af.wall_s > 0
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"amplitude": 0.0}, "assessment.sweep.amplitude"),
+    ({"frequencies": (10.0, 5.0)}, "assessment.sweep.frequencies"),
+    ({"cycles": 2, "measure_cycles": 2}, "assessment.sweep.cycles"),
+    ({"group_size": 0}, "assessment.sweep.group_size"),
+])
+def test_bad_sweep(change, field):
+    args = {"frequencies": (10.0, 20.0), "amplitude": 1e-4, "cycles": 4, "measure_cycles": 2,
+            "min_duration": 0.0, "substeps": 1, "group_size": 2, "compile": False, **change}
+    with pytest.raises(ValueError, match=field):
+        SineSweep(**args)
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"bandwidth_fraction": 1.5}, "bandwidth_fraction"),
+    ({"phase_margin_deg": float("nan")}, "phase_margin_deg"),
+    ({"gain_margin_db": -1.0}, "gain_margin_db"),
+])
+def test_bad_requirements(change, field):
+    with pytest.raises(ValueError, match=f"assessment.requirements.{field}"):
+        HealthRequirements(**{"phase_margin_deg": 45.0, "gain_margin_db": 6.0, "bandwidth_fraction": 0.9, **change})
+
+
+@pytest.mark.slow
+def test_healthy_fraction_of_the_importance_sampled_set(params, shipped):
+    # docs/dataset.md: 15-40 % of the importance-sampled training set is healthy (paper: 123 of 500).
+    from phm_torch.data.sampling import ImportanceSampler
+
+    af = _assessment(params, shipped, compile=True)
+    k = ImportanceSampler(params.nominal_faults, (6,), 1.0).sample(1024, 11)
+    frac = float(af(torch.tensor(k)).healthy.double().mean())
+    assert 0.15 <= frac <= 0.40

@@ -1,0 +1,223 @@
+"""phm-generate and the dataset store at tiny scale (LF signals, short command, few test frequencies):
+identical manifests for the same config whatever the sharding and interruptions (SIGKILL included),
+checksum-verified chunks, refusal to mix configs, lazy reads and the LightningDataModule."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from phm_torch.apps.generate import generate
+from phm_torch.data.datamodule import EMADataModule
+from phm_torch.data.store import DatasetStore
+from phm_torch.params import CONF_DIR
+
+APP = "phm_torch.apps.generate"
+TINY = ("dataset.fidelity=lf", "command.duration=0.02", "dataset.n_train=10", "dataset.n_val=3",
+        "dataset.n_rul=2", "dataset.chunk_size=6", "assessment.sweep.frequencies=[15,30,60,90,130]",
+        "assessment.sweep.cycles=3", "assessment.sweep.group_size=5", "progress=false", "threads=1")
+N_CHUNKS = 3  # 1 + 10 + 3 + 2 = 16 rows in chunks of 6
+
+
+def _manifest(path: Path) -> dict:
+    return json.loads((path / "manifest.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory, compose):
+    """One uninterrupted tiny run: (data_dir, metrics)."""
+    data_dir = tmp_path_factory.mktemp("ref") / "store"
+    metrics, _ = generate(compose("generate", [*TINY, f"data_dir={data_dir}"]))
+    return data_dir, metrics
+
+
+@pytest.fixture(scope="module")
+def killed_and_resumed(tmp_path_factory, spawn_cli):
+    """A CLI run SIGKILLed once its first chunk exists, a stale temp file left, then the same command
+    again; also a bad-input CLI run. Returns (data_dir, resumed run, bad run)."""
+    cwd = tmp_path_factory.mktemp("kill")
+    data_dir = cwd / "store"
+    args = (*TINY, f"data_dir={data_dir}")
+    bad = spawn_cli(APP, ("dataset.n_train=0", f"data_dir={cwd / 'bad'}"), cwd)
+    proc = spawn_cli(APP, args, cwd)
+    first = data_dir / "chunks" / "chunk_00000.h5"
+    deadline = time.monotonic() + 240
+    while not first.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    killed = proc.poll() is None
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate()
+    assert killed, "the run finished before it could be killed"
+    (data_dir / "chunks" / ".chunk_00001.h5.0123456789ab.tmp").write_bytes(b"half-written")
+    assert not (data_dir / "manifest.json").exists()
+    resumed = spawn_cli(APP, args, cwd)
+    out, err = resumed.communicate(timeout=300)
+    bad_out, bad_err = bad.communicate(timeout=120)
+    return (data_dir, subprocess.CompletedProcess(resumed.args, resumed.returncode, out, err),
+            subprocess.CompletedProcess(bad.args, bad.returncode, bad_out, bad_err))
+
+
+def test_store_contents(reference):
+    data_dir, metrics = reference
+    assert metrics["complete"] and metrics["chunks"] == {"total": N_CHUNKS, "computed": N_CHUNKS, "reused": 0,
+                                                         "repaired": 0}
+    m = _manifest(data_dir)
+    assert {s: v["count"] for s, v in m["splits"].items()} == {"nominal": 1, "train": 10, "val": 3, "rul": 2}
+    assert m["splits"]["nominal"]["healthy"] == 1
+    with DatasetStore(data_dir, verify=True) as store:
+        tr = store.split("train")
+        assert tr.K.shape == (10, 8) and tr.K.dtype == np.float64
+        assert tr.current.shape == (10, 401) and tr.current.dtype == np.float32 and tr.current.chunks is not None
+        assert tr.position.shape == (10, 401) and tr.healthy.dtype == np.uint8 and tr.margins.shape == (10, 5)
+        assert int(tr.healthy[()].sum()) == m["splits"]["train"]["healthy"]
+        assert np.array_equal(store.split("nominal").K[0], [0, 0, 0, 0, 0, 0, 0.5, 0.5])
+        assert store.time.shape == (401,) and store.command.shape == (401,)
+        meta = store.metadata
+        assert meta["package_version"] and meta["git_revision"] and meta["seeds"]["seed"] == 0
+        assert meta["config"]["dataset"]["n_train"] == 10 and meta["fingerprint"] == m["fingerprint"]
+        # the rul split lies in the restricted domain
+        rul = store.split("rul").K[()]
+        assert np.abs(rul[:, [0, 1, 2, 3, 4, 5]]).max() <= 0.1 and np.abs(rul[:, 7] - 0.5).max() <= 0.05
+        assert np.all(np.isfinite(tr.current[()]))
+
+
+def test_rerun_reuses_everything(reference, compose):
+    data_dir, _ = reference
+    before = _manifest(data_dir)
+    metrics, _ = generate(compose("generate", [*TINY, f"data_dir={data_dir}", "stage=merge"]))
+    assert metrics["chunks"]["computed"] == 0 and _manifest(data_dir) == before
+
+
+def test_shards_give_the_same_manifest(reference, compose, tmp_path):
+    data_dir = tmp_path / "sharded"
+    base = [*TINY, f"data_dir={data_dir}", "shard.count=2"]
+    m0, _ = generate(compose("generate", [*base, "shard.index=1"]))
+    assert not m0["complete"] and m0["chunks"]["computed"] == 1         # chunk 1 only; 0 and 2 missing
+    m1, _ = generate(compose("generate", [*base, "shard.index=0"]))
+    assert m1["complete"] and m1["chunks"]["computed"] == 2
+    assert _manifest(data_dir) == _manifest(reference[0])
+
+
+def test_sigkill_then_resume_gives_the_same_manifest(reference, killed_and_resumed):
+    data_dir, resumed, _ = killed_and_resumed
+    assert resumed.returncode == 0, resumed.stderr
+    metrics = json.loads(resumed.stdout)
+    assert metrics["chunks"]["reused"] >= 1 and metrics["complete"]
+    assert not list((data_dir / "chunks").glob("*.tmp"))               # the stale temp file was removed
+    assert _manifest(data_dir) == _manifest(reference[0])
+
+
+def test_cli_bad_input(killed_and_resumed):
+    bad = killed_and_resumed[2]
+    assert bad.returncode == 2
+    assert bad.stderr.strip().splitlines()[-1].startswith("phm-generate: error: dataset.n_train must be")
+
+
+def test_corrupt_chunk_is_reported_then_repaired(reference, compose, tmp_path):
+    data_dir = tmp_path / "corrupt"
+    args = [*TINY, f"data_dir={data_dir}"]
+    generate(compose("generate", [*args, "stage=chunks"]))
+    with h5py.File(data_dir / "chunks" / "chunk_00001.h5", "r+") as f:  # valid HDF5, wrong content
+        f["current"][0, 5] += 1.0
+    with pytest.raises(ValueError, match=r"chunk_00001.h5: checksum mismatch.*repair=true"):
+        generate(compose("generate", args))
+    (data_dir / "chunks" / "chunk_00002.h5").write_bytes(b"not an HDF5 file")
+    metrics, _ = generate(compose("generate", [*args, "repair=true"]))
+    assert metrics["chunks"]["repaired"] == 2 and metrics["complete"]
+    assert _manifest(data_dir) == _manifest(reference[0])
+
+
+def test_refuses_another_config_unless_overwrite(reference, compose, tmp_path):
+    data_dir = tmp_path / "other"
+    shutil.copytree(reference[0], data_dir)
+    with pytest.raises(ValueError, match="different config.*overwrite=true"):
+        generate(compose("generate", [*TINY, f"data_dir={data_dir}", "seed=1"]))
+    metrics, _ = generate(compose("generate", [*TINY, f"data_dir={data_dir}", "seed=1", "overwrite=true"]))
+    assert metrics["complete"] and metrics["chunks"]["computed"] == N_CHUNKS
+    assert _manifest(data_dir)["splits"]["train"]["sha256"] != _manifest(reference[0])["splits"]["train"]["sha256"]
+
+
+@pytest.mark.parametrize("override, message", [
+    ("data_dir={file}/sub", "data_dir .* is not writable"),
+    ("shard.index=2", "shard.index must be in"),
+    ("stage=everything", "stage must be one of"),
+    ("assessment.sweep.amplitude=-1", "assessment.sweep.amplitude must be > 0"),
+    ("dataset.fidelity=xf", "dataset.fidelity must be"),
+])
+def test_bad_generation_input(compose, tmp_path, override, message):
+    (tmp_path / "file").write_text("x")
+    args = [*TINY, f"data_dir={tmp_path / 'd'}", "shard.count=2", override.format(file=tmp_path / "file")]
+    with pytest.raises(ValueError, match=message):
+        generate(compose("generate", args))
+
+
+def test_datamodule_lazy_deterministic_normalised(reference):
+    data_dir, _ = reference
+
+    def first_batch(**kw):
+        dm = EMADataModule(data_dir, batch_size=4, seed=3, **kw)
+        dm.setup()
+        return dm, next(iter(dm.train_dataloader()))
+
+    dm, a = first_batch(y_center="nominal", k_scaling="minmax")
+    _, b = first_batch(y_center="nominal", k_scaling="minmax")
+    assert all(torch.equal(a[key], b[key]) for key in a)              # same seed, same batches
+    assert a["y"].shape == (4, 401) and a["k"].shape == (4, 8) and a["y"].dtype == torch.float32
+    with DatasetStore(data_dir) as store:
+        tr, nominal = store.split("train"), store.split("nominal").current[0]
+        raw = tr.current[sorted(a["index"].tolist())]
+        k_raw = tr.K[()]
+    order = np.argsort(np.argsort(a["index"].numpy()))
+    assert np.allclose(a["y"].numpy(), raw[order] - nominal, atol=1e-6)
+    assert a["k"].min() >= 0 and a["k"].max() <= 1
+    assert torch.allclose(dm.unscale_k(a["k"]).double(), torch.from_numpy(k_raw[a["index"].numpy()]), atol=1e-6)
+    dm_mean, std_batch = first_batch(y_center="mean", y_scale="std", k_scaling="standard")
+    n = dm_mean.normalisation
+    assert n["y_scale"] > 0 and np.allclose(n["y_center"], tr_mean(data_dir))
+    assert abs(float(std_batch["k"][:, 0].mean())) < 3.0 and std_batch["y"].abs().max() < 50.0
+    val = next(iter(dm.val_dataloader()))
+    assert val["index"].tolist() == [0, 1, 2]                          # validation in order
+    with pytest.raises(ValueError, match="data.y_center"):
+        EMADataModule(data_dir, batch_size=4, y_center="median")
+    with pytest.raises(ValueError, match="split 'test'"):
+        EMADataModule(data_dir, batch_size=4, val_split="test").setup()
+
+
+def tr_mean(data_dir: Path) -> np.ndarray:
+    with DatasetStore(data_dir) as store:
+        return store.split("train").current[()].astype(np.float64).mean(0)
+
+
+def test_launcher_configs_name_their_plugins():
+    plugins = {"local": "joblib", "slurm": "submitit_slurm", "ray": "ray"}
+    for name, plugin in plugins.items():
+        cfg = yaml.safe_load((CONF_DIR / "hydra" / "launcher" / f"{name}.yaml").read_text())
+        assert cfg["defaults"] == [plugin]
+
+
+def test_joblib_shards_then_merge(reference, tmp_path):
+    pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
+    data_dir = tmp_path / "joblib"
+    env = {**os.environ, "PYTHONPATH": str(CONF_DIR.parent), "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", APP, "-m", "hydra/launcher=local", *TINY, f"data_dir={data_dir}",
+           "shard.count=2", "shard.index=0,1", f"hydra.sweep.dir={tmp_path / 'multirun'}"]
+    run = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300, check=False)
+    assert run.returncode == 0, run.stderr[-2000:]
+    if not (data_dir / "manifest.json").exists():  # both shards finished before either saw the other's chunks
+        merge = subprocess.run([sys.executable, "-m", APP, *TINY, f"data_dir={data_dir}", "stage=merge",
+                                f"hydra.run.dir={tmp_path / 'merge'}"], cwd=tmp_path, env=env,
+                               capture_output=True, text=True, timeout=300, check=False)
+        assert merge.returncode == 0, merge.stderr[-2000:]
+    assert _manifest(data_dir) == _manifest(reference[0])

@@ -1,0 +1,174 @@
+"""FDI network, its Levenberg-Marquardt trainer, the Lightning module (Adam, LM, end to end), metrics."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import lightning as L
+import pytest
+import torch
+from torch.utils.data import DataLoader, TensorDataset
+
+from phm_torch.surrogates import (
+    FDIMLP,
+    POD,
+    FDIModule,
+    GappyPOD,
+    KeepBest,
+    LevenbergMarquardt,
+    SignalAugment,
+    err_alpha,
+    err_k,
+    err_k_weights,
+    fdi_mae,
+)
+from phm_torch.surrogates.selectors import build_selector
+
+
+def teacher_data(n: int, seed: int, n_in: int = 6) -> tuple[torch.Tensor, torch.Tensor]:
+    """Inputs (n, n_in) and targets (n, 8) in [0.05, 0.95] from a random network of the same form."""
+    g = torch.Generator().manual_seed(seed)
+    w1, w2 = torch.randn(n_in, 12, generator=torch.Generator().manual_seed(99)), torch.randn(12, 8,
+                                                                                              generator=torch.Generator().manual_seed(98))
+    x = torch.randn(n, n_in, generator=g)
+    y = 0.5 + 0.45 * torch.tanh(torch.tanh(x @ w1 / 2) @ w2 / 3)
+    return x, y
+
+
+def test_network_form():
+    net = FDIMLP(4, 7)
+    x = torch.randn(50, 4) * 10
+    net.set_normalization(x)
+    z = (x - net.in_center) / net.in_scale
+    assert float(z.min()) == pytest.approx(-1.0) and float(z.max()) == pytest.approx(1.0)  # mapminmax
+    h = 2 / (1 + torch.exp(-2 * net.hidden(z))) - 1                                        # tansig
+    pre = net.output(h)
+    assert torch.allclose(net.preactivation(x), pre, atol=1e-5)
+    out = net(x * 100)
+    assert float(out.min()) >= 0.0 and float(out.max()) <= 1.0                             # satlin
+    with pytest.raises(ValueError, match="fdi.n_hidden must be a positive integer"):
+        FDIMLP(4, 0)
+
+
+def test_lm_normal_equations_match_autograd_jacobian():
+    torch.manual_seed(0)
+    net = FDIMLP(3, 4).double()
+    x, y = torch.randn(5, 3, dtype=torch.float64), torch.rand(5, 8, dtype=torch.float64)
+    w = torch.rand(5, 8, dtype=torch.float64)
+    lm = LevenbergMarquardt(net, forward_name="preactivation", chunk=2)
+    lm._buffers = {k: v for k, v in net.named_buffers()}
+    flat = lm._flat()
+    jtj, jte, perf = lm._normal_equations(flat, x, y, w)
+
+    def residual(p: torch.Tensor) -> torch.Tensor:
+        return ((lm._apply(p, x) - y) * w.sqrt()).reshape(-1)
+
+    jac = torch.autograd.functional.jacobian(residual, flat)
+    e = residual(flat)
+    assert torch.allclose(jtj, jac.T @ jac, atol=1e-10)
+    assert torch.allclose(jte, jac.T @ e, atol=1e-10)
+    assert perf == pytest.approx(float((e ** 2).mean()))
+
+
+def test_lm_fits_a_teacher_network_quickly():
+    x, y = teacher_data(400, 0)
+    xv, yv = teacher_data(100, 1)
+    torch.manual_seed(0)
+    net = FDIMLP(6, 12).set_normalization(x)
+    lm = LevenbergMarquardt(net, forward_name="preactivation")
+    history = lm.fit(x, y, epochs=40, x_val=xv, y_val=yv)
+    perfs = [h["perf"] for h in history]
+    assert all(b <= a for a, b in itertools.pairwise(perfs))      # LM only takes descending steps
+    assert perfs[-1] < 1e-2 * perfs[0]
+    assert float((net(xv) - yv).pow(2).mean()) < 2e-3
+
+
+def _fit(module: FDIModule, train: TensorDataset, val: TensorDataset, epochs: int, batch: int | None,
+         tmp_path) -> tuple[L.Trainer, KeepBest]:
+    keep = KeepBest()
+    trainer = L.Trainer(max_epochs=epochs, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                        enable_model_summary=False, callbacks=[keep], default_root_dir=tmp_path, accelerator="cpu")
+    trainer.fit(module, DataLoader(train, batch_size=batch or len(train), shuffle=batch is not None),
+                DataLoader(val, batch_size=len(val)))
+    return trainer, keep
+
+
+@pytest.mark.parametrize("optimizer,epochs,batch", [("adam", 40, 64), ("lm", 15, None)])
+def test_lightning_module_trains(optimizer, epochs, batch, tmp_path):
+    x, y = teacher_data(400, 0)
+    xv, yv = teacher_data(100, 1)
+    torch.manual_seed(0)
+    net = FDIMLP(6, 12).set_normalization(x)
+    before = err_k(net(xv), yv)
+    module = FDIModule(net, optimizer=optimizer, lr=1e-2)
+    _trainer, keep = _fit(module, TensorDataset(x, y), TensorDataset(xv, yv), epochs, batch, tmp_path)
+    keep.restore(module)
+    after = err_k(module.network(xv), yv)
+    assert after < 0.3 * before
+    assert keep.best == pytest.approx(after, rel=1e-4)
+
+
+def test_end_to_end_with_noise_and_missing_samples(tmp_path):
+    from surrogate_data import faults, signals
+
+    k, kv = faults(300, 0).float(), faults(80, 1).float()
+    y, yv = signals(k), signals(kv)
+    pod = POD(10).fit(y)
+    gappy = GappyPOD(pod.modes_, pod.mean_, build_selector("greedy", n_points=20).fit(pod.modes_).indices_)
+    s, sv = gappy.select(y), gappy.select(yv)
+    scale, scale_v = y.pow(2).mean(-1).sqrt(), yv.pow(2).mean(-1).sqrt()
+    torch.manual_seed(0)
+    net = FDIMLP(10, 16).set_normalization(gappy(s)[0])
+    before = err_k(net(gappy(sv)[0]), kv)
+    module = FDIModule(net, lr=1e-2, gappy=gappy, augment=SignalAugment(noise=0.01, max_missing=3))
+    _, keep = _fit(module, TensorDataset(s, k, scale), TensorDataset(sv, kv, scale_v), 30, 32, tmp_path)
+    keep.restore(module)
+    assert err_k(module.network(gappy(sv)[0]), kv) < 0.5 * before
+    # A training batch really carries NaNs through the gappy layer, with finite gradients.
+    torch.manual_seed(1)
+    corrupted = module.augment(s[:32], scale[:32])
+    assert 0 < int(corrupted.isnan().sum()) <= 3 * 32
+    alpha, _ = gappy(corrupted)
+    loss = (module.network.preactivation(alpha) - k[:32]).pow(2).mean()
+    loss.backward()
+    assert all(bool(torch.isfinite(p.grad).all()) for p in module.network.parameters())
+
+
+def test_module_configuration_errors():
+    net = FDIMLP(10, 5)
+    with pytest.raises(ValueError, match="model.optimizer must be one of"):
+        FDIModule(net, optimizer="sgd")
+    with pytest.raises(ValueError, match="model.augment needs the gappy layer"):
+        FDIModule(net, augment=SignalAugment())
+    gappy = GappyPOD(torch.eye(20)[:, :10], torch.zeros(20))
+    with pytest.raises(ValueError, match="model.end_to_end needs model.optimizer=adam"):
+        FDIModule(net, optimizer="lm", gappy=gappy)
+
+
+def test_checkpoint_from_another_configuration():
+    small = FDIModule(FDIMLP(10, 5))
+    other = FDIModule(FDIMLP(10, 7))
+    ckpt = {"hyper_parameters": dict(small.hparams), "state_dict": small.state_dict()}
+    with pytest.raises(ValueError, match="checkpoint from another configuration: n_hidden=5 in the checkpoint vs 7"):
+        other.on_load_checkpoint(ckpt)
+
+
+def test_err_k_as_the_paper_defines_it():
+    k_act = torch.zeros(2, 8)
+    k_act[:, 5] = torch.tensor([0.0, 0.5])             # eccentricity k6
+    k_est = k_act.clone()
+    k_est[:, 6] += 0.4                                 # phase error 0.4 on both signals
+    k_est[0, 0] += 0.2                                 # friction error on the first
+    w = err_k_weights(k_act)
+    assert w[:, 6].tolist() == [0.0, 0.5] and float(w[:, :6].min()) == 1.0 and float(w[:, 7].min()) == 1.0
+    # sqrt(mean over 2 x 8 entries of w (dk)^2) = sqrt((0.2^2 + 0.5 * 0.4^2) / 16)
+    assert err_k(k_est, k_act) == pytest.approx(math.sqrt((0.04 + 0.08) / 16))
+    assert fdi_mae(k_est, k_act)[6] == pytest.approx(0.4)
+    assert fdi_mae(k_est, k_act, weighted=True)[6] == pytest.approx(0.1)
+
+
+def test_err_alpha():
+    full = torch.tensor([[0.0, 1.0, 2.0, 4.0]])
+    gappy = full + torch.tensor([[0.1, -0.1, 0.1, -0.1]])
+    assert float(err_alpha(gappy, full)[0]) == pytest.approx(0.1 / 4.0)

@@ -1,0 +1,110 @@
+"""Gappy POD layer: exact recovery in the span, masking of missing samples, gradients, scripting."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from surrogate_data import N_LATENT, faults, signals
+
+from phm_torch.surrogates import POD, GappyPOD, drop_samples
+from phm_torch.surrogates.selectors import build_selector
+
+
+@pytest.fixture(scope="module")
+def pod() -> POD:
+    return POD(N_LATENT).fit(signals(faults(300, 0)).double())
+
+
+@pytest.fixture(scope="module")
+def in_span(pod) -> torch.Tensor:
+    """Noise-free signals inside the span of the modes (B, n_e), float64."""
+    alpha = torch.randn(16, N_LATENT, generator=torch.Generator().manual_seed(5), dtype=torch.float64) * 10
+    return pod.reconstruct(alpha)
+
+
+def test_all_points_recover_the_full_projection(pod, in_span):
+    gappy = GappyPOD(pod.modes_, pod.mean_, torch.arange(pod.modes_.shape[0]))
+    alpha, resid = gappy(gappy.select(in_span))
+    assert torch.allclose(alpha, pod(in_span), atol=1e-9)
+    assert float(resid.max()) < 1e-9
+
+
+@pytest.mark.parametrize("name", ["qdeim", "greedy", "uniform", "som"])
+def test_selected_points_recover_in_span_signals(pod, in_span, name):
+    idx = build_selector(name, n_points=15).fit(pod.modes_).indices_
+    gappy = GappyPOD(pod.modes_, pod.mean_, idx)
+    alpha, resid = gappy(gappy.select(in_span))
+    assert torch.allclose(alpha, pod(in_span), atol=1e-7)
+    assert float(resid.max()) < 1e-8
+
+
+def test_residual_flags_signals_outside_the_span(pod, in_span):
+    gappy = GappyPOD(pod.modes_, pod.mean_, build_selector("greedy", n_points=20).fit(pod.modes_).indices_)
+    off = in_span + 0.5 * torch.sin(torch.arange(in_span.shape[1], dtype=torch.float64) * 1.7)  # not in the span
+    _, r_in = gappy(gappy.select(in_span))
+    _, r_off = gappy(gappy.select(off))
+    assert float(r_off.min()) > 100 * float(r_in.max())
+
+
+def test_missing_samples_are_dropped_from_that_signal_only(pod, in_span):
+    idx = build_selector("greedy", n_points=20).fit(pod.modes_).indices_
+    gappy = GappyPOD(pod.modes_, pod.mean_, idx)
+    noisy = gappy.select(in_span) + 0.05 * torch.randn(16, 20, generator=torch.Generator().manual_seed(0),
+                                                       dtype=torch.float64)
+    holed = drop_samples(noisy, torch.tensor([0, 3] + [0] * 14), torch.Generator().manual_seed(1))
+    alpha, _ = gappy(holed)
+    full, _ = gappy(noisy)
+    assert torch.allclose(alpha[0], full[0]) and torch.allclose(alpha[2:], full[2:])
+    keep = torch.isfinite(holed[1])
+    ref = torch.linalg.lstsq(gappy.modes_hat[keep], (noisy[1] - gappy.mean_hat)[keep]).solution
+    assert torch.allclose(alpha[1], ref, atol=1e-9)
+    # A boolean mask is the same as NaN.
+    masked, _ = gappy(noisy, torch.isfinite(holed))
+    assert torch.allclose(masked, alpha)
+
+
+def test_gradients(pod, in_span):
+    idx = build_selector("greedy", n_points=14).fit(pod.modes_).indices_
+    gappy = GappyPOD(pod.modes_, pod.mean_, idx)
+    x = gappy.select(in_span[:3]).clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda s: gappy(s)[0], (x,))
+    mask = torch.ones(3, 14, dtype=torch.bool)
+    mask[1, 2] = False
+    assert torch.autograd.gradcheck(lambda s: gappy(s, mask)[0], (x,))
+    # NaN samples get a zero gradient, the others a finite one.
+    y = x.detach().clone()
+    y[0, 4] = float("nan")
+    y.requires_grad_(True)
+    gappy(y)[0].sum().backward()
+    assert bool(torch.isfinite(y.grad).all()) and float(y.grad[0, 4]) == 0.0
+
+
+def test_torchscript(pod, in_span):
+    gappy = GappyPOD(pod.modes_, pod.mean_, build_selector("qdeim", n_points=12).fit(pod.modes_).indices_)
+    scripted = torch.jit.script(gappy)
+    s = gappy.select(in_span)
+    s[0, 0] = float("nan")
+    a, r = scripted(s)
+    b, q = gappy(s)
+    assert torch.allclose(a, b) and torch.allclose(r, q)
+
+
+def test_condition_number(pod):
+    good = GappyPOD(pod.modes_, pod.mean_, build_selector("greedy", n_points=20).fit(pod.modes_).indices_)
+    assert 1.0 <= good.condition_number() < 1e3
+
+
+def test_bad_input(pod):
+    with pytest.raises(ValueError, match="n_points=5 < n_modes=10"):
+        GappyPOD(pod.modes_, pod.mean_, torch.arange(5))
+    gappy = GappyPOD(pod.modes_, pod.mean_, torch.arange(0, 800, 50))  # 16 points
+    with pytest.raises(ValueError, match=r"samples must be \(B, 16\)"):
+        gappy(torch.zeros(2, 15, dtype=torch.float64))
+    s = torch.zeros(2, 16, dtype=torch.float64)
+    s[1, :7] = float("nan")
+    with pytest.raises(ValueError, match="signal 1 has 9 present samples, fewer than the 10 modes"):
+        gappy(s)
+    ridged = GappyPOD(pod.modes_, pod.mean_, torch.arange(0, 800, 50), ridge=1e-3)
+    assert bool(torch.isfinite(ridged(s)[0]).all())
+    with pytest.raises(ValueError, match="indices must lie in"):
+        GappyPOD(pod.modes_, pod.mean_, torch.tensor([0, 900]))

@@ -1,0 +1,164 @@
+"""``phm-train`` end to end on a small synthetic store: metrics.json, the bundle, sweeps, bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from surrogate_data import write_store
+
+from phm_torch.apps.train import train_surrogates
+from phm_torch.surrogates import SurrogateBundle
+
+REQUIRED = ("err_alpha_median", "err_alpha_iqr", "err_k", "fdi_mae", "classifier_accuracy", "missed_fault_rate",
+            "false_alarm_rate", "fdi_latency_us_p50")
+QUICK = ("n_modes=10", "n_points=16", "n_hidden=12", "eval.latency_repeats=50", "trainer.enable_progress_bar=false")
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory) -> Path:
+    return write_store(tmp_path_factory.mktemp("store"), {"train": 400, "val": 100}, noise=0.01)
+
+
+@pytest.fixture(scope="module")
+def lm_run(store, compose, tmp_path_factory):
+    out = tmp_path_factory.mktemp("lm")
+    cfg = compose("train", [f"data_dir={store}", f"out_dir={out}", *QUICK, "model.fit.max_epochs=25"])
+    return train_surrogates(cfg)
+
+
+def test_metrics_json(lm_run):
+    _metrics, objects = lm_run
+    written = json.loads((objects["out_dir"] / "metrics.json").read_text())
+    for key in REQUIRED:
+        assert key in written, key
+    assert len(written["fdi_mae"]) == 8
+    for key in ("err_alpha_median", "err_alpha_iqr", "err_k", "classifier_accuracy", "missed_fault_rate",
+                "false_alarm_rate"):
+        assert 0.0 <= written[key] <= 1.0, key                  # fractions
+    # The synthetic family is rank 10 and learnable: the pipeline must actually work.
+    assert written["err_alpha_median"] < 0.05
+    assert written["err_k"] < 0.05
+    assert written["classifier_accuracy"] > 0.85
+    assert written["fdi_latency_us_p50"] > 0
+    assert written["err_k_noise"] >= 0 and written["err_k_missing"] >= 0
+    assert (objects["out_dir"] / "logs").is_dir()              # CSV logger
+    assert list((objects["out_dir"] / "checkpoints").glob("*.ckpt"))
+
+
+def test_bundle_round_trip(lm_run, store):
+    _metrics, objects = lm_run
+    path = objects["out_dir"] / "surrogates.pt"
+    bundle = SurrogateBundle.load(path, expect={"n_modes": 10, "n_points": 16, "n_hidden": 12})
+    arrays = torch.load(objects["out_dir"] / "predictions.pt", weights_only=True)
+    from surrogate_data import faults, signals
+
+    k = faults(100, 17)                                        # the val split of write_store (seed 0 + 17)
+    samples = bundle.compress(signals(k, 0.01, 1))
+    assert torch.allclose(bundle.fdi(samples), arrays["k_hat"], atol=1e-5)
+    assert torch.allclose(bundle(samples), arrays["k_hat"], atol=1e-5)
+    scripted = torch.jit.script(bundle)                        # exportable as it is (issue 5)
+    holed = samples.clone()
+    holed[:, :2] = float("nan")
+    assert torch.allclose(scripted(holed), bundle.fdi(holed), atol=1e-6)
+    out = bundle.diagnose(samples)
+    assert set(out) == {"k_hat", "alpha", "residual", "out_of_distribution"}
+    assert float(out["out_of_distribution"].float().mean()) < 0.1
+    score = bundle.health_score(k)
+    assert torch.allclose(score, arrays["score"])
+    assert torch.equal(bundle.is_healthy(k), score > 0)
+    assert bundle.sample_times.shape == (16,) and float(bundle.sample_times.max()) <= 800 / 20000.0
+    meta = torch.load(path, weights_only=True)["meta"]
+    assert meta["health_convention"].startswith("health_score > 0: healthy")
+    # A far out-of-distribution record is flagged.
+    odd = samples.clone()
+    odd[:, ::2] += 50.0
+    assert bool(bundle.diagnose(odd)["out_of_distribution"].all())
+
+
+def test_bundle_from_another_configuration(lm_run, tmp_path):
+    path = lm_run[1]["out_dir"] / "surrogates.pt"
+    with pytest.raises(ValueError, match="bundle from another configuration: n_modes=10 in the file, 22 expected"):
+        SurrogateBundle.load(path, expect={"n_modes": 22})
+    junk = tmp_path / "junk.pt"
+    torch.save({"format": "something else"}, junk)
+    with pytest.raises(ValueError, match="not a surrogate bundle"):
+        SurrogateBundle.load(junk)
+    with pytest.raises(ValueError, match="does not exist"):
+        SurrogateBundle.load(tmp_path / "missing.pt")
+
+
+def test_end_to_end_adam_and_resume_mismatch(store, compose, tmp_path):
+    over = [f"data_dir={store}", f"out_dir={tmp_path / 'e2e'}", *QUICK, "model=fdi_e2e", "model.fit.max_epochs=80",
+            "selector=greedy", "loggers=[csv]"]
+    metrics, objects = train_surrogates(compose("train", over))
+    assert metrics["model"] == "adam_e2e" and math.isfinite(metrics["err_k"]) and metrics["err_k"] < 0.1
+    last = objects["out_dir"] / "checkpoints" / "last.ckpt"
+    assert last.is_file()
+    with pytest.raises(ValueError, match="checkpoint from another configuration: n_hidden=12 in the checkpoint vs 9"):
+        train_surrogates(compose("train", [*over, "n_hidden=9", f"ckpt_path={last}"]))
+
+
+@pytest.mark.parametrize("change,match", [
+    ({"drop": {"val": "current"}}, r"split 'val' lacks an array"),
+    ({"n_time": 700}, r"current has shape \(60, 801\), expected \(60, 700\)"),
+])
+def test_bad_store(change, match, compose, tmp_path):
+    store = write_store(tmp_path / "bad", {"train": 60, "val": 20}, **change)
+    with pytest.raises(ValueError, match=match):
+        train_surrogates(compose("train", [f"data_dir={store}", f"out_dir={tmp_path / 'o'}", *QUICK]))
+
+
+def test_missing_split_and_config_errors(compose, tmp_path):
+    store = write_store(tmp_path / "nosplit", {"train": 60})
+    with pytest.raises(ValueError, match="split 'val' is not in the store"):
+        train_surrogates(compose("train", [f"data_dir={store}", f"out_dir={tmp_path / 'o'}", *QUICK]))
+    with pytest.raises(ValueError, match="n_points=5 < n_modes=10"):
+        train_surrogates(compose("train", [f"data_dir={store}", "n_points=5", "n_modes=10"]))
+    with pytest.raises(ValueError, match="holds no finished dataset store"):
+        train_surrogates(compose("train", [f"data_dir={tmp_path / 'nothing'}", *QUICK]))
+    with pytest.raises(ValueError, match="loggers must be a list"):
+        train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "loggers=[wandb]"]))
+
+
+def test_cli_reports_a_missing_store(run_cli, tmp_path):
+    proc = run_cli("phm_torch.apps.train", f"data_dir={tmp_path / 'none'}", timeout=120)
+    assert proc.returncode == 2
+    assert "phm-train: error: data_dir" in proc.stderr and "run phm-generate first" in proc.stderr
+
+
+@pytest.mark.parametrize("name,key,values", [
+    ("ablation_modes", "n_modes", "5,10,15,22,30"),
+    ("ablation_hidden", "n_hidden", "5,10,20,50,100"),
+    ("ablation_points", "n_points", "22,30,45,60"),
+    ("ablation_selector", "selector", "som,qdeim,greedy,min_error,uniform,random"),
+])
+def test_sweep_configs(name, key, values):
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from phm_torch.params import CONF_DIR
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose("train", [f"experiment={name}"], return_hydra_config=True)
+    assert str(cfg.hydra.sweeper.params[key]).replace(" ", "") == values
+
+
+def test_best_experiment_composes(compose):
+    cfg = compose("train", ["experiment=surrogates_best"])
+    assert cfg.selector._target_.endswith("MinErrorSelector") and cfg.model.optimizer == "adam"
+    assert (cfg.n_modes, cfg.n_points, cfg.n_hidden) == (40, 100, 100)
+
+
+def test_multirun_jobs_write_into_their_own_directories(store, run_cli, tmp_path):
+    sweep = tmp_path / "sweep"
+    proc = run_cli("phm_torch.apps.train", "-m", f"data_dir={store}", *QUICK, "model.fit.max_epochs=2",
+                   "n_hidden=4,6", f"hydra.sweep.dir={sweep}", timeout=240)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    hidden = [json.loads((sweep / job / "metrics.json").read_text())["n_hidden"] for job in ("0", "1")]
+    assert hidden == [4, 6]
+    assert (sweep / "1" / "surrogates.pt").is_file()
