@@ -246,8 +246,11 @@ class EMASimulator:
             out_dtype: dtype of the stored channels (default the simulation dtype).
         """
         p = self.params
-        grid = time_grid(duration, p.sample_rate, self.dtype, self.device)
         n_periods = round(duration * p.pwm_frequency)
+        if n_periods < 1 or abs(duration * p.pwm_frequency - n_periods) > 1e-6:
+            raise ValueError(f"duration must be a positive whole number of control periods "
+                             f"(1/{p.pwm_frequency:g} s), got {duration!r}")
+        grid = time_grid(duration, p.sample_rate, self.dtype, self.device)
         t_ctrl = torch.arange(n_periods, dtype=self.dtype, device=self.device) * self.period
         if callable(command):
             cmd_grid, cmd_ctrl = command(grid), command(t_ctrl)

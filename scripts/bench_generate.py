@@ -51,7 +51,10 @@ def main() -> None:
     ap.add_argument("--out", default=str(Path(__file__).with_suffix(".json")))
     ap.add_argument("--batches", type=int, default=2, help="timed assessment batches (after the warm-up)")
     ap.add_argument("--full", default=None, help="also run phm-generate experiment=paper into this data_dir")
+    ap.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
     args = ap.parse_args()
+    if args.threads:
+        torch.set_num_threads(args.threads)
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("generate", ["experiment=paper"])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from surrogate_data import N_LATENT, faults, signals
@@ -101,9 +103,13 @@ def test_bad_input(pod):
     with pytest.raises(ValueError, match=r"samples must be \(B, 16\)"):
         gappy(torch.zeros(2, 15, dtype=torch.float64))
     s = torch.zeros(2, 16, dtype=torch.float64)
-    s[1, :7] = float("nan")
-    with pytest.raises(ValueError, match="signal 1 has 9 present samples, fewer than the 10 modes"):
-        gappy(s)
+    s[1, :7] = float("nan")                                    # 9 present samples for 10 modes
+    alpha, resid = gappy(s)
+    assert bool(torch.isfinite(alpha[0]).all()) and bool(torch.isnan(alpha[1]).all())
+    assert math.isfinite(float(resid[0])) and float(resid[1]) == float("inf")
+    x = s.clone().requires_grad_(True)
+    gappy(x)[0][0].sum().backward()                            # the singular signal does not poison gradients
+    assert bool(torch.isfinite(x.grad).all())
     ridged = GappyPOD(pod.modes_, pod.mean_, torch.arange(0, 800, 50), ridge=1e-3)
     assert bool(torch.isfinite(ridged(s)[0]).all())
     with pytest.raises(ValueError, match="indices must lie in"):

@@ -22,8 +22,7 @@ class ControlState:
 
     @classmethod
     def zeros(cls, batch: int, dtype: torch.dtype, device: torch.device) -> ControlState:
-        z = torch.zeros(batch, dtype=dtype, device=device)
-        return cls(z, z, z)
+        return cls(*(torch.zeros(batch, dtype=dtype, device=device) for _ in range(3)))
 
 
 def _pi(error: torch.Tensor, integral: torch.Tensor, kp, ki, limit, period: float

@@ -25,8 +25,8 @@ class MechState:
 
     @classmethod
     def zeros(cls, batch: int, dtype: torch.dtype, device: torch.device) -> MechState:
-        z = torch.zeros(batch, dtype=dtype, device=device)
-        return cls(z, z, z, z)
+        # distinct tensors: aliased state fields confuse torch.compile's guards
+        return cls(*(torch.zeros(batch, dtype=dtype, device=device) for _ in range(4)))
 
 
 def transmission_torque(state: MechState, plant) -> torch.Tensor:

@@ -28,7 +28,8 @@ def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tens
     """Coefficient and fault-identification errors on full records ``current`` (n, n_e) with faults k (n, 8):
     clean, with relative noise ``noise`` (fraction of each signal's RMS current) and with ``missing``
     random samples missing per signal (skipped, its metrics None, when fewer samples than modes would
-    remain). Returns (metrics, arrays for plots)."""
+    remain). Signals whose gappy system is singular (``unsolved_rate*``) are left out of the errors.
+    Returns (metrics, arrays for plots)."""
     alpha_full = pod(current)
     samples = gappy.select(current)
     gen = torch.Generator().manual_seed(seed)
@@ -43,18 +44,21 @@ def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tens
     for suffix, s in cases.items():
         alpha, resid = gappy(s)
         k_hat = network(alpha)
-        ea = quartiles(err_alpha(alpha, alpha_full))
+        solved = torch.isfinite(alpha).all(-1)                  # singular gappy systems give NaN
+        ea = quartiles(err_alpha(alpha[solved], alpha_full[solved]))
         out[f"err_alpha_median{suffix}"], out[f"err_alpha_iqr{suffix}"] = ea["median"], ea["iqr"]
-        out[f"err_k{suffix}"] = err_k(k_hat, k)
+        out[f"err_k{suffix}"] = err_k(k_hat[solved], k[solved])
+        out[f"unsolved_rate{suffix}"] = float((~solved).float().mean())
         arrays[f"k_hat{suffix}"] = k_hat
         arrays[f"err_alpha{suffix}"] = err_alpha(alpha, alpha_full)
         arrays[f"residual{suffix}"] = resid
     out["fdi_mae"] = fdi_mae(arrays["k_hat"], k)
     out["fdi_mae_weighted"] = fdi_mae(arrays["k_hat"], k, weighted=True)
     out["err_k_median_per_signal"] = float(err_k_per_signal(arrays["k_hat"], k).median())
-    out["fdi_mae_noise"] = fdi_mae(arrays["k_hat_noise"], k)
+    out["fdi_mae_noise"] = fdi_mae(arrays["k_hat_noise"], k)  # noise never makes a system singular
     if "k_hat_missing" in arrays:
-        out["fdi_mae_missing"] = fdi_mae(arrays["k_hat_missing"], k)
+        solved = torch.isfinite(arrays["k_hat_missing"]).all(-1)
+        out["fdi_mae_missing"] = fdi_mae(arrays["k_hat_missing"][solved], k[solved])
     return out, arrays
 
 

@@ -7,6 +7,8 @@ that are present. The normal equations are the paper's G alpha = f with G = V_ha
 f = V_hat^T M (f_hat - y0_hat) (the paper has no missing samples, M = I, and no centring term).
 
 * A sample that is NaN/inf, or False in the optional mask, is dropped from that signal's system only.
+  A signal whose remaining samples cannot determine the n_m coefficients (singular G, e.g. fewer
+  present samples than modes) gets NaN coefficients and an infinite residual; the batch goes on.
 * With every sample present the solution is one matrix product with the precomputed G^-1 V_hat^T
   (the online fast path); otherwise each signal gets its own G, solved batched by Cholesky.
 * The layer is differentiable in the samples (and in its buffers if they are made parameters).
@@ -29,7 +31,7 @@ class GappyPOD(nn.Module):
         mean: (n_e,) mean signal y0 [signal unit] (or (n_w,)).
         indices: (n_w,) selected sample indices into n_e; ``None`` when modes/mean are already selected.
         ridge: Tikhonov term added to G as ``ridge * I`` (0 = the paper's plain least squares); set it > 0
-            to allow signals with fewer present samples than modes.
+            to solve signals with fewer present samples than modes (biased towards alpha = 0).
 
     Buffers: ``indices`` (n_w,) int64, ``modes_hat`` (n_w, n_m), ``mean_hat`` (n_w,), ``solve_matrix``
     (n_m, n_w) = G^-1 V_hat^T for the complete case (computed in float64).
@@ -100,22 +102,28 @@ class GappyPOD(nn.Module):
             return alpha, resid.pow(2).mean(-1).sqrt()
         w = valid.to(samples.dtype)
         count = w.sum(-1)
-        if self.ridge == 0.0 and bool((count < self.modes_hat.shape[1]).any()):
-            bad = int(torch.nonzero(count < self.modes_hat.shape[1])[0, 0])
-            raise ValueError(f"signal {bad} has {int(count[bad])} present samples, fewer than the "
-                             f"{self.modes_hat.shape[1]} modes: its gappy system is singular")
         vm = self.modes_hat.unsqueeze(0) * w.unsqueeze(-1)                        # (B, n_w, n_m)
         gram = vm.transpose(1, 2) @ vm
+        eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
         if self.ridge > 0.0:
-            gram = gram + self.ridge * torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
-        rhs = (vm.transpose(1, 2) @ centred.unsqueeze(-1))                         # (B, n_m, 1)
-        chol, info = torch.linalg.cholesky_ex(gram)
-        if bool((info != 0).any()):
-            raise ValueError(f"gappy matrix of signal {int(torch.nonzero(info)[0, 0])} is not positive definite "
-                             f"(its present samples do not determine the {gram.shape[-1]} modes)")
+            gram = gram + self.ridge * eye
+        rhs = vm.transpose(1, 2) @ centred.unsqueeze(-1)                          # (B, n_m, 1)
+        factor, info = torch.linalg.cholesky_ex(gram)
+        pivots = torch.diagonal(factor, dim1=-2, dim2=-1)
+        # Numerically singular too: squared pivot ratio (~ 1 / cond G) below n_m machine epsilons.
+        eps = 2.220446049250313e-16 if gram.dtype == torch.float64 else 1.1920928955078125e-07
+        ok = (info == 0) & ((pivots.amin(-1) / pivots.amax(-1)).pow(2) > gram.shape[-1] * eps)
+        if self.ridge == 0.0:
+            ok = ok & (count >= gram.shape[-1])
+        # A signal whose present samples cannot determine the modes gets NaN coefficients and an infinite
+        # residual (flagged out of distribution) instead of failing the batch; its system is replaced by
+        # the identity so that no NaN reaches the gradients of the others.
+        chol = torch.linalg.cholesky(torch.where(ok.reshape(-1, 1, 1), gram, eye))
         alpha = torch.cholesky_solve(rhs, chol).squeeze(-1)
         resid = (centred - alpha @ self.modes_hat.T) * w
-        return alpha, (resid.pow(2).sum(-1) / count.clamp(min=1.0)).sqrt()
+        resid = (resid.pow(2).sum(-1) / count.clamp(min=1.0)).sqrt()
+        alpha = torch.where(ok.unsqueeze(-1), alpha, torch.full_like(alpha, float("nan")))
+        return alpha, torch.where(ok, resid, torch.full_like(resid, float("inf")))
 
     def reconstruct(self, alpha: torch.Tensor) -> torch.Tensor:
         """The fitted values (B, n_w) at the selected samples."""

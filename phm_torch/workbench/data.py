@@ -33,7 +33,7 @@ class Record:
         name: label (file stem).  path: source file or ``None``.
         time: (n,) [s], starting at 0 (the file's start time ``t0`` is subtracted).
         command: (n,) [rad, user side].  measured: {channel: (n,)} in the channel's unit.
-        sample_rate: [Hz].  t0: start time of the file [s].
+        sample_rate: [Hz].  t0: start time of the file [s].  extra: the file's other channels (not compared).
     """
 
     name: str
@@ -81,7 +81,6 @@ def record_from_measurement(m: Measurement, params: ActuatorParams, channels: Se
     unknown = [c for c in channels if c not in COMPARABLE]
     if unknown:
         raise ValueError(f"channels: {unknown} cannot be compared with a simulation; choose from {list(COMPARABLE)}")
-    available = ["command", *m.channels]
     missing = [c for c in channels if c not in m.channels]
     if missing:
         raise ValueError(f"{where}: channel(s) {missing} requested by channels= are not in the file; "
@@ -108,7 +107,7 @@ def record_from_measurement(m: Measurement, params: ActuatorParams, channels: Se
                          "must begin with the actuator at rest at zero")
     t = torch.as_tensor(m.time - m.time[0], dtype=dtype)
     to_t = {c: torch.as_tensor(m[c], dtype=dtype) for c in channels}
-    extra = {c: torch.as_tensor(v, dtype=dtype) for c, v in m.channels.items() if c not in to_t and c in available}
+    extra = {c: torch.as_tensor(v, dtype=dtype) for c, v in m.channels.items() if c not in to_t and c != "command"}
     return Record(name, t, torch.as_tensor(cmd, dtype=dtype), to_t, rate, path, float(m.time[0]), extra)
 
 

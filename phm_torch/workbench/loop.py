@@ -269,6 +269,8 @@ class Workbench:
         timing.setdefault("loop_s", time.perf_counter() - t0)
         timing.setdefault("loop_cpu_s", time.process_time() - c0)
         _explain_away(rounds)
+        for rnd in rounds:
+            rnd.candidates.sort(key=_order)
         noise = estimate_sigma(ev, current.simulated, self.noise)
         closure = None
         if self._wants_closure(current, rounds, noise):

@@ -113,7 +113,7 @@ def report_dict(res: WorkbenchResult) -> dict:
         "noise_std": m0["noise_std"], "worst_windows": d0["worst_windows"],
         "tests": _tests(d0), "harmonics": harm,
         "candidates": [_candidate(c, m0, noise) for c in res.candidates],
-        "significance_level": res.settings.score.alpha / k,
+        "significance_level": res.settings.score.alpha / k, "min_gain": res.settings.score.min_gain,
         "added": res.added,
         "rounds": [{"model": r.model.label, "added": r.added, "ranking": [c.effect for c in r.candidates],
                     "significant": [c.effect for c in r.candidates if c.significant]} for r in res.rounds],
@@ -193,10 +193,10 @@ def html_page(report: dict, figs: dict[str, bytes]) -> str:
                   "yes" if r["white"] else "no", r["bic"],
                   "; ".join(f"{k} = {v[0]:.4g} ± {v[1]:.2g}" for k, v in r["fitted"].items() if v[0] is not None)]
                  for r in report["before_after"]])
-    cand = _table(["effect", "score T", "dof", "p-value", "significant", "NRMSE after refit", "ΔBIC", "evidence",
-                   "physics"],
-                  [[c["effect"], c["score"], c["dof"], c["p_value"], "yes" if c["significant"] else "no",
-                    _pct(c, "nrmse_after_refit"), c["delta_bic"],
+    cand = _table(["effect", "score T", "dof", "p-value", "residual explained", "significant", "NRMSE after refit",
+                   "ΔBIC", "evidence", "physics"],
+                  [[c["effect"], c["score"], c["dof"], c["p_value"], _pct(c, "explained_fraction"),
+                    "yes" if c["significant"] else "no", _pct(c, "nrmse_after_refit"), c["delta_bic"],
                     c["evidence"].get("summary") if c["evidence"] else None,
                     c["evidence"].get("explains") if c["evidence"] else None] for c in report["candidates"]])
     compare = _table(["channel", "NRMSE", "fit %", "noise floor (NRMSE of a perfect model)", "noise std"],
@@ -234,8 +234,9 @@ channels {", ".join(chans)}.</p><p>{summary}</p>
 <h2>Where it fails</h2><h3>Worst windows</h3>{worst}<h3>Residual maps</h3>{img("residual_maps.png")}
 <h3>Harmonic content (rotor angle)</h3>{harm}{img("harmonics.png")}<h3>Residual spectrum</h3>{img("spectrum.png")}
 <h3>Residual tests</h3>{tests}{img("correlations.png")}
-<h2>Which effect is missing</h2><p>Score test per library effect (Bonferroni level
-{report["significance_level"]:.3g}); the top candidates refitted.</p>{cand}{img("candidates.png")}
+<h2>Which effect is missing</h2><p>Score test per library effect; the top candidates refitted. Significant:
+p below {report["significance_level"]:.3g} (Bonferroni), explains at least {100 * report["min_gain"]:g} % of the
+residual sum of squares, and (refitted) lowers the BIC.</p>{cand}{img("candidates.png")}
 {closure}<h2>Calibrated parameters (configured model)</h2>{fitted}
 <p style="color:#666">Timing [s]: {html.escape(timing)}</p></body></html>
 """
