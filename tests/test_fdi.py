@@ -13,9 +13,7 @@ from torch.utils.data import DataLoader, TensorDataset
 from phm_torch.surrogates import (
     FDIMLP,
     POD,
-    FDIModule,
     GappyPOD,
-    KeepBest,
     LevenbergMarquardt,
     SignalAugment,
     err_alpha,
@@ -23,6 +21,7 @@ from phm_torch.surrogates import (
     err_k_weights,
     fdi_mae,
 )
+from phm_torch.surrogates.lightning_fdi import FDIModule, KeepBest
 from phm_torch.surrogates.selectors import build_selector
 
 

@@ -32,9 +32,10 @@ from omegaconf import DictConfig
 from torch.utils.data import DataLoader, TensorDataset
 
 from ..io.atomic import atomic_open
-from ..surrogates import FDIMLP, POD, FDIModule, GappyPOD, KeepBest, SurrogateBundle, rms
+from ..surrogates import FDIMLP, POD, GappyPOD, SurrogateBundle, rms
 from ..surrogates.data import load_store
 from ..surrogates.evaluate import evaluate_classifier, evaluate_fdi, measure_latency, quartiles
+from ..surrogates.lightning_fdi import FDIModule, KeepBest
 from . import common
 
 log = logging.getLogger(__name__)

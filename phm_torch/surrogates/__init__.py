@@ -1,6 +1,9 @@
 """Learned surrogates of the seed paper: POD layer, sample-time selectors, differentiable gappy POD,
 FDI network (Levenberg-Marquardt or Adam, optionally end to end), health classifiers, metrics, and
-the :class:`SurrogateBundle` that the online pipeline loads."""
+the :class:`SurrogateBundle` that the online pipeline loads.
+
+The Lightning training module lives in :mod:`phm_torch.surrogates.lightning_fdi` and is not imported
+here, so that loading and running a bundle needs torch only."""
 
 from .augment import SignalAugment, add_noise, drop_samples, rms
 from .bundle import SurrogateBundle
@@ -8,7 +11,6 @@ from .classifiers import CLASSIFIERS, RBFSVM, HealthClassifier, PolynomialSVM, b
 from .fdi_mlp import FDIMLP
 from .gappy_pod import GappyPOD
 from .levenberg_marquardt import LevenbergMarquardt
-from .lightning_fdi import FDIModule, KeepBest
 from .metrics import confusion, err_alpha, err_k, err_k_per_signal, err_k_weights, fdi_mae
 from .pod import POD
 from .selectors import SELECTORS, Selector, build_selector
