@@ -13,15 +13,15 @@ from phm_torch.apps.run import compose_stage, run_all
 def test_phm_run_tiny_end_to_end(tmp_path):
     cfg = compose_stage("run", [
         f"out_dir={tmp_path}",
-        'generate=["dataset.n_train=96","dataset.n_val=24","dataset.n_rul=8","dataset.chunk_size=64",'
-        '"dataset.fidelity=lf"]',
+        ('generate=["dataset.n_train=96","dataset.n_val=24","dataset.n_rul=8","dataset.chunk_size=64",'
+         '"dataset.fidelity=lf"]'),
         'cases=["fidelity=lf","command.duration=0.05"]',
         'train=["n_modes=8","n_points=16","selector=qdeim"]',
         'evaluate=["rul.n_samples=20"]',
         'workbench=["measurements=examples/workbench_hidden_cogging.csv","refit.top=1","refit.rounds=1"]',
         "report.hidden_neurons=[4,8]", "report.hidden_epochs=5", "report.latency_repeats=20",
     ])
-    metrics, objects = run_all(cfg)
+    run_all(cfg)
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert set(saved) >= {"cases", "generate", "train", "evaluate", "workbench", "report", "wall_s"}
     assert 0.0 <= saved["train"]["err_k"] < 1.0
