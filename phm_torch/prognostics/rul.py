@@ -61,9 +61,11 @@ class RULEstimator:
         self.damage, self.score = damage, score
         self.n_samples, self.refine_iterations = n_samples, refine_iterations
 
-    def _scores(self, k: torch.Tensor) -> torch.Tensor:
+    def _scores(self, k: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
         flat = k.reshape(-1, k.shape[-1]).clamp(0.0, 1.0)  # the score is defined on the unit cube
-        return self.score(flat).reshape(k.shape[:-1])
+        # chunks bound the memory of kernel features (a Monte Carlo batch is ~10^7 points)
+        out = torch.cat([self.score(flat[i:i + chunk]) for i in range(0, flat.shape[0], chunk)])
+        return out.reshape(k.shape[:-1])
 
     def first_crossing(self, k0: torch.Tensor, eps: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Time [h] of the first healthy -> faulty transition per sample, and whether it was censored.
