@@ -120,6 +120,17 @@ def effects(value: Any) -> list[Effect]:
     return build_effects(spec)
 
 
+def build(node: Any, name: str, **kwargs: Any) -> Any:
+    """Instantiate a config node (its ``_target_``), passing ``kwargs`` (objects, not config) to the
+    constructor; a constructor error is reported as a ValueError starting with ``name``."""
+    try:
+        return instantiate(node, _partial_=True)(**kwargs)
+    except (InstantiationException, TypeError, ValueError) as e:
+        cause = e.__cause__ if isinstance(e, InstantiationException) and e.__cause__ is not None else e
+        msg = str(cause)
+        raise ValueError(msg if msg.startswith(name) else f"{name}: {msg}") from None
+
+
 def command(node: Any) -> Callable[[torch.Tensor], torch.Tensor]:
     """Instantiate the ``command`` node; a constructor error is reported as ``command: ...``."""
     try:

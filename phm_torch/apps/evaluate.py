@@ -26,7 +26,6 @@ from ..prognostics.plots import error_panels, rul_vs_expected
 from ..prognostics.reference import margin_score, reference_rul
 from ..surrogates.bundle import SurrogateBundle
 from . import common
-from .generate import _build
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +41,7 @@ def _reference(cfg: DictConfig, params, damage, k: torch.Tensor, deltas: torch.T
         stored = json.loads(cache.read_text())
         if stored.get("key") == key:
             return torch.tensor(stored["rul"], dtype=torch.float64)
-    assess = _build(cfg.assessment, "assessment", params=params)
+    assess = common.build(cfg.assessment, "assessment", params=params)
     ref = reference_rul(damage, margin_score(assess), k, deltas,
                         common.number(cfg.reference.step_hours, "reference.step_hours", 0.0, strict=True),
                         common.integer(cfg.reference.refine_iterations, "reference.refine_iterations", 0))
@@ -53,7 +52,7 @@ def _reference(cfg: DictConfig, params, damage, k: torch.Tensor, deltas: torch.T
 def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Evaluate the RUL estimation (see :mod:`phm_torch.prognostics.evaluation` for the definitions)."""
     params = common.actuator(cfg)
-    damage = _build(cfg.damage, "damage", nominal=list(params.nominal_faults))
+    damage = common.build(cfg.damage, "damage", nominal=list(params.nominal_faults))
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     bundle = SurrogateBundle.load(cfg.bundle)

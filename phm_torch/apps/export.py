@@ -14,7 +14,6 @@ from ..online import OnlinePipeline
 from ..online.export import export_torchscript
 from ..surrogates.bundle import SurrogateBundle
 from . import common
-from .generate import _build
 
 
 def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -28,7 +27,7 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     for key in ("deltas", "direction"):
         if key not in cal:
             raise ValueError(f"calibration {str(cal_path)!r} has no {key!r}")
-    damage = _build(cfg.damage, "damage", nominal=list(common.actuator(cfg).nominal_faults))
+    damage = common.build(cfg.damage, "damage", nominal=list(common.actuator(cfg).nominal_faults))
     pipeline = OnlinePipeline.from_bundle(bundle, damage, torch.tensor(cal["deltas"]), torch.tensor(cal["direction"]),
                                           common.number(cfg.min_present, "min_present", 0.0, strict=True))
     out = Path(cfg.out)

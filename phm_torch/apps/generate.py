@@ -24,8 +24,6 @@ from typing import Any
 
 import hydra
 import torch
-from hydra.errors import InstantiationException
-from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from .. import __version__
@@ -63,17 +61,6 @@ def fingerprint(cfg: DictConfig) -> tuple[str, dict[str, Any]]:
     return hashlib.sha256(text.encode()).hexdigest(), data
 
 
-def _build(node: Any, name: str, **kwargs: Any) -> Any:
-    """Instantiate a config node (its ``_target_``), passing ``kwargs`` (objects, not config) to the
-    constructor; a constructor error is reported as a ValueError starting with ``name``."""
-    try:
-        return instantiate(node, _partial_=True)(**kwargs)
-    except (InstantiationException, TypeError, ValueError) as e:
-        cause = e.__cause__ if isinstance(e, InstantiationException) and e.__cause__ is not None else e
-        msg = str(cause)
-        raise ValueError(msg if msg.startswith(name) else f"{name}: {msg}") from None
-
-
 def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Generate (or resume, or merge) the dataset store of ``cfg`` in ``cfg.data_dir``.
 
@@ -86,9 +73,9 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     params = common.actuator(cfg)
     command = common.command(cfg.command)
     duration = common.number(getattr(command, "duration", None), "command.duration", 0.0, strict=True)
-    spec: gen.DatasetSpec = _build(cfg.dataset, "dataset")
+    spec: gen.DatasetSpec = common.build(cfg.dataset, "dataset")
     dev = common.device(cfg.get("device", "cpu"))
-    assessment: AssessmentFunction = _build(cfg.assessment, "assessment", params=params, device=dev)
+    assessment: AssessmentFunction = common.build(cfg.assessment, "assessment", params=params, device=dev)
     seed = common.integer(cfg.seed, "seed", 0)
     count = common.integer(cfg.shard.count, "shard.count", 1)
     index = common.integer(cfg.shard.index, "shard.index", 0)

@@ -96,12 +96,6 @@ def _out_dir(cfg: DictConfig) -> Path:
     return Path(str(cfg.out_dir)).expanduser()
 
 
-def _write_json(path: Path, data: Any) -> None:
-    with atomic_open(path, "w") as fh:
-        json.dump(data, fh, indent=2)
-        fh.write("\n")
-
-
 def _save_tensors(path: Path, tensors: dict[str, torch.Tensor]) -> None:
     with atomic_open(path, "wb") as fh:
         torch.save({k: v.detach().cpu() for k, v in tensors.items()}, fh)
@@ -247,7 +241,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         arrays.update(healthy=val.healthy, score=bundle.health_score(val.k), score_chain=bundle.health_score(arrays["k_hat"]),
                       indices=selector.indices_, time=grid, mode_1=pod.modes_[:, 0], energy=pod.energy_)
     _save_tensors(out_dir / "predictions.pt", arrays)
-    _write_json(out_dir / "metrics.json", metrics)
+    common.write_json(out_dir / "metrics.json", metrics)
     return metrics, {"bundle": bundle, "pod": pod, "selector": selector, "module": module, "trainer": trainer,
                      "arrays": arrays, "out_dir": out_dir}
 
