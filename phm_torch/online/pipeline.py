@@ -85,7 +85,10 @@ class OnlinePipeline(nn.Module):
         interval is bisected down to one grid step, and the crossing is interpolated linearly in that step.
         """
         b = k.shape[0]
-        dk = (k - self.nominal).unsqueeze(1) + self.deltas.view(1, 3, 1) * self.direction       # (B, 3, 8)
+        dev = k - self.nominal
+        # u points away from nominal: more damage also for the two-sided gain drift k8
+        u = self.direction * torch.where(dev >= 0, torch.ones_like(dev), -torch.ones_like(dev))
+        dk = dev.unsqueeze(1) + self.deltas.view(1, 3, 1) * u.unsqueeze(1)                     # (B, 3, 8)
         n_t = self.propagators.shape[0]
         coarse = torch.arange(0, n_t, self.coarse, device=k.device)
         if int(coarse[-1]) != n_t - 1:

@@ -149,10 +149,17 @@ class DeterministicRUL:
         self.deltas_: torch.Tensor | None = None
         self.saturated_: list[bool] = []
 
+    def oriented(self, k0: torch.Tensor) -> torch.Tensor:
+        """u per sample (B, 8), pointing away from nominal: a positive delta means more damage also for
+        the two-sided gain drift k8 (whose damage is |k8 - 0.5|)."""
+        side = torch.where(k0 - self.estimator.damage.nominal >= 0, 1.0, -1.0).to(k0.dtype)
+        return self.direction * side
+
     def rul(self, k0: torch.Tensor, delta: torch.Tensor | float) -> torch.Tensor:
         """Noise-free RUL [h] (B,) from k0 + delta u (delta scalar or (B,))."""
         delta = torch.as_tensor(delta, dtype=torch.float64)
-        k = k0 + delta.reshape(-1, 1) * self.direction if delta.ndim else k0 + delta * self.direction
+        u = self.oriented(k0)
+        k = k0 + delta.reshape(-1, 1) * u if delta.ndim else k0 + delta * u
         return self.estimator.first_crossing(k)[0]
 
     def calibrate(self, k_calib: torch.Tensor, generator: torch.Generator | None = None, iterations: int = 30,
