@@ -92,14 +92,9 @@ def run_cases(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         ``metrics`` (the content of metrics.json) and ``objects`` (``signals``: the noise-free simulator
         output, batch order ``names``; ``out_dir``; ``params``; ``command``).
     """
-    params = common.actuator(cfg)
-    fid = common.fidelity(cfg.fidelity)
-    command = common.command(cfg.command)
-    duration = common.number(cfg.get("duration", getattr(command, "duration", None)), "duration", 0.0, strict=True)
-    seed = common.integer(cfg.seed, "seed", 0)
-    std = common.noise(cfg)
-    effects = common.effects(cfg.get("effects"))
-    dev = common.device(cfg.get("device", "cpu"))
+    st = common.simulation_settings(cfg)
+    params, fid, command, duration, seed, std, effects, dev = (st.params, st.fidelity, st.command, st.duration,
+                                                               st.seed, st.noise, st.effects, st.device)
     nominal = common.fault_vector(list(params.nominal_faults), "actuator.nominal_faults")
     cases = parse_cases(cfg.get("cases"), nominal, cfg.get("only"))
     out_value = cfg.get("out_dir")

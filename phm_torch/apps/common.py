@@ -12,6 +12,7 @@ import math
 import os
 import sys
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -138,6 +139,30 @@ def command(node: Any) -> Callable[[torch.Tensor], torch.Tensor]:
     except InstantiationException as e:
         cause = e.__cause__ if e.__cause__ is not None else e
         raise ValueError(f"command: {cause}") from None
+
+
+@dataclass
+class SimulationSettings:
+    """The validated simulation inputs shared by ``phm-simulate`` and ``phm-cases``."""
+
+    params: ActuatorParams
+    fidelity: str
+    command: Callable[[torch.Tensor], torch.Tensor]
+    duration: float
+    seed: int
+    noise: dict[str, float]
+    effects: list[Effect]
+    device: torch.device
+
+
+def simulation_settings(cfg: DictConfig) -> SimulationSettings:
+    """Validate the actuator, fidelity, command, duration, seed, noise, effects and device of ``cfg``."""
+    params = actuator(cfg)
+    fid = fidelity(cfg.fidelity)
+    cmd = command(cfg.command)
+    dur = number(cfg.get("duration", getattr(cmd, "duration", None)), "duration", 0.0, strict=True)
+    return SimulationSettings(params, fid, cmd, dur, integer(cfg.seed, "seed", 0), noise(cfg),
+                              effects(cfg.get("effects")), device(cfg.get("device", "cpu")))
 
 
 def noise(cfg: DictConfig) -> dict[str, float]:

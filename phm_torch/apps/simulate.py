@@ -55,15 +55,10 @@ def simulate_to_csv(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         noise-free), ``channels`` (what was written, noise included), ``params``, ``command``,
         ``csv`` and ``plot`` paths.
     """
-    params = common.actuator(cfg)
-    fid = common.fidelity(cfg.fidelity)
+    st = common.simulation_settings(cfg)
+    params, fid, command, duration, seed, std, effects, dev = (st.params, st.fidelity, st.command, st.duration,
+                                                               st.seed, st.noise, st.effects, st.device)
     faults = common.fault_vector(cfg.faults)
-    command = common.command(cfg.command)
-    duration = common.number(cfg.get("duration", getattr(command, "duration", None)), "duration", 0.0, strict=True)
-    seed = common.integer(cfg.seed, "seed", 0)
-    std = common.noise(cfg)
-    effects = common.effects(cfg.get("effects"))
-    dev = common.device(cfg.get("device", "cpu"))
     csv_path = output_path(cfg.get("out"), "simulation.csv")
 
     t0 = time.perf_counter()

@@ -77,3 +77,29 @@ class HealthClassifier(nn.Module, abc.ABC):
     def check_input(self, k: torch.Tensor) -> None:
         if k.dim() != 2 or k.shape[1] != self.n_features:
             raise ValueError(f"k must be (B, {self.n_features}), got {list(k.shape)}")
+
+
+class FeatureMapSVM(HealthClassifier):
+    """A score linear in a fixed feature map, f(k) = phi(k) . beta + bias, fitted as a squared-hinge SVM.
+
+    Subclasses define ``features`` (and set up the map in ``fit`` before calling :meth:`_fit_linear`);
+    they must register the buffers ``beta`` and ``bias`` and the attributes ``C``, ``class_weight``,
+    ``max_iter`` and ``tol``.
+    """
+
+    @abc.abstractmethod
+    def features(self, k: torch.Tensor) -> torch.Tensor:
+        """phi(k) (B, F) of fault vectors (B, 8)."""
+
+    def _fit_linear(self, k64: torch.Tensor, y: torch.Tensor) -> None:
+        from .training import fit_squared_hinge, sample_weights
+
+        beta, bias, n_iter = fit_squared_hinge(self.features(k64), y, self.C, sample_weights(y, self.class_weight),
+                                               self.max_iter, self.tol)
+        self.beta, self.bias = beta, bias
+        self.n_iter_ = n_iter
+
+    def forward(self, k: torch.Tensor) -> torch.Tensor:
+        """Score f(k) (B,): > 0 healthy, < 0 faulty."""
+        self.check_input(k)
+        return self.features(k) @ self.beta + self.bias

@@ -22,8 +22,8 @@ from typing import Any
 
 import torch
 
-from .base import N_FAULTS, HealthClassifier, check_training_set
-from .training import fit_squared_hinge, sample_weights
+from .base import N_FAULTS, FeatureMapSVM, check_training_set
+from .training import sample_weights
 
 
 def monomial_map(n: int, degree: int, gamma: float, coef0: float) -> tuple[torch.Tensor, torch.Tensor]:
@@ -42,7 +42,7 @@ def monomial_map(n: int, degree: int, gamma: float, coef0: float) -> tuple[torch
     return torch.tensor(idx, dtype=torch.long), torch.tensor(coef, dtype=torch.float64)
 
 
-class PolynomialSVM(HealthClassifier):
+class PolynomialSVM(FeatureMapSVM):
     """Squared-hinge soft-margin SVM with the polynomial kernel (gamma z.z' + coef0)^degree.
 
     Args:
@@ -92,16 +92,9 @@ class PolynomialSVM(HealthClassifier):
         if self.standardize:
             self.k_mean = k64.mean(0)
             self.k_std = k64.std(0).clamp(min=1e-12)
-        beta, bias, n_iter = fit_squared_hinge(self.features(k64), y, self.C, sample_weights(y, self.class_weight),
-                                               self.max_iter, self.tol)
-        self.beta, self.bias = beta, bias
-        self.n_iter_ = n_iter
+        self._fit_linear(k64, y)
         return self
 
-    def forward(self, k: torch.Tensor) -> torch.Tensor:
-        """Score f(k) (B,): > 0 healthy, < 0 faulty; a polynomial of degree ``degree`` in k."""
-        self.check_input(k)
-        return self.features(k) @ self.beta + self.bias
 
     def get_params(self) -> dict[str, Any]:
         return {"degree": self.degree, "coef0": self.coef0, "gamma": self.gamma, "C": self.C,

@@ -13,11 +13,11 @@ from typing import Any
 
 import torch
 
-from .base import N_FAULTS, HealthClassifier, check_training_set
-from .training import fit_squared_hinge, sample_weights
+from .base import N_FAULTS, FeatureMapSVM, check_training_set
+from .training import sample_weights
 
 
-class RBFSVM(HealthClassifier):
+class RBFSVM(FeatureMapSVM):
     """Squared-hinge SVM with a Nystrom-approximated Gaussian kernel.
 
     Args:
@@ -71,16 +71,9 @@ class RBFSVM(HealthClassifier):
         evals, evecs = torch.linalg.eigh(self._kernel(self.landmarks, self.landmarks))
         keep = evals > evals.max() * 1e-10                               # drop the numerically null part
         self.whitening = evecs[:, keep] / evals[keep].sqrt()
-        beta, bias, n_iter = fit_squared_hinge(self.features(k64), y, self.C, sample_weights(y, self.class_weight),
-                                               self.max_iter, self.tol)
-        self.beta, self.bias = beta, bias
-        self.n_iter_ = n_iter
+        self._fit_linear(k64, y)
         return self
 
-    def forward(self, k: torch.Tensor) -> torch.Tensor:
-        """Score f(k) (B,): > 0 healthy."""
-        self.check_input(k)
-        return self.features(k) @ self.beta + self.bias
 
     def get_params(self) -> dict[str, Any]:
         return {"n_landmarks": self.n_landmarks, "gamma": self.gamma, "C": self.C, "class_weight": self.class_weight,
