@@ -1,6 +1,7 @@
 """phm-generate and the dataset store at tiny scale (LF signals, short command, few test frequencies):
 identical manifests for the same config whatever the sharding and interruptions (SIGKILL included),
-checksum-verified chunks, refusal to mix configs, lazy reads and the LightningDataModule."""
+checksum-verified chunks, refusal to mix configs, lazy reads and the LightningDataModule; the
+assessment-only labels split (its own seed stream and chunks, the same guarantees) and read_labelled."""
 
 from __future__ import annotations
 
@@ -19,16 +20,21 @@ import pytest
 import torch
 import yaml
 
+from phm_torch.apps import common
 from phm_torch.apps.generate import generate
 from phm_torch.data.datamodule import EMADataModule
-from phm_torch.data.store import DatasetStore
+from phm_torch.data.generation import SPLITS, STREAMS, DatasetSpec, seed_streams
+from phm_torch.data.store import DatasetStore, read_labelled
 from phm_torch.params import CONF_DIR
 
 APP = "phm_torch.apps.generate"
 TINY = ("dataset.fidelity=lf", "command.duration=0.02", "dataset.n_train=10", "dataset.n_val=3",
         "dataset.n_rul=2", "dataset.chunk_size=6", "assessment.sweep.frequencies=[15,30,60,90,130]",
-        "assessment.sweep.cycles=3", "assessment.sweep.group_size=5", "progress=false", "threads=1")
+        "assessment.sweep.cycles=3", "assessment.sweep.group_size=5", "progress=false", "threads=1",
+        "dataset.n_labels=0")
 N_CHUNKS = 3  # 1 + 10 + 3 + 2 = 16 rows in chunks of 6
+# the same with 20 labels: at most 8 per chunk -> 3 chunks of 7 rows (the last padded with one k_0 row)
+LABELLED = (*TINY[:-1], "dataset.n_labels=20", "+dataset.label_chunk_size=8")
 
 
 def _manifest(path: Path) -> dict:
@@ -155,6 +161,9 @@ def test_refuses_another_config_unless_overwrite(reference, compose, tmp_path):
     ("stage=everything", "stage must be one of"),
     ("assessment.sweep.amplitude=-1", "assessment.sweep.amplitude must be > 0"),
     ("dataset.fidelity=xf", "dataset.fidelity must be"),
+    ("dataset.n_labels=-1", r"dataset.n_labels must be an integer >= 0, got -1"),
+    ("dataset.n_labels=2.5", r"dataset.n_labels must be an integer >= 0, got 2.5"),
+    ("+dataset.label_chunk_size=0", r"dataset.label_chunk_size must be an integer >= 1"),
 ])
 def test_bad_generation_input(compose, tmp_path, override, message):
     (tmp_path / "file").write_text("x")
@@ -221,3 +230,132 @@ def test_joblib_shards_then_merge(reference, tmp_path):
                                capture_output=True, text=True, timeout=300, check=False)
         assert merge.returncode == 0, merge.stderr[-2000:]
     assert _manifest(data_dir) == _manifest(reference[0])
+
+
+# --- the assessment-only labels split -------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def labelled(tmp_path_factory, compose):
+    """The reference config plus 20 labels, one uninterrupted run: (data_dir, metrics)."""
+    data_dir = tmp_path_factory.mktemp("labelled") / "store"
+    metrics, _ = generate(compose("generate", [*LABELLED, f"data_dir={data_dir}"]))
+    return data_dir, metrics
+
+
+def test_seed_streams_of_the_signal_splits_are_unchanged_by_labels():
+    for seed in (0, 7, 2**40):
+        four, three = np.random.SeedSequence(seed).spawn(4), np.random.SeedSequence(seed).spawn(3)
+        for a, b in zip(four[:3], three, strict=True):
+            assert a.spawn_key == b.spawn_key and np.array_equal(a.generate_state(8), b.generate_state(8))
+        streams = seed_streams(seed)
+        assert list(streams) == list(STREAMS) and streams["labels"].spawn_key == (3,)
+    with pytest.raises(ValueError, match="seed must be"):
+        seed_streams(-1)
+
+
+def test_spec_validates_label_fields():
+    base = {"n_train": 4, "n_val": 0, "n_rul": 0, "rul_radius": 0.1, "uniform": [6], "chunk_size": 4,
+            "fidelity": "lf", "compile": False}
+    assert DatasetSpec(**base).n_labels == 0
+    for field, bad in (("n_labels", -3), ("n_labels", True), ("n_labels", "10"), ("label_chunk_size", 0)):
+        with pytest.raises(ValueError, match=f"dataset.{field} must be an integer"):
+            DatasetSpec(**base, **{field: bad})
+
+
+def test_labels_split_contents(labelled, reference):
+    data_dir, metrics = labelled
+    assert metrics["complete"] and metrics["chunks"]["computed"] == N_CHUNKS
+    assert metrics["label_chunks"] == {"total": 3, "computed": 3, "reused": 0, "repaired": 0}
+    assert metrics["labels_per_s"] > 0 and "labels_s" in metrics["timing_s"]
+    assert "label_chunks" not in reference[1] and "labels_per_s" not in reference[1]
+    m, ref = _manifest(data_dir), _manifest(reference[0])
+    assert set(m["splits"]) == {*SPLITS, "labels"} and "labels" not in ref["splits"]
+    lab = m["splits"]["labels"]
+    assert lab["count"] == 20 and set(lab["sha256"]) == {"K", "healthy", "margins"}
+    assert m["label_chunk_size"] == 7 and m["n_label_chunks"] == 3
+    assert sorted(p.name for p in (data_dir / "chunks").glob("labels_*.h5")) == [
+        "labels_00000.h5", "labels_00001.h5", "labels_00002.h5"]
+    # the signal splits (K, signals, labels) are exactly those of the store without labels
+    assert {s: m["splits"][s] for s in SPLITS} == ref["splits"]
+    with h5py.File(data_dir / "dataset.h5", "r") as f:
+        g = f["labels"]
+        assert set(g) == {"K", "healthy", "margins"}
+        assert g["K"].shape == (20, 8) and g["K"].dtype == np.float64
+        assert g["healthy"].shape == (20,) and g["healthy"].dtype == np.uint8
+        assert g["margins"].shape == (20, 5) and g["margins"].dtype == np.float64
+        k_lab, k_train = g["K"][()], f["train"]["K"][()]
+        assert int(g["healthy"][()].sum()) == lab["healthy"]
+    assert np.all((k_lab >= 0) & (k_lab <= 1)) and len(np.unique(k_lab, axis=0)) == 20
+    assert not np.isin(k_lab[:, 0], k_train[:, 0]).any()                 # an independent stream
+    with DatasetStore(data_dir, verify=True) as store:                    # verify re-hashes labels too
+        view = store.split("labels")
+        assert len(view) == 20 and np.array_equal(view.K[()], k_lab)
+        with pytest.raises(AttributeError, match="split 'labels' has no array 'current'"):
+            _ = view.current
+        assert store.metadata["seeds"]["labels"]["spawn_key"] == [3]
+    with pytest.raises(ValueError, match="split 'labels' holds no 'current' signals"):
+        EMADataModule(data_dir, batch_size=4, train_split="labels").setup()
+
+
+def test_label_rows_are_the_assessment_of_their_k(labelled, compose):
+    data_dir, _ = labelled
+    cfg = compose("generate", [*LABELLED, f"data_dir={data_dir}"])
+    params = common.actuator(cfg)
+    assessment = common.build(cfg.assessment, "assessment", params=params, device=torch.device("cpu"))
+    with DatasetStore(data_dir) as store:
+        view = store.split("labels")
+        rows = [0, 6, 7, 19]                                              # first and last of chunks 0, 1, 2
+        k, healthy, margins = view.K[rows], view.healthy[rows], view.margins[rows]
+    res = assessment(torch.as_tensor(k))
+    assert np.array_equal(res.healthy.numpy().astype(np.uint8), healthy)
+    np.testing.assert_allclose(res.margins.stacked().numpy(), margins, rtol=1e-9, atol=1e-9, equal_nan=True)
+
+
+def test_labels_resume_and_repair(labelled, compose, tmp_path):
+    data_dir = tmp_path / "resume"
+    shutil.copytree(labelled[0], data_dir)
+    args = [*LABELLED, f"data_dir={data_dir}"]
+    for name in ("manifest.json", "dataset.h5", "chunks/labels_00001.h5"):
+        (data_dir / name).unlink()
+    with h5py.File(data_dir / "chunks" / "labels_00002.h5", "r+") as f:  # valid HDF5, wrong content
+        f["margins"][0, 1] += 1.0
+    with pytest.raises(ValueError, match=r"labels_00002.h5: checksum mismatch.*repair=true"):
+        generate(compose("generate", args))
+    metrics, _ = generate(compose("generate", [*args, "repair=true"]))
+    assert metrics["chunks"] == {"total": N_CHUNKS, "computed": 0, "reused": N_CHUNKS, "repaired": 0}
+    assert metrics["label_chunks"] == {"total": 3, "computed": 2, "reused": 1, "repaired": 1}
+    assert _manifest(data_dir) == _manifest(labelled[0])
+
+
+def test_labels_shards_give_the_same_manifest(labelled, compose, tmp_path):
+    data_dir = tmp_path / "sharded"
+    base = [*LABELLED, f"data_dir={data_dir}", "shard.count=2"]
+    m1, _ = generate(compose("generate", [*base, "shard.index=1"]))
+    assert not m1["complete"] and m1["chunks"]["computed"] == 1 and m1["label_chunks"]["computed"] == 1
+    assert sorted(p.name for p in (data_dir / "chunks").glob("labels_*.h5")) == ["labels_00001.h5"]
+    m0, _ = generate(compose("generate", [*base, "shard.index=0"]))
+    assert m0["complete"] and m0["chunks"]["computed"] == 2 and m0["label_chunks"]["computed"] == 2
+    assert _manifest(data_dir) == _manifest(labelled[0])
+
+
+def test_read_labelled(labelled, reference):
+    data_dir = labelled[0]
+    with DatasetStore(data_dir) as store:
+        k_tr, h_tr = store.split("train").K[()], store.split("train").healthy[()]
+        k_lab, h_lab = store.split("labels").K[()], store.split("labels").healthy[()]
+    k, h = read_labelled(data_dir)
+    assert k.shape == (30, 8) and k.dtype == np.float64 and h.shape == (30,) and h.dtype == bool
+    assert np.array_equal(k, np.concatenate([k_tr, k_lab])) and np.array_equal(h, np.concatenate([h_tr, h_lab]) == 1)
+    with h5py.File(data_dir / "dataset.h5", "r") as f:                 # an open file, other splits
+        k2, h2 = read_labelled(f, ("labels", "val"))
+    assert k2.shape == (23, 8) and np.array_equal(k2[:20], k_lab) and h2.shape == (23,)
+    k3, _ = read_labelled(data_dir / "dataset.h5", ("labels",))
+    assert np.array_equal(k3, k_lab)
+    k_old, h_old = read_labelled(reference[0])                          # a store without labels: train only
+    assert np.array_equal(k_old, k_tr) and h_old.shape == (10,)
+    with pytest.raises(ValueError, match=r"lacks the split\(s\) \['labels'\]"):
+        read_labelled(reference[0], optional=())
+    with pytest.raises(ValueError, match=r"lacks the split\(s\) \['test'\]"):
+        read_labelled(data_dir, ("train", "test"))
+    with pytest.raises(ValueError, match="no dataset store file"):
+        read_labelled(data_dir / "nowhere")

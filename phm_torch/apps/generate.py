@@ -3,7 +3,7 @@
 Examples::
 
     phm-generate                                            # small quick set in data/quick
-    phm-generate experiment=paper data_dir=/tmp/paper_data  # 10,000 / 500 / 100 (paper)
+    phm-generate experiment=paper data_dir=/tmp/paper_data  # 10,000 / 500 / 100 (paper) + 40,000 labels
     phm-generate dataset.n_train=200 seed=3 data_dir=/tmp/d
     phm-generate -m hydra/launcher=joblib shard.count=2 'shard.index=range(2)'   # two processes
     phm-generate stage=merge                                # merge after independently run shards
@@ -30,6 +30,7 @@ from .. import __version__
 from ..assessment import AssessmentFunction
 from ..command import time_grid
 from ..data import generation as gen
+from ..data.labels import LabelComputer, make_label_plan
 from ..data.store import DatasetStore, read_json
 from ..params import CONF_DIR
 from . import common
@@ -66,9 +67,10 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
 
     Returns:
         ``metrics``: per split count and healthy count, wall time, throughput of this run (signals/s,
-        assessment ms/vector, both including the one-off compilations), chunks computed/reused/repaired,
-        whether the store is complete;
-        ``objects``: ``data_dir`` (Path), ``manifest`` (dict or None), ``plan``.
+        assessment ms/vector over every vector assessed, labels/s of the labels split, all including the
+        one-off compilations), signal chunks computed/reused/repaired (``chunks``) and the same for the
+        labels chunks (``label_chunks``, when ``dataset.n_labels`` > 0), whether the store is complete;
+        ``objects``: ``data_dir`` (Path), ``manifest`` (dict or None), ``plan``, ``label_plan`` (or None).
     """
     params = common.actuator(cfg)
     command = common.command(cfg.command)
@@ -94,9 +96,13 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     fp, data_cfg = fingerprint(cfg)
     gen.prepare_store(data_dir, fp, data_cfg, bool(cfg.get("overwrite", False)))
     plan = gen.make_plan(spec, params.nominal_faults, seed)
+    label_plan = make_label_plan(spec, params.nominal_faults, seed)
+    plans = [p for p in (plan, label_plan) if p is not None]
     t0 = time.perf_counter()
     counts = {"computed": 0, "reused": 0, "repaired": 0}
+    label_counts = dict(counts)
     computer: gen.ChunkComputer | None = None
+    labeller: LabelComputer | None = None
     if gen.is_complete(data_dir, fp) and stage != "merge":
         log.info("%s already holds the finished store of this config", data_dir)
     else:
@@ -107,36 +113,52 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                     computer = gen.ChunkComputer(params, command, duration, spec, assessment, dev)
                 return computer(k)
 
-            counts = gen.compute_chunks(data_dir, plan, fp, compute, index, count, bool(cfg.get("repair", False)),
-                                        bool(cfg.get("progress", True)))
-        missing = gen.missing_chunks(data_dir, plan)
+            repair, progress = bool(cfg.get("repair", False)), bool(cfg.get("progress", True))
+            counts = gen.compute_chunks(data_dir, plan, fp, compute, index, count, repair, progress)
+            if label_plan is not None:
+                labeller = LabelComputer(assessment, params.nominal_faults, label_plan.chunk_size)
+                label_counts = gen.compute_chunks(data_dir, label_plan, fp, labeller, index, count, repair, progress)
+        missing = {p.layout.unit: m for p in plans if (m := gen.missing_chunks(data_dir, p))}
         if stage == "merge" or (stage == "all" and not missing):
             grid = time_grid(duration, params.sample_rate)
-            metadata = {"config": common.plain(cfg), "fingerprint": fp, "seeds": {"seed": seed, **plan.seeds},
+            seeds = {"seed": seed, **plan.seeds, **(label_plan.seeds if label_plan is not None else {})}
+            metadata = {"config": common.plain(cfg), "fingerprint": fp, "seeds": seeds,
                         "package_version": __version__, "git_revision": git_revision(),
                         "torch_version": torch.__version__, "margin_names": list(gen.MARGIN_NAMES)}
-            gen.merge(data_dir, plan, fp, grid.numpy(), command(grid).numpy(), metadata,
-                      {"seed": seed, "package_version": __version__, "chunk_size": plan.chunk_size,
-                       "n_chunks": plan.n_chunks})
+            extra = {"seed": seed, "package_version": __version__, "chunk_size": plan.chunk_size,
+                     "n_chunks": plan.n_chunks}
+            if label_plan is not None:
+                extra |= {"label_chunk_size": label_plan.chunk_size, "n_label_chunks": label_plan.n_chunks}
+            gen.merge(data_dir, plan, fp, grid.numpy(), command(grid).numpy(), metadata, extra, labels=label_plan)
         elif missing:
-            log.info("chunks %s are not done yet (other shards); run with stage=merge once they are", missing)
+            log.info("chunks %s are not done yet (other shards); run with stage=merge once they are",
+                     "; ".join(f"{unit} {m}" for unit, m in missing.items()))
     wall = time.perf_counter() - t0
 
     complete = gen.is_complete(data_dir, fp)
     manifest = read_json(data_dir / gen.MANIFEST_FILE) if complete else None
     metrics: dict[str, Any] = {"data_dir": str(data_dir), "complete": complete, "fingerprint": fp,
                                "shard": {"index": index, "count": count}, "stage": stage,
-                               "chunks": {"total": plan.n_chunks, **counts}, "wall_time_s": round(wall, 2)}
+                               "chunks": {"total": plan.n_chunks, **counts}}
+    if label_plan is not None:
+        metrics["label_chunks"] = {"total": label_plan.n_chunks, **label_counts}
+    metrics["wall_time_s"] = round(wall, 2)
     if manifest is not None:
         metrics["splits"] = {s: {"count": v["count"], "healthy": v["healthy"],
                                  "healthy_fraction": round(v["healthy"] / v["count"], 4) if v["count"] else None}
                              for s, v in manifest["splits"].items()}
-    if computer is not None and assessment.vectors:
+    timing: dict[str, float] = {}
+    if computer is not None:
         n_sig = counts["computed"] * spec.chunk_size
         metrics["signals_per_s"] = round(n_sig / max(computer.timing["signals_s"], 1e-9), 2)
+        timing |= computer.timing
+    if labeller is not None and labeller.vectors:   # vectors assessed for the labels split, padding included
+        metrics["labels_per_s"] = round(labeller.vectors / max(labeller.timing["labels_s"], 1e-9), 2)
+        timing |= labeller.timing
+    if timing and assessment.vectors:
         metrics["assessment_ms_per_vector"] = round(1000 * assessment.wall_s / assessment.vectors, 3)
-        metrics["timing_s"] = {k: round(v, 2) for k, v in computer.timing.items()}
-    return metrics, {"data_dir": data_dir, "manifest": manifest, "plan": plan}
+        metrics["timing_s"] = {k: round(v, 2) for k, v in timing.items()}
+    return metrics, {"data_dir": data_dir, "manifest": manifest, "plan": plan, "label_plan": label_plan}
 
 
 def open_store(data_dir: str | Path, verify: bool = False) -> DatasetStore:

@@ -146,7 +146,9 @@ class EMADataModule(L.LightningDataModule):
             return
         with DatasetStore(self.data_dir) as store:
             for split in (self.train_split, self.val_split):
-                store.split(split)  # a clear error when a split is missing
+                if self.channel not in store.split(split).group:  # store.split: a clear error when missing
+                    raise ValueError(f"split {split!r} holds no {self.channel!r} signals (the labels split holds "
+                                     "labels only); data.train_split / data.val_split must name signal splits")
             stats = train_statistics(store, self.channel)
             n_e = stats["y_mean"].shape[0]
             if self.y_center_mode == "nominal":

@@ -6,6 +6,10 @@ The rows of every split are laid end to end in one global list (``nominal`` (1 r
 writing), so a compiled simulator is compiled once per process, and a chunk's content depends only on
 the config: whatever the sharding, the interruptions and the order, the chunks and hence the merged
 store and its manifest are identical.
+
+The optional assessment-only ``labels`` split (``dataset.n_labels`` rows, no signals: extra labelled
+fault vectors for the health classifier) has its own row list and chunks (``labels.py``), computed and
+verified by the same functions (a ``Plan`` carries its ``ChunkLayout``) and merged with the others.
 """
 
 from __future__ import annotations
@@ -32,11 +36,12 @@ from ..params import ActuatorParams
 from ..simulator import EMASimulator
 from .sampling import ImportanceSampler
 from .store import (
-    ARRAYS,
     CHUNK_DIR,
     DATASET_FILE,
     MANIFEST_FILE,
+    SIGNAL_CHUNKS,
     STORE_FILE,
+    ChunkLayout,
     CorruptChunkError,
     atomic_h5,
     chunk_path,
@@ -48,7 +53,8 @@ from .store import (
 
 log = logging.getLogger(__name__)
 
-SPLITS = ("nominal", "train", "val", "rul")
+SPLITS = ("nominal", "train", "val", "rul")   # the signal splits (the optional labels split: labels.py)
+STREAMS = ("train", "val", "rul", "labels")     # child i of SeedSequence(seed) seeds STREAMS[i]
 STAGES = ("all", "chunks", "merge")
 ROWS_PER_H5_CHUNK = 1    # HDF5 chunk shape (1, n_e) of the signal arrays: a random row read reads that row only
 
@@ -66,6 +72,11 @@ class DatasetSpec:
         fidelity: model producing the signals (``hf``; ``lf`` for quick tests).
         compile: compile the signal simulator (pays ~15-30 s once per process).
         substeps: simulator substeps per control period (null: the fidelity's default).
+        n_labels: rows of the assessment-only ``labels`` split (K, healthy, margins; no signals),
+            importance-sampled on the full domain like train, with their own seed stream; 0 = none.
+        label_chunk_size: the most rows per labels chunk = assessment batch (memory ~0.3 MB per row
+            with the default sweep); the rows are spread evenly over ceil(n_labels / label_chunk_size)
+            chunks.
     """
 
     n_train: int
@@ -77,10 +88,13 @@ class DatasetSpec:
     fidelity: str
     compile: bool
     substeps: int | None = field(default=None)
+    n_labels: int = 0
+    label_chunk_size: int = 4096
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "uniform", tuple(int(i) for i in self.uniform))
-        for name, low in (("n_train", 1), ("n_val", 0), ("n_rul", 0), ("chunk_size", 1)):
+        for name, low in (("n_train", 1), ("n_val", 0), ("n_rul", 0), ("chunk_size", 1), ("n_labels", 0),
+                          ("label_chunk_size", 1)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
                 raise ValueError(f"dataset.{name} must be an integer >= {low}, got {v!r}")
@@ -93,17 +107,34 @@ class DatasetSpec:
 
     @property
     def counts(self) -> dict[str, int]:
+        """Rows of the signal splits (``SPLITS``)."""
         return {"nominal": 1, "train": self.n_train, "val": self.n_val, "rul": self.n_rul}
+
+
+def seed_streams(seed: int) -> dict[str, np.random.SeedSequence]:
+    """The independent seed stream of each sampled split: children of ``SeedSequence(seed)`` in
+    ``STREAMS`` order (``spawn(4)``'s first three children are ``spawn(3)``'s: adding labels left the
+    train/val/rul streams unchanged)."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+    return dict(zip(STREAMS, np.random.SeedSequence(seed).spawn(len(STREAMS))))
+
+
+def seed_record(streams: Mapping[str, np.random.SeedSequence]) -> dict[str, Any]:
+    """JSON-able record of seed streams (entropy and spawn key of each)."""
+    return {name: {"entropy": int(s.entropy), "spawn_key": list(s.spawn_key)} for name, s in streams.items()}
 
 
 @dataclass
 class Plan:
-    """The global row list: K (N, 8), the split of every row, and the chunk boundaries."""
+    """A row list cut into chunks: K (N, 8), the split of every row, the chunk boundaries, and the kind
+    of chunk file (``SIGNAL_CHUNKS``: signals and phi_a; ``LABEL_CHUNKS``: phi_a only)."""
 
     K: np.ndarray
     offsets: dict[str, tuple[int, int]]   # split -> [start, stop) rows of the global list
     chunk_size: int
     seeds: dict[str, Any]
+    layout: ChunkLayout = SIGNAL_CHUNKS
 
     @property
     def n_rows(self) -> int:
@@ -118,10 +149,8 @@ class Plan:
 
 
 def make_plan(spec: DatasetSpec, nominal: Sequence[float], seed: int) -> Plan:
-    """Sample every split (seeds spawned from ``seed``: one independent stream per split)."""
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
-    streams = dict(zip(("train", "val", "rul"), np.random.SeedSequence(seed).spawn(3)))
+    """Sample every signal split (seeds spawned from ``seed``: one independent stream per split)."""
+    streams = {name: s for name, s in seed_streams(seed).items() if name in spec.counts}
     full = ImportanceSampler(tuple(nominal), spec.uniform, 1.0)
     near = ImportanceSampler(tuple(nominal), spec.uniform, float(spec.rul_radius))
     blocks, offsets, start = [], {}, 0
@@ -135,8 +164,7 @@ def make_plan(spec: DatasetSpec, nominal: Sequence[float], seed: int) -> Plan:
         blocks.append(k)
         offsets[name] = (start, start + n)
         start += n
-    seeds = {name: {"entropy": int(s.entropy), "spawn_key": list(s.spawn_key)} for name, s in streams.items()}
-    return Plan(np.concatenate(blocks), offsets, spec.chunk_size, seeds)
+    return Plan(np.concatenate(blocks), offsets, spec.chunk_size, seed_record(streams))
 
 
 class ChunkComputer:
@@ -212,19 +240,21 @@ def compute_chunks(data_dir: Path, plan: Plan, fingerprint: str, compute: Callab
                    shard_index: int, shard_count: int, repair: bool, progress: bool) -> dict[str, int]:
     """Compute this shard's missing chunks (verifying the ones present).
 
+    ``compute`` maps the K (m, 8) of a chunk to its arrays (``plan.layout.arrays``, m rows each).
     Returns counts: ``computed``, ``reused``, ``repaired`` chunks.
     """
+    layout = plan.layout
     mine = [c for c in range(plan.n_chunks) if c % shard_count == shard_index]
     todo, done_rows, repaired = [], 0, 0
     for c in mine:
-        path = chunk_path(data_dir, c)
+        path = chunk_path(data_dir, c, layout)
         for stale in path.parent.glob(f".{path.name}.*.tmp"):  # a temp file of a killed run: never data
             stale.unlink(missing_ok=True)
         if not path.exists():
             todo.append(c)
             continue
         try:
-            read_chunk(path, chunk_attrs(plan, c, fingerprint))
+            read_chunk(path, chunk_attrs(plan, c, fingerprint), layout.arrays)
             done_rows += plan.rows(c)[1] - plan.rows(c)[0]
         except CorruptChunkError as e:
             if not repair:
@@ -234,13 +264,14 @@ def compute_chunks(data_dir: Path, plan: Plan, fingerprint: str, compute: Callab
             todo.append(c)
             repaired += 1
     total = sum(plan.rows(c)[1] - plan.rows(c)[0] for c in mine)
-    bar = tqdm(total=total, initial=done_rows, unit="signal", desc=f"shard {shard_index + 1}/{shard_count}",
+    desc = f"shard {shard_index + 1}/{shard_count}" + ("" if layout is SIGNAL_CHUNKS else f" {layout.prefix}")
+    bar = tqdm(total=total, initial=done_rows, unit=layout.unit, desc=desc,
                disable=not progress, file=sys.stderr, dynamic_ncols=True, smoothing=0.0)
     try:
         for c in todo:
             start, stop = plan.rows(c)
             arrays = compute(plan.K[start:stop])
-            write_chunk(chunk_path(data_dir, c), arrays, chunk_attrs(plan, c, fingerprint))
+            write_chunk(chunk_path(data_dir, c, layout), arrays, chunk_attrs(plan, c, fingerprint), layout.arrays)
             bar.update(stop - start)
     finally:
         bar.close()
@@ -248,62 +279,75 @@ def compute_chunks(data_dir: Path, plan: Plan, fingerprint: str, compute: Callab
 
 
 def missing_chunks(data_dir: Path, plan: Plan) -> list[int]:
-    return [c for c in range(plan.n_chunks) if not chunk_path(data_dir, c).exists()]
+    return [c for c in range(plan.n_chunks) if not chunk_path(data_dir, c, plan.layout).exists()]
 
 
 def merge(data_dir: Path, plan: Plan, fingerprint: str, time_grid: np.ndarray, command: np.ndarray,
-          metadata: Mapping[str, Any], manifest_extra: Mapping[str, Any]) -> dict[str, Any]:
+          metadata: Mapping[str, Any], manifest_extra: Mapping[str, Any],
+          labels: Plan | None = None) -> dict[str, Any]:
     """Verify every chunk and merge them into ``dataset.h5`` (atomically), then write ``manifest.json``.
+
+    ``plan``: the signal splits; ``labels``: the plan of the labels split (``labels.make_label_plan``),
+    or None for a store without it.
 
     Raises:
         ValueError: a chunk is missing or corrupt (``repair=true`` on its shard regenerates it).
     """
-    missing = missing_chunks(data_dir, plan)
-    if missing:
-        raise ValueError(f"cannot merge: chunks {missing} of {plan.n_chunks} are missing in "
-                         f"{str(data_dir / CHUNK_DIR)!r}; run the shards that own them (chunk c belongs to "
-                         "shard c % shard.count)")
+    plans = [plan] if labels is None else [plan, labels]
+    for p in plans:
+        missing = missing_chunks(data_dir, p)
+        if missing:
+            raise ValueError(f"cannot merge: {p.layout.unit} chunks {missing} of {p.n_chunks} are missing in "
+                             f"{str(data_dir / CHUNK_DIR)!r}; run the shards that own them (chunk c belongs "
+                             "to shard c % shard.count)")
     n_e = int(time_grid.shape[0])
-    hashes = {s: {a: hashlib.sha256() for a in ARRAYS} for s in SPLITS}
-    healthy = dict.fromkeys(SPLITS, 0)
+    splits: dict[str, Any] = {}
     with atomic_h5(data_dir / DATASET_FILE) as f:
         f.attrs["metadata"] = _json(metadata)
         f.create_dataset("time", data=time_grid, track_times=False)
         f.create_dataset("command", data=command, track_times=False)
-        out = {}
-        for s in SPLITS:
-            a, b = plan.offsets[s]
-            g = f.create_group(s, track_order=True)
-            n = b - a
-            rows = max(1, min(ROWS_PER_H5_CHUNK, n))
-            out[s] = {"K": g.create_dataset("K", (n, 8), "f8", track_times=False),
-                      "current": g.create_dataset("current", (n, n_e), "f4", chunks=(rows, n_e), track_times=False),
-                      "position": g.create_dataset("position", (n, n_e), "f4", chunks=(rows, n_e), track_times=False),
-                      "healthy": g.create_dataset("healthy", (n,), "u1", track_times=False),
-                      "margins": g.create_dataset("margins", (n, len(MARGIN_NAMES)), "f8", track_times=False)}
-            g.attrs["margin_names"] = list(MARGIN_NAMES)
-        for c in range(plan.n_chunks):
-            start, stop = plan.rows(c)
-            try:
-                arrays = read_chunk(chunk_path(data_dir, c), chunk_attrs(plan, c, fingerprint))
-            except CorruptChunkError as e:
-                raise ValueError(f"{e}; run again with repair=true to regenerate it") from None
-            for s in SPLITS:
-                a, b = plan.offsets[s]
-                lo, hi = max(a, start), min(b, stop)
-                if lo >= hi:
-                    continue
-                for name in ARRAYS:
-                    part = np.ascontiguousarray(arrays[name][lo - start:hi - start])
-                    out[s][name][lo - a:hi - a] = part
-                    hashes[s][name].update(part.tobytes())
-                healthy[s] += int(arrays["healthy"][lo - start:hi - start].sum())
-    splits = {s: {"count": plan.offsets[s][1] - plan.offsets[s][0], "healthy": healthy[s],
-                  "sha256": {a: hashes[s][a].hexdigest() for a in ARRAYS}} for s in SPLITS}
-    manifest = {"format": 1, "fingerprint": fingerprint, "splits": splits, "arrays": list(ARRAYS),
+        for p in plans:
+            splits.update(_merge_plan(f, data_dir, p, fingerprint, n_e))
+    manifest = {"format": 1, "fingerprint": fingerprint, "splits": splits, "arrays": list(SIGNAL_CHUNKS.arrays),
                 "margin_names": list(MARGIN_NAMES), "signal_samples": n_e, **manifest_extra}
     write_json(data_dir / MANIFEST_FILE, manifest)
     return manifest
+
+
+def _merge_plan(f: Any, data_dir: Path, plan: Plan, fingerprint: str, n_e: int) -> dict[str, Any]:
+    """Create the groups of ``plan``'s splits in the open ``dataset.h5`` ``f`` and fill them from its
+    verified chunks; returns the manifest entry of each split (count, healthy, SHA-256 per array)."""
+    names = plan.layout.arrays
+    hashes = {s: {a: hashlib.sha256() for a in names} for s in plan.offsets}
+    healthy = dict.fromkeys(plan.offsets, 0)
+    out = {}
+    for s, (a, b) in plan.offsets.items():
+        g = f.create_group(s, track_order=True)
+        n = b - a
+        rows = max(1, min(ROWS_PER_H5_CHUNK, n))
+        shapes = {"K": ((n, 8), "f8", None), "current": ((n, n_e), "f4", (rows, n_e)),
+                  "position": ((n, n_e), "f4", (rows, n_e)), "healthy": ((n,), "u1", None),
+                  "margins": ((n, len(MARGIN_NAMES)), "f8", None)}
+        out[s] = {name: g.create_dataset(name, shapes[name][0], shapes[name][1], chunks=shapes[name][2],
+                                         track_times=False) for name in names}
+        g.attrs["margin_names"] = list(MARGIN_NAMES)
+    for c in range(plan.n_chunks):
+        start, stop = plan.rows(c)
+        try:
+            arrays = read_chunk(chunk_path(data_dir, c, plan.layout), chunk_attrs(plan, c, fingerprint), names)
+        except CorruptChunkError as e:
+            raise ValueError(f"{e}; run again with repair=true to regenerate it") from None
+        for s, (a, b) in plan.offsets.items():
+            lo, hi = max(a, start), min(b, stop)
+            if lo >= hi:
+                continue
+            for name in names:
+                part = np.ascontiguousarray(arrays[name][lo - start:hi - start])
+                out[s][name][lo - a:hi - a] = part
+                hashes[s][name].update(part.tobytes())
+            healthy[s] += int(arrays["healthy"][lo - start:hi - start].sum())
+    return {s: {"count": b - a, "healthy": healthy[s], "sha256": {n: hashes[s][n].hexdigest() for n in names}}
+            for s, (a, b) in plan.offsets.items()}
 
 
 def is_complete(data_dir: Path, fingerprint: str) -> bool:

@@ -4,6 +4,7 @@ Layout of ``data_dir``::
 
     store.json             fingerprint + resolved generation config (written first; guards against mixing)
     chunks/chunk_00000.h5  rows [c * chunk_size, ...) of the global row list, one file per chunk
+    chunks/labels_00000.h5 rows of the assessment-only ``labels`` split (if ``dataset.n_labels`` > 0)
     dataset.h5             the merged store: one group per split (see ``ARRAYS``), written last
     manifest.json          per split: count, healthy count, SHA-256 of every array (deterministic)
 
@@ -15,6 +16,10 @@ recomputes it, so a damaged chunk is detected and never used as data. Arrays, pe
 * ``position`` (n, n_e) float32 LVDT position [rad];  ``healthy`` (n,) uint8 phi_a (1 = healthy);
 * ``margins`` (n, 5) float64, columns ``MARGIN_NAMES`` (Hz, deg, Hz, dB, Hz; nan = not measurable).
 
+The optional split ``labels`` (``LABELS``: extra fault vectors labelled by phi_a, for the health
+classifier) holds only ``LABEL_ARRAYS`` = K, healthy, margins (no signals); stores made before it
+existed, or with ``dataset.n_labels`` = 0, lack it. ``read_labelled`` reads (K, healthy) of several splits.
+
 The root of ``dataset.h5`` holds ``time`` (n_e,) [s] and ``command`` (n_e,) [rad], and the attribute
 ``metadata`` (JSON: resolved config, seeds, package version, git revision, fingerprint).
 """
@@ -24,8 +29,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Self
 
@@ -35,6 +41,8 @@ import numpy as np
 from ..io.atomic import atomic_open
 
 ARRAYS = ("K", "current", "position", "healthy", "margins")
+LABELS = "labels"                              # the assessment-only split
+LABEL_ARRAYS = ("K", "healthy", "margins")     # its arrays (no signals)
 DATASET_FILE = "dataset.h5"
 MANIFEST_FILE = "manifest.json"
 STORE_FILE = "store.json"
@@ -45,10 +53,29 @@ class CorruptChunkError(ValueError):
     """A chunk file whose content does not match its checksum (or cannot be read)."""
 
 
-def array_digest(arrays: Mapping[str, np.ndarray]) -> str:
-    """SHA-256 over the arrays of ``ARRAYS`` (name, dtype, shape, C-order bytes), in that order."""
+@dataclass(frozen=True)
+class ChunkLayout:
+    """One kind of chunk file: its name prefix (``chunks/<prefix>_00000.h5``), its arrays, and the unit of
+    its rows (progress bars, messages)."""
+
+    prefix: str
+    arrays: tuple[str, ...]
+    unit: str
+
+
+SIGNAL_CHUNKS = ChunkLayout("chunk", ARRAYS, "signal")        # rows of nominal|train|val|rul
+LABEL_CHUNKS = ChunkLayout("labels", LABEL_ARRAYS, "label")  # rows of the labels split
+
+
+def split_arrays(split: str) -> tuple[str, ...]:
+    """The arrays of a split of ``dataset.h5``: ``LABEL_ARRAYS`` for ``labels``, ``ARRAYS`` otherwise."""
+    return LABEL_ARRAYS if split == LABELS else ARRAYS
+
+
+def array_digest(arrays: Mapping[str, np.ndarray], names: Sequence[str] = ARRAYS) -> str:
+    """SHA-256 over the arrays ``names`` (name, dtype, shape, C-order bytes), in that order."""
     h = hashlib.sha256()
-    for name in ARRAYS:
+    for name in names:
         a = np.ascontiguousarray(arrays[name])
         h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
         h.update(a.tobytes())
@@ -62,15 +89,16 @@ def atomic_h5(path: Path) -> Iterator[h5py.File]:
         yield f
 
 
-def chunk_path(data_dir: Path, index: int) -> Path:
-    return Path(data_dir) / CHUNK_DIR / f"chunk_{index:05d}.h5"
+def chunk_path(data_dir: Path, index: int, layout: ChunkLayout = SIGNAL_CHUNKS) -> Path:
+    return Path(data_dir) / CHUNK_DIR / f"{layout.prefix}_{index:05d}.h5"
 
 
-def write_chunk(path: Path, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]) -> str:
-    """Write one chunk atomically with the SHA-256 of its arrays; returns the digest."""
-    digest = array_digest(arrays)
+def write_chunk(path: Path, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any],
+                names: Sequence[str] = ARRAYS) -> str:
+    """Write the arrays ``names`` of one chunk atomically with their SHA-256; returns the digest."""
+    digest = array_digest(arrays, names)
     with atomic_h5(path) as f:
-        for name in ARRAYS:
+        for name in names:
             f.create_dataset(name, data=arrays[name], track_times=False)
         for key, value in attrs.items():
             f.attrs[key] = value
@@ -78,22 +106,23 @@ def write_chunk(path: Path, arrays: Mapping[str, np.ndarray], attrs: Mapping[str
     return digest
 
 
-def read_chunk(path: Path, expect: Mapping[str, Any]) -> dict[str, np.ndarray]:
-    """Read and verify a chunk: its checksum and the attributes in ``expect`` (e.g. fingerprint, rows).
+def read_chunk(path: Path, expect: Mapping[str, Any], names: Sequence[str] = ARRAYS) -> dict[str, np.ndarray]:
+    """Read and verify the arrays ``names`` of a chunk: its checksum and the attributes in ``expect``
+    (e.g. fingerprint, rows).
 
     Raises:
         CorruptChunkError: unreadable file, checksum mismatch or attribute mismatch.
     """
     try:
         with h5py.File(path, "r") as f:
-            arrays = {name: f[name][()] for name in ARRAYS}
+            arrays = {name: f[name][()] for name in names}
             attrs = {k: f.attrs[k] for k in f.attrs}
     except (OSError, KeyError, ValueError) as e:
         raise CorruptChunkError(f"chunk {path}: unreadable ({e})") from None
     for key, value in expect.items():
         if key not in attrs or not np.array_equal(np.asarray(attrs[key]), np.asarray(value)):
             raise CorruptChunkError(f"chunk {path}: attribute {key} is {attrs.get(key)!r}, expected {value!r}")
-    digest = array_digest(arrays)
+    digest = array_digest(arrays, names)
     if attrs.get("sha256") != digest:
         raise CorruptChunkError(f"chunk {path}: checksum mismatch (stored {attrs.get('sha256')!r}, "
                                 f"content {digest!r})")
@@ -112,12 +141,23 @@ def write_json(path: Path, data: Any) -> None:
 
 
 class SplitView:
-    """Lazy view of one split of an open ``dataset.h5`` (h5py datasets: slicing reads only those rows)."""
+    """Lazy view of one split of an open ``dataset.h5`` (h5py datasets: slicing reads only those rows).
+
+    Attributes: the split's arrays (``split_arrays``): K, current, position, healthy, margins; the
+    ``labels`` split has no ``current`` / ``position``.
+    """
 
     def __init__(self, group: h5py.Group):
         self.group = group
-        for name in ARRAYS:
+        self.name = group.name.strip("/")
+        for name in split_arrays(self.name):
             setattr(self, name, group[name])
+
+    def __getattr__(self, attr: str) -> Any:  # only called for a missing attribute
+        if attr in ARRAYS:
+            raise AttributeError(f"split {self.name!r} has no array {attr!r} (its arrays: "
+                                 f"{list(split_arrays(self.name))}; the labels split holds no signals)")
+        raise AttributeError(attr)
 
     def __len__(self) -> int:
         return int(self.group["K"].shape[0])
@@ -145,7 +185,7 @@ class DatasetStore:
         self.metadata = json.loads(self.file.attrs["metadata"])
         if verify:
             for name, info in self.manifest["splits"].items():
-                digests = split_digests(self.file[name])
+                digests = split_digests(self.file[name], split_arrays(name))
                 if digests != info["sha256"]:
                     bad = sorted(k for k in digests if digests[k] != info["sha256"].get(k))
                     raise ValueError(f"{dataset}: split {name} arrays {bad} do not match {MANIFEST_FILE}")
@@ -177,13 +217,65 @@ class DatasetStore:
         self.close()
 
 
-def split_digests(group: h5py.Group, rows_per_read: int = 1024) -> dict[str, str]:
-    """SHA-256 of each array of a split (C-order bytes), read ``rows_per_read`` rows at a time."""
+def split_digests(group: h5py.Group, names: Sequence[str] = ARRAYS, rows_per_read: int = 1024) -> dict[str, str]:
+    """SHA-256 of each array ``names`` of a split (C-order bytes), read ``rows_per_read`` rows at a time."""
     out = {}
-    for name in ARRAYS:
+    for name in names:
         ds = group[name]
         h = hashlib.sha256()
         for start in range(0, ds.shape[0], rows_per_read):
             h.update(np.ascontiguousarray(ds[start:start + rows_per_read]).tobytes())
         out[name] = h.hexdigest()
     return out
+
+
+def read_labelled(source: str | os.PathLike | h5py.File, splits: Sequence[str] = ("train", LABELS),
+                  optional: Sequence[str] = (LABELS,)) -> tuple[np.ndarray, np.ndarray]:
+    """Fault vectors and their phi_a labels from several splits of a store, concatenated in order.
+
+    Args:
+        source: a store directory, its ``dataset.h5``, or that file open in h5py.
+        splits: the splits to read, e.g. ``("train", "labels")`` (the health classifier's training set).
+        optional: those of ``splits`` that may be absent (``labels``: stores made with
+            ``dataset.n_labels`` = 0 or before the split existed); absent ones are skipped.
+
+    Returns:
+        K (N, 8) float64 and healthy (N,) bool (True = healthy), N = the rows of the splits read.
+
+    Raises:
+        ValueError: no dataset file, a required split is missing, or a split's K / healthy is malformed.
+    """
+    if isinstance(source, h5py.File):
+        return _read_labelled(source, splits, optional)
+    path = Path(source)
+    if path.is_dir():
+        path = path / DATASET_FILE
+    if not path.is_file():
+        raise ValueError(f"{str(path)!r} is no dataset store file ({DATASET_FILE}); run phm-generate first")
+    with h5py.File(path, "r") as f:
+        return _read_labelled(f, splits, optional)
+
+
+def _read_labelled(f: h5py.File, splits: Sequence[str], optional: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    if isinstance(splits, str) or not splits:
+        raise ValueError(f"read_labelled: splits must be a non-empty sequence of split names, got {splits!r}")
+    present = [s for s in f if isinstance(f[s], h5py.Group)]
+    missing = [s for s in splits if s not in present and s not in optional]
+    if missing:
+        raise ValueError(f"{f.filename}: the store lacks the split(s) {missing} (its splits: {present})")
+    ks, hs = [], []
+    for s in splits:
+        if s not in present:
+            continue
+        g = f[s]
+        if "K" not in g or "healthy" not in g:
+            raise ValueError(f"{f.filename}: split {s!r} lacks K or healthy")
+        k, h = np.asarray(g["K"][()], dtype=np.float64), np.asarray(g["healthy"][()])
+        if k.ndim != 2 or k.shape[1] != 8 or h.shape != (k.shape[0],):
+            raise ValueError(f"{f.filename}: split {s!r}: K has shape {k.shape}, healthy {h.shape}; "
+                             "expected (n, 8) and (n,)")
+        ks.append(k)
+        hs.append(h.astype(bool))
+    if not ks:
+        return np.zeros((0, 8)), np.zeros(0, dtype=bool)
+    return np.concatenate(ks), np.concatenate(hs)
