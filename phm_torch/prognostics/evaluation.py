@@ -2,7 +2,8 @@
 
 Definitions (fractions, as every metrics.json of phm_torch):
 * reference RUL q5/q50/q95: damage propagation stopped by the true assessment function (LF model);
-* Delta_RUL (the paper's uncertainty of the physics model) = (q95 - q5) / (2 q50) of the reference;
+* Delta_RUL (the paper's uncertainty of the physics model, its eq. for Delta_RUL) = (q95 - q5) / q50 of the
+  reference: the full width of the 90 % interval relative to the expected RUL;
 * err_RUL = |q50_est - q50_ref| / q50_ref, for the estimate from the true k (surrogate classifier) and
   from the full flow (signal -> gappy -> MLP -> k_hat -> RUL);
 * band coverage: fraction of reference q50 inside the estimate's [q5, q95];
@@ -38,7 +39,7 @@ class RULComparison:
             inside = (r[:, 1] >= e[:, 0]) & (r[:, 1] <= e[:, 2])
             return float(inside.double().mean()) if inside.numel() else float("nan")
 
-        delta = (r[:, 2] - r[:, 0]) / (2 * r[:, 1])
+        delta = (r[:, 2] - r[:, 0]) / r[:, 1]
         ff = self.full_flow[usable]
         finite = torch.isfinite(ff[:, 1])
         return {
