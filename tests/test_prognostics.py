@@ -107,3 +107,30 @@ def test_bad_damage_config(field, kwargs, match):
     rate[6][0] = 1e-4
     with pytest.raises(ValueError, match="column 7"):
         DamageModel(**(base | {"rate": rate}))
+
+
+def test_coarse_event_search_equals_scoring_every_grid_point():
+    """Scoring every 8th grid point and then the first faulty interval finds the same crossings as scoring
+    every point, with noise, at the edges (already faulty, never faulty) and ~8x fewer score calls."""
+    calls = {"fine": 0, "coarse": 0}
+
+    def counted(name):
+        def score(k):
+            calls[name] += k.shape[0]
+            return threshold_score(k, 0.25)
+        return score
+
+    d = diagonal_model(noise=3e-6)
+    g = torch.Generator().manual_seed(3)
+    k0 = torch.rand(300, 8, generator=g, dtype=torch.float64) * 0.05
+    k0[:, 6] = 0.5
+    k0[0, 0], k0[1] = 0.4, torch.tensor([0.0] * 6 + [0.5, 0.5])        # already faulty; slowest
+    eps = d.sample_noise(300, g)
+    fine = RULEstimator(d, counted("fine"), coarse=1).first_crossing(k0, eps)
+    coarse = RULEstimator(d, counted("coarse"), coarse=8).first_crossing(k0, eps)
+    torch.testing.assert_close(coarse[0], fine[0], rtol=0, atol=1e-9)
+    assert torch.equal(coarse[1], fine[1])
+    assert fine[0][0] == 0 and 0 < coarse[0][5] < 20000
+    assert calls["coarse"] < calls["fine"] / 4
+    with pytest.raises(ValueError, match="rul.coarse"):
+        RULEstimator(d, threshold_score, coarse=0)

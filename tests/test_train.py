@@ -5,12 +5,13 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 import torch
-from surrogate_data import write_store
+from surrogate_data import faults, health, write_store
 
-from phm_torch.apps.train import train_surrogates
+from phm_torch.apps.train import _classifier_set, train_surrogates
 from phm_torch.surrogates import SurrogateBundle
 
 REQUIRED = ("err_alpha_median", "err_alpha_iqr", "err_k", "fdi_mae", "classifier_accuracy", "missed_fault_rate",
@@ -162,3 +163,17 @@ def test_multirun_jobs_write_into_their_own_directories(store, run_cli, tmp_path
     hidden = [json.loads((sweep / job / "metrics.json").read_text())["n_hidden"] for job in ("0", "1")]
     assert hidden == [4, 6]
     assert (sweep / "1" / "surrogates.pt").is_file()
+
+
+def test_classifier_also_learns_from_the_labels_split(compose, tmp_path):
+    """The assessment-only labels split joins the classifier's training set (and only when asked)."""
+    data_dir = write_store(tmp_path / "s", {"train": 40, "val": 10, "labels": 300})
+    train = SimpleNamespace(k=faults(40, 0).float(), healthy=health(faults(40, 0)))
+    k, h = _classifier_set(compose("train", [f"data_dir={data_dir}"]), train)
+    assert k.shape == (340, 8) and h.shape == (340,) and k.dtype == torch.float64
+    assert torch.equal(h[:40], train.healthy)
+    assert torch.equal(h[40:], health(faults(300, 34)))            # write_store's seed for the 3rd split
+    k_only, _ = _classifier_set(compose("train", [f"data_dir={data_dir}", "classifier_labels=false"]), train)
+    assert k_only.shape == (40, 8)
+    plain = write_store(tmp_path / "p", {"train": 40, "val": 10})  # a store without labels: train only
+    assert _classifier_set(compose("train", [f"data_dir={plain}"]), train)[0].shape == (40, 8)

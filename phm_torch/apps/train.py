@@ -31,6 +31,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torch.utils.data import DataLoader, TensorDataset
 
+from ..data.store import LABELS, read_labelled
 from ..io.atomic import atomic_open
 from ..surrogates import FDIMLP, POD, GappyPOD, SurrogateBundle, rms
 from ..surrogates.data import load_store
@@ -99,6 +100,16 @@ def _out_dir(cfg: DictConfig) -> Path:
 def _save_tensors(path: Path, tensors: dict[str, torch.Tensor]) -> None:
     with atomic_open(path, "wb") as fh:
         torch.save({k: v.detach().cpu() for k, v in tensors.items()}, fh)
+
+
+def _classifier_set(cfg: DictConfig, train: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """The health classifier's training set: the train split's (k, label) and, unless
+    ``classifier_labels`` is false, the store's assessment-only ``labels`` split (if it has one)."""
+    k, healthy = train.k.to(torch.float64), train.healthy
+    if not bool(cfg.classifier_labels):
+        return k, healthy
+    k_extra, h_extra = read_labelled(str(cfg.data_dir), splits=(LABELS,), optional=(LABELS,))
+    return (torch.cat([k, torch.from_numpy(k_extra)]), torch.cat([healthy, torch.from_numpy(h_extra)]))
 
 
 def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -206,9 +217,10 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     network = module.network.float().eval()
 
     t0 = time.perf_counter()
-    classifier.fit(train.k, train.healthy)
+    k_cls, healthy_cls = _classifier_set(cfg, train)
+    classifier.fit(k_cls, healthy_cls)
     if max_missed is not None:
-        classifier.calibrate(train.k, train.healthy, max_missed)
+        classifier.calibrate(k_cls, healthy_cls, max_missed)
     timing["classifier_fit_s"] = time.perf_counter() - t0
 
     metrics, arrays = evaluate_fdi(pod, gappy, network, val.current, val.k, noise, missing, seed)
@@ -223,7 +235,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         n_train=len(train), n_val=len(val), n_modes=n_modes, n_points=n_points, n_hidden=n_hidden,
         selector=selector.name, selector_params=selector.get_params(), classifier=classifier.name,
         model=module.optimizer_name + ("_e2e" if end_to_end else ""), fdi_inputs=fit["inputs"],
-        classifier_threshold=float(classifier.threshold),
+        classifier_threshold=float(classifier.threshold), n_classifier_train=len(healthy_cls),
         energy_retained=float(pod.cumulative_energy()[n_modes - 1]), gappy_condition_number=gappy.condition_number(),
         ood_residual_threshold=threshold, ood_rate_val=float((arrays["residual"] > threshold).float().mean()),
         eval_noise=noise, eval_missing=missing, best_epoch=keep.best_epoch, epochs_run=trainer.current_epoch,

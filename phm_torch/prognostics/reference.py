@@ -49,7 +49,8 @@ def reference_rul(damage: DamageModel, score: Callable[[torch.Tensor], torch.Ten
     """
     coarse = DamageModel(damage.rate.tolist(), damage.noise_std.tolist(), damage.block, damage.horizon, step_hours,
                          damage.nominal.tolist())
-    det = DeterministicRUL(RULEstimator(coarse, score, n_samples=2, refine_iterations=refine_iterations))
+    # coarse=1: the true score is evaluated at every point of its (already coarse) grid
+    det = DeterministicRUL(RULEstimator(coarse, score, n_samples=2, refine_iterations=refine_iterations, coarse=1))
     det.deltas_ = torch.as_tensor(deltas, dtype=torch.float64)
     b = k0.shape[0]
     # one batch per grid call for the three disturbances together
