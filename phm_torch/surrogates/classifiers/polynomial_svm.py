@@ -22,7 +22,7 @@ from typing import Any
 
 import torch
 
-from .base import N_FAULTS, FeatureMapSVM, check_training_set
+from .base import N_FAULTS, FeatureMapSVM, check_training_set, check_warp, warp_inputs
 from .training import sample_weights
 
 
@@ -43,7 +43,8 @@ def monomial_map(n: int, degree: int, gamma: float, coef0: float) -> tuple[torch
 
 
 class PolynomialSVM(FeatureMapSVM):
-    """Squared-hinge soft-margin SVM with the polynomial kernel (gamma z.z' + coef0)^degree.
+    """Squared-hinge soft-margin SVM with the polynomial kernel (gamma z.z' + coef0)^degree, z the
+    standardised warped inputs x(k).
 
     Args:
         degree: polynomial degree d (MATLAB/sklearn default 3).
@@ -51,7 +52,8 @@ class PolynomialSVM(FeatureMapSVM):
         gamma: kernel scale; ``None`` = 1 / 8 (sklearn's ``scale`` on standardised inputs).
         C: soft-margin penalty (> 0).
         class_weight: ``None`` or ``balanced``.
-        standardize: standardise k with the training mean and std (else z = k).
+        standardize: standardise the (warped) inputs with their training mean and std (else z = x).
+        warp: input warp x(k), ``none`` (the paper's raw k) or ``sqrt`` (see ``base.warp_inputs``).
         max_iter: L-BFGS iterations.
         tol: L-BFGS gradient tolerance.
     """
@@ -59,7 +61,8 @@ class PolynomialSVM(FeatureMapSVM):
     name = "poly_svm"
 
     def __init__(self, degree: int = 3, coef0: float = 1.0, gamma: float | None = None, C: float = 1.0,
-                 class_weight: str | None = None, standardize: bool = True, max_iter: int = 500, tol: float = 1e-9):
+                 class_weight: str | None = None, standardize: bool = True, max_iter: int = 500, tol: float = 1e-9,
+                 warp: str = "none"):
         super().__init__()
         if isinstance(degree, bool) or not isinstance(degree, int) or not 1 <= degree <= 6:
             raise ValueError(f"classifier.degree must be an integer in [1, 6], got {degree!r}")
@@ -73,6 +76,7 @@ class PolynomialSVM(FeatureMapSVM):
         sample_weights(torch.tensor([1.0, -1.0]), class_weight)  # validates the name
         self.degree, self.coef0, self.gamma, self.C = degree, float(coef0), gamma, float(C)
         self.class_weight, self.standardize, self.max_iter, self.tol = class_weight, standardize, max_iter, tol
+        self.warp = check_warp(warp)
         idx, coef = monomial_map(N_FAULTS, degree, g, float(coef0))
         self.register_buffer("feature_index", idx)
         self.register_buffer("feature_coef", coef)
@@ -83,20 +87,44 @@ class PolynomialSVM(FeatureMapSVM):
 
     def features(self, k: torch.Tensor) -> torch.Tensor:
         """phi(z(k)) (B, F) of fault vectors (B, 8)."""
-        z = (k.to(self.k_mean.dtype) - self.k_mean) / self.k_std
+        z = (warp_inputs(k.to(self.k_mean.dtype), self.warp) - self.k_mean) / self.k_std
         u = torch.cat([torch.ones_like(z[:, :1]), z], dim=1)         # the 1 carries sqrt(coef0) in coef
         return self.feature_coef * u[:, self.feature_index].prod(-1)
+
+    def forward(self, k: torch.Tensor) -> torch.Tensor:
+        """Score f(k) (B,), > 0 healthy: the same polynomial as phi(z) . beta + b, evaluated densely.
+
+        phi(z) . beta = sum_S c_S beta_S prod_{i in S} u_i is contracted one index at a time with the
+        coefficient tensor T (n+1,)*d holding c_S beta_S at each sorted multi-index S: d small matrix
+        products instead of gathering (B, F, d) monomials, ~20x faster at large batches (the RUL search
+        calls the score ~70 times per signal).
+        """
+        self.check_input(k)
+        z = (warp_inputs(k.to(self.k_mean.dtype), self.warp) - self.k_mean) / self.k_std
+        u = torch.cat([torch.ones_like(z[:, :1]), z], dim=1)                       # (B, n+1)
+        n1 = u.shape[1]
+        flat = torch.zeros(1, dtype=torch.long, device=u.device)
+        size = 1
+        for j in range(self.degree):
+            flat = flat * n1 + self.feature_index[:, j]
+            size *= n1
+        t = torch.zeros(size, dtype=u.dtype, device=u.device)
+        t = t.index_add(0, flat, self.feature_coef * self.beta)
+        y = u @ t.view(n1, -1)                                                     # (B, n1^(d-1))
+        for _ in range(self.degree - 1):
+            y = (y.view(y.shape[0], -1, n1) * u.unsqueeze(1)).sum(-1)
+        return y.squeeze(-1) + self.bias
 
     def fit(self, k: torch.Tensor, healthy: torch.Tensor) -> PolynomialSVM:
         k64, y = check_training_set(k, healthy)
         if self.standardize:
-            self.k_mean = k64.mean(0)
-            self.k_std = k64.std(0).clamp(min=1e-12)
+            x = warp_inputs(k64, self.warp)
+            self.k_mean = x.mean(0)
+            self.k_std = x.std(0).clamp(min=1e-12)
         self._fit_linear(k64, y)
         return self
-
 
     def get_params(self) -> dict[str, Any]:
         return {"degree": self.degree, "coef0": self.coef0, "gamma": self.gamma, "C": self.C,
                 "class_weight": self.class_weight, "standardize": self.standardize, "max_iter": self.max_iter,
-                "tol": self.tol}
+                "tol": self.tol, "warp": self.warp}

@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from .base import N_FAULTS, FeatureMapSVM, check_training_set
+from .base import N_FAULTS, FeatureMapSVM, check_training_set, check_warp, warp_inputs
 from .training import sample_weights
 
 
@@ -27,12 +27,14 @@ class RBFSVM(FeatureMapSVM):
         class_weight: ``None`` or ``balanced``.
         seed: seed of the landmark draw.
         max_iter, tol: L-BFGS settings.
+        warp: input warp x(k) before standardisation, ``none`` or ``sqrt`` (see ``base.warp_inputs``).
     """
 
     name = "rbf_svm"
 
     def __init__(self, n_landmarks: int = 300, gamma: float | None = None, C: float = 1.0,
-                 class_weight: str | None = None, seed: int = 0, max_iter: int = 500, tol: float = 1e-9):
+                 class_weight: str | None = None, seed: int = 0, max_iter: int = 500, tol: float = 1e-9,
+                 warp: str = "none"):
         super().__init__()
         if isinstance(n_landmarks, bool) or not isinstance(n_landmarks, int) or n_landmarks < 2:
             raise ValueError(f"classifier.n_landmarks must be an integer >= 2, got {n_landmarks!r}")
@@ -44,6 +46,7 @@ class RBFSVM(FeatureMapSVM):
         sample_weights(torch.tensor([1.0, -1.0]), class_weight)
         self.n_landmarks, self.gamma, self.C, self.class_weight = n_landmarks, gamma, float(C), class_weight
         self.seed, self.max_iter, self.tol = seed, max_iter, tol
+        self.warp = check_warp(warp)
         self._g = float(g)
         self.register_buffer("k_mean", torch.zeros(N_FAULTS, dtype=torch.float64))
         self.register_buffer("k_std", torch.ones(N_FAULTS, dtype=torch.float64))
@@ -58,13 +61,14 @@ class RBFSVM(FeatureMapSVM):
 
     def features(self, k: torch.Tensor) -> torch.Tensor:
         """phi(z(k)) (B, m)."""
-        z = (k.to(self.k_mean.dtype) - self.k_mean) / self.k_std
+        z = (warp_inputs(k.to(self.k_mean.dtype), self.warp) - self.k_mean) / self.k_std
         return self._kernel(z, self.landmarks) @ self.whitening
 
     def fit(self, k: torch.Tensor, healthy: torch.Tensor) -> RBFSVM:
         k64, y = check_training_set(k, healthy)
-        self.k_mean, self.k_std = k64.mean(0), k64.std(0).clamp(min=1e-12)
-        z = (k64 - self.k_mean) / self.k_std
+        x = warp_inputs(k64, self.warp)
+        self.k_mean, self.k_std = x.mean(0), x.std(0).clamp(min=1e-12)
+        z = (x - self.k_mean) / self.k_std
         m = min(self.n_landmarks, z.shape[0])
         pick = torch.randperm(z.shape[0], generator=torch.Generator().manual_seed(self.seed))[:m]
         self.landmarks = z[pick]
@@ -74,7 +78,6 @@ class RBFSVM(FeatureMapSVM):
         self._fit_linear(k64, y)
         return self
 
-
     def get_params(self) -> dict[str, Any]:
         return {"n_landmarks": self.n_landmarks, "gamma": self.gamma, "C": self.C, "class_weight": self.class_weight,
-                "seed": self.seed, "max_iter": self.max_iter, "tol": self.tol}
+                "seed": self.seed, "max_iter": self.max_iter, "tol": self.tol, "warp": self.warp}

@@ -5,10 +5,11 @@ from __future__ import annotations
 from typing import Any
 
 from .base import HealthClassifier
+from .mlp import MLPClassifier
 from .polynomial_svm import PolynomialSVM
 from .rbf_svm import RBFSVM
 
-CLASSIFIERS: dict[str, type[HealthClassifier]] = {cls.name: cls for cls in (PolynomialSVM, RBFSVM)}
+CLASSIFIERS: dict[str, type[HealthClassifier]] = {cls.name: cls for cls in (PolynomialSVM, RBFSVM, MLPClassifier)}
 
 
 def build_classifier(name: str, **params: Any) -> HealthClassifier:
