@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from phm_torch.apps.run import compose_stage, run_all
+from phm_torch.apps.run import compose_stage, generate_overrides, run_all
 
 
 @pytest.mark.slow
@@ -35,3 +35,13 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     assert html.count("data:image/png;base64,") >= 6                  # figures embedded, offline
     top = json.loads((tmp_path / "workbench" / "report.json").read_text())["candidates"][0]["effect"]
     assert top == "cogging_torque"                                    # the hidden effect is found
+
+
+def test_paper_experiment_reaches_the_generate_stage():
+    """`phm-run experiment=paper` composes, and its data settings override the run's small default."""
+    cfg = compose_stage("run", ["experiment=paper"])
+    generate = compose_stage("generate", generate_overrides(cfg))
+    assert (generate.dataset.n_train, generate.dataset.n_val, generate.dataset.n_rul) == (10000, 500, 100)
+    assert generate.dataset.n_labels == 40000 and generate.assessment.sweep.compile is True
+    small = compose_stage("generate", generate_overrides(compose_stage("run", [])))
+    assert small.dataset.n_train == 600

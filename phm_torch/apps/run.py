@@ -40,6 +40,22 @@ def compose_stage(app: str, overrides: list[str]) -> DictConfig:
         return compose(config_name=app, overrides=overrides)
 
 
+DATA_KEYS = ("dataset", "assessment")   # config nodes of phm-generate that a run-level experiment may set
+
+
+def _dotted(prefix: str, node: Any) -> list[str]:
+    """Hydra overrides ``a.b.c=value`` for every leaf of a config node (lists stay whole values)."""
+    if isinstance(node, DictConfig):
+        return [o for key, value in node.items() for o in _dotted(f"{prefix}.{key}", value)]
+    return [f"{prefix}={json.dumps(common.plain(node))}"]
+
+
+def generate_overrides(cfg: DictConfig) -> list[str]:
+    """phm-generate's overrides in a run: the run's ``generate`` list, then the dataset/assessment settings
+    that a data experiment (``phm-run experiment=paper``) put at the run level, which win."""
+    return [*_overrides(cfg.generate, "generate"), *(o for key in DATA_KEYS if key in cfg for o in _dotted(key, cfg[key]))]
+
+
 def _overrides(value: Any, name: str) -> list[str]:
     items = common.plain(value) or []
     if not isinstance(items, list) or not all(isinstance(v, str) for v in items):
@@ -120,12 +136,10 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     unknown = [s for s in stages if s not in STAGES]
     if unknown:
         raise ValueError(f"stages: unknown {unknown}; known: {list(STAGES)}")
-    if cfg.experiment not in (None, "paper"):
-        raise ValueError(f"experiment must be null or 'paper', got {cfg.experiment!r}")
     run_dir = Path(str(cfg.out_dir)).expanduser().resolve()
     run_dir.mkdir(parents=True, exist_ok=True)
     data_dir, train_dir, eval_dir = run_dir / "data", run_dir / "train", run_dir / "evaluate"
-    gen_over = ["experiment=paper"] if cfg.experiment == "paper" else _overrides(cfg.generate, "generate")
+    gen_over = generate_overrides(cfg)
     plan = {
         "cases": ("cases", [f"out_dir={run_dir / 'cases'}", *_overrides(cfg.cases, "cases")]),
         "generate": ("generate", [f"data_dir={data_dir}", *gen_over]),
