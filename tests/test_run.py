@@ -9,7 +9,6 @@ import pytest
 from phm_torch.apps.run import compose_stage, generate_overrides, run_all
 
 
-@pytest.mark.slow
 def test_phm_run_tiny_end_to_end(tmp_path):
     cfg = compose_stage("run", [
         f"out_dir={tmp_path}",
