@@ -12,7 +12,7 @@ import torch
 from phm_torch.online import OnlinePipeline
 from phm_torch.online.export import export_torchscript
 from phm_torch.params import load_actuator
-from phm_torch.prognostics import DamageModel, RULEstimator
+from phm_torch.prognostics import DamageModel, DeterministicRUL, RULEstimator
 from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
 from phm_torch.surrogates.fdi_mlp import FDIMLP
 from phm_torch.surrogates.gappy_pod import GappyPOD
@@ -57,8 +57,10 @@ def test_rul_equals_torchdiffeq_propagation_with_the_same_score(pipeline):
     fast = pipeline.rul(k)
     est = RULEstimator(damage(), lambda x: pipeline.classifier(x) - pipeline.classifier.threshold,
                        refine_iterations=14)
+    det = DeterministicRUL(est)
+    torch.testing.assert_close(det.direction, pipeline.direction.to(det.direction))
     for j, d in enumerate(pipeline.deltas):
-        ref, _ = est.first_crossing(k + d * pipeline.direction)
+        ref, _ = est.first_crossing(det.disturbed(k, float(d)))
         torch.testing.assert_close(fast[:, j], ref, rtol=0.01, atol=5.0)
     assert fast[2].eq(0).all()                                     # already faulty
     assert (fast[:2, 0] <= fast[:2, 1]).all() and (fast[:2, 1] <= fast[:2, 2]).all()

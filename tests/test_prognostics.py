@@ -134,3 +134,24 @@ def test_coarse_event_search_equals_scoring_every_grid_point():
     assert calls["coarse"] < calls["fine"] / 4
     with pytest.raises(ValueError, match="rul.coarse"):
         RULEstimator(d, threshold_score, coarse=0)
+
+
+def test_removing_damage_stops_at_nominal_and_keeps_the_band_ordered():
+    """A k8 just above nominal must not be pushed past it by a negative delta: it would then drift the
+    other way and fail sooner, so the 95 % RUL would fall below the median."""
+
+    def two_sided(k):
+        return 0.3 - torch.maximum(k[:, :6].amax(1), 4.0 * (k[:, 7] - 0.5).abs())
+
+    est = RULEstimator(diagonal_model(noise=1e-6), two_sided, refine_iterations=10)
+    det = DeterministicRUL(est)
+    k0 = torch.tensor([[0.02, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.501]], dtype=torch.float64)
+    less = det.disturbed(k0, -0.01)
+    assert less[0, 7] == 0.5 and (less[0, :6] >= 0).all() and less[0, 0] == pytest.approx(0.01)
+    more = det.disturbed(k0, 0.01)
+    assert more[0, 7] == pytest.approx(0.511) and more[0, 0] == pytest.approx(0.03)
+    r_less, r_mid, r_more = (det.rul(k0, d) for d in (-0.01, 0.0, 0.01))
+    assert (r_less > r_mid).all() and (r_mid > r_more).all()
+    below = k0.clone()
+    below[0, 7] = 0.49                                         # the other side of nominal: symmetric
+    assert det.disturbed(below, 0.01)[0, 7] == pytest.approx(0.48)

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 
-import pytest
-
 from phm_torch.apps.run import compose_stage, generate_overrides, run_all
 
 

@@ -87,9 +87,11 @@ class OnlinePipeline(nn.Module):
         """
         b = k.shape[0]
         dev = k - self.nominal
-        # u points away from nominal: more damage also for the two-sided gain drift k8
-        u = self.direction * torch.where(dev >= 0, torch.ones_like(dev), -torch.ones_like(dev))
-        dk = dev.unsqueeze(1) + self.deltas.view(1, 3, 1) * u.unsqueeze(1)                     # (B, 3, 8)
+        # the damage |dk| moves by delta u, away from nominal for the two-sided k8, never past nominal
+        # (DeterministicRUL.disturbed)
+        side = torch.where(dev >= 0, torch.ones_like(dev), -torch.ones_like(dev)).unsqueeze(1)
+        magnitude = dev.abs().unsqueeze(1) + self.deltas.view(1, 3, 1) * self.direction
+        dk = side * magnitude.clamp(min=0.0)                                                    # (B, 3, 8)
         n_t = self.propagators.shape[0]
         coarse = torch.arange(0, n_t, self.coarse, device=k.device)
         if int(coarse[-1]) != n_t - 1:

@@ -176,18 +176,23 @@ class DeterministicRUL:
         self.deltas_: torch.Tensor | None = None
         self.saturated_: list[bool] = []
 
-    def oriented(self, k0: torch.Tensor) -> torch.Tensor:
-        """u per sample (B, 8), pointing away from nominal: a positive delta means more damage also for
-        the two-sided gain drift k8 (whose damage is |k8 - 0.5|)."""
-        side = torch.where(k0 - self.estimator.damage.nominal >= 0, 1.0, -1.0).to(k0.dtype)
-        return self.direction * side
+    def disturbed(self, k0: torch.Tensor, delta: torch.Tensor | float) -> torch.Tensor:
+        """k0 (B, 8) with its damage |k - k_nom| changed by delta u per component, never past nominal.
+
+        delta (scalar or (B,)) > 0 adds damage, < 0 removes it. The damage of the two-sided gain drift k8 is
+        |k8 - 0.5|, so the disturbance points away from nominal per sample; removing damage stops at nominal
+        instead of crossing it (a crossed k8 would drift the other way and fail *sooner*, inverting the band).
+        """
+        nominal = self.estimator.damage.nominal.to(k0)
+        dev = k0 - nominal
+        side = torch.where(dev >= 0, 1.0, -1.0).to(k0.dtype)
+        delta = torch.as_tensor(delta, dtype=k0.dtype)
+        step = delta.reshape(-1, 1) if delta.ndim else delta
+        return nominal + side * (dev.abs() + step * self.direction.to(k0)).clamp(min=0.0)
 
     def rul(self, k0: torch.Tensor, delta: torch.Tensor | float) -> torch.Tensor:
-        """Noise-free RUL [h] (B,) from k0 + delta u (delta scalar or (B,))."""
-        delta = torch.as_tensor(delta, dtype=torch.float64)
-        u = self.oriented(k0)
-        k = k0 + delta.reshape(-1, 1) * u if delta.ndim else k0 + delta * u
-        return self.estimator.first_crossing(k)[0]
+        """Noise-free RUL [h] (B,) from k0 disturbed by delta (see :meth:`disturbed`)."""
+        return self.estimator.first_crossing(self.disturbed(k0, delta))[0]
 
     def calibrate(self, k_calib: torch.Tensor, generator: torch.Generator | None = None, iterations: int = 30,
                   bracket: float = 0.05) -> torch.Tensor:
