@@ -42,3 +42,13 @@ def test_paper_experiment_reaches_the_generate_stage():
     assert generate.dataset.n_labels == 40000 and generate.assessment.sweep.compile is True
     small = compose_stage("generate", generate_overrides(compose_stage("run", [])))
     assert small.dataset.n_train == 600
+
+
+def test_a_later_run_of_some_stages_keeps_the_earlier_metrics(tmp_path):
+    (tmp_path / "metrics.json").write_text(json.dumps({"train": {"err_k": 0.05}, "wall_s": {"train": 3.0}}))
+    cfg = compose_stage("run", [f"out_dir={tmp_path}", "stages=[cases]",
+                                'cases=["fidelity=lf","command.duration=0.05"]'])
+    run_all(cfg)
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["train"] == {"err_k": 0.05} and "cases" in saved
+    assert set(saved["wall_s"]) == {"train", "cases"}

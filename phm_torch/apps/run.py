@@ -156,8 +156,11 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
 
     functions = {"cases": run_cases, "generate": generate, "train": train_surrogates, "evaluate": evaluate_rul,
                  "workbench": run_workbench}
-    metrics: dict[str, Any] = {}
-    timings: dict[str, float] = {}
+    # resumable: a run of some stages keeps the metrics of the stages run before in this out_dir (and the
+    # report stage sees them); each stage run now replaces its own entry
+    previous = run_dir / "metrics.json"
+    metrics: dict[str, Any] = json.loads(previous.read_text()) if previous.is_file() else {}
+    timings: dict[str, float] = dict(metrics.get("wall_s") or {})
     objects: dict[str, Any] = {}
     for i, stage in enumerate(stages, 1):
         log.info("[phm-run] stage %d/%d: %s", i, len(stages), stage)
