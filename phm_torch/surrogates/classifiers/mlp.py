@@ -100,7 +100,7 @@ class MLPClassifier(HealthClassifier):
 
     name = "mlp"
 
-    def __init__(self, hidden: Sequence[int] = (128, 128, 128), warp: str = "sqrt", epochs: int = 150,
+    def __init__(self, hidden: Sequence[int] = (64, 64, 64), warp: str = "sqrt", epochs: int = 150,
                  batch_size: int = 512, lr: float = 1e-3, weight_decay: float = 0.0, schedule: str = "cosine",
                  class_weight: str | None = None, seed: int = 0, dtype: str = "float32"):
         super().__init__()
