@@ -155,18 +155,3 @@ def test_removing_damage_stops_at_nominal_and_keeps_the_band_ordered():
     below = k0.clone()
     below[0, 7] = 0.49                                         # the other side of nominal: symmetric
     assert det.disturbed(below, 0.01)[0, 7] == pytest.approx(0.48)
-
-
-def test_disturbance_signs_follow_the_health_score():
-    """u_i takes the sign that lowers the score: + for a harmful component, - for a helpful one."""
-    from phm_torch.prognostics.rul import health_loss_signs
-
-    def score(k):
-        return 0.3 - k[:, 0] + 0.5 * k[:, 2]          # k1 harms, k3 helps, the others do nothing
-
-    k = torch.full((2, 8), 0.1, dtype=torch.float64)
-    signs = health_loss_signs(score, k)
-    assert signs[:, 0].eq(1).all() and signs[:, 2].eq(-1).all() and signs[:, 1].eq(1).all()
-    det = DeterministicRUL(RULEstimator(diagonal_model(noise=1e-6), score))
-    worse = det.disturbed(k, 0.01)
-    assert (worse[:, 0] > k[:, 0]).all() and (worse[:, 2] < k[:, 2]).all()

@@ -14,7 +14,6 @@ import torch
 from torch import nn
 
 from ..prognostics.damage import DamageModel
-from ..prognostics.rul import FD_STEP
 
 
 class OnlinePipeline(nn.Module):
@@ -60,7 +59,6 @@ class OnlinePipeline(nn.Module):
         self.residual_threshold = float(residual_threshold)
         self.min_count = max(self.n_modes + 1, round(min_present * self.n_points))
         self.coarse = int(coarse)
-        self.fd_step = FD_STEP
         if self.coarse < 1:
             raise ValueError(f"online.coarse must be >= 1, got {coarse}")
         self.bisections = max(0, (self.coarse - 1).bit_length())   # down to one grid step
@@ -88,17 +86,12 @@ class OnlinePipeline(nn.Module):
         interval is bisected down to one grid step, and the crossing is interpolated linearly in that step.
         """
         b = k.shape[0]
-        # k + delta u, u with the health-lowering sign per component, never past nominal, in [0, 1]
-        # (DeterministicRUL.disturbed / prognostics.rul.disturb)
-        n = k.shape[1]
-        eye = torch.eye(n, dtype=k.dtype, device=k.device) * self.fd_step
-        probe = torch.cat([k.unsqueeze(1), k.unsqueeze(1) + eye], dim=1).reshape(-1, n).clamp(0.0, 1.0)
-        f = self.classifier(probe).reshape(b, n + 1)
-        u = self.direction * torch.where(f[:, 1:] <= f[:, :1], torch.ones_like(k), -torch.ones_like(k))
-        moved = k.unsqueeze(1) + self.deltas.view(1, 3, 1) * u.unsqueeze(1)                   # (B, 3, 8)
-        crossed = (k - self.nominal).unsqueeze(1) * (moved - self.nominal) < 0
-        moved = torch.where(crossed, self.nominal.expand_as(moved), moved).clamp(0.0, 1.0)
-        dk = moved - self.nominal
+        dev = k - self.nominal
+        # the damage |dk| moves by delta u, away from nominal for the two-sided k8, never past nominal
+        # (DeterministicRUL.disturbed)
+        side = torch.where(dev >= 0, torch.ones_like(dev), -torch.ones_like(dev)).unsqueeze(1)
+        magnitude = dev.abs().unsqueeze(1) + self.deltas.view(1, 3, 1) * self.direction
+        dk = side * magnitude.clamp(min=0.0)                                                    # (B, 3, 8)
         n_t = self.propagators.shape[0]
         coarse = torch.arange(0, n_t, self.coarse, device=k.device)
         if int(coarse[-1]) != n_t - 1:

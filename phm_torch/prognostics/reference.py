@@ -54,7 +54,6 @@ def reference_rul(damage: DamageModel, score: Callable[[torch.Tensor], torch.Ten
     det.deltas_ = torch.as_tensor(deltas, dtype=torch.float64)
     b = k0.shape[0]
     # one batch per grid call for the three disturbances together
-    u = det.directions(k0)          # the signs from the true score: the full model's own variant
-    k = torch.cat([det.disturbed(k0, d, u) for d in det.deltas_])
+    k = torch.cat([det.disturbed(k0, d) for d in det.deltas_])
     rul, _ = det.estimator.first_crossing(k)
     return rul.view(3, b).T

@@ -158,42 +158,12 @@ class RULEstimator:
         return RULEstimate(gauss, emp, mean, std, censored.double().mean(1), rul)
 
 
-FD_STEP = 1e-3   # finite-difference step of the health-loss direction [k units]
-
-
-def health_loss_signs(score: HealthScore, k: torch.Tensor, step: float = FD_STEP) -> torch.Tensor:
-    """(B, 8) +1 where raising k_i lowers the health score at k (B, 8), -1 where it raises it (ties +1).
-
-    One score call on (B * 9) vectors: k and k + step e_i (forward differences, clamped to the unit cube).
-    """
-    b, n = k.shape
-    eye = torch.eye(n, dtype=k.dtype, device=k.device) * step
-    probe = torch.cat([k.unsqueeze(1), k.unsqueeze(1) + eye], dim=1).reshape(-1, n).clamp(0.0, 1.0)
-    f = score(probe).reshape(b, n + 1)
-    return torch.where(f[:, 1:] <= f[:, :1], 1.0, -1.0).to(k.dtype)
-
-
-def disturb(k0: torch.Tensor, step: torch.Tensor, nominal: torch.Tensor) -> torch.Tensor:
-    """k0 + step (both (B, 8) or broadcastable), never crossing nominal and kept in [0, 1].
-
-    A gain drift k8 pushed past its nominal 0.5 would drift the other way and change its health effect,
-    so a component that would cross nominal stops there.
-    """
-    moved = k0 + step
-    crossed = (k0 - nominal) * (moved - nominal) < 0
-    return torch.where(crossed, nominal.expand_as(moved), moved).clamp(0.0, 1.0)
-
-
 class DeterministicRUL:
-    """The paper's deterministic variant: no noise; a disturbance delta_q u(k0) on k(0) per quantile q.
+    """The paper's deterministic variant: no noise; a disturbance delta_q u on k(0) per quantile q.
 
-    |u_i| is the noise standard deviation of k_i (unit max-norm: the damage components only); the sign of
-    u_i, per sample, is the one that lowers the health score at k0 (:func:`health_loss_signs`), so that a
-    positive delta always means "less healthy" (shorter RUL), whatever the sign of a component's effect
-    (the gain drift k8 helps the bandwidth one way and the gain margin the other). Each delta_q is
+    u is the noise standard deviation direction (unit max-norm, damage components only); each delta_q is
     calibrated by bisection so that, over a calibration set, the median ratio of the deterministic RUL to
-    the Monte Carlo q-quantile RUL is 1. Online this costs one probe of the score and three noise-free
-    propagations.
+    the Monte Carlo q-quantile RUL is 1. Online this costs three noise-free propagations.
 
     Args:
         estimator: the Monte Carlo estimator (its damage model and score are reused).
@@ -206,20 +176,23 @@ class DeterministicRUL:
         self.deltas_: torch.Tensor | None = None
         self.saturated_: list[bool] = []
 
-    def directions(self, k0: torch.Tensor) -> torch.Tensor:
-        """u(k0) (B, 8): the noise-std magnitudes with the health-lowering sign of each component."""
-        return self.direction.to(k0) * health_loss_signs(self.estimator.score, k0)
+    def disturbed(self, k0: torch.Tensor, delta: torch.Tensor | float) -> torch.Tensor:
+        """k0 (B, 8) with its damage |k - k_nom| changed by delta u per component, never past nominal.
 
-    def disturbed(self, k0: torch.Tensor, delta: torch.Tensor | float, u: torch.Tensor | None = None) -> torch.Tensor:
-        """k0 (B, 8) moved by delta u(k0) (delta scalar or (B,)), see :func:`disturb`."""
+        delta (scalar or (B,)) > 0 adds damage, < 0 removes it. The damage of the two-sided gain drift k8 is
+        |k8 - 0.5|, so the disturbance points away from nominal per sample; removing damage stops at nominal
+        instead of crossing it (a crossed k8 would drift the other way and fail *sooner*, inverting the band).
+        """
+        nominal = self.estimator.damage.nominal.to(k0)
+        dev = k0 - nominal
+        side = torch.where(dev >= 0, 1.0, -1.0).to(k0.dtype)
         delta = torch.as_tensor(delta, dtype=k0.dtype)
-        u = self.directions(k0) if u is None else u
-        step = delta.reshape(-1, 1) * u if delta.ndim else delta * u
-        return disturb(k0, step, self.estimator.damage.nominal.to(k0))
+        step = delta.reshape(-1, 1) if delta.ndim else delta
+        return nominal + side * (dev.abs() + step * self.direction.to(k0)).clamp(min=0.0)
 
-    def rul(self, k0: torch.Tensor, delta: torch.Tensor | float, u: torch.Tensor | None = None) -> torch.Tensor:
+    def rul(self, k0: torch.Tensor, delta: torch.Tensor | float) -> torch.Tensor:
         """Noise-free RUL [h] (B,) from k0 disturbed by delta (see :meth:`disturbed`)."""
-        return self.estimator.first_crossing(self.disturbed(k0, delta, u))[0]
+        return self.estimator.first_crossing(self.disturbed(k0, delta))[0]
 
     def calibrate(self, k_calib: torch.Tensor, generator: torch.Generator | None = None, iterations: int = 30,
                   bracket: float = 0.05) -> torch.Tensor:
@@ -233,13 +206,12 @@ class DeterministicRUL:
         if not usable.any():
             raise ValueError("rul calibration: every calibration vector is already faulty")
         k, target = k_calib[usable], mc[usable]
-        u = self.directions(k)
         deltas = []
         for j in range(len(QUANTILES)):
             lo, hi = -bracket, bracket          # larger delta = more damage = shorter RUL
             for _ in range(iterations):
                 mid = 0.5 * (lo + hi)
-                ratio = (self.rul(k, mid, u) / target[:, j].clamp(min=1e-9)).median()
+                ratio = (self.rul(k, mid) / target[:, j].clamp(min=1e-9)).median()
                 if ratio > 1:
                     lo = mid
                 else:
@@ -253,5 +225,4 @@ class DeterministicRUL:
         """RUL 5/50/95 % [h] (B, 3) from the calibrated deltas (5 % = most damage)."""
         if self.deltas_ is None:
             raise ValueError("DeterministicRUL.predict: call calibrate() first")
-        u = self.directions(k0)
-        return torch.stack([self.rul(k0, float(d), u) for d in self.deltas_], dim=1)
+        return torch.stack([self.rul(k0, float(d)) for d in self.deltas_], dim=1)
