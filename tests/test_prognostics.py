@@ -155,3 +155,10 @@ def test_removing_damage_stops_at_nominal_and_keeps_the_band_ordered():
     below = k0.clone()
     below[0, 7] = 0.49                                         # the other side of nominal: symmetric
     assert det.disturbed(below, 0.01)[0, 7] == pytest.approx(0.48)
+
+
+def test_bounds_are_the_extremes_of_the_three_propagations():
+    from phm_torch.prognostics.rul import ordered_bounds
+
+    rul = torch.tensor([[100.0, 200.0, 300.0], [250.0, 200.0, 150.0], [0.0, 50.0, 20.0]])
+    assert ordered_bounds(rul).tolist() == [[100.0, 200.0, 300.0], [150.0, 200.0, 250.0], [0.0, 50.0, 50.0]]

@@ -118,7 +118,9 @@ class OnlinePipeline(nn.Module):
         t0, t1 = self.times[lo], self.times[hi]
         frac = (s0 / (s0 - s1).clamp(min=1e-12)).clamp(0.0, 1.0)                             # linear zero
         crossing = torch.where(first > 0, t0 + frac * (t1 - t0), torch.zeros_like(t0))
-        return torch.where(any_faulty, crossing, torch.full_like(crossing, float(self.times[-1])))
+        rul = torch.where(any_faulty, crossing, torch.full_like(crossing, float(self.times[-1])))
+        # bounds = shortest / longest of the three propagations (prognostics.rul.ordered_bounds)
+        return torch.stack([rul.amin(-1), rul[:, 1], rul.amax(-1)], dim=-1)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Args: x (B, n_full) envelope current [A] or (B, n_points) samples at the selected times; NaN = missing.

@@ -12,7 +12,7 @@ from collections.abc import Callable
 import torch
 
 from .damage import DamageModel
-from .rul import DeterministicRUL, RULEstimator
+from .rul import DeterministicRUL, RULEstimator, ordered_bounds
 
 
 def margin_score(assess: Callable[[torch.Tensor], object]) -> Callable[[torch.Tensor], torch.Tensor]:
@@ -56,4 +56,4 @@ def reference_rul(damage: DamageModel, score: Callable[[torch.Tensor], torch.Ten
     # one batch per grid call for the three disturbances together
     k = torch.cat([det.disturbed(k0, d) for d in det.deltas_])
     rul, _ = det.estimator.first_crossing(k)
-    return rul.view(3, b).T
+    return ordered_bounds(rul.view(3, b).T)

@@ -158,6 +158,17 @@ class RULEstimator:
         return RULEstimate(gauss, emp, mean, std, censored.double().mean(1), rul)
 
 
+def ordered_bounds(rul: torch.Tensor) -> torch.Tensor:
+    """The deterministic variant's RULs (B, 3) for delta_5, delta_50, delta_95 -> (B, 3) bounds.
+
+    The 5 % / 95 % bounds are the shortest / longest of the three disturbed propagations, the median
+    stays the delta_50 one: a component whose effect on health changes sign along the way (the gain drift
+    k8 raises the bandwidth but lowers the gain margin; couplings in F) can make the "less damage"
+    propagation fail first for some vectors, which would otherwise give an inverted band.
+    """
+    return torch.stack([rul.amin(-1), rul[..., 1], rul.amax(-1)], dim=-1)
+
+
 class DeterministicRUL:
     """The paper's deterministic variant: no noise; a disturbance delta_q u on k(0) per quantile q.
 
@@ -225,4 +236,4 @@ class DeterministicRUL:
         """RUL 5/50/95 % [h] (B, 3) from the calibrated deltas (5 % = most damage)."""
         if self.deltas_ is None:
             raise ValueError("DeterministicRUL.predict: call calibrate() first")
-        return torch.stack([self.rul(k0, float(d)) for d in self.deltas_], dim=1)
+        return ordered_bounds(torch.stack([self.rul(k0, float(d)) for d in self.deltas_], dim=1))
