@@ -198,7 +198,8 @@ class SurrogateBundle(nn.Module):
             raise ValueError(f"{path}: classifier tensors {sorted(state)} do not match {spec['name']}'s "
                              f"{sorted(known)}")
         for k, v in state.items():  # fitted buffers may have other shapes than the unfitted twin's
-            setattr(classifier, k, v)
+            owner, _, name = k.rpartition(".")      # a submodule's buffer (dotted name) is set on it
+            setattr(classifier.get_submodule(owner) if owner else classifier, name, v)
         bundle = cls(pod, t["indices"], network, classifier, meta["sample_rate"],
                      float(t["residual_threshold"]), meta["gappy_ridge"], meta["selector"], meta["extra"])
         return bundle.eval()
