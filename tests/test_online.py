@@ -15,6 +15,7 @@ from phm_torch.params import load_actuator
 from phm_torch.prognostics import DamageModel, DeterministicRUL, RULEstimator
 from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
 from phm_torch.surrogates.fdi_mlp import FDIMLP
+from phm_torch.surrogates.full_signal_check import FullSignalCheck
 from phm_torch.surrogates.gappy_pod import GappyPOD
 
 N_FULL, N_MODES = 2001, 6
@@ -106,3 +107,31 @@ def test_torchscript_export_reloads_without_phm_torch(pipeline, tmp_path):
     loaded = torch.load(tmp_path / "out.pt", weights_only=True)
     for u, v in zip(eager, loaded):
         torch.testing.assert_close(v, u, rtol=1e-5, atol=1e-5, equal_nan=True)
+
+
+def test_full_record_check_flags_what_the_few_gappy_samples_cannot(pipeline):
+    """A full record outside the POD span is flagged even when its few selected samples fit: here noise
+    whose selected samples are replaced by an in-distribution record's."""
+    check = FullSignalCheck(pipeline.modes, pipeline.mean_signal, stride=2)
+    good = signals(pipeline, 3)
+    torch.testing.assert_close(check(good), torch.zeros(3, dtype=torch.float64), rtol=0, atol=1e-6)
+    g = torch.Generator().manual_seed(5)
+    noise = pipeline.mean_signal + torch.randn(2, N_FULL, generator=g, dtype=torch.float64)
+    assert (check(noise) > 0.95).all()                             # ~sqrt(1 - n_m / n) for white noise
+    d = noise[0] - pipeline.mean_signal                            # stride 1: the plain projection residual
+    exact = (d - pipeline.modes @ (pipeline.modes.T @ d)).norm() / d.norm()
+    torch.testing.assert_close(FullSignalCheck(pipeline.modes, pipeline.mean_signal, 1)(noise[:1])[0], exact)
+    disguised = noise[:1].clone()
+    disguised[0, pipeline.gappy.indices] = good[0, pipeline.gappy.indices]
+    checked = OnlinePipeline(pipeline.gappy, pipeline.fdi, pipeline.classifier, damage(), pipeline.deltas,
+                             pipeline.direction, N_FULL, residual_threshold=0.05, full_check=check,
+                             full_residual_threshold=0.5).eval()
+    x = torch.cat([good, disguised])
+    assert not pipeline(x)[3][3]                                   # the gappy residual alone is fooled
+    _, _, rul, ood, _ = checked(x)
+    assert ood.tolist() == [False, False, False, True] and torch.isnan(rul[3]).all()
+    scripted = torch.jit.script(checked)
+    for u, v in zip(checked(x), scripted(x)):
+        torch.testing.assert_close(v, u, equal_nan=True)
+    with pytest.raises(ValueError, match="stride"):
+        FullSignalCheck(pipeline.modes, pipeline.mean_signal, stride=0)

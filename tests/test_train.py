@@ -78,6 +78,10 @@ def test_bundle_round_trip(lm_run, store):
     odd = samples.clone()
     odd[:, ::2] += 50.0
     assert bool(bundle.diagnose(odd)["out_of_distribution"].all())
+    # the full-record threshold is the training quantile, saved and restored with the bundle
+    written = json.loads((objects["out_dir"] / "metrics.json").read_text())
+    assert float(bundle.full_residual_threshold) == pytest.approx(written["ood_full_residual_threshold"])
+    assert 0.0 < written["ood_full_residual_threshold"] < 1.0
 
 
 def test_bundle_from_another_configuration(lm_run, tmp_path):

@@ -36,6 +36,7 @@ from ..io.atomic import atomic_open
 from ..surrogates import FDIMLP, POD, GappyPOD, SurrogateBundle, rms
 from ..surrogates.data import load_store
 from ..surrogates.evaluate import evaluate_classifier, evaluate_fdi, measure_latency, quartiles
+from ..surrogates.full_signal_check import FullSignalCheck
 from ..surrogates.lightning_fdi import FDIModule, KeepBest
 from . import common
 
@@ -231,6 +232,9 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     metrics.update(evaluate_classifier(classifier, val.k, val.healthy, arrays["k_hat"]))
     metrics.update(measure_latency(gappy, network, classifier, samples_va, repeats))
     threshold = float(torch.quantile(resid_tr.to(torch.float64), ood_q))
+    with torch.no_grad():
+        full_resid = FullSignalCheck(pod.modes_, pod.mean_)(train.current).to(torch.float64)
+    full_threshold = float(torch.quantile(full_resid, ood_q))
     metrics.update(
         n_train=len(train), n_val=len(val), n_modes=n_modes, n_points=n_points, n_hidden=n_hidden,
         selector=selector.name, selector_params=selector.get_params(), classifier=classifier.name,
@@ -238,6 +242,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         classifier_threshold=float(classifier.threshold), n_classifier_train=len(healthy_cls),
         energy_retained=float(pod.cumulative_energy()[n_modes - 1]), gappy_condition_number=gappy.condition_number(),
         ood_residual_threshold=threshold, ood_rate_val=float((arrays["residual"] > threshold).float().mean()),
+        ood_full_residual_threshold=full_threshold,
         eval_noise=noise, eval_missing=missing, best_epoch=keep.best_epoch, epochs_run=trainer.current_epoch,
         sample_rate=sample_rate, data_dir=str(cfg.data_dir), data_fingerprint=info["manifest"].get("fingerprint"),
         timing={k: round(v, 4) for k, v in timing.items()}, seed=seed)
@@ -247,7 +252,8 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     bundle = SurrogateBundle(pod, selector.indices_, network, classifier, sample_rate, threshold, ridge,
                              selector={"name": selector.name, "params": selector.get_params()},
                              meta={"data_fingerprint": info["manifest"].get("fingerprint"), "seed": seed,
-                                   "model": metrics["model"], "n_train": len(train)})
+                                   "model": metrics["model"], "n_train": len(train)},
+                             full_residual_threshold=full_threshold)
     bundle.save(out_dir / "surrogates.pt")
     with torch.no_grad():
         arrays.update(healthy=val.healthy, score=bundle.health_score(val.k), score_chain=bundle.health_score(arrays["k_hat"]),

@@ -14,6 +14,7 @@ import torch
 from torch import nn
 
 from ..prognostics.damage import DamageModel
+from ..surrogates.full_signal_check import FullSignalCheck
 
 
 class OnlinePipeline(nn.Module):
@@ -31,19 +32,25 @@ class OnlinePipeline(nn.Module):
         residual_threshold: gappy residual above which the input is out of distribution [A].
         min_present: fraction of the selected samples that must be finite.
         sample_rate: acquisition rate of the input [Hz] (a reader's check; not used in the computation).
+        full_check: :class:`~phm_torch.surrogates.full_signal_check.FullSignalCheck` of the POD basis, applied
+            to full records (None: no check); a record above ``full_residual_threshold`` is out of distribution.
         coarse: grid steps between the coarse event-search points (then bisection to one step); 25 on
             the 401-point grid costs 17 + 5 score calls per trajectory, the fewest for that grid.
     """
 
     def __init__(self, gappy: nn.Module, fdi: nn.Module, classifier: nn.Module, damage: DamageModel,
                  deltas: torch.Tensor, direction: torch.Tensor, n_full: int, residual_threshold: float,
-                 min_present: float = 0.8, sample_rate: float = 20000.0, coarse: int = 25):
+                 min_present: float = 0.8, sample_rate: float = 20000.0, coarse: int = 25,
+                 full_check: nn.Module | None = None, full_residual_threshold: float = float("inf")):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
         if not residual_threshold > 0:
             raise ValueError(f"online.residual_threshold must be > 0, got {residual_threshold}")
         self.gappy, self.fdi, self.classifier = gappy, fdi, classifier
+        self.has_full_check = full_check is not None
+        self.full_check = full_check if full_check is not None else nn.Identity()
+        self.full_residual_threshold = float(full_residual_threshold)
         t = damage.grid
         a, _ = damage.transitions(t)
         dtype = gappy.modes_hat.dtype
@@ -67,9 +74,11 @@ class OnlinePipeline(nn.Module):
     def from_bundle(cls, bundle: nn.Module, damage: DamageModel, deltas: torch.Tensor, direction: torch.Tensor,
                     min_present: float = 0.8) -> OnlinePipeline:
         """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifier, OOD threshold)."""
+        threshold = float(bundle.full_residual_threshold)
+        check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_) if threshold != float("inf") else None
         return cls(bundle.gappy, bundle.network, bundle.classifier, damage, deltas, direction,
                    int(bundle.pod.mean_.shape[0]), float(bundle.residual_threshold), min_present,
-                   float(bundle.sample_rate))
+                   float(bundle.sample_rate), full_check=check, full_residual_threshold=threshold)
 
     def _score_at(self, dk: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
         """Score of k0 + A(t_index) dk for per-(sample, quantile) grid indices: dk (B, 3, 8), index (B, 3)."""
@@ -130,8 +139,11 @@ class OnlinePipeline(nn.Module):
         """
         if x.dim() != 2:
             raise ValueError("online: input must be (B, n) with n = n_full or n_points")
+        foreign = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
         if x.shape[1] == self.n_full:
             samples = x.index_select(1, self.gappy.indices)
+            if self.has_full_check:      # NaN (missing samples) compares False: the gappy checks decide then
+                foreign = self.full_check(x) > self.full_residual_threshold
         elif x.shape[1] == self.n_points:
             samples = x
         else:
@@ -147,7 +159,7 @@ class OnlinePipeline(nn.Module):
         flat = spread < 1e-6
         k_hat = self.fdi(alpha)
         score = self.classifier(k_hat) - self.classifier.threshold
-        ood = (~enough) | flat | (residual > self.residual_threshold) | ~torch.isfinite(residual)
+        ood = (~enough) | flat | foreign | (residual > self.residual_threshold) | ~torch.isfinite(residual)
         rul = self.rul(k_hat)
         rul = torch.where(ood.unsqueeze(1), torch.full_like(rul, float("nan")), rul)
         return k_hat, score, rul, ood, residual

@@ -61,13 +61,16 @@ class SurrogateBundle(nn.Module):
         classifier: fitted :class:`HealthClassifier`.
         sample_rate: acquisition rate [Hz] (sample i is at t = i / sample_rate).
         residual_threshold: gappy residual [A] above which a signal is flagged out of distribution.
+        full_residual_threshold: relative POD residual of a full record (:class:`FullSignalCheck`) above
+            which it is flagged out of distribution (inf: no check; bundles saved without one).
         gappy_ridge: ridge of the gappy layer.
         meta: extra JSON-able provenance (selector, config, data) kept in ``meta["extra"]``.
     """
 
     def __init__(self, pod: POD, indices: torch.Tensor, network: FDIMLP, classifier: HealthClassifier,
                  sample_rate: float, residual_threshold: float = float("inf"), gappy_ridge: float = 0.0,
-                 selector: Mapping[str, Any] | None = None, meta: Mapping[str, Any] | None = None):
+                 selector: Mapping[str, Any] | None = None, meta: Mapping[str, Any] | None = None,
+                 full_residual_threshold: float = float("inf")):
         super().__init__()
         if network.n_inputs != pod.n_modes:
             raise ValueError(f"network has {network.n_inputs} inputs but the POD has {pod.n_modes} modes")
@@ -80,6 +83,7 @@ class SurrogateBundle(nn.Module):
         self.extra = dict(meta or {})
         self.register_buffer("sample_times", self.gappy.indices.to(torch.float64) / self.sample_rate)
         self.register_buffer("residual_threshold", torch.tensor(float(residual_threshold)))
+        self.register_buffer("full_residual_threshold", torch.tensor(float(full_residual_threshold)))
 
     # ---- online API -------------------------------------------------------------------------------
     @property
@@ -136,7 +140,8 @@ class SurrogateBundle(nn.Module):
         tensors = {f"pod.{k}": getattr(self.pod, k).detach().cpu()
                    for k in ("mean_", "modes_", "singular_values_", "energy_")}
         tensors.update(indices=self.indices.cpu(), sample_times=self.sample_times.cpu(),
-                       residual_threshold=self.residual_threshold.cpu())
+                       residual_threshold=self.residual_threshold.cpu(),
+                       full_residual_threshold=self.full_residual_threshold.cpu())
         tensors.update({f"network.{k}": v.detach().cpu() for k, v in self.network.state_dict().items()})
         tensors.update({f"classifier.{k}": v.detach().cpu() for k, v in self.classifier.state_dict().items()})
         buf = io.BytesIO()
@@ -201,7 +206,8 @@ class SurrogateBundle(nn.Module):
             owner, _, name = k.rpartition(".")      # a submodule's buffer (dotted name) is set on it
             setattr(classifier.get_submodule(owner) if owner else classifier, name, v)
         bundle = cls(pod, t["indices"], network, classifier, meta["sample_rate"],
-                     float(t["residual_threshold"]), meta["gappy_ridge"], meta["selector"], meta["extra"])
+                     float(t["residual_threshold"]), meta["gappy_ridge"], meta["selector"], meta["extra"],
+                     float(t.get("full_residual_threshold", float("inf"))))
         return bundle.eval()
 
 
