@@ -24,6 +24,16 @@ _LABELS = {"position": "position [mrad]", "current": "current [A]", "tracking_er
 _SCALE = {"command": 1e3, "position": 1e3, "tracking_error": 1e3, "user_angle": 1e3}
 
 
+def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 110) -> Path:
+    """Lay out, write (PNG at ``dpi``, creating the folder) and close a figure; returns the path."""
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def _np(value: Any) -> np.ndarray:
     if hasattr(value, "detach"):
         value = value.detach().cpu().numpy()
@@ -87,9 +97,4 @@ def plot_signals(time: Any, channels_by_run: Mapping[str, Mapping[str, Any]], pa
     axes[-1].set_xlabel("time [s]")
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

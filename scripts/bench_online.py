@@ -13,23 +13,16 @@ import argparse
 import json
 import os
 import platform
-import statistics
 import time
 from pathlib import Path
 
 import torch
 
+from phm_torch.timing import call_times_us, percentiles_us
+
 
 def percentiles(fn, repeats: int) -> dict[str, float]:
-    for _ in range(20):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    times.sort()
-    return {"p50_us": 1e6 * statistics.median(times), "p99_us": 1e6 * times[int(0.99 * (len(times) - 1))]}
+    return percentiles_us(call_times_us(fn, repeats))
 
 
 def main() -> None:

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import logging
-import statistics
 import time
 from pathlib import Path
 from typing import Any
@@ -26,6 +25,7 @@ from ..params import CONF_DIR
 from ..report.figures import err_alpha_vs_modes, fdi_per_parameter, hidden_neuron_study, placement
 from ..report.paper import build_report
 from ..surrogates.bundle import SurrogateBundle
+from ..timing import call_times_us, percentiles_us
 from . import common
 
 log = logging.getLogger(__name__)
@@ -77,23 +77,15 @@ def _latency(model_path: Path, signals: torch.Tensor, repeats: int) -> dict[str,
     try:
         model = torch.jit.load(str(model_path))
         one = signals[:1].to(model.times.dtype)
-        times = []
         with torch.no_grad():
-            for _ in range(20):
-                model(one)
-            for _ in range(repeats):
-                t0 = time.perf_counter()
-                model(one)
-                times.append(time.perf_counter() - t0)
+            step = percentiles_us(call_times_us(lambda: model(one), repeats))
             batch = signals[:1].expand(1024, -1).to(model.times.dtype).contiguous()
             t0 = time.perf_counter()
             model(batch)
             throughput = 1024 / (time.perf_counter() - t0)
     finally:
         torch.set_num_threads(threads)
-    times.sort()
-    return {"online_step_us_p50": 1e6 * statistics.median(times),
-            "online_step_us_p99": 1e6 * times[min(len(times) - 1, int(0.99 * len(times)))],
+    return {"online_step_us_p50": step["p50_us"], "online_step_us_p99": step["p99_us"],
             "online_batched_signals_per_s": throughput}
 
 

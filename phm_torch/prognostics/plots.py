@@ -10,6 +10,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import torch
 
+from ..plotting import save_figure
+
 
 def rul_vs_expected(reference: torch.Tensor, estimates: dict[str, torch.Tensor], path: Path) -> Path:
     """Estimated RUL (median with 5-95 % bars) against the reference median, reference band shaded."""
@@ -31,9 +33,7 @@ def rul_vs_expected(reference: torch.Tensor, estimates: dict[str, torch.Tensor],
         ax.set_title(label)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return path
 
 
@@ -52,7 +52,5 @@ def error_panels(reference: torch.Tensor, true_k: torch.Tensor, full_flow: torch
         ax.set_xlabel("expected RUL [h]")
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("[h]")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return path

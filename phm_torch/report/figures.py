@@ -11,6 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import torch
 
+from ..plotting import save_figure
 from ..surrogates.fdi_mlp import FDIMLP
 from ..surrogates.gappy_pod import GappyPOD
 from ..surrogates.levenberg_marquardt import LevenbergMarquardt
@@ -43,9 +44,7 @@ def err_alpha_vs_modes(bundle, current: torch.Tensor, path: Path, max_modes: int
     ax.set_yscale("log")
     ax.grid(alpha=0.3)
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return {"rows": rows, "figure": str(path)}
 
 
@@ -60,9 +59,7 @@ def placement(bundle, sample_rate: float, path: Path) -> Path:
     ax.set_xlabel("time [s]")
     ax.grid(alpha=0.3)
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return path
 
 
@@ -101,9 +98,7 @@ def hidden_neuron_study(bundle, train_current: torch.Tensor, train_k: torch.Tens
     axes[2].set_xlabel("hidden neurons")
     for ax in axes:
         ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return rows
 
 
@@ -116,7 +111,5 @@ def fdi_per_parameter(mae: list[float], path: Path) -> Path:
     ax.set_ylabel("mean |k_i error| [%]")
     ax.legend()
     ax.grid(alpha=0.3, axis="y")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path)
     return path

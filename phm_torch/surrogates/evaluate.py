@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import statistics
-import time
 from collections.abc import Callable
 from typing import Any
 
 import torch
 
+from ..timing import call_times_us, percentiles_us
 from .augment import add_noise, drop_samples, rms
 from .classifiers import HealthClassifier
 from .fdi_mlp import FDIMLP
@@ -78,14 +77,7 @@ def evaluate_classifier(classifier: HealthClassifier, k: torch.Tensor, healthy: 
 
 def latency_us(fn: Callable[[], Any], repeats: int, warmup: int = 50) -> float:
     """Median wall time of ``fn()`` [us] over ``repeats`` calls (after ``warmup`` calls)."""
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter_ns()
-        fn()
-        times.append(time.perf_counter_ns() - t0)
-    return statistics.median(times) / 1e3
+    return percentiles_us(call_times_us(fn, repeats, warmup))["p50_us"]
 
 
 @torch.inference_mode()
