@@ -42,7 +42,7 @@ def error_panels(reference: torch.Tensor, true_k: torch.Tensor, full_flow: torch
     usable = reference[:, 1] > 0
     ref = reference[usable]
     x = ref[:, 1].numpy()
-    panels = [("physics model: (q95 - q5) / 2", ((ref[:, 2] - ref[:, 0]) / 2).numpy()),
+    panels = [("physics model: q95 - q5 (Delta_RUL x RUL)", (ref[:, 2] - ref[:, 0]).numpy()),
               ("RUL step (true k): |q50 - ref|", (true_k[usable, 1] - ref[:, 1]).abs().numpy()),
               ("full online flow: |q50 - ref|", (full_flow[usable, 1] - ref[:, 1]).abs().numpy())]
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.5), sharey=True)
