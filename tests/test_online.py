@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 import textwrap
@@ -112,20 +113,21 @@ def test_torchscript_export_reloads_without_phm_torch(pipeline, tmp_path):
 def test_full_record_check_flags_what_the_few_gappy_samples_cannot(pipeline):
     """A full record outside the POD span is flagged even when its few selected samples fit: here noise
     whose selected samples are replaced by an in-distribution record's."""
-    check = FullSignalCheck(pipeline.modes, pipeline.mean_signal, stride=2)
+    # these few-cycle synthetic records have broad crests (1 % of samples within 0.1 % of the peak)
+    check = FullSignalCheck(pipeline.modes, pipeline.mean_signal, stride=2, residual_threshold=0.5,
+                            plateau_threshold=0.05)
     good = signals(pipeline, 3)
-    torch.testing.assert_close(check(good), torch.zeros(3, dtype=torch.float64), rtol=0, atol=1e-6)
+    torch.testing.assert_close(check.residual(good), torch.zeros(3, dtype=torch.float64), rtol=0, atol=1e-6)
     g = torch.Generator().manual_seed(5)
     noise = pipeline.mean_signal + torch.randn(2, N_FULL, generator=g, dtype=torch.float64)
-    assert (check(noise) > 0.95).all()                             # ~sqrt(1 - n_m / n) for white noise
+    assert (check.residual(noise) > 0.95).all()                    # ~sqrt(1 - n_m / n) for white noise
     d = noise[0] - pipeline.mean_signal                            # stride 1: the plain projection residual
     exact = (d - pipeline.modes @ (pipeline.modes.T @ d)).norm() / d.norm()
-    torch.testing.assert_close(FullSignalCheck(pipeline.modes, pipeline.mean_signal, 1)(noise[:1])[0], exact)
+    torch.testing.assert_close(FullSignalCheck(pipeline.modes, pipeline.mean_signal, 1).residual(noise[:1])[0], exact)
     disguised = noise[:1].clone()
     disguised[0, pipeline.gappy.indices] = good[0, pipeline.gappy.indices]
     checked = OnlinePipeline(pipeline.gappy, pipeline.fdi, pipeline.classifier, damage(), pipeline.deltas,
-                             pipeline.direction, N_FULL, residual_threshold=0.05, full_check=check,
-                             full_residual_threshold=0.5).eval()
+                             pipeline.direction, N_FULL, residual_threshold=0.05, full_check=check).eval()
     x = torch.cat([good, disguised])
     assert not pipeline(x)[3][3]                                   # the gappy residual alone is fooled
     _, _, rul, ood, _ = checked(x)
@@ -135,3 +137,25 @@ def test_full_record_check_flags_what_the_few_gappy_samples_cannot(pipeline):
         torch.testing.assert_close(v, u, equal_nan=True)
     with pytest.raises(ValueError, match="stride"):
         FullSignalCheck(pipeline.modes, pipeline.mean_signal, stride=0)
+    with pytest.raises(ValueError, match="plateau_threshold"):
+        FullSignalCheck(pipeline.modes, pipeline.mean_signal, plateau_threshold=0.0)
+
+
+def test_shape_statistics_flag_noise_clipping_and_crests_but_not_smooth_records():
+    """Roughness: sqrt(2) for white noise, ~0 for a smooth record; plateau: the clipped share of a record."""
+    n = 10001
+    t = torch.linspace(0.0, 0.5, n, dtype=torch.float64)
+    # a current pulse on a slow wave: a sharp peak, like the envelope current's (a broad sine crest would
+    # sit on its own "plateau", as the docstring of FullSignalCheck says)
+    smooth = 0.2 + 2 * torch.exp(-((t - 0.15) / 0.02) ** 2) + 0.3 * torch.sin(2 * math.pi * 13 * t)
+    modes = torch.linalg.qr(torch.randn(n, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(0)))[0]
+    check = FullSignalCheck(modes, torch.zeros(n, dtype=torch.float64))
+    noise = torch.randn(1, n, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
+    assert check.roughness(noise).item() == pytest.approx(math.sqrt(2.0), rel=0.03)
+    assert check.roughness(smooth[None]).item() < 0.05
+    clipped = smooth.clamp(max=0.8 * float(smooth.max()))[None]
+    on_top = (clipped >= clipped.max() - 1e-3 * (clipped.max() - clipped.min())).double().mean()
+    torch.testing.assert_close(check.plateau(clipped)[0], on_top)
+    assert check.plateau(smooth[None]).item() < 0.005 < check.plateau(clipped).item()
+    x = torch.cat([smooth[None], noise, clipped, smooth[None] + 0.01 * noise])
+    assert check(x).tolist() == [False, True, True, False]            # 1 % noise is a measurement, not garbage

@@ -233,8 +233,11 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     metrics.update(measure_latency(gappy, network, classifier, samples_va, repeats))
     threshold = float(torch.quantile(resid_tr.to(torch.float64), ood_q))
     with torch.no_grad():
-        full_resid = FullSignalCheck(pod.modes_, pod.mean_)(train.current).to(torch.float64)
-    full_threshold = float(torch.quantile(full_resid, ood_q))
+        full_resid = FullSignalCheck(pod.modes_, pod.mean_).residual(train.current).to(torch.float64)
+        full_threshold = float(torch.quantile(full_resid, ood_q))
+        # the shape statistics have physical thresholds: report how much of training data they reject
+        full_ood_val = float(FullSignalCheck(pod.modes_, pod.mean_, residual_threshold=full_threshold)(val.current)
+                             .double().mean()) if len(val) else float("nan")
     metrics.update(
         n_train=len(train), n_val=len(val), n_modes=n_modes, n_points=n_points, n_hidden=n_hidden,
         selector=selector.name, selector_params=selector.get_params(), classifier=classifier.name,
@@ -242,7 +245,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         classifier_threshold=float(classifier.threshold), n_classifier_train=len(healthy_cls),
         energy_retained=float(pod.cumulative_energy()[n_modes - 1]), gappy_condition_number=gappy.condition_number(),
         ood_residual_threshold=threshold, ood_rate_val=float((arrays["residual"] > threshold).float().mean()),
-        ood_full_residual_threshold=full_threshold,
+        ood_full_residual_threshold=full_threshold, ood_full_rate_val=full_ood_val,
         eval_noise=noise, eval_missing=missing, best_epoch=keep.best_epoch, epochs_run=trainer.current_epoch,
         sample_rate=sample_rate, data_dir=str(cfg.data_dir), data_fingerprint=info["manifest"].get("fingerprint"),
         timing={k: round(v, 4) for k, v in timing.items()}, seed=seed)

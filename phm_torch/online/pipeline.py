@@ -33,7 +33,7 @@ class OnlinePipeline(nn.Module):
         min_present: fraction of the selected samples that must be finite.
         sample_rate: acquisition rate of the input [Hz] (a reader's check; not used in the computation).
         full_check: :class:`~phm_torch.surrogates.full_signal_check.FullSignalCheck` of the POD basis, applied
-            to full records (None: no check); a record above ``full_residual_threshold`` is out of distribution.
+            to full records (None: no check); a record it flags is out of distribution.
         coarse: grid steps between the coarse event-search points (then bisection to one step); 25 on
             the 401-point grid costs 17 + 5 score calls per trajectory, the fewest for that grid.
     """
@@ -41,7 +41,7 @@ class OnlinePipeline(nn.Module):
     def __init__(self, gappy: nn.Module, fdi: nn.Module, classifier: nn.Module, damage: DamageModel,
                  deltas: torch.Tensor, direction: torch.Tensor, n_full: int, residual_threshold: float,
                  min_present: float = 0.8, sample_rate: float = 20000.0, coarse: int = 25,
-                 full_check: nn.Module | None = None, full_residual_threshold: float = float("inf")):
+                 full_check: nn.Module | None = None):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
@@ -50,7 +50,6 @@ class OnlinePipeline(nn.Module):
         self.gappy, self.fdi, self.classifier = gappy, fdi, classifier
         self.has_full_check = full_check is not None
         self.full_check = full_check if full_check is not None else nn.Identity()
-        self.full_residual_threshold = float(full_residual_threshold)
         t = damage.grid
         a, _ = damage.transitions(t)
         dtype = gappy.modes_hat.dtype
@@ -75,10 +74,10 @@ class OnlinePipeline(nn.Module):
                     min_present: float = 0.8) -> OnlinePipeline:
         """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifier, OOD threshold)."""
         threshold = float(bundle.full_residual_threshold)
-        check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_) if threshold != float("inf") else None
+        check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_, residual_threshold=threshold)
         return cls(bundle.gappy, bundle.network, bundle.classifier, damage, deltas, direction,
                    int(bundle.pod.mean_.shape[0]), float(bundle.residual_threshold), min_present,
-                   float(bundle.sample_rate), full_check=check, full_residual_threshold=threshold)
+                   float(bundle.sample_rate), full_check=check)
 
     def _score_at(self, dk: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
         """Score of k0 + A(t_index) dk for per-(sample, quantile) grid indices: dk (B, 3, 8), index (B, 3)."""
@@ -143,7 +142,7 @@ class OnlinePipeline(nn.Module):
         if x.shape[1] == self.n_full:
             samples = x.index_select(1, self.gappy.indices)
             if self.has_full_check:      # NaN (missing samples) compares False: the gappy checks decide then
-                foreign = self.full_check(x) > self.full_residual_threshold
+                foreign = self.full_check(x)
         elif x.shape[1] == self.n_points:
             samples = x
         else:

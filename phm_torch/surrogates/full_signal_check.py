@@ -1,15 +1,25 @@
-"""Out-of-distribution check on a full record: the share of its energy that the POD basis cannot explain.
+"""Out-of-distribution check on a full record: three statistics a few gappy samples cannot see.
 
 With n_points close to n_modes (the paper: 30 and 22) the gappy residual has few degrees of freedom and
 heavy-fault training records (ringing phase currents, several amperes of residual) overlap garbage.
-A full record says much more: the relative residual of its projection on the POD modes,
+A full record says much more:
 
-    r(y) = || d - P P^T d || / || d ||,   d = y - mean,
+* **POD residual** - the share of the record the basis cannot explain,
+  ``r(y) = || d - P P^T d || / || d ||`` with ``d = y - mean``: ~1 for strong noise or a foreign waveform.
+  It is computed on every ``stride``-th sample (default 16: 626 of 10001, ~5 us per record in a batch)
+  with an orthonormalised basis of those rows. Its threshold is a training quantile (``phm-train``).
+  The first mode is nearly the mean record, so a smooth record of the right size (a sine, a clipped
+  record, weak noise around zero) stays close to the span; hence the two shape statistics below.
+* **roughness** - RMS of the sample-to-sample difference over the RMS about the record's mean: sqrt(2)
+  for white noise, 0.02 (median) to 0.6 (max) over the paper-scale training set, whose envelope current
+  is smooth at 20 kHz. Above 1 the noise is comparable to the signal itself.
+* **plateau** - the fraction of samples within ``plateau_tolerance`` of the record's range from its
+  maximum: at most 0.2 % over the paper-scale training set (a peak lasts a few samples), 0.6-30 % for a
+  record clipped at 50-80 % of its peak (ADC or probe saturation), 2.4 % for a sine's slow crests.
 
-is ~1 for noise or any foreign waveform and below ~0.9 for every training record. It is computed on
-every ``stride``-th sample (default 16: 626 of 10001, ~5 us per record in a batch; white noise still
-scores ~sqrt(1 - n_m / 626) ~ 0.98) with an orthonormalised basis of those rows, so that one
-(B, n_e / stride) x (n_e / stride, n_m) product gives ||d||^2 - ||Q^T d||^2.
+The two shape thresholds are physical defaults, not training quantiles: a measurement from another
+bench (more ripple, ADC quantisation) should not be rejected for differing from this simulator in
+detail, only for not looking like an envelope current at all.
 """
 
 from __future__ import annotations
@@ -19,32 +29,76 @@ from torch import nn
 
 
 class FullSignalCheck(nn.Module):
-    """Relative POD residual of full records.
+    """Out-of-distribution flag of full records from their POD residual, roughness and plateau.
 
     Args:
         modes: POD modes (n_e, n_m).   mean: mean record (n_e,) [A].
-        stride: use every ``stride``-th sample (>= 1).
+        stride: use every ``stride``-th sample for the POD residual (>= 1).
+        residual_threshold: POD residual (fraction) above which a record is foreign (inf: never).
+        roughness_threshold: roughness above which a record is noise-dominated.
+        plateau_threshold: plateau fraction above which a record is clipped.
+        plateau_tolerance: distance from the maximum, as a fraction of the record's range, that counts
+            as "on the plateau".
     """
 
-    def __init__(self, modes: torch.Tensor, mean: torch.Tensor, stride: int = 16):
+    def __init__(self, modes: torch.Tensor, mean: torch.Tensor, stride: int = 16,
+                 residual_threshold: float = float("inf"), roughness_threshold: float = 1.0,
+                 plateau_threshold: float = 0.005, plateau_tolerance: float = 1e-3):
         super().__init__()
         if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
             raise ValueError(f"full_signal_check.stride must be an integer >= 1, got {stride!r}")
         if modes.dim() != 2 or mean.shape != modes.shape[:1]:
             raise ValueError(f"modes (n_e, n_m) and mean (n_e,) expected, got {tuple(modes.shape)} and "
                              f"{tuple(mean.shape)}")
+        for name, value in (("residual_threshold", residual_threshold), ("roughness_threshold", roughness_threshold),
+                            ("plateau_threshold", plateau_threshold), ("plateau_tolerance", plateau_tolerance)):
+            if not float(value) > 0:
+                raise ValueError(f"full_signal_check.{name} must be > 0, got {value!r}")
         rows = torch.arange(0, modes.shape[0], stride)
         q, _ = torch.linalg.qr(modes[rows].to(torch.float64))
         self.register_buffer("rows", rows)
         self.register_buffer("basis", q.to(modes.dtype))                 # (n_e / stride, n_m), orthonormal
         self.register_buffer("mean_rows", mean[rows].to(modes.dtype))
         self.n_full = int(modes.shape[0])
+        self.residual_threshold = float(residual_threshold)
+        self.roughness_threshold = float(roughness_threshold)
+        self.plateau_threshold = float(plateau_threshold)
+        self.plateau_tolerance = float(plateau_tolerance)
 
-    def forward(self, signals: torch.Tensor) -> torch.Tensor:
-        """r (B,) in [0, 1] of full records (B, n_e) [A]; NaN where a used sample is not finite."""
+    def _check(self, signals: torch.Tensor) -> None:
         if signals.dim() != 2 or signals.shape[1] != self.n_full:
             raise ValueError(f"full_signal_check: records must be (B, {self.n_full})")
+
+    def residual(self, signals: torch.Tensor) -> torch.Tensor:
+        """POD residual r (B,) in [0, 1] of full records (B, n_e) [A]; NaN where a used sample is not finite."""
+        self._check(signals)
         d = signals.index_select(1, self.rows).to(self.basis.dtype) - self.mean_rows
         energy = d.pow(2).sum(1)
         explained = (d @ self.basis).pow(2).sum(1)
         return ((energy - explained).clamp(min=0.0) / energy.clamp(min=1e-30)).sqrt()
+
+    def roughness(self, signals: torch.Tensor) -> torch.Tensor:
+        """RMS(diff) / RMS(about the mean), (B,); NaN for a flat record (its plateau is 1) or a non-finite one."""
+        self._check(signals)
+        x = signals.to(self.basis.dtype)
+        step = (x[:, 1:] - x[:, :-1]).pow(2).mean(1).sqrt()
+        spread = (x - x.mean(1, keepdim=True)).pow(2).mean(1).sqrt()
+        return step / spread
+
+    def plateau(self, signals: torch.Tensor) -> torch.Tensor:
+        """Fraction (B,) of the samples within ``plateau_tolerance`` x range of the record's maximum."""
+        self._check(signals)
+        x = signals.to(self.basis.dtype)
+        top = x.amax(1, keepdim=True)
+        span = top - x.amin(1, keepdim=True)
+        return (x >= top - self.plateau_tolerance * span).to(x.dtype).mean(1)
+
+    def forward(self, signals: torch.Tensor) -> torch.Tensor:
+        """Out-of-distribution flag (B,) bool of full records (B, n_e) [A].
+
+        A record with a non-finite sample compares False on every statistic: the pipeline's gappy checks
+        (missing-sample count, residual) decide for it.
+        """
+        return ((self.residual(signals) > self.residual_threshold)
+                | (self.roughness(signals) > self.roughness_threshold)
+                | (self.plateau(signals) > self.plateau_threshold))
