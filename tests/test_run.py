@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import json
 
+import torch
+
+from phm_torch.apps.export import export
 from phm_torch.apps.run import compose_stage, generate_overrides, run_all
 
 
 def test_phm_run_tiny_end_to_end(tmp_path):
     cfg = compose_stage("run", [
         f"out_dir={tmp_path}",
-        ('generate=["dataset.n_train=96","dataset.n_val=24","dataset.n_rul=8","dataset.chunk_size=64",'
+        ('generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=8","dataset.chunk_size=64",'
          '"dataset.fidelity=lf"]'),
         'cases=["fidelity=lf","command.duration=0.05"]',
         'train=["n_modes=8","n_points=16","selector=qdeim"]',
@@ -23,6 +26,16 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     assert set(saved) >= {"cases", "generate", "train", "evaluate", "workbench", "report", "wall_s"}
     assert 0.0 <= saved["train"]["err_k"] < 1.0
     assert saved["evaluate"]["export_max_abs_diff"] < 1e-5           # TorchScript reloads equal to eager
+    assert saved["evaluate"]["fdi_band_n_used"] >= 10                # the full-flow band is calibrated on val
+    # phm-export rebuilds the same pipeline, FDI band included, from the bundle and rul_calibration.json
+    calibration = json.loads((tmp_path / "evaluate" / "rul_calibration.json").read_text())
+    assert calibration["fdi_deltas"] == saved["evaluate"]["fdi_band_deltas"]
+    exported, objects = export(compose_stage("export", [f"bundle={tmp_path}/train/surrogates.pt",
+                                                        f"calibration={tmp_path}/evaluate/rul_calibration.json",
+                                                        f"out={tmp_path}/export/online.pt"]))
+    assert exported["max_abs_diff_reloaded"] < 1e-5
+    first = torch.jit.load(saved["evaluate"]["export"])
+    torch.testing.assert_close(objects["pipeline"].fdi_deltas, first.fdi_deltas)
     assert saved["report"]["latency"]["online_step_us_p50"] > 0
     html = (tmp_path / "report" / "index.html").read_text()
     for heading in ("Gappy-POD coefficient error vs retained modes", "Placement of the sample points",

@@ -20,10 +20,12 @@ from omegaconf import DictConfig
 from ..data.store import DatasetStore
 from ..online import OnlinePipeline
 from ..online.export import export_torchscript
+from ..online.fdi_band import FDIBand, TooFewCalibrationSignals, calibrate_fdi_band
 from ..prognostics import DeterministicRUL, RULEstimator
 from ..prognostics.evaluation import RULComparison
 from ..prognostics.plots import error_panels, rul_vs_expected
 from ..prognostics.reference import margin_score, reference_rul
+from ..surrogates.augment import add_noise, rms
 from ..surrogates.bundle import SurrogateBundle
 from . import common
 
@@ -49,6 +51,19 @@ def _reference(cfg: DictConfig, params, damage, k: torch.Tensor, deltas: torch.T
     return ref
 
 
+def _fdi_band(cfg: DictConfig, pipeline: OnlinePipeline, signals: torch.Tensor, k: torch.Tensor) -> FDIBand | None:
+    """The FDI band calibrated on held-out signals with ``fdi_band.noise`` relative noise, or None (with a
+    warning: the full-flow band is then the physics band only, too narrow) when too few are usable."""
+    noise = common.number(cfg.fdi_band.noise, "fdi_band.noise", 0.0)
+    if noise > 0 and signals.shape[0]:
+        signals = add_noise(signals, rms(signals), noise, torch.Generator().manual_seed(int(cfg.seed) + 2))
+    try:
+        return calibrate_fdi_band(pipeline, signals, k)
+    except TooFewCalibrationSignals as err:
+        log.warning("%s; the full-flow RUL band holds the physics spread only", err)
+        return None
+
+
 def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Evaluate the RUL estimation (see :mod:`phm_torch.prognostics.evaluation` for the definitions)."""
     params = common.actuator(cfg)
@@ -56,10 +71,17 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     bundle = SurrogateBundle.load(cfg.bundle)
+    band_split = str(cfg.fdi_band.split)
+    if band_split == cfg.split:
+        raise ValueError(f"fdi_band.split must differ from split (both {band_split!r}): the FDI band would be "
+                         "calibrated on the signals it is evaluated on")
     with DatasetStore(cfg.data_dir) as store:
         view = store.split(cfg.split)
         k = torch.as_tensor(view.K[()], dtype=torch.float64)
         signals = torch.as_tensor(view.current[()], dtype=torch.float64)
+        band_view = store.split(band_split)
+        band_k = torch.as_tensor(band_view.K[()], dtype=torch.float64)
+        band_signals = torch.as_tensor(band_view.current[()], dtype=torch.float64)
     if k.shape[0] == 0:
         raise ValueError(f"split {cfg.split!r} of {cfg.data_dir} is empty")
     t0 = time.perf_counter()
@@ -72,9 +94,15 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     pipeline = OnlinePipeline.from_bundle(bundle, damage, deltas, det.direction,
                                           common.number(cfg.online.min_present, "online.min_present", 0.0, True))
     pipeline.eval()
+    band = _fdi_band(cfg, pipeline, band_signals, band_k)
+    if band is not None:
+        pipeline.fdi_deltas.copy_(band.deltas.to(pipeline.fdi_deltas))
+        pipeline.fdi_direction.copy_(band.direction.to(pipeline.fdi_direction))
     with torch.no_grad():
         true_k = pipeline.rul(k.to(pipeline.times.dtype)).to(torch.float64)
         k_hat, _, full_flow, ood, _ = pipeline(signals)
+        physics_only = pipeline.rul(k_hat).to(torch.float64)
+        physics_only = torch.where(ood.unsqueeze(1), torch.full_like(physics_only, float("nan")), physics_only)
     t_est = time.perf_counter() - t0
     t0 = time.perf_counter()
     reference = _reference(cfg, params, damage, k, deltas, Path(cfg.data_dir) / f"rul_reference_{cfg.split}.json")
@@ -82,6 +110,19 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     comparison = RULComparison(reference, true_k, full_flow.to(torch.float64))
     metrics: dict[str, Any] = comparison.metrics()
     gauss = RULComparison(reference, mc.gaussian, full_flow.to(torch.float64)).metrics()
+    physics = RULComparison(reference, true_k, physics_only).metrics()
+    usable = reference[:, 1] > 0
+    ff = full_flow.to(torch.float64)[usable]
+    finite = torch.isfinite(ff[:, 1]) & (ff[:, 1] > 0)
+    metrics.update(
+        rul_uncertainty_median_full_flow=float(((ff[:, 2] - ff[:, 0]) / ff[:, 1])[finite].median())
+        if finite.any() else float("nan"),
+        rul_band_coverage_full_flow_physics_only=physics["rul_band_coverage_full_flow"],
+        rul_err_median_full_flow_physics_only=physics["rul_err_median_full_flow"],
+        fdi_band_split=band_split, fdi_band_n_used=band.n_used if band else 0,
+        fdi_band_deltas=pipeline.fdi_deltas.tolist() if band else None,       # as the pipeline holds them
+        fdi_band_direction=pipeline.fdi_direction.tolist() if band else None,
+        fdi_band_saturated=band.saturated if band else None)
     metrics.update(rul_err_median_true_k_monte_carlo=gauss["rul_err_median_true_k"],
                    rul_band_coverage_true_k_monte_carlo=gauss["rul_band_coverage_true_k"],
                    deltas=deltas.tolist(), deltas_saturated=det.saturated_, estimate_wall_s=round(t_est, 3), reference_wall_s=round(t_ref, 3),
@@ -92,6 +133,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                "rul_errors": error_panels(reference, true_k, full_flow.to(torch.float64), out_dir / "rul_errors.png")}
     common.write_json(out_dir / "rul_calibration.json",
                       {"deltas": deltas.tolist(), "direction": det.direction.tolist(),
+                       "fdi_deltas": pipeline.fdi_deltas.tolist(), "fdi_direction": pipeline.fdi_direction.tolist(),
                        "damage": common.plain(cfg.damage)})
     common.write_json(out_dir / "rul_predictions.json",
                       {"k": k.tolist(), "k_hat": k_hat.tolist(), "reference": reference.tolist(),

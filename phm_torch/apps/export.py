@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -14,6 +15,8 @@ from ..online import OnlinePipeline
 from ..online.export import export_torchscript
 from ..surrogates.bundle import SurrogateBundle
 from . import common
+
+log = logging.getLogger(__name__)
 
 
 def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -28,8 +31,13 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         if key not in cal:
             raise ValueError(f"calibration {str(cal_path)!r} has no {key!r}")
     damage = common.build(cfg.damage, "damage", nominal=list(common.actuator(cfg).nominal_faults))
+    fdi = {key: torch.tensor(cal[key]) for key in ("fdi_deltas", "fdi_direction") if key in cal}
+    if len(fdi) < 2:
+        log.warning("calibration %s has no FDI band (fdi_deltas, fdi_direction; written by phm-evaluate since "
+                    "the band exists): the RUL bounds hold the physics spread only", cal_path)
     pipeline = OnlinePipeline.from_bundle(bundle, damage, torch.tensor(cal["deltas"]), torch.tensor(cal["direction"]),
-                                          common.number(cfg.min_present, "min_present", 0.0, strict=True))
+                                          common.number(cfg.min_present, "min_present", 0.0, strict=True),
+                                          fdi.get("fdi_deltas"), fdi.get("fdi_direction"))
     out = Path(cfg.out)
     scripted = export_torchscript(pipeline, out)
     probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)

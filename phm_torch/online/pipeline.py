@@ -36,12 +36,16 @@ class OnlinePipeline(nn.Module):
             to full records (None: no check); a record it flags is out of distribution.
         coarse: grid steps between the coarse event-search points (then bisection to one step); 25 on
             the 401-point grid costs 17 + 5 score calls per trajectory, the fewest for that grid.
+        fdi_deltas: (3,) extra disturbances for a *measured* k_hat (its FDI error), in units of
+            ``fdi_direction`` (see :mod:`phm_torch.online.fdi_band`); None: zeros (physics band only).
+        fdi_direction: (8,) FDI error scale per component (e.g. its mean |k_hat - k|); None: zeros.
     """
 
     def __init__(self, gappy: nn.Module, fdi: nn.Module, classifier: nn.Module, damage: DamageModel,
                  deltas: torch.Tensor, direction: torch.Tensor, n_full: int, residual_threshold: float,
                  min_present: float = 0.8, sample_rate: float = 20000.0, coarse: int = 25,
-                 full_check: nn.Module | None = None):
+                 full_check: nn.Module | None = None, fdi_deltas: torch.Tensor | None = None,
+                 fdi_direction: torch.Tensor | None = None):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
@@ -58,6 +62,10 @@ class OnlinePipeline(nn.Module):
         self.register_buffer("nominal", damage.nominal.to(dtype))
         self.register_buffer("deltas", torch.as_tensor(deltas, dtype=dtype).reshape(3))
         self.register_buffer("direction", torch.as_tensor(direction, dtype=dtype).reshape(8))
+        self.register_buffer("fdi_deltas", torch.zeros(3, dtype=dtype) if fdi_deltas is None
+                             else torch.as_tensor(fdi_deltas, dtype=dtype).reshape(3))
+        self.register_buffer("fdi_direction", torch.zeros(8, dtype=dtype) if fdi_direction is None
+                             else torch.as_tensor(fdi_direction, dtype=dtype).reshape(8))
         self.n_full = int(n_full)
         self.sample_rate = float(sample_rate)
         self.n_points = int(gappy.modes_hat.shape[0])
@@ -71,13 +79,14 @@ class OnlinePipeline(nn.Module):
 
     @classmethod
     def from_bundle(cls, bundle: nn.Module, damage: DamageModel, deltas: torch.Tensor, direction: torch.Tensor,
-                    min_present: float = 0.8) -> OnlinePipeline:
+                    min_present: float = 0.8, fdi_deltas: torch.Tensor | None = None,
+                    fdi_direction: torch.Tensor | None = None) -> OnlinePipeline:
         """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifier, OOD threshold)."""
         threshold = float(bundle.full_residual_threshold)
         check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_, residual_threshold=threshold)
         return cls(bundle.gappy, bundle.network, bundle.classifier, damage, deltas, direction,
                    int(bundle.pod.mean_.shape[0]), float(bundle.residual_threshold), min_present,
-                   float(bundle.sample_rate), full_check=check)
+                   float(bundle.sample_rate), full_check=check, fdi_deltas=fdi_deltas, fdi_direction=fdi_direction)
 
     def _score_at(self, dk: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
         """Score of k0 + A(t_index) dk for per-(sample, quantile) grid indices: dk (B, 3, 8), index (B, 3)."""
@@ -86,19 +95,31 @@ class OnlinePipeline(nn.Module):
         b = dk.shape[0]
         return self.classifier(k.reshape(-1, 8).clamp(0.0, 1.0)).reshape(b, 3) - self.classifier.threshold
 
-    def rul(self, k: torch.Tensor) -> torch.Tensor:
+    def rul(self, k: torch.Tensor, measured: bool = False) -> torch.Tensor:
         """Deterministic RUL 5/50/95 % [h] (B, 3) from fault vectors (B, 8); 0 if already faulty,
         the horizon if still healthy there.
+
+        ``measured``: k is an FDI estimate, so its error band (``fdi_deltas`` x ``fdi_direction``) joins the
+        physics disturbances (``deltas`` x ``direction``); False for a known k.
+        """
+        shift = self.deltas.view(3, 1) * self.direction
+        if measured:
+            shift = shift + self.fdi_deltas.view(3, 1) * self.fdi_direction
+        return self.rul_shifted(k, shift)
+
+    def rul_shifted(self, k: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+        """RUL [h] (B, 3) of three propagations from k (B, 8) with its damage |k - k_nom| moved by
+        shift (3, 8), bounds ordered (the shortest / the longest of the three as 5 / 95 %).
 
         The score is evaluated on a coarse grid (every ``coarse`` grid steps), the first faulty coarse
         interval is bisected down to one grid step, and the crossing is interpolated linearly in that step.
         """
         b = k.shape[0]
         dev = k - self.nominal
-        # the damage |dk| moves by delta u, away from nominal for the two-sided k8, never past nominal
+        # the damage |dk| moves by the shift, away from nominal for the two-sided k8, never past nominal
         # (DeterministicRUL.disturbed)
         side = torch.where(dev >= 0, torch.ones_like(dev), -torch.ones_like(dev)).unsqueeze(1)
-        magnitude = dev.abs().unsqueeze(1) + self.deltas.view(1, 3, 1) * self.direction
+        magnitude = dev.abs().unsqueeze(1) + shift.to(dev.dtype).unsqueeze(0)
         dk = side * magnitude.clamp(min=0.0)                                                    # (B, 3, 8)
         n_t = self.propagators.shape[0]
         coarse = torch.arange(0, n_t, self.coarse, device=k.device)
@@ -159,6 +180,6 @@ class OnlinePipeline(nn.Module):
         k_hat = self.fdi(alpha)
         score = self.classifier(k_hat) - self.classifier.threshold
         ood = (~enough) | flat | foreign | (residual > self.residual_threshold) | ~torch.isfinite(residual)
-        rul = self.rul(k_hat)
+        rul = self.rul(k_hat, True)
         rul = torch.where(ood.unsqueeze(1), torch.full_like(rul, float("nan")), rul)
         return k_hat, score, rul, ood, residual

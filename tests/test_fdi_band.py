@@ -1,0 +1,85 @@
+"""The full-flow RUL band: calibrated on held-out estimates, it covers the true-k RUL that the physics-only
+band misses when k_hat is biased and noisy."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from test_online import N_FULL, damage, pipeline  # noqa: F401  (the fixture)
+from torch import nn
+
+from phm_torch.online import OnlinePipeline
+from phm_torch.online.fdi_band import TooFewCalibrationSignals, calibrate_fdi_band
+
+
+class TableFDI(nn.Module):
+    """k_hat looked up by the record index carried in the first POD coefficient (a controlled FDI error)."""
+
+    def __init__(self, table: torch.Tensor):
+        super().__init__()
+        self.table = table
+
+    def forward(self, alpha: torch.Tensor) -> torch.Tensor:
+        return self.table[alpha[:, 0].round().long().clamp(0, self.table.shape[0] - 1)]
+
+
+def case(pipe: OnlinePipeline, n: int, seed: int) -> tuple[OnlinePipeline, torch.Tensor, torch.Tensor]:
+    """n records, true k near nominal, k_hat = k + a positive bias + noise (as near nominal in the paper run)."""
+    g = torch.Generator().manual_seed(seed)
+    k = torch.rand(n, 8, generator=g, dtype=torch.float64) * 0.08
+    k[:, 6:] = 0.5
+    err = 0.05 + 0.03 * torch.randn(n, 8, generator=g, dtype=torch.float64)
+    err[:, 6:] = 0.0
+    k_hat = (k + err).clamp(0.0, 1.0)
+    alpha = torch.zeros(n, pipe.n_modes, dtype=torch.float64)
+    alpha[:, 0] = torch.arange(n, dtype=torch.float64)
+    records = pipe.mean_signal + alpha @ pipe.modes.T
+    measured = OnlinePipeline(pipe.gappy, TableFDI(k_hat), pipe.classifier, damage(), pipe.deltas, pipe.direction,
+                              N_FULL, residual_threshold=1e3).eval()
+    return measured, records, k
+
+
+def coverage(pipe: OnlinePipeline, records: torch.Tensor, k: torch.Tensor) -> float:
+    with torch.no_grad():
+        truth = pipe.rul(k)[:, 1]
+        band = pipe(records)[2]
+    ok = truth > 0
+    return float(((truth >= band[:, 0]) & (truth <= band[:, 2]))[ok].double().mean())
+
+
+def test_band_reaches_its_coverage_on_calibration_and_on_fresh_records(pipeline):  # noqa: F811
+    measured, records, k = case(pipeline, 300, seed=1)
+    physics_only = coverage(measured, records, k)
+    band = calibrate_fdi_band(measured, records, k)
+    with torch.no_grad():
+        k_hat = measured(records)[0]
+    scale = (k_hat - k).abs().mean(0)
+    scale[6] = 0.0                                        # the eccentricity phase never grows
+    torch.testing.assert_close(band.direction, scale)
+    assert not any(band.saturated)
+    assert band.deltas[1] < 0                             # the upward FDI bias is taken back for the median
+    measured.fdi_deltas.copy_(band.deltas)
+    measured.fdi_direction.copy_(band.direction)
+    with torch.no_grad():
+        torch.testing.assert_close(measured.rul(k), measured.rul(k, False))   # a known k keeps the physics band
+        truth, est = measured.rul(k)[:, 1], measured(records)[2]
+    ok = truth > 0
+    below = float((truth[ok] < est[ok, 0]).double().mean())
+    above = float((truth[ok] > est[ok, 2]).double().mean())
+    assert below <= 0.05 + 1e-9 and above <= 0.05 + 1e-9 and below + above >= 0.08    # at the bisection's edge
+    assert float((est[ok, 1] / truth[ok]).median()) == pytest.approx(1.0, abs=0.05)
+    fresh, fresh_records, fresh_k = case(pipeline, 300, seed=2)
+    fresh.fdi_deltas.copy_(band.deltas)
+    fresh.fdi_direction.copy_(band.direction)
+    assert physics_only < 0.5
+    assert coverage(fresh, fresh_records, fresh_k) >= 0.84
+
+
+def test_bad_calibration_input(pipeline):  # noqa: F811
+    measured, records, k = case(pipeline, 30, seed=3)
+    with pytest.raises(ValueError, match="coverage"):
+        calibrate_fdi_band(measured, records, k, coverage=1.0)
+    with pytest.raises(ValueError, match="k \\(N, 8\\)"):
+        calibrate_fdi_band(measured, records, k[:10])
+    with pytest.raises(TooFewCalibrationSignals, match="at least 40"):
+        calibrate_fdi_band(measured, records, k, min_used=40)
