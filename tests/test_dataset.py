@@ -359,3 +359,14 @@ def test_read_labelled(labelled, reference):
         read_labelled(data_dir, ("train", "test"))
     with pytest.raises(ValueError, match="no dataset store file"):
         read_labelled(data_dir / "nowhere")
+
+
+def test_empty_splits_are_stored_and_read_as_zero_rows(compose, tmp_path):
+    """n_val = n_rul = 0 is allowed: the merged store holds (0, n_e) arrays for them."""
+    over = [o for o in TINY if not o.startswith(("dataset.n_val", "dataset.n_rul"))]
+    generate(compose("generate", [*over, "dataset.n_val=0", "dataset.n_rul=0", f"data_dir={tmp_path}"]))
+    with DatasetStore(tmp_path) as store:
+        for split in ("val", "rul"):
+            view = store.split(split)
+            assert view.K.shape == (0, 8) and view.current.shape[0] == 0
+        assert store.split("train").K.shape == (10, 8)

@@ -324,9 +324,10 @@ def _merge_plan(f: Any, data_dir: Path, plan: Plan, fingerprint: str, n_e: int) 
     for s, (a, b) in plan.offsets.items():
         g = f.create_group(s, track_order=True)
         n = b - a
-        rows = max(1, min(ROWS_PER_H5_CHUNK, n))
-        shapes = {"K": ((n, 8), "f8", None), "current": ((n, n_e), "f4", (rows, n_e)),
-                  "position": ((n, n_e), "f4", (rows, n_e)), "healthy": ((n,), "u1", None),
+        # row-chunked signal arrays (one record per read); an empty split cannot be chunked
+        chunks = (min(ROWS_PER_H5_CHUNK, n), n_e) if n else None
+        shapes = {"K": ((n, 8), "f8", None), "current": ((n, n_e), "f4", chunks),
+                  "position": ((n, n_e), "f4", chunks), "healthy": ((n,), "u1", None),
                   "margins": ((n, len(MARGIN_NAMES)), "f8", None)}
         out[s] = {name: g.create_dataset(name, shapes[name][0], shapes[name][1], chunks=shapes[name][2],
                                          track_times=False) for name in names}
