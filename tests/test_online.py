@@ -66,6 +66,13 @@ def test_rul_equals_torchdiffeq_propagation_with_the_same_score(pipeline):
         torch.testing.assert_close(fast[:, j], ref, rtol=0.01, atol=5.0)
     assert fast[2].eq(0).all()                                     # already faulty
     assert (fast[:2, 0] <= fast[:2, 1]).all() and (fast[:2, 1] <= fast[:2, 2]).all()
+    # the rate band: the median propagation on a wear clock sped up by s_q
+    scales = torch.tensor([1.3, 1.0, 0.8], dtype=torch.float64)
+    rate = OnlinePipeline(pipeline.gappy, pipeline.fdi, pipeline.classifier, damage(), pipeline.deltas[1].repeat(3),
+                          pipeline.direction, N_FULL, residual_threshold=0.05, rate_scales=scales).eval()
+    median, _ = est.first_crossing(det.disturbed(k, float(pipeline.deltas[1])))
+    expected = (median.unsqueeze(1) / scales).clamp(max=float(rate.times[-1]))
+    torch.testing.assert_close(rate.rul(k), expected[:, [0, 1, 2]], rtol=0.01, atol=5.0)
 
 
 def test_full_signal_and_selected_samples_agree(pipeline):

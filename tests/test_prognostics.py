@@ -162,3 +162,44 @@ def test_bounds_are_the_extremes_of_the_three_propagations():
 
     rul = torch.tensor([[100.0, 200.0, 300.0], [250.0, 200.0, 150.0], [0.0, 50.0, 20.0]])
     assert ordered_bounds(rul).tolist() == [[100.0, 200.0, 300.0], [150.0, 200.0, 250.0], [0.0, 50.0, 50.0]]
+
+
+def test_a_faster_wear_clock_divides_the_rul_exactly():
+    """Without noise the damage ODE is linear in F: k(t; s F) = k(s t; F), so RUL(s F) = RUL(F) / s.
+    The rate band rests on this; checked here with torchdiffeq on the shipped coupled model."""
+    d = shipped_model()
+    k0 = torch.tensor([[0.02, 0.01, 0.0, 0.03, 0.0, 0.02, 0.5, 0.52], [0.04, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5]],
+                      dtype=torch.float64)
+
+    def rul(model: DamageModel) -> torch.Tensor:
+        return RULEstimator(model, threshold_score, refine_iterations=20, coarse=1).first_crossing(k0)[0]
+
+    base = rul(d)
+    for s in (0.8, 1.3):
+        faster = DamageModel((d.rate * s).tolist(), d.noise_std.tolist(), d.block, d.horizon, d.step,
+                             d.nominal.tolist())
+        torch.testing.assert_close(rul(faster), base / s, rtol=1e-3, atol=0.1)
+
+
+def test_rate_band_reproduces_monte_carlo_quantiles_and_never_collapses():
+    est = RULEstimator(diagonal_model(noise=2e-6), threshold_score, n_samples=200)
+    g = torch.Generator().manual_seed(1)
+    k = torch.zeros(12, 8, dtype=torch.float64)
+    k[:, 6:] = 0.5
+    k[:, :6] = torch.rand(12, 6, generator=g, dtype=torch.float64) ** 4 * 0.1
+    det = DeterministicRUL(est, "rate")
+    det.calibrate(k, torch.Generator().manual_seed(2))
+    assert det.scales_[0] > 1.0 == det.scales_[1] > det.scales_[2]          # 5 %: a faster clock
+    pred = det.predict(k)
+    torch.testing.assert_close(pred[:, 0], pred[:, 1] / det.scales_[0])
+    assert (pred[:, 0] < pred[:, 1]).all() and (pred[:, 1] < pred[:, 2]).all()
+    mc = est.estimate(k, torch.Generator().manual_seed(3)).empirical
+    torch.testing.assert_close((pred / mc).median(0).values, torch.ones(3, dtype=torch.float64), rtol=0, atol=0.15)
+    deltas, scales = det.pipeline_parameters()
+    assert torch.equal(deltas, det.deltas_[1].repeat(3)) and torch.equal(scales, det.scales_)
+    deltas, scales = det.pipeline_parameters("initial_state")
+    assert torch.equal(deltas, det.deltas_) and torch.equal(scales, torch.ones(3, dtype=torch.float64))
+    with pytest.raises(ValueError, match="rul.band"):
+        DeterministicRUL(est, "time")
+    with pytest.raises(ValueError, match="calibrate"):
+        DeterministicRUL(est, "rate").predict(k)

@@ -25,6 +25,7 @@ from ..prognostics import DeterministicRUL, RULEstimator
 from ..prognostics.evaluation import RULComparison
 from ..prognostics.plots import error_panels, rul_vs_expected
 from ..prognostics.reference import margin_score, reference_rul
+from ..prognostics.rul import VARIANTS
 from ..surrogates.augment import add_noise, rms
 from ..surrogates.bundle import SurrogateBundle
 from . import common
@@ -87,19 +88,24 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     t0 = time.perf_counter()
     est = RULEstimator(damage, bundle.health_score, common.integer(cfg.rul.n_samples, "rul.n_samples", 2),
                        common.integer(cfg.rul.refine_iterations, "rul.refine_iterations", 0))
-    det = DeterministicRUL(est)
+    det = DeterministicRUL(est, str(cfg.rul.band))
     deltas = det.calibrate(k, torch.Generator().manual_seed(int(cfg.seed)),
                            bracket=common.number(cfg.rul.delta_bracket, "rul.delta_bracket", 0.0, strict=True))
     mc = est.estimate(k, torch.Generator().manual_seed(int(cfg.seed) + 1))
-    pipeline = OnlinePipeline.from_bundle(bundle, damage, deltas, det.direction,
-                                          common.number(cfg.online.min_present, "online.min_present", 0.0, True))
-    pipeline.eval()
+    min_present = common.number(cfg.online.min_present, "online.min_present", 0.0, True)
+    pipelines = {}
+    for variant in VARIANTS:            # the configured band is exported; the other one is reported
+        pipe_deltas, scales = det.pipeline_parameters(variant)
+        pipelines[variant] = OnlinePipeline.from_bundle(bundle, damage, pipe_deltas, det.direction, min_present,
+                                                        rate_scales=scales).eval()
+    pipeline = pipelines[det.variant]
     band = _fdi_band(cfg, pipeline, band_signals, band_k)
     if band is not None:
         pipeline.fdi_deltas.copy_(band.deltas.to(pipeline.fdi_deltas))
         pipeline.fdi_direction.copy_(band.direction.to(pipeline.fdi_direction))
     with torch.no_grad():
         true_k = pipeline.rul(k.to(pipeline.times.dtype)).to(torch.float64)
+        true_k_by_band = {v: p.rul(k.to(p.times.dtype)).to(torch.float64) for v, p in pipelines.items()}
         k_hat, _, full_flow, ood, _ = pipeline(signals)
         physics_only = pipeline.rul(k_hat).to(torch.float64)
         physics_only = torch.where(ood.unsqueeze(1), torch.full_like(physics_only, float("nan")), physics_only)
@@ -119,6 +125,9 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         if finite.any() else float("nan"),
         rul_band_coverage_full_flow_physics_only=physics["rul_band_coverage_full_flow"],
         rul_err_median_full_flow_physics_only=physics["rul_err_median_full_flow"],
+        rul_band=det.variant, rate_scales=det.scales_.tolist(),
+        **{f"rul_band_coverage_true_k_{v}": RULComparison(reference, b, full_flow.to(torch.float64)).metrics()[
+            "rul_band_coverage_true_k"] for v, b in true_k_by_band.items()},
         fdi_band_split=band_split, fdi_band_n_used=band.n_used if band else 0,
         fdi_band_deltas=pipeline.fdi_deltas.tolist() if band else None,       # as the pipeline holds them
         fdi_band_direction=pipeline.fdi_direction.tolist() if band else None,
@@ -132,7 +141,8 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                                                   out_dir / "rul_vs_expected.png"),
                "rul_errors": error_panels(reference, true_k, full_flow.to(torch.float64), out_dir / "rul_errors.png")}
     common.write_json(out_dir / "rul_calibration.json",
-                      {"deltas": deltas.tolist(), "direction": det.direction.tolist(),
+                      {"band": det.variant, "deltas": pipeline.deltas.tolist(), "direction": det.direction.tolist(),
+                       "rate_scales": pipeline.rate_scales.tolist(), "initial_state_deltas": deltas.tolist(),
                        "fdi_deltas": pipeline.fdi_deltas.tolist(), "fdi_direction": pipeline.fdi_direction.tolist(),
                        "damage": common.plain(cfg.damage)})
     common.write_json(out_dir / "rul_predictions.json",

@@ -37,7 +37,8 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                     "the band exists): the RUL bounds hold the physics spread only", cal_path)
     pipeline = OnlinePipeline.from_bundle(bundle, damage, torch.tensor(cal["deltas"]), torch.tensor(cal["direction"]),
                                           common.number(cfg.min_present, "min_present", 0.0, strict=True),
-                                          fdi.get("fdi_deltas"), fdi.get("fdi_direction"))
+                                          fdi.get("fdi_deltas"), fdi.get("fdi_direction"),
+                                          torch.tensor(cal["rate_scales"]) if "rate_scales" in cal else None)
     out = Path(cfg.out)
     scripted = export_torchscript(pipeline, out)
     probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)

@@ -82,28 +82,39 @@ def calibrate_fdi_band(pipeline: OnlinePipeline, signals: torch.Tensor, k: torch
                 f"healthy under their true k; at least {min_used} are needed")
         k, k_hat, target = k[keep], k_hat[keep], target[keep]
         scale = (k_hat - k).abs().mean(0) * (pipeline.direction > 0).to(dtype)
-        physics = pipeline.deltas.view(3, 1) * pipeline.direction
         tail = 0.5 * (1.0 - coverage)
-
-        def rul_at(j: int, eta: float) -> torch.Tensor:
-            shift = (physics[j] + eta * scale).expand(3, 8)
-            return pipeline.rul_shifted(k_hat, shift)[:, 1]
-
-        # each objective rises with eta (more damage, shorter RUL); the coverage bounds keep the bracket
-        # end on their covering side (the statistic is a step function of eta), the median the midpoint
-        objectives = ((lambda eta: float((target >= rul_at(0, eta)).to(dtype).mean()) - (1.0 - tail), "hi"),
-                      (lambda eta: 1.0 - float((rul_at(1, eta) / target).median()), "mid"),
-                      (lambda eta: (1.0 - tail) - float((target <= rul_at(2, eta)).to(dtype).mean()), "lo"))
-        deltas, saturated = [], []
-        for objective, side in objectives:
-            lo, hi = -bracket, bracket
-            for _ in range(iterations):
-                mid = 0.5 * (lo + hi)
-                if objective(mid) < 0:
-                    lo = mid
-                else:
-                    hi = mid
-            eta = {"lo": lo, "hi": hi, "mid": 0.5 * (lo + hi)}[side]
-            deltas.append(eta)
-            saturated.append(bool(abs(abs(eta) - bracket) < 1e-6 * bracket))
+        saved = pipeline.fdi_direction.clone()
+        pipeline.fdi_direction.copy_(scale)      # the propagations read the scale from the pipeline
+        try:
+            deltas, saturated = _bisect_all(pipeline, k_hat, target, tail, bracket, iterations)
+        finally:
+            pipeline.fdi_direction.copy_(saved)
     return FDIBand(torch.tensor(deltas, dtype=torch.float64), scale.to(torch.float64), int(keep.sum()), saturated)
+
+
+def _bisect_all(pipeline: OnlinePipeline, k_hat: torch.Tensor, target: torch.Tensor, tail: float, bracket: float,
+                iterations: int) -> tuple[list[float], list[bool]]:
+    """eta_5, eta_50, eta_95 by bisection, and whether each ended on the bracket."""
+    dtype = k_hat.dtype
+
+    def rul_at(j: int, eta: float) -> torch.Tensor:
+        return pipeline.propagations(k_hat, torch.full((3,), eta, dtype=dtype))[:, j]
+
+    # each objective rises with eta (more damage, shorter RUL); the coverage bounds keep the bracket end
+    # on their covering side (the statistic is a step function of eta), the median the midpoint
+    objectives = ((lambda eta: float((target >= rul_at(0, eta)).to(dtype).mean()) - (1.0 - tail), "hi"),
+                  (lambda eta: 1.0 - float((rul_at(1, eta) / target).median()), "mid"),
+                  (lambda eta: (1.0 - tail) - float((target <= rul_at(2, eta)).to(dtype).mean()), "lo"))
+    deltas, saturated = [], []
+    for objective, side in objectives:
+        lo, hi = -bracket, bracket
+        for _ in range(iterations):
+            mid = 0.5 * (lo + hi)
+            if objective(mid) < 0:
+                lo = mid
+            else:
+                hi = mid
+        eta = {"lo": lo, "hi": hi, "mid": 0.5 * (lo + hi)}[side]
+        deltas.append(eta)
+        saturated.append(bool(abs(abs(eta) - bracket) < 1e-6 * bracket))
+    return deltas, saturated

@@ -39,13 +39,15 @@ class OnlinePipeline(nn.Module):
         fdi_deltas: (3,) extra disturbances for a *measured* k_hat (its FDI error), in units of
             ``fdi_direction`` (see :mod:`phm_torch.online.fdi_band`); None: zeros (physics band only).
         fdi_direction: (8,) FDI error scale per component (e.g. its mean |k_hat - k|); None: zeros.
+        rate_scales: (3,) wear-rate factors s_q of the three propagations (RUL / s_q; the ``rate`` band of
+            :class:`~phm_torch.prognostics.DeterministicRUL`); None: ones (the paper's initial-state band).
     """
 
     def __init__(self, gappy: nn.Module, fdi: nn.Module, classifier: nn.Module, damage: DamageModel,
                  deltas: torch.Tensor, direction: torch.Tensor, n_full: int, residual_threshold: float,
                  min_present: float = 0.8, sample_rate: float = 20000.0, coarse: int = 25,
                  full_check: nn.Module | None = None, fdi_deltas: torch.Tensor | None = None,
-                 fdi_direction: torch.Tensor | None = None):
+                 fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
@@ -62,6 +64,8 @@ class OnlinePipeline(nn.Module):
         self.register_buffer("nominal", damage.nominal.to(dtype))
         self.register_buffer("deltas", torch.as_tensor(deltas, dtype=dtype).reshape(3))
         self.register_buffer("direction", torch.as_tensor(direction, dtype=dtype).reshape(8))
+        self.register_buffer("rate_scales", torch.ones(3, dtype=dtype) if rate_scales is None
+                             else torch.as_tensor(rate_scales, dtype=dtype).reshape(3))
         self.register_buffer("fdi_deltas", torch.zeros(3, dtype=dtype) if fdi_deltas is None
                              else torch.as_tensor(fdi_deltas, dtype=dtype).reshape(3))
         self.register_buffer("fdi_direction", torch.zeros(8, dtype=dtype) if fdi_direction is None
@@ -80,13 +84,15 @@ class OnlinePipeline(nn.Module):
     @classmethod
     def from_bundle(cls, bundle: nn.Module, damage: DamageModel, deltas: torch.Tensor, direction: torch.Tensor,
                     min_present: float = 0.8, fdi_deltas: torch.Tensor | None = None,
-                    fdi_direction: torch.Tensor | None = None) -> OnlinePipeline:
+                    fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None
+                    ) -> OnlinePipeline:
         """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifier, OOD threshold)."""
         threshold = float(bundle.full_residual_threshold)
         check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_, residual_threshold=threshold)
         return cls(bundle.gappy, bundle.network, bundle.classifier, damage, deltas, direction,
                    int(bundle.pod.mean_.shape[0]), float(bundle.residual_threshold), min_present,
-                   float(bundle.sample_rate), full_check=check, fdi_deltas=fdi_deltas, fdi_direction=fdi_direction)
+                   float(bundle.sample_rate), full_check=check, fdi_deltas=fdi_deltas, fdi_direction=fdi_direction,
+                   rate_scales=rate_scales)
 
     def _score_at(self, dk: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
         """Score of k0 + A(t_index) dk for per-(sample, quantile) grid indices: dk (B, 3, 8), index (B, 3)."""
@@ -100,16 +106,24 @@ class OnlinePipeline(nn.Module):
         the horizon if still healthy there.
 
         ``measured``: k is an FDI estimate, so its error band (``fdi_deltas`` x ``fdi_direction``) joins the
-        physics disturbances (``deltas`` x ``direction``); False for a known k.
+        physics band; False for a known k. The bounds are the shortest / the longest of the three
+        propagations (:func:`phm_torch.prognostics.rul.ordered_bounds`).
         """
-        shift = self.deltas.view(3, 1) * self.direction
-        if measured:
-            shift = shift + self.fdi_deltas.view(3, 1) * self.fdi_direction
-        return self.rul_shifted(k, shift)
+        fdi = self.fdi_deltas if measured else torch.zeros_like(self.fdi_deltas)
+        rul = self.propagations(k, fdi)
+        return torch.stack([rul.amin(-1), rul[:, 1], rul.amax(-1)], dim=-1)
+
+    def propagations(self, k: torch.Tensor, fdi_deltas: torch.Tensor) -> torch.Tensor:
+        """RUL [h] (B, 3) of the three propagations q, unordered: from k (B, 8) with its damage moved by
+        ``deltas[q] direction + fdi_deltas[q] fdi_direction``, on a wear clock sped up by ``rate_scales[q]``
+        (exact for the linear damage ODE: RUL / s), capped at the horizon."""
+        shift = self.deltas.view(3, 1) * self.direction + fdi_deltas.view(3, 1) * self.fdi_direction
+        rul = self.rul_shifted(k, shift) / self.rate_scales
+        return rul.clamp(max=float(self.times[-1]))
 
     def rul_shifted(self, k: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
-        """RUL [h] (B, 3) of three propagations from k (B, 8) with its damage |k - k_nom| moved by
-        shift (3, 8), bounds ordered (the shortest / the longest of the three as 5 / 95 %).
+        """RUL [h] (B, 3) of three noise-free propagations from k (B, 8) with its damage |k - k_nom| moved by
+        shift (3, 8), unordered.
 
         The score is evaluated on a coarse grid (every ``coarse`` grid steps), the first faulty coarse
         interval is bisected down to one grid step, and the crossing is interpolated linearly in that step.
@@ -147,9 +161,7 @@ class OnlinePipeline(nn.Module):
         t0, t1 = self.times[lo], self.times[hi]
         frac = (s0 / (s0 - s1).clamp(min=1e-12)).clamp(0.0, 1.0)                             # linear zero
         crossing = torch.where(first > 0, t0 + frac * (t1 - t0), torch.zeros_like(t0))
-        rul = torch.where(any_faulty, crossing, torch.full_like(crossing, float(self.times[-1])))
-        # bounds = shortest / longest of the three propagations (prognostics.rul.ordered_bounds)
-        return torch.stack([rul.amin(-1), rul[:, 1], rul.amax(-1)], dim=-1)
+        return torch.where(any_faulty, crossing, torch.full_like(crossing, float(self.times[-1])))
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Args: x (B, n_full) envelope current [A] or (B, n_points) samples at the selected times; NaN = missing.

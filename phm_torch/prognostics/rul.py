@@ -169,22 +169,38 @@ def ordered_bounds(rul: torch.Tensor) -> torch.Tensor:
     return torch.stack([rul.amin(-1), rul[..., 1], rul.amax(-1)], dim=-1)
 
 
-class DeterministicRUL:
-    """The paper's deterministic variant: no noise; a disturbance delta_q u on k(0) per quantile q.
+VARIANTS = ("initial_state", "rate")
 
-    u is the noise standard deviation direction (unit max-norm, damage components only); each delta_q is
-    calibrated by bisection so that, over a calibration set, the median ratio of the deterministic RUL to
-    the Monte Carlo q-quantile RUL is 1. Online this costs three noise-free propagations.
+
+class DeterministicRUL:
+    """Noise-free RUL bounds calibrated on the Monte Carlo quantiles; two variants.
+
+    ``initial_state`` (the paper's): a disturbance delta_q u on k(0) per quantile q. u is the noise
+    standard deviation direction (unit max-norm, damage components only); each delta_q is calibrated by
+    bisection so that, over a calibration set, the median ratio of the deterministic RUL to the Monte
+    Carlo q-quantile RUL is 1. Three noise-free propagations.
+
+    ``rate``: the median as above (delta_50 on k(0)); the bounds scale the wear *rate*: F -> s_q F. The
+    damage ODE is linear, so without noise k(t; s F) = k(s t; F) and the bound is exactly RUL_50 / s_q:
+    one propagation, and a band that cannot collapse. The initial-state band does collapse where the
+    health score is not monotone along u (less damage on a shorted phase can fail as soon or sooner):
+    on the paper run its upper bound equals its median for ~10 % of the vectors. s_q is the median over
+    the calibration set of RUL_50 / (Monte Carlo q-quantile RUL): the physics noise acts as a spread of
+    the wear clock.
 
     Args:
         estimator: the Monte Carlo estimator (its damage model and score are reused).
+        variant: ``"initial_state"`` or ``"rate"``.
     """
 
-    def __init__(self, estimator: RULEstimator):
-        self.estimator = estimator
+    def __init__(self, estimator: RULEstimator, variant: str = "initial_state"):
+        if variant not in VARIANTS:
+            raise ValueError(f"rul.band must be one of {VARIANTS}, got {variant!r}")
         sd = estimator.damage.noise_std
+        self.estimator, self.variant = estimator, variant
         self.direction = sd / sd.max().clamp(min=1e-300)
         self.deltas_: torch.Tensor | None = None
+        self.scales_: torch.Tensor | None = None
         self.saturated_: list[bool] = []
 
     def disturbed(self, k0: torch.Tensor, delta: torch.Tensor | float) -> torch.Tensor:
@@ -207,7 +223,8 @@ class DeterministicRUL:
 
     def calibrate(self, k_calib: torch.Tensor, generator: torch.Generator | None = None, iterations: int = 30,
                   bracket: float = 0.05) -> torch.Tensor:
-        """Find delta_5, delta_50, delta_95 (fitted to ``deltas_``, (3,)) on calibration vectors (N, 8).
+        """Find delta_5, delta_50, delta_95 (fitted to ``deltas_``, (3,)) and the rate scales s_5, 1, s_95
+        (``scales_``, (3,)) on calibration vectors (N, 8).
 
         ``bracket`` bounds |delta| (in units of the damage k); ``saturated_`` records, per quantile,
         whether the bisection ended on the bracket (the target RUL not reachable within it).
@@ -230,10 +247,34 @@ class DeterministicRUL:
             deltas.append(0.5 * (lo + hi))
         self.deltas_ = torch.tensor(deltas, dtype=torch.float64)
         self.saturated_ = [bool(abs(abs(d) - bracket) < 1e-6 * bracket) for d in deltas]
+        median = self.rul(k, deltas[1])
+        inside = (median > 0) & (median < self.estimator.damage.horizon)      # censored medians say nothing
+        if not inside.any():
+            raise ValueError("rul calibration: no calibration vector fails within the horizon")
+        self.scales_ = torch.stack([(median[inside] / target[inside, j].clamp(min=1e-9)).median()
+                                    for j in range(len(QUANTILES))]).to(torch.float64)
+        self.scales_[1] = 1.0
         return self.deltas_
 
+    def pipeline_parameters(self, variant: str | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(deltas (3,), rate scales (3,)) of ``variant`` (default: this one's), as
+        :class:`~phm_torch.online.OnlinePipeline` takes them: initial_state = (delta_q, ones),
+        rate = (delta_50 three times, s_q)."""
+        if self.deltas_ is None or self.scales_ is None:
+            raise ValueError("DeterministicRUL: call calibrate() first")
+        variant = self.variant if variant is None else variant
+        if variant not in VARIANTS:
+            raise ValueError(f"rul.band must be one of {VARIANTS}, got {variant!r}")
+        if variant == "rate":
+            return self.deltas_[1].repeat(3), self.scales_.clone()
+        return self.deltas_.clone(), torch.ones(3, dtype=torch.float64)
+
     def predict(self, k0: torch.Tensor) -> torch.Tensor:
-        """RUL 5/50/95 % [h] (B, 3) from the calibrated deltas (5 % = most damage)."""
-        if self.deltas_ is None:
-            raise ValueError("DeterministicRUL.predict: call calibrate() first")
-        return ordered_bounds(torch.stack([self.rul(k0, float(d)) for d in self.deltas_], dim=1))
+        """RUL 5/50/95 % [h] (B, 3) of the variant (5 % = most damage); the rate bounds stop at the horizon."""
+        deltas, scales = self.pipeline_parameters()
+        if self.variant == "rate":
+            median = self.rul(k0, float(deltas[1]))
+            rul = (median.unsqueeze(1) / scales).clamp(max=self.estimator.damage.horizon)
+        else:
+            rul = torch.stack([self.rul(k0, float(d)) for d in deltas], dim=1)
+        return ordered_bounds(rul)
