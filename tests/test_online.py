@@ -158,10 +158,12 @@ def test_shape_statistics_flag_noise_clipping_and_crests_but_not_smooth_records(
     modes = torch.linalg.qr(torch.randn(n, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(0)))[0]
     check = FullSignalCheck(modes, torch.zeros(n, dtype=torch.float64))
     noise = torch.randn(1, n, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
-    assert check.roughness(noise).item() == pytest.approx(math.sqrt(2.0), rel=0.03)
+    assert check.roughness(noise).item() == pytest.approx(math.sqrt(2.0), rel=0.08)   # 626 sampled pairs
     assert check.roughness(smooth[None]).item() < 0.05
     clipped = smooth.clamp(max=0.8 * float(smooth.max()))[None]
-    on_top = (clipped >= clipped.max() - 1e-3 * (clipped.max() - clipped.min())).double().mean()
+    sampled = clipped[:, check.shape_rows]
+    on_top = (sampled >= sampled.max() - 1e-3 * (sampled.max() - sampled.min())).double().mean()
+    assert on_top == pytest.approx(float((clipped >= clipped.max() - 1e-6).double().mean()), abs=0.02)
     torch.testing.assert_close(check.plateau(clipped)[0], on_top)
     assert check.plateau(smooth[None]).item() < 0.005 < check.plateau(clipped).item()
     x = torch.cat([smooth[None], noise, clipped, smooth[None] + 0.01 * noise])

@@ -17,6 +17,10 @@ A full record says much more:
   maximum: at most 0.2 % over the paper-scale training set (a peak lasts a few samples), 0.6-30 % for a
   record clipped at 50-80 % of its peak (ADC or probe saturation), 2.4 % for a sine's slow crests.
 
+All three use every ``stride``-th sample (the shape statistics at a jittered stride, against aliasing;
+the roughness with each sample's right neighbour): a full pass over every sample costs as much as the
+rest of the online step in a batch.
+
 The two shape thresholds are physical defaults, not training quantiles: a measurement from another
 bench (more ripple, ADC quantisation) should not be rejected for differing from this simulator in
 detail, only for not looking like an envelope current at all.
@@ -57,6 +61,12 @@ class FullSignalCheck(nn.Module):
         rows = torch.arange(0, modes.shape[0], stride)
         q, _ = torch.linalg.qr(modes[rows].to(torch.float64))
         self.register_buffer("rows", rows)
+        # the shape statistics sample at a jittered stride: a ripple at a multiple of sample_rate / stride
+        # would alias to a constant on a regular one (a false plateau)
+        jitter = torch.randint(0, stride, rows.shape, generator=torch.Generator().manual_seed(0))
+        shape_rows = (rows + jitter).clamp(max=modes.shape[0] - 2)
+        self.register_buffer("shape_rows", shape_rows)
+        self.register_buffer("next_rows", shape_rows + 1)
         self.register_buffer("basis", q.to(modes.dtype))                 # (n_e / stride, n_m), orthonormal
         self.register_buffer("mean_rows", mean[rows].to(modes.dtype))
         self.n_full = int(modes.shape[0])
@@ -78,17 +88,22 @@ class FullSignalCheck(nn.Module):
         return ((energy - explained).clamp(min=0.0) / energy.clamp(min=1e-30)).sqrt()
 
     def roughness(self, signals: torch.Tensor) -> torch.Tensor:
-        """RMS(diff) / RMS(about the mean), (B,); NaN for a flat record (its plateau is 1) or a non-finite one."""
+        """RMS(diff) / RMS(about the mean), (B,); NaN for a flat record (its plateau is 1) or a non-finite one.
+
+        Estimated on the ``stride``-th samples and their right neighbours (adjacent pairs, so the step is
+        the full-rate one): a full pass over every sample would halve the batched throughput."""
         self._check(signals)
-        x = signals.to(self.basis.dtype)
-        step = (x[:, 1:] - x[:, :-1]).pow(2).mean(1).sqrt()
+        x = signals.index_select(1, self.shape_rows).to(self.basis.dtype)
+        after = signals.index_select(1, self.next_rows).to(self.basis.dtype)
+        step = (after - x).pow(2).mean(1).sqrt()
         spread = (x - x.mean(1, keepdim=True)).pow(2).mean(1).sqrt()
         return step / spread
 
     def plateau(self, signals: torch.Tensor) -> torch.Tensor:
-        """Fraction (B,) of the samples within ``plateau_tolerance`` x range of the record's maximum."""
+        """Fraction (B,) of the (jittered) ``stride``-th samples within ``plateau_tolerance`` x range of their
+        maximum."""
         self._check(signals)
-        x = signals.to(self.basis.dtype)
+        x = signals.index_select(1, self.shape_rows).to(self.basis.dtype)
         top = x.amax(1, keepdim=True)
         span = top - x.amin(1, keepdim=True)
         return (x >= top - self.plateau_tolerance * span).to(x.dtype).mean(1)
