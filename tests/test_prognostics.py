@@ -78,12 +78,18 @@ def test_monte_carlo_bounds_are_ordered_and_shrink_without_noise():
     assert (quiet.empirical[0, 2] - quiet.empirical[0, 0]).item() < 1.0
 
 
-def test_deterministic_variant_reproduces_monte_carlo_quantiles():
+def calibration_case() -> tuple[RULEstimator, torch.Tensor]:
+    """A noisy diagonal model and 12 near-nominal vectors to calibrate the deterministic bands on."""
     est = RULEstimator(diagonal_model(noise=2e-6), threshold_score, n_samples=200)
     g = torch.Generator().manual_seed(1)
     k = torch.zeros(12, 8, dtype=torch.float64)
     k[:, 6:] = 0.5
     k[:, :6] = torch.rand(12, 6, generator=g, dtype=torch.float64) ** 4 * 0.1
+    return est, k
+
+
+def test_deterministic_variant_reproduces_monte_carlo_quantiles():
+    est, k = calibration_case()
     det = DeterministicRUL(est)
     deltas = det.calibrate(k, torch.Generator().manual_seed(2))
     assert deltas[0] > deltas[1] > deltas[2]                      # 5 % RUL needs the most damage
@@ -182,11 +188,7 @@ def test_a_faster_wear_clock_divides_the_rul_exactly():
 
 
 def test_rate_band_reproduces_monte_carlo_quantiles_and_never_collapses():
-    est = RULEstimator(diagonal_model(noise=2e-6), threshold_score, n_samples=200)
-    g = torch.Generator().manual_seed(1)
-    k = torch.zeros(12, 8, dtype=torch.float64)
-    k[:, 6:] = 0.5
-    k[:, :6] = torch.rand(12, 6, generator=g, dtype=torch.float64) ** 4 * 0.1
+    est, k = calibration_case()
     det = DeterministicRUL(est, "rate")
     det.calibrate(k, torch.Generator().manual_seed(2))
     assert det.scales_[0] > 1.0 == det.scales_[1] > det.scales_[2]          # 5 %: a faster clock
