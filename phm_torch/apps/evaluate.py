@@ -59,7 +59,7 @@ def _fdi_band(cfg: DictConfig, pipeline: OnlinePipeline, signals: torch.Tensor, 
     if noise > 0 and signals.shape[0]:
         signals = add_noise(signals, rms(signals), noise, torch.Generator().manual_seed(int(cfg.seed) + 2))
     try:
-        return calibrate_fdi_band(pipeline, signals, k)
+        return calibrate_fdi_band(pipeline, signals, k, correct_median=bool(cfg.fdi_band.correct_median))
     except TooFewCalibrationSignals as err:
         log.warning("%s; the full-flow RUL band holds the physics spread only", err)
         return None
