@@ -90,23 +90,18 @@ def calibrate_fdi_band(pipeline: OnlinePipeline, signals: torch.Tensor, k: torch
         k, k_hat, target = k[keep], k_hat[keep], target[keep]
         scale = (k_hat - k).abs().mean(0) * (pipeline.direction > 0).to(dtype)
         tail = 0.5 * (1.0 - coverage)
-        saved = pipeline.fdi_direction.clone()
-        pipeline.fdi_direction.copy_(scale)      # the propagations read the scale from the pipeline
-        try:
-            deltas, saturated = _bisect_all(pipeline, k_hat, target, tail, bracket, iterations, correct_median)
-        finally:
-            pipeline.fdi_direction.copy_(saved)
+        deltas, saturated = _bisect_all(pipeline, k_hat, scale, target, tail, bracket, iterations, correct_median)
     return FDIBand(torch.tensor(deltas, dtype=torch.float64), scale.to(torch.float64), int(keep.sum()), saturated)
 
 
-def _bisect_all(pipeline: OnlinePipeline, k_hat: torch.Tensor, target: torch.Tensor, tail: float, bracket: float,
-                iterations: int, correct_median: bool) -> tuple[list[float], list[bool]]:
+def _bisect_all(pipeline: OnlinePipeline, k_hat: torch.Tensor, scale: torch.Tensor, target: torch.Tensor,
+                tail: float, bracket: float, iterations: int, correct_median: bool) -> tuple[list[float], list[bool]]:
     """eta_5, eta_50 (0 unless ``correct_median``), eta_95 by bisection, and whether each ended on the
     bracket."""
     dtype = k_hat.dtype
 
     def rul_at(j: int, eta: float) -> torch.Tensor:
-        return pipeline.propagations(k_hat, torch.full((3,), eta, dtype=dtype))[:, j]
+        return pipeline.propagations(k_hat, torch.full((3,), eta, dtype=dtype), scale)[:, j]
 
     # each objective rises with eta (more damage, shorter RUL); the coverage bounds keep the bracket end
     # on their covering side (the statistic is a step function of eta), the median the midpoint

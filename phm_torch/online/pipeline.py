@@ -110,14 +110,15 @@ class OnlinePipeline(nn.Module):
         propagations (:func:`phm_torch.prognostics.rul.ordered_bounds`).
         """
         fdi = self.fdi_deltas if measured else torch.zeros_like(self.fdi_deltas)
-        rul = self.propagations(k, fdi)
+        rul = self.propagations(k, fdi, self.fdi_direction)
         return torch.stack([rul.amin(-1), rul[:, 1], rul.amax(-1)], dim=-1)
 
-    def propagations(self, k: torch.Tensor, fdi_deltas: torch.Tensor) -> torch.Tensor:
+    def propagations(self, k: torch.Tensor, fdi_deltas: torch.Tensor, fdi_direction: torch.Tensor) -> torch.Tensor:
         """RUL [h] (B, 3) of the three propagations q, unordered: from k (B, 8) with its damage moved by
-        ``deltas[q] direction + fdi_deltas[q] fdi_direction``, on a wear clock sped up by ``rate_scales[q]``
+        ``deltas[q] direction + fdi_deltas[q] fdi_direction`` (fdi_deltas (3,), fdi_direction (8,)), on a
+        wear clock sped up by ``rate_scales[q]``
         (exact for the linear damage ODE: RUL / s), capped at the horizon."""
-        shift = self.deltas.view(3, 1) * self.direction + fdi_deltas.view(3, 1) * self.fdi_direction
+        shift = self.deltas.view(3, 1) * self.direction + fdi_deltas.view(3, 1) * fdi_direction
         rul = self.rul_shifted(k, shift) / self.rate_scales
         return rul.clamp(max=float(self.times[-1]))
 
