@@ -25,16 +25,20 @@ from typing import Any
 
 import hydra
 import lightning as L
+import numpy as np
 import torch
 from hydra.errors import InstantiationException
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torch.utils.data import DataLoader, TensorDataset
 
+from ..data.labels import LabelComputer, label_chunk_rows
+from ..data.sampling import ImportanceSampler
 from ..data.store import LABELS, read_labelled
 from ..io.atomic import atomic_open
 from ..surrogates import FDIMLP, POD, GappyPOD, SurrogateBundle, rms
 from ..surrogates.augment import add_noise
+from ..surrogates.classifiers.refinement import BoundaryRefinement, refine_classifier
 from ..surrogates.data import load_store
 from ..surrogates.evaluate import evaluate_classifier, evaluate_fdi, measure_latency, quartiles
 from ..surrogates.full_signal_check import FullSignalCheck
@@ -44,6 +48,7 @@ from . import common
 log = logging.getLogger(__name__)
 
 LOGGERS = ("csv", "tensorboard")
+REFINE_STREAM = 0x5EF1   # seed-sequence key of the classifier refinement's candidates
 INPUTS = ("gappy", "full")
 
 
@@ -114,6 +119,36 @@ def _classifier_set(cfg: DictConfig, train: Any) -> tuple[torch.Tensor, torch.Te
     return (torch.cat([k, torch.from_numpy(k_extra)]), torch.cat([healthy, torch.from_numpy(h_extra)]))
 
 
+def _refinement(cfg: DictConfig, metadata: dict[str, Any], seed: int) -> tuple[BoundaryRefinement, Any, Any]:
+    """The classifier refinement's settings, candidate sampler and labeller phi_a, both rebuilt from the
+    config the store records (its actuator, assessment and importance sampler), so that the new labels
+    are the store's own kind."""
+    node = cfg.classifier_refine
+    settings = BoundaryRefinement(node.rounds, node.labels_per_round, node.candidates_per_label)
+    if settings.rounds == 0:
+        return settings, None, None
+    store_cfg = DictConfig(metadata.get("config") or {})
+    if "actuator" not in store_cfg or "assessment" not in store_cfg or "dataset" not in store_cfg:
+        raise ValueError(f"classifier_refine.rounds={settings.rounds}: the store {cfg.data_dir!r} does not record "
+                         f"the actuator, assessment and dataset config its labels were made with; set "
+                         f"classifier_refine.rounds=0")
+    params = common.actuator(store_cfg)
+    sampler = ImportanceSampler(tuple(params.nominal_faults), tuple(store_cfg.dataset.get("uniform", [])), 1.0)
+    assessment = common.build(store_cfg.assessment, "assessment", params=params,
+                              device=common.device(node.device))
+    chunk = int(store_cfg.dataset.get("label_chunk_size", 4096))
+
+    def sample(n: int, r: int) -> Any:
+        return sampler.sample(n, np.random.SeedSequence([seed, REFINE_STREAM, r]))
+
+    def assess(k: Any) -> Any:   # equal batches, as phm-generate's labels split (one compiled shape)
+        rows = label_chunk_rows(len(k), chunk)
+        labeller = LabelComputer(assessment, params.nominal_faults, rows)
+        return np.concatenate([labeller(k[i:i + rows])["healthy"] for i in range(0, len(k), rows)]).astype(bool)
+
+    return settings, sample, assess
+
+
 def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Train every surrogate from the store ``cfg.data_dir`` and evaluate it on the validation split.
 
@@ -156,6 +191,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     t0 = time.perf_counter()
     data, grid, info = load_store(str(cfg.data_dir), splits, limits)
     train, val = data["train"], data["val"]
+    refine, sample, assess = _refinement(cfg, info["metadata"], seed)
     dt = torch.diff(grid)
     if not bool((dt > 0).all()) or float(dt.max() - dt.min()) > 1e-6 * float(dt.mean()):
         raise ValueError(f"store {cfg.data_dir!r}: time grid is not uniform")
@@ -220,10 +256,13 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
 
     t0 = time.perf_counter()
     k_cls, healthy_cls = _classifier_set(cfg, train)
-    classifier.fit(k_cls, healthy_cls)
-    if max_missed is not None:
+    k_all, _, refine_info = refine_classifier(classifier, k_cls, healthy_cls, sample, assess, refine, seed,
+                                              out_dir / "classifier_labels",
+                                              {"data": info["manifest"].get("fingerprint")})
+    if max_missed is not None:   # on the importance-sampled set: the refined one crowds the boundary
         classifier.calibrate(k_cls, healthy_cls, max_missed)
-    timing["classifier_fit_s"] = time.perf_counter() - t0
+    timing["classifier_fit_s"] = time.perf_counter() - t0 - refine_info["assess_s"]
+    timing["classifier_refine_assess_s"] = refine_info["assess_s"]
 
     metrics, arrays = evaluate_fdi(pod, gappy, network, val.current, val.k, noise, missing, seed)
     t0 = time.perf_counter()
@@ -247,7 +286,8 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         n_train=len(train), n_val=len(val), n_modes=n_modes, n_points=n_points, n_hidden=n_hidden,
         selector=selector.name, selector_params=selector.get_params(), classifier=classifier.name,
         model=module.optimizer_name + ("_e2e" if end_to_end else ""), fdi_inputs=fit["inputs"],
-        classifier_threshold=float(classifier.threshold), n_classifier_train=len(healthy_cls),
+        classifier_threshold=float(classifier.threshold), n_classifier_train=len(k_all),
+        classifier_refine=refine_info,
         energy_retained=float(pod.cumulative_energy()[n_modes - 1]), gappy_condition_number=gappy.condition_number(),
         ood_residual_threshold=threshold, ood_rate_val=float((arrays["residual"] > threshold).float().mean()),
         ood_full_residual_threshold=full_threshold, ood_full_rate_val=full_ood_val,

@@ -1,0 +1,150 @@
+"""Boundary refinement of a health classifier's training set: active learning on phi_a(k).
+
+A classifier trained on importance-sampled labels errs almost only near its decision boundary f(k) = 0,
+where those labels are sparse (on the paper store ~80 % of its errors lie within |logit| < 3, which holds
+only a few per cent of the importance-sampled vectors). The assessment function phi_a is cheap (~2.5 ms a
+vector), so each round:
+
+1. draws ``candidates_per_label * n`` fault vectors from the training distribution (the store's
+   importance sampler, a fresh seed stream per round),
+2. keeps the n on which the current classifier is least sure, the smallest |f(k)|,
+3. labels them with phi_a and refits the classifier on everything labelled so far.
+
+n is ``labels_per_round`` times the size of the initial training set. Measured on the paper store (MLP
+3 x 64, 50,000 initial labels, 20,000 a round; accuracy on 10,960 held-out importance-sampled labels):
+98.07 % -> 98.68 / 98.78 / 98.90 % after rounds 1 / 2 / 3, missed faults 1.32 % -> 0.65 %. The previous
+classifier's accuracy on each round's new labels (``boundary_accuracy``) is ~80 %: they are the hard cases.
+
+Each round's labels are cached in ``cache_dir`` (``round_<r>.npz``, written atomically, keyed by
+everything that determines them), so an interrupted training resumes without re-running phi_a.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from ...io.atomic import atomic_open
+from .base import HealthClassifier
+
+Sampler = Callable[[int, int], np.ndarray]           # (n, round) -> K (n, 8) float64
+Assessor = Callable[[np.ndarray], np.ndarray]         # K (n, 8) -> healthy (n,) bool
+
+
+@dataclass(frozen=True)
+class BoundaryRefinement:
+    """Settings (config node ``classifier_refine``).
+
+    Attributes:
+        rounds: refinement rounds (0 = the classifier is fitted once, on the initial set).
+        labels_per_round: vectors labelled per round, as a fraction of the initial training set (> 0).
+        candidates_per_label: candidates scored per vector kept (>= 1; 1 keeps random vectors).
+    """
+
+    rounds: int
+    labels_per_round: float
+    candidates_per_label: int
+
+    def __post_init__(self) -> None:
+        for name in ("rounds", "candidates_per_label"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "rounds" else 1):
+                raise ValueError(f"classifier_refine.{name} must be an integer >= {0 if name == 'rounds' else 1}, "
+                                 f"got {value!r}")
+        v = self.labels_per_round
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
+            raise ValueError(f"classifier_refine.labels_per_round must be a number > 0, got {v!r}")
+
+    def n_labels(self, n_initial: int) -> int:
+        """Vectors labelled per round for an initial set of ``n_initial``."""
+        return max(1, round(self.labels_per_round * n_initial))
+
+
+def _cache_key(settings: BoundaryRefinement, r: int, seed: int, classifier: HealthClassifier,
+               k: torch.Tensor, healthy: torch.Tensor, context: Mapping[str, Any]) -> str:
+    """Digest of everything that determines round r's labels (the initial set through its bytes)."""
+    h = hashlib.sha256(json.dumps({"settings": vars(settings), "round": r, "seed": seed, "name": classifier.name,
+                                   "params": classifier.get_params(), "context": dict(context)},
+                                  sort_keys=True, default=str).encode())
+    h.update(k.to(torch.float64).numpy().tobytes())
+    h.update(healthy.to(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
+
+
+def _load_round(path: Path, key: str) -> tuple[np.ndarray, np.ndarray] | None:
+    if not path.is_file():
+        return None
+    with np.load(path, allow_pickle=False) as z:
+        if str(z["key"]) != key:
+            return None
+        return z["K"], z["healthy"].astype(bool)
+
+
+def _save_round(path: Path, key: str, k: np.ndarray, healthy: np.ndarray) -> None:
+    with atomic_open(path, "wb") as fh:
+        np.savez(fh, key=np.array(key), K=k, healthy=healthy.astype(np.uint8))
+
+
+def refine_classifier(classifier: HealthClassifier, k: torch.Tensor, healthy: torch.Tensor, sample: Sampler,
+                      assess: Assessor, settings: BoundaryRefinement, seed: int, cache_dir: Path | None = None,
+                      context: Mapping[str, Any] | None = None) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
+    """Fit ``classifier`` on (k, healthy), then refine it for ``settings.rounds`` rounds (see the module).
+
+    Args:
+        classifier: an unfitted classifier (fitted in place; its ``fit`` is deterministic in its seed).
+        k: (N, 8) initial fault vectors in [0, 1].  healthy: (N,) bool labels phi_a(k).
+        sample: ``sample(n, r)`` -> (n, 8) candidates of round r (deterministic in r).
+        assess: phi_a on (n, 8) float64 -> (n,) bool.
+        settings: the refinement settings.
+        seed: recorded in the cache key (the caller's sampler and classifier are seeded from it).
+        cache_dir: directory of the per-round label caches (None: no cache).
+        context: extra identity of the labels for the cache key (e.g. the data fingerprint).
+
+    Returns:
+        k_all (N + added, 8) float64, healthy_all (N + added,) bool (the final training set) and ``info``:
+        ``rounds``, ``labels_per_round``, ``added``, per-round ``boundary_accuracy`` (the previous
+        classifier's accuracy on that round's labels), ``healthy_fraction``, ``cached`` and ``assess_s``.
+    """
+    k_all, h_all = k.to(torch.float64), healthy.bool()
+    n_new = settings.n_labels(len(h_all))
+    info: dict[str, Any] = {"rounds": settings.rounds, "labels_per_round": n_new, "added": 0,
+                            "boundary_accuracy": [], "healthy_fraction": [], "cached": [], "assess_s": 0.0}
+    classifier.fit(k_all, h_all)
+    for r in range(settings.rounds):
+        key = _cache_key(settings, r, seed, classifier, k, healthy, context or {})
+        path = None if cache_dir is None else Path(cache_dir) / f"round_{r}.npz"
+        cand = np.asarray(sample(n_new * settings.candidates_per_label, r), dtype=np.float64)
+        with torch.no_grad():
+            score = classifier(torch.from_numpy(cand)).to(torch.float64) - classifier.threshold
+        pick = torch.argsort(score.abs())[:n_new]
+        k_new = cand[pick.numpy()]
+        cached = None if path is None else _load_round(path, key)
+        if cached is not None and np.array_equal(cached[0], k_new):
+            h_new = cached[1]
+        else:
+            cached = None
+            t0 = time.perf_counter()
+            h_new = np.asarray(assess(k_new), dtype=bool)
+            info["assess_s"] += time.perf_counter() - t0
+            if h_new.shape != (len(k_new),):
+                raise ValueError(f"classifier_refine: the assessment returned shape {h_new.shape} for "
+                                 f"{len(k_new)} vectors")
+            if path is not None:
+                _save_round(path, key, k_new, h_new)
+        info["boundary_accuracy"].append(float(((score[pick] > 0).numpy() == h_new).mean()))
+        info["healthy_fraction"].append(float(h_new.mean()))
+        info["cached"].append(cached is not None)
+        k_all = torch.cat([k_all, torch.from_numpy(k_new)])
+        h_all = torch.cat([h_all, torch.from_numpy(h_new)])
+        info["added"] += len(k_new)
+        classifier.fit(k_all, h_all)
+    return k_all, h_all, info
