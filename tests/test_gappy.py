@@ -114,3 +114,74 @@ def test_bad_input(pod):
     assert bool(torch.isfinite(ridged(s)[0]).all())
     with pytest.raises(ValueError, match="indices must lie in"):
         GappyPOD(pod.modes_, pod.mean_, torch.tensor([0, 900]))
+
+
+# ---- Bayesian gappy layer ------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def truncated():
+    """A rank-10 family seen through 4 modes and 9 points: the 6 truncated modes alias into plain LS."""
+    train, test = signals(faults(3000, 1), 0.02, 1).double(), signals(faults(400, 2), 0.02, 2).double()
+    pod = POD(4).fit(train)
+    idx = build_selector("qdeim", n_points=9).fit(pod.modes_).indices_
+    return pod, idx, train, test
+
+
+def test_bayesian_layer_is_the_least_squares_regression_of_the_training_coefficients(truncated):
+    from phm_torch.surrogates.gappy_pod import gappy_statistics
+
+    pod, idx, train, _ = truncated
+    stats = gappy_statistics(train, pod.modes_, pod.mean_, idx)
+    gappy = GappyPOD(pod.modes_, pod.mean_, idx, **stats)
+    alpha, _ = gappy(gappy.select(train))
+    samples = gappy.select(train) - pod.mean_[idx]
+    regression = samples @ torch.linalg.lstsq(samples, pod(train)).solution
+    torch.testing.assert_close(alpha, regression, atol=1e-8, rtol=1e-8)
+
+
+def test_bayesian_layer_beats_least_squares_on_unseen_signals(truncated):
+    from phm_torch.surrogates.gappy_pod import gappy_statistics
+    from phm_torch.surrogates.metrics import err_alpha
+
+    pod, idx, train, test = truncated
+    plain = GappyPOD(pod.modes_, pod.mean_, idx)
+    bayes = GappyPOD(pod.modes_, pod.mean_, idx, **gappy_statistics(train, pod.modes_, pod.mean_, idx, 0.02))
+    full = pod(test)
+    e_plain = float(err_alpha(plain(plain.select(test))[0], full).median())
+    e_bayes = float(err_alpha(bayes(bayes.select(test))[0], full).median())
+    assert e_bayes < 0.8 * e_plain, (e_bayes, e_plain)
+
+
+def test_bayesian_missing_samples_drop_their_rows_and_columns_of_r(truncated):
+    from phm_torch.surrogates.gappy_pod import gappy_statistics
+
+    pod, idx, train, test = truncated
+    stats = gappy_statistics(train, pod.modes_, pod.mean_, idx, 0.02)
+    gappy = GappyPOD(pod.modes_, pod.mean_, idx, **stats)
+    samples = gappy.select(test[:6])
+    keep = torch.tensor([0, 1, 3, 4, 6, 8])
+    holed = samples.clone()
+    holed[:, [2, 5, 7]] = float("nan")
+    alpha, resid = gappy(holed)
+    sub = GappyPOD(pod.modes_, pod.mean_, idx[keep], noise_covariance=stats["noise_covariance"][keep][:, keep],
+                   prior_variance=stats["prior_variance"])
+    alpha_sub, resid_sub = sub(samples[:, keep])
+    torch.testing.assert_close(alpha, alpha_sub, atol=1e-9, rtol=1e-9)
+    torch.testing.assert_close(resid, resid_sub, atol=1e-9, rtol=1e-9)
+    # fewer present samples than modes is still a posterior (the prior regularises it)
+    few = samples.clone()
+    few[:, 3:] = float("nan")
+    assert bool(torch.isfinite(gappy(few)[0]).all())
+    scripted = torch.jit.script(gappy)
+    torch.testing.assert_close(scripted(holed)[0], alpha)
+    torch.testing.assert_close(scripted(samples)[0], gappy(samples)[0])
+
+
+def test_bayesian_bad_statistics(truncated):
+    pod, idx, _, _ = truncated
+    with pytest.raises(ValueError, match="both noise_covariance and prior_variance"):
+        GappyPOD(pod.modes_, pod.mean_, idx, noise_covariance=torch.eye(9, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"must be \(9, 9\) and prior_variance \(4,\)"):
+        GappyPOD(pod.modes_, pod.mean_, idx, noise_covariance=torch.eye(8), prior_variance=torch.ones(4))
+    with pytest.raises(ValueError, match="positive definite"):
+        GappyPOD(pod.modes_, pod.mean_, idx, noise_covariance=-torch.eye(9), prior_variance=torch.ones(4))

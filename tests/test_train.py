@@ -182,3 +182,34 @@ def test_classifier_also_learns_from_the_labels_split(compose, tmp_path):
     assert k_only.shape == (40, 8)
     plain = write_store(tmp_path / "p", {"train": 40, "val": 10})  # a store without labels: train only
     assert _classifier_set(compose("train", [f"data_dir={plain}"]), train)[0].shape == (40, 8)
+
+
+def test_bayesian_gappy_estimator_round_trips_through_the_bundle(store, compose, tmp_path):
+    over = [f"data_dir={store}", f"out_dir={tmp_path / 'bayes'}", *QUICK, "model.fit.max_epochs=10", "n_modes=6",
+            "n_points=5", "gappy.estimator=bayesian"]           # fewer points than modes: the prior decides
+    metrics, objects = train_surrogates(compose("train", over))
+    assert metrics["gappy_estimator"] == "bayesian" and math.isfinite(metrics["err_alpha_median"])
+    path = objects["out_dir"] / "surrogates.pt"
+    bundle = SurrogateBundle.load(path)
+    assert bundle.gappy.bayesian
+    torch.testing.assert_close(bundle.gappy.noise_covariance, objects["bundle"].gappy.noise_covariance)
+    arrays = torch.load(objects["out_dir"] / "predictions.pt", weights_only=True)
+    from surrogate_data import faults, signals
+
+    samples = bundle.compress(signals(faults(100, 17), 0.01, 1))
+    assert torch.allclose(bundle.fdi(samples), arrays["k_hat"], atol=1e-5)
+    holed = samples.clone()
+    holed[:, 1] = float("nan")
+    assert torch.allclose(torch.jit.script(bundle)(holed), bundle.fdi(holed), atol=1e-6)
+    # the online pipeline accepts it with fewer present samples than modes (no n_m + 1 floor)
+    from phm_torch.online import OnlinePipeline
+    from phm_torch.prognostics import DamageModel
+
+    rate = torch.diag(torch.tensor([1e-4] * 6 + [0.0, 1e-4]))
+    damage = DamageModel(rate.tolist(), [1e-6] * 6 + [0.0, 1e-6], 100.0, 20000.0, 50.0, [0.0] * 6 + [0.5, 0.5])
+    online = OnlinePipeline.from_bundle(bundle, damage, torch.zeros(3), torch.ones(8) / 8)
+    k_hat, _, _, ood, _ = online(samples.float())
+    torch.testing.assert_close(k_hat, bundle.fdi(samples.float()))
+    assert online.min_count == 4 and float(ood.float().mean()) < 0.5
+    with pytest.raises(ValueError, match="gappy.estimator must be one of"):
+        train_surrogates(compose("train", [*over, "gappy.estimator=kalman"]))

@@ -42,6 +42,7 @@ from ..surrogates.classifiers.refinement import BoundaryRefinement, refine_class
 from ..surrogates.data import load_store
 from ..surrogates.evaluate import evaluate_classifier, evaluate_fdi, measure_latency, quartiles
 from ..surrogates.full_signal_check import FullSignalCheck
+from ..surrogates.gappy_pod import gappy_statistics
 from ..surrogates.lightning_fdi import FDIModule, KeepBest
 from . import common
 
@@ -50,6 +51,7 @@ log = logging.getLogger(__name__)
 LOGGERS = ("csv", "tensorboard")
 REFINE_STREAM = 0x5EF1   # seed-sequence key of the classifier refinement's candidates
 INPUTS = ("gappy", "full")
+ESTIMATORS = ("least_squares", "bayesian")
 
 
 def _instantiate(node: Any, name: str, **kwargs: Any) -> Any:
@@ -163,9 +165,12 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     n_points = common.integer(cfg.n_points, "n_points", 1)
     n_hidden = common.integer(cfg.n_hidden, "n_hidden", 1)
     ridge = common.number(cfg.gappy.ridge, "gappy.ridge", 0.0)
-    if n_points < n_modes and ridge == 0.0:
+    estimator = str(cfg.gappy.estimator)
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"gappy.estimator must be one of {list(ESTIMATORS)}, got {estimator!r}")
+    if n_points < n_modes and ridge == 0.0 and estimator == "least_squares":
         raise ValueError(f"n_points={n_points} < n_modes={n_modes}: the gappy system is underdetermined "
-                         f"(choose n_points >= n_modes, or gappy.ridge > 0)")
+                         f"(choose n_points >= n_modes, gappy.ridge > 0 or gappy.estimator=bayesian)")
     noise = common.number(cfg.eval.noise, "eval.noise", 0.0)
     missing = common.integer(cfg.eval.missing, "eval.missing", 0)
     ood_q = common.number(cfg.eval.ood_quantile, "eval.ood_quantile", 0.0)
@@ -209,7 +214,11 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     else:
         selector.fit(pod.modes_, grid)
     timing["selector_fit_s"] = time.perf_counter() - t0
-    gappy = GappyPOD(pod.modes_, pod.mean_, selector.indices_, ridge=ridge)
+    statistics = None
+    if estimator == "bayesian":   # the rated measurement noise (eval.noise of the median RMS current) joins R
+        noise_std = noise * float(rms(train.current).median())
+        statistics = gappy_statistics(train.current, pod.modes_, pod.mean_, selector.indices_, noise_std)
+    gappy = GappyPOD(pod.modes_, pod.mean_, selector.indices_, ridge=ridge, **(statistics or {}))
 
     with torch.no_grad():
         samples_tr, samples_va = gappy.select(train.current), gappy.select(val.current)
@@ -285,6 +294,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     metrics.update(
         n_train=len(train), n_val=len(val), n_modes=n_modes, n_points=n_points, n_hidden=n_hidden,
         selector=selector.name, selector_params=selector.get_params(), classifier=classifier.name,
+        gappy_estimator=estimator,
         model=module.optimizer_name + ("_e2e" if end_to_end else ""), fdi_inputs=fit["inputs"],
         classifier_threshold=float(classifier.threshold), n_classifier_train=len(k_all),
         classifier_refine=refine_info,
@@ -301,7 +311,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                              selector={"name": selector.name, "params": selector.get_params()},
                              meta={"data_fingerprint": info["manifest"].get("fingerprint"), "seed": seed,
                                    "model": metrics["model"], "n_train": len(train)},
-                             full_residual_threshold=full_threshold)
+                             full_residual_threshold=full_threshold, gappy_statistics=statistics)
     bundle.save(out_dir / "surrogates.pt")
     with torch.no_grad():
         arrays.update(healthy=val.healthy, score=bundle.health_score(val.k), score_chain=bundle.health_score(arrays["k_hat"]),

@@ -30,7 +30,8 @@ class OnlinePipeline(nn.Module):
         direction: (8,) disturbance direction u.
         n_full: samples of a full acquisition (10001).
         residual_threshold: gappy residual above which the input is out of distribution [A].
-        min_present: fraction of the selected samples that must be finite.
+        min_present: fraction of the selected samples that must be finite (and at least n_modes + 1 with a
+            least-squares gappy layer).
         sample_rate: acquisition rate of the input [Hz] (a reader's check; not used in the computation).
         full_check: :class:`~phm_torch.surrogates.full_signal_check.FullSignalCheck` of the POD basis, applied
             to full records (None: no check); a record it flags is out of distribution.
@@ -75,7 +76,10 @@ class OnlinePipeline(nn.Module):
         self.n_points = int(gappy.modes_hat.shape[0])
         self.n_modes = int(gappy.modes_hat.shape[1])
         self.residual_threshold = float(residual_threshold)
-        self.min_count = max(self.n_modes + 1, round(min_present * self.n_points))
+        # least squares needs n_m + 1 present samples for a residual; the Bayesian layer's prior makes
+        # any count solvable and its residual (shrinkage included) is informative from one sample
+        floor = 1 if bool(getattr(gappy, "bayesian", False)) else self.n_modes + 1
+        self.min_count = max(floor, round(min_present * self.n_points))
         self.coarse = int(coarse)
         if self.coarse < 1:
             raise ValueError(f"online.coarse must be >= 1, got {coarse}")

@@ -23,7 +23,8 @@ float, bool, None and tensors, read back with ``torch.load(weights_only=True)`` 
               "fault_names", "health_convention", "selector": {"name", "params"},
               "classifier": {"name", "params"}, "gappy_ridge", "phm_torch_version", "extra": {...}},
      "tensors": {"pod.mean_", "pod.modes_", "pod.singular_values_", "pod.energy_", "indices",
-                 "sample_times", "residual_threshold", "network.<state_dict>", "classifier.<state_dict>"}}
+                 "sample_times", "residual_threshold", "network.<state_dict>", "classifier.<state_dict>",
+                 and, for a Bayesian gappy layer, "gappy.noise_covariance", "gappy.prior_variance"}}
 """
 
 from __future__ import annotations
@@ -64,18 +65,22 @@ class SurrogateBundle(nn.Module):
         full_residual_threshold: relative POD residual of a full record (:class:`FullSignalCheck`) above
             which it is flagged out of distribution (inf: no check; bundles saved without one).
         gappy_ridge: ridge of the gappy layer.
+        gappy_statistics: ``noise_covariance`` (n_w, n_w) and ``prior_variance`` (n_m,) of the Bayesian gappy
+            layer (:func:`~.gappy_pod.gappy_statistics`); None = plain least squares.
         meta: extra JSON-able provenance (selector, config, data) kept in ``meta["extra"]``.
     """
 
     def __init__(self, pod: POD, indices: torch.Tensor, network: FDIMLP, classifier: HealthClassifier,
                  sample_rate: float, residual_threshold: float = float("inf"), gappy_ridge: float = 0.0,
                  selector: Mapping[str, Any] | None = None, meta: Mapping[str, Any] | None = None,
-                 full_residual_threshold: float = float("inf")):
+                 full_residual_threshold: float = float("inf"),
+                 gappy_statistics: Mapping[str, torch.Tensor] | None = None):
         super().__init__()
         if network.n_inputs != pod.n_modes:
             raise ValueError(f"network has {network.n_inputs} inputs but the POD has {pod.n_modes} modes")
         self.pod = pod
-        self.gappy = GappyPOD(pod.modes_, pod.mean_, indices, ridge=gappy_ridge)
+        self.gappy_statistics = {k: v.detach().cpu() for k, v in (gappy_statistics or {}).items()}
+        self.gappy = GappyPOD(pod.modes_, pod.mean_, indices, ridge=gappy_ridge, **self.gappy_statistics)
         self.network = network
         self.classifier = classifier
         self.sample_rate = float(sample_rate)
@@ -142,6 +147,7 @@ class SurrogateBundle(nn.Module):
         tensors.update(indices=self.indices.cpu(), sample_times=self.sample_times.cpu(),
                        residual_threshold=self.residual_threshold.cpu(),
                        full_residual_threshold=self.full_residual_threshold.cpu())
+        tensors.update({f"gappy.{k}": v for k, v in self.gappy_statistics.items()})
         tensors.update({f"network.{k}": v.detach().cpu() for k, v in self.network.state_dict().items()})
         tensors.update({f"classifier.{k}": v.detach().cpu() for k, v in self.classifier.state_dict().items()})
         buf = io.BytesIO()
@@ -207,7 +213,7 @@ class SurrogateBundle(nn.Module):
             setattr(classifier.get_submodule(owner) if owner else classifier, name, v)
         bundle = cls(pod, t["indices"], network, classifier, meta["sample_rate"],
                      float(t["residual_threshold"]), meta["gappy_ridge"], meta["selector"], meta["extra"],
-                     float(t.get("full_residual_threshold", float("inf"))))
+                     float(t.get("full_residual_threshold", float("inf"))), _prefixed(t, "gappy.") or None)
         return bundle.eval()
 
 

@@ -34,7 +34,7 @@ def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tens
     gen = torch.Generator().manual_seed(seed)
     cases = {"": samples, "_noise": add_noise(samples, rms(current), noise, gen)}
     out: dict[str, Any] = {}
-    if gappy.n_points - missing >= gappy.n_modes or gappy.ridge > 0:
+    if gappy.n_points - missing >= gappy.n_modes or gappy.ridge > 0 or gappy.bayesian:
         cases["_missing"] = drop_samples(samples, missing, gen)
     else:
         out.update(err_alpha_median_missing=None, err_alpha_iqr_missing=None, err_k_missing=None,

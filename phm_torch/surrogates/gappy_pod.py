@@ -13,8 +13,21 @@ f = V_hat^T M (f_hat - y0_hat) (the paper has no missing samples, M = I, and no 
   (the online fast path); otherwise each signal gets its own G, solved batched by Cholesky.
 * The layer is differentiable in the samples (and in its buffers if they are made parameters).
 * It also returns the reconstruction residual, the RMS over the present samples of
-  f_hat - y0_hat - V_hat alpha [signal unit]: zero when n_w = n_m; downstream it flags signals that the
-  basis does not explain (out of distribution).
+  f_hat - y0_hat - V_hat alpha [signal unit]: zero when n_w = n_m (plain least squares); downstream it
+  flags signals that the basis does not explain (out of distribution).
+
+Bayesian variant (``noise_covariance`` R and ``prior_variance`` lambda, from :func:`gappy_statistics`):
+the samples are f_hat = y0_hat + V_hat alpha + e, where e is what the n_m modes leave out (the truncated
+modes, seen at the selected samples, plus measurement noise) with covariance R, and alpha has the prior
+variance lambda of the training coefficients. The estimate is the posterior mean
+
+    alpha = (V_hat^T R^-1 V_hat + diag(1 / lambda))^-1 V_hat^T R^-1 (f_hat - y0_hat),
+
+the linear minimum-mean-square-error estimator. With R and lambda the covariances of the training
+snapshots themselves, it is exactly the least-squares regression of the training coefficients on their
+samples (tested). Plain least squares treats the truncated modes as white noise and lets them alias
+into alpha; on the paper store (22 modes, 30 SOM points) it halves err_alpha, 6.5 % -> 3.2 %. A missing
+sample drops its row and column of R.
 """
 
 from __future__ import annotations
@@ -32,13 +45,18 @@ class GappyPOD(nn.Module):
         indices: (n_w,) selected sample indices into n_e; ``None`` when modes/mean are already selected.
         ridge: Tikhonov term added to G as ``ridge * I`` (0 = the paper's plain least squares); set it > 0
             to solve signals with fewer present samples than modes (biased towards alpha = 0).
+        noise_covariance: (n_w, n_w) covariance R of the unexplained part of the samples [signal unit^2];
+            with ``prior_variance``, the Bayesian estimator (module docstring). None = plain least squares.
+        prior_variance: (n_m,) prior variance lambda of the coefficients [signal unit^2], > 0.
 
     Buffers: ``indices`` (n_w,) int64, ``modes_hat`` (n_w, n_m), ``mean_hat`` (n_w,), ``solve_matrix``
-    (n_m, n_w) = G^-1 V_hat^T for the complete case (computed in float64).
+    (n_m, n_w) = G^-1 V_hat^T R^-1 for the complete case (computed in float64), ``noise_covariance``
+    (n_w, n_w) (the identity for least squares) and ``prior_precision`` (n_m,) (1 / lambda + ridge).
     """
 
     def __init__(self, modes: torch.Tensor, mean: torch.Tensor, indices: torch.Tensor | None = None,
-                 ridge: float = 0.0):
+                 ridge: float = 0.0, noise_covariance: torch.Tensor | None = None,
+                 prior_variance: torch.Tensor | None = None):
         super().__init__()
         if modes.ndim != 2:
             raise ValueError(f"modes must be (n_e, n_m), got shape {tuple(modes.shape)}")
@@ -57,16 +75,38 @@ class GappyPOD(nn.Module):
         if not ridge >= 0.0:
             raise ValueError(f"gappy.ridge must be >= 0, got {ridge!r}")
         n_w, n_m = modes.shape
-        if n_w < n_m and ridge == 0.0:
+        if (noise_covariance is None) != (prior_variance is None):
+            raise ValueError("gappy POD: give both noise_covariance and prior_variance (Bayesian) or neither")
+        self.bayesian = noise_covariance is not None
+        if n_w < n_m and ridge == 0.0 and not self.bayesian:
             raise ValueError(f"gappy POD needs at least as many samples as modes: n_points={n_w} < n_modes={n_m} "
                              f"(or set a ridge > 0)")
         self.ridge = float(ridge)
+        if noise_covariance is None or prior_variance is None:
+            cov = torch.eye(n_w, dtype=torch.float64)
+            precision = torch.full((n_m,), self.ridge, dtype=torch.float64)
+        else:
+            cov, lam = noise_covariance.detach().to(torch.float64), prior_variance.detach().to(torch.float64)
+            if cov.shape != (n_w, n_w) or lam.shape != (n_m,):
+                raise ValueError(f"gappy POD: noise_covariance must be ({n_w}, {n_w}) and prior_variance ({n_m},), "
+                                 f"got {tuple(cov.shape)} and {tuple(lam.shape)}")
+            if not bool((lam > 0).all()) or torch.linalg.cholesky_ex(cov)[1] != 0:
+                raise ValueError("gappy POD: prior_variance must be > 0 and noise_covariance positive definite")
+            precision = 1.0 / lam + self.ridge
         self.register_buffer("indices", indices.clone())
         self.register_buffer("modes_hat", modes.detach().clone().contiguous())
         self.register_buffer("mean_hat", mean.detach().clone())
+        self.register_buffer("noise_covariance", cov.to(modes.dtype).contiguous())
+        self.register_buffer("prior_precision", precision.to(modes.dtype))
         v = modes.detach().to(torch.float64)
-        gram = v.T @ v + self.ridge * torch.eye(n_m, dtype=torch.float64)
-        self.register_buffer("solve_matrix", torch.linalg.solve(gram, v.T).to(modes.dtype).contiguous())
+        weighted = torch.linalg.solve(cov, v).T                                    # V_hat^T R^-1 (n_m, n_w)
+        self.register_buffer("solve_matrix", torch.linalg.solve(self._gram(v, weighted, precision), weighted)
+                             .to(modes.dtype).contiguous())
+
+    @staticmethod
+    def _gram(v: torch.Tensor, weighted: torch.Tensor, precision: torch.Tensor) -> torch.Tensor:
+        """G = V_hat^T R^-1 V_hat + diag(prior precision), float64."""
+        return weighted @ v + torch.diag(precision)
 
     @property
     def n_points(self) -> int:
@@ -103,17 +143,20 @@ class GappyPOD(nn.Module):
         w = valid.to(samples.dtype)
         count = w.sum(-1)
         vm = self.modes_hat.unsqueeze(0) * w.unsqueeze(-1)                        # (B, n_w, n_m)
-        gram = vm.transpose(1, 2) @ vm
+        if self.bayesian:   # R restricted to the present samples (identity rows/columns for the missing)
+            cov = self.noise_covariance * (w.unsqueeze(-1) * w.unsqueeze(-2)) + torch.diag_embed(1.0 - w)
+            weighted = torch.cholesky_solve(vm, torch.linalg.cholesky(cov)).transpose(1, 2)   # (B, n_m, n_w)
+        else:
+            weighted = vm.transpose(1, 2)
+        gram = weighted @ vm + torch.diag(self.prior_precision)
         eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
-        if self.ridge > 0.0:
-            gram = gram + self.ridge * eye
-        rhs = vm.transpose(1, 2) @ centred.unsqueeze(-1)                          # (B, n_m, 1)
+        rhs = weighted @ centred.unsqueeze(-1)                                     # (B, n_m, 1)
         factor, info = torch.linalg.cholesky_ex(gram)
         pivots = torch.diagonal(factor, dim1=-2, dim2=-1)
         # Numerically singular too: squared pivot ratio (~ 1 / cond G) below n_m machine epsilons.
         eps = 2.220446049250313e-16 if gram.dtype == torch.float64 else 1.1920928955078125e-07
         ok = (info == 0) & ((pivots.amin(-1) / pivots.amax(-1)).pow(2) > gram.shape[-1] * eps)
-        if self.ridge == 0.0:
+        if self.ridge == 0.0 and not self.bayesian:
             ok = ok & (count >= gram.shape[-1])
         # A signal whose present samples cannot determine the modes gets NaN coefficients and an infinite
         # residual (flagged out of distribution) instead of failing the batch; its system is replaced by
@@ -130,10 +173,40 @@ class GappyPOD(nn.Module):
         return self.mean_hat + alpha @ self.modes_hat.T
 
     def condition_number(self) -> float:
-        """2-norm condition number of the complete gappy matrix G = V_hat^T V_hat (+ ridge I)."""
+        """2-norm condition number of the complete gappy matrix G = V_hat^T R^-1 V_hat + diag(prior precision)
+        (V_hat^T V_hat + ridge I for least squares)."""
         v = self.modes_hat.to(torch.float64)
-        gram = v.T @ v + self.ridge * torch.eye(v.shape[1], dtype=torch.float64)
-        return float(torch.linalg.cond(gram))
+        weighted = torch.linalg.solve(self.noise_covariance.to(torch.float64), v).T
+        return float(torch.linalg.cond(self._gram(v, weighted, self.prior_precision.to(torch.float64))))
 
     def extra_repr(self) -> str:
-        return f"n_points={self.n_points}, n_modes={self.n_modes}, ridge={self.ridge}"
+        return f"n_points={self.n_points}, n_modes={self.n_modes}, ridge={self.ridge}, bayesian={self.bayesian}"
+
+
+@torch.no_grad()
+def gappy_statistics(snapshots: torch.Tensor, modes: torch.Tensor, mean: torch.Tensor, indices: torch.Tensor,
+                     noise_std: float = 0.0, chunk: int = 2048) -> dict[str, torch.Tensor]:
+    """The Bayesian gappy layer's statistics from training snapshots.
+
+    Args:
+        snapshots: (N, n_e) training records [signal unit].  modes: (n_e, n_m).  mean: (n_e,).
+        indices: (n_w,) selected samples.
+        noise_std: measurement noise std [signal unit], added as noise_std^2 I to R.
+
+    Returns:
+        ``noise_covariance`` (n_w, n_w): covariance over the snapshots of the samples' part that the
+        modes leave out, f_hat - y0_hat - V_hat alpha_full (+ noise_std^2 I); ``prior_variance`` (n_m,):
+        variance of the full-projection coefficients alpha_full. Float64.
+    """
+    v = modes.to(torch.float64)
+    idx = torch.as_tensor(indices, dtype=torch.long)
+    alphas, resids = [], []
+    for start in range(0, snapshots.shape[0], chunk):   # the records stay in their dtype; blocks in float64
+        c = snapshots[start:start + chunk].to(torch.float64) - mean.to(torch.float64)
+        a = c @ v
+        alphas.append(a)
+        resids.append(c[:, idx] - a @ v[idx].T)
+    alpha, resid = torch.cat(alphas), torch.cat(resids)
+    cov = torch.cov(resid.T).reshape(idx.numel(), idx.numel())
+    cov = cov + noise_std ** 2 * torch.eye(idx.numel(), dtype=torch.float64)
+    return {"noise_covariance": cov, "prior_variance": alpha.var(0)}
