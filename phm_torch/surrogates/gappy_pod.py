@@ -143,9 +143,13 @@ class GappyPOD(nn.Module):
         w = valid.to(samples.dtype)
         count = w.sum(-1)
         vm = self.modes_hat.unsqueeze(0) * w.unsqueeze(-1)                        # (B, n_w, n_m)
-        if self.bayesian:   # R restricted to the present samples (identity rows/columns for the missing)
-            cov = self.noise_covariance * (w.unsqueeze(-1) * w.unsqueeze(-2)) + torch.diag_embed(1.0 - w)
-            weighted = torch.cholesky_solve(vm, torch.linalg.cholesky(cov)).transpose(1, 2)   # (B, n_m, n_w)
+        if self.bayesian:   # R restricted to the present samples (identity rows/columns for the missing),
+            # factorised in float64: R's spread of scales (truncated modes + noise) can defeat float32
+            w64 = w.to(torch.float64)
+            cov = self.noise_covariance.to(torch.float64) * (w64.unsqueeze(-1) * w64.unsqueeze(-2)) \
+                + torch.diag_embed(1.0 - w64)
+            weighted = torch.cholesky_solve(vm.to(torch.float64), torch.linalg.cholesky(cov))
+            weighted = weighted.transpose(1, 2).to(vm.dtype)                             # (B, n_m, n_w)
         else:
             weighted = vm.transpose(1, 2)
         gram = weighted @ vm + torch.diag(self.prior_precision)
