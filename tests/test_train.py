@@ -158,6 +158,9 @@ def test_best_experiment_composes(compose):
     cfg = compose("train", ["experiment=surrogates_best"])
     assert cfg.selector._target_.endswith("MinErrorSelector") and cfg.model.optimizer == "adam"
     assert (cfg.n_modes, cfg.n_points, cfg.n_hidden) == (40, 100, 100)
+    robust = compose("train", ["experiment=robust_30_points"])
+    assert robust.gappy.estimator == "bayesian" and robust.model.end_to_end and robust.model.optimizer == "adam"
+    assert (robust.n_modes, robust.n_points, robust.selector._target_.rsplit(".", 1)[-1]) == (22, 30, "SOMSelector")
 
 
 def test_multirun_jobs_write_into_their_own_directories(store, run_cli, tmp_path):
