@@ -167,6 +167,26 @@ def test_err_k_as_the_paper_defines_it():
     assert fdi_mae(k_est, k_act, weighted=True)[6] == pytest.approx(0.1)
 
 
+def test_err_k_by_fault_count_splits_the_paper_err_k():
+    from phm_torch.surrogates.metrics import err_k_by_fault_count
+
+    g = torch.Generator().manual_seed(0)
+    k_act = torch.rand(400, 8, generator=g, dtype=torch.float64) ** 3
+    k_est = (k_act + 0.05 * torch.randn(400, 8, generator=g, dtype=torch.float64)).clamp(0, 1)
+    k_act[0] = torch.tensor([0.9, 0.9, 0.9, 0.0, 0.0, 0.0, 0.9, 0.0])      # 3 large, k7 not counted
+    k_act[1] = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.9, 0.31])     # 1 large
+    groups = err_k_by_fault_count(k_est, k_act)
+    assert list(groups) == ["0", "1", "2", "3+"]
+    assert sum(v["n"] for v in groups.values()) == 400
+    assert sum(v["share_of_squared_error"] for v in groups.values()) == pytest.approx(1.0)
+    # the groups recombine into the paper's err_k
+    total = sum(v["n"] * v["err_k"] ** 2 for v in groups.values() if v["n"]) / 400
+    assert math.sqrt(total) == pytest.approx(err_k(k_est, k_act))
+    alone = err_k_by_fault_count(k_est[:2], k_act[:2])
+    assert (alone["3+"]["n"], alone["1"]["n"], alone["0"]["n"]) == (1, 1, 0) and math.isnan(alone["0"]["err_k"])
+    assert alone["3+"]["err_k"] == pytest.approx(err_k(k_est[:1], k_act[:1]))
+
+
 def test_err_alpha():
     full = torch.tensor([[0.0, 1.0, 2.0, 4.0]])
     gappy = full + torch.tensor([[0.1, -0.1, 0.1, -0.1]])

@@ -47,6 +47,7 @@ def test_metrics_json(lm_run):
     assert written["classifier_accuracy"] > 0.85
     assert written["fdi_latency_us_p50"] > 0
     assert written["err_k_noise"] >= 0 and written["err_k_missing"] >= 0
+    assert set(written["err_k_by_fault_count"]) == {"0", "1", "2", "3+"}
     assert (objects["out_dir"] / "logs").is_dir()              # CSV logger
     assert list((objects["out_dir"] / "checkpoints").glob("*.ckpt"))
 
