@@ -129,6 +129,22 @@ def test_missing_split_and_config_errors(compose, tmp_path):
         train_surrogates(compose("train", [f"data_dir={tmp_path / 'nothing'}", *QUICK]))
     with pytest.raises(ValueError, match="loggers must be a list"):
         train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "loggers=[wandb]"]))
+    with pytest.raises(ValueError, match="threads"):
+        train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "threads=0"]))
+
+
+def test_threads_setting(compose):
+    from phm_torch.apps import common
+
+    before = torch.get_num_threads()
+    try:
+        common.set_threads(compose("train", ["threads=1"]))
+        assert torch.get_num_threads() == 1
+        common.set_threads(compose("train"))                      # null: left alone
+        assert torch.get_num_threads() == 1
+        assert compose("evaluate").threads is None
+    finally:
+        torch.set_num_threads(before)
 
 
 def test_cli_reports_a_missing_store(run_cli, tmp_path):

@@ -99,6 +99,13 @@ def fidelity(value: Any) -> str:
     return str(value)
 
 
+def set_threads(cfg: DictConfig) -> None:
+    """Apply ``cfg.threads`` (torch intra-op threads; absent or null leaves torch's setting alone)."""
+    threads = cfg.get("threads")
+    if threads is not None:
+        torch.set_num_threads(integer(threads, "threads", 1))
+
+
 def device(value: Any) -> torch.device:
     try:
         dev = torch.device(str(value))

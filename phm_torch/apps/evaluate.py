@@ -67,6 +67,7 @@ def _fdi_band(cfg: DictConfig, pipeline: OnlinePipeline, signals: torch.Tensor, 
 
 def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Evaluate the RUL estimation (see :mod:`phm_torch.prognostics.evaluation` for the definitions)."""
+    common.set_threads(cfg)
     params = common.actuator(cfg)
     damage = common.build(cfg.damage, "damage", nominal=list(params.nominal_faults))
     out_dir = Path(cfg.out_dir)

@@ -86,9 +86,7 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     stage = cfg.get("stage", "all")
     if stage not in gen.STAGES:
         raise ValueError(f"stage must be one of {list(gen.STAGES)}, got {stage!r}")
-    threads = cfg.get("threads")
-    if threads is not None:
-        torch.set_num_threads(common.integer(threads, "threads", 1))
+    common.set_threads(cfg)
     if not isinstance(cfg.data_dir, str) or not cfg.data_dir.strip():
         raise ValueError(f"data_dir must be a directory path, got {cfg.data_dir!r}")
     data_dir = Path(cfg.data_dir).expanduser().resolve()

@@ -160,6 +160,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         ``selector``, ``module`` (the FDIModule), ``trainer``, ``arrays`` (validation predictions, saved
         as ``out_dir/predictions.pt``), ``out_dir``.
     """
+    common.set_threads(cfg)
     seed = common.integer(cfg.seed, "seed", 0)
     n_modes = common.integer(cfg.n_modes, "n_modes", 1)
     n_points = common.integer(cfg.n_points, "n_points", 1)
