@@ -62,14 +62,13 @@ def err_k_by_fault_count(k_est: torch.Tensor, k_act: torch.Tensor, level: float 
         {group: {"n": signals, "share": fraction of the signals, "err_k": err_k of the group (NaN if empty),
         "share_of_squared_error": the group's part of the total squared error}}.
     """
-    _check_k(k_est, k_act)
+    squared = err_k_per_signal(k_est, k_act).pow(2)            # per-signal mean weighted squared error
     damage = torch.cat([k_act[:, :ECC_PHASE], k_act[:, ECC_PHASE + 1:]], 1)
     count = (damage > level).sum(1)
-    squared = (err_k_weights(k_act) * (k_est - k_act).pow(2)).sum(1)
     total = float(squared.sum()) or 1.0
     groups = {"0": count == 0, "1": count == 1, "2": count == 2, "3+": count >= 3}
     return {name: {"n": int(m.sum()), "share": float(m.double().mean()),
-                   "err_k": float((squared[m] / k_act.shape[1]).mean().sqrt()) if bool(m.any()) else float("nan"),
+                   "err_k": float(squared[m].mean().sqrt()) if bool(m.any()) else float("nan"),
                    "share_of_squared_error": float(squared[m].sum()) / total}
             for name, m in groups.items()}
 

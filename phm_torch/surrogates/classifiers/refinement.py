@@ -2,8 +2,8 @@
 
 A classifier trained on importance-sampled labels errs almost only near its decision boundary f(k) = 0,
 where those labels are sparse: on the paper store ~80 % of its errors lie within |logit| < 2.8, which
-holds 7.5 % of the importance-sampled vectors (its accuracy there is 78 %). The assessment function phi_a is cheap (~2.5 ms a
-vector), so each round:
+holds 7.5 % of the importance-sampled vectors (its accuracy there is 78 %). The assessment function
+phi_a is cheap (~2.5 ms a vector), so each round:
 
 1. draws ``candidates_per_label * n`` fault vectors from the training distribution (the store's
    importance sampler, a fresh seed stream per round),
@@ -55,11 +55,10 @@ class BoundaryRefinement:
     candidates_per_label: int
 
     def __post_init__(self) -> None:
-        for name in ("rounds", "candidates_per_label"):
+        for name, minimum in (("rounds", 0), ("candidates_per_label", 1)):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "rounds" else 1):
-                raise ValueError(f"classifier_refine.{name} must be an integer >= {0 if name == 'rounds' else 1}, "
-                                 f"got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+                raise ValueError(f"classifier_refine.{name} must be an integer >= {minimum}, got {value!r}")
         v = self.labels_per_round
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
             raise ValueError(f"classifier_refine.labels_per_round must be a number > 0, got {v!r}")
