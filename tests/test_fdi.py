@@ -48,11 +48,31 @@ def test_network_form():
     assert float(out.min()) >= 0.0 and float(out.max()) <= 1.0                             # satlin
     with pytest.raises(ValueError, match="fdi.n_hidden must be a positive integer"):
         FDIMLP(4, 0)
+    with pytest.raises(ValueError, match="fdi.n_layers must be a positive integer, got 0"):
+        FDIMLP(4, 7, n_layers=0)
 
 
-def test_lm_normal_equations_match_autograd_jacobian():
+def test_deeper_network_form_and_torchscript():
     torch.manual_seed(0)
-    net = FDIMLP(3, 4).double()
+    net = FDIMLP(4, 7, n_layers=3)
+    x = torch.randn(50, 4)
+    net.set_normalization(x)
+    z = (x - net.in_center) / net.in_scale
+    h = torch.tanh(net.hidden(z))
+    for layer in net.deeper:
+        h = torch.tanh(layer(h))
+    assert len(net.deeper) == 2 and torch.allclose(net.preactivation(x), net.output(h), atol=1e-6)
+    scripted = torch.jit.script(net)
+    assert torch.equal(scripted(x), net(x))
+    # a one-layer state dict (the paper's network, older bundles) has the same keys as before the option
+    assert set(FDIMLP(4, 7).state_dict()) == {"hidden.weight", "hidden.bias", "output.weight", "output.bias",
+                                              "in_center", "in_scale"}
+
+
+@pytest.mark.parametrize("n_layers", [1, 2])
+def test_lm_normal_equations_match_autograd_jacobian(n_layers):
+    torch.manual_seed(0)
+    net = FDIMLP(3, 4, n_layers=n_layers).double()
     x, y = torch.randn(5, 3, dtype=torch.float64), torch.rand(5, 8, dtype=torch.float64)
     w = torch.rand(5, 8, dtype=torch.float64)
     lm = LevenbergMarquardt(net, forward_name="preactivation", chunk=2)
@@ -151,6 +171,11 @@ def test_checkpoint_from_another_configuration():
     ckpt = {"hyper_parameters": dict(small.hparams), "state_dict": small.state_dict()}
     with pytest.raises(ValueError, match="checkpoint from another configuration: n_hidden=5 in the checkpoint vs 7"):
         other.on_load_checkpoint(ckpt)
+    deeper = FDIModule(FDIMLP(10, 5, n_layers=2))
+    old = {k: v for k, v in ckpt["hyper_parameters"].items() if k != "n_layers"}   # before the option
+    small.on_load_checkpoint({**ckpt, "hyper_parameters": old})
+    with pytest.raises(ValueError, match="n_layers=1 in the checkpoint vs 2 now"):
+        deeper.on_load_checkpoint({**ckpt, "hyper_parameters": old})
 
 
 def test_err_k_as_the_paper_defines_it():
@@ -185,6 +210,11 @@ def test_err_k_by_fault_count_splits_the_paper_err_k():
     alone = err_k_by_fault_count(k_est[:2], k_act[:2])
     assert (alone["3+"]["n"], alone["1"]["n"], alone["0"]["n"]) == (1, 1, 0) and math.isnan(alone["0"]["err_k"])
     assert alone["3+"]["err_k"] == pytest.approx(err_k(k_est[:1], k_act[:1]))
+    # measured from the healthy vector: k8 = 0.5 is no damage, k8 = 0.1 is (a gain drift below nominal)
+    nominal = torch.tensor([0, 0, 0, 0, 0, 0, 0.5, 0.5], dtype=torch.float64)
+    k_act[1, 7], k_act[2] = 0.5, torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.1])
+    drift = err_k_by_fault_count(k_est[:3], k_act[:3], nominal)
+    assert (drift["3+"]["n"], drift["1"]["n"], drift["0"]["n"]) == (1, 1, 1)
 
 
 def test_err_alpha():

@@ -96,13 +96,25 @@ def test_bundle_from_another_configuration(lm_run, tmp_path):
         SurrogateBundle.load(junk)
     with pytest.raises(ValueError, match="does not exist"):
         SurrogateBundle.load(tmp_path / "missing.pt")
+    # a bundle written before the n_layers option has one hidden layer
+    blob = torch.load(path, weights_only=True)
+    del blob["meta"]["n_layers"]
+    old = tmp_path / "old.pt"
+    torch.save(blob, old)
+    assert SurrogateBundle.load(old, expect={"n_layers": 1}).network.n_layers == 1
+    with pytest.raises(ValueError, match="n_layers=1 in the file, 2 expected"):
+        SurrogateBundle.load(old, expect={"n_layers": 2})
 
 
 def test_end_to_end_adam_and_resume_mismatch(store, compose, tmp_path):
     over = [f"data_dir={store}", f"out_dir={tmp_path / 'e2e'}", *QUICK, "model=fdi_e2e", "model.fit.max_epochs=80",
-            "selector=greedy", "loggers=[csv]"]
+            "selector=greedy", "loggers=[csv]", "+model.network.n_layers=2"]
     metrics, objects = train_surrogates(compose("train", over))
     assert metrics["model"] == "adam_e2e" and math.isfinite(metrics["err_k"]) and metrics["err_k"] < 0.1
+    assert metrics["n_layers"] == 2
+    bundle = SurrogateBundle.load(objects["out_dir"] / "surrogates.pt", expect={"n_layers": 2})
+    x = bundle.compress(torch.stack([bundle.pod.mean_] * 3) + 0.01)
+    assert torch.equal(torch.jit.script(bundle)(x), bundle.fdi(x))
     last = objects["out_dir"] / "checkpoints" / "last.ckpt"
     assert last.is_file()
     with pytest.raises(ValueError, match="checkpoint from another configuration: n_hidden=12 in the checkpoint vs 9"):

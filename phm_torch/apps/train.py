@@ -274,7 +274,10 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     timing["classifier_fit_s"] = time.perf_counter() - t0 - refine_info["assess_s"]
     timing["classifier_refine_assess_s"] = refine_info["assess_s"]
 
-    metrics, arrays = evaluate_fdi(pod, gappy, network, val.current, val.k, noise, missing, seed)
+    store_cfg = info["metadata"].get("config") or {}
+    nominal = (torch.tensor(common.actuator(DictConfig(store_cfg)).nominal_faults) if "actuator" in store_cfg
+               else None)
+    metrics, arrays = evaluate_fdi(pod, gappy, network, val.current, val.k, noise, missing, seed, nominal)
     t0 = time.perf_counter()
     with torch.no_grad():
         network(gappy(samples_va)[0])
@@ -294,6 +297,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                              .double().mean()) if len(val) else float("nan")
     metrics.update(
         n_train=len(train), n_val=len(val), n_modes=n_modes, n_points=n_points, n_hidden=n_hidden,
+        n_layers=network.n_layers,
         selector=selector.name, selector_params=selector.get_params(), classifier=classifier.name,
         gappy_estimator=estimator,
         model=module.optimizer_name + ("_e2e" if end_to_end else ""), fdi_inputs=fit["inputs"],

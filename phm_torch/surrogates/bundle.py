@@ -19,7 +19,7 @@ File format (``save``/``load``): one ``torch.save`` file holding only plain cont
 float, bool, None and tensors, read back with ``torch.load(weights_only=True)`` (never unpickled)::
 
     {"format": "phm_torch.surrogate_bundle", "version": 1,
-     "meta": {"n_samples", "n_modes", "n_points", "n_hidden", "input_scaling", "sample_rate", "signal", "unit",
+     "meta": {"n_samples", "n_modes", "n_points", "n_hidden", "n_layers", "input_scaling", "sample_rate", "signal", "unit",
               "fault_names", "health_convention", "selector": {"name", "params"},
               "classifier": {"name", "params"}, "gappy_ridge", "phm_torch_version", "extra": {...}},
      "tensors": {"pod.mean_", "pod.modes_", "pod.singular_values_", "pod.energy_", "indices",
@@ -49,7 +49,7 @@ from .pod import POD
 FORMAT = "phm_torch.surrogate_bundle"
 VERSION = 1
 HEALTH_CONVENTION = "health_score > 0: healthy; < 0: faulty"
-COMPARED = ("n_samples", "n_modes", "n_points", "n_hidden")
+COMPARED = ("n_samples", "n_modes", "n_points", "n_hidden", "n_layers")
 
 
 class SurrogateBundle(nn.Module):
@@ -134,6 +134,7 @@ class SurrogateBundle(nn.Module):
         """The ``meta`` block of the file (plain JSON-able values)."""
         return {"n_samples": int(self.pod.mean_.shape[0]), "n_modes": self.pod.n_modes,
                 "n_points": self.gappy.n_points, "n_hidden": self.network.n_hidden,
+                "n_layers": self.network.n_layers,
                 "input_scaling": self.network.input_scaling, "sample_rate": self.sample_rate,
                 "signal": "current", "unit": "A", "fault_names": list(FAULT_NAMES),
                 "health_convention": HEALTH_CONVENTION, "selector": self.selector_info,
@@ -164,7 +165,7 @@ class SurrogateBundle(nn.Module):
 
         Args:
             expect: values the caller's configuration requires, e.g. ``{"n_modes": 22, "n_points": 30}``
-                (keys among n_samples, n_modes, n_points, n_hidden); a mismatch is a ValueError naming
+                (keys among n_samples, n_modes, n_points, n_hidden, n_layers); a mismatch is a ValueError naming
                 the field (a checkpoint from another configuration).
         """
         path = Path(path)
@@ -180,6 +181,8 @@ class SurrogateBundle(nn.Module):
         if blob.get("version") != VERSION:
             raise ValueError(f"{path}: bundle version {blob.get('version')!r} is not supported (expected {VERSION})")
         meta, t = blob.get("meta"), blob.get("tensors")
+        if isinstance(meta, dict):
+            meta.setdefault("n_layers", 1)          # bundles written before the option: one hidden layer
         required = (*COMPARED, "input_scaling", "sample_rate", "selector", "classifier", "gappy_ridge", "extra")
         missing = [k for k in required if not isinstance(meta, dict) or k not in meta]
         if missing or not isinstance(t, dict):
@@ -197,7 +200,7 @@ class SurrogateBundle(nn.Module):
         if tuple(pod.modes_.shape) != (meta["n_samples"], n_m):
             raise ValueError(f"{path}: pod.modes_ has shape {tuple(pod.modes_.shape)}, meta says "
                              f"({meta['n_samples']}, {n_m})")
-        network = FDIMLP(n_m, meta["n_hidden"], input_scaling=meta["input_scaling"])
+        network = FDIMLP(n_m, meta["n_hidden"], input_scaling=meta["input_scaling"], n_layers=meta["n_layers"])
         network.load_state_dict(_prefixed(t, "network."))
         spec = meta["classifier"]
         if spec["name"] not in CLASSIFIERS:

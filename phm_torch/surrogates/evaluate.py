@@ -23,11 +23,13 @@ def quartiles(x: torch.Tensor) -> dict[str, float]:
 
 @torch.no_grad()
 def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tensor, k: torch.Tensor, noise: float,
-                 missing: int, seed: int) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+                 missing: int, seed: int, nominal: torch.Tensor | None = None
+                 ) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
     """Coefficient and fault-identification errors on full records ``current`` (n, n_e) with faults k (n, 8):
     clean, with relative noise ``noise`` (fraction of each signal's RMS current) and with ``missing``
     random samples missing per signal (skipped, its metrics None, when fewer samples than modes would
     remain). Signals whose gappy system is singular (``unsolved_rate*``) are left out of the errors.
+    ``nominal`` (8,) is the healthy fault vector for ``err_k_by_fault_count``.
     Returns (metrics, arrays for plots)."""
     alpha_full = pod(current)
     samples = gappy.select(current)
@@ -54,7 +56,7 @@ def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tens
     out["fdi_mae"] = fdi_mae(arrays["k_hat"], k)
     out["fdi_mae_weighted"] = fdi_mae(arrays["k_hat"], k, weighted=True)
     out["err_k_median_per_signal"] = float(err_k_per_signal(arrays["k_hat"], k).median())
-    out["err_k_by_fault_count"] = err_k_by_fault_count(arrays["k_hat"], k)
+    out["err_k_by_fault_count"] = err_k_by_fault_count(arrays["k_hat"], k, nominal)
     out["fdi_mae_noise"] = fdi_mae(arrays["k_hat_noise"], k)  # noise never makes a system singular
     if "k_hat_missing" in arrays:
         solved = torch.isfinite(arrays["k_hat_missing"]).all(-1)

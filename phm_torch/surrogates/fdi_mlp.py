@@ -1,6 +1,6 @@
 """The seed paper's FDI network: POD coefficients -> fault vector k.
 
-One hidden layer of ``tansig`` neurons (tansig(x) = 2 / (1 + exp(-2x)) - 1, which is tanh) and an
+One hidden layer (``n_layers``, default 1; more is this project's option) of ``tansig`` neurons (tansig(x) = 2 / (1 + exp(-2x)) - 1, which is tanh) and an
 output layer of saturated-linear neurons (``satlin``: clamp to [0, 1]), as MATLAB's feedforward net.
 The inputs are scaled per coefficient with statistics of the training set, kept as buffers so the
 module is self-contained: ``minmax`` maps the training range to [-1, 1] (MATLAB's ``mapminmax``, the
@@ -28,21 +28,27 @@ class FDIMLP(nn.Module):
 
     Args:
         n_inputs: number of POD coefficients n_m.
-        n_hidden: hidden tansig neurons (paper: 20).
+        n_hidden: tansig neurons per hidden layer (paper: 20).
         n_outputs: fault parameters (8).
         input_scaling: ``minmax`` or ``robust`` (see the module note).
+        n_layers: hidden layers (paper: 1). On the paper-scale HF store a second layer lowers err_k
+            where several large faults interact (docs/surrogates.md).
     """
 
-    def __init__(self, n_inputs: int, n_hidden: int = 20, n_outputs: int = N_FAULTS, input_scaling: str = "minmax"):
+    def __init__(self, n_inputs: int, n_hidden: int = 20, n_outputs: int = N_FAULTS, input_scaling: str = "minmax",
+                 n_layers: int = 1):
         super().__init__()
         if input_scaling not in SCALINGS:
             raise ValueError(f"fdi.input_scaling must be one of {list(SCALINGS)}, got {input_scaling!r}")
         self.input_scaling = input_scaling
-        for name, v in (("n_inputs", n_inputs), ("n_hidden", n_hidden), ("n_outputs", n_outputs)):
+        for name, v in (("n_inputs", n_inputs), ("n_hidden", n_hidden), ("n_outputs", n_outputs),
+                        ("n_layers", n_layers)):
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"fdi.{name} must be a positive integer, got {v!r}")
-        self.n_inputs, self.n_hidden, self.n_outputs = n_inputs, n_hidden, n_outputs
+        self.n_inputs, self.n_hidden, self.n_outputs, self.n_layers = n_inputs, n_hidden, n_outputs, n_layers
         self.hidden = nn.Linear(n_inputs, n_hidden)
+        # the first layer keeps its name, so single-layer state dicts (the paper's network) load unchanged
+        self.deeper = nn.ModuleList([nn.Linear(n_hidden, n_hidden) for _ in range(n_layers - 1)])
         self.output = nn.Linear(n_hidden, n_outputs)
         self.register_buffer("in_center", torch.zeros(n_inputs))
         self.register_buffer("in_scale", torch.ones(n_inputs))
@@ -64,13 +70,15 @@ class FDIMLP(nn.Module):
 
     def preactivation(self, alpha: torch.Tensor) -> torch.Tensor:
         """Output-layer values before saturation (B, 8)."""
-        x = (alpha - self.in_center) / self.in_scale
-        return self.output(torch.tanh(self.hidden(x)))
+        h = torch.tanh(self.hidden((alpha - self.in_center) / self.in_scale))
+        for layer in self.deeper:
+            h = torch.tanh(layer(h))
+        return self.output(h)
 
     def forward(self, alpha: torch.Tensor) -> torch.Tensor:
         """k_hat (B, 8) in [0, 1] (satlin output)."""
         return self.preactivation(alpha).clamp(0.0, 1.0)
 
     def extra_repr(self) -> str:
-        return (f"n_inputs={self.n_inputs}, n_hidden={self.n_hidden}, n_outputs={self.n_outputs}, "
-                f"input_scaling={self.input_scaling}")
+        return (f"n_inputs={self.n_inputs}, n_hidden={self.n_hidden}, n_layers={self.n_layers}, "
+                f"n_outputs={self.n_outputs}, input_scaling={self.input_scaling}")

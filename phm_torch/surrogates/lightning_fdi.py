@@ -62,6 +62,7 @@ class FDIModule(L.LightningModule):
         self.loss_weighting = loss_weighting
         # Plain values only: they identify the architecture when a checkpoint is resumed.
         self.save_hyperparameters({"n_inputs": network.n_inputs, "n_hidden": network.n_hidden,
+                                   "n_layers": network.n_layers,
                                    "optimizer": optimizer, "end_to_end": gappy is not None,
                                    "n_points": gappy.n_points if gappy is not None else None})
         if optimizer == "lm":
@@ -129,7 +130,7 @@ class FDIModule(L.LightningModule):
             checkpoint["lm_mu"] = self.lm.mu
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        saved = checkpoint.get("hyper_parameters", {})
+        saved = {"n_layers": 1, **checkpoint.get("hyper_parameters", {})}   # older checkpoints: one layer
         mine = dict(self.hparams)
         diff = {k: (saved.get(k), v) for k, v in mine.items() if saved.get(k) != v}
         if diff:

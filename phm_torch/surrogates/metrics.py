@@ -51,20 +51,34 @@ def err_k_per_signal(k_est: torch.Tensor, k_act: torch.Tensor) -> torch.Tensor:
     return (err_k_weights(k_act) * (k_est - k_act).pow(2)).mean(-1).sqrt()
 
 
-def err_k_by_fault_count(k_est: torch.Tensor, k_act: torch.Tensor, level: float = 0.3) -> dict[str, dict[str, float]]:
+def fault_count(k: torch.Tensor, nominal: torch.Tensor | None = None, level: float = 0.3) -> torch.Tensor:
+    """(B,) how many damage parameters of k (B, 8) exceed ``level``: |k - nominal| > level, the
+    eccentricity phase k7 not counted (nominal None: k itself)."""
+    damage = k if nominal is None else (k - torch.as_tensor(nominal, dtype=k.dtype, device=k.device)).abs()
+    return (torch.cat([damage[:, :ECC_PHASE], damage[:, ECC_PHASE + 1:]], 1) > level).sum(1)
+
+
+def err_k_by_fault_count(k_est: torch.Tensor, k_act: torch.Tensor, nominal: torch.Tensor | None = None,
+                         level: float = 0.3) -> dict[str, dict[str, float]]:
     """err_k split by how many damage parameters are large at once: where the FDI fails.
 
-    Counts, per signal, the parameters other than the eccentricity phase k7 with k_act > ``level`` and
-    groups the signals as "0", "1", "2", "3+". Heavy simultaneous faults drive the current to its limit
-    and make the parameters hard to tell apart, so err_k grows with the count.
+    Counts, per signal, the parameters other than the eccentricity phase k7 whose damage
+    |k_act - nominal| exceeds ``level`` (the gain drift k8 is a damage on either side of its nominal
+    0.5), and groups the signals as "0", "1", "2", "3+". Heavy simultaneous faults drive the current to
+    its limit and make the parameters hard to tell apart, so err_k grows with the count.
+
+    Args:
+        k_est, k_act: (B, 8) estimated and actual fault vectors.
+        nominal: (8,) the healthy fault vector k_0 (the actuator's ``nominal_faults``); None counts
+            k_act itself (a store that does not record its actuator).
+        level: damage above which a parameter counts as a large fault.
 
     Returns:
         {group: {"n": signals, "share": fraction of the signals, "err_k": err_k of the group (NaN if empty),
         "share_of_squared_error": the group's part of the total squared error}}.
     """
     squared = err_k_per_signal(k_est, k_act).pow(2)            # per-signal mean weighted squared error
-    damage = torch.cat([k_act[:, :ECC_PHASE], k_act[:, ECC_PHASE + 1:]], 1)
-    count = (damage > level).sum(1)
+    count = fault_count(k_act, nominal, level)
     total = float(squared.sum()) or 1.0
     groups = {"0": count == 0, "1": count == 1, "2": count == 2, "3+": count >= 3}
     return {name: {"n": int(m.sum()), "share": float(m.double().mean()),
