@@ -186,7 +186,8 @@ def test_sweep_configs(name, key, values):
 def test_best_experiment_composes(compose):
     cfg = compose("train", ["experiment=surrogates_best"])
     assert cfg.selector._target_.endswith("MinErrorSelector") and cfg.model.optimizer == "adam"
-    assert (cfg.n_modes, cfg.n_points, cfg.n_hidden) == (40, 100, 100)
+    assert (cfg.n_modes, cfg.n_points, cfg.n_hidden, cfg.model.network.n_layers) == (40, 100, 256, 2)
+    assert cfg.model.network.input_scaling == "robust"          # the model group's own setting is kept
     robust = compose("train", ["experiment=robust_30_points"])
     assert robust.gappy.estimator == "bayesian" and robust.model.end_to_end and robust.model.optimizer == "adam"
     assert (robust.n_modes, robust.n_points, robust.selector._target_.rsplit(".", 1)[-1]) == (22, 30, "SOMSelector")
