@@ -9,7 +9,7 @@ the median RMS change of the envelope current per step and the linearity ratio o
 of the group.
 
 Usage: python scripts/fdi_identifiability.py --data-dir data/paper [--predictions results/train/predictions.pt]
-           [--per-group 24] [--out results/fdi_identifiability.json]
+           [--per-group 34] [--out results/fdi_identifiability.json]
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ def main() -> None:
     ap.add_argument("--data-dir", required=True)
     ap.add_argument("--split", default="val")
     ap.add_argument("--predictions", default=None)
-    ap.add_argument("--per-group", type=int, default=24)
+    ap.add_argument("--per-group", type=int, default=34)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default="results/fdi_identifiability.json")
