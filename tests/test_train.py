@@ -108,7 +108,7 @@ def test_bundle_from_another_configuration(lm_run, tmp_path):
 
 def test_end_to_end_adam_and_resume_mismatch(store, compose, tmp_path):
     over = [f"data_dir={store}", f"out_dir={tmp_path / 'e2e'}", *QUICK, "model=fdi_e2e", "model.fit.max_epochs=80",
-            "selector=greedy", "loggers=[csv]", "+model.network.n_layers=2"]
+            "selector=greedy", "loggers=[csv]", "n_layers=2"]
     metrics, objects = train_surrogates(compose("train", over))
     assert metrics["model"] == "adam_e2e" and math.isfinite(metrics["err_k"]) and metrics["err_k"] < 0.1
     assert metrics["n_layers"] == 2
@@ -143,6 +143,10 @@ def test_missing_split_and_config_errors(compose, tmp_path):
         train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "loggers=[wandb]"]))
     with pytest.raises(ValueError, match="threads"):
         train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "threads=0"]))
+    with pytest.raises(ValueError, match="n_layers must be >= 1, got 0"):
+        train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "n_layers=0"]))
+    with pytest.raises(ValueError, match="model.network.n_layers: set the top-level n_layers instead"):
+        train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "+model.network.n_layers=2"]))
 
 
 def test_threads_setting(compose):
@@ -186,7 +190,7 @@ def test_sweep_configs(name, key, values):
 def test_best_experiment_composes(compose):
     cfg = compose("train", ["experiment=surrogates_best"])
     assert cfg.selector._target_.endswith("MinErrorSelector") and cfg.model.optimizer == "adam"
-    assert (cfg.n_modes, cfg.n_points, cfg.n_hidden, cfg.model.network.n_layers) == (40, 100, 256, 2)
+    assert (cfg.n_modes, cfg.n_points, cfg.n_hidden, cfg.n_layers) == (40, 100, 256, 2)
     assert cfg.model.network.input_scaling == "robust"          # the model group's own setting is kept
     robust = compose("train", ["experiment=robust_30_points"])
     assert robust.gappy.estimator == "bayesian" and robust.model.end_to_end and robust.model.optimizer == "adam"

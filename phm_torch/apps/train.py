@@ -165,6 +165,11 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     n_modes = common.integer(cfg.n_modes, "n_modes", 1)
     n_points = common.integer(cfg.n_points, "n_points", 1)
     n_hidden = common.integer(cfg.n_hidden, "n_hidden", 1)
+    n_layers = common.integer(cfg.n_layers, "n_layers", 1)
+    network_kwargs = common.plain(cfg.model.get("network")) or {}
+    for key in ("n_inputs", "n_hidden", "n_layers"):
+        if key in network_kwargs:
+            raise ValueError(f"model.network.{key}: set the top-level {key} instead (one home per value)")
     ridge = common.number(cfg.gappy.ridge, "gappy.ridge", 0.0)
     estimator = str(cfg.gappy.estimator)
     if estimator not in ESTIMATORS:
@@ -226,7 +231,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         alpha_tr, _ = gappy(samples_tr)
         alpha_va, _ = gappy(samples_va)
         x_tr = alpha_tr if fit["inputs"] == "gappy" else pod(train.current)
-    network = FDIMLP(n_modes, n_hidden, **(common.plain(cfg.model.get("network")) or {})).set_normalization(x_tr)
+    network = FDIMLP(n_modes, n_hidden, n_layers=n_layers, **network_kwargs).set_normalization(x_tr)
     module: FDIModule = make_module(network=network, gappy=gappy if end_to_end else None)
     if module.optimizer_name == "lm":
         if fit["batch_size"] is not None:
@@ -297,7 +302,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                              .double().mean()) if len(val) else float("nan")
     metrics.update(
         n_train=len(train), n_val=len(val), n_modes=n_modes, n_points=n_points, n_hidden=n_hidden,
-        n_layers=network.n_layers,
+        n_layers=n_layers,
         selector=selector.name, selector_params=selector.get_params(), classifier=classifier.name,
         gappy_estimator=estimator,
         model=module.optimizer_name + ("_e2e" if end_to_end else ""), fdi_inputs=fit["inputs"],
