@@ -69,6 +69,31 @@ def test_deeper_network_form_and_torchscript():
                                               "in_center", "in_scale"}
 
 
+def test_ensemble_is_the_mean_of_independently_fitted_members():
+    from phm_torch.surrogates import FDIEnsemble, build_fdi_network
+
+    torch.manual_seed(0)
+    x, y = teacher_data(64, 0)
+    ens = build_fdi_network(6, 5, n_layers=2, n_members=3).set_normalization(x)
+    assert isinstance(ens, FDIEnsemble) and isinstance(build_fdi_network(6, 5), FDIMLP)
+    members = torch.stack([m(x) for m in ens.members])
+    assert torch.allclose(ens(x), members.mean(0), atol=1e-6)
+    assert torch.equal(torch.jit.script(ens)(x), ens(x))
+    # the training loss of the ensemble (FDIModule's) gives each member the gradient of its own loss
+    module = FDIModule(ens)
+    loss = module.training_step((x, y), 0)
+    loss.backward()
+    own = ens.members[1]
+    g_joint = own.hidden.weight.grad.clone()
+    own.zero_grad()
+    ((own.preactivation(x) - y).pow(2) * module._weights(y)).mean().div(3).backward()
+    assert torch.allclose(g_joint, own.hidden.weight.grad, atol=1e-7)
+    with pytest.raises(ValueError, match="n_members of an ensemble must be an integer >= 2, got 1"):
+        FDIEnsemble(6, 5, n_members=1)
+    with pytest.raises(ValueError, match="n_members=3: an ensemble trains with model.optimizer=adam"):
+        FDIModule(ens, optimizer="lm")
+
+
 @pytest.mark.parametrize("n_layers", [1, 2])
 def test_lm_normal_equations_match_autograd_jacobian(n_layers):
     torch.manual_seed(0)

@@ -98,21 +98,22 @@ def test_bundle_from_another_configuration(lm_run, tmp_path):
         SurrogateBundle.load(tmp_path / "missing.pt")
     # a bundle written before the n_layers option has one hidden layer
     blob = torch.load(path, weights_only=True)
-    del blob["meta"]["n_layers"]
+    del blob["meta"]["n_layers"], blob["meta"]["n_members"]
     old = tmp_path / "old.pt"
     torch.save(blob, old)
-    assert SurrogateBundle.load(old, expect={"n_layers": 1}).network.n_layers == 1
+    assert SurrogateBundle.load(old, expect={"n_layers": 1, "n_members": 1}).network.n_layers == 1
     with pytest.raises(ValueError, match="n_layers=1 in the file, 2 expected"):
         SurrogateBundle.load(old, expect={"n_layers": 2})
 
 
 def test_end_to_end_adam_and_resume_mismatch(store, compose, tmp_path):
     over = [f"data_dir={store}", f"out_dir={tmp_path / 'e2e'}", *QUICK, "model=fdi_e2e", "model.fit.max_epochs=80",
-            "selector=greedy", "loggers=[csv]", "n_layers=2"]
+            "selector=greedy", "loggers=[csv]", "n_layers=2", "n_members=2"]
     metrics, objects = train_surrogates(compose("train", over))
     assert metrics["model"] == "adam_e2e" and math.isfinite(metrics["err_k"]) and metrics["err_k"] < 0.1
-    assert metrics["n_layers"] == 2
-    bundle = SurrogateBundle.load(objects["out_dir"] / "surrogates.pt", expect={"n_layers": 2})
+    assert (metrics["n_layers"], metrics["n_members"]) == (2, 2)
+    bundle = SurrogateBundle.load(objects["out_dir"] / "surrogates.pt", expect={"n_layers": 2, "n_members": 2})
+    assert len(bundle.network.members) == 2
     x = bundle.compress(torch.stack([bundle.pod.mean_] * 3) + 0.01)
     assert torch.equal(torch.jit.script(bundle)(x), bundle.fdi(x))
     last = objects["out_dir"] / "checkpoints" / "last.ckpt"
@@ -145,6 +146,8 @@ def test_missing_split_and_config_errors(compose, tmp_path):
         train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "threads=0"]))
     with pytest.raises(ValueError, match="n_layers must be >= 1, got 0"):
         train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "n_layers=0"]))
+    with pytest.raises(ValueError, match="n_members=2 needs model=fdi_adam or model=fdi_e2e"):
+        train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "n_members=2"]))
     with pytest.raises(ValueError, match="model.network.n_layers: set the top-level n_layers instead"):
         train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "+model.network.n_layers=2"]))
 

@@ -36,7 +36,7 @@ from ..data.labels import LabelComputer, label_chunk_rows
 from ..data.sampling import ImportanceSampler
 from ..data.store import LABELS, read_labelled
 from ..io.atomic import atomic_open
-from ..surrogates import FDIMLP, POD, GappyPOD, SurrogateBundle, rms
+from ..surrogates import POD, GappyPOD, SurrogateBundle, build_fdi_network, rms
 from ..surrogates.augment import add_noise
 from ..surrogates.classifiers.refinement import BoundaryRefinement, refine_classifier
 from ..surrogates.data import load_store
@@ -166,8 +166,11 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     n_points = common.integer(cfg.n_points, "n_points", 1)
     n_hidden = common.integer(cfg.n_hidden, "n_hidden", 1)
     n_layers = common.integer(cfg.n_layers, "n_layers", 1)
+    n_members = common.integer(cfg.n_members, "n_members", 1)
+    if n_members > 1 and cfg.model.get("optimizer") == "lm":
+        raise ValueError(f"n_members={n_members} needs model=fdi_adam or model=fdi_e2e (LM trains one network)")
     network_kwargs = common.plain(cfg.model.get("network")) or {}
-    for key in ("n_inputs", "n_hidden", "n_layers"):
+    for key in ("n_inputs", "n_hidden", "n_layers", "n_members"):
         if key in network_kwargs:
             raise ValueError(f"model.network.{key}: set the top-level {key} instead (one home per value)")
     ridge = common.number(cfg.gappy.ridge, "gappy.ridge", 0.0)
@@ -231,7 +234,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         alpha_tr, _ = gappy(samples_tr)
         alpha_va, _ = gappy(samples_va)
         x_tr = alpha_tr if fit["inputs"] == "gappy" else pod(train.current)
-    network = FDIMLP(n_modes, n_hidden, n_layers=n_layers, **network_kwargs).set_normalization(x_tr)
+    network = build_fdi_network(n_modes, n_hidden, n_layers, n_members, **network_kwargs).set_normalization(x_tr)
     module: FDIModule = make_module(network=network, gappy=gappy if end_to_end else None)
     if module.optimizer_name == "lm":
         if fit["batch_size"] is not None:
@@ -302,7 +305,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                              .double().mean()) if len(val) else float("nan")
     metrics.update(
         n_train=len(train), n_val=len(val), n_modes=n_modes, n_points=n_points, n_hidden=n_hidden,
-        n_layers=n_layers,
+        n_layers=n_layers, n_members=n_members,
         selector=selector.name, selector_params=selector.get_params(), classifier=classifier.name,
         gappy_estimator=estimator,
         model=module.optimizer_name + ("_e2e" if end_to_end else ""), fdi_inputs=fit["inputs"],

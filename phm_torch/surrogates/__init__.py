@@ -8,6 +8,7 @@ here, so that loading and running a bundle needs torch only."""
 from .augment import SignalAugment, add_noise, drop_samples, rms
 from .bundle import SurrogateBundle
 from .classifiers import CLASSIFIERS, RBFSVM, HealthClassifier, PolynomialSVM, build_classifier
+from .fdi_ensemble import FDIEnsemble, build_fdi_network
 from .fdi_mlp import FDIMLP
 from .gappy_pod import GappyPOD
 from .levenberg_marquardt import LevenbergMarquardt
@@ -21,6 +22,7 @@ __all__ = [
            "POD",
            "RBFSVM",
            "SELECTORS",
+           "FDIEnsemble",
            "GappyPOD",
            "HealthClassifier",
            "LevenbergMarquardt",
@@ -30,6 +32,7 @@ __all__ = [
            "SurrogateBundle",
            "add_noise",
            "build_classifier",
+           "build_fdi_network",
            "build_selector",
            "confusion",
            "drop_samples",

@@ -19,7 +19,7 @@ File format (``save``/``load``): one ``torch.save`` file holding only plain cont
 float, bool, None and tensors, read back with ``torch.load(weights_only=True)`` (never unpickled)::
 
     {"format": "phm_torch.surrogate_bundle", "version": 1,
-     "meta": {"n_samples", "n_modes", "n_points", "n_hidden", "n_layers", "input_scaling", "sample_rate", "signal", "unit",
+     "meta": {"n_samples", "n_modes", "n_points", "n_hidden", "n_layers", "n_members", "input_scaling", "sample_rate", "signal", "unit",
               "fault_names", "health_convention", "selector": {"name", "params"},
               "classifier": {"name", "params"}, "gappy_ridge", "phm_torch_version", "extra": {...}},
      "tensors": {"pod.mean_", "pod.modes_", "pod.singular_values_", "pod.energy_", "indices",
@@ -42,6 +42,7 @@ from .. import __version__
 from ..faults import FAULT_NAMES
 from ..io.atomic import atomic_open
 from .classifiers import CLASSIFIERS, HealthClassifier
+from .fdi_ensemble import FDIEnsemble, build_fdi_network
 from .fdi_mlp import FDIMLP
 from .gappy_pod import GappyPOD
 from .pod import POD
@@ -49,7 +50,7 @@ from .pod import POD
 FORMAT = "phm_torch.surrogate_bundle"
 VERSION = 1
 HEALTH_CONVENTION = "health_score > 0: healthy; < 0: faulty"
-COMPARED = ("n_samples", "n_modes", "n_points", "n_hidden", "n_layers")
+COMPARED = ("n_samples", "n_modes", "n_points", "n_hidden", "n_layers", "n_members")
 
 
 class SurrogateBundle(nn.Module):
@@ -58,7 +59,7 @@ class SurrogateBundle(nn.Module):
     Args:
         pod: fitted :class:`POD` (n_e samples, n_m modes).
         indices: (n_w,) selected sample indices.
-        network: trained :class:`FDIMLP` with n_m inputs.
+        network: trained :class:`FDIMLP` (or :class:`FDIEnsemble`) with n_m inputs.
         classifier: fitted :class:`HealthClassifier`.
         sample_rate: acquisition rate [Hz] (sample i is at t = i / sample_rate).
         residual_threshold: gappy residual [A] above which a signal is flagged out of distribution.
@@ -70,7 +71,7 @@ class SurrogateBundle(nn.Module):
         meta: extra JSON-able provenance (selector, config, data) kept in ``meta["extra"]``.
     """
 
-    def __init__(self, pod: POD, indices: torch.Tensor, network: FDIMLP, classifier: HealthClassifier,
+    def __init__(self, pod: POD, indices: torch.Tensor, network: FDIMLP | FDIEnsemble, classifier: HealthClassifier,
                  sample_rate: float, residual_threshold: float = float("inf"), gappy_ridge: float = 0.0,
                  selector: Mapping[str, Any] | None = None, meta: Mapping[str, Any] | None = None,
                  full_residual_threshold: float = float("inf"),
@@ -134,7 +135,7 @@ class SurrogateBundle(nn.Module):
         """The ``meta`` block of the file (plain JSON-able values)."""
         return {"n_samples": int(self.pod.mean_.shape[0]), "n_modes": self.pod.n_modes,
                 "n_points": self.gappy.n_points, "n_hidden": self.network.n_hidden,
-                "n_layers": self.network.n_layers,
+                "n_layers": self.network.n_layers, "n_members": self.network.n_members,
                 "input_scaling": self.network.input_scaling, "sample_rate": self.sample_rate,
                 "signal": "current", "unit": "A", "fault_names": list(FAULT_NAMES),
                 "health_convention": HEALTH_CONVENTION, "selector": self.selector_info,
@@ -165,7 +166,7 @@ class SurrogateBundle(nn.Module):
 
         Args:
             expect: values the caller's configuration requires, e.g. ``{"n_modes": 22, "n_points": 30}``
-                (keys among n_samples, n_modes, n_points, n_hidden, n_layers); a mismatch is a ValueError naming
+                (keys among n_samples, n_modes, n_points, n_hidden, n_layers, n_members); a mismatch is a ValueError naming
                 the field (a checkpoint from another configuration).
         """
         path = Path(path)
@@ -182,7 +183,8 @@ class SurrogateBundle(nn.Module):
             raise ValueError(f"{path}: bundle version {blob.get('version')!r} is not supported (expected {VERSION})")
         meta, t = blob.get("meta"), blob.get("tensors")
         if isinstance(meta, dict):
-            meta.setdefault("n_layers", 1)          # bundles written before the option: one hidden layer
+            meta.setdefault("n_layers", 1)          # bundles written before the options: one network
+            meta.setdefault("n_members", 1)         # of one hidden layer
         required = (*COMPARED, "input_scaling", "sample_rate", "selector", "classifier", "gappy_ridge", "extra")
         missing = [k for k in required if not isinstance(meta, dict) or k not in meta]
         if missing or not isinstance(t, dict):
@@ -200,7 +202,8 @@ class SurrogateBundle(nn.Module):
         if tuple(pod.modes_.shape) != (meta["n_samples"], n_m):
             raise ValueError(f"{path}: pod.modes_ has shape {tuple(pod.modes_.shape)}, meta says "
                              f"({meta['n_samples']}, {n_m})")
-        network = FDIMLP(n_m, meta["n_hidden"], input_scaling=meta["input_scaling"], n_layers=meta["n_layers"])
+        network = build_fdi_network(n_m, meta["n_hidden"], meta["n_layers"], meta["n_members"],
+                                    input_scaling=meta["input_scaling"])
         network.load_state_dict(_prefixed(t, "network."))
         spec = meta["classifier"]
         if spec["name"] not in CLASSIFIERS:

@@ -46,6 +46,7 @@ class FDIMLP(nn.Module):
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"fdi.{name} must be a positive integer, got {v!r}")
         self.n_inputs, self.n_hidden, self.n_outputs, self.n_layers = n_inputs, n_hidden, n_outputs, n_layers
+        self.n_members = 1                  # the interface of FDIEnsemble: one network
         self.hidden = nn.Linear(n_inputs, n_hidden)
         # the first layer keeps its name, so single-layer state dicts (the paper's network) load unchanged
         self.deeper = nn.ModuleList([nn.Linear(n_hidden, n_hidden) for _ in range(n_layers - 1)])
@@ -74,6 +75,10 @@ class FDIMLP(nn.Module):
         for layer in self.deeper:
             h = torch.tanh(layer(h))
         return self.output(h)
+
+    def member_preactivations(self, alpha: torch.Tensor) -> torch.Tensor:
+        """(1, B, 8): :meth:`preactivation` as the one member of an ensemble (the training loss's input)."""
+        return self.preactivation(alpha).unsqueeze(0)
 
     def forward(self, alpha: torch.Tensor) -> torch.Tensor:
         """k_hat (B, 8) in [0, 1] (satlin output)."""

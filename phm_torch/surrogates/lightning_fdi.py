@@ -53,6 +53,9 @@ class FDIModule(L.LightningModule):
             raise ValueError(f"model.loss_weighting must be one of {list(WEIGHTINGS)}, got {loss_weighting!r}")
         if not (lr > 0):
             raise ValueError(f"model.lr must be > 0, got {lr!r}")
+        if optimizer == "lm" and network.n_members > 1:
+            raise ValueError(f"n_members={network.n_members}: an ensemble trains with model.optimizer=adam "
+                             f"(LM solves for one network's weights)")
         if optimizer == "lm" and gappy is not None:
             raise ValueError("model.end_to_end needs model.optimizer=adam (LM fits a fixed data set)")
         if augment is not None and gappy is None:
@@ -62,7 +65,7 @@ class FDIModule(L.LightningModule):
         self.loss_weighting = loss_weighting
         # Plain values only: they identify the architecture when a checkpoint is resumed.
         self.save_hyperparameters({"n_inputs": network.n_inputs, "n_hidden": network.n_hidden,
-                                   "n_layers": network.n_layers,
+                                   "n_layers": network.n_layers, "n_members": network.n_members,
                                    "optimizer": optimizer, "end_to_end": gappy is not None,
                                    "n_points": gappy.n_points if gappy is not None else None})
         if optimizer == "lm":
@@ -95,7 +98,7 @@ class FDIModule(L.LightningModule):
             if out.stop:
                 self.trainer.should_stop = True
             return None
-        loss = (w * (self.network.preactivation(alpha) - k).pow(2)).mean()
+        loss = (w * (self.network.member_preactivations(alpha) - k).pow(2)).mean()   # each member on its own
         self.log("train_loss", loss, prog_bar=True, on_step=False, on_epoch=True, batch_size=k.shape[0])
         return loss
 
@@ -130,7 +133,7 @@ class FDIModule(L.LightningModule):
             checkpoint["lm_mu"] = self.lm.mu
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        saved = {"n_layers": 1, **checkpoint.get("hyper_parameters", {})}   # older checkpoints: one layer
+        saved = {"n_layers": 1, "n_members": 1, **checkpoint.get("hyper_parameters", {})}  # older checkpoints
         mine = dict(self.hparams)
         diff = {k: (saved.get(k), v) for k, v in mine.items() if saved.get(k) != v}
         if diff:
