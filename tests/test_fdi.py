@@ -74,22 +74,36 @@ def test_ensemble_is_the_mean_of_independently_fitted_members():
 
     torch.manual_seed(0)
     x, y = teacher_data(64, 0)
-    ens = build_fdi_network(6, 5, n_layers=2, n_members=3).set_normalization(x)
+    ens = build_fdi_network(6, 5, n_layers=2, n_members=3, input_scaling="robust").set_normalization(x)
     assert isinstance(ens, FDIEnsemble) and isinstance(build_fdi_network(6, 5), FDIMLP)
-    members = torch.stack([m(x) for m in ens.members])
-    assert torch.allclose(ens(x), members.mean(0), atol=1e-6)
+    # each member is the FDIMLP with its slice of the stacked weights
+    outputs = []
+    for i in range(3):
+        net = FDIMLP(6, 5, n_layers=2, input_scaling="robust").set_normalization(x)
+        with torch.no_grad():
+            net.hidden.weight.copy_(ens.w_in[i].T), net.hidden.bias.copy_(ens.b_in[i, 0])
+            net.deeper[0].weight.copy_(ens.w_deep[0, i].T), net.deeper[0].bias.copy_(ens.b_deep[0, i, 0])
+            net.output.weight.copy_(ens.w_out[i].T), net.output.bias.copy_(ens.b_out[i, 0])
+        assert torch.allclose(ens.member_preactivations(x)[i], net.preactivation(x), atol=1e-5)
+        outputs.append(net(x))
+    assert torch.allclose(ens(x), torch.stack(outputs).mean(0), atol=1e-6)
     assert torch.equal(torch.jit.script(ens)(x), ens(x))
-    # the training loss of the ensemble (FDIModule's) gives each member the gradient of its own loss
+    # FDIModule's loss gives each member the gradient of its own loss: member 1's does not see member 0
     module = FDIModule(ens)
-    loss = module.training_step((x, y), 0)
-    loss.backward()
-    own = ens.members[1]
-    g_joint = own.hidden.weight.grad.clone()
-    own.zero_grad()
-    ((own.preactivation(x) - y).pow(2) * module._weights(y)).mean().div(3).backward()
-    assert torch.allclose(g_joint, own.hidden.weight.grad, atol=1e-7)
+
+    def member_1_gradient() -> torch.Tensor:
+        ens.zero_grad()
+        module.training_step((x, y), 0).backward()
+        return ens.w_in.grad[1].clone()
+
+    before = member_1_gradient()
+    with torch.no_grad():
+        ens.w_in[0] += 1.0
+    assert torch.equal(member_1_gradient(), before)
     with pytest.raises(ValueError, match="n_members of an ensemble must be an integer >= 2, got 1"):
         FDIEnsemble(6, 5, n_members=1)
+    with pytest.raises(ValueError, match="fdi.n_layers must be a positive integer, got 0"):
+        FDIEnsemble(6, 5, n_layers=0)
     with pytest.raises(ValueError, match="n_members=3: an ensemble trains with model.optimizer=adam"):
         FDIModule(ens, optimizer="lm")
 

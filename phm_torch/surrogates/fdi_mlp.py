@@ -23,6 +23,29 @@ N_FAULTS = 8
 SCALINGS = ("minmax", "robust")
 
 
+def check_architecture(input_scaling: str, **sizes: int) -> None:
+    """ValueError naming the field unless every size is a positive integer and the scaling is known."""
+    if input_scaling not in SCALINGS:
+        raise ValueError(f"fdi.input_scaling must be one of {list(SCALINGS)}, got {input_scaling!r}")
+    for name, v in sizes.items():
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ValueError(f"fdi.{name} must be a positive integer, got {v!r}")
+
+
+def scaling_statistics(alpha: torch.Tensor, input_scaling: str, n_inputs: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(center, scale), each (n_m,) float64, of training coefficients alpha (N, n_m) for ``input_scaling``."""
+    if alpha.ndim != 2 or alpha.shape[1] != n_inputs:
+        raise ValueError(f"alpha must be (N, {n_inputs}), got {tuple(alpha.shape)}")
+    a = alpha.detach().to(torch.float64)
+    if input_scaling == "minmax":
+        lo, hi = a.amin(0), a.amax(0)
+        center, scale = (hi + lo) / 2, (hi - lo) / 2
+    else:
+        q = torch.quantile(a, torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64), dim=0)
+        center, scale = q[1], (q[2] - q[0]) / 1.349
+    return center, scale.clamp(min=1e-12)
+
+
 class FDIMLP(nn.Module):
     """alpha (B, n_m) -> k_hat (B, 8) in [0, 1].
 
@@ -38,13 +61,9 @@ class FDIMLP(nn.Module):
     def __init__(self, n_inputs: int, n_hidden: int = 20, n_outputs: int = N_FAULTS, input_scaling: str = "minmax",
                  n_layers: int = 1):
         super().__init__()
-        if input_scaling not in SCALINGS:
-            raise ValueError(f"fdi.input_scaling must be one of {list(SCALINGS)}, got {input_scaling!r}")
+        check_architecture(n_inputs=n_inputs, n_hidden=n_hidden, n_outputs=n_outputs, n_layers=n_layers,
+                           input_scaling=input_scaling)
         self.input_scaling = input_scaling
-        for name, v in (("n_inputs", n_inputs), ("n_hidden", n_hidden), ("n_outputs", n_outputs),
-                        ("n_layers", n_layers)):
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"fdi.{name} must be a positive integer, got {v!r}")
         self.n_inputs, self.n_hidden, self.n_outputs, self.n_layers = n_inputs, n_hidden, n_outputs, n_layers
         self.n_members = 1                  # the interface of FDIEnsemble: one network
         self.hidden = nn.Linear(n_inputs, n_hidden)
@@ -56,17 +75,8 @@ class FDIMLP(nn.Module):
 
     def set_normalization(self, alpha: torch.Tensor) -> FDIMLP:
         """Fit the input scaling to training coefficients (N, n_m); returns self."""
-        if alpha.ndim != 2 or alpha.shape[1] != self.n_inputs:
-            raise ValueError(f"alpha must be (N, {self.n_inputs}), got {tuple(alpha.shape)}")
-        a = alpha.detach().to(torch.float64)
-        if self.input_scaling == "minmax":
-            lo, hi = a.amin(0), a.amax(0)
-            center, scale = (hi + lo) / 2, (hi - lo) / 2
-        else:
-            q = torch.quantile(a, torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64), dim=0)
-            center, scale = q[1], (q[2] - q[0]) / 1.349
-        self.in_center = center.to(self.in_center)
-        self.in_scale = scale.clamp(min=1e-12).to(self.in_scale)
+        center, scale = scaling_statistics(alpha, self.input_scaling, self.n_inputs)
+        self.in_center, self.in_scale = center.to(self.in_center), scale.to(self.in_scale)
         return self
 
     def preactivation(self, alpha: torch.Tensor) -> torch.Tensor:
