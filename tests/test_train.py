@@ -11,7 +11,7 @@ import pytest
 import torch
 from surrogate_data import faults, health, write_store
 
-from phm_torch.apps.train import _classifier_set, train_surrogates
+from phm_torch.apps.train import _classifier_set, _monitor_rows, train_surrogates
 from phm_torch.surrogates import SurrogateBundle
 
 REQUIRED = ("err_alpha_median", "err_alpha_iqr", "err_k", "fdi_mae", "classifier_accuracy", "missed_fault_rate",
@@ -50,6 +50,21 @@ def test_metrics_json(lm_run):
     assert set(written["err_k_by_fault_count"]) == {"0", "1", "2", "3+"}
     assert (objects["out_dir"] / "logs").is_dir()              # CSV logger
     assert list((objects["out_dir"] / "checkpoints").glob("*.ckpt"))
+    # the epoch is chosen on 5 % of the training signals held out from the fit, not on val
+    assert (written["n_fdi_fit"], written["n_fdi_monitor"], written["n_val"]) == (380, 20, 100)
+    assert len(objects["trainer"].val_dataloaders.dataset) == 20
+
+
+def test_monitor_rows_are_a_disjoint_seeded_split():
+    fit, monitor = _monitor_rows(1000, 0.05, seed=3)
+    assert len(monitor) == 50 and len(fit) == 950
+    assert torch.equal(torch.cat([fit, monitor]).sort().values, torch.arange(1000))
+    assert torch.equal(_monitor_rows(1000, 0.05, seed=3)[1], monitor)
+    assert not torch.equal(_monitor_rows(1000, 0.05, seed=4)[1], monitor)
+    everything, none = _monitor_rows(10, 0.0, seed=0)
+    assert none is None and torch.equal(everything, torch.arange(10))
+    with pytest.raises(ValueError, match="leaves 1 of 2 training signals"):
+        _monitor_rows(2, 0.4, seed=0)
 
 
 def test_bundle_round_trip(lm_run, store):
@@ -144,6 +159,10 @@ def test_missing_split_and_config_errors(compose, tmp_path):
         train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "loggers=[wandb]"]))
     with pytest.raises(ValueError, match="threads"):
         train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "threads=0"]))
+    with pytest.raises(ValueError, match="monitor_fraction must be < 0.5"):
+        train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "monitor_fraction=0.5"]))
+    with pytest.raises(ValueError, match="monitor_fraction must be >= 0, got -0.1"):
+        train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "monitor_fraction=-0.1"]))
     with pytest.raises(ValueError, match="n_layers must be >= 1, got 0"):
         train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "n_layers=0"]))
     with pytest.raises(ValueError, match="n_members=2 needs model=fdi_adam or model=fdi_e2e"):
@@ -193,7 +212,7 @@ def test_sweep_configs(name, key, values):
 def test_best_experiment_composes(compose):
     cfg = compose("train", ["experiment=surrogates_best"])
     assert cfg.selector._target_.endswith("MinErrorSelector") and cfg.model.optimizer == "adam"
-    assert (cfg.n_modes, cfg.n_points, cfg.n_hidden, cfg.n_layers) == (40, 100, 256, 2)
+    assert (cfg.n_modes, cfg.n_points, cfg.n_hidden, cfg.n_layers, cfg.n_members) == (40, 100, 256, 2, 4)
     assert cfg.model.network.input_scaling == "robust"          # the model group's own setting is kept
     robust = compose("train", ["experiment=robust_30_points"])
     assert robust.gappy.estimator == "bayesian" and robust.model.end_to_end and robust.model.optimizer == "adam"

@@ -91,6 +91,23 @@ def _fit_settings(cfg: DictConfig) -> dict[str, Any]:
     return out
 
 
+def _monitor_rows(n: int, fraction: float, seed: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Rows of the training split that fit the FDI network and rows held out to choose its epoch.
+
+    The epoch (early stopping, best weights) is chosen on signals the network never trains on and
+    that are not the reported ``val`` split, so the ``val`` figures are not tuned on (MATLAB's trainlm
+    divides its data the same way). ``fraction = 0`` keeps every row for fitting and returns ``None``:
+    the epoch is then chosen on ``val`` itself (optimistic by a few tenths of a point of err_k).
+    """
+    if fraction == 0.0:
+        return torch.arange(n), None
+    n_monitor = max(1, round(fraction * n))
+    if n - n_monitor < 2:
+        raise ValueError(f"monitor_fraction={fraction} leaves {n - n_monitor} of {n} training signals to fit")
+    perm = torch.randperm(n, generator=torch.Generator().manual_seed(seed + 0x3011))
+    return perm[n_monitor:].sort().values, perm[:n_monitor].sort().values
+
+
 def _module_factory(cfg: DictConfig) -> partial:
     node = {k: v for k, v in common.plain(cfg.model).items() if k not in ("fit", "end_to_end", "network")}
     return _instantiate(node, "model", _partial_=True)
@@ -188,6 +205,9 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if max_missed is not None:
         max_missed = common.number(max_missed, "calibration.max_missed_fault_rate", 0.0)
     fit = _fit_settings(cfg)
+    monitor_fraction = common.number(cfg.get("monitor_fraction", 0.0), "monitor_fraction", 0.0)
+    if monitor_fraction >= 0.5:
+        raise ValueError(f"monitor_fraction must be < 0.5 (a fraction of the training signals), got {monitor_fraction!r}")
     end_to_end = bool(cfg.model.get("end_to_end", False))
     make_module = _module_factory(cfg)
     selector = _instantiate(cfg.selector, "selector")
@@ -234,7 +254,9 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         alpha_tr, _ = gappy(samples_tr)
         alpha_va, _ = gappy(samples_va)
         x_tr = alpha_tr if fit["inputs"] == "gappy" else pod(train.current)
-    network = build_fdi_network(n_modes, n_hidden, n_layers, n_members, **network_kwargs).set_normalization(x_tr)
+    fit_rows, monitor_rows = _monitor_rows(len(train), monitor_fraction, seed)
+    network = build_fdi_network(n_modes, n_hidden, n_layers, n_members, **network_kwargs)
+    network.set_normalization(x_tr[fit_rows])
     module: FDIModule = make_module(network=network, gappy=gappy if end_to_end else None)
     if module.optimizer_name == "lm":
         if fit["batch_size"] is not None:
@@ -242,10 +264,12 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         if int(cfg.trainer.devices) != 1 or int(cfg.trainer.num_nodes) != 1:
             raise ValueError("model.optimizer=lm runs on one device: set trainer.devices=1 and trainer.num_nodes=1")
     if end_to_end:
-        ds_tr = TensorDataset(samples_tr, train.k, rms(train.current))
-        ds_va = TensorDataset(samples_va, val.k, rms(val.current))
-    else:
-        ds_tr, ds_va = TensorDataset(x_tr, train.k), TensorDataset(alpha_va, val.k)
+        tensors_tr = monitor_src = (samples_tr, train.k, rms(train.current))
+        tensors_va = (samples_va, val.k, rms(val.current))
+    else:   # monitored on gappy coefficients, as val is, whatever fit.inputs
+        tensors_tr, monitor_src, tensors_va = (x_tr, train.k), (alpha_tr, train.k), (alpha_va, val.k)
+    ds_tr = TensorDataset(*(t[fit_rows] for t in tensors_tr))
+    ds_va = TensorDataset(*(tensors_va if monitor_rows is None else [t[monitor_rows] for t in monitor_src]))
     gen = torch.Generator().manual_seed(seed)
     batch = fit["batch_size"] or len(ds_tr)
     train_loader = DataLoader(ds_tr, batch_size=batch, shuffle=batch < len(ds_tr), generator=gen)
@@ -304,7 +328,8 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         full_ood_val = float(FullSignalCheck(pod.modes_, pod.mean_, residual_threshold=full_threshold)(val.current)
                              .double().mean()) if len(val) else float("nan")
     metrics.update(
-        n_train=len(train), n_val=len(val), n_modes=n_modes, n_points=n_points, n_hidden=n_hidden,
+        n_train=len(train), n_fdi_fit=len(fit_rows), n_fdi_monitor=0 if monitor_rows is None else len(monitor_rows),
+        n_val=len(val), n_modes=n_modes, n_points=n_points, n_hidden=n_hidden,
         n_layers=n_layers, n_members=n_members,
         selector=selector.name, selector_params=selector.get_params(), classifier=classifier.name,
         gappy_estimator=estimator,
