@@ -89,7 +89,7 @@ def main() -> None:
     print(json.dumps(out["assessment"]), flush=True)
 
     # HF signals
-    sim = EMASimulator(params, spec.fidelity, substeps=spec.substeps, compile=spec.compile)
+    sim = EMASimulator(params, spec.fidelity, effects=spec.effects, substeps=spec.substeps, compile=spec.compile)
     k = torch.as_tensor(train[:cs])
     timings = []
     for _ in range(2):

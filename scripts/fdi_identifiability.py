@@ -1,7 +1,7 @@
 """Where the signal stops being a smooth function of k: the FDI's floor, by fault count; writes JSON.
 
-Re-simulates vectors of a store's split with the store's own actuator, fidelity and test command
-(recorded in its metadata), after random steps of 1e-3, 1e-2 and 1e-1 in k (the eccentricity phase
+Re-simulates vectors of a store's split with the store's own actuator, fidelity, effects and test
+command (recorded in its metadata), after random steps of 1e-3, 1e-2 and 1e-1 in k (the eccentricity phase
 held), and reports per group of "large faults at once" (|k_i - k0_i| > 0.3, as ``err_k_by_fault_count``)
 the median RMS change of the envelope current per step and the linearity ratio of
 :func:`phm_torch.surrogates.identifiability.signal_sensitivity`. With ``--predictions`` (phm-train's
@@ -54,7 +54,8 @@ def main() -> None:
     command = common.command(cfg.command)
     duration = float(command.duration)
     spec = cfg.dataset
-    sim = EMASimulator(params, spec.get("fidelity", "hf"), substeps=spec.get("substeps"))
+    sim = EMASimulator(params, spec.get("fidelity", "hf"), effects=common.plain(spec.get("effects")) or None,
+                       substeps=spec.get("substeps"))
     nominal = torch.tensor(params.nominal_faults, dtype=torch.float64)
     count = fault_count(k, nominal)
 

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 import torch
 import yaml
+from omegaconf import OmegaConf
 
 from phm_torch.apps import common
 from phm_torch.apps.generate import generate
@@ -26,6 +27,7 @@ from phm_torch.data.datamodule import EMADataModule
 from phm_torch.data.generation import SPLITS, STREAMS, DatasetSpec, seed_streams
 from phm_torch.data.store import DatasetStore, read_labelled
 from phm_torch.params import CONF_DIR
+from phm_torch.simulator import EMASimulator
 
 APP = "phm_torch.apps.generate"
 TINY = ("dataset.fidelity=lf", "command.duration=0.02", "dataset.n_train=10", "dataset.n_val=3",
@@ -164,12 +166,31 @@ def test_refuses_another_config_unless_overwrite(reference, compose, tmp_path):
     ("dataset.n_labels=-1", r"dataset.n_labels must be an integer >= 0, got -1"),
     ("dataset.n_labels=2.5", r"dataset.n_labels must be an integer >= 0, got 2.5"),
     ("+dataset.label_chunk_size=0", r"dataset.label_chunk_size must be an integer >= 1"),
+    ("+dataset.effects.nope={{}}", r"dataset.effects: unknown effect 'nope'"),
+    ("+dataset.effects.cogging_torque.amplitude=big", r"dataset.effects.cogging_torque.amplitude must be a number"),
 ])
 def test_bad_generation_input(compose, tmp_path, override, message):
     (tmp_path / "file").write_text("x")
     args = [*TINY, f"data_dir={tmp_path / 'd'}", "shard.count=2", override.format(file=tmp_path / "file")]
     with pytest.raises(ValueError, match=message):
         generate(compose("generate", args))
+
+
+def test_effects_enter_the_signals_not_the_labels(reference, compose, tmp_path):
+    data_dir = tmp_path / "hinge"
+    metrics, _ = generate(compose("generate", [*TINY, f"data_dir={data_dir}", "+dataset.effects.aero_hinge_load={}"]))
+    assert metrics["fingerprint"] != reference[1]["fingerprint"]      # another store, never reused for the plain one
+    with DatasetStore(reference[0]) as plain, DatasetStore(data_dir) as store:
+        cfg = OmegaConf.create(store.metadata["config"])
+        assert common.plain(cfg.dataset.effects) == {"aero_hinge_load": {}}
+        a, b = plain.split("train"), store.split("train")
+        assert np.array_equal(a.K[()], b.K[()]) and np.array_equal(a.healthy[()], b.healthy[()])
+        k, current = torch.as_tensor(b.K[()]), torch.as_tensor(b.current[()], dtype=torch.float64)
+        assert float((current - torch.as_tensor(a.current[()], dtype=torch.float64)).abs().max()) > 0.01
+    command = common.command(cfg.command)
+    sim = EMASimulator(common.actuator(cfg), "lf", effects={"aero_hinge_load": {}})
+    expected = sim.run(k, command, float(command.duration), channels=["current"])["current"]
+    torch.testing.assert_close(current, expected, rtol=0, atol=1e-5)
 
 
 def test_datamodule_lazy_deterministic_normalised(reference):

@@ -32,6 +32,7 @@ import torch
 from tqdm import tqdm
 
 from ..assessment import MARGIN_NAMES, AssessmentFunction
+from ..effects import build_effects
 from ..params import ActuatorParams
 from ..simulator import EMASimulator
 from .sampling import ImportanceSampler
@@ -77,6 +78,10 @@ class DatasetSpec:
         label_chunk_size: the most rows per labels chunk = assessment batch (memory ~0.3 MB per row
             with the default sweep); the rows are spread evenly over ceil(n_labels / label_chunk_size)
             chunks.
+        effects: physical effects of the library added to the signal simulator, ``{name: {param: value}}``
+            (``{}`` = the effect's defaults): train the surrogates on the physics a bench turned out to
+            have (``phm-workbench`` names it). The assessment function, hence the health labels, is
+            unchanged: health stays a property of the fault vector.
     """
 
     n_train: int
@@ -90,9 +95,18 @@ class DatasetSpec:
     substeps: int | None = field(default=None)
     n_labels: int = 0
     label_chunk_size: int = 4096
+    effects: Mapping[str, Mapping[str, Any] | None] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "uniform", tuple(int(i) for i in self.uniform))
+        if not isinstance(self.effects, Mapping):
+            raise ValueError(f"dataset.effects must map effect names to their parameters, got {self.effects!r}")
+        effects = {str(name): dict(values or {}) for name, values in self.effects.items()}
+        try:
+            build_effects(effects)
+        except ValueError as e:
+            raise ValueError(f"dataset.{e}") from None
+        object.__setattr__(self, "effects", effects)
         for name, low in (("n_train", 1), ("n_val", 0), ("n_rul", 0), ("chunk_size", 1), ("n_labels", 0),
                           ("label_chunk_size", 1)):
             v = getattr(self, name)
@@ -175,7 +189,8 @@ class ChunkComputer:
         self.spec = spec
         self.command, self.duration = command, duration
         self.assessment = assessment
-        self.sim = EMASimulator(params, spec.fidelity, substeps=spec.substeps, device=device, compile=spec.compile)
+        self.sim = EMASimulator(params, spec.fidelity, effects=spec.effects, substeps=spec.substeps, device=device,
+                                compile=spec.compile)
         self.nominal = np.asarray(params.nominal_faults, dtype=np.float64)
         self.timing = {"signals_s": 0.0, "assessment_s": 0.0}
 
