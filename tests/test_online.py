@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import math
 import subprocess
 import sys
@@ -109,12 +110,25 @@ def test_torchscript_export_reloads_without_phm_torch(pipeline, tmp_path):
         m = torch.jit.load({str(path)!r})
         out = m(torch.load({str(tmp_path / 'x.pt')!r}, weights_only=True))
         torch.save(list(out), {str(tmp_path / 'out.pt')!r})
+        assert torch.isnan(m.faulty_probability(out[1])).all()     # exported, NaN until calibrated
         assert not any(name.startswith('phm_torch') for name in sys.modules), 'phm_torch was imported'
     """)
     subprocess.run([sys.executable, "-c", code], check=True, cwd=tmp_path)
     loaded = torch.load(tmp_path / "out.pt", weights_only=True)
     for u, v in zip(eager, loaded):
         torch.testing.assert_close(v, u, rtol=1e-5, atol=1e-5, equal_nan=True)
+
+
+def test_faulty_probability_is_nan_until_calibrated_then_the_platt_law(pipeline):
+    score = torch.tensor([-1.0, 0.0, 2.0], dtype=torch.float64)
+    assert torch.isnan(pipeline.faulty_probability(score)).all()
+    pipe = copy.deepcopy(pipeline)
+    pipe.verdict_scale.fill_(-4.0)
+    pipe.verdict_offset.fill_(0.5)
+    p = pipe.faulty_probability(score)
+    torch.testing.assert_close(p, torch.sigmoid(-4.0 * score + 0.5))
+    assert p[0] > p[1] > p[2]                                    # the lower the score, the likelier a fault
+    torch.testing.assert_close(torch.jit.script(pipe).faulty_probability(score), p)
 
 
 def test_full_record_check_flags_what_the_few_gappy_samples_cannot(pipeline):

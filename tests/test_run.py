@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import json
 
+import pytest
 import torch
 
 from phm_torch.apps.export import export
+from phm_torch.apps.predict import predict
 from phm_torch.apps.run import compose_stage, generate_overrides, run_all
 
 
@@ -36,6 +38,19 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     assert exported["max_abs_diff_reloaded"] < 1e-5
     first = torch.jit.load(saved["evaluate"]["export"])
     torch.testing.assert_close(objects["pipeline"].fdi_deltas, first.fdi_deltas)
+    # the verdict's Platt scaling (on the noisy val records) travels the same way, and phm-predict reports it
+    a, b = calibration["verdict"]
+    assert saved["evaluate"]["verdict_calibration"] == [a, b]
+    assert float(first.verdict_scale) == pytest.approx(a, rel=1e-6)                  # the pipeline's dtype
+    assert float(objects["pipeline"].verdict_offset) == pytest.approx(b, rel=1e-6, abs=1e-7)
+    assert 0.0 <= saved["evaluate"]["verdict_brier"] <= 1.0
+    _, predicted = predict(compose_stage("predict", [f"pipeline={saved['evaluate']['export']}",
+                                                     "measurements=examples/workbench_hidden_cogging.csv"]))
+    record = predicted["records"][0]
+    assert set(record) >= {"k_hat", "health_score", "healthy", "p_faulty", "rul_hours", "out_of_distribution"}
+    if not record["out_of_distribution"]:
+        assert record["p_faulty"] == pytest.approx(float(torch.sigmoid(torch.tensor(a * record["health_score"] + b))),
+                                                   rel=1e-5)
     assert saved["report"]["latency"]["online_step_us_p50"] > 0
     html = (tmp_path / "report" / "index.html").read_text()
     for heading in ("Gappy-POD coefficient error vs retained modes", "Placement of the sample points",

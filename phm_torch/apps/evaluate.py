@@ -21,6 +21,7 @@ from ..data.store import DatasetStore
 from ..online import OnlinePipeline
 from ..online.export import export_torchscript
 from ..online.fdi_band import FDIBand, TooFewCalibrationSignals, calibrate_fdi_band
+from ..online.verdict import calibrate_verdict, verdict_quality
 from ..prognostics import DeterministicRUL, RULEstimator
 from ..prognostics.evaluation import RULComparison
 from ..prognostics.plots import error_panels, rul_vs_expected
@@ -52,16 +53,36 @@ def _reference(cfg: DictConfig, params, damage, k: torch.Tensor, deltas: torch.T
     return ref
 
 
-def _fdi_band(cfg: DictConfig, pipeline: OnlinePipeline, signals: torch.Tensor, k: torch.Tensor) -> FDIBand | None:
-    """The FDI band calibrated on held-out signals with ``fdi_band.noise`` relative noise, or None (with a
-    warning: the full-flow band is then the physics band only, too narrow) when too few are usable."""
+def _noisy(cfg: DictConfig, signals: torch.Tensor) -> torch.Tensor:
+    """The held-out calibration signals with ``fdi_band.noise`` relative measurement noise."""
     noise = common.number(cfg.fdi_band.noise, "fdi_band.noise", 0.0)
     if noise > 0 and signals.shape[0]:
         signals = add_noise(signals, rms(signals), noise, torch.Generator().manual_seed(int(cfg.seed) + 2))
+    return signals
+
+
+def _fdi_band(cfg: DictConfig, pipeline: OnlinePipeline, signals: torch.Tensor, k: torch.Tensor) -> FDIBand | None:
+    """The FDI band calibrated on held-out (noisy) signals, or None (with a warning: the full-flow band is
+    then the physics band only, too narrow) when too few are usable."""
     try:
         return calibrate_fdi_band(pipeline, signals, k, correct_median=bool(cfg.fdi_band.correct_median))
     except TooFewCalibrationSignals as err:
         log.warning("%s; the full-flow RUL band holds the physics spread only", err)
+        return None
+
+
+def _verdict(pipeline: OnlinePipeline, signals: torch.Tensor, healthy: torch.Tensor
+             ) -> tuple[float, float, float] | None:
+    """Platt scaling (a, b) of the pipeline's health score on held-out (noisy) signals and their faulty
+    fraction (the prior it carries), or None (with a warning: the exported pipeline's P(faulty) is then
+    NaN) when they are not two-class."""
+    with torch.no_grad():
+        _, score, _, ood, _ = pipeline(signals.to(pipeline.times.dtype))
+    keep = ~ood & torch.isfinite(score)
+    try:
+        return (*calibrate_verdict(score[keep], ~healthy[keep]), float((~healthy[keep]).double().mean()))
+    except ValueError as err:
+        log.warning("verdict not calibrated: %s", err)
         return None
 
 
@@ -83,7 +104,9 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         signals = torch.as_tensor(view.current[()], dtype=torch.float64)
         band_view = store.split(band_split)
         band_k = torch.as_tensor(band_view.K[()], dtype=torch.float64)
-        band_signals = torch.as_tensor(band_view.current[()], dtype=torch.float64)
+        band_signals = _noisy(cfg, torch.as_tensor(band_view.current[()], dtype=torch.float64))
+        band_healthy = torch.as_tensor(band_view.healthy[()]).bool()
+        healthy = torch.as_tensor(view.healthy[()]).bool()
     if k.shape[0] == 0:
         raise ValueError(f"split {cfg.split!r} of {cfg.data_dir} is empty")
     t0 = time.perf_counter()
@@ -104,10 +127,15 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if band is not None:
         pipeline.fdi_deltas.copy_(band.deltas.to(pipeline.fdi_deltas))
         pipeline.fdi_direction.copy_(band.direction.to(pipeline.fdi_direction))
+    verdict = _verdict(pipeline, band_signals, band_healthy)
+    if verdict is not None:
+        pipeline.verdict_scale.fill_(verdict[0])
+        pipeline.verdict_offset.fill_(verdict[1])
     with torch.no_grad():
         true_k = pipeline.rul(k.to(pipeline.times.dtype)).to(torch.float64)
         true_k_by_band = {v: p.rul(k.to(p.times.dtype)).to(torch.float64) for v, p in pipelines.items()}
-        k_hat, _, full_flow, ood, _ = pipeline(signals)
+        k_hat, score, full_flow, ood, _ = pipeline(signals)
+        p_faulty = pipeline.faulty_probability(score)
         physics_only = pipeline.rul(k_hat).to(torch.float64)
         physics_only = torch.where(ood.unsqueeze(1), torch.full_like(physics_only, float("nan")), physics_only)
     t_est = time.perf_counter() - t0
@@ -132,7 +160,11 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         fdi_band_split=band_split, fdi_band_n_used=band.n_used if band else 0,
         fdi_band_deltas=pipeline.fdi_deltas.tolist() if band else None,       # as the pipeline holds them
         fdi_band_direction=pipeline.fdi_direction.tolist() if band else None,
-        fdi_band_saturated=band.saturated if band else None)
+        fdi_band_saturated=band.saturated if band else None,
+        verdict_calibration=list(verdict[:2]) if verdict else None,
+        verdict_calibration_faulty_fraction=verdict[2] if verdict else None,
+        **({f"verdict_{key}": value for key, value in verdict_quality(p_faulty[~ood], ~healthy[~ood]).items()}
+           if verdict and bool((~ood).any()) else {}))
     metrics.update(rul_err_median_true_k_monte_carlo=gauss["rul_err_median_true_k"],
                    rul_band_coverage_true_k_monte_carlo=gauss["rul_band_coverage_true_k"],
                    deltas=deltas.tolist(), deltas_saturated=det.saturated_, estimate_wall_s=round(t_est, 3), reference_wall_s=round(t_ref, 3),
@@ -145,7 +177,8 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                       {"band": det.variant, "deltas": pipeline.deltas.tolist(), "direction": det.direction.tolist(),
                        "rate_scales": pipeline.rate_scales.tolist(), "initial_state_deltas": deltas.tolist(),
                        "fdi_deltas": pipeline.fdi_deltas.tolist(), "fdi_direction": pipeline.fdi_direction.tolist(),
-                       "damage": common.plain(cfg.damage)})
+                       "verdict": list(verdict[:2]) if verdict else None,
+                       "verdict_faulty_fraction": verdict[2] if verdict else None, "damage": common.plain(cfg.damage)})
     common.write_json(out_dir / "rul_predictions.json",
                       {"k": k.tolist(), "k_hat": k_hat.tolist(), "reference": reference.tolist(),
                        "true_k": true_k.tolist(), "full_flow": torch.nan_to_num(full_flow, nan=-1.0).tolist(),

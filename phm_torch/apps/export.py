@@ -19,6 +19,18 @@ from . import common
 log = logging.getLogger(__name__)
 
 
+def _verdict(cal: dict[str, Any], path: Path) -> tuple[float, float] | None:
+    """(a, b) of the verdict's Platt scaling from the calibration file; None (P(faulty) NaN) if it has none."""
+    verdict = cal.get("verdict")
+    if verdict is None:
+        log.warning("calibration %s has no verdict scaling (written by phm-evaluate since it exists): the "
+                    "pipeline's P(faulty) is NaN", path)
+        return None
+    if not (isinstance(verdict, list) and len(verdict) == 2 and all(isinstance(v, (int, float)) for v in verdict)):
+        raise ValueError(f"calibration {str(path)!r}: verdict must be [a, b], got {verdict!r}")
+    return float(verdict[0]), float(verdict[1])
+
+
 def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Build the pipeline from the bundle, the damage model and the RUL calibration; write and re-check it."""
     bundle = SurrogateBundle.load(cfg.bundle)
@@ -38,7 +50,8 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     pipeline = OnlinePipeline.from_bundle(bundle, damage, torch.tensor(cal["deltas"]), torch.tensor(cal["direction"]),
                                           common.number(cfg.min_present, "min_present", 0.0, strict=True),
                                           fdi.get("fdi_deltas"), fdi.get("fdi_direction"),
-                                          torch.tensor(cal["rate_scales"]) if "rate_scales" in cal else None)
+                                          torch.tensor(cal["rate_scales"]) if "rate_scales" in cal else None,
+                                          verdict=_verdict(cal, cal_path))
     out = Path(cfg.out)
     scripted = export_torchscript(pipeline, out)
     probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)

@@ -1,6 +1,8 @@
 """``phm-predict``: the exported online pipeline on measurement CSVs -> JSON (one record per file).
 
-Each record: ``k_hat`` {fault name: value}, ``health_score`` (> 0 healthy), ``healthy``, ``rul_hours``
+Each record: ``k_hat`` {fault name: value}, ``health_score`` (> 0 healthy), ``healthy``, ``p_faulty`` (the
+probability that the actuator is faulty given that score, calibrated on held-out records by phm-evaluate;
+``null`` out of distribution), ``rul_hours``
 {p5, p50, p95} (``null`` when the input is out of distribution: never a confident RUL from garbage),
 ``out_of_distribution`` and the gappy ``residual`` [A]. The model is a TorchScript file written by
 ``phm-evaluate``/``phm_torch.online.export``; it is loaded with ``torch.jit.load`` (no unpickling).
@@ -9,6 +11,7 @@ Each record: ``k_hat`` {fault name: value}, ``health_score`` (> 0 healthy), ``he
 from __future__ import annotations
 
 import json
+import logging
 import math
 from pathlib import Path
 from typing import Any
@@ -21,17 +24,22 @@ from ..faults import FAULT_NAMES
 from ..io import read_measurement
 from . import common
 
+log = logging.getLogger(__name__)
+
 
 def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Run the model of ``cfg.model`` on every CSV of ``cfg.measurements``."""
+    """Run the exported pipeline ``cfg.pipeline`` on every CSV of ``cfg.measurements``."""
     paths = common.plain(cfg.measurements)
     paths = [paths] if isinstance(paths, str) else paths
     if not isinstance(paths, list) or not paths or not all(isinstance(p, str) for p in paths):
         raise ValueError(f"measurements must be a CSV path or a list of paths, got {paths!r}")
-    model_path = Path(cfg.model)
+    model_path = Path(cfg.pipeline)
     if not model_path.is_file():
-        raise ValueError(f"model: no such file {str(model_path)!r} (export one with phm-evaluate)")
+        raise ValueError(f"pipeline: no such file {str(model_path)!r} (export one with phm-evaluate or phm-export)")
     model = torch.jit.load(str(model_path))
+    calibrated = hasattr(model, "faulty_probability")
+    if not calibrated:
+        log.warning("%s was exported before the verdict calibration existed: p_faulty is null", model_path)
     n_full = int(model.n_full)
     dtype = model.times.dtype
     records = []
@@ -43,11 +51,13 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                              f"(the full test record)")
         with torch.no_grad():
             k_hat, score, rul, ood, resid = model(current)
+            p_faulty = float(model.faulty_probability(score)[0]) if calibrated else float("nan")
         r = rul[0].tolist()
         records.append({
             "file": str(path),
             "k_hat": dict(zip(FAULT_NAMES, k_hat[0].tolist())),
             "health_score": float(score[0]), "healthy": bool(score[0] > 0),
+            "p_faulty": None if bool(ood[0]) or math.isnan(p_faulty) else p_faulty,
             "rul_hours": None if any(math.isnan(v) for v in r) else dict(zip(("p5", "p50", "p95"), r)),
             "out_of_distribution": bool(ood[0]), "residual": float(resid[0]),
         })

@@ -42,13 +42,16 @@ class OnlinePipeline(nn.Module):
         fdi_direction: (8,) FDI error scale per component (e.g. its mean |k_hat - k|); None: zeros.
         rate_scales: (3,) wear-rate factors s_q of the three propagations (RUL / s_q; the ``rate`` band of
             :class:`~phm_torch.prognostics.DeterministicRUL`); None: ones (the paper's initial-state band).
+        verdict: (a, b) of P(faulty | score) = sigmoid(a score + b) (:mod:`phm_torch.online.verdict`);
+            None: uncalibrated, :meth:`faulty_probability` returns NaN.
     """
 
     def __init__(self, gappy: nn.Module, fdi: nn.Module, classifier: nn.Module, damage: DamageModel,
                  deltas: torch.Tensor, direction: torch.Tensor, n_full: int, residual_threshold: float,
                  min_present: float = 0.8, sample_rate: float = 20000.0, coarse: int = 25,
                  full_check: nn.Module | None = None, fdi_deltas: torch.Tensor | None = None,
-                 fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None):
+                 fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None,
+                 verdict: tuple[float, float] | None = None):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
@@ -71,6 +74,9 @@ class OnlinePipeline(nn.Module):
                              else torch.as_tensor(fdi_deltas, dtype=dtype).reshape(3))
         self.register_buffer("fdi_direction", torch.zeros(8, dtype=dtype) if fdi_direction is None
                              else torch.as_tensor(fdi_direction, dtype=dtype).reshape(8))
+        scale, offset = (float("nan"), float("nan")) if verdict is None else (float(verdict[0]), float(verdict[1]))
+        self.register_buffer("verdict_scale", torch.tensor(scale, dtype=dtype))
+        self.register_buffer("verdict_offset", torch.tensor(offset, dtype=dtype))
         self.n_full = int(n_full)
         self.sample_rate = float(sample_rate)
         self.n_points = int(gappy.modes_hat.shape[0])
@@ -88,15 +94,21 @@ class OnlinePipeline(nn.Module):
     @classmethod
     def from_bundle(cls, bundle: nn.Module, damage: DamageModel, deltas: torch.Tensor, direction: torch.Tensor,
                     min_present: float = 0.8, fdi_deltas: torch.Tensor | None = None,
-                    fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None
-                    ) -> OnlinePipeline:
+                    fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None,
+                    verdict: tuple[float, float] | None = None) -> OnlinePipeline:
         """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifier, OOD threshold)."""
         threshold = float(bundle.full_residual_threshold)
         check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_, residual_threshold=threshold)
         return cls(bundle.gappy, bundle.network, bundle.classifier, damage, deltas, direction,
                    int(bundle.pod.mean_.shape[0]), float(bundle.residual_threshold), min_present,
                    float(bundle.sample_rate), full_check=check, fdi_deltas=fdi_deltas, fdi_direction=fdi_direction,
-                   rate_scales=rate_scales)
+                   rate_scales=rate_scales, verdict=verdict)
+
+    @torch.jit.export
+    def faulty_probability(self, score: torch.Tensor) -> torch.Tensor:
+        """P(faulty) (B,) of records whose health score (the second output of ``forward``) is ``score`` (B,):
+        Platt-scaled on held-out records by phm-evaluate; NaN when the pipeline was not calibrated."""
+        return torch.sigmoid(self.verdict_scale * score.to(self.verdict_scale.dtype) + self.verdict_offset)
 
     def _score_at(self, dk: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
         """Score of k0 + A(t_index) dk for per-(sample, quantile) grid indices: dk (B, 3, 8), index (B, 3)."""
