@@ -21,7 +21,7 @@ from ..data.store import DatasetStore
 from ..online import OnlinePipeline
 from ..online.export import export_torchscript
 from ..online.fdi_band import FDIBand, TooFewCalibrationSignals, calibrate_fdi_band
-from ..online.verdict import calibrate_verdict, verdict_quality
+from ..online.verdict import calibrate_verdict, shift_prior, verdict_quality
 from ..prognostics import DeterministicRUL, RULEstimator
 from ..prognostics.evaluation import RULComparison
 from ..prognostics.plots import error_panels, rul_vs_expected
@@ -71,24 +71,39 @@ def _fdi_band(cfg: DictConfig, pipeline: OnlinePipeline, signals: torch.Tensor, 
         return None
 
 
-def _verdict(pipeline: OnlinePipeline, signals: torch.Tensor, healthy: torch.Tensor
+def _verdict_prior(cfg: DictConfig) -> float | None:
+    prior = cfg.get("verdict", {}).get("prior_faulty")
+    if prior is None:
+        return None
+    prior = common.number(prior, "verdict.prior_faulty", 0.0, strict=True)
+    if prior >= 1.0:
+        raise ValueError(f"verdict.prior_faulty must be in (0, 1), got {prior!r}")
+    return prior
+
+
+def _verdict(prior: float | None, pipeline: OnlinePipeline, signals: torch.Tensor, healthy: torch.Tensor
              ) -> tuple[float, float, float] | None:
-    """Platt scaling (a, b) of the pipeline's health score on held-out (noisy) signals and their faulty
-    fraction (the prior it carries), or None (with a warning: the exported pipeline's P(faulty) is then
-    NaN) when they are not two-class."""
+    """Platt scaling (a, b) of the pipeline's health score on held-out (noisy) signals, moved to the fault
+    rate ``prior`` (None: the signals' own), and that rate; or None (with a warning: the exported
+    pipeline's P(faulty) is then NaN) when the signals are not two-class."""
     with torch.no_grad():
         _, score, _, ood, _ = pipeline(signals.to(pipeline.times.dtype))
     keep = ~ood & torch.isfinite(score)
     try:
-        return (*calibrate_verdict(score[keep], ~healthy[keep]), float((~healthy[keep]).double().mean()))
+        a, b = calibrate_verdict(score[keep], ~healthy[keep])
     except ValueError as err:
         log.warning("verdict not calibrated: %s", err)
         return None
+    own = float((~healthy[keep]).double().mean())
+    if prior is None:
+        return a, b, own
+    return a, shift_prior(b, own, prior), prior
 
 
 def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Evaluate the RUL estimation (see :mod:`phm_torch.prognostics.evaluation` for the definitions)."""
     common.set_threads(cfg)
+    prior = _verdict_prior(cfg)
     params = common.actuator(cfg)
     damage = common.build(cfg.damage, "damage", nominal=list(params.nominal_faults))
     out_dir = Path(cfg.out_dir)
@@ -127,7 +142,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if band is not None:
         pipeline.fdi_deltas.copy_(band.deltas.to(pipeline.fdi_deltas))
         pipeline.fdi_direction.copy_(band.direction.to(pipeline.fdi_direction))
-    verdict = _verdict(pipeline, band_signals, band_healthy)
+    verdict = _verdict(prior, pipeline, band_signals, band_healthy)
     if verdict is not None:
         pipeline.verdict_scale.fill_(verdict[0])
         pipeline.verdict_offset.fill_(verdict[1])
@@ -162,7 +177,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         fdi_band_direction=pipeline.fdi_direction.tolist() if band else None,
         fdi_band_saturated=band.saturated if band else None,
         verdict_calibration=list(verdict[:2]) if verdict else None,
-        verdict_calibration_faulty_fraction=verdict[2] if verdict else None,
+        verdict_prior_faulty=verdict[2] if verdict else None,
         **({f"verdict_{key}": value for key, value in verdict_quality(p_faulty[~ood], ~healthy[~ood]).items()}
            if verdict and bool((~ood).any()) else {}))
     metrics.update(rul_err_median_true_k_monte_carlo=gauss["rul_err_median_true_k"],
@@ -178,7 +193,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                        "rate_scales": pipeline.rate_scales.tolist(), "initial_state_deltas": deltas.tolist(),
                        "fdi_deltas": pipeline.fdi_deltas.tolist(), "fdi_direction": pipeline.fdi_direction.tolist(),
                        "verdict": list(verdict[:2]) if verdict else None,
-                       "verdict_faulty_fraction": verdict[2] if verdict else None, "damage": common.plain(cfg.damage)})
+                       "verdict_prior_faulty": verdict[2] if verdict else None, "damage": common.plain(cfg.damage)})
     common.write_json(out_dir / "rul_predictions.json",
                       {"k": k.tolist(), "k_hat": k_hat.tolist(), "reference": reference.tolist(),
                        "true_k": true_k.tolist(), "full_flow": torch.nan_to_num(full_flow, nan=-1.0).tolist(),

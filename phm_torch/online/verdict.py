@@ -10,6 +10,8 @@ near-certain; the online pipeline carries (a, b) and returns the probability.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 
@@ -52,6 +54,15 @@ def calibrate_verdict(score: torch.Tensor, faulty: torch.Tensor, ridge: float = 
             break
     a = float(w[0] / spread)
     return a, float(w[1] - a * center)
+
+
+def shift_prior(offset: float, calibration_prior: float, prior: float) -> float:
+    """The offset b of a Platt law fitted where a fraction ``calibration_prior`` of the records was faulty,
+    moved to a population where ``prior`` is (Bayes: the likelihood ratio stays, the prior odds change)."""
+    for name, value in (("calibration_prior", calibration_prior), ("prior", prior)):
+        if not 0.0 < value < 1.0:
+            raise ValueError(f"{name} must be in (0, 1), got {value!r}")
+    return offset + math.log(prior / (1 - prior)) - math.log(calibration_prior / (1 - calibration_prior))
 
 
 def verdict_quality(p_faulty: torch.Tensor, faulty: torch.Tensor) -> dict[str, float]:
