@@ -274,7 +274,11 @@ def test_app_finds_hidden_cogging_and_the_error_falls_to_the_noise_floor(compose
     rows = report["before_after"]
     assert [r["model"] for r in rows] == ["model", "model + cogging_torque"]
     assert not rows[0]["white"] and rows[1]["nrmse"]["total"] < rows[0]["nrmse"]["total"]
+    # the next step, training the surrogates on that physics: a phm-generate override with the fitted values
+    fitted_amp = report["final"]["effects"]["cogging_torque"]["amplitude"]
+    assert report["retrain"].startswith("'+dataset.effects.cogging_torque={amplitude: ")
     html = (out / "report.html").read_text()
+    assert "phm-generate" in html and f"{fitted_amp:.6g}" in html
     assert html.count("data:image/png;base64,") >= 6
     png = html.split("data:image/png;base64,")[1].split('"')[0]
     assert base64.b64decode(png)[:8] == b"\x89PNG\r\n\x1a\n"
@@ -326,3 +330,17 @@ def test_hf_model_calibrates_on_a_short_record():
     cal = wb.calibrate(wb.evaluator([rec]))
     assert math.isfinite(cal.chi2) and 0.7 < cal.chi2 / len(cal.result.residual) < 1.3
     assert set(cal.fitted()) == {"dry_friction"}
+
+
+def test_retrain_overrides_compose_into_the_dataset_spec(compose):
+    from hydra.utils import instantiate
+
+    from phm_torch.workbench.report import generate_overrides
+
+    line = generate_overrides({"aero_hinge_load": {"stiffness": 1015.0133, "bias": 0.98963921}, "cogging_torque":
+                               {"amplitude": 0.0041, "phase": -0.3}})
+    assert line == ("'+dataset.effects.aero_hinge_load={stiffness: 1015.01, bias: 0.989639}' "
+                    "'+dataset.effects.cogging_torque={amplitude: 0.0041, phase: -0.3}'")
+    spec = instantiate(compose("generate", [o.strip("'") for o in line.split(" '")]).dataset)
+    assert spec.effects == {"aero_hinge_load": {"stiffness": 1015.01, "bias": 0.989639},
+                            "cogging_torque": {"amplitude": 0.0041, "phase": -0.3}}

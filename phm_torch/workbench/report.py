@@ -123,9 +123,19 @@ def report_dict(res: WorkbenchResult) -> dict:
                   "fitted": _fitted(res.final)},
         "before_after": rows,
         "closure": closure,
+        "retrain": generate_overrides(res.final.space.effect_values(res.final.x)) if res.added else None,
         "timing": res.timing,
     }
     return _clean(out)
+
+
+def generate_overrides(effects: dict[str, dict[str, float]]) -> str:
+    """The phm-generate overrides that put ``effects`` {name: {param: value}} (the final model's, fitted)
+    into training records: the surrogates then learn the physics the measurement showed."""
+    def value(v: float) -> str:
+        return f"{v:.6g}"
+    return " ".join("'+dataset.effects." + name + "={" + ", ".join(f"{k}: {value(v)}" for k, v in params.items()) + "}'"
+                    for name, params in effects.items())
 
 
 def figures(res: WorkbenchResult, report: dict) -> dict[str, bytes]:
@@ -223,13 +233,16 @@ def html_page(report: dict, figs: dict[str, bytes]) -> str:
                    + _table(["input", "share"], [[k, f"{100 * v:.1f} %"] for k, v in cl["inputs"].items()])
                    + img("closure.png"))
     timing = ", ".join(f"{k} {v:.1f}" for k, v in report["timing"].items())
+    retrain = (f"<p>Train the surrogates on this physics: <code>phm-generate {html.escape(report['retrain'])}</code>, "
+               "then <code>phm-train</code> on that store (docs/surrogates.md, modelling differences).</p>"
+               if report.get("retrain") else "")
     return f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>phm_torch workbench report</title>
 <style>body{{font-family:sans-serif;max-width:1200px;margin:auto;padding:1em}}table{{border-collapse:collapse;
 margin:0.5em 0}}td,th{{border:1px solid #bbb;padding:3px 6px;font-size:90%;text-align:left}}img{{max-width:100%}}
 </style></head><body><h1>Model vs measurement</h1>
 <p>Measurements: {html.escape(", ".join(report["measurements"]))}; model fidelity {report["fidelity"].upper()};
 channels {", ".join(chans)}.</p><p>{summary}</p>
-<h2>Add it and watch the error fall</h2>{ba}{img("before_after.png")}
+<h2>Add it and watch the error fall</h2>{ba}{img("before_after.png")}{retrain}
 <h2>Compare</h2><p>Calibrated model (configured effects) against the measurement.</p>{compare}{img("overlay.png")}
 <h2>Where it fails</h2><h3>Worst windows</h3>{worst}<h3>Residual maps</h3>{img("residual_maps.png")}
 <h3>Harmonic content (rotor angle)</h3>{harm}{img("harmonics.png")}<h3>Residual spectrum</h3>{img("spectrum.png")}
