@@ -131,6 +131,46 @@ def test_faulty_probability_is_nan_until_calibrated_then_the_platt_law(pipeline)
     torch.testing.assert_close(torch.jit.script(pipe).faulty_probability(score), p)
 
 
+def test_rebase_moves_another_benchs_records_onto_the_training_model(pipeline, tmp_path):
+    x = signals(pipeline, 3)
+    assert torch.isnan(pipeline.rebase(x, pipeline.mean_signal)).all()          # no nominal record: NaN
+    pipe = copy.deepcopy(pipeline)
+    pipe.nominal_record.copy_(pipeline.mean_signal + 0.1)
+    offset = 0.05 * torch.sin(torch.linspace(0, 30, N_FULL, dtype=torch.float64))  # what the other bench adds
+    moved = pipe.rebase(x + offset, pipe.nominal_record + offset)
+    torch.testing.assert_close(moved, x, rtol=0, atol=1e-12)
+    torch.testing.assert_close(torch.jit.script(pipe).rebase(x + offset, pipe.nominal_record + offset), moved)
+    with pytest.raises(ValueError, match="rebase: x must be"):
+        pipe.rebase(x[:, :-1], pipe.nominal_record)
+
+
+def test_predict_refuses_a_baseline_without_the_training_nominal_record(pipeline, compose, tmp_path):
+    from phm_torch.apps.predict import predict
+
+    export_torchscript(pipeline, tmp_path / "online.pt")
+    csv = "examples/workbench_hidden_cogging.csv"
+    with pytest.raises(ValueError, match="baseline: the pipeline .* holds no nominal record"):
+        predict(compose("predict", [f"pipeline={tmp_path / 'online.pt'}", f"measurements={csv}", f"baseline={csv}"]))
+
+
+def test_bundle_carries_the_nominal_record_into_the_pipeline(pipeline, tmp_path):
+    from phm_torch.surrogates import POD, SurrogateBundle
+
+    pod = POD(N_MODES)
+    pod.mean_, pod.modes_ = pipeline.mean_signal, pipeline.modes
+    pod.singular_values_, pod.energy_ = torch.ones(N_MODES, dtype=torch.float64), torch.ones(N_MODES) / N_MODES
+    nominal = pipeline.mean_signal + 0.2
+    bundle = SurrogateBundle(pod, pipeline.gappy.indices, pipeline.fdi, pipeline.classifier, 20000.0, 1.0,
+                             nominal_record=nominal)
+    back = SurrogateBundle.load(bundle.save(tmp_path / "surrogates.pt"))
+    assert torch.equal(back.nominal_record, nominal)
+    pipe = OnlinePipeline.from_bundle(back, damage(), torch.zeros(3), torch.ones(8))
+    torch.testing.assert_close(pipe.nominal_record, nominal.to(pipe.nominal_record.dtype))
+    with pytest.raises(ValueError, match="nominal_record must have shape"):
+        SurrogateBundle(pod, pipeline.gappy.indices, pipeline.fdi, pipeline.classifier, 20000.0,
+                        nominal_record=nominal[:-1])
+
+
 def test_full_record_check_flags_what_the_few_gappy_samples_cannot(pipeline):
     """A full record outside the POD span is flagged even when its few selected samples fit: here noise
     whose selected samples are replaced by an in-distribution record's."""

@@ -51,6 +51,15 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     if not record["out_of_distribution"]:
         assert record["p_faulty"] == pytest.approx(float(torch.sigmoid(torch.tensor(a * record["health_score"] + b))),
                                                    rel=1e-5)
+    # a healthy record of the measuring bench as baseline: the record itself then reads as the training
+    # model's own nominal record (the store's nominal split, carried by the bundle into the pipeline)
+    metrics, rebased = predict(compose_stage("predict", [f"pipeline={saved['evaluate']['export']}",
+                                                         "measurements=examples/workbench_hidden_cogging.csv",
+                                                         "baseline=examples/workbench_hidden_cogging.csv"]))
+    assert metrics["baseline"]
+    with torch.no_grad():
+        own = first(first.nominal_record.unsqueeze(0))[0][0]
+    assert list(rebased["records"][0]["k_hat"].values()) == pytest.approx(own.tolist(), abs=1e-5)
     assert saved["report"]["latency"]["online_step_us_p50"] > 0
     html = (tmp_path / "report" / "index.html").read_text()
     for heading in ("Gappy-POD coefficient error vs retained modes", "Placement of the sample points",

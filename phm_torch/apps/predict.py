@@ -6,6 +6,8 @@ probability that the actuator is faulty given that score, calibrated on held-out
 {p5, p50, p95} (``null`` when the input is out of distribution: never a confident RUL from garbage),
 ``out_of_distribution`` and the gappy ``residual`` [A]. The model is a TorchScript file written by
 ``phm-evaluate``/``phm_torch.online.export``; it is loaded with ``torch.jit.load`` (no unpickling).
+With ``baseline`` (healthy records of the measuring bench), every measurement is first moved onto the
+training model by the difference between that bench's healthy record and the training model's.
 """
 
 from __future__ import annotations
@@ -27,12 +29,38 @@ from . import common
 log = logging.getLogger(__name__)
 
 
-def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Run the exported pipeline ``cfg.pipeline`` on every CSV of ``cfg.measurements``."""
-    paths = common.plain(cfg.measurements)
+def _paths(value: Any, name: str) -> list[str]:
+    paths = common.plain(value)
     paths = [paths] if isinstance(paths, str) else paths
     if not isinstance(paths, list) or not paths or not all(isinstance(p, str) for p in paths):
-        raise ValueError(f"measurements must be a CSV path or a list of paths, got {paths!r}")
+        raise ValueError(f"{name} must be a CSV path or a list of paths, got {paths!r}")
+    return paths
+
+
+def _current(path: str, model: Any, resample: bool) -> torch.Tensor:
+    """The envelope current (1, n_full) [A] of one measurement CSV, in the pipeline's dtype."""
+    m = read_measurement(path, expected_rate=float(model.sample_rate), resample=resample)
+    current = torch.as_tensor(m.current, dtype=model.times.dtype).unsqueeze(0)
+    if current.shape[1] != int(model.n_full):
+        raise ValueError(f"{path}: current has {current.shape[1]} samples; the model expects {int(model.n_full)} "
+                         f"(the full test record)")
+    return current
+
+
+def _bench_nominal(cfg: DictConfig, model: Any) -> torch.Tensor | None:
+    """The mean of the ``baseline`` records (healthy records of the measuring bench), or None."""
+    if cfg.get("baseline") is None:
+        return None
+    if not hasattr(model, "rebase") or not bool(torch.isfinite(model.nominal_record).all()):
+        raise ValueError(f"baseline: the pipeline {str(cfg.pipeline)!r} holds no nominal record of its training "
+                         f"model (exported before baselines existed, or trained on a store without a nominal split)")
+    return torch.cat([_current(p, model, bool(cfg.resample)) for p in _paths(cfg.baseline, "baseline")]).mean(0)
+
+
+def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Run the exported pipeline ``cfg.pipeline`` on every CSV of ``cfg.measurements`` (moved onto the
+    training model with the bench's healthy ``baseline`` records, when given)."""
+    paths = _paths(cfg.measurements, "measurements")
     model_path = Path(cfg.pipeline)
     if not model_path.is_file():
         raise ValueError(f"pipeline: no such file {str(model_path)!r} (export one with phm-evaluate or phm-export)")
@@ -40,16 +68,13 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     calibrated = hasattr(model, "faulty_probability")
     if not calibrated:
         log.warning("%s was exported before the verdict calibration existed: p_faulty is null", model_path)
-    n_full = int(model.n_full)
-    dtype = model.times.dtype
+    bench_nominal = _bench_nominal(cfg, model)
     records = []
     for path in paths:
-        m = read_measurement(path, expected_rate=float(model.sample_rate), resample=bool(cfg.resample))
-        current = torch.as_tensor(m.current, dtype=dtype).unsqueeze(0)
-        if current.shape[1] != n_full:
-            raise ValueError(f"{path}: current has {current.shape[1]} samples; the model expects {n_full} "
-                             f"(the full test record)")
+        current = _current(path, model, bool(cfg.resample))
         with torch.no_grad():
+            if bench_nominal is not None:
+                current = model.rebase(current, bench_nominal)
             k_hat, score, rul, ood, resid = model(current)
             p_faulty = float(model.faulty_probability(score)[0]) if calibrated else float("nan")
         r = rul[0].tolist()
@@ -63,7 +88,8 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         })
     if cfg.out:
         common.write_json(Path(cfg.out), records)
-    return {"files": len(records), "out_of_distribution": sum(r["out_of_distribution"] for r in records)}, \
+    return {"files": len(records), "out_of_distribution": sum(r["out_of_distribution"] for r in records),
+            "baseline": bench_nominal is not None}, \
         {"records": records}
 
 

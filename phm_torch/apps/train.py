@@ -349,7 +349,8 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                              selector={"name": selector.name, "params": selector.get_params()},
                              meta={"data_fingerprint": info["manifest"].get("fingerprint"), "seed": seed,
                                    "model": metrics["model"], "n_train": len(train)},
-                             full_residual_threshold=full_threshold, gappy_statistics=statistics)
+                             full_residual_threshold=full_threshold, gappy_statistics=statistics,
+                             nominal_record=info["nominal"])
     bundle.save(out_dir / "surrogates.pt")
     with torch.no_grad():
         arrays.update(healthy=val.healthy, score=bundle.health_score(val.k), score_chain=bundle.health_score(arrays["k_hat"]),

@@ -44,6 +44,8 @@ class OnlinePipeline(nn.Module):
             :class:`~phm_torch.prognostics.DeterministicRUL`); None: ones (the paper's initial-state band).
         verdict: (a, b) of P(faulty | score) = sigmoid(a score + b) (:mod:`phm_torch.online.verdict`);
             None: uncalibrated, :meth:`faulty_probability` returns NaN.
+        nominal_record: (n_full,) current [A] of the training model at the nominal fault vector, for
+            :meth:`rebase`; None: unknown (NaN).
     """
 
     def __init__(self, gappy: nn.Module, fdi: nn.Module, classifier: nn.Module, damage: DamageModel,
@@ -51,7 +53,7 @@ class OnlinePipeline(nn.Module):
                  min_present: float = 0.8, sample_rate: float = 20000.0, coarse: int = 25,
                  full_check: nn.Module | None = None, fdi_deltas: torch.Tensor | None = None,
                  fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None,
-                 verdict: tuple[float, float] | None = None):
+                 verdict: tuple[float, float] | None = None, nominal_record: torch.Tensor | None = None):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
@@ -77,6 +79,8 @@ class OnlinePipeline(nn.Module):
         scale, offset = (float("nan"), float("nan")) if verdict is None else (float(verdict[0]), float(verdict[1]))
         self.register_buffer("verdict_scale", torch.tensor(scale, dtype=dtype))
         self.register_buffer("verdict_offset", torch.tensor(offset, dtype=dtype))
+        self.register_buffer("nominal_record", torch.full((int(n_full),), float("nan"), dtype=dtype)
+                             if nominal_record is None else torch.as_tensor(nominal_record, dtype=dtype).reshape(n_full))
         self.n_full = int(n_full)
         self.sample_rate = float(sample_rate)
         self.n_points = int(gappy.modes_hat.shape[0])
@@ -102,13 +106,24 @@ class OnlinePipeline(nn.Module):
         return cls(bundle.gappy, bundle.network, bundle.classifier, damage, deltas, direction,
                    int(bundle.pod.mean_.shape[0]), float(bundle.residual_threshold), min_present,
                    float(bundle.sample_rate), full_check=check, fdi_deltas=fdi_deltas, fdi_direction=fdi_direction,
-                   rate_scales=rate_scales, verdict=verdict)
+                   rate_scales=rate_scales, verdict=verdict, nominal_record=bundle.nominal_record)
 
     @torch.jit.export
     def faulty_probability(self, score: torch.Tensor) -> torch.Tensor:
         """P(faulty) (B,) of records whose health score (the second output of ``forward``) is ``score`` (B,):
         Platt-scaled on held-out records by phm-evaluate; NaN when the pipeline was not calibrated."""
         return torch.sigmoid(self.verdict_scale * score.to(self.verdict_scale.dtype) + self.verdict_offset)
+
+    @torch.jit.export
+    def rebase(self, x: torch.Tensor, bench_nominal: torch.Tensor) -> torch.Tensor:
+        """Full records x (B, n_full) [A] of another bench moved onto the training model, given that bench's
+        healthy record ``bench_nominal`` (n_full,) [A] (one, or the mean of several): x - (bench_nominal -
+        nominal_record). The difference between the two models at nominal is taken as additive and the
+        same for every fault vector, a first-order correction (docs/surrogates.md: modelling
+        differences). NaN when the pipeline has no nominal record."""
+        if x.dim() != 2 or x.shape[1] != self.n_full or bench_nominal.shape != self.nominal_record.shape:
+            raise ValueError("rebase: x must be (B, n_full) and bench_nominal (n_full,)")
+        return x.to(self.nominal_record.dtype) - (bench_nominal.to(self.nominal_record.dtype) - self.nominal_record)
 
     def _score_at(self, dk: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
         """Score of k0 + A(t_index) dk for per-(sample, quantile) grid indices: dk (B, 3, 8), index (B, 3)."""

@@ -24,7 +24,8 @@ float, bool, None and tensors, read back with ``torch.load(weights_only=True)`` 
               "classifier": {"name", "params"}, "gappy_ridge", "phm_torch_version", "extra": {...}},
      "tensors": {"pod.mean_", "pod.modes_", "pod.singular_values_", "pod.energy_", "indices",
                  "sample_times", "residual_threshold", "network.<state_dict>", "classifier.<state_dict>",
-                 and, for a Bayesian gappy layer, "gappy.noise_covariance", "gappy.prior_variance"}}
+                 and, for a Bayesian gappy layer, "gappy.noise_covariance", "gappy.prior_variance",
+                 and, when the store had one, "nominal_record"}}
 """
 
 from __future__ import annotations
@@ -69,13 +70,17 @@ class SurrogateBundle(nn.Module):
         gappy_statistics: ``noise_covariance`` (n_w, n_w) and ``prior_variance`` (n_m,) of the Bayesian gappy
             layer (:func:`~.gappy_pod.gappy_statistics`); None = plain least squares.
         meta: extra JSON-able provenance (selector, config, data) kept in ``meta["extra"]``.
+        nominal_record: (n_e,) current [A] of the training model at the nominal fault vector (the store's
+            ``nominal`` split); it lets a record of another bench be moved onto the training model with that
+            bench's own healthy record (:meth:`~phm_torch.online.OnlinePipeline.rebase`). None: unknown.
     """
 
     def __init__(self, pod: POD, indices: torch.Tensor, network: FDIMLP | FDIEnsemble, classifier: HealthClassifier,
                  sample_rate: float, residual_threshold: float = float("inf"), gappy_ridge: float = 0.0,
                  selector: Mapping[str, Any] | None = None, meta: Mapping[str, Any] | None = None,
                  full_residual_threshold: float = float("inf"),
-                 gappy_statistics: Mapping[str, torch.Tensor] | None = None):
+                 gappy_statistics: Mapping[str, torch.Tensor] | None = None,
+                 nominal_record: torch.Tensor | None = None):
         super().__init__()
         if network.n_inputs != pod.n_modes:
             raise ValueError(f"network has {network.n_inputs} inputs but the POD has {pod.n_modes} modes")
@@ -90,6 +95,9 @@ class SurrogateBundle(nn.Module):
         self.register_buffer("sample_times", self.gappy.indices.to(torch.float64) / self.sample_rate)
         self.register_buffer("residual_threshold", torch.tensor(float(residual_threshold)))
         self.register_buffer("full_residual_threshold", torch.tensor(float(full_residual_threshold)))
+        if nominal_record is not None and tuple(nominal_record.shape) != tuple(pod.mean_.shape):
+            raise ValueError(f"nominal_record must have shape {tuple(pod.mean_.shape)}, got {tuple(nominal_record.shape)}")
+        self.nominal_record = None if nominal_record is None else nominal_record.detach().cpu()
 
     # ---- online API -------------------------------------------------------------------------------
     @property
@@ -150,6 +158,8 @@ class SurrogateBundle(nn.Module):
                        residual_threshold=self.residual_threshold.cpu(),
                        full_residual_threshold=self.full_residual_threshold.cpu())
         tensors.update({f"gappy.{k}": v for k, v in self.gappy_statistics.items()})
+        if self.nominal_record is not None:
+            tensors["nominal_record"] = self.nominal_record
         tensors.update({f"network.{k}": v.detach().cpu() for k, v in self.network.state_dict().items()})
         tensors.update({f"classifier.{k}": v.detach().cpu() for k, v in self.classifier.state_dict().items()})
         buf = io.BytesIO()
@@ -219,7 +229,8 @@ class SurrogateBundle(nn.Module):
             setattr(classifier.get_submodule(owner) if owner else classifier, name, v)
         bundle = cls(pod, t["indices"], network, classifier, meta["sample_rate"],
                      float(t["residual_threshold"]), meta["gappy_ridge"], meta["selector"], meta["extra"],
-                     float(t.get("full_residual_threshold", float("inf"))), _prefixed(t, "gappy.") or None)
+                     float(t.get("full_residual_threshold", float("inf"))), _prefixed(t, "gappy.") or None,
+                     t.get("nominal_record"))
         return bundle.eval()
 
 

@@ -78,7 +78,8 @@ def load_store(data_dir: str | os.PathLike, splits: dict[str, str],
         limits: role -> largest number of rows to read (None = all).
 
     Returns:
-        {role: SplitData}, the time grid (n_e,) [s] float64, and {"manifest", "metadata"} of the store.
+        {role: SplitData}, the time grid (n_e,) [s] float64, and {"manifest", "metadata"} of the store
+        with "nominal", the current (n_e,) [A] of its ``nominal`` split (None when it has none).
     """
     with DatasetStore(data_dir) as store:
         time = torch.from_numpy(np.asarray(store.time, dtype=np.float64))
@@ -86,5 +87,7 @@ def load_store(data_dir: str | os.PathLike, splits: dict[str, str],
             raise ValueError(f"store {str(data_dir)!r}: time has shape {tuple(time.shape)}, expected (n_e,)")
         out = {role: read_split(store, name, int(time.numel()), (limits or {}).get(role))
                for role, name in splits.items()}
-        info = {"manifest": store.manifest, "metadata": store.metadata}
+        info = {"manifest": store.manifest, "metadata": store.metadata,
+                "nominal": (read_split(store, "nominal", int(time.numel())).current[0]
+                            if "nominal" in store.manifest.get("splits", {}) else None)}
     return out, time, info
