@@ -26,6 +26,10 @@ from .plant import Plant, build_plant
 MOTORS: dict[str, Callable[..., object]] = {"hf": BLDCMotor, "lf": DCMotor}
 DEFAULT_SUBSTEPS = {"hf": 10, "lf": 2}
 COMPILE_UNIT = {"hf": "substep", "lf": "period"}
+# Every simulator shares the code of ``_substep``/``step``, and dynamo guards each compiled graph on the
+# instance (fidelity, effects): past its default recompile limit of 8, a process that builds more compiled
+# simulators (one per effect set, e.g. scripts/fdi_model_mismatch.py) would silently run the rest eager.
+RECOMPILE_LIMIT = 64
 
 
 @dataclass
@@ -108,6 +112,8 @@ class EMASimulator:
         # substeps compile for minutes and run no faster than one compiled substep called ten times.
         unit = COMPILE_UNIT[fidelity]
         whole_period = compile and unit == "period"
+        if compile:
+            torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, RECOMPILE_LIMIT)
         self._substep_fn = torch.compile(self._substep, dynamic=False) if compile and not whole_period else self._substep
         self._step_fn = torch.compile(self.step, dynamic=False) if whole_period else self.step
 

@@ -75,7 +75,7 @@ def main() -> None:
     effects = [e for e in (sorted(EFFECTS) if requested is None else requested) if e not in own]
 
     def simulate(effect: dict) -> torch.Tensor:
-        if args.compile:   # each effect set is another graph: past dynamo's recompile limit it would run eager
+        if args.compile:   # each effect set is another graph, used once: free the previous ones
             torch.compiler.reset()
         sim = EMASimulator(params, spec.get("fidelity", "hf"), effects=effect, substeps=spec.get("substeps"),
                            compile=args.compile)

@@ -215,6 +215,23 @@ def test_compiled_substep_equals_eager():
         torch.testing.assert_close(fused[c], eager[c], rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.slow
+def test_many_compiled_simulators_all_stay_compiled():
+    """Each effect set is a new graph of the step code that all simulators share; past dynamo's default
+    recompile limit (8) the later ones would silently run eager."""
+    from torch._dynamo.utils import counters
+
+    from phm_torch.effects import EFFECTS
+
+    torch.compiler.reset()
+    before = counters["stats"]["unique_graphs"]
+    k = torch.tensor([NOM, NOM])
+    configurations = [{}] + [{name: {}} for name in sorted(EFFECTS)]          # 10 > 8
+    for effects in configurations:
+        EMASimulator(P, "lf", effects=effects, compile=True).run(k, CHIRP, 0.002)
+    assert counters["stats"]["unique_graphs"] - before >= len(configurations)
+
+
 def test_deterministic():
     sim = EMASimulator(P, "lf")
     a = sim.run(torch.tensor([NOM]), CHIRP, 0.05)
