@@ -155,20 +155,17 @@ def test_missing_split_and_config_errors(compose, tmp_path):
         train_surrogates(compose("train", [f"data_dir={store}", "n_points=5", "n_modes=10"]))
     with pytest.raises(ValueError, match="holds no finished dataset store"):
         train_surrogates(compose("train", [f"data_dir={tmp_path / 'nothing'}", *QUICK]))
-    with pytest.raises(ValueError, match="loggers must be a list"):
-        train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "loggers=[wandb]"]))
-    with pytest.raises(ValueError, match="threads"):
-        train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "threads=0"]))
-    with pytest.raises(ValueError, match="monitor_fraction must be < 0.5"):
-        train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "monitor_fraction=0.5"]))
-    with pytest.raises(ValueError, match="monitor_fraction must be >= 0, got -0.1"):
-        train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "monitor_fraction=-0.1"]))
-    with pytest.raises(ValueError, match="n_layers must be >= 1, got 0"):
-        train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "n_layers=0"]))
-    with pytest.raises(ValueError, match="n_members=2 needs model=fdi_adam or model=fdi_e2e"):
-        train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "n_members=2"]))
-    with pytest.raises(ValueError, match="model.network.n_layers: set the top-level n_layers instead"):
-        train_surrogates(compose("train", [f"data_dir={store}", *QUICK, "+model.network.n_layers=2"]))
+    for override, message in (                      # one bad setting each: the error names it
+        ("loggers=[wandb]", "loggers must be a list"),
+        ("threads=0", "threads"),
+        ("monitor_fraction=0.5", "monitor_fraction must be < 0.5"),
+        ("monitor_fraction=-0.1", "monitor_fraction must be >= 0, got -0.1"),
+        ("n_layers=0", "n_layers must be >= 1, got 0"),
+        ("n_members=2", "n_members=2 needs model=fdi_adam or model=fdi_e2e"),
+        ("+model.network.n_layers=2", "model.network.n_layers: set the top-level n_layers instead"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            train_surrogates(compose("train", [f"data_dir={store}", *QUICK, override]))
 
 
 def test_threads_setting(compose):
