@@ -111,6 +111,7 @@ def test_torchscript_export_reloads_without_phm_torch(pipeline, tmp_path):
         out = m(torch.load({str(tmp_path / 'x.pt')!r}, weights_only=True))
         torch.save(list(out), {str(tmp_path / 'out.pt')!r})
         assert torch.isnan(m.faulty_probability(out[1])).all()     # exported, NaN until calibrated
+        assert torch.isnan(m.k_interval(out[0])[0]).all()
         assert not any(name.startswith('phm_torch') for name in sys.modules), 'phm_torch was imported'
     """)
     subprocess.run([sys.executable, "-c", code], check=True, cwd=tmp_path)
@@ -129,6 +130,27 @@ def test_faulty_probability_is_nan_until_calibrated_then_the_platt_law(pipeline)
     torch.testing.assert_close(p, torch.sigmoid(-4.0 * score + 0.5))
     assert p[0] > p[1] > p[2]                                    # the lower the score, the likelier a fault
     torch.testing.assert_close(torch.jit.script(pipe).faulty_probability(score), p)
+
+
+def test_pipeline_interval_is_nan_until_calibrated_then_by_the_estimates_class(pipeline):
+    pipe = copy.deepcopy(pipeline)
+    k_hat = torch.tensor([[0.02] * 6 + [0.9, 0.5],                   # k7 far from 0.5 is a phase: class 0
+                          [0.5, 0.02, 0.02, 0.02, 0.02, 0.02, 0.5, 0.5],
+                          [0.99, 0.6, 0.7, 0.0, 0.0, 0.0, 0.5, 0.95]], dtype=torch.float64)
+    assert torch.isnan(torch.stack(pipe.k_interval(k_hat))).all()
+    widths = torch.tensor([[0.01] * 8, [0.05] * 8, [0.1] * 8, [0.3] * 8], dtype=torch.float64)
+    pipe.k_half_widths = widths
+    lower, upper = pipe.k_interval(k_hat)
+    torch.testing.assert_close(upper[0], (k_hat[0] + 0.01).clamp(max=1.0))
+    torch.testing.assert_close(lower[1], (k_hat[1] - 0.05).clamp(min=0.0))
+    torch.testing.assert_close(upper[2], (k_hat[2] + 0.3).clamp(max=1.0))     # 4 large faults: the last class
+    assert float(upper[2, 0]) == 1.0 and float(lower[2, 3]) == 0.0            # clipped to [0, 1]
+    scripted = torch.jit.script(pipe)
+    for a, b in zip(scripted.k_interval(k_hat), (lower, upper)):
+        torch.testing.assert_close(a, b)
+    with pytest.raises(ValueError, match=r"online.k_half_widths must be \(n_classes, 8\), got \(4, 7\)"):
+        type(pipe)(pipe.gappy, pipe.fdi, pipe.classifier, damage(), pipe.deltas,
+                   pipe.direction, pipe.n_full, 0.05, k_half_widths=widths[:, :7])
 
 
 def test_rebase_moves_another_benchs_records_onto_the_training_model(pipeline, tmp_path):

@@ -44,13 +44,22 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     assert float(first.verdict_scale) == pytest.approx(a, rel=1e-6)                  # the pipeline's dtype
     assert float(objects["pipeline"].verdict_offset) == pytest.approx(b, rel=1e-6, abs=1e-7)
     assert 0.0 <= saved["evaluate"]["verdict_brier"] <= 1.0
+    # so do the k_hat intervals (conformal on the noisy val records), evaluated on the rul split
+    widths = torch.tensor(calibration["fdi_interval"]["half_widths"])
+    assert widths.shape == (4, 8) and (widths[1:] >= widths[:-1]).all()
+    torch.testing.assert_close(objects["pipeline"].k_half_widths, widths.to(objects["pipeline"].k_half_widths))
+    torch.testing.assert_close(first.k_half_widths, objects["pipeline"].k_half_widths)
+    assert len(saved["evaluate"]["fdi_interval_coverage"]) == 8
     _, predicted = predict(compose_stage("predict", [f"pipeline={saved['evaluate']['export']}",
                                                      "measurements=examples/workbench_hidden_cogging.csv"]))
     record = predicted["records"][0]
-    assert set(record) >= {"k_hat", "health_score", "healthy", "p_faulty", "rul_hours", "out_of_distribution"}
+    assert set(record) >= {"k_hat", "k_interval", "health_score", "healthy", "p_faulty", "rul_hours",
+                           "out_of_distribution"}
     if not record["out_of_distribution"]:
         assert record["p_faulty"] == pytest.approx(float(torch.sigmoid(torch.tensor(a * record["health_score"] + b))),
                                                    rel=1e-5)
+        for name, (lower, upper) in record["k_interval"].items():
+            assert 0.0 <= lower <= record["k_hat"][name] <= upper <= 1.0
     # a healthy record of the measuring bench as baseline: the record itself then reads as the training
     # model's own nominal record (the store's nominal split, carried by the bundle into the pipeline)
     metrics, rebased = predict(compose_stage("predict", [f"pipeline={saved['evaluate']['export']}",

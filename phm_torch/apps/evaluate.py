@@ -21,6 +21,7 @@ from ..data.store import DatasetStore
 from ..online import OnlinePipeline
 from ..online.export import export_torchscript
 from ..online.fdi_band import FDIBand, TooFewCalibrationSignals, calibrate_fdi_band
+from ..online.fdi_interval import FDIInterval, calibrate_fdi_interval, interval_quality
 from ..online.verdict import calibrate_verdict, shift_prior, verdict_quality
 from ..prognostics import DeterministicRUL, RULEstimator
 from ..prognostics.evaluation import RULComparison
@@ -100,6 +101,21 @@ def _verdict(prior: float | None, pipeline: OnlinePipeline, signals: torch.Tenso
     return a, shift_prior(b, own, prior), prior
 
 
+def _fdi_interval(cfg: DictConfig, pipeline: OnlinePipeline, signals: torch.Tensor, k: torch.Tensor
+                  ) -> FDIInterval | None:
+    """Conformal half-widths of the k_hat intervals on held-out (noisy) signals, or None (with a warning:
+    the exported pipeline's intervals are then NaN) when too few are in distribution."""
+    coverage = common.number(cfg.fdi_interval.coverage, "fdi_interval.coverage", 0.0, strict=True)
+    min_count = common.integer(cfg.fdi_interval.min_count, "fdi_interval.min_count", 1)
+    with torch.no_grad():
+        k_hat, _, _, ood, _ = pipeline(signals.to(pipeline.times.dtype))
+    if int((~ood).sum()) < min_count:
+        log.warning("k_hat intervals not calibrated: %d in-distribution records, fdi_interval.min_count=%d",
+                    int((~ood).sum()), min_count)
+        return None
+    return calibrate_fdi_interval(k_hat[~ood], k[~ood].to(k_hat.dtype), pipeline.nominal, coverage, min_count)
+
+
 def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Evaluate the RUL estimation (see :mod:`phm_torch.prognostics.evaluation` for the definitions)."""
     common.set_threads(cfg)
@@ -146,11 +162,16 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if verdict is not None:
         pipeline.verdict_scale.fill_(verdict[0])
         pipeline.verdict_offset.fill_(verdict[1])
+    interval = _fdi_interval(cfg, pipeline, band_signals, band_k)
+    if interval is not None:
+        pipeline.k_half_widths = interval.half_widths.to(pipeline.times.dtype)
+        pipeline.interval_level = interval.level
     with torch.no_grad():
         true_k = pipeline.rul(k.to(pipeline.times.dtype)).to(torch.float64)
         true_k_by_band = {v: p.rul(k.to(p.times.dtype)).to(torch.float64) for v, p in pipelines.items()}
         k_hat, score, full_flow, ood, _ = pipeline(signals)
         p_faulty = pipeline.faulty_probability(score)
+        k_lower, k_upper = pipeline.k_interval(k_hat)
         physics_only = pipeline.rul(k_hat).to(torch.float64)
         physics_only = torch.where(ood.unsqueeze(1), torch.full_like(physics_only, float("nan")), physics_only)
     t_est = time.perf_counter() - t0
@@ -179,7 +200,11 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         verdict_calibration=list(verdict[:2]) if verdict else None,
         verdict_prior_faulty=verdict[2] if verdict else None,
         **({f"verdict_{key}": value for key, value in verdict_quality(p_faulty[~ood], ~healthy[~ood]).items()}
-           if verdict and bool((~ood).any()) else {}))
+           if verdict and bool((~ood).any()) else {}),
+        fdi_interval_half_widths=interval.half_widths.tolist() if interval else None,
+        fdi_interval_counts=interval.counts if interval else None,
+        **({f"fdi_interval_{key}": value for key, value in interval_quality(
+            k_lower[~ood], k_upper[~ood], k[~ood].to(k_lower.dtype)).items()} if interval and bool((~ood).any()) else {}))
     metrics.update(rul_err_median_true_k_monte_carlo=gauss["rul_err_median_true_k"],
                    rul_band_coverage_true_k_monte_carlo=gauss["rul_band_coverage_true_k"],
                    deltas=deltas.tolist(), deltas_saturated=det.saturated_, estimate_wall_s=round(t_est, 3), reference_wall_s=round(t_ref, 3),
@@ -193,7 +218,10 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                        "rate_scales": pipeline.rate_scales.tolist(), "initial_state_deltas": deltas.tolist(),
                        "fdi_deltas": pipeline.fdi_deltas.tolist(), "fdi_direction": pipeline.fdi_direction.tolist(),
                        "verdict": list(verdict[:2]) if verdict else None,
-                       "verdict_prior_faulty": verdict[2] if verdict else None, "damage": common.plain(cfg.damage)})
+                       "verdict_prior_faulty": verdict[2] if verdict else None,
+                       "fdi_interval": {"half_widths": interval.half_widths.tolist(), "level": interval.level,
+                                        "coverage": interval.coverage} if interval else None,
+                       "damage": common.plain(cfg.damage)})
     common.write_json(out_dir / "rul_predictions.json",
                       {"k": k.tolist(), "k_hat": k_hat.tolist(), "reference": reference.tolist(),
                        "true_k": true_k.tolist(), "full_flow": torch.nan_to_num(full_flow, nan=-1.0).tolist(),

@@ -31,6 +31,22 @@ def _verdict(cal: dict[str, Any], path: Path) -> tuple[float, float] | None:
     return float(verdict[0]), float(verdict[1])
 
 
+def _fdi_interval(cal: dict[str, Any], path: Path) -> dict[str, Any]:
+    """Pipeline arguments of the k_hat intervals from the calibration file; {} (intervals NaN) if it has none."""
+    interval = cal.get("fdi_interval")
+    if interval is None:
+        log.warning("calibration %s has no k_hat intervals (written by phm-evaluate since they exist): the "
+                    "pipeline's k_interval is NaN", path)
+        return {}
+    widths = interval.get("half_widths") if isinstance(interval, dict) else None
+    level = interval.get("level") if isinstance(interval, dict) else None
+    if not (isinstance(widths, list) and widths and all(isinstance(r, list) and len(r) == 8 for r in widths)
+            and isinstance(level, (int, float)) and level > 0):
+        raise ValueError(f"calibration {str(path)!r}: fdi_interval must be {{half_widths: [[8 numbers], ...], "
+                         f"level: > 0}}, got {interval!r}")
+    return {"k_half_widths": torch.tensor(widths, dtype=torch.float64), "interval_level": float(level)}
+
+
 def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Build the pipeline from the bundle, the damage model and the RUL calibration; write and re-check it."""
     bundle = SurrogateBundle.load(cfg.bundle)
@@ -51,7 +67,7 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                                           common.number(cfg.min_present, "min_present", 0.0, strict=True),
                                           fdi.get("fdi_deltas"), fdi.get("fdi_direction"),
                                           torch.tensor(cal["rate_scales"]) if "rate_scales" in cal else None,
-                                          verdict=_verdict(cal, cal_path))
+                                          verdict=_verdict(cal, cal_path), **_fdi_interval(cal, cal_path))
     out = Path(cfg.out)
     scripted = export_torchscript(pipeline, out)
     probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)

@@ -1,6 +1,8 @@
 """``phm-predict``: the exported online pipeline on measurement CSVs -> JSON (one record per file).
 
-Each record: ``k_hat`` {fault name: value}, ``health_score`` (> 0 healthy), ``healthy``, ``p_faulty`` (the
+Each record: ``k_hat`` {fault name: value}, ``k_interval`` {fault name: [lower, upper]} (per-parameter
+intervals of the actual k, 90 % coverage each by default, calibrated by phm-evaluate; ``null`` out of
+distribution or for a pipeline exported without them), ``health_score`` (> 0 healthy), ``healthy``, ``p_faulty`` (the
 probability that the actuator is faulty given that score, calibrated on held-out records by phm-evaluate;
 ``null`` out of distribution), ``rul_hours``
 {p5, p50, p95} (``null`` when the input is out of distribution: never a confident RUL from garbage),
@@ -68,6 +70,7 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     calibrated = hasattr(model, "faulty_probability")
     if not calibrated:
         log.warning("%s was exported before the verdict calibration existed: p_faulty is null", model_path)
+    intervals = hasattr(model, "k_interval")
     bench_nominal = _bench_nominal(cfg, model)
     records = []
     for path in paths:
@@ -77,10 +80,13 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                 current = model.rebase(current, bench_nominal)
             k_hat, score, rul, ood, resid = model(current)
             p_faulty = float(model.faulty_probability(score)[0]) if calibrated else float("nan")
+            bounds = torch.stack(model.k_interval(k_hat), -1)[0] if intervals else None
+        trusted_bounds = bounds is not None and not bool(ood[0]) and bool(torch.isfinite(bounds).all())
         r = rul[0].tolist()
         records.append({
             "file": str(path),
             "k_hat": dict(zip(FAULT_NAMES, k_hat[0].tolist())),
+            "k_interval": dict(zip(FAULT_NAMES, bounds.tolist())) if trusted_bounds else None,
             "health_score": float(score[0]), "healthy": bool(score[0] > 0),
             "p_faulty": None if bool(ood[0]) or math.isnan(p_faulty) else p_faulty,
             "rul_hours": None if any(math.isnan(v) for v in r) else dict(zip(("p5", "p50", "p95"), r)),

@@ -15,6 +15,8 @@ from torch import nn
 
 from ..prognostics.damage import DamageModel
 from ..surrogates.full_signal_check import FullSignalCheck
+from ..surrogates.metrics import ECC_PHASE
+from .fdi_interval import DEFAULT_CLASSES, DEFAULT_LEVEL
 
 
 class OnlinePipeline(nn.Module):
@@ -46,6 +48,9 @@ class OnlinePipeline(nn.Module):
             None: uncalibrated, :meth:`faulty_probability` returns NaN.
         nominal_record: (n_full,) current [A] of the training model at the nominal fault vector, for
             :meth:`rebase`; None: unknown (NaN).
+        k_half_widths: (n_classes, 8) half-widths of the k_hat intervals per difficulty class
+            (:mod:`phm_torch.online.fdi_interval`); None: uncalibrated, :meth:`k_interval` returns NaN.
+        interval_level: damage above which a component of k_hat counts as a large fault, for the class.
     """
 
     def __init__(self, gappy: nn.Module, fdi: nn.Module, classifier: nn.Module, damage: DamageModel,
@@ -53,7 +58,8 @@ class OnlinePipeline(nn.Module):
                  min_present: float = 0.8, sample_rate: float = 20000.0, coarse: int = 25,
                  full_check: nn.Module | None = None, fdi_deltas: torch.Tensor | None = None,
                  fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None,
-                 verdict: tuple[float, float] | None = None, nominal_record: torch.Tensor | None = None):
+                 verdict: tuple[float, float] | None = None, nominal_record: torch.Tensor | None = None,
+                 k_half_widths: torch.Tensor | None = None, interval_level: float = DEFAULT_LEVEL):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
@@ -81,6 +87,15 @@ class OnlinePipeline(nn.Module):
         self.register_buffer("verdict_offset", torch.tensor(offset, dtype=dtype))
         self.register_buffer("nominal_record", torch.full((int(n_full),), float("nan"), dtype=dtype)
                              if nominal_record is None else torch.as_tensor(nominal_record, dtype=dtype).reshape(n_full))
+        widths = torch.full((DEFAULT_CLASSES, 8), float("nan")) if k_half_widths is None else k_half_widths
+        widths = torch.as_tensor(widths, dtype=dtype)
+        if widths.dim() != 2 or widths.shape[0] < 1 or widths.shape[1] != 8:
+            raise ValueError(f"online.k_half_widths must be (n_classes, 8), got {tuple(widths.shape)}")
+        if not interval_level > 0:
+            raise ValueError(f"online.interval_level must be > 0, got {interval_level}")
+        self.register_buffer("k_half_widths", widths)
+        self.register_buffer("interval_mask", (torch.arange(8) != ECC_PHASE).to(dtype))   # k7 is a phase
+        self.interval_level = float(interval_level)
         self.n_full = int(n_full)
         self.sample_rate = float(sample_rate)
         self.n_points = int(gappy.modes_hat.shape[0])
@@ -99,14 +114,27 @@ class OnlinePipeline(nn.Module):
     def from_bundle(cls, bundle: nn.Module, damage: DamageModel, deltas: torch.Tensor, direction: torch.Tensor,
                     min_present: float = 0.8, fdi_deltas: torch.Tensor | None = None,
                     fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None,
-                    verdict: tuple[float, float] | None = None) -> OnlinePipeline:
+                    verdict: tuple[float, float] | None = None, k_half_widths: torch.Tensor | None = None,
+                    interval_level: float = DEFAULT_LEVEL) -> OnlinePipeline:
         """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifier, OOD threshold)."""
         threshold = float(bundle.full_residual_threshold)
         check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_, residual_threshold=threshold)
         return cls(bundle.gappy, bundle.network, bundle.classifier, damage, deltas, direction,
                    int(bundle.pod.mean_.shape[0]), float(bundle.residual_threshold), min_present,
                    float(bundle.sample_rate), full_check=check, fdi_deltas=fdi_deltas, fdi_direction=fdi_direction,
-                   rate_scales=rate_scales, verdict=verdict, nominal_record=bundle.nominal_record)
+                   rate_scales=rate_scales, verdict=verdict, nominal_record=bundle.nominal_record,
+                   k_half_widths=k_half_widths, interval_level=interval_level)
+
+    @torch.jit.export
+    def k_interval(self, k_hat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Lower and upper bounds (B, 8) each, in [0, 1], of the fault vectors whose FDI estimate (the first
+        output of ``forward``) is ``k_hat`` (B, 8): k_hat -/+ the half-widths of its difficulty class (its
+        number of large faults), calibrated by phm-evaluate; NaN when the pipeline was not calibrated."""
+        k_hat = k_hat.to(self.k_half_widths.dtype)
+        damage = (k_hat - self.nominal).abs() * self.interval_mask
+        count = (damage > self.interval_level).sum(1).clamp(max=self.k_half_widths.shape[0] - 1)
+        w = self.k_half_widths[count]
+        return (k_hat - w).clamp(0.0, 1.0), (k_hat + w).clamp(0.0, 1.0)
 
     @torch.jit.export
     def faulty_probability(self, score: torch.Tensor) -> torch.Tensor:

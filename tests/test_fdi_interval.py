@@ -1,0 +1,74 @@
+"""Per-parameter k_hat intervals: conformal coverage per difficulty class, pooling, bad arguments (the
+pipeline's method: test_online.py)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from phm_torch.online.fdi_interval import calibrate_fdi_interval, difficulty_class, interval_quality
+
+NOMINAL = torch.tensor([0.0] * 6 + [0.5, 0.5], dtype=torch.float64)
+SCALES = torch.tensor([0.01, 0.03, 0.08, 0.2], dtype=torch.float64)     # error scale of 0, 1, 2, 3+ large faults
+
+
+def population(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """True k with 0-4 large faults, and estimates whose error scale grows with their number of large
+    faults (measured on the estimate, as the pipeline does)."""
+    g = torch.Generator().manual_seed(seed)
+    k = 0.25 * torch.rand(n, 8, generator=g, dtype=torch.float64)
+    large = torch.rand(n, 8, generator=g, dtype=torch.float64) < 0.3
+    k = torch.where(large, 0.45 + 0.5 * torch.rand(n, 8, generator=g, dtype=torch.float64), k)
+    k[:, 6] = torch.rand(n, generator=g, dtype=torch.float64)
+    k[:, 7] = 0.5 + 0.5 * (k[:, 7] - 0.5)
+    cls = difficulty_class(k, NOMINAL, 0.3, 4)
+    k_hat = k + SCALES[cls].unsqueeze(1) * torch.randn(n, 8, generator=g, dtype=torch.float64)
+    return k_hat, k
+
+
+def test_coverage_holds_in_every_difficulty_class_on_fresh_records():
+    k_hat, k = population(8000, 0)
+    interval = calibrate_fdi_interval(k_hat, k, NOMINAL, coverage=0.9, min_count=20)
+    assert min(interval.counts) > 300 and interval.pooled_from == [0, 1, 2, 3]
+    new_hat, new_k = population(40000, 1)
+    cls = difficulty_class(new_hat, NOMINAL, 0.3, 4)
+    w = interval.half_widths[cls]
+    lower, upper = (new_hat - w).clamp(0, 1), (new_hat + w).clamp(0, 1)
+    for c in range(4):
+        q = interval_quality(lower[cls == c], upper[cls == c], new_k[cls == c])
+        assert all(0.87 <= v <= 0.96 for v in q["coverage"]), (c, q["coverage"])
+    # widths follow the error scale: ~1.645 sigma (two-sided 90 % of a normal), far narrower near nominal
+    assert interval.half_widths[0, 0] == pytest.approx(1.645 * float(SCALES[0]), rel=0.2)
+    assert float(interval.half_widths[3].mean()) > 8 * float(interval.half_widths[0].mean())
+    # one class for all: valid on average, but over-wide near nominal and short in the hardest class
+    single = calibrate_fdi_interval(k_hat, k, NOMINAL, coverage=0.9, min_count=20, n_classes=1)
+    w1 = single.half_widths[0]
+    hardest = interval_quality((new_hat - w1).clamp(0, 1)[cls == 3], (new_hat + w1).clamp(0, 1)[cls == 3],
+                               new_k[cls == 3])
+    assert max(hardest["coverage"][:6]) < 0.8
+    assert float(w1[:6].mean()) > 3 * float(interval.half_widths[0, :6].mean())
+
+
+def test_a_small_class_is_pooled_downwards_and_widths_never_shrink_with_difficulty():
+    k_hat, k = population(4000, 2)
+    cls = difficulty_class(k_hat, NOMINAL, 0.3, 4)
+    keep = (cls < 3) | (torch.arange(len(cls)) % 40 == 0)          # few records with 3+ large faults
+    interval = calibrate_fdi_interval(k_hat[keep], k[keep], NOMINAL, coverage=0.9, min_count=50)
+    assert interval.counts[3] < 50 and interval.pooled_from[3] < 3
+    assert (interval.half_widths[1:] >= interval.half_widths[:-1]).all()
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"coverage": 1.0}, r"fdi_interval.coverage must be in \(0, 1\), got 1.0"),
+    ({"min_count": 0}, "fdi_interval.min_count must be an integer >= 1, got 0"),
+    ({"min_count": 500}, "fdi_interval: 100 calibration records, at least min_count=500 needed"),
+    ({"level": 0.0}, "fdi_interval.level must be > 0, got 0.0"),
+    ({"n_classes": 0}, "fdi_interval.n_classes must be an integer >= 1, got 0"),
+])
+def test_bad_arguments_are_named(kwargs, message):
+    k_hat, k = population(100, 3)
+    args = {"coverage": 0.9, "min_count": 20, **kwargs}
+    with pytest.raises(ValueError, match=message):
+        calibrate_fdi_interval(k_hat, k, NOMINAL, **args)
+    with pytest.raises(ValueError, match=r"must both be \(N, 8\)"):
+        calibrate_fdi_interval(k_hat[:, :7], k[:, :7], NOMINAL, 0.9, 20)
