@@ -153,6 +153,24 @@ def test_pipeline_interval_is_nan_until_calibrated_then_by_the_estimates_class(p
                    pipe.direction, pipe.n_full, 0.05, k_half_widths=widths[:, :7])
 
 
+def test_noise_level_recovers_white_noise_on_a_smooth_record_and_skips_missing_samples(pipeline):
+    x = signals(pipeline, 4)
+    g = torch.Generator().manual_seed(3)
+    relative = torch.tensor([0.0, 0.005, 0.02, 0.05], dtype=torch.float64)
+    level = x.pow(2).mean(1).sqrt()
+    noisy = x + (relative * level).unsqueeze(1) * torch.randn(x.shape, generator=g, dtype=torch.float64)
+    est = pipeline.noise_level(noisy)
+    assert float(est[0]) < 1e-3                                  # the smooth record alone: ~0
+    torch.testing.assert_close(est[1:], relative[1:], rtol=0.08, atol=0.0)
+    holed = noisy.clone()
+    holed[:, 100:160] = float("nan")
+    torch.testing.assert_close(pipeline.noise_level(holed)[1:], relative[1:], rtol=0.08, atol=0.0)
+    torch.testing.assert_close(torch.jit.script(pipeline).noise_level(noisy), est)
+    assert torch.isnan(pipeline.calibration_noise)               # unknown until phm-evaluate sets it
+    with pytest.raises(ValueError, match=r"noise_level: x must be \(B, n_full\)"):
+        pipeline.noise_level(noisy[:, :24])
+
+
 def test_rebase_moves_another_benchs_records_onto_the_training_model(pipeline, tmp_path):
     x = signals(pipeline, 3)
     assert torch.isnan(pipeline.rebase(x, pipeline.mean_signal)).all()          # no nominal record: NaN

@@ -50,6 +50,8 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     torch.testing.assert_close(objects["pipeline"].k_half_widths, widths.to(objects["pipeline"].k_half_widths))
     torch.testing.assert_close(first.k_half_widths, objects["pipeline"].k_half_widths)
     assert len(saved["evaluate"]["fdi_interval_coverage"]) == 8
+    assert calibration["calibration_noise"] == 0.01 and float(first.calibration_noise) == pytest.approx(0.01)
+    assert float(objects["pipeline"].calibration_noise) == pytest.approx(0.01)
     _, predicted = predict(compose_stage("predict", [f"pipeline={saved['evaluate']['export']}",
                                                      "measurements=examples/workbench_hidden_cogging.csv"]))
     record = predicted["records"][0]
@@ -60,6 +62,7 @@ def test_phm_run_tiny_end_to_end(tmp_path):
                                                    rel=1e-5)
         for name, (lower, upper) in record["k_interval"].items():
             assert 0.0 <= lower <= record["k_hat"][name] <= upper <= 1.0
+    assert 0.0 < record["noise"] < 0.1 and isinstance(record["noise_above_calibration"], bool)
     # a healthy record of the measuring bench as baseline: the record itself then reads as the training
     # model's own nominal record (the store's nominal split, carried by the bundle into the pipeline)
     metrics, rebased = predict(compose_stage("predict", [f"pipeline={saved['evaluate']['export']}",

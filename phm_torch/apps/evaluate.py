@@ -162,6 +162,8 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if verdict is not None:
         pipeline.verdict_scale.fill_(verdict[0])
         pipeline.verdict_offset.fill_(verdict[1])
+    calibration_noise = common.number(cfg.fdi_band.noise, "fdi_band.noise", 0.0)
+    pipeline.calibration_noise.fill_(calibration_noise)
     interval = _fdi_interval(cfg, pipeline, band_signals, band_k)
     if interval is not None:
         pipeline.k_half_widths = interval.half_widths.to(pipeline.times.dtype)
@@ -221,6 +223,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                        "verdict_prior_faulty": verdict[2] if verdict else None,
                        "fdi_interval": {"half_widths": interval.half_widths.tolist(), "level": interval.level,
                                         "coverage": interval.coverage} if interval else None,
+                       "calibration_noise": calibration_noise,
                        "damage": common.plain(cfg.damage)})
     common.write_json(out_dir / "rul_predictions.json",
                       {"k": k.tolist(), "k_hat": k_hat.tolist(), "reference": reference.tolist(),

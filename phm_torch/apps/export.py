@@ -47,6 +47,16 @@ def _fdi_interval(cal: dict[str, Any], path: Path) -> dict[str, Any]:
     return {"k_half_widths": torch.tensor(widths, dtype=torch.float64), "interval_level": float(level)}
 
 
+def _calibration_noise(cal: dict[str, Any], path: Path) -> float | None:
+    """Relative noise of the calibration records, or None (unknown: older calibration files)."""
+    noise = cal.get("calibration_noise")
+    if noise is None:
+        return None
+    if isinstance(noise, bool) or not isinstance(noise, (int, float)) or not noise >= 0:
+        raise ValueError(f"calibration {str(path)!r}: calibration_noise must be a number >= 0, got {noise!r}")
+    return float(noise)
+
+
 def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Build the pipeline from the bundle, the damage model and the RUL calibration; write and re-check it."""
     bundle = SurrogateBundle.load(cfg.bundle)
@@ -67,7 +77,8 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                                           common.number(cfg.min_present, "min_present", 0.0, strict=True),
                                           fdi.get("fdi_deltas"), fdi.get("fdi_direction"),
                                           torch.tensor(cal["rate_scales"]) if "rate_scales" in cal else None,
-                                          verdict=_verdict(cal, cal_path), **_fdi_interval(cal, cal_path))
+                                          verdict=_verdict(cal, cal_path), **_fdi_interval(cal, cal_path),
+                                          calibration_noise=_calibration_noise(cal, cal_path))
     out = Path(cfg.out)
     scripted = export_torchscript(pipeline, out)
     probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)

@@ -6,7 +6,10 @@ distribution or for a pipeline exported without them), ``health_score`` (> 0 hea
 probability that the actuator is faulty given that score, calibrated on held-out records by phm-evaluate;
 ``null`` out of distribution), ``rul_hours``
 {p5, p50, p95} (``null`` when the input is out of distribution: never a confident RUL from garbage),
-``out_of_distribution`` and the gappy ``residual`` [A]. The model is a TorchScript file written by
+``out_of_distribution``, the gappy ``residual`` [A], the estimated relative measurement ``noise`` (noise std over
+the record's RMS current, before any baseline) and ``noise_above_calibration``: more than twice the noise
+of the records the intervals, P(faulty) and the RUL band were calibrated on, and above ``NOISE_FLOOR``
+(they are then too narrow; ``null`` when the pipeline does not know that level). The model is a TorchScript file written by
 ``phm-evaluate``/``phm_torch.online.export``; it is loaded with ``torch.jit.load`` (no unpickling).
 With ``baseline`` (healthy records of the measuring bench), every measurement is first moved onto the
 training model by the difference between that bench's healthy record and the training model's.
@@ -29,6 +32,11 @@ from ..io import read_measurement
 from . import common
 
 log = logging.getLogger(__name__)
+
+# Relative noise always tolerated, whatever the calibration level: the noise estimate of a few noise-free
+# heavy-fault records (ringing current) reaches 2.5 %: 1.3-1.5 % of the paper store's records read above this,
+# 0.4-0.5 % above 2 %.
+NOISE_FLOOR = 0.005
 
 
 def _paths(value: Any, name: str) -> list[str]:
@@ -70,17 +78,23 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     calibrated = hasattr(model, "faulty_probability")
     if not calibrated:
         log.warning("%s was exported before the verdict calibration existed: p_faulty is null", model_path)
-    intervals = hasattr(model, "k_interval")
+    intervals, noise_known = hasattr(model, "k_interval"), hasattr(model, "noise_level")
     bench_nominal = _bench_nominal(cfg, model)
     records = []
     for path in paths:
         current = _current(path, model, bool(cfg.resample))
         with torch.no_grad():
+            noise = float(model.noise_level(current)[0]) if noise_known else float("nan")     # as measured
             if bench_nominal is not None:
                 current = model.rebase(current, bench_nominal)
             k_hat, score, rul, ood, resid = model(current)
             p_faulty = float(model.faulty_probability(score)[0]) if calibrated else float("nan")
             bounds = torch.stack(model.k_interval(k_hat), -1)[0] if intervals else None
+        reference = float(model.calibration_noise) if noise_known else float("nan")
+        noisy = None if math.isnan(reference) or math.isnan(noise) else noise > max(2.0 * reference, NOISE_FLOOR)
+        if noisy:
+            log.warning("%s: estimated current noise %.2f %% of its RMS, more than twice the %.2f %% the "
+                        "uncertainty outputs were calibrated at: they are too narrow", path, 100 * noise, 100 * reference)
         trusted_bounds = bounds is not None and not bool(ood[0]) and bool(torch.isfinite(bounds).all())
         r = rul[0].tolist()
         records.append({
@@ -91,11 +105,13 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             "p_faulty": None if bool(ood[0]) or math.isnan(p_faulty) else p_faulty,
             "rul_hours": None if any(math.isnan(v) for v in r) else dict(zip(("p5", "p50", "p95"), r)),
             "out_of_distribution": bool(ood[0]), "residual": float(resid[0]),
+            "noise": None if math.isnan(noise) else noise, "noise_above_calibration": noisy,
         })
     if cfg.out:
         common.write_json(Path(cfg.out), records)
     return {"files": len(records), "out_of_distribution": sum(r["out_of_distribution"] for r in records),
-            "baseline": bench_nominal is not None}, \
+            "baseline": bench_nominal is not None,
+            "noise_above_calibration": sum(bool(r["noise_above_calibration"]) for r in records)}, \
         {"records": records}
 
 
