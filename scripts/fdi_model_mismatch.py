@@ -3,7 +3,9 @@
 Re-simulates the fault vectors of a store's split with the store's own actuator, fidelity, effects and
 test command (recorded in its metadata), once as recorded (the reference) and once with each other effect
 of the library added at its default values: a stand-in for another implementation of the datasheet or a bench
-with physics the simulator lacks. For every bundle and effect it reports
+with physics the simulator lacks. ``--substeps N`` adds the store's own model integrated with N substeps per
+control period (a finer or coarser discretisation: the kind of difference another implementation has).
+For every bundle and condition it reports
 :func:`phm_torch.surrogates.model_mismatch.mismatch_metrics`: the size of the modelling difference
 (median NRMSE of the current), err_k, the largest per-parameter error, the health verdict from k_hat,
 and how many records the out-of-distribution checks flag: as measured ("raw") and moved onto the
@@ -12,7 +14,7 @@ x - (nominal record with the effect - nominal record without)).
 
 Usage: python scripts/fdi_model_mismatch.py --data-dir data/paper --bundle results/train/surrogates.pt
            [--bundle best=results/train_best/surrogates.pt] [--effects cogging_torque viscous_friction]
-           [--limit 500] [--out results/fdi_model_mismatch.json]
+           [--substeps 40] [--limit 500] [--out results/fdi_model_mismatch.json]
 """
 
 from __future__ import annotations
@@ -49,6 +51,8 @@ def main() -> None:
     ap.add_argument("--bundle", action="append", required=True, help="[name=]path of a SurrogateBundle")
     ap.add_argument("--split", default="val")
     ap.add_argument("--effects", nargs="*", default=None, help="effect names (default: the whole library)")
+    ap.add_argument("--substeps", type=int, action="append", default=[],
+                    help="also the store's model with this many substeps per control period (repeatable)")
     ap.add_argument("--limit", type=int, default=None, help="the first N vectors of the split")
     ap.add_argument("--compile", action=argparse.BooleanOptionalAction, default=True)
     ap.add_argument("--threads", type=int, default=2)
@@ -74,10 +78,14 @@ def main() -> None:
     own = common.plain(spec.get("effects")) or {}
     effects = [e for e in (sorted(EFFECTS) if requested is None else requested) if e not in own]
 
-    def simulate(effect: dict) -> torch.Tensor:
+    bad = [n for n in args.substeps if n < 1]
+    if bad:
+        raise SystemExit(f"fdi_model_mismatch: error: --substeps must be >= 1, got {bad}")
+
+    def simulate(effect: dict, substeps: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         if args.compile:   # each effect set is another graph, used once: free the previous ones
             torch.compiler.reset()
-        sim = EMASimulator(params, spec.get("fidelity", "hf"), effects=effect, substeps=spec.get("substeps"),
+        sim = EMASimulator(params, spec.get("fidelity", "hf"), effects=effect, substeps=substeps or spec.get("substeps"),
                            compile=args.compile)
         rows = torch.cat([k, torch.tensor([params.nominal_faults], dtype=k.dtype)])
         current = sim.run(rows, command, float(command.duration), channels=["current"])["current"]
@@ -88,8 +96,15 @@ def main() -> None:
                  "machine": platform.platform(), "threads": args.threads, "conditions": {}}
     t0 = time.perf_counter()
     reference, reference_nominal = simulate(own)
-    for name in ["none", *effects]:
-        signals, nominal = (reference, reference_nominal) if name == "none" else simulate({**own, name: {}})
+    conditions = {"none": None, **{e: {**own, e: {}} for e in effects},
+                  **{f"substeps_{n}": n for n in args.substeps}}
+    for name, condition in conditions.items():
+        if condition is None:
+            signals, nominal = reference, reference_nominal
+        elif isinstance(condition, int):
+            signals, nominal = simulate(own, condition)
+        else:
+            signals, nominal = simulate(condition)
         rebased = signals - (nominal - reference_nominal)
         row = {b: {"raw": mismatch_metrics(bundle, k, healthy, reference, signals),
                    "rebased": mismatch_metrics(bundle, k, healthy, reference, rebased)} for b, bundle in bundles.items()}

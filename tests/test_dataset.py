@@ -168,6 +168,14 @@ def test_refuses_another_config_unless_overwrite(reference, compose, tmp_path):
     ("+dataset.label_chunk_size=0", r"dataset.label_chunk_size must be an integer >= 1"),
     ("+dataset.effects.nope={{}}", r"dataset.effects: unknown effect 'nope'"),
     ("+dataset.effects.cogging_torque.amplitude=big", r"dataset.effects.cogging_torque.amplitude must be a number"),
+    ("+dataset.randomize.warp_drive.power=[0,1]", r"dataset.randomize: unknown effect 'warp_drive'"),
+    ("+dataset.randomize.cogging_torque.amp=[0,1]", r"dataset.randomize.cogging_torque.amp: unknown parameter"),
+    ("+dataset.randomize.cogging_torque.amplitude=[2,1]",
+     r"dataset.randomize.cogging_torque.amplitude must be \[low, high\] with low <= high, got \[2, 1\]"),
+    ("+dataset.randomize.cogging_torque.phase=[0,1]",
+     r"dataset.randomize.cogging_torque: the effect is off in the training model and none of its strength"),
+    ("+dataset.randomize.cogging_torque.amplitude=[-1,1]",
+     r"dataset.randomize.cogging_torque.amplitude: effects.cogging_torque.amplitude must be >= 0"),
 ])
 def test_bad_generation_input(compose, tmp_path, override, message):
     (tmp_path / "file").write_text("x")
@@ -191,6 +199,34 @@ def test_effects_enter_the_signals_not_the_labels(reference, compose, tmp_path):
     sim = EMASimulator(common.actuator(cfg), "lf", effects={"aero_hinge_load": {}})
     expected = sim.run(k, command, float(command.duration), channels=["current"])["current"]
     torch.testing.assert_close(current, expected, rtol=0, atol=1e-5)
+
+
+def test_randomized_effects_vary_per_training_record_only(reference, compose, tmp_path):
+    """dataset.randomize: each train record carries its own drawn viscous friction (reproduced by simulating
+    it alone with that value); nominal, val and rul keep the store's model (here: no effect), as do K."""
+    from phm_torch.data import randomization
+
+    data_dir = tmp_path / "randomized"
+    cfg = compose("generate", [*TINY, f"data_dir={data_dir}", "+dataset.randomize.viscous_friction.coefficient=[0,2e-4]"])
+    metrics, _ = generate(cfg)
+    assert metrics["fingerprint"] != reference[1]["fingerprint"]
+    with DatasetStore(reference[0]) as plain, DatasetStore(data_dir) as store:
+        for split in SPLITS:
+            a, b = plain.split(split), store.split(split)
+            assert np.array_equal(a.K[()], b.K[()])
+            same = np.array_equal(a.current[()], b.current[()])
+            assert same == (split != "train"), split
+        k = torch.as_tensor(store.split("train").K[()])
+        current = torch.as_tensor(store.split("train").current[()], dtype=torch.float64)
+        assert "randomize" in store.metadata["seeds"]
+    spec = common.build(cfg.dataset, "dataset")
+    values = randomization.draw(spec.randomized, len(k), seed_streams(0)["randomize"])[:, 0]
+    assert 0 <= values.min() and values.max() <= 2e-4 and values.std() > 3e-5
+    command = common.command(cfg.command)
+    for row in (0, 7):
+        sim = EMASimulator(common.actuator(cfg), "lf", effects={"viscous_friction": {"coefficient": float(values[row])}})
+        expected = sim.run(k[row:row + 1], command, float(command.duration), channels=["current"])["current"]
+        torch.testing.assert_close(current[row:row + 1], expected, rtol=0, atol=1e-5)
 
 
 def test_datamodule_lazy_deterministic_normalised(reference):
@@ -270,6 +306,7 @@ def test_seed_streams_of_the_signal_splits_are_unchanged_by_labels():
             assert a.spawn_key == b.spawn_key and np.array_equal(a.generate_state(8), b.generate_state(8))
         streams = seed_streams(seed)
         assert list(streams) == list(STREAMS) and streams["labels"].spawn_key == (3,)
+        assert streams["randomize"].spawn_key == (4,)                 # added last: the others unchanged
     with pytest.raises(ValueError, match="seed must be"):
         seed_streams(-1)
 

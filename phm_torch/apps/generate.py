@@ -105,11 +105,11 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         log.info("%s already holds the finished store of this config", data_dir)
     else:
         if stage in ("all", "chunks"):
-            def compute(k):
+            def compute(k, effect_values=None):
                 nonlocal computer
                 if computer is None:
                     computer = gen.ChunkComputer(params, command, duration, spec, assessment, dev)
-                return computer(k)
+                return computer(k, effect_values)
 
             repair, progress = bool(cfg.get("repair", False)), bool(cfg.get("progress", True))
             counts = gen.compute_chunks(data_dir, plan, fp, compute, index, count, repair, progress)

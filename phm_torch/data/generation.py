@@ -35,6 +35,7 @@ from ..assessment import MARGIN_NAMES, AssessmentFunction
 from ..effects import build_effects
 from ..params import ActuatorParams
 from ..simulator import EMASimulator
+from . import randomization
 from .sampling import ImportanceSampler
 from .store import (
     CHUNK_DIR,
@@ -55,7 +56,7 @@ from .store import (
 log = logging.getLogger(__name__)
 
 SPLITS = ("nominal", "train", "val", "rul")   # the signal splits (the optional labels split: labels.py)
-STREAMS = ("train", "val", "rul", "labels")     # child i of SeedSequence(seed) seeds STREAMS[i]
+STREAMS = ("train", "val", "rul", "labels", "randomize")   # child i of SeedSequence(seed) seeds STREAMS[i]
 STAGES = ("all", "chunks", "merge")
 ROWS_PER_H5_CHUNK = 1    # HDF5 chunk shape (1, n_e) of the signal arrays: a random row read reads that row only
 
@@ -82,6 +83,8 @@ class DatasetSpec:
             (``{}`` = the effect's defaults): train the surrogates on the physics a bench turned out to
             have (``phm-workbench`` names it). The assessment function, hence the health labels, is
             unchanged: health stays a property of the fault vector.
+        randomize: effect parameters drawn per ``train`` record, ``{name: {param: [low, high]}}`` (uniform;
+            domain randomisation, :mod:`phm_torch.data.randomization`); the other splits keep ``effects``.
     """
 
     n_train: int
@@ -96,6 +99,8 @@ class DatasetSpec:
     n_labels: int = 0
     label_chunk_size: int = 4096
     effects: Mapping[str, Mapping[str, Any] | None] = field(default_factory=dict)
+    randomize: Mapping[str, Mapping[str, Sequence[float]]] = field(default_factory=dict)
+    randomized: tuple[randomization.RandomizedParam, ...] = field(init=False, repr=False, default=())
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "uniform", tuple(int(i) for i in self.uniform))
@@ -107,6 +112,7 @@ class DatasetSpec:
         except ValueError as e:
             raise ValueError(f"dataset.{e}") from None
         object.__setattr__(self, "effects", effects)
+        object.__setattr__(self, "randomized", randomization.parse_randomization(self.randomize, effects))
         for name, low in (("n_train", 1), ("n_val", 0), ("n_rul", 0), ("chunk_size", 1), ("n_labels", 0),
                           ("label_chunk_size", 1)):
             v = getattr(self, name)
@@ -127,8 +133,8 @@ class DatasetSpec:
 
 def seed_streams(seed: int) -> dict[str, np.random.SeedSequence]:
     """The independent seed stream of each sampled split: children of ``SeedSequence(seed)`` in
-    ``STREAMS`` order (``spawn(4)``'s first three children are ``spawn(3)``'s: adding labels left the
-    train/val/rul streams unchanged)."""
+    ``STREAMS`` order (``spawn(n + 1)``'s first n children are ``spawn(n)``'s: adding the labels and the
+    randomize streams left the earlier ones unchanged)."""
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
     return dict(zip(STREAMS, np.random.SeedSequence(seed).spawn(len(STREAMS))))
@@ -149,6 +155,7 @@ class Plan:
     chunk_size: int
     seeds: dict[str, Any]
     layout: ChunkLayout = SIGNAL_CHUNKS
+    effect_values: np.ndarray | None = None   # (N, P) randomised effect parameters (NaN: not randomised)
 
     @property
     def n_rows(self) -> int:
@@ -178,7 +185,15 @@ def make_plan(spec: DatasetSpec, nominal: Sequence[float], seed: int) -> Plan:
         blocks.append(k)
         offsets[name] = (start, start + n)
         start += n
-    return Plan(np.concatenate(blocks), offsets, spec.chunk_size, seed_record(streams))
+    k = np.concatenate(blocks)
+    values = None
+    if spec.randomized:
+        all_streams = seed_streams(seed)
+        streams["randomize"] = all_streams["randomize"]
+        values = np.full((k.shape[0], len(spec.randomized)), np.nan)
+        a, b = offsets["train"]
+        values[a:b] = randomization.draw(spec.randomized, b - a, all_streams["randomize"])
+    return Plan(k, offsets, spec.chunk_size, seed_record(streams), effect_values=values)
 
 
 class ChunkComputer:
@@ -189,13 +204,22 @@ class ChunkComputer:
         self.spec = spec
         self.command, self.duration = command, duration
         self.assessment = assessment
-        self.sim = EMASimulator(params, spec.fidelity, effects=spec.effects, substeps=spec.substeps, device=device,
-                                compile=spec.compile)
+        self.sim = EMASimulator(params, spec.fidelity, substeps=spec.substeps, device=device, compile=spec.compile,
+                                effects=randomization.simulator_effects(spec.effects, spec.randomized))
+        self.base_values = randomization.base_values(self.sim.effects, spec.randomized)
         self.nominal = np.asarray(params.nominal_faults, dtype=np.float64)
         self.timing = {"signals_s": 0.0, "assessment_s": 0.0}
 
-    def __call__(self, k: np.ndarray) -> dict[str, np.ndarray]:
+    def __call__(self, k: np.ndarray, effect_values: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """Arrays of the chunk of fault vectors k (m, 8); ``effect_values`` (m, P): the randomised effect
+        parameters of its records (``Plan.effect_values``; required when the spec randomises)."""
         m = k.shape[0]
+        if self.spec.randomized:
+            if effect_values is None or effect_values.shape != (m, len(self.spec.randomized)):
+                raise ValueError(f"dataset.randomize: the chunk's effect values must be ({m}, "
+                                 f"{len(self.spec.randomized)}), got {None if effect_values is None else effect_values.shape}")
+            randomization.set_values(self.sim.effects, self.spec.randomized, effect_values, self.base_values,
+                                     self.spec.chunk_size)
         pad = np.repeat(self.nominal[None], self.spec.chunk_size - m, axis=0)
         kt = torch.as_tensor(np.concatenate([k, pad]), dtype=torch.float64)
         t0 = time.perf_counter()
@@ -285,7 +309,8 @@ def compute_chunks(data_dir: Path, plan: Plan, fingerprint: str, compute: Callab
     try:
         for c in todo:
             start, stop = plan.rows(c)
-            arrays = compute(plan.K[start:stop])
+            arrays = compute(plan.K[start:stop]) if plan.effect_values is None else \
+                compute(plan.K[start:stop], plan.effect_values[start:stop])
             write_chunk(chunk_path(data_dir, c, layout), arrays, chunk_attrs(plan, c, fingerprint), layout.arrays)
             bar.update(stop - start)
     finally:
