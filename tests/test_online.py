@@ -171,6 +171,17 @@ def test_noise_level_recovers_white_noise_on_a_smooth_record_and_skips_missing_s
         pipeline.noise_level(noisy[:, :24])
 
 
+def test_rul_search_scores_in_blocks_with_the_same_result(pipeline):
+    x = signals(pipeline, 40)
+    whole = pipeline(x)
+    pipe = copy.deepcopy(pipeline)
+    pipe.score_block = 50                        # 40 records x 3 quantiles x 17 coarse points: many blocks
+    for a, b in zip(pipe(x), whole):
+        torch.testing.assert_close(a, b, equal_nan=True, rtol=0, atol=0)
+    for a, b in zip(torch.jit.script(pipe)(x), whole):
+        torch.testing.assert_close(a, b, equal_nan=True, rtol=1e-6, atol=1e-6)
+
+
 def test_rebase_moves_another_benchs_records_onto_the_training_model(pipeline, tmp_path):
     x = signals(pipeline, 3)
     assert torch.isnan(pipeline.rebase(x, pipeline.mean_signal)).all()          # no nominal record: NaN
