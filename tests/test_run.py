@@ -76,7 +76,8 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     html = (tmp_path / "report" / "index.html").read_text()
     for heading in ("Gappy-POD coefficient error vs retained modes", "Placement of the sample points",
                     "err_k and timings vs hidden neurons", "confusion table", "RUL vs expected RUL",
-                    "Three-panel RUL error comparison", "Online latencies", "Workbench"):
+                    "Three-panel RUL error comparison", "Online latencies", "Workbench",
+                    "k_hat intervals and P(faulty)"):
         assert heading in html, heading
     assert html.count("data:image/png;base64,") >= 6                  # figures embedded, offline
     top = json.loads((tmp_path / "workbench" / "report.json").read_text())["candidates"][0]["effect"]

@@ -86,6 +86,21 @@ def build_report(run_dir: Path, metrics: dict[str, Any], studies: dict[str, Any]
     r.section("Three-panel RUL error comparison (paper Fig.: physics uncertainty, RUL step, full flow)")
     r.figure(run_dir / "evaluate" / "rul_errors.png", "uncertainty of the physics model / RUL step / full flow")
 
+    r.section("Uncertainty of the online outputs: k_hat intervals and P(faulty) (not in the paper)")
+    if ev.get("fdi_interval_coverage"):
+        names = [f"k{i + 1}" for i in range(8)]
+        widths = ev["fdi_interval_half_widths"]
+        per_class = [[f"half-width, {c}{'+' if c == len(widths) - 1 else ''} large faults ({n} calibration records)"]
+                     + list(w) for c, (w, n) in enumerate(zip(widths, ev["fdi_interval_counts"]))]
+        r.table(["k_hat interval, evaluated split"] + names,
+                [["coverage [%] (target 90 per parameter)"] + [100 * v for v in ev["fdi_interval_coverage"]],
+                 ["mean width"] + list(ev["fdi_interval_width"])] + per_class)
+    r.table(["P(faulty) on the evaluated split", "ours"],
+            [[k, ev.get(k)] for k in ("verdict_brier", "verdict_brier_base_rate", "verdict_accuracy",
+                                      "verdict_prior_faulty")])
+    r.paragraph("Both are calibrated on the noisy val records (docs/prognostics.md): split-conformal half-widths "
+                "per number of large faults of k_hat, and Platt scaling of the health score.")
+
     r.section("Online latencies (paper: milliseconds on a desktop; targets FDI <= 100 us, full step <= 1 ms)")
     lat = studies.get("latency", {})
     r.table(["quantity", "ours"], [["FDI p50 [us] (phm-train)", tr.get("fdi_latency_us_p50")]]
