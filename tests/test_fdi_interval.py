@@ -72,3 +72,15 @@ def test_bad_arguments_are_named(kwargs, message):
         calibrate_fdi_interval(k_hat, k, NOMINAL, **args)
     with pytest.raises(ValueError, match=r"must both be \(N, 8\)"):
         calibrate_fdi_interval(k_hat[:, :7], k[:, :7], NOMINAL, 0.9, 20)
+
+
+@pytest.mark.parametrize("override, message", [
+    ("fdi_interval.coverage=1.0", r"fdi_interval.coverage must be in \(0, 1\), got 1.0"),
+    ("fdi_interval.coverage=0", r"fdi_interval.coverage must be > 0, got 0"),
+    ("fdi_interval.min_count=0", r"fdi_interval.min_count must be >= 1, got 0"),
+])
+def test_evaluate_refuses_bad_interval_settings_before_any_work(compose, tmp_path, override, message):
+    from phm_torch.apps.evaluate import evaluate_rul
+
+    with pytest.raises(ValueError, match=message):
+        evaluate_rul(compose("evaluate", [override, f"data_dir={tmp_path / 'none'}", f"out_dir={tmp_path / 'out'}"]))

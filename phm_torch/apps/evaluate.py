@@ -82,13 +82,12 @@ def _verdict_prior(cfg: DictConfig) -> float | None:
     return prior
 
 
-def _verdict(prior: float | None, pipeline: OnlinePipeline, signals: torch.Tensor, healthy: torch.Tensor
+def _verdict(prior: float | None, score: torch.Tensor, ood: torch.Tensor, healthy: torch.Tensor
              ) -> tuple[float, float, float] | None:
     """Platt scaling (a, b) of the pipeline's health score on held-out (noisy) signals, moved to the fault
     rate ``prior`` (None: the signals' own), and that rate; or None (with a warning: the exported
-    pipeline's P(faulty) is then NaN) when the signals are not two-class."""
-    with torch.no_grad():
-        _, score, _, ood, _ = pipeline(signals.to(pipeline.times.dtype))
+    pipeline's P(faulty) is then NaN) when the signals are not two-class. ``score`` and ``ood`` (N,): the
+    pipeline's outputs on them."""
     keep = ~ood & torch.isfinite(score)
     try:
         a, b = calibrate_verdict(score[keep], ~healthy[keep])
@@ -101,25 +100,31 @@ def _verdict(prior: float | None, pipeline: OnlinePipeline, signals: torch.Tenso
     return a, shift_prior(b, own, prior), prior
 
 
-def _fdi_interval(cfg: DictConfig, pipeline: OnlinePipeline, signals: torch.Tensor, k: torch.Tensor
-                  ) -> FDIInterval | None:
-    """Conformal half-widths of the k_hat intervals on held-out (noisy) signals, or None (with a warning:
-    the exported pipeline's intervals are then NaN) when too few are in distribution."""
+def _interval_settings(cfg: DictConfig) -> tuple[float, int]:
     coverage = common.number(cfg.fdi_interval.coverage, "fdi_interval.coverage", 0.0, strict=True)
-    min_count = common.integer(cfg.fdi_interval.min_count, "fdi_interval.min_count", 1)
-    with torch.no_grad():
-        k_hat, _, _, ood, _ = pipeline(signals.to(pipeline.times.dtype))
+    if coverage >= 1.0:
+        raise ValueError(f"fdi_interval.coverage must be in (0, 1), got {coverage!r}")
+    return coverage, common.integer(cfg.fdi_interval.min_count, "fdi_interval.min_count", 1)
+
+
+def _fdi_interval(settings: tuple[float, int], nominal: torch.Tensor, k_hat: torch.Tensor, ood: torch.Tensor,
+                  k: torch.Tensor) -> FDIInterval | None:
+    """Conformal half-widths of the k_hat intervals from the pipeline's estimates k_hat (N, 8) and flags ood
+    (N,) on held-out (noisy) signals of true fault vectors k (N, 8), or None (with a warning: the exported
+    pipeline's intervals are then NaN) when too few are in distribution."""
+    coverage, min_count = settings
     if int((~ood).sum()) < min_count:
         log.warning("k_hat intervals not calibrated: %d in-distribution records, fdi_interval.min_count=%d",
                     int((~ood).sum()), min_count)
         return None
-    return calibrate_fdi_interval(k_hat[~ood], k[~ood].to(k_hat.dtype), pipeline.nominal, coverage, min_count)
+    return calibrate_fdi_interval(k_hat[~ood], k[~ood].to(k_hat.dtype), nominal, coverage, min_count)
 
 
 def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Evaluate the RUL estimation (see :mod:`phm_torch.prognostics.evaluation` for the definitions)."""
     common.set_threads(cfg)
     prior = _verdict_prior(cfg)
+    interval_settings = _interval_settings(cfg)
     params = common.actuator(cfg)
     damage = common.build(cfg.damage, "damage", nominal=list(params.nominal_faults))
     out_dir = Path(cfg.out_dir)
@@ -158,13 +163,15 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if band is not None:
         pipeline.fdi_deltas.copy_(band.deltas.to(pipeline.fdi_deltas))
         pipeline.fdi_direction.copy_(band.direction.to(pipeline.fdi_direction))
-    verdict = _verdict(prior, pipeline, band_signals, band_healthy)
+    with torch.no_grad():
+        band_k_hat, band_score, _, band_ood, _ = pipeline(band_signals.to(pipeline.times.dtype))
+    verdict = _verdict(prior, band_score, band_ood, band_healthy)
     if verdict is not None:
         pipeline.verdict_scale.fill_(verdict[0])
         pipeline.verdict_offset.fill_(verdict[1])
     calibration_noise = common.number(cfg.fdi_band.noise, "fdi_band.noise", 0.0)
     pipeline.calibration_noise.fill_(calibration_noise)
-    interval = _fdi_interval(cfg, pipeline, band_signals, band_k)
+    interval = _fdi_interval(interval_settings, pipeline.nominal, band_k_hat, band_ood, band_k)
     if interval is not None:
         pipeline.k_half_widths = interval.half_widths.to(pipeline.times.dtype)
         pipeline.interval_level = interval.level
