@@ -3,7 +3,9 @@
 1. Loop time: one 0.5 s LF record with a hidden cogging torque, default settings (conf/workbench.yaml):
    wall and CPU time of calibrate + rank every candidate + refit the top 3 (the issue's 2-minute target on
    2 cores), and of the whole run (second round, diagnostics).
-2. Hit rate: ``--cases`` random measurements (LF simulation, ``--duration`` s of the test chirp): one hidden
+2. Hit rate: ``--cases`` random measurements (LF simulation, or HF with ``--data-fidelity hf``: data from
+   another model than the workbench's LF one, as from a bench or another implementation; ``--duration`` s of
+   the test chirp): one hidden
    library effect with random strength (``--strength``: 0.25x..2x its default, log-uniform) and shape, random noise
    (current 0.01..0.04 A, position 1e-5..4e-5 rad) and a datasheet off nominal in the free parameters
    (inertia x0.9..1.1, dry friction x0.8..1.3, k8 0.4..0.6); a fraction are controls with nothing hidden.
@@ -11,7 +13,8 @@
    it over the noise floor, false positives (controls with a significant candidate; other effects left
    significant next to a hit).
 
-Usage: python scripts/bench_workbench.py [--cases 12] [--duration 0.25] [--seed 0] [--out results/bench_workbench.json]
+Usage: python scripts/bench_workbench.py [--cases 12] [--duration 0.25] [--seed 0] [--data-fidelity lf|hf]
+           [--out results/bench_workbench.json]
 """
 
 from __future__ import annotations
@@ -102,6 +105,8 @@ def main() -> None:
     ap.add_argument("--strength", type=float, nargs=2, default=(0.25, 2.0), metavar=("LOW", "HIGH"),
                     help="hidden strength range, multiples of the effect's default (log-uniform)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--data-fidelity", choices=("lf", "hf"), default="lf",
+                    help="model that simulates the hit-rate measurements (the workbench's model stays LF)")
     ap.add_argument("--skip-timing", action="store_true", help="skip the 0.5 s loop-time case")
     ap.add_argument("--out", default="results/bench_workbench.json")
     args = ap.parse_args()
@@ -124,7 +129,8 @@ def main() -> None:
     if not 0 < strength[0] <= strength[1]:
         raise ValueError(f"--strength must satisfy 0 < LOW <= HIGH, got {list(strength)}")
     built = [random_case(rng, params, control, 1000 + i, strength) for i, control in enumerate(kinds)]
-    ms = synthesize(params, [c for c, _ in built], Chirp(duration=args.duration), args.duration)
+    ms = synthesize(params, [c for c, _ in built], Chirp(duration=args.duration), args.duration,
+                    fidelity=args.data_fidelity)
     cases = []
     for i, ((_, info), m) in enumerate(zip(built, ms, strict=True)):
         out = run_case(params, m, info, args.rounds)
