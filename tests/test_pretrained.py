@@ -1,0 +1,72 @@
+"""The shipped pretrained pipeline on fresh HF records of the default actuator: estimates, intervals,
+verdict and phm-predict. It fails when the simulator drifts from the data the pipeline was trained on."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from phm_torch.apps.predict import predict
+from phm_torch.command import Chirp
+from phm_torch.io import Measurement, write_measurement
+from phm_torch.params import CONF_DIR, load_actuator
+from phm_torch.simulator import EMASimulator
+
+PIPELINE = CONF_DIR.parent / "pretrained" / "online_surrogates_best.pt"
+K = torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5],      # nominal
+                  [0.3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5],      # dry friction x1.6
+                  [0.0, 0.0, 0.4, 0.0, 0.0, 0.0, 0.5, 0.5],      # 40 % of phase A shorted
+                  [0.0, 0.2, 0.0, 0.0, 0.0, 0.0, 0.5, 0.7]],     # backlash x20 and gain drift
+                 dtype=torch.float64)
+DAMAGE = [0, 1, 2, 3, 4, 5, 7]                                    # every component but the phase k7
+
+
+@pytest.fixture(scope="module")
+def records():
+    params = load_actuator()
+    command = Chirp()
+    sig = EMASimulator(params, "hf").run(K, command, command.duration, channels=["current", "position"])
+    return sig, command
+
+
+def test_estimates_intervals_and_verdict_on_fresh_records(records):
+    sig, _ = records
+    model = torch.jit.load(str(PIPELINE))
+    with torch.no_grad():
+        k_hat, score, rul, ood, _ = model(sig["current"])
+        lower, upper = model.k_interval(k_hat)
+        p_faulty = model.faulty_probability(score)
+        noise = model.noise_level(sig["current"])
+    assert not ood.any() and (noise < 0.002).all()
+    err = (k_hat - K.to(k_hat))[:, DAMAGE].abs()
+    assert float(err.max()) < 0.03, err                           # within 3 % of the range on every component
+    truth = K.to(lower)
+    inside = (truth >= lower - 1e-9) & (truth <= upper + 1e-9)
+    assert float(inside[:, DAMAGE].double().mean()) >= 0.8, (lower, upper)    # 90 % intervals: 26 of these 28
+    assert float(upper[0, 0] - lower[0, 0]) < 0.05                # tight near nominal
+    assert bool(score[0] > 0) and bool(score[2] > 0)              # healthy: nominal, a 40 % short on one phase
+    assert bool(score[1] < 0) and bool(score[3] < 0)              # faulty: friction x1.6, backlash x20 + drift
+    assert float(p_faulty[0]) < 0.2 and float(p_faulty[1]) > 0.9
+    assert torch.isfinite(rul[0]).all() and float(rul[1].max()) == 0.0
+
+
+def test_phm_predict_with_the_pretrained_pipeline(records, compose, tmp_path):
+    sig, command = records
+    t = sig.time.numpy()
+    paths = []
+    for i in (0, 1):
+        path = tmp_path / f"run{i}.csv"
+        write_measurement(path, Measurement(t, command(sig.time).numpy(), sig["position"][i].numpy(),
+                                            sig["current"][i].numpy() + 0.01 * np.random.default_rng(i).standard_normal(len(t)),
+                                            sample_rate=20000.0))
+        paths.append(str(path))
+    _, out = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements=[{','.join(paths)}]"]))
+    nominal, friction = out["records"]
+    assert nominal["healthy"] and not friction["healthy"]
+    lo, hi = friction["k_interval"]["dry_friction"]
+    assert lo <= 0.3 <= hi and abs(friction["k_hat"]["dry_friction"] - 0.3) < 0.03
+    assert nominal["noise_above_calibration"] is False and 0.005 < nominal["noise"] < 0.03
+    assert Path(PIPELINE).stat().st_size < 4e6
