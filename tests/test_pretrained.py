@@ -70,3 +70,26 @@ def test_phm_predict_with_the_pretrained_pipeline(records, compose, tmp_path):
     assert lo <= 0.3 <= hi and abs(friction["k_hat"]["dry_friction"] - 0.3) < 0.03
     assert nominal["noise_above_calibration"] is False and 0.005 < nominal["noise"] < 0.03
     assert Path(PIPELINE).stat().st_size < 4e6
+
+
+def test_phm_predict_takes_a_record_a_few_samples_off_the_test_length(records, compose, tmp_path):
+    """Another implementation may stop a sample early or late: within 1 % of the length the record is cut,
+    or its tail marked missing, and the estimate barely moves; beyond it, a clear error."""
+    sig, command = records
+    t, cmd = sig.time.numpy(), command(sig.time).numpy()
+    pos, cur = sig["position"][1].numpy(), sig["current"][1].numpy()
+
+    def run(name: str, stop: int, extra: int = 0) -> dict:
+        tt = np.concatenate([t, t[-1] + (np.arange(extra) + 1) / 20000.0])[:stop]
+        pad = lambda a: np.concatenate([a, np.full(extra, a[-1])])[:stop]
+        path = tmp_path / f"{name}.csv"
+        write_measurement(path, Measurement(tt, pad(cmd), pad(pos), pad(cur), sample_rate=20000.0))
+        return predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements={path}"]))[1]["records"][0]
+
+    full = run("full", len(t))
+    for record in (run("short", len(t) - 1), run("long", len(t) + 3, extra=3)):
+        assert not record["out_of_distribution"]
+        for name, value in full["k_hat"].items():
+            assert record["k_hat"][name] == pytest.approx(value, abs=0.005), name
+    with pytest.raises(ValueError, match=r"cut.csv: current has 9000 samples; the model expects 10001"):
+        run("cut", 9000)

@@ -37,6 +37,7 @@ log = logging.getLogger(__name__)
 # heavy-fault records (ringing current) reaches 2.5 %: 1.3-1.5 % of the paper store's records read above this,
 # 0.4-0.5 % above 2 %.
 NOISE_FLOOR = 0.005
+LENGTH_TOLERANCE = 0.01   # fraction of the test record a measurement may be shorter or longer by
 
 
 def _paths(value: Any, name: str) -> list[str]:
@@ -48,13 +49,25 @@ def _paths(value: Any, name: str) -> list[str]:
 
 
 def _current(path: str, model: Any, resample: bool) -> torch.Tensor:
-    """The envelope current (1, n_full) [A] of one measurement CSV, in the pipeline's dtype."""
+    """The envelope current (1, n_full) [A] of one measurement CSV, in the pipeline's dtype.
+
+    The record's first sample is taken as the start of the test command, as for a record of the right
+    length. One longer or shorter than the test record by at most ``LENGTH_TOLERANCE`` of it (another
+    implementation may stop one sample early or late) is cut to length, or its tail is marked missing (NaN:
+    the gappy layer drops those samples), with a warning; a larger difference is an error naming the file."""
     m = read_measurement(path, expected_rate=float(model.sample_rate), resample=resample)
     current = torch.as_tensor(m.current, dtype=model.times.dtype).unsqueeze(0)
-    if current.shape[1] != int(model.n_full):
-        raise ValueError(f"{path}: current has {current.shape[1]} samples; the model expects {int(model.n_full)} "
-                         f"(the full test record)")
-    return current
+    n, n_full = current.shape[1], int(model.n_full)
+    if n == n_full:
+        return current
+    if abs(n - n_full) > LENGTH_TOLERANCE * n_full:
+        raise ValueError(f"{path}: current has {n} samples; the model expects {n_full} (the full test record; "
+                         f"within {LENGTH_TOLERANCE:.0%} of that length the record is cut or its tail marked missing)")
+    log.warning("%s: %d samples instead of %d: %s", path, n, n_full,
+                "the tail beyond the test record is dropped" if n > n_full else "the missing tail is marked missing")
+    if n > n_full:
+        return current[:, :n_full]
+    return torch.cat([current, current.new_full((1, n_full - n), float("nan"))], 1)
 
 
 def _bench_nominal(cfg: DictConfig, model: Any) -> torch.Tensor | None:
