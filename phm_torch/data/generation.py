@@ -188,11 +188,8 @@ def make_plan(spec: DatasetSpec, nominal: Sequence[float], seed: int) -> Plan:
     k = np.concatenate(blocks)
     values = None
     if spec.randomized:
-        all_streams = seed_streams(seed)
-        streams["randomize"] = all_streams["randomize"]
-        values = np.full((k.shape[0], len(spec.randomized)), np.nan)
-        a, b = offsets["train"]
-        values[a:b] = randomization.draw(spec.randomized, b - a, all_streams["randomize"])
+        streams["randomize"] = seed_streams(seed)["randomize"]
+        values = randomization.plan_values(spec.randomized, k.shape[0], offsets["train"], streams["randomize"])
     return Plan(k, offsets, spec.chunk_size, seed_record(streams), effect_values=values)
 
 
@@ -215,10 +212,7 @@ class ChunkComputer:
         parameters of its records (``Plan.effect_values``; required when the spec randomises)."""
         m = k.shape[0]
         if self.spec.randomized:
-            if effect_values is None or effect_values.shape != (m, len(self.spec.randomized)):
-                raise ValueError(f"dataset.randomize: the chunk's effect values must be ({m}, "
-                                 f"{len(self.spec.randomized)}), got {None if effect_values is None else effect_values.shape}")
-            randomization.set_values(self.sim.effects, self.spec.randomized, effect_values, self.base_values,
+            randomization.set_values(self.sim.effects, self.spec.randomized, effect_values, m, self.base_values,
                                      self.spec.chunk_size)
         pad = np.repeat(self.nominal[None], self.spec.chunk_size - m, axis=0)
         kt = torch.as_tensor(np.concatenate([k, pad]), dtype=torch.float64)

@@ -92,6 +92,14 @@ def draw(randomized: Sequence[RandomizedParam], n: int, stream: np.random.SeedSe
     return low + (high - low) * rng.random((n, len(randomized)))
 
 
+def plan_values(randomized: Sequence[RandomizedParam], n_rows: int, train: tuple[int, int],
+                stream: np.random.SeedSequence) -> np.ndarray:
+    """(n_rows, P) values of a plan's rows: :func:`draw` for the ``train`` rows [start, stop), NaN elsewhere."""
+    values = np.full((n_rows, len(randomized)), np.nan)
+    values[train[0]:train[1]] = draw(randomized, train[1] - train[0], stream)
+    return values
+
+
 def base_values(sim_effects: Sequence[Effect], randomized: Sequence[RandomizedParam]) -> np.ndarray:
     """(P,) the simulator's own value of each randomised parameter (that of the records outside ``train``),
     read once, before :func:`set_values` replaces them."""
@@ -99,16 +107,20 @@ def base_values(sim_effects: Sequence[Effect], randomized: Sequence[RandomizedPa
     return np.array([float(by_name[r.effect].values[r.param].reshape(-1)[0]) for r in randomized])
 
 
-def set_values(sim_effects: Sequence[Effect], randomized: Sequence[RandomizedParam], values: np.ndarray,
-               base: np.ndarray, batch: int) -> None:
+def set_values(sim_effects: Sequence[Effect], randomized: Sequence[RandomizedParam], values: np.ndarray | None,
+               m: int, base: np.ndarray, batch: int) -> None:
     """Give each randomised parameter of the simulator's effects its per-record values, (batch,) tensors.
 
     Args:
         sim_effects: the simulator's effect instances (built from :func:`simulator_effects`).
-        values: (m, P) the chunk's values; NaN = ``base`` (records outside ``train``).
+        values: (m, P) the chunk's values (``Plan.effect_values``); NaN = ``base`` (records outside ``train``).
+        m: records in the chunk.
         base: (P,) from :func:`base_values`.
         batch: the simulator batch (>= m); rows m.. (padding) get ``base``.
     """
+    if values is None or values.shape != (m, len(randomized)):
+        raise ValueError(f"dataset.randomize: the chunk's effect values must be ({m}, {len(randomized)}), got "
+                         f"{None if values is None else values.shape}")
     by_name = {e.name: e for e in sim_effects}
     for j, r in enumerate(randomized):
         column = np.full(batch, base[j])
