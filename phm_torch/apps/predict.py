@@ -1,18 +1,23 @@
 """``phm-predict``: the exported online pipeline on measurement CSVs -> JSON (one record per file).
 
-Each record: ``k_hat`` {fault name: value}, ``k_interval`` {fault name: [lower, upper]} (per-parameter
-intervals of the actual k, 90 % coverage each by default, calibrated by phm-evaluate; ``null`` out of
-distribution or for a pipeline exported without them), ``health_score`` (> 0 healthy), ``healthy``, ``p_faulty`` (the
-probability that the actuator is faulty given that score, calibrated on held-out records by phm-evaluate;
-``null`` out of distribution), ``rul_hours``
-{p5, p50, p95} (``null`` when the input is out of distribution: never a confident RUL from garbage),
-``out_of_distribution``, the gappy ``residual`` [A], the estimated relative measurement ``noise`` (noise std over
-the record's RMS current, before any baseline) and ``noise_above_calibration``: more than twice the noise
-of the records the intervals, P(faulty) and the RUL band were calibrated on, and above ``NOISE_FLOOR``
-(they are then too narrow; ``null`` when the pipeline does not know that level). The model is a TorchScript file written by
-``phm-evaluate``/``phm_torch.online.export``; it is loaded with ``torch.jit.load`` (no unpickling).
-With ``baseline`` (healthy records of the measuring bench), every measurement is first moved onto the
-training model by the difference between that bench's healthy record and the training model's.
+Each record holds:
+
+* ``k_hat`` {fault name: value} and ``k_interval`` {fault name: [lower, upper]}: per-parameter intervals of
+  the actual k, 90 % coverage each by default, calibrated by phm-evaluate (``null`` out of distribution or
+  for a pipeline exported without them);
+* ``health_score`` (> 0 healthy), ``healthy`` and ``p_faulty``, the probability that the actuator is faulty
+  given that score, calibrated on held-out records by phm-evaluate (``null`` out of distribution);
+* ``rul_hours`` {p5, p50, p95} (``null`` out of distribution: never a confident RUL from garbage);
+* ``out_of_distribution`` and the gappy ``residual`` [A];
+* ``noise``, the estimated relative measurement noise (noise std over the record's RMS current, before any
+  baseline), and ``noise_above_calibration``: more than twice the noise of the records the intervals,
+  P(faulty) and the RUL band were calibrated on, and above ``NOISE_FLOOR`` (they are then too narrow;
+  ``null`` when the pipeline does not know that level).
+
+The model is a TorchScript file written by ``phm-evaluate``/``phm_torch.online.export``, loaded with
+``torch.jit.load`` (no unpickling). With ``baseline`` (healthy records of the measuring bench), every
+measurement is first moved onto the training model by the difference between that bench's healthy record
+and the training model's.
 """
 
 from __future__ import annotations
