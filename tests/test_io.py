@@ -162,3 +162,15 @@ def test_bad_expected_rate(tmp_path):
     path = write_measurement(tmp_path / "m.csv", table())
     with pytest.raises(ValueError, match="expected_rate"):
         read_measurement(path, expected_rate=-1.0)
+
+
+def test_missing_ok_columns_read_empty_and_nan_cells_as_missing(tmp_path):
+    rows = [*good_rows(2), "0.0001,0.001,0.0009,", "0.00015,0.001,0.0009,nan", "0.0002,0.001,0.0009,0.5"]
+    path = write_text(tmp_path / "gaps.csv", HEADER, rows)
+    m = read_measurement(path, missing_ok=("current",))
+    assert np.isnan(m.current[2:4]).all() and np.isfinite(m.current[[0, 1, 4]]).all()
+    with pytest.raises(ValueError, match=r"line 4, column 'current': non-numeric value ''"):
+        read_measurement(path)                                     # only where the caller can drop samples
+    bad = write_text(tmp_path / "bad.csv", HEADER, [*good_rows(2), "0.0001,nan,0.0009,0.5", "0.00015,0,0,inf"])
+    with pytest.raises(ValueError, match=r"line 4, column 'command': value 'nan' is not finite"):
+        read_measurement(bad, missing_ok=("current",))

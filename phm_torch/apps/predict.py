@@ -15,7 +15,8 @@ Each record holds:
   ``null`` when the pipeline does not know that level).
 
 The model is a TorchScript file written by ``phm-evaluate``/``phm_torch.online.export``, loaded with
-``torch.jit.load`` (no unpickling). With ``baseline`` (healthy records of the measuring bench), every
+``torch.jit.load`` (no unpickling). An empty or ``nan`` cell of a CSV's ``current`` column is a missing
+sample, which the pipeline drops (too many, and the record is out of distribution). With ``baseline`` (healthy records of the measuring bench), every
 measurement is first moved onto the training model by the difference between that bench's healthy record
 and the training model's.
 """
@@ -60,7 +61,7 @@ def _current(path: str, model: Any, resample: bool) -> torch.Tensor:
     length. One longer or shorter than the test record by at most ``LENGTH_TOLERANCE`` of it (another
     implementation may stop one sample early or late) is cut to length, or its tail is marked missing (NaN:
     the gappy layer drops those samples), with a warning; a larger difference is an error naming the file."""
-    m = read_measurement(path, expected_rate=float(model.sample_rate), resample=resample)
+    m = read_measurement(path, expected_rate=float(model.sample_rate), resample=resample, missing_ok=("current",))
     current = torch.as_tensor(m.current, dtype=model.times.dtype).unsqueeze(0)
     n, n_full = current.shape[1], int(model.n_full)
     if n == n_full:

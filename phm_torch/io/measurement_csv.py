@@ -165,8 +165,8 @@ def write_measurement(path: str | os.PathLike, data: Any, index: int | None = No
 
 
 # ---- reading --------------------------------------------------------------------------------------
-def read_measurement(path: str | os.PathLike, expected_rate: float | None = None, resample: bool = False
-                     ) -> Measurement:
+def read_measurement(path: str | os.PathLike, expected_rate: float | None = None, resample: bool = False,
+                     missing_ok: Iterable[str] = ()) -> Measurement:
     """Read and validate a measurement CSV.
 
     Args:
@@ -176,6 +176,8 @@ def read_measurement(path: str | os.PathLike, expected_rate: float | None = None
         resample: when the file's rate differs from ``expected_rate``, interpolate linearly onto the grid
             ``t0 + i / expected_rate`` covering the file's time span instead of raising. (No anti-alias
             filter is applied: downsampling by a large factor should be filtered beforehand.)
+        missing_ok: columns (not ``time``) whose empty or ``nan`` cells are missing samples, read as NaN (a
+            reader that can drop samples, such as the online pipeline's current); elsewhere they are errors.
 
     Raises:
         ValueError: naming the file and the field: missing file, empty file or header, duplicate or
@@ -205,12 +207,16 @@ def read_measurement(path: str | os.PathLike, expected_rate: float | None = None
     if len(body) < 2:
         raise ValueError(f"{path}: need at least 2 data rows, got {len(body)}")
 
+    gaps = {header.index(c) for c in missing_ok if c in header and c != "time"}
     data = np.empty((len(body), len(header)), dtype=np.float64)
     for r, row in enumerate(body):
         line = r + 2
         if len(row) != len(header):
             raise ValueError(f"{path}: line {line} has {len(row)} cells, the header has {len(header)}")
         for c, cell in enumerate(row):
+            if c in gaps and cell.strip().lower() in ("", "nan"):
+                data[r, c] = math.nan
+                continue
             try:
                 value = float(cell)
             except ValueError:
