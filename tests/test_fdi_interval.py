@@ -78,6 +78,9 @@ def test_bad_arguments_are_named(kwargs, message):
     ("fdi_interval.coverage=1.0", r"fdi_interval.coverage must be in \(0, 1\), got 1.0"),
     ("fdi_interval.coverage=0", r"fdi_interval.coverage must be > 0, got 0"),
     ("fdi_interval.min_count=0", r"fdi_interval.min_count must be >= 1, got 0"),
+    ("fdi_interval.noise_levels=[0.05,0.03]",
+     r"fdi_interval.noise_levels\[1\] must exceed 0.05 \(fdi_band.noise and the levels before it, increasing\), got 0.03"),
+    ("fdi_interval.noise_levels=[0.005]", r"fdi_interval.noise_levels\[0\] must exceed 0.01"),
 ])
 def test_evaluate_refuses_bad_interval_settings_before_any_work(compose, tmp_path, override, message):
     from phm_torch.apps.evaluate import evaluate_rul

@@ -139,7 +139,7 @@ def test_pipeline_interval_is_nan_until_calibrated_then_by_the_estimates_class(p
                           [0.99, 0.6, 0.7, 0.0, 0.0, 0.0, 0.5, 0.95]], dtype=torch.float64)
     assert torch.isnan(torch.stack(pipe.k_interval(k_hat))).all()
     widths = torch.tensor([[0.01] * 8, [0.05] * 8, [0.1] * 8, [0.3] * 8], dtype=torch.float64)
-    pipe.k_half_widths = widths
+    pipe.k_half_widths = widths.unsqueeze(0)                    # one noise level
     lower, upper = pipe.k_interval(k_hat)
     torch.testing.assert_close(upper[0], (k_hat[0] + 0.01).clamp(max=1.0))
     torch.testing.assert_close(lower[1], (k_hat[1] - 0.05).clamp(min=0.0))
@@ -148,9 +148,30 @@ def test_pipeline_interval_is_nan_until_calibrated_then_by_the_estimates_class(p
     scripted = torch.jit.script(pipe)
     for a, b in zip(scripted.k_interval(k_hat), (lower, upper)):
         torch.testing.assert_close(a, b)
-    with pytest.raises(ValueError, match=r"online.k_half_widths must be \(n_classes, 8\), got \(4, 7\)"):
+    with pytest.raises(ValueError, match=r"online.k_half_widths must be \(n_classes, 8\) or \(n_levels, n_classes, 8\), "
+                                         r"got \(4, 7\)"):
         type(pipe)(pipe.gappy, pipe.fdi, pipe.classifier, damage(), pipe.deltas,
                    pipe.direction, pipe.n_full, 0.05, k_half_widths=widths[:, :7])
+
+
+def test_interval_widths_follow_the_records_noise_between_calibrated_levels(pipeline):
+    widths = torch.stack([torch.full((4, 8), 0.01), torch.full((4, 8), 0.03), torch.full((4, 8), 0.09)])
+    widths[:, 3] *= 10                                          # the hardest class, at every level
+    pipe = type(pipeline)(pipeline.gappy, pipeline.fdi, pipeline.classifier, damage(), pipeline.deltas,
+                          pipeline.direction, pipeline.n_full, 0.05, k_half_widths=widths.double(),
+                          interval_noise=torch.tensor([0.01, 0.03, 0.1]))
+    k_hat = torch.tensor([[0.1] * 6 + [0.5, 0.5]] * 5, dtype=torch.float64)
+    noise = torch.tensor([0.0, 0.01, 0.02, 0.065, 0.5], dtype=torch.float64)
+    lower, upper = pipe.k_interval(k_hat, noise)
+    half = (upper - lower)[:, 0] / 2
+    torch.testing.assert_close(half, torch.tensor([0.01, 0.01, 0.02, 0.06, 0.09], dtype=torch.float64))
+    torch.testing.assert_close(pipe.k_interval(k_hat)[1], upper[:1].expand(5, 8))   # no noise given: level 0
+    scripted = torch.jit.script(pipe)
+    for a, b in zip(scripted.k_interval(k_hat, noise), (lower, upper)):
+        torch.testing.assert_close(a, b)
+    with pytest.raises(ValueError, match=r"online.interval_noise must hold 3 increasing levels, got \[0.03, 0.01, 0.1\]"):
+        type(pipeline)(pipeline.gappy, pipeline.fdi, pipeline.classifier, damage(), pipeline.deltas, pipeline.direction,
+                       pipeline.n_full, 0.05, k_half_widths=widths, interval_noise=torch.tensor([0.03, 0.01, 0.1]))
 
 
 def test_noise_level_recovers_white_noise_on_a_smooth_record_and_skips_missing_samples(pipeline):

@@ -45,8 +45,9 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     assert float(objects["pipeline"].verdict_offset) == pytest.approx(b, rel=1e-6, abs=1e-7)
     assert 0.0 <= saved["evaluate"]["verdict_brier"] <= 1.0
     # so do the k_hat intervals (conformal on the noisy val records), evaluated on the rul split
-    widths = torch.tensor(calibration["fdi_interval"]["half_widths"])
-    assert widths.shape == (4, 8) and (widths[1:] >= widths[:-1]).all()
+    widths = torch.tensor(calibration["fdi_interval"]["half_widths"])       # (noise levels, classes, 8)
+    assert widths.shape == (3, 4, 8) and calibration["fdi_interval"]["noise_levels"] == [0.01, 0.03, 0.1]
+    assert (widths[:, 1:] >= widths[:, :-1]).all() and (widths[1:] >= widths[:-1]).all()
     torch.testing.assert_close(objects["pipeline"].k_half_widths, widths.to(objects["pipeline"].k_half_widths))
     torch.testing.assert_close(first.k_half_widths, objects["pipeline"].k_half_widths)
     assert len(saved["evaluate"]["fdi_interval_coverage"]) == 8

@@ -100,19 +100,31 @@ def _verdict(prior: float | None, score: torch.Tensor, ood: torch.Tensor, health
     return a, shift_prior(b, own, prior), prior
 
 
-def _interval_settings(cfg: DictConfig) -> tuple[float, int]:
+def _interval_settings(cfg: DictConfig) -> tuple[float, int, list[float]]:
+    """(coverage, min_count, noise levels) of the k_hat intervals, checked before any work; the levels are
+    ``fdi_band.noise`` (the calibration records') and the increasing ``fdi_interval.noise_levels`` above it."""
     coverage = common.number(cfg.fdi_interval.coverage, "fdi_interval.coverage", 0.0, strict=True)
     if coverage >= 1.0:
         raise ValueError(f"fdi_interval.coverage must be in (0, 1), got {coverage!r}")
-    return coverage, common.integer(cfg.fdi_interval.min_count, "fdi_interval.min_count", 1)
+    levels = [common.number(cfg.fdi_band.noise, "fdi_band.noise", 0.0)]
+    extra = common.plain(cfg.fdi_interval.get("noise_levels")) or []
+    if not isinstance(extra, list):
+        raise ValueError(f"fdi_interval.noise_levels must be a list of noise levels, got {extra!r}")
+    for i, value in enumerate(extra):
+        level = common.number(value, f"fdi_interval.noise_levels[{i}]", 0.0, strict=True)
+        if level <= levels[-1]:
+            raise ValueError(f"fdi_interval.noise_levels[{i}] must exceed {levels[-1]!r} (fdi_band.noise and the "
+                             f"levels before it, increasing), got {level!r}")
+        levels.append(level)
+    return coverage, common.integer(cfg.fdi_interval.min_count, "fdi_interval.min_count", 1), levels
 
 
-def _fdi_interval(settings: tuple[float, int], nominal: torch.Tensor, k_hat: torch.Tensor, ood: torch.Tensor,
+def _fdi_interval(settings: tuple[float, int, list[float]], nominal: torch.Tensor, k_hat: torch.Tensor, ood: torch.Tensor,
                   k: torch.Tensor) -> FDIInterval | None:
     """Conformal half-widths of the k_hat intervals from the pipeline's estimates k_hat (N, 8) and flags ood
     (N,) on held-out (noisy) signals of true fault vectors k (N, 8), or None (with a warning: the exported
     pipeline's intervals are then NaN) when too few are in distribution."""
-    coverage, min_count = settings
+    coverage, min_count, _ = settings
     if int((~ood).sum()) < min_count:
         log.warning("k_hat intervals not calibrated: %d in-distribution records, fdi_interval.min_count=%d",
                     int((~ood).sum()), min_count)
@@ -140,7 +152,8 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         signals = torch.as_tensor(view.current[()], dtype=torch.float64)
         band_view = store.split(band_split)
         band_k = torch.as_tensor(band_view.K[()], dtype=torch.float64)
-        band_signals = _noisy(cfg, torch.as_tensor(band_view.current[()], dtype=torch.float64))
+        band_clean = torch.as_tensor(band_view.current[()], dtype=torch.float64)
+        band_signals = _noisy(cfg, band_clean)
         band_healthy = torch.as_tensor(band_view.healthy[()]).bool()
         healthy = torch.as_tensor(view.healthy[()]).bool()
     if k.shape[0] == 0:
@@ -172,15 +185,27 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     calibration_noise = common.number(cfg.fdi_band.noise, "fdi_band.noise", 0.0)
     pipeline.calibration_noise.fill_(calibration_noise)
     interval = _fdi_interval(interval_settings, pipeline.nominal, band_k_hat, band_ood, band_k)
+    noise_levels = interval_settings[2][:1]
     if interval is not None:
-        pipeline.k_half_widths = interval.half_widths.to(pipeline.times.dtype)
+        widths = [interval.half_widths]
+        for i, level in enumerate(interval_settings[2][1:]):    # the same records at more noise
+            noisy = add_noise(band_clean, rms(band_clean), level, torch.Generator().manual_seed(int(cfg.seed) + 10 + i))
+            with torch.no_grad():
+                k_hat_l, _, _, ood_l, _ = pipeline(noisy.to(pipeline.times.dtype))
+            more = _fdi_interval(interval_settings, pipeline.nominal, k_hat_l, ood_l, band_k)
+            if more is None:
+                break
+            widths.append(torch.maximum(more.half_widths, widths[-1]))    # never narrower with more noise
+            noise_levels.append(level)
+        pipeline.k_half_widths = torch.stack(widths).to(pipeline.times.dtype)
+        pipeline.interval_noise = torch.tensor(noise_levels, dtype=pipeline.times.dtype)
         pipeline.interval_level = interval.level
     with torch.no_grad():
         true_k = pipeline.rul(k.to(pipeline.times.dtype)).to(torch.float64)
         true_k_by_band = {v: p.rul(k.to(p.times.dtype)).to(torch.float64) for v, p in pipelines.items()}
         k_hat, score, full_flow, ood, _ = pipeline(signals)
         p_faulty = pipeline.faulty_probability(score)
-        k_lower, k_upper = pipeline.k_interval(k_hat)
+        k_lower, k_upper = pipeline.k_interval(k_hat, pipeline.noise_level(signals))
         physics_only = pipeline.rul(k_hat).to(torch.float64)
         physics_only = torch.where(ood.unsqueeze(1), torch.full_like(physics_only, float("nan")), physics_only)
     t_est = time.perf_counter() - t0
@@ -211,6 +236,8 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         **({f"verdict_{key}": value for key, value in verdict_quality(p_faulty[~ood], ~healthy[~ood]).items()}
            if verdict and bool((~ood).any()) else {}),
         fdi_interval_half_widths=interval.half_widths.tolist() if interval else None,
+        fdi_interval_half_widths_by_noise=pipeline.k_half_widths.tolist() if interval else None,
+        fdi_interval_noise_levels=noise_levels if interval else None,
         fdi_interval_counts=interval.counts if interval else None,
         **({f"fdi_interval_{key}": value for key, value in interval_quality(
             k_lower[~ood], k_upper[~ood], k[~ood].to(k_lower.dtype)).items()} if interval and bool((~ood).any()) else {}))
@@ -228,8 +255,8 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                        "fdi_deltas": pipeline.fdi_deltas.tolist(), "fdi_direction": pipeline.fdi_direction.tolist(),
                        "verdict": list(verdict[:2]) if verdict else None,
                        "verdict_prior_faulty": verdict[2] if verdict else None,
-                       "fdi_interval": {"half_widths": interval.half_widths.tolist(), "level": interval.level,
-                                        "coverage": interval.coverage} if interval else None,
+                       "fdi_interval": {"half_widths": pipeline.k_half_widths.tolist(), "noise_levels": noise_levels,
+                                        "level": interval.level, "coverage": interval.coverage} if interval else None,
                        "calibration_noise": calibration_noise,
                        "damage": common.plain(cfg.damage)})
     common.write_json(out_dir / "rul_predictions.json",

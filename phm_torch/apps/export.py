@@ -40,11 +40,19 @@ def _fdi_interval(cal: dict[str, Any], path: Path) -> dict[str, Any]:
         return {}
     widths = interval.get("half_widths") if isinstance(interval, dict) else None
     level = interval.get("level") if isinstance(interval, dict) else None
-    if not (isinstance(widths, list) and widths and all(isinstance(r, list) and len(r) == 8 for r in widths)
-            and isinstance(level, (int, float)) and level > 0):
-        raise ValueError(f"calibration {str(path)!r}: fdi_interval must be {{half_widths: [[8 numbers], ...], "
-                         f"level: > 0}}, got {interval!r}")
-    return {"k_half_widths": torch.tensor(widths, dtype=torch.float64), "interval_level": float(level)}
+    try:
+        tensor = torch.tensor(widths, dtype=torch.float64)
+    except (TypeError, ValueError, RuntimeError):
+        tensor = None
+    levels = interval.get("noise_levels") if isinstance(interval, dict) else None
+    if (tensor is None or tensor.dim() not in (2, 3) or tensor.shape[-1] != 8 or not isinstance(level, (int, float))
+            or not level > 0 or (tensor.dim() == 3 and not (isinstance(levels, list) and len(levels) == tensor.shape[0]))):
+        raise ValueError(f"calibration {str(path)!r}: fdi_interval must be {{half_widths: [n_levels][n_classes][8], "
+                         f"noise_levels: [n_levels], level: > 0}} (or half_widths [n_classes][8]), got {interval!r}")
+    out: dict[str, Any] = {"k_half_widths": tensor, "interval_level": float(level)}
+    if tensor.dim() == 3:
+        out["interval_noise"] = torch.tensor(levels, dtype=torch.float64)
+    return out
 
 
 def _calibration_noise(cal: dict[str, Any], path: Path) -> float | None:

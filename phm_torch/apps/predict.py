@@ -3,16 +3,17 @@
 Each record holds:
 
 * ``k_hat`` {fault name: value} and ``k_interval`` {fault name: [lower, upper]}: per-parameter intervals of
-  the actual k, 90 % coverage each by default, calibrated by phm-evaluate (``null`` out of distribution or
-  for a pipeline exported without them);
+  the actual k, 90 % coverage each by default, calibrated by phm-evaluate at several noise levels and
+  taken at the record's estimated noise (``null`` out of distribution or for a pipeline exported without
+  them);
 * ``health_score`` (> 0 healthy), ``healthy`` and ``p_faulty``, the probability that the actuator is faulty
   given that score, calibrated on held-out records by phm-evaluate (``null`` out of distribution);
 * ``rul_hours`` {p5, p50, p95} (``null`` out of distribution: never a confident RUL from garbage);
 * ``out_of_distribution`` and the gappy ``residual`` [A];
 * ``noise``, the estimated relative measurement noise (noise std over the record's RMS current, before any
-  baseline), and ``noise_above_calibration``: more than twice the noise of the records the intervals,
-  P(faulty) and the RUL band were calibrated on, and above ``NOISE_FLOOR`` (they are then too narrow;
-  ``null`` when the pipeline does not know that level).
+  baseline), and ``noise_above_calibration``: more than twice the noise of the records P(faulty) and the
+  RUL band were calibrated on, and above ``NOISE_FLOOR`` (they are then too narrow, and so are the
+  intervals above their highest calibrated level; ``null`` when the pipeline does not know that level).
 
 The model is a TorchScript file written by ``phm-evaluate``/``phm_torch.online.export``, loaded with
 ``torch.jit.load`` (no unpickling). An empty or ``nan`` cell of a CSV's ``current`` column is a missing
@@ -108,7 +109,10 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                 current = model.rebase(current, bench_nominal)
             k_hat, score, rul, ood, resid = model(current)
             p_faulty = float(model.faulty_probability(score)[0]) if calibrated else float("nan")
-            bounds = torch.stack(model.k_interval(k_hat), -1)[0] if intervals else None
+            if intervals and noise_known and "noise" in str(model.k_interval.schema):   # widths follow the noise
+                bounds = torch.stack(model.k_interval(k_hat, torch.tensor([noise], dtype=k_hat.dtype)), -1)[0]
+            else:
+                bounds = torch.stack(model.k_interval(k_hat), -1)[0] if intervals else None
         reference = float(model.calibration_noise) if noise_known else float("nan")
         noisy = None if math.isnan(reference) or math.isnan(noise) else noise > max(2.0 * reference, NOISE_FLOOR)
         if noisy:

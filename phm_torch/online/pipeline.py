@@ -51,7 +51,10 @@ class OnlinePipeline(nn.Module):
         nominal_record: (n_full,) current [A] of the training model at the nominal fault vector, for
             :meth:`rebase`; None: unknown (NaN).
         k_half_widths: (n_classes, 8) half-widths of the k_hat intervals per difficulty class
-            (:mod:`phm_torch.online.fdi_interval`); None: uncalibrated, :meth:`k_interval` returns NaN.
+            (:mod:`phm_torch.online.fdi_interval`), or (n_levels, n_classes, 8) calibrated at the relative
+            noise levels ``interval_noise``; None: uncalibrated, :meth:`k_interval` returns NaN.
+        interval_noise: (n_levels,) increasing relative noise levels of the rows of ``k_half_widths``; None:
+            one level, 0.
         interval_level: damage above which a component of k_hat counts as a large fault, for the class.
         calibration_noise: relative current noise (std over the record's RMS) of the records the FDI band,
             verdict and intervals were calibrated on; None: unknown (NaN). See :meth:`noise_level`.
@@ -64,7 +67,7 @@ class OnlinePipeline(nn.Module):
                  fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None,
                  verdict: tuple[float, float] | None = None, nominal_record: torch.Tensor | None = None,
                  k_half_widths: torch.Tensor | None = None, interval_level: float = DEFAULT_LEVEL,
-                 calibration_noise: float | None = None):
+                 calibration_noise: float | None = None, interval_noise: torch.Tensor | None = None):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
@@ -94,11 +97,19 @@ class OnlinePipeline(nn.Module):
                              if nominal_record is None else torch.as_tensor(nominal_record, dtype=dtype).reshape(n_full))
         widths = torch.full((DEFAULT_CLASSES, 8), float("nan")) if k_half_widths is None else k_half_widths
         widths = torch.as_tensor(widths, dtype=dtype)
-        if widths.dim() != 2 or widths.shape[0] < 1 or widths.shape[1] != 8:
-            raise ValueError(f"online.k_half_widths must be (n_classes, 8), got {tuple(widths.shape)}")
+        widths = widths.unsqueeze(0) if widths.dim() == 2 else widths
+        if widths.dim() != 3 or widths.shape[0] < 1 or widths.shape[1] < 1 or widths.shape[2] != 8:
+            raise ValueError(f"online.k_half_widths must be (n_classes, 8) or (n_levels, n_classes, 8), got "
+                             f"{tuple(torch.as_tensor(k_half_widths).shape)}")
+        levels = torch.zeros(widths.shape[0], dtype=dtype) if interval_noise is None else \
+            torch.as_tensor(interval_noise, dtype=dtype).reshape(-1)
+        if levels.numel() != widths.shape[0] or bool((levels[1:] <= levels[:-1]).any()):
+            raise ValueError(f"online.interval_noise must hold {widths.shape[0]} increasing levels, got "
+                             f"{[float(f'{v:.6g}') for v in levels.tolist()]}")
         if not interval_level > 0:
             raise ValueError(f"online.interval_level must be > 0, got {interval_level}")
         self.register_buffer("k_half_widths", widths)
+        self.register_buffer("interval_noise", levels)
         self.register_buffer("interval_mask", (torch.arange(8) != ECC_PHASE).to(dtype))   # k7 is a phase
         self.interval_level = float(interval_level)
         self.register_buffer("calibration_noise", torch.tensor(float("nan") if calibration_noise is None
@@ -123,7 +134,8 @@ class OnlinePipeline(nn.Module):
                     min_present: float = 0.8, fdi_deltas: torch.Tensor | None = None,
                     fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None,
                     verdict: tuple[float, float] | None = None, k_half_widths: torch.Tensor | None = None,
-                    interval_level: float = DEFAULT_LEVEL, calibration_noise: float | None = None) -> OnlinePipeline:
+                    interval_level: float = DEFAULT_LEVEL, calibration_noise: float | None = None,
+                    interval_noise: torch.Tensor | None = None) -> OnlinePipeline:
         """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifier, OOD threshold)."""
         threshold = float(bundle.full_residual_threshold)
         check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_, residual_threshold=threshold)
@@ -132,7 +144,7 @@ class OnlinePipeline(nn.Module):
                    float(bundle.sample_rate), full_check=check, fdi_deltas=fdi_deltas, fdi_direction=fdi_direction,
                    rate_scales=rate_scales, verdict=verdict, nominal_record=bundle.nominal_record,
                    k_half_widths=k_half_widths, interval_level=interval_level,
-                   calibration_noise=calibration_noise)
+                   calibration_noise=calibration_noise, interval_noise=interval_noise)
 
     @torch.jit.export
     def noise_level(self, x: torch.Tensor) -> torch.Tensor:
@@ -153,14 +165,29 @@ class OnlinePipeline(nn.Module):
         return noise / (0.6745 * 6.0 ** 0.5) / level.sqrt().clamp(min=1e-12)
 
     @torch.jit.export
-    def k_interval(self, k_hat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def k_interval(self, k_hat: torch.Tensor, noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Lower and upper bounds (B, 8) each, in [0, 1], of the fault vectors whose FDI estimate (the first
         output of ``forward``) is ``k_hat`` (B, 8): k_hat -/+ the half-widths of its difficulty class (its
-        number of large faults), calibrated by phm-evaluate; NaN when the pipeline was not calibrated."""
+        number of large faults), calibrated by phm-evaluate; NaN when the pipeline was not calibrated.
+
+        ``noise`` (B,): the records' relative noise (:meth:`noise_level`); the half-widths are interpolated
+        linearly between the calibrated noise levels ``interval_noise`` (held at the first and last). None:
+        the first level (the calibration records' own noise).
+        """
         k_hat = k_hat.to(self.k_half_widths.dtype)
+        b = k_hat.shape[0]
         damage = (k_hat - self.nominal).abs() * self.interval_mask
-        count = (damage > self.interval_level).sum(1).clamp(max=self.k_half_widths.shape[0] - 1)
-        w = self.k_half_widths[count]
+        count = (damage > self.interval_level).sum(1).clamp(max=self.k_half_widths.shape[1] - 1)
+        n_levels = self.interval_noise.shape[0]
+        if noise is None or n_levels == 1:
+            w = self.k_half_widths[0][count]
+        else:
+            levels = self.interval_noise
+            x = torch.minimum(torch.maximum(noise.to(levels.dtype), levels[0]), levels[-1])
+            low = (torch.searchsorted(levels, x, right=True) - 1).clamp(0, n_levels - 2)
+            frac = ((x - levels[low]) / (levels[low + 1] - levels[low])).unsqueeze(1)
+            w = self.k_half_widths[low, count] * (1.0 - frac) + self.k_half_widths[low + 1, count] * frac
+        w = w.reshape(b, 8)
         return (k_hat - w).clamp(0.0, 1.0), (k_hat + w).clamp(0.0, 1.0)
 
     @torch.jit.export
