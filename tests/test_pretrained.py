@@ -57,14 +57,17 @@ def test_phm_predict_with_the_pretrained_pipeline(records, compose, tmp_path):
     sig, command = records
     t = sig.time.numpy()
     paths = []
-    for i in (0, 1):
-        path = tmp_path / f"run{i}.csv"
+    for i, noise in ((0, 0.01), (1, 0.01), (1, 0.05)):
+        path = tmp_path / f"run{len(paths)}.csv"
         write_measurement(path, Measurement(t, command(sig.time).numpy(), sig["position"][i].numpy(),
-                                            sig["current"][i].numpy() + 0.01 * np.random.default_rng(i).standard_normal(len(t)),
+                                            sig["current"][i].numpy() + noise * np.random.default_rng(i).standard_normal(len(t)),
                                             sample_rate=20000.0))
         paths.append(str(path))
     _, out = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements=[{','.join(paths)}]"]))
-    nominal, friction = out["records"]
+    nominal, friction, noisy = out["records"]
+    lo5, hi5 = noisy["k_interval"]["dry_friction"]                  # 6 % noise: the intervals widen with it
+    assert noisy["noise_above_calibration"] and lo5 <= 0.3 <= hi5
+    assert hi5 - lo5 > 1.5 * (friction["k_interval"]["dry_friction"][1] - friction["k_interval"]["dry_friction"][0])
     assert nominal["healthy"] and not friction["healthy"]
     lo, hi = friction["k_interval"]["dry_friction"]
     assert lo <= 0.3 <= hi and abs(friction["k_hat"]["dry_friction"] - 0.3) < 0.03
