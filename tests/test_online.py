@@ -174,6 +174,23 @@ def test_interval_widths_follow_the_records_noise_between_calibrated_levels(pipe
                        pipeline.n_full, 0.05, k_half_widths=widths, interval_noise=torch.tensor([0.03, 0.01, 0.1]))
 
 
+def test_pipeline_interval_class_is_the_libraries_difficulty_class(pipeline):
+    """The scripted pipeline counts large faults inline; it must agree with fdi_interval.difficulty_class,
+    which calibrates the widths."""
+    from phm_torch.online.fdi_interval import difficulty_class
+
+    g = torch.Generator().manual_seed(5)
+    k_hat = 0.8 * torch.rand(400, 8, generator=g, dtype=torch.float64) ** 3     # mostly small: every class
+    k_hat[:, 7] = 0.5 + 0.5 * (k_hat[:, 7] - 0.4)
+    widths = torch.arange(4, dtype=torch.float64).view(4, 1).expand(4, 8) * 0.01 + 0.001
+    pipe = copy.deepcopy(pipeline)
+    pipe.k_half_widths = widths.unsqueeze(0).clone()
+    _, upper = pipe.k_interval(k_hat)                             # k_hat <= 0.8: upper is never clipped
+    cls = torch.round(((upper - k_hat)[:, 0] - 0.001) / 0.01).long()
+    assert torch.equal(cls, difficulty_class(k_hat, pipe.nominal.double(), pipe.interval_level, 4))
+    assert len(set(cls.tolist())) == 4
+
+
 def test_noise_level_recovers_white_noise_on_a_smooth_record_and_skips_missing_samples(pipeline):
     x = signals(pipeline, 4)
     g = torch.Generator().manual_seed(3)

@@ -132,6 +132,33 @@ def _fdi_interval(settings: tuple[float, int, list[float]], nominal: torch.Tenso
     return calibrate_fdi_interval(k_hat[~ood], k[~ood].to(k_hat.dtype), nominal, coverage, min_count)
 
 
+def _fdi_intervals(settings: tuple[float, int, list[float]], pipeline: OnlinePipeline, k_hat: torch.Tensor,
+                   ood: torch.Tensor, clean: torch.Tensor, k: torch.Tensor, seed: int) -> tuple[FDIInterval | None,
+                                                                                               list[float]]:
+    """Calibrate the pipeline's k_hat intervals in place at every noise level of ``settings``: the first from
+    the pipeline's outputs k_hat, ood on the (noisy) calibration signals, the others from the noise-free
+    ``clean`` signals (N, n) with that level of noise added. Returns the first level's interval (None: not
+    calibrated) and the levels calibrated."""
+    interval = _fdi_interval(settings, pipeline.nominal, k_hat, ood, k)
+    levels = settings[2][:1]
+    if interval is None:
+        return None, levels
+    widths = [interval.half_widths]
+    for i, level in enumerate(settings[2][1:]):
+        noisy = add_noise(clean, rms(clean), level, torch.Generator().manual_seed(seed + 10 + i))
+        with torch.no_grad():
+            k_hat_l, _, _, ood_l, _ = pipeline(noisy.to(pipeline.times.dtype))
+        more = _fdi_interval(settings, pipeline.nominal, k_hat_l, ood_l, k)
+        if more is None:
+            break
+        widths.append(torch.maximum(more.half_widths, widths[-1]))    # never narrower with more noise
+        levels.append(level)
+    pipeline.k_half_widths = torch.stack(widths).to(pipeline.times.dtype)
+    pipeline.interval_noise = torch.tensor(levels, dtype=pipeline.times.dtype)
+    pipeline.interval_level = interval.level
+    return interval, levels
+
+
 def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Evaluate the RUL estimation (see :mod:`phm_torch.prognostics.evaluation` for the definitions)."""
     common.set_threads(cfg)
@@ -182,24 +209,10 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if verdict is not None:
         pipeline.verdict_scale.fill_(verdict[0])
         pipeline.verdict_offset.fill_(verdict[1])
-    calibration_noise = common.number(cfg.fdi_band.noise, "fdi_band.noise", 0.0)
+    calibration_noise = interval_settings[2][0]          # fdi_band.noise: the band signals' own
     pipeline.calibration_noise.fill_(calibration_noise)
-    interval = _fdi_interval(interval_settings, pipeline.nominal, band_k_hat, band_ood, band_k)
-    noise_levels = interval_settings[2][:1]
-    if interval is not None:
-        widths = [interval.half_widths]
-        for i, level in enumerate(interval_settings[2][1:]):    # the same records at more noise
-            noisy = add_noise(band_clean, rms(band_clean), level, torch.Generator().manual_seed(int(cfg.seed) + 10 + i))
-            with torch.no_grad():
-                k_hat_l, _, _, ood_l, _ = pipeline(noisy.to(pipeline.times.dtype))
-            more = _fdi_interval(interval_settings, pipeline.nominal, k_hat_l, ood_l, band_k)
-            if more is None:
-                break
-            widths.append(torch.maximum(more.half_widths, widths[-1]))    # never narrower with more noise
-            noise_levels.append(level)
-        pipeline.k_half_widths = torch.stack(widths).to(pipeline.times.dtype)
-        pipeline.interval_noise = torch.tensor(noise_levels, dtype=pipeline.times.dtype)
-        pipeline.interval_level = interval.level
+    interval, noise_levels = _fdi_intervals(interval_settings, pipeline, band_k_hat, band_ood, band_clean, band_k,
+                                            int(cfg.seed))
     with torch.no_grad():
         true_k = pipeline.rul(k.to(pipeline.times.dtype)).to(torch.float64)
         true_k_by_band = {v: p.rul(k.to(p.times.dtype)).to(torch.float64) for v, p in pipelines.items()}
