@@ -16,11 +16,14 @@ from phm_torch.surrogates import (
     GappyPOD,
     LevenbergMarquardt,
     SignalAugment,
+    add_noise,
     err_alpha,
     err_k,
     err_k_weights,
     fdi_mae,
+    rms,
 )
+from phm_torch.surrogates.fdi_ensemble import build_fdi_network
 from phm_torch.surrogates.lightning_fdi import FDIModule, KeepBest
 from phm_torch.surrogates.selectors import build_selector
 
@@ -70,7 +73,7 @@ def test_deeper_network_form_and_torchscript():
 
 
 def test_ensemble_is_the_mean_of_independently_fitted_members():
-    from phm_torch.surrogates import FDIEnsemble, build_fdi_network
+    from phm_torch.surrogates import FDIEnsemble
 
     torch.manual_seed(0)
     x, y = teacher_data(64, 0)
@@ -260,3 +263,83 @@ def test_err_alpha():
     full = torch.tensor([[0.0, 1.0, 2.0, 4.0]])
     gappy = full + torch.tensor([[0.1, -0.1, 0.1, -0.1]])
     assert float(err_alpha(gappy, full)[0]) == pytest.approx(0.1 / 4.0)
+
+
+def test_noise_aware_network_takes_the_level_as_one_more_input():
+    torch.manual_seed(0)
+    x, levels = torch.randn(200, 6), torch.rand(200) * 0.1
+    for net in (FDIMLP(6, 5, n_layers=2, input_scaling="robust", noise_input=True, default_noise=0.01, max_noise=0.1),
+                build_fdi_network(6, 5, 2, 3, input_scaling="robust", noise_input=True, default_noise=0.01,
+                                  max_noise=0.1)):
+        with pytest.raises(ValueError, match="needs the training noise levels"):
+            net.set_normalization(x)
+        net.set_normalization(x, levels)
+        assert net.in_center.shape == (7,)                       # the level is scaled like a coefficient
+        quiet, loud = net(x, torch.zeros(200)), net(x, torch.full((200,), 0.08))
+        assert float((quiet - loud).abs().max()) > 1e-3
+        torch.testing.assert_close(net(x), net(x, torch.full((200,), 0.01)))         # None: default_noise
+        torch.testing.assert_close(net(x, torch.full((200,), 0.5)), net(x, torch.full((200,), 0.1)))  # held
+        scripted = torch.jit.script(net)
+        torch.testing.assert_close(scripted(x, levels), net(x, levels))
+        torch.testing.assert_close(scripted(x), net(x))
+    plain = FDIMLP(6, 5).set_normalization(x)
+    torch.testing.assert_close(plain(x, levels), plain(x))       # a plain network ignores the level
+    assert "noise_input" not in "".join(plain.state_dict())       # and its state dict is unchanged
+    for kwargs, match in (({"noise_input": "yes"}, "fdi.noise_input must be true or false"),
+                          ({"noise_input": True, "max_noise": 0.0}, "fdi.max_noise must be > 0"),
+                          ({"noise_input": True, "default_noise": 0.2, "max_noise": 0.1},
+                           r"fdi.default_noise must be in \[0, max_noise=0.1\], got 0.2")):
+        with pytest.raises(ValueError, match=match):
+            FDIMLP(6, 5, **kwargs)
+    with pytest.raises(ValueError, match="noise_input=true needs noisy training records"):
+        FDIModule(FDIMLP(6, 5, noise_input=True))
+
+
+def test_noise_aware_network_trained_on_noisy_records_keeps_its_clean_accuracy(tmp_path):
+    """Trained end to end on records with up to 10 % noise, a network told each record's level resolves
+    clean records better than the same network trained the same way without it (it learns when the fine
+    detail of the coefficients can be trusted), and is no worse on noisy ones."""
+    from surrogate_data import faults, signals
+
+    k, kv = faults(600, 0).float(), faults(200, 1).float()
+    y, yv = signals(k), signals(kv)
+    pod = POD(10).fit(y)
+    gappy = GappyPOD(pod.modes_, pod.mean_, build_selector("greedy", n_points=20).fit(pod.modes_).indices_)
+    s, sv = gappy.select(y), gappy.select(yv)
+    scale, scale_v = rms(y), rms(yv)
+    noisy_v = add_noise(sv, scale_v, 0.1, torch.Generator().manual_seed(5))
+    err = {}
+    for aware in (False, True):
+        torch.manual_seed(0)
+        levels = torch.rand(len(s)) * 0.1
+        net = FDIMLP(10, 24, n_layers=2, input_scaling="robust", noise_input=aware, max_noise=0.1)
+        net.set_normalization(gappy(s)[0], levels if aware else None)
+        module = FDIModule(net, lr=1e-2, gappy=gappy, augment=SignalAugment(noise=0.1, max_missing=0))
+        _, keep = _fit(module, TensorDataset(s, k, scale), TensorDataset(sv, kv, scale_v), 100, 32, tmp_path)
+        keep.restore(module)
+        with torch.no_grad():
+            err[aware] = (err_k(net(gappy(sv)[0], torch.zeros(len(sv))), kv),
+                          err_k(net(gappy(noisy_v)[0], torch.full((len(sv),), 0.1)), kv))
+    assert err[True][0] < 0.9 * err[False][0]
+    assert err[True][1] < 1.02 * err[False][1]
+
+
+def test_noise_level_is_unbiased_for_white_noise_and_ignores_sparse_spikes():
+    from phm_torch.surrogates.augment import clipped_mean_factor, noise_level
+
+    g = torch.Generator().manual_seed(0)
+    white = torch.randn(64, 10001, generator=g, dtype=torch.float64)
+    assert float(noise_level(white).mean()) == pytest.approx(1.0, abs=0.003)      # the clipped-mean factor
+    assert clipped_mean_factor() == pytest.approx(1.9401301101495292, rel=1e-12)    # the literal in the code
+    windowed = noise_level(white, 2048)
+    assert float(windowed.mean()) == pytest.approx(1.0, abs=0.01) and float(windowed.std()) < 0.05
+    # a smooth record with rare spikes (ringing after commutation edges) and 1 % noise still reads ~1 %
+    t = torch.linspace(0, 0.5, 10001, dtype=torch.float64)
+    record = 2.0 + torch.sin(2 * math.pi * 7 * t)
+    spiky = record.clone()
+    spiky[::500] += 0.5
+    rel = noise_level(torch.stack([record, spiky]) + 0.01 * rms(record.unsqueeze(0)) *
+                      torch.randn(2, 10001, generator=g, dtype=torch.float64))
+    torch.testing.assert_close(rel, torch.full((2,), 0.01, dtype=torch.float64), rtol=0.05, atol=0.0)
+    assert float(noise_level(spiky.unsqueeze(0))) < 1e-3
+    torch.testing.assert_close(torch.jit.script(noise_level)(white[:4], 2048), windowed[:4])

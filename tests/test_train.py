@@ -9,7 +9,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
-from surrogate_data import faults, health, write_store
+from surrogate_data import faults, health, signals, write_store
 
 from phm_torch.apps.train import _classifier_set, _monitor_rows, train_surrogates
 from phm_torch.surrogates import SurrogateBundle
@@ -269,3 +269,38 @@ def test_bayesian_gappy_estimator_round_trips_through_the_bundle(store, compose,
     assert online.min_count == 4 and float(ood.float().mean()) < 0.5
     with pytest.raises(ValueError, match="gappy.estimator must be one of"):
         train_surrogates(compose("train", [*over, "gappy.estimator=kalman"]))
+
+
+def test_noise_aware_end_to_end_run_and_its_pipeline(store, compose, tmp_path):
+    from test_online import damage
+
+    from phm_torch.online import OnlinePipeline
+
+    base = [f"data_dir={store}", *QUICK, "model.fit.max_epochs=30"]
+    with pytest.raises(ValueError, match="noise_input=true needs noisy training records: model.end_to_end=true"):
+        train_surrogates(compose("train", [*base, f"out_dir={tmp_path / 'a'}", "+model.network.noise_input=true"]))
+    with pytest.raises(ValueError, match="model.network.max_noise: it is model.augment.noise"):
+        train_surrogates(compose("train", [*base, f"out_dir={tmp_path / 'b'}", "model=fdi_e2e",
+                                           "+model.network.max_noise=0.2"]))
+    metrics, objects = train_surrogates(compose("train", [*base, f"out_dir={tmp_path / 'c'}", "model=fdi_e2e",
+                                                          "+model.network.noise_input=true", "model.augment.noise=0.05"]))
+    assert math.isfinite(metrics["err_k"]) and math.isfinite(metrics["err_k_noise"])
+    bundle = SurrogateBundle.load(objects["out_dir"] / "surrogates.pt")
+    net = bundle.network
+    assert (net.noise_input, net.default_noise, net.max_noise) == (True, 0.01, 0.05)   # eval.noise, augment.noise
+    assert bundle.metadata()["noise_input"] is True
+    torch.testing.assert_close(net.in_center, objects["bundle"].network.in_center)
+    # the pipeline tells the network each full record's estimated noise; selected samples alone: the default
+    pipe = OnlinePipeline.from_bundle(bundle, damage(), torch.zeros(3), torch.ones(8)).eval()
+    clean = signals(faults(4, 5)).to(torch.float64)
+    noise = torch.randn(clean.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    noisy = clean + 0.04 * clean.pow(2).mean(1, keepdim=True).sqrt() * noise
+    with torch.no_grad():
+        level = pipe.noise_level(noisy)
+        assert bool(((level - 0.04).abs() < 0.006).all())
+        k_full = pipe(noisy)[0]
+        k_told = bundle.fdi(bundle.compress(noisy).float(), noise=level.float())
+        k_samples = pipe(bundle.compress(noisy))[0]
+    torch.testing.assert_close(k_full.float(), k_told, atol=1e-5, rtol=0)
+    torch.testing.assert_close(k_samples.float(), bundle.fdi(bundle.compress(noisy).float()), atol=1e-5, rtol=0)
+    assert float((k_full - k_samples).abs().max()) > 1e-4

@@ -190,6 +190,9 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     for key in ("n_inputs", "n_hidden", "n_layers", "n_members"):
         if key in network_kwargs:
             raise ValueError(f"model.network.{key}: set the top-level {key} instead (one home per value)")
+    for key, home in (("default_noise", "eval.noise"), ("max_noise", "model.augment.noise")):
+        if key in network_kwargs:
+            raise ValueError(f"model.network.{key}: it is {home} (one home per value)")
     ridge = common.number(cfg.gappy.ridge, "gappy.ridge", 0.0)
     estimator = str(cfg.gappy.estimator)
     if estimator not in ESTIMATORS:
@@ -255,8 +258,17 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         alpha_va, _ = gappy(samples_va)
         x_tr = alpha_tr if fit["inputs"] == "gappy" else pod(train.current)
     fit_rows, monitor_rows = _monitor_rows(len(train), monitor_fraction, seed)
+    levels = None
+    if network_kwargs.get("noise_input"):   # told each record's noise level, trained on levels in [0, augment.noise]
+        max_noise = common.number((cfg.model.get("augment") or {}).get("noise", 0.0), "model.augment.noise", 0.0)
+        if not end_to_end or max_noise <= 0:
+            raise ValueError("model.network.noise_input=true needs noisy training records: model.end_to_end=true "
+                             "with model.augment.noise > 0 (model=fdi_e2e)")
+        network_kwargs.update(default_noise=min(noise, max_noise), max_noise=max_noise)
+        levels = torch.rand(len(fit_rows), generator=torch.Generator().manual_seed(seed + 3),
+                            dtype=x_tr.dtype) * max_noise
     network = build_fdi_network(n_modes, n_hidden, n_layers, n_members, **network_kwargs)
-    network.set_normalization(x_tr[fit_rows])
+    network.set_normalization(x_tr[fit_rows], levels)
     module: FDIModule = make_module(network=network, gappy=gappy if end_to_end else None)
     if module.optimizer_name == "lm":
         if fit["batch_size"] is not None:

@@ -14,11 +14,13 @@ import torch
 from torch import nn
 
 from ..prognostics.damage import DamageModel
+from ..surrogates.augment import noise_level
 from ..surrogates.full_signal_check import FullSignalCheck
 from ..surrogates.metrics import ECC_PHASE
 from .fdi_interval import DEFAULT_CLASSES, DEFAULT_LEVEL
 
 SCORE_BLOCK = 4096    # rows per classifier call in the RUL search
+NOISE_WINDOW, NOISE_ROWS = 1024, 64     # the noise estimate of a noise-aware FDI: samples, rows per block
 
 
 class OnlinePipeline(nn.Module):
@@ -27,7 +29,7 @@ class OnlinePipeline(nn.Module):
     Args:
         gappy: gappy-POD layer (``forward(samples, mask) -> (alpha, residual)``, buffers ``indices``,
             ``mean_hat``, ``modes_hat``).
-        fdi: MLP alpha -> k_hat (B, 8) in [0, 1].
+        fdi: MLP alpha (B, n_m) [, noise (B,)] -> k_hat (B, 8) in [0, 1] (``FDIMLP`` or ``FDIEnsemble``).
         classifier: health score f(k) (B,), positive = healthy (buffer ``threshold``).
         damage: damage model (grid and propagators).
         deltas: (3,) calibrated disturbances for the 5/50/95 % RUL (larger = shorter).
@@ -74,6 +76,8 @@ class OnlinePipeline(nn.Module):
         if not residual_threshold > 0:
             raise ValueError(f"online.residual_threshold must be > 0, got {residual_threshold}")
         self.gappy, self.fdi, self.classifier = gappy, fdi, classifier
+        # selected samples alone carry no noise estimate: the network's default level is used then
+        self.noise_aware = bool(getattr(fdi, "noise_input", False))
         self.has_full_check = full_check is not None
         self.full_check = full_check if full_check is not None else nn.Identity()
         t = damage.grid
@@ -125,6 +129,7 @@ class OnlinePipeline(nn.Module):
         self.min_count = max(floor, round(min_present * self.n_points))
         self.coarse = int(coarse)
         self.score_block = SCORE_BLOCK
+        self.noise_window, self.noise_rows = NOISE_WINDOW, NOISE_ROWS
         if self.coarse < 1:
             raise ValueError(f"online.coarse must be >= 1, got {coarse}")
         self.bisections = max(0, (self.coarse - 1).bit_length())   # down to one grid step
@@ -148,21 +153,12 @@ class OnlinePipeline(nn.Module):
 
     @torch.jit.export
     def noise_level(self, x: torch.Tensor) -> torch.Tensor:
-        """Relative white-noise level (B,) of full records x (B, n_full) [A]: std of the noise over the
-        record's RMS, from the median absolute second difference (median |x[i+1] - 2 x[i] + x[i-1]| /
-        (0.6745 sqrt(6)), exact for Gaussian white noise). The 1 kHz-filtered current sampled at 20 kHz
-        barely feeds it, and the median ignores the short ringing after Hall edges: on the paper store's
-        noise-free val and rul records it reads 0.0 % (median) and 0.01 % (90th percentile). Missing (NaN)
-        samples are left out. Compare with ``calibration_noise``: the uncertainty outputs were calibrated
-        at that level and are too narrow well above it."""
+        """Relative white-noise level (B,) of full records x (B, n_full) [A]
+        (:func:`phm_torch.surrogates.augment.noise_level`). Compare with ``calibration_noise``: the
+        uncertainty outputs were calibrated at that level and are too narrow well above it."""
         if x.dim() != 2 or x.shape[1] != self.n_full:
             raise ValueError("noise_level: x must be (B, n_full)")
-        x = x.to(self.times.dtype)
-        d2 = (x[:, 2:] - 2.0 * x[:, 1:-1] + x[:, :-2]).abs()
-        noise = torch.nanmedian(torch.where(torch.isfinite(d2), d2, torch.full_like(d2, float("nan"))), 1)[0]
-        finite = torch.isfinite(x)
-        level = torch.where(finite, x, torch.zeros_like(x)).pow(2).sum(1) / finite.sum(1).clamp(min=1)
-        return noise / (0.6745 * 6.0 ** 0.5) / level.sqrt().clamp(min=1e-12)
+        return noise_level(x.to(self.times.dtype))
 
     @torch.jit.export
     def k_interval(self, k_hat: torch.Tensor, noise: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -288,6 +284,8 @@ class OnlinePipeline(nn.Module):
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Args: x (B, n_full) envelope current [A] or (B, n_points) samples at the selected times; NaN = missing.
+        A noise-aware FDI network gets each full record's :meth:`noise_level` (selected samples alone: its
+        default level).
 
         Returns (k_hat (B, 8), health score (B,), RUL (B, 3) [h] at 5/50/95 % - NaN when untrustworthy,
         out_of_distribution (B,) bool, gappy residual (B,) [A]).
@@ -295,10 +293,14 @@ class OnlinePipeline(nn.Module):
         if x.dim() != 2:
             raise ValueError("online: input must be (B, n) with n = n_full or n_points")
         foreign = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
+        noise: torch.Tensor | None = None     # a noise-aware FDI network is told the record's noise level
         if x.shape[1] == self.n_full:
             samples = x.index_select(1, self.gappy.indices)
             if self.has_full_check:      # NaN (missing samples) compares False: the gappy checks decide then
                 foreign = self.full_check(x)
+            if self.noise_aware:        # the first NOISE_WINDOW samples, in row blocks that stay in cache
+                noise = torch.cat([noise_level(rows.to(self.times.dtype), self.noise_window)
+                                   for rows in x.split(self.noise_rows)])
         elif x.shape[1] == self.n_points:
             samples = x
         else:
@@ -312,7 +314,7 @@ class OnlinePipeline(nn.Module):
         alpha, residual = self.gappy(filled, mask)
         spread = torch.where(valid, samples, torch.zeros_like(samples)).std(1)
         flat = spread < 1e-6
-        k_hat = self.fdi(alpha)
+        k_hat = self.fdi(alpha, noise)
         score = self.classifier(k_hat) - self.classifier.threshold
         ood = (~enough) | flat | foreign | (residual > self.residual_threshold) | ~torch.isfinite(residual)
         rul = self.rul(k_hat, True)

@@ -5,7 +5,7 @@ the :class:`SurrogateBundle` that the online pipeline loads.
 The Lightning training module lives in :mod:`phm_torch.surrogates.lightning_fdi` and is not imported
 here, so that loading and running a bundle needs torch only."""
 
-from .augment import SignalAugment, add_noise, drop_samples, rms
+from .augment import SignalAugment, add_noise, drop_samples, noise_level, rms
 from .bundle import SurrogateBundle
 from .classifiers import CLASSIFIERS, RBFSVM, HealthClassifier, PolynomialSVM, build_classifier
 from .fdi_ensemble import FDIEnsemble, build_fdi_network
@@ -41,5 +41,6 @@ __all__ = [
            "err_k_per_signal",
            "err_k_weights",
            "fdi_mae",
+           "noise_level",
            "rms",
 ]

@@ -5,7 +5,8 @@ FDI network and the health classifier, and answers the online questions:
 
 * ``bundle.compress(signals (B, n_e)) -> samples (B, n_w)``: keep the selected samples of full records;
 * ``bundle.coefficients(samples, mask=None) -> (alpha (B, n_m), residual (B,) [A])``: gappy POD;
-* ``bundle.fdi(samples, mask=None) -> k_hat (B, 8)`` in [0, 1]: the fault vector (also ``forward``);
+* ``bundle.fdi(samples, mask=None, noise=None) -> k_hat (B, 8)`` in [0, 1]: the fault vector (also ``forward``;
+  ``noise`` (B,), the records' relative noise, for a noise-aware network);
 * ``bundle.diagnose(samples, mask=None) -> dict``: k_hat, alpha, residual and the ``out_of_distribution``
   flag (residual above ``residual_threshold``);
 * ``bundle.health_score(k (B, 8)) -> f (B,)`` float64: **positive = healthy**, negative = faulty, zero on
@@ -19,7 +20,8 @@ File format (``save``/``load``): one ``torch.save`` file holding only plain cont
 float, bool, None and tensors, read back with ``torch.load(weights_only=True)`` (never unpickled)::
 
     {"format": "phm_torch.surrogate_bundle", "version": 1,
-     "meta": {"n_samples", "n_modes", "n_points", "n_hidden", "n_layers", "n_members", "input_scaling", "sample_rate", "signal", "unit",
+     "meta": {"n_samples", "n_modes", "n_points", "n_hidden", "n_layers", "n_members", "input_scaling",
+              "noise_input", "default_noise", "max_noise", "sample_rate", "signal", "unit",
               "fault_names", "health_convention", "selector": {"name", "params"},
               "classifier": {"name", "params"}, "gappy_ridge", "phm_torch_version", "extra": {...}},
      "tensors": {"pod.mean_", "pod.modes_", "pod.singular_values_", "pod.energy_", "indices",
@@ -115,19 +117,23 @@ class SurrogateBundle(nn.Module):
         """Gappy POD: alpha (B, n_m) and residual (B,) [A] from samples (B, n_w) [A]."""
         return self.gappy(samples, mask)
 
-    def fdi(self, samples: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        """Estimated fault vector k_hat (B, 8) in [0, 1] from samples (B, n_w) [A]."""
+    def fdi(self, samples: torch.Tensor, mask: torch.Tensor | None = None,
+            noise: torch.Tensor | None = None) -> torch.Tensor:
+        """Estimated fault vector k_hat (B, 8) in [0, 1] from samples (B, n_w) [A]; ``noise`` (B,) the records'
+        relative noise, for a noise-aware network (None: its ``default_noise``)."""
         alpha, _ = self.gappy(samples, mask)
-        return self.network(alpha)
+        return self.network(alpha, noise)
 
     def forward(self, samples: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         """Same as :meth:`fdi` (the exported entry point)."""
         return self.fdi(samples, mask)
 
-    def diagnose(self, samples: torch.Tensor, mask: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        """k_hat (B, 8), alpha (B, n_m), residual (B,) [A], out_of_distribution (B,) bool."""
+    def diagnose(self, samples: torch.Tensor, mask: torch.Tensor | None = None,
+                 noise: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """k_hat (B, 8), alpha (B, n_m), residual (B,) [A], out_of_distribution (B,) bool (``noise`` as
+        :meth:`fdi`)."""
         alpha, residual = self.gappy(samples, mask)
-        return {"k_hat": self.network(alpha), "alpha": alpha, "residual": residual,
+        return {"k_hat": self.network(alpha, noise), "alpha": alpha, "residual": residual,
                 "out_of_distribution": residual > self.residual_threshold}
 
     def health_score(self, k: torch.Tensor) -> torch.Tensor:
@@ -144,7 +150,9 @@ class SurrogateBundle(nn.Module):
         return {"n_samples": int(self.pod.mean_.shape[0]), "n_modes": self.pod.n_modes,
                 "n_points": self.gappy.n_points, "n_hidden": self.network.n_hidden,
                 "n_layers": self.network.n_layers, "n_members": self.network.n_members,
-                "input_scaling": self.network.input_scaling, "sample_rate": self.sample_rate,
+                "input_scaling": self.network.input_scaling, "noise_input": self.network.noise_input,
+                "default_noise": self.network.default_noise, "max_noise": self.network.max_noise,
+                "sample_rate": self.sample_rate,
                 "signal": "current", "unit": "A", "fault_names": list(FAULT_NAMES),
                 "health_convention": HEALTH_CONVENTION, "selector": self.selector_info,
                 "classifier": {"name": self.classifier.name, "params": self.classifier.get_params()},
@@ -194,7 +202,8 @@ class SurrogateBundle(nn.Module):
         meta, t = blob.get("meta"), blob.get("tensors")
         if isinstance(meta, dict):
             meta.setdefault("n_layers", 1)          # bundles written before the options: one network
-            meta.setdefault("n_members", 1)         # of one hidden layer
+            meta.setdefault("n_members", 1)         # of one hidden layer, not noise-aware
+            meta.setdefault("noise_input", False)
         required = (*COMPARED, "input_scaling", "sample_rate", "selector", "classifier", "gappy_ridge", "extra")
         missing = [k for k in required if not isinstance(meta, dict) or k not in meta]
         if missing or not isinstance(t, dict):
@@ -212,8 +221,10 @@ class SurrogateBundle(nn.Module):
         if tuple(pod.modes_.shape) != (meta["n_samples"], n_m):
             raise ValueError(f"{path}: pod.modes_ has shape {tuple(pod.modes_.shape)}, meta says "
                              f"({meta['n_samples']}, {n_m})")
+        noise_kwargs = {k: meta[k] for k in ("default_noise", "max_noise") if k in meta}
         network = build_fdi_network(n_m, meta["n_hidden"], meta["n_layers"], meta["n_members"],
-                                    input_scaling=meta["input_scaling"])
+                                    input_scaling=meta["input_scaling"], noise_input=meta["noise_input"],
+                                    **noise_kwargs)
         network.load_state_dict(_prefixed(t, "network."))
         spec = meta["classifier"]
         if spec["name"] not in CLASSIFIERS:

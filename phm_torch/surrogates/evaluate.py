@@ -28,7 +28,8 @@ def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tens
     """Coefficient and fault-identification errors on full records ``current`` (n, n_e) with faults k (n, 8):
     clean, with relative noise ``noise`` (fraction of each signal's RMS current) and with ``missing``
     random samples missing per signal (skipped, its metrics None, when fewer samples than modes would
-    remain). Signals whose gappy system is singular (``unsolved_rate*``) are left out of the errors.
+    remain). A noise-aware network is told each case's noise level (0, or ``noise``: the exported pipeline
+    estimates it from the record, exactly for white noise). Signals whose gappy system is singular (``unsolved_rate*``) are left out of the errors.
     ``nominal`` (8,) is the healthy fault vector for ``err_k_by_fault_count``.
     Returns (metrics, arrays for plots)."""
     alpha_full = pod(current)
@@ -44,7 +45,7 @@ def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tens
     arrays: dict[str, torch.Tensor] = {"k": k, "alpha_full": alpha_full}
     for suffix, s in cases.items():
         alpha, resid = gappy(s)
-        k_hat = network(alpha)
+        k_hat = network(alpha, torch.full((len(s),), noise if suffix == "_noise" else 0.0, dtype=alpha.dtype))
         solved = torch.isfinite(alpha).all(-1)                  # singular gappy systems give NaN
         ea = quartiles(err_alpha(alpha[solved], alpha_full[solved]))
         out[f"err_alpha_median{suffix}"], out[f"err_alpha_iqr{suffix}"] = ea["median"], ea["iqr"]

@@ -60,12 +60,16 @@ class FDIModule(L.LightningModule):
             raise ValueError("model.end_to_end needs model.optimizer=adam (LM fits a fixed data set)")
         if augment is not None and gappy is None:
             raise ValueError("model.augment needs the gappy layer in the model (model.end_to_end=true)")
+        if network.noise_input and (augment is None or augment.noise <= 0):
+            raise ValueError("model.network.noise_input=true needs noisy training records: model.end_to_end=true "
+                             "with model.augment.noise > 0 (model=fdi_e2e)")
         self.network, self.gappy, self.augment = network, gappy, augment
         self.optimizer_name, self.lr, self.weight_decay, self.cosine = optimizer, float(lr), float(weight_decay), cosine
         self.loss_weighting = loss_weighting
         # Plain values only: they identify the architecture when a checkpoint is resumed.
         self.save_hyperparameters({"n_inputs": network.n_inputs, "n_hidden": network.n_hidden,
                                    "n_layers": network.n_layers, "n_members": network.n_members,
+                                   "noise_input": network.noise_input,
                                    "optimizer": optimizer, "end_to_end": gappy is not None,
                                    "n_points": gappy.n_points if gappy is not None else None})
         if optimizer == "lm":
@@ -75,21 +79,24 @@ class FDIModule(L.LightningModule):
     def _weights(self, k: torch.Tensor) -> torch.Tensor:
         return err_k_weights(k) if self.loss_weighting == "err_k" else torch.ones_like(k)
 
-    def _inputs(self, batch: tuple[torch.Tensor, ...], train: bool) -> tuple[torch.Tensor, torch.Tensor]:
-        """(alpha, k) of a batch, corrupting and projecting the samples end to end."""
+    def _inputs(self, batch: tuple[torch.Tensor, ...], train: bool
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """(alpha, k, noise) of a batch, corrupting and projecting the samples end to end; noise (B,) is the
+        relative noise each record carries (zeros for clean ones), None when the network does not take it."""
         if self.gappy is None:
-            return batch[0], batch[1]
+            return batch[0], batch[1], None
         samples, k, scale = batch
+        noise = torch.zeros_like(scale)
         if train and self.augment is not None:
-            samples = self.augment(samples, scale)
+            samples, noise = self.augment.corrupt(samples, scale)
         alpha, _ = self.gappy(samples)
-        return alpha, k
+        return alpha, k, noise if self.network.noise_input else None
 
-    def forward(self, alpha: torch.Tensor) -> torch.Tensor:
-        return self.network(alpha)
+    def forward(self, alpha: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        return self.network(alpha, noise)
 
     def training_step(self, batch: tuple[torch.Tensor, ...], batch_idx: int) -> torch.Tensor | None:
-        alpha, k = self._inputs(batch, train=True)
+        alpha, k, noise = self._inputs(batch, train=True)
         w = self._weights(k)
         if self.optimizer_name == "lm":
             out = self.lm.step(alpha, k, w)
@@ -98,7 +105,7 @@ class FDIModule(L.LightningModule):
             if out.stop:
                 self.trainer.should_stop = True
             return None
-        loss = (w * (self.network.member_preactivations(alpha) - k).pow(2)).mean()   # each member on its own
+        loss = (w * (self.network.member_preactivations(alpha, noise) - k).pow(2)).mean()   # each member on its own
         self.log("train_loss", loss, prog_bar=True, on_step=False, on_epoch=True, batch_size=k.shape[0])
         return loss
 
@@ -106,8 +113,8 @@ class FDIModule(L.LightningModule):
         self._val_sums = torch.zeros(3, dtype=torch.float64, device=self.device)  # sum w*d^2, sum |d|, entries
 
     def validation_step(self, batch: tuple[torch.Tensor, ...], batch_idx: int) -> None:
-        alpha, k = self._inputs(batch, train=False)
-        diff = self.network(alpha) - k
+        alpha, k, noise = self._inputs(batch, train=False)
+        diff = self.network(alpha, noise) - k
         self._val_sums += torch.stack([(err_k_weights(k) * diff.pow(2)).sum(), diff.abs().sum(),
                                        torch.tensor(float(diff.numel()), device=diff.device)]).to(torch.float64)
 
@@ -133,7 +140,8 @@ class FDIModule(L.LightningModule):
             checkpoint["lm_mu"] = self.lm.mu
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        saved = {"n_layers": 1, "n_members": 1, **checkpoint.get("hyper_parameters", {})}  # older checkpoints
+        saved = {"n_layers": 1, "n_members": 1, "noise_input": False,             # older checkpoints
+                 **checkpoint.get("hyper_parameters", {})}
         mine = dict(self.hparams)
         diff = {k: (saved.get(k), v) for k, v in mine.items() if saved.get(k) != v}
         if diff:

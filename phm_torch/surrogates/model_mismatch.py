@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from .augment import rms
+from .augment import noise_level, rms
 from .bundle import SurrogateBundle
 from .full_signal_check import FullSignalCheck
 from .metrics import err_k, fdi_mae
@@ -51,7 +51,8 @@ def mismatch_metrics(bundle: SurrogateBundle, k: torch.Tensor, healthy: torch.Te
     check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_,
                             residual_threshold=float(bundle.full_residual_threshold))
     with torch.no_grad():
-        found = bundle.diagnose(bundle.compress(signals.to(dtype)))
+        # a noise-aware network is told each record's estimated noise, as the online pipeline does
+        found = bundle.diagnose(bundle.compress(signals.to(dtype)), noise=noise_level(signals).to(dtype))
         k_hat = found["k_hat"].double()
         full_flag = check(signals.to(dtype))
         verdict = bundle.is_healthy(k_hat)
