@@ -48,6 +48,21 @@ def pipeline() -> OnlinePipeline:
     return pipe.eval()
 
 
+class ConstantFDI(torch.nn.Module):
+    """An alpha -> k_hat module with the one-argument interface (no noise input)."""
+
+    def forward(self, alpha: torch.Tensor) -> torch.Tensor:
+        return torch.full((alpha.shape[0], 8), 0.01, dtype=alpha.dtype)
+
+
+def test_any_alpha_to_k_module_fits_and_scripts(pipeline):
+    pipe = OnlinePipeline(pipeline.gappy, ConstantFDI(), pipeline.classifier, damage(), torch.zeros(3),
+                          torch.ones(8), N_FULL, residual_threshold=0.05).eval()
+    assert not pipe.noise_aware
+    x = signals(pipeline, 3)
+    torch.testing.assert_close(torch.jit.script(pipe)(x)[0], torch.full((3, 8), 0.01, dtype=torch.float64))
+
+
 def signals(pipe, n: int, seed: int = 1) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     alpha = torch.randn(n, N_MODES, generator=g, dtype=torch.float64)

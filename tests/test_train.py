@@ -275,6 +275,8 @@ def test_noise_aware_end_to_end_run_and_its_pipeline(store, compose, tmp_path):
     from test_online import damage
 
     from phm_torch.online import OnlinePipeline
+    from phm_torch.online.pipeline import NOISE_WINDOW
+    from phm_torch.surrogates import noise_level
 
     base = [f"data_dir={store}", *QUICK, "model.fit.max_epochs=30"]
     with pytest.raises(ValueError, match="noise_input=true needs noisy training records: model.end_to_end=true"):
@@ -299,7 +301,7 @@ def test_noise_aware_end_to_end_run_and_its_pipeline(store, compose, tmp_path):
         level = pipe.noise_level(noisy)
         assert bool(((level - 0.04).abs() < 0.006).all())
         k_full = pipe(noisy)[0]
-        k_told = bundle.fdi(bundle.compress(noisy).float(), noise=level.float())
+        k_told = bundle.fdi(bundle.compress(noisy).float(), noise=noise_level(noisy, NOISE_WINDOW).float())
         k_samples = pipe(bundle.compress(noisy))[0]
     torch.testing.assert_close(k_full.float(), k_told, atol=1e-5, rtol=0)
     torch.testing.assert_close(k_samples.float(), bundle.fdi(bundle.compress(noisy).float()), atol=1e-5, rtol=0)

@@ -62,6 +62,8 @@ class OnlinePipeline(nn.Module):
             verdict and intervals were calibrated on; None: unknown (NaN). See :meth:`noise_level`.
     """
 
+    __constants__ = ("noise_aware",)     # TorchScript compiles only the FDI call that applies
+
     def __init__(self, gappy: nn.Module, fdi: nn.Module, classifier: nn.Module, damage: DamageModel,
                  deltas: torch.Tensor, direction: torch.Tensor, n_full: int, residual_threshold: float,
                  min_present: float = 0.8, sample_rate: float = 20000.0, coarse: int = 25,
@@ -314,7 +316,10 @@ class OnlinePipeline(nn.Module):
         alpha, residual = self.gappy(filled, mask)
         spread = torch.where(valid, samples, torch.zeros_like(samples)).std(1)
         flat = spread < 1e-6
-        k_hat = self.fdi(alpha, noise)
+        if self.noise_aware:     # a constant: TorchScript compiles one branch, so any alpha -> k_hat module fits
+            k_hat = self.fdi(alpha, noise)
+        else:
+            k_hat = self.fdi(alpha)
         score = self.classifier(k_hat) - self.classifier.threshold
         ood = (~enough) | flat | foreign | (residual > self.residual_threshold) | ~torch.isfinite(residual)
         rul = self.rul(k_hat, True)
