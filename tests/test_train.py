@@ -303,6 +303,10 @@ def test_noise_aware_end_to_end_run_and_its_pipeline(store, compose, tmp_path):
         k_full = pipe(noisy)[0]
         k_told = bundle.fdi(bundle.compress(noisy).float(), noise=noise_level(noisy, NOISE_WINDOW).float())
         k_samples = pipe(bundle.compress(noisy))[0]
+        k_sent = torch.jit.script(pipe)(bundle.compress(noisy), noise_level(noisy, NOISE_WINDOW))[0]   # level sent along
+    torch.testing.assert_close(k_sent, k_full)
+    with pytest.raises(ValueError, match=r"online: noise must be \(B,\)"):
+        pipe(noisy, torch.zeros(2))
     torch.testing.assert_close(k_full.float(), k_told, atol=1e-5, rtol=0)
     torch.testing.assert_close(k_samples.float(), bundle.fdi(bundle.compress(noisy).float()), atol=1e-5, rtol=0)
     assert float((k_full - k_samples).abs().max()) > 1e-4

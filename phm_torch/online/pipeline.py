@@ -284,23 +284,26 @@ class OnlinePipeline(nn.Module):
         crossing = torch.where(first > 0, t0 + frac * (t1 - t0), torch.zeros_like(t0))
         return torch.where(any_faulty, crossing, torch.full_like(crossing, float(self.times[-1])))
 
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(self, x: torch.Tensor, noise: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Args: x (B, n_full) envelope current [A] or (B, n_points) samples at the selected times; NaN = missing.
-        A noise-aware FDI network gets each full record's :meth:`noise_level` (selected samples alone: its
-        default level).
+        noise: (B,) the records' relative noise level, for a noise-aware FDI network; None: estimated from
+        each full record (:meth:`noise_level` on its first samples), the network's default level for
+        selected samples alone (a system that sends only the samples can send its level here).
 
         Returns (k_hat (B, 8), health score (B,), RUL (B, 3) [h] at 5/50/95 % - NaN when untrustworthy,
         out_of_distribution (B,) bool, gappy residual (B,) [A]).
         """
         if x.dim() != 2:
             raise ValueError("online: input must be (B, n) with n = n_full or n_points")
+        if noise is not None and (noise.dim() != 1 or noise.shape[0] != x.shape[0]):
+            raise ValueError("online: noise must be (B,), one relative level per record")
         foreign = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
-        noise: torch.Tensor | None = None     # a noise-aware FDI network is told the record's noise level
         if x.shape[1] == self.n_full:
             samples = x.index_select(1, self.gappy.indices)
             if self.has_full_check:      # NaN (missing samples) compares False: the gappy checks decide then
                 foreign = self.full_check(x)
-            if self.noise_aware:        # the first NOISE_WINDOW samples, in row blocks that stay in cache
+            if self.noise_aware and noise is None:     # the first NOISE_WINDOW samples, in cache-sized blocks
                 noise = torch.cat([noise_level(rows.to(self.times.dtype), self.noise_window)
                                    for rows in x.split(self.noise_rows)])
         elif x.shape[1] == self.n_points:
