@@ -41,6 +41,9 @@ def test_estimates_intervals_and_verdict_on_fresh_records(records):
         p_faulty = model.faulty_probability(score)
         noise = model.noise_level(sig["current"])
     assert not ood.any() and (noise < 0.002).all()
+    with torch.no_grad():                     # the selected samples with their noise level sent along
+        samples = sig["current"].index_select(1, model.gappy.indices)
+        torch.testing.assert_close(model(samples, model.noise_level(sig["current"]))[0], k_hat, atol=0.01, rtol=0)
     err = (k_hat - K.to(k_hat))[:, DAMAGE].abs()
     assert float(err.max()) < 0.04 and float(err.mean()) < 0.01, err      # every component within 4 % of the range
     truth = K.to(lower)
