@@ -43,7 +43,7 @@ from ..surrogates.data import load_store
 from ..surrogates.evaluate import evaluate_classifier, evaluate_fdi, measure_latency, quartiles
 from ..surrogates.full_signal_check import FullSignalCheck
 from ..surrogates.gappy_pod import gappy_statistics
-from ..surrogates.lightning_fdi import FDIModule, KeepBest
+from ..surrogates.lightning_fdi import NOISE_INPUT_NEEDS, FDIModule, KeepBest
 from . import common
 
 log = logging.getLogger(__name__)
@@ -262,8 +262,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if network_kwargs.get("noise_input"):   # told each record's noise level, trained on levels in [0, augment.noise]
         max_noise = common.number((cfg.model.get("augment") or {}).get("noise", 0.0), "model.augment.noise", 0.0)
         if not end_to_end or max_noise <= 0:
-            raise ValueError("model.network.noise_input=true needs noisy training records: model.end_to_end=true "
-                             "with model.augment.noise > 0 (model=fdi_e2e)")
+            raise ValueError(NOISE_INPUT_NEEDS)     # before the module: the input scaling needs the range
         network_kwargs.update(default_noise=min(noise, max_noise), max_noise=max_noise)
         levels = torch.rand(len(fit_rows), generator=torch.Generator().manual_seed(seed + 3),
                             dtype=x_tr.dtype) * max_noise

@@ -29,7 +29,8 @@ def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tens
     clean, with relative noise ``noise`` (fraction of each signal's RMS current) and with ``missing``
     random samples missing per signal (skipped, its metrics None, when fewer samples than modes would
     remain). A noise-aware network is told each case's noise level (0, or ``noise``: the exported pipeline
-    estimates it from the record, exactly for white noise). Signals whose gappy system is singular (``unsolved_rate*``) are left out of the errors.
+    estimates it from the record, exactly for white noise). Signals whose gappy system is singular
+    (``unsolved_rate*``) are left out of the errors.
     ``nominal`` (8,) is the healthy fault vector for ``err_k_by_fault_count``.
     Returns (metrics, arrays for plots)."""
     alpha_full = pod(current)

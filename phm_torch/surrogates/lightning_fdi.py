@@ -27,6 +27,8 @@ from .levenberg_marquardt import LevenbergMarquardt
 from .metrics import err_k_weights
 
 OPTIMIZERS = ("adam", "lm")
+NOISE_INPUT_NEEDS = ("model.network.noise_input=true needs noisy training records: model.end_to_end=true with "
+                     "model.augment.noise > 0 (model=fdi_e2e)")
 WEIGHTINGS = ("uniform", "err_k")
 
 
@@ -61,8 +63,7 @@ class FDIModule(L.LightningModule):
         if augment is not None and gappy is None:
             raise ValueError("model.augment needs the gappy layer in the model (model.end_to_end=true)")
         if network.noise_input and (augment is None or augment.noise <= 0):
-            raise ValueError("model.network.noise_input=true needs noisy training records: model.end_to_end=true "
-                             "with model.augment.noise > 0 (model=fdi_e2e)")
+            raise ValueError(NOISE_INPUT_NEEDS)
         self.network, self.gappy, self.augment = network, gappy, augment
         self.optimizer_name, self.lr, self.weight_decay, self.cosine = optimizer, float(lr), float(weight_decay), cosine
         self.loss_weighting = loss_weighting
