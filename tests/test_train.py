@@ -48,6 +48,9 @@ def test_metrics_json(lm_run):
     assert written["fdi_latency_us_p50"] > 0
     assert written["err_k_noise"] >= 0 and written["err_k_missing"] >= 0
     assert set(written["err_k_by_fault_count"]) == {"0", "1", "2", "3+"}
+    # per-signal aggregates of the paper's formula: the mean of the roots is at most the pooled root (Jensen)
+    assert written["err_k_median_per_signal"] > 0
+    assert 0 < written["err_k_mean_per_signal"] <= written["err_k"] + 1e-12
     assert (objects["out_dir"] / "logs").is_dir()              # CSV logger
     assert list((objects["out_dir"] / "checkpoints").glob("*.ckpt"))
     # the epoch is chosen on 5 % of the training signals held out from the fit, not on val
