@@ -46,6 +46,15 @@ def test_solvers_agree(data, solver):
     assert torch.allclose(ref.singular_values_[:6], other.singular_values_[:6], rtol=1e-4)
 
 
+def test_fit_leaves_float64_snapshots_untouched(data):
+    # the fit centres one float64 copy in place: the caller's float64 array must not be that copy
+    snapshots = data.double()
+    before = snapshots.clone()
+    pod = POD(N_LATENT).fit(snapshots)
+    assert torch.equal(snapshots, before)
+    assert torch.allclose(pod.mean_, before.mean(0), atol=1e-12)
+
+
 def test_projection_and_reconstruction(data):
     pod = POD(N_LATENT).fit(data)
     alpha = pod(data)

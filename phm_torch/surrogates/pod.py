@@ -83,10 +83,11 @@ class POD(nn.Module):
             raise ValueError(f"n_modes={self.n_modes} exceeds the rank of {n_s} centred snapshots of "
                              f"{n_e} samples (at most {max_modes})")
         dtype = snapshots.dtype if snapshots.is_floating_point() else torch.float32
-        y = snapshots.to(torch.float64)
-        mean = y.mean(0)
-        yc = y - mean
-        total = float(yc.pow(2).sum())
+        # one float64 copy, centred in place: at 80,000 x 10,001 snapshots each copy is 6.4 GB
+        yc = snapshots.to(torch.float64, copy=True)
+        mean = yc.mean(0)
+        yc -= mean
+        total = float(torch.linalg.vector_norm(yc)) ** 2
         n_spec = min(self.n_spectrum or max(self.n_modes, 100), max_modes)
         solver = self.solver
         if solver == "auto":

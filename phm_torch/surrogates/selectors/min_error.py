@@ -42,7 +42,7 @@ class MinErrorSelector(Selector):
         chosen = [int(i) for i in qr_pivots(modes)[: min(self.n_points, n_m)]]
         if self.n_points <= n_m:
             return torch.tensor(chosen)
-        snap = self._snapshots[: self.n_signals]
+        snap = self._snapshots
         centred = snap - snap.mean(0) if self._mean is None else snap - self._mean
         coef = centred @ modes                                           # (n_sig, n_m)
         resid = (centred - coef @ modes.T).T.contiguous()                # (n_e, n_sig)
@@ -72,7 +72,7 @@ class MinErrorSelector(Selector):
             raise ValueError("selector min_error needs the training snapshots: fit(modes, time, snapshots=Y)")
         if snapshots.ndim != 2 or snapshots.shape[1] != modes.shape[0]:
             raise ValueError(f"snapshots must be (n_s, {modes.shape[0]}), got {tuple(snapshots.shape)}")
-        self._snapshots = snapshots.detach().to(torch.float64).cpu()
+        self._snapshots = snapshots[: self.n_signals].detach().to(torch.float64).cpu()   # only these are used
         self._mean = None if mean is None else mean.detach().to(torch.float64).cpu()
         try:
             return super().fit(modes, time)
