@@ -19,6 +19,7 @@ from phm_torch.surrogates import (
     add_noise,
     err_alpha,
     err_k,
+    err_k_interval,
     err_k_weights,
     fdi_mae,
     rms,
@@ -232,6 +233,34 @@ def test_err_k_as_the_paper_defines_it():
     assert err_k(k_est, k_act) == pytest.approx(math.sqrt((0.04 + 0.08) / 16))
     assert fdi_mae(k_est, k_act)[6] == pytest.approx(0.4)
     assert fdi_mae(k_est, k_act, weighted=True)[6] == pytest.approx(0.1)
+
+
+def test_err_k_interval_brackets_err_k_and_narrows_with_more_signals():
+    g = torch.Generator().manual_seed(3)
+
+    def case(n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        k_act = torch.rand(n, 8, generator=g, dtype=torch.float64)
+        # heavy-tailed errors, as in the FDI: a few signals carry most of the squared error
+        scale = torch.where(torch.rand(n, 1, generator=g, dtype=torch.float64) < 0.07, 0.15, 0.02)
+        return k_act + scale * torch.randn(n, 8, generator=g, dtype=torch.float64), k_act
+
+    small, large = case(500), case(8000)
+    lo, hi = err_k_interval(*small)
+    assert lo < err_k(*small) < hi
+    lo_l, hi_l = err_k_interval(*large)
+    assert lo_l < err_k(*large) < hi_l
+    assert hi_l - lo_l < 0.5 * (hi - lo)                 # width ~ 1 / sqrt(n): a quarter at 16x the signals
+    assert err_k_interval(*small, seed=5) != (lo, hi) and err_k_interval(*small) == (lo, hi)
+    exact = torch.zeros(50, 8, dtype=torch.float64)      # every signal alike: the interval closes
+    value = err_k(exact + 0.1, exact)                    # sqrt(7 / 8) x 0.1: no eccentricity, no phase weight
+    assert err_k_interval(exact + 0.1, exact) == pytest.approx((value, value))
+    nan = small[0].clone()
+    nan[0] = float("nan")                                # a singular gappy system: left out
+    assert all(math.isfinite(v) for v in err_k_interval(nan, small[1]))
+    with pytest.raises(ValueError, match="level"):
+        err_k_interval(*small, level=1.5)
+    with pytest.raises(ValueError, match="n_boot"):
+        err_k_interval(*small, n_boot=2)
 
 
 def test_err_k_by_fault_count_splits_the_paper_err_k():

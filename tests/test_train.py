@@ -51,6 +51,8 @@ def test_metrics_json(lm_run):
     # per-signal aggregates of the paper's formula: the mean of the roots is at most the pooled root (Jensen)
     assert written["err_k_median_per_signal"] > 0
     assert 0 < written["err_k_mean_per_signal"] <= written["err_k"] + 1e-12
+    lo, hi = written["err_k_ci95"]
+    assert lo <= written["err_k"] <= hi and hi - lo > 0
     assert (objects["out_dir"] / "logs").is_dir()              # CSV logger
     assert list((objects["out_dir"] / "checkpoints").glob("*.ckpt"))
     # the epoch is chosen on 5 % of the training signals held out from the fit, not on val

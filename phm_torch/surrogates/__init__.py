@@ -12,7 +12,7 @@ from .fdi_ensemble import FDIEnsemble, build_fdi_network
 from .fdi_mlp import FDIMLP
 from .gappy_pod import GappyPOD
 from .levenberg_marquardt import LevenbergMarquardt
-from .metrics import confusion, err_alpha, err_k, err_k_per_signal, err_k_weights, fdi_mae
+from .metrics import confusion, err_alpha, err_k, err_k_interval, err_k_per_signal, err_k_weights, fdi_mae
 from .pod import POD
 from .selectors import SELECTORS, Selector, build_selector
 
@@ -38,6 +38,7 @@ __all__ = [
            "drop_samples",
            "err_alpha",
            "err_k",
+           "err_k_interval",
            "err_k_per_signal",
            "err_k_weights",
            "fdi_mae",

@@ -12,7 +12,7 @@ from .augment import add_noise, drop_samples, rms
 from .classifiers import HealthClassifier
 from .fdi_mlp import FDIMLP
 from .gappy_pod import GappyPOD
-from .metrics import confusion, err_alpha, err_k, err_k_by_fault_count, err_k_per_signal, fdi_mae
+from .metrics import confusion, err_alpha, err_k, err_k_by_fault_count, err_k_interval, err_k_per_signal, fdi_mae
 from .pod import POD
 
 
@@ -62,6 +62,7 @@ def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tens
     per_signal = err_k_per_signal(arrays["k_hat"], k)
     out["err_k_mean_per_signal"] = float(per_signal.mean())
     out["err_k_median_per_signal"] = float(per_signal.median())
+    out["err_k_ci95"] = list(err_k_interval(arrays["k_hat"], k, seed=seed))   # how finely this split ranks runs
     out["err_k_by_fault_count"] = err_k_by_fault_count(arrays["k_hat"], k, nominal)
     out["fdi_mae_noise"] = fdi_mae(arrays["k_hat_noise"], k)  # noise never makes a system singular
     if "k_hat_missing" in arrays:
