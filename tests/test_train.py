@@ -7,12 +7,16 @@ import math
 from pathlib import Path
 from types import SimpleNamespace
 
+import h5py
 import pytest
 import torch
 from surrogate_data import faults, health, signals, write_store
 
 from phm_torch.apps.train import _classifier_set, _monitor_rows, train_surrogates
-from phm_torch.surrogates import SurrogateBundle
+from phm_torch.surrogates import POD, GappyPOD, SurrogateBundle
+from phm_torch.surrogates.data import load_store
+from phm_torch.surrogates.full_signal_check import FullSignalCheck
+from phm_torch.surrogates.ood_calibration import ood_thresholds
 
 REQUIRED = ("err_alpha_median", "err_alpha_iqr", "err_k", "fdi_mae", "classifier_accuracy", "missed_fault_rate",
             "false_alarm_rate", "fdi_latency_us_p50")
@@ -150,6 +154,33 @@ def test_bad_store(change, match, compose, tmp_path):
     store = write_store(tmp_path / "bad", {"train": 60, "val": 20}, **change)
     with pytest.raises(ValueError, match=match):
         train_surrogates(compose("train", [f"data_dir={store}", f"out_dir={tmp_path / 'o'}", *QUICK]))
+
+
+def test_a_non_finite_record_past_the_first_read_block_is_named(tmp_path):
+    store = write_store(tmp_path / "inf", {"train": 600, "val": 20})
+    with h5py.File(store / "dataset.h5", "r+") as f:
+        f["train/current"][530, 7] = float("inf")      # READ_ROWS = 512: the second block
+    with pytest.raises(ValueError, match=r"split 'train': current row 530 holds NaN or inf"):
+        load_store(store, {"train": "train", "val": "val"})
+
+
+def test_ood_thresholds_are_block_size_free_and_grow_with_the_noise():
+    y = signals(faults(300, 5), noise=0.02)       # residuals well above round-off
+    pod = POD(10).fit(y)
+    gappy = GappyPOD(pod.modes_, pod.mean_, torch.arange(0, y.shape[1], 40))
+    check = FullSignalCheck(pod.modes_, pod.mean_)
+    clean = ood_thresholds(y, gappy, check, 0.0, 0.99, seed=1, block_rows=300)
+    # float32 round-off of energy - explained differs with the batch shape (~1e-4 of the residual)
+    assert ood_thresholds(y, gappy, check, 0.0, 0.99, seed=1, block_rows=7) == pytest.approx(clean, rel=1e-3)
+    with torch.no_grad():   # the whole-array computation it replaces
+        direct = (float(torch.quantile(gappy(gappy.select(y))[1].double(), 0.99)),
+                  float(torch.quantile(check.residual(y).double(), 0.99)))
+    assert clean == pytest.approx(direct, rel=1e-3)
+    noisy = ood_thresholds(y, gappy, check, 0.05, 0.99, seed=1, block_rows=64)
+    assert noisy == ood_thresholds(y, gappy, check, 0.05, 0.99, seed=1, block_rows=64)   # seeded
+    assert noisy[0] > 2 * clean[0] and noisy[1] > 2 * clean[1]
+    with pytest.raises(ValueError, match="eval.ood_quantile"):
+        ood_thresholds(y, gappy, check, 0.0, 1.5, seed=1)
 
 
 def test_missing_split_and_config_errors(compose, tmp_path):

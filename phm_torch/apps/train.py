@@ -37,13 +37,13 @@ from ..data.sampling import ImportanceSampler
 from ..data.store import LABELS, read_labelled
 from ..io.atomic import atomic_open
 from ..surrogates import POD, GappyPOD, SurrogateBundle, build_fdi_network, rms
-from ..surrogates.augment import add_noise
 from ..surrogates.classifiers.refinement import BoundaryRefinement, refine_classifier
 from ..surrogates.data import load_store
 from ..surrogates.evaluate import evaluate_classifier, evaluate_fdi, measure_latency, quartiles
 from ..surrogates.full_signal_check import FullSignalCheck
 from ..surrogates.gappy_pod import gappy_statistics
 from ..surrogates.lightning_fdi import NOISE_INPUT_NEEDS, FDIModule, KeepBest
+from ..surrogates.ood_calibration import ood_thresholds
 from . import common
 
 log = logging.getLogger(__name__)
@@ -327,15 +327,9 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     timing["fdi_eval_per_signal_us"] = (time.perf_counter() - t0) / max(len(val), 1) * 1e6
     metrics.update(evaluate_classifier(classifier, val.k, val.healthy, arrays["k_hat"]))
     metrics.update(measure_latency(gappy, network, classifier, samples_va, repeats))
-    # the OOD thresholds are quantiles over the training records *with the rated measurement noise*
-    # (eval.noise): clean simulated records alone can lie so close to the POD span (few modes, an LF store)
-    # that any real measurement would be flagged
-    with torch.no_grad():
-        noisy = add_noise(train.current, rms(train.current), noise, torch.Generator().manual_seed(seed + 7))
-        threshold = float(torch.quantile(gappy(gappy.select(noisy))[1].to(torch.float64), ood_q))
-        full_resid = FullSignalCheck(pod.modes_, pod.mean_).residual(noisy).to(torch.float64)
-        full_threshold = float(torch.quantile(full_resid, ood_q))
-        # the shape statistics have physical thresholds: report how much of training data they reject
+    threshold, full_threshold = ood_thresholds(train.current, gappy, FullSignalCheck(pod.modes_, pod.mean_), noise,
+                                               ood_q, seed + 7)
+    with torch.no_grad():   # the shape statistics have physical thresholds: report how much of val they reject
         full_ood_val = float(FullSignalCheck(pod.modes_, pod.mean_, residual_threshold=full_threshold)(val.current)
                              .double().mean()) if len(val) else float("nan")
     metrics.update(

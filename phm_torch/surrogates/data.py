@@ -56,16 +56,18 @@ def read_split(store: DatasetStore, name: str, n_samples: int, limit: int | None
             raise ValueError(f"{where}: {arr} has shape {tuple(got)}, expected {want} "
                              f"(n rows, {n_samples} samples = the store's time grid)")
     k = torch.from_numpy(np.asarray(view.K[:n], dtype=np.float32))
+    if not torch.isfinite(k).all() or bool(((k < 0) | (k > 1)).any()):
+        raise ValueError(f"{where}: K holds values outside [0, 1] or non-finite")
     current = torch.empty(n, n_samples, dtype=torch.float32)
     for start in range(0, n, READ_ROWS):
         stop = min(start + READ_ROWS, n)
-        current[start:stop] = torch.from_numpy(np.asarray(view.current[start:stop], dtype=np.float32))
+        block = current[start:stop]
+        block.copy_(torch.from_numpy(np.asarray(view.current[start:stop], dtype=np.float32)))
+        # checked block by block: isfinite on the whole array would need ~2x its size in temporaries
+        finite = torch.isfinite(block).all(1)
+        if not finite.all():
+            raise ValueError(f"{where}: current row {start + int(torch.nonzero(~finite)[0, 0])} holds NaN or inf")
     healthy = torch.from_numpy(np.asarray(view.healthy[:n]).astype(bool))
-    if not torch.isfinite(k).all() or bool(((k < 0) | (k > 1)).any()):
-        raise ValueError(f"{where}: K holds values outside [0, 1] or non-finite")
-    if not torch.isfinite(current).all():
-        bad = int(torch.nonzero(~torch.isfinite(current).all(1))[0, 0])
-        raise ValueError(f"{where}: current row {bad} holds NaN or inf")
     return SplitData(name, k, current, healthy)
 
 

@@ -1,0 +1,39 @@
+"""scripts/rank_bundles.py: err_k, its bootstrap interval and paired differences from per-signal errors."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+import torch
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "rank_bundles.py"
+
+
+@pytest.fixture(scope="module")
+def rank():
+    spec = importlib.util.spec_from_file_location("rank_bundles", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.ranking
+
+
+def test_ranking_of_a_uniformly_better_bundle(rank):
+    g = torch.Generator().manual_seed(0)
+    counts = torch.randint(0, 4, (3000,), generator=g)
+    base = (0.01 + 0.05 * counts.double()) * torch.rand(3000, generator=g, dtype=torch.float64)
+    sq = {"a": base.pow(2), "b": (0.9 * base).pow(2)}     # b: every signal's error 10 % smaller
+    out = rank(sq, counts, seed=1)
+    err_a = float(base.pow(2).mean().sqrt())
+    assert out["n"] == 3000 and out["a"]["err_k_pct"] == pytest.approx(100 * err_a)
+    assert out["b"]["err_k_pct"] == pytest.approx(90 * err_a)
+    lo, hi = out["a"]["ci95_pct"]
+    assert lo < 100 * err_a < hi and hi - lo < 0.2 * 100 * err_a
+    # paired: the shared spread cancels, so the difference is -10 % of each resample's err_k, a tight interval
+    d_lo, d_mid, d_hi = out["b"]["minus_a_pp"]
+    assert d_lo < d_mid < d_hi < 0 and d_mid == pytest.approx(-10 * err_a, rel=0.02)
+    assert d_hi - d_lo < 0.5 * (hi - lo)
+    by_group = out["a"]["err_k_by_heavy_faults_pct"]
+    assert by_group["0"] < by_group["1"] < by_group["2"] < by_group["3+"]
+    assert sum(out["group_share"].values()) == pytest.approx(1.0)
