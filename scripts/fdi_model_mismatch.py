@@ -33,16 +33,8 @@ from phm_torch.apps import common
 from phm_torch.data import DatasetStore
 from phm_torch.effects import EFFECTS
 from phm_torch.simulator import EMASimulator
-from phm_torch.surrogates import SurrogateBundle
+from phm_torch.surrogates.bundle import load_named_bundles
 from phm_torch.surrogates.model_mismatch import mismatch_metrics
-
-
-def _bundles(specs: list[str]) -> dict[str, SurrogateBundle]:
-    out = {}
-    for i, spec in enumerate(specs):
-        name, _, path = spec.rpartition("=")
-        out[name or (f"bundle{i}" if len(specs) > 1 else "bundle")] = SurrogateBundle.load(path)
-    return out
 
 
 def main() -> None:
@@ -63,7 +55,7 @@ def main() -> None:
     unknown = [e for e in requested or [] if e not in EFFECTS]
     if unknown:
         raise SystemExit(f"fdi_model_mismatch: error: --effects {unknown} unknown; known: {sorted(EFFECTS)}")
-    bundles = _bundles(args.bundle)
+    bundles = load_named_bundles(args.bundle)
     with DatasetStore(args.data_dir) as store:
         cfg = DictConfig((store.metadata or {}).get("config") or {})
         if "actuator" not in cfg or "command" not in cfg or "dataset" not in cfg:

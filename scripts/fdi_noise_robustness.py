@@ -26,6 +26,7 @@ from omegaconf import DictConfig
 from phm_torch.apps import common
 from phm_torch.data import DatasetStore
 from phm_torch.surrogates import SurrogateBundle, add_noise, err_k, fdi_mae, noise_level, rms
+from phm_torch.surrogates.bundle import load_named_bundles
 from phm_torch.surrogates.metrics import ECC_PHASE, err_k_by_fault_count
 
 
@@ -56,10 +57,7 @@ def main() -> None:
     ap.add_argument("--out", default="results/fdi_noise_robustness.json")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    bundles = {}
-    for i, spec in enumerate(args.bundle):
-        name, _, path = spec.rpartition("=")
-        bundles[name or f"bundle{i}"] = SurrogateBundle.load(path)
+    bundles = load_named_bundles(args.bundle)
     t0 = time.perf_counter()
     results: dict[str, dict[str, dict[str, dict[str, float]]]] = {name: {} for name in bundles}
     with DatasetStore(args.data_dir) as store:
@@ -80,7 +78,7 @@ def main() -> None:
                     row = results[name][split][f"{level:g}"]
                     print(f"{name:>10} {split:>5} noise {level:5.3f}: err_k {100 * row['err_k']:.2f} %, bias "
                           f"{100 * row['bias_max']:.2f} %, verdict {100 * row['chain_accuracy']:.1f} %", flush=True)
-    report = {"data_dir": args.data_dir, "bundles": {n: s.split("=")[-1] for n, s in zip(bundles, args.bundle)},
+    report = {"data_dir": args.data_dir, "bundles": dict(zip(bundles, args.bundle)),
               "levels": args.levels, "results": results, "wall_s": round(time.perf_counter() - t0, 1),
               "machine": {"platform": platform.platform(), "threads": args.threads}}
     common.write_json(args.out, report)

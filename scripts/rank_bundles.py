@@ -27,6 +27,7 @@ from omegaconf import DictConfig
 from phm_torch.apps import common
 from phm_torch.data import DatasetStore
 from phm_torch.surrogates import SurrogateBundle, add_noise, noise_level, rms
+from phm_torch.surrogates.bundle import load_named_bundles
 from phm_torch.surrogates.metrics import err_k_per_signal, fault_count
 
 BLOCK = 2000     # records read and corrupted at a time
@@ -97,14 +98,11 @@ def main() -> None:
     if not args.noise >= 0:
         raise ValueError(f"--noise must be >= 0, got {args.noise!r}")
     torch.set_num_threads(args.threads)
-    bundles = {}
-    for i, spec in enumerate(args.bundle):
-        name, _, path = spec.rpartition("=")
-        bundles[name or f"bundle{i}"] = SurrogateBundle.load(path)
+    bundles = load_named_bundles(args.bundle)
     t0 = time.perf_counter()
     sq, counts = squared_errors(bundles, args.data_dir, args.split, args.noise, args.seed)
     report = {"data_dir": args.data_dir, "split": args.split, "noise": args.noise,
-              "bundles": {n: s.rpartition("=")[2] for n, s in zip(bundles, args.bundle)},
+              "bundles": dict(zip(bundles, args.bundle)),
               "ranking": ranking(sq, counts, args.seed), "wall_s": round(time.perf_counter() - t0, 1),
               "machine": {"platform": platform.platform(), "threads": args.threads}}
     for name in bundles:

@@ -37,3 +37,14 @@ def test_ranking_of_a_uniformly_better_bundle(rank):
     by_group = out["a"]["err_k_by_heavy_faults_pct"]
     assert by_group["0"] < by_group["1"] < by_group["2"] < by_group["3+"]
     assert sum(out["group_share"].values()) == pytest.approx(1.0)
+
+
+def test_bundle_specs_name_the_bundles(tmp_path, monkeypatch):
+    from phm_torch.surrogates import bundle as bundle_module
+    monkeypatch.setattr(bundle_module.SurrogateBundle, "load", classmethod(lambda cls, path: f"loaded {path}"))
+    sweep = "multirun/0/n_hidden=20/surrogates.pt"           # a Hydra sweep's path keeps its '='
+    got = bundle_module.load_named_bundles(["a=x.pt", "y.pt", f"b={sweep}", sweep])
+    assert got == {"a": "loaded x.pt", "bundle1": "loaded y.pt", "b": f"loaded {sweep}", "bundle3": f"loaded {sweep}"}
+    assert bundle_module.load_named_bundles(["only.pt"]) == {"bundle": "loaded only.pt"}
+    with pytest.raises(ValueError, match="'a' is given twice"):
+        bundle_module.load_named_bundles(["a=x.pt", "a=y.pt"])
