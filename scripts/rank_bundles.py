@@ -28,7 +28,7 @@ from phm_torch.apps import common
 from phm_torch.data import DatasetStore
 from phm_torch.surrogates import SurrogateBundle, add_noise, noise_level, rms
 from phm_torch.surrogates.bundle import load_named_bundles
-from phm_torch.surrogates.metrics import err_k_per_signal, fault_count
+from phm_torch.surrogates.metrics import bootstrap_err_k, err_k_per_signal, fault_count
 
 BLOCK = 2000     # records read and corrupted at a time
 N_BOOT = 2000
@@ -68,9 +68,9 @@ def squared_errors(bundles: dict[str, SurrogateBundle], data_dir: str, split: st
 def ranking(sq: dict[str, torch.Tensor], counts: torch.Tensor, seed: int) -> dict[str, object]:
     """err_k [%], bootstrap interval, per-group err_k and paired differences against the first bundle."""
     n = len(counts)
-    boot = torch.randint(0, n, (N_BOOT, n), generator=torch.Generator().manual_seed(seed))
     probs = torch.tensor([0.025, 0.5, 0.975], dtype=torch.float64)
-    boot_err = {name: q[boot].mean(1).sqrt() for name, q in sq.items()}
+    boot = bootstrap_err_k(torch.stack(list(sq.values())), N_BOOT, seed)       # paired: shared resamples
+    boot_err = {name: boot[:, i] for i, name in enumerate(sq)}
     first = next(iter(sq))
     out: dict[str, object] = {"n": n, "group_share": {g: round(float((counts == c).double().mean()), 4)
                                                       for c, g in enumerate(GROUPS)}}

@@ -76,10 +76,25 @@ def err_k_interval(k_est: torch.Tensor, k_act: torch.Tensor, level: float = 0.95
     squared = squared[torch.isfinite(squared)]
     if squared.numel() == 0:
         raise ValueError("err_k_interval: no signal with a finite estimate")
-    rows = torch.randint(0, squared.numel(), (n_boot, squared.numel()), generator=torch.Generator().manual_seed(seed))
-    boot = squared[rows].mean(1).sqrt()
+    boot = bootstrap_err_k(squared.unsqueeze(0), n_boot, seed)[:, 0]
     q = torch.quantile(boot, torch.tensor([(1 - level) / 2, (1 + level) / 2], dtype=torch.float64))
     return float(q[0]), float(q[1])
+
+
+def bootstrap_err_k(squared: torch.Tensor, n_boot: int, seed: int = 0) -> torch.Tensor:
+    """err_k of ``n_boot`` resamples (with replacement) of the signals, the same resamples for every row.
+
+    Args:
+        squared: (m, n) squared per-signal err_k (:func:`err_k_per_signal` squared) of m estimators on
+            the same n signals; sharing the resamples makes the differences between rows paired.
+        n_boot: number of resamples.   seed: seed of the resampling.
+
+    Returns:
+        (n_boot, m) err_k of each resample and estimator (fractions).
+    """
+    n = squared.shape[-1]
+    rows = torch.randint(0, n, (n_boot, n), generator=torch.Generator().manual_seed(seed))
+    return squared[:, rows].mean(-1).sqrt().T
 
 
 def fault_count(k: torch.Tensor, nominal: torch.Tensor | None = None, level: float = 0.3) -> torch.Tensor:
