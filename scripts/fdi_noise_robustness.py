@@ -37,7 +37,7 @@ def level_metrics(bundle: SurrogateBundle, signals: torch.Tensor, k: torch.Tenso
     with torch.no_grad():
         level = noise_level(signals)
         k_hat = bundle.fdi(bundle.compress(signals.to(dtype)), noise=level.to(dtype)).double()
-        verdict = bundle.is_healthy(k_hat)
+        verdict = bundle.verdict_healthy(k_hat)
     bias = (k_hat - k).mean(0)
     bias[ECC_PHASE] = 0.0                                          # a phase: its sign means nothing
     return {"err_k": err_k(k_hat, k), "err_k_no_large_fault": err_k_by_fault_count(k_hat, k, nominal)["0"]["err_k"],

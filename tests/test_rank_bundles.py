@@ -1,4 +1,5 @@
-"""scripts/rank_bundles.py: err_k, its bootstrap interval and paired differences from per-signal errors."""
+"""scripts/rank_bundles.py: err_k, its bootstrap interval and paired differences from per-signal errors; the
+verdict's confusion and McNemar test."""
 
 from __future__ import annotations
 
@@ -12,11 +13,36 @@ SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "rank_bundles.py"
 
 
 @pytest.fixture(scope="module")
-def rank():
+def script():
     spec = importlib.util.spec_from_file_location("rank_bundles", SCRIPT)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    return module.ranking
+    return module
+
+
+@pytest.fixture(scope="module")
+def rank(script):
+    return script.ranking
+
+
+def test_verdict_table_counts_and_mcnemar(script):
+    from scipy.stats import binomtest
+
+    healthy = torch.tensor([True] * 40 + [False] * 60)
+    a = healthy.clone()
+    a[:5] = False                     # a: 5 false alarms
+    a[40:52] = True                   # and 12 missed faults
+    b = healthy.clone()
+    b[40:43] = True                   # b: 3 missed faults (right on 9 records a gets wrong)
+    b[90:92] = True                   # and 2 missed faults that a gets right
+    b[:5] = False                     # the same 5 false alarms
+    out = script.verdict_table({"a": a, "b": b}, healthy)
+    assert out["a"]["accuracy"] == pytest.approx(0.83) and out["a"]["missed_fault_rate"] == pytest.approx(12 / 60)
+    assert out["a"]["false_alarm_rate"] == pytest.approx(5 / 40) and "mcnemar_p" not in out["a"]
+    assert out["b"]["accuracy"] == pytest.approx(0.90) and out["b"]["missed_fault_rate"] == pytest.approx(5 / 60)
+    assert (out["b"]["only_a"], out["b"]["only_this"]) == (2, 9)
+    assert out["b"]["mcnemar_p"] == pytest.approx(binomtest(2, 11, 0.5).pvalue)
+    assert script.mcnemar_p(0, 0) == 1.0 and script.mcnemar_p(10, 0) == pytest.approx(2 / 1024)
 
 
 def test_ranking_of_a_uniformly_better_bundle(rank):

@@ -108,6 +108,12 @@ def test_bundle_round_trip(lm_run, store):
     written = json.loads((objects["out_dir"] / "metrics.json").read_text())
     assert float(bundle.full_residual_threshold) == pytest.approx(written["ood_full_residual_threshold"])
     assert 0.0 < written["ood_full_residual_threshold"] < 1.0
+    # the verdict on estimates comes from the verdict classifier, fitted on the training records' estimates
+    assert bundle.verdict_classifier is not None and bundle.verdict_classifier.name == bundle.classifier.name
+    torch.testing.assert_close(bundle.verdict_score(arrays["k_hat"]), arrays["score_chain"].to(torch.float64))
+    right = (arrays["score_chain"] > 0) == arrays["healthy"]
+    assert written["chain_accuracy"] == pytest.approx(float(right.double().mean()))
+    assert 0.5 < written["chain_accuracy_health_classifier"] <= 1.0
 
 
 def test_bundle_from_another_configuration(lm_run, tmp_path):
@@ -122,10 +128,12 @@ def test_bundle_from_another_configuration(lm_run, tmp_path):
         SurrogateBundle.load(tmp_path / "missing.pt")
     # a bundle written before the n_layers option has one hidden layer
     blob = torch.load(path, weights_only=True)
-    del blob["meta"]["n_layers"], blob["meta"]["n_members"]
+    del blob["meta"]["n_layers"], blob["meta"]["n_members"], blob["meta"]["verdict_classifier"]
+    blob["tensors"] = {k: v for k, v in blob["tensors"].items() if not k.startswith("verdict_classifier.")}
     old = tmp_path / "old.pt"
     torch.save(blob, old)
-    assert SurrogateBundle.load(old, expect={"n_layers": 1, "n_members": 1}).network.n_layers == 1
+    before = SurrogateBundle.load(old, expect={"n_layers": 1, "n_members": 1})
+    assert before.network.n_layers == 1 and before.verdict_classifier is None    # and no verdict classifier
     with pytest.raises(ValueError, match="n_layers=1 in the file, 2 expected"):
         SurrogateBundle.load(old, expect={"n_layers": 2})
 
@@ -278,12 +286,14 @@ def test_classifier_also_learns_from_the_labels_split(compose, tmp_path):
 
 def test_bayesian_gappy_estimator_round_trips_through_the_bundle(store, compose, tmp_path):
     over = [f"data_dir={store}", f"out_dir={tmp_path / 'bayes'}", *QUICK, "model.fit.max_epochs=10", "n_modes=6",
-            "n_points=5", "gappy.estimator=bayesian"]           # fewer points than modes: the prior decides
+            "n_points=5", "gappy.estimator=bayesian",            # fewer points than modes: the prior decides
+            "verdict_classifier=false"]                          # the health classifier judges the estimates
     metrics, objects = train_surrogates(compose("train", over))
     assert metrics["gappy_estimator"] == "bayesian" and math.isfinite(metrics["err_alpha_median"])
+    assert metrics["chain_accuracy"] == metrics["chain_accuracy_health_classifier"]
     path = objects["out_dir"] / "surrogates.pt"
     bundle = SurrogateBundle.load(path)
-    assert bundle.gappy.bayesian
+    assert bundle.gappy.bayesian and bundle.verdict_classifier is None
     torch.testing.assert_close(bundle.gappy.noise_covariance, objects["bundle"].gappy.noise_covariance)
     arrays = torch.load(objects["out_dir"] / "predictions.pt", weights_only=True)
     from surrogate_data import faults, signals

@@ -9,7 +9,7 @@ Examples::
 
 Steps: POD of the training currents -> sample selection -> gappy POD layer -> FDI network (Lightning
 Trainer: progress bar, CSV/TensorBoard logs, checkpoints; LM or Adam, optionally end to end) -> health
-classifier -> evaluation on the validation split (clean, noisy, missing samples), latencies.
+classifier -> verdict classifier of the FDI estimates -> evaluation on the validation split (clean, noisy, missing samples), latencies.
 The work is done by :func:`train_surrogates` (a plain function of the composed config);
 :func:`main` is the thin Hydra entry point.
 """
@@ -44,6 +44,7 @@ from ..surrogates.full_signal_check import FullSignalCheck
 from ..surrogates.gappy_pod import gappy_statistics
 from ..surrogates.lightning_fdi import NOISE_INPUT_NEEDS, FDIModule, KeepBest
 from ..surrogates.ood_calibration import ood_thresholds
+from ..surrogates.verdict_classifier import fit_verdict_classifier
 from . import common
 
 log = logging.getLogger(__name__)
@@ -316,6 +317,13 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         classifier.calibrate(k_cls, healthy_cls, max_missed)
     timing["classifier_fit_s"] = time.perf_counter() - t0 - refine_info["assess_s"]
     timing["classifier_refine_assess_s"] = refine_info["assess_s"]
+    verdict = None
+    if bool(cfg.verdict_classifier):   # judges estimates: fitted on the training records' own, with eval.noise
+        t0 = time.perf_counter()
+        verdict = fit_verdict_classifier(_instantiate(cfg.classifier, "classifier"),
+                                         lambda s, level: network(gappy(s)[0], level), samples_tr,
+                                         rms(train.current), train.healthy, noise, seed + 11)
+        timing["verdict_classifier_fit_s"] = time.perf_counter() - t0
 
     store_cfg = info["metadata"].get("config") or {}
     nominal = (torch.tensor(common.actuator(DictConfig(store_cfg)).nominal_faults) if "actuator" in store_cfg
@@ -325,7 +333,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     with torch.no_grad():
         network(gappy(samples_va)[0])
     timing["fdi_eval_per_signal_us"] = (time.perf_counter() - t0) / max(len(val), 1) * 1e6
-    metrics.update(evaluate_classifier(classifier, val.k, val.healthy, arrays["k_hat"]))
+    metrics.update(evaluate_classifier(classifier, val.k, val.healthy, arrays["k_hat"], verdict))
     metrics.update(measure_latency(gappy, network, classifier, samples_va, repeats))
     threshold, full_threshold = ood_thresholds(train.current, gappy, FullSignalCheck(pod.modes_, pod.mean_), noise,
                                                ood_q, seed + 7)
@@ -355,10 +363,10 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                              meta={"data_fingerprint": info["manifest"].get("fingerprint"), "seed": seed,
                                    "model": metrics["model"], "n_train": len(train)},
                              full_residual_threshold=full_threshold, gappy_statistics=statistics,
-                             nominal_record=info["nominal"])
+                             nominal_record=info["nominal"], verdict_classifier=verdict)
     bundle.save(out_dir / "surrogates.pt")
     with torch.no_grad():
-        arrays.update(healthy=val.healthy, score=bundle.health_score(val.k), score_chain=bundle.health_score(arrays["k_hat"]),
+        arrays.update(healthy=val.healthy, score=bundle.health_score(val.k), score_chain=bundle.verdict_score(arrays["k_hat"]),
                       indices=selector.indices_, time=grid, mode_1=pod.modes_[:, 0], energy=pod.energy_)
     _save_tensors(out_dir / "predictions.pt", arrays)
     common.write_json(out_dir / "metrics.json", metrics)

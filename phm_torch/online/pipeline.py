@@ -1,7 +1,7 @@
 """One ``nn.Module`` for the whole online step, TorchScript-exportable.
 
-signal (B, n_e) or selected samples (B, n_w) -> gappy POD -> FDI MLP -> k_hat -> health score f(k_hat)
--> deterministic RUL 5/50/95 % (the paper's delta-disturbed propagations) + an out-of-distribution flag.
+signal (B, n_e) or selected samples (B, n_w) -> gappy POD -> FDI MLP -> k_hat -> verdict score g(k_hat)
+(the verdict classifier of estimates, or the health classifier) -> deterministic RUL 5/50/95 % (the paper's delta-disturbed propagations) + an out-of-distribution flag.
 
 The damage ODE is linear, so its solution on the RUL grid is k(t) = k0 + A(t) (k_hat - k0 + delta u)
 with A(t) = expm(F t): the propagators are computed once at build time (and checked against the
@@ -30,7 +30,9 @@ class OnlinePipeline(nn.Module):
         gappy: gappy-POD layer (``forward(samples, mask) -> (alpha, residual)``, buffers ``indices``,
             ``mean_hat``, ``modes_hat``).
         fdi: MLP alpha (B, n_m) [, noise (B,)] -> k_hat (B, 8) in [0, 1] (``FDIMLP`` or ``FDIEnsemble``).
-        classifier: health score f(k) (B,), positive = healthy (buffer ``threshold``).
+        classifier: health score f(k) (B,), positive = healthy (buffer ``threshold``): the RUL's stopping event.
+        verdict_classifier: score g(k_hat) (B,) of FDI estimates (buffer ``threshold``), the verdict
+            (:mod:`phm_torch.surrogates.verdict_classifier`); None: ``classifier``.
         damage: damage model (grid and propagators).
         deltas: (3,) calibrated disturbances for the 5/50/95 % RUL (larger = shorter).
         direction: (8,) disturbance direction u.
@@ -71,13 +73,15 @@ class OnlinePipeline(nn.Module):
                  fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None,
                  verdict: tuple[float, float] | None = None, nominal_record: torch.Tensor | None = None,
                  k_half_widths: torch.Tensor | None = None, interval_level: float = DEFAULT_LEVEL,
-                 calibration_noise: float | None = None, interval_noise: torch.Tensor | None = None):
+                 calibration_noise: float | None = None, interval_noise: torch.Tensor | None = None,
+                 verdict_classifier: nn.Module | None = None):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
         if not residual_threshold > 0:
             raise ValueError(f"online.residual_threshold must be > 0, got {residual_threshold}")
         self.gappy, self.fdi, self.classifier = gappy, fdi, classifier
+        self.verdict_classifier = classifier if verdict_classifier is None else verdict_classifier
         # selected samples alone carry no noise estimate: the network's default level is used then
         self.noise_aware = bool(getattr(fdi, "noise_input", False))
         self.has_full_check = full_check is not None
@@ -143,7 +147,7 @@ class OnlinePipeline(nn.Module):
                     verdict: tuple[float, float] | None = None, k_half_widths: torch.Tensor | None = None,
                     interval_level: float = DEFAULT_LEVEL, calibration_noise: float | None = None,
                     interval_noise: torch.Tensor | None = None) -> OnlinePipeline:
-        """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifier, OOD threshold)."""
+        """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifiers, OOD threshold)."""
         threshold = float(bundle.full_residual_threshold)
         check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_, residual_threshold=threshold)
         return cls(bundle.gappy, bundle.network, bundle.classifier, damage, deltas, direction,
@@ -151,7 +155,8 @@ class OnlinePipeline(nn.Module):
                    float(bundle.sample_rate), full_check=check, fdi_deltas=fdi_deltas, fdi_direction=fdi_direction,
                    rate_scales=rate_scales, verdict=verdict, nominal_record=bundle.nominal_record,
                    k_half_widths=k_half_widths, interval_level=interval_level,
-                   calibration_noise=calibration_noise, interval_noise=interval_noise)
+                   calibration_noise=calibration_noise, interval_noise=interval_noise,
+                   verdict_classifier=bundle.verdict)
 
     @torch.jit.export
     def noise_level(self, x: torch.Tensor) -> torch.Tensor:
@@ -190,7 +195,7 @@ class OnlinePipeline(nn.Module):
 
     @torch.jit.export
     def faulty_probability(self, score: torch.Tensor) -> torch.Tensor:
-        """P(faulty) (B,) of records whose health score (the second output of ``forward``) is ``score`` (B,):
+        """P(faulty) (B,) of records whose verdict score (the second output of ``forward``) is ``score`` (B,):
         Platt-scaled on held-out records by phm-evaluate; NaN when the pipeline was not calibrated."""
         return torch.sigmoid(self.verdict_scale * score.to(self.verdict_scale.dtype) + self.verdict_offset)
 
@@ -291,7 +296,7 @@ class OnlinePipeline(nn.Module):
         each full record (:meth:`noise_level` on its first samples), the network's default level for
         selected samples alone (a system that sends only the samples can send its level here).
 
-        Returns (k_hat (B, 8), health score (B,), RUL (B, 3) [h] at 5/50/95 % - NaN when untrustworthy,
+        Returns (k_hat (B, 8), verdict score g(k_hat) (B,) (> 0 healthy), RUL (B, 3) [h] at 5/50/95 % - NaN when untrustworthy,
         out_of_distribution (B,) bool, gappy residual (B,) [A]).
         """
         if x.dim() != 2:
@@ -323,7 +328,7 @@ class OnlinePipeline(nn.Module):
             k_hat = self.fdi(alpha, noise)
         else:
             k_hat = self.fdi(alpha)
-        score = self.classifier(k_hat) - self.classifier.threshold
+        score = self.verdict_classifier(k_hat) - self.verdict_classifier.threshold
         ood = (~enough) | flat | foreign | (residual > self.residual_threshold) | ~torch.isfinite(residual)
         rul = self.rul(k_hat, True)
         rul = torch.where(ood.unsqueeze(1), torch.full_like(rul, float("nan")), rul)

@@ -1,8 +1,10 @@
-"""Probability that an actuator is faulty, from the health score of its FDI estimate (Platt scaling).
+"""Probability that an actuator is faulty, from the verdict score of its FDI estimate (Platt scaling).
 
-The health score f(k_hat) of an *estimated* fault vector gets the verdict right 83-92 % of the time on
-the paper store's val split (``chain_accuracy`` of phm-train), against 99 % for the true k: the FDI
-error moves vectors across the boundary. The sign of the score hides that. :func:`calibrate_verdict`
+The health score f(k_hat) of an *estimated* fault vector gets the verdict right 83-93 % of the time on
+paper-scale signals, against 99 % for the true k: the FDI error moves vectors across the boundary. The
+verdict classifier fitted on estimates (:mod:`phm_torch.surrogates.verdict_classifier`) raises that to
+about 95 % (``chain_accuracy`` of phm-train), still not 99 %, and the sign of the score hides which
+records are the doubtful ones. :func:`calibrate_verdict`
 fits P(faulty | s) = sigmoid(a s + b) to held-out records (phm-evaluate: the FDI band's split, with
 its measurement noise), so that a score near the boundary reads as a coin toss and a clear one as
 near-certain; the online pipeline carries (a, b) and returns the probability.

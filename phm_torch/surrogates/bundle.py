@@ -11,7 +11,10 @@ FDI network and the health classifier, and answers the online questions:
   flag (residual above ``residual_threshold``);
 * ``bundle.health_score(k (B, 8)) -> f (B,)`` float64: **positive = healthy**, negative = faulty, zero on
   the learned boundary (the classifier's score minus its calibrated ``threshold``); smooth in k (RUL
-  stopping event); ``bundle.is_healthy(k)`` is f > 0.
+  stopping event); ``bundle.is_healthy(k)`` is f > 0;
+* ``bundle.verdict_score(k_hat (B, 8)) -> g (B,)``: the same for an FDI *estimate*, from the verdict
+  classifier fitted on estimates (:mod:`.verdict_classifier`) when the bundle has one, else f;
+  ``bundle.verdict_healthy(k_hat)`` is g > 0.
 
 Samples are the raw measured current [A] at ``bundle.sample_times`` [s] (indices ``bundle.indices``
 into the 20 kHz record of n_e samples); NaN marks a missing sample.
@@ -23,10 +26,12 @@ float, bool, None and tensors, read back with ``torch.load(weights_only=True)`` 
      "meta": {"n_samples", "n_modes", "n_points", "n_hidden", "n_layers", "n_members", "input_scaling",
               "noise_input", "default_noise", "max_noise", "sample_rate", "signal", "unit",
               "fault_names", "health_convention", "selector": {"name", "params"},
-              "classifier": {"name", "params"}, "gappy_ridge", "phm_torch_version", "extra": {...}},
+              "classifier": {"name", "params"}, "verdict_classifier": {"name", "params"} or None,
+              "gappy_ridge", "phm_torch_version", "extra": {...}},
      "tensors": {"pod.mean_", "pod.modes_", "pod.singular_values_", "pod.energy_", "indices",
                  "sample_times", "residual_threshold", "network.<state_dict>", "classifier.<state_dict>",
-                 and, for a Bayesian gappy layer, "gappy.noise_covariance", "gappy.prior_variance",
+                 "verdict_classifier.<state_dict>" (when it has one), and, for a Bayesian gappy layer,
+                 "gappy.noise_covariance", "gappy.prior_variance",
                  and, when the store had one, "nominal_record"}}
 """
 
@@ -36,7 +41,7 @@ import io
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import nn
@@ -75,14 +80,18 @@ class SurrogateBundle(nn.Module):
         nominal_record: (n_e,) current [A] of the training model at the nominal fault vector (the store's
             ``nominal`` split); it lets a record of another bench be moved onto the training model with that
             bench's own healthy record (:meth:`~phm_torch.online.OnlinePipeline.rebase`). None: unknown.
+        verdict_classifier: fitted :class:`HealthClassifier` of FDI estimates (:mod:`.verdict_classifier`),
+            the verdict on a measured actuator; None: ``classifier`` gives it too.
     """
+
+    __jit_unused_properties__: ClassVar[list[str]] = ["verdict"]   # scripting exports the FDI; the verdict is plain Python
 
     def __init__(self, pod: POD, indices: torch.Tensor, network: FDIMLP | FDIEnsemble, classifier: HealthClassifier,
                  sample_rate: float, residual_threshold: float = float("inf"), gappy_ridge: float = 0.0,
                  selector: Mapping[str, Any] | None = None, meta: Mapping[str, Any] | None = None,
                  full_residual_threshold: float = float("inf"),
                  gappy_statistics: Mapping[str, torch.Tensor] | None = None,
-                 nominal_record: torch.Tensor | None = None):
+                 nominal_record: torch.Tensor | None = None, verdict_classifier: HealthClassifier | None = None):
         super().__init__()
         if network.n_inputs != pod.n_modes:
             raise ValueError(f"network has {network.n_inputs} inputs but the POD has {pod.n_modes} modes")
@@ -91,6 +100,7 @@ class SurrogateBundle(nn.Module):
         self.gappy = GappyPOD(pod.modes_, pod.mean_, indices, ridge=gappy_ridge, **self.gappy_statistics)
         self.network = network
         self.classifier = classifier
+        self.verdict_classifier = verdict_classifier
         self.sample_rate = float(sample_rate)
         self.selector_info = dict(selector or {})
         self.extra = dict(meta or {})
@@ -144,6 +154,19 @@ class SurrogateBundle(nn.Module):
         """(B,) bool, the classifier's decision (f(k) > its threshold)."""
         return self.classifier.predict(k)
 
+    @property
+    def verdict(self) -> HealthClassifier:
+        """The classifier that judges FDI estimates: the verdict classifier, else the health classifier."""
+        return self.classifier if self.verdict_classifier is None else self.verdict_classifier
+
+    def verdict_score(self, k_hat: torch.Tensor) -> torch.Tensor:
+        """Score g(k_hat) - threshold (B,) of FDI estimates (B, 8): > 0 healthy, < 0 faulty."""
+        return self.verdict(k_hat) - self.verdict.threshold
+
+    def verdict_healthy(self, k_hat: torch.Tensor) -> torch.Tensor:
+        """(B,) bool, the verdict on actuators whose FDI estimates are k_hat (B, 8)."""
+        return self.verdict.predict(k_hat)
+
     # ---- persistence ------------------------------------------------------------------------------
     def metadata(self) -> dict[str, Any]:
         """The ``meta`` block of the file (plain JSON-able values)."""
@@ -155,7 +178,7 @@ class SurrogateBundle(nn.Module):
                 "sample_rate": self.sample_rate,
                 "signal": "current", "unit": "A", "fault_names": list(FAULT_NAMES),
                 "health_convention": HEALTH_CONVENTION, "selector": self.selector_info,
-                "classifier": {"name": self.classifier.name, "params": self.classifier.get_params()},
+                "classifier": _spec(self.classifier), "verdict_classifier": _spec(self.verdict_classifier),
                 "gappy_ridge": self.gappy.ridge, "phm_torch_version": __version__, "extra": self.extra}
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -169,7 +192,9 @@ class SurrogateBundle(nn.Module):
         if self.nominal_record is not None:
             tensors["nominal_record"] = self.nominal_record
         tensors.update({f"network.{k}": v.detach().cpu() for k, v in self.network.state_dict().items()})
-        tensors.update({f"classifier.{k}": v.detach().cpu() for k, v in self.classifier.state_dict().items()})
+        for name in ("classifier", "verdict_classifier"):
+            if getattr(self, name) is not None:
+                tensors.update({f"{name}.{k}": v.detach().cpu() for k, v in getattr(self, name).state_dict().items()})
         buf = io.BytesIO()
         torch.save({"format": FORMAT, "version": VERSION, "meta": self.metadata(), "tensors": tensors}, buf)
         path = Path(path)
@@ -226,23 +251,33 @@ class SurrogateBundle(nn.Module):
                                     input_scaling=meta["input_scaling"], noise_input=meta["noise_input"],
                                     **noise_kwargs)
         network.load_state_dict(_prefixed(t, "network."))
-        spec = meta["classifier"]
-        if spec["name"] not in CLASSIFIERS:
-            raise ValueError(f"{path}: unknown classifier {spec['name']!r}; known: {sorted(CLASSIFIERS)}")
-        classifier = CLASSIFIERS[spec["name"]](**spec["params"])
-        state = _prefixed(t, "classifier.")
-        known = dict(classifier.named_buffers())
-        if set(state) != set(known):
-            raise ValueError(f"{path}: classifier tensors {sorted(state)} do not match {spec['name']}'s "
-                             f"{sorted(known)}")
-        for k, v in state.items():  # fitted buffers may have other shapes than the unfitted twin's
-            owner, _, name = k.rpartition(".")      # a submodule's buffer (dotted name) is set on it
-            setattr(classifier.get_submodule(owner) if owner else classifier, name, v)
+        classifier = _classifier(meta["classifier"], _prefixed(t, "classifier."), path)
+        verdict_spec = meta.get("verdict_classifier")
+        verdict = None if verdict_spec is None else _classifier(verdict_spec, _prefixed(t, "verdict_classifier."), path)
         bundle = cls(pod, t["indices"], network, classifier, meta["sample_rate"],
                      float(t["residual_threshold"]), meta["gappy_ridge"], meta["selector"], meta["extra"],
                      float(t.get("full_residual_threshold", float("inf"))), _prefixed(t, "gappy.") or None,
-                     t.get("nominal_record"))
+                     t.get("nominal_record"), verdict)
         return bundle.eval()
+
+
+def _spec(classifier: HealthClassifier | None) -> dict[str, Any] | None:
+    return None if classifier is None else {"name": classifier.name, "params": classifier.get_params()}
+
+
+def _classifier(spec: Mapping[str, Any], state: Mapping[str, torch.Tensor], path: Path) -> HealthClassifier:
+    """A fitted classifier rebuilt from its spec ``{"name", "params"}`` and its saved buffers."""
+    if spec["name"] not in CLASSIFIERS:
+        raise ValueError(f"{path}: unknown classifier {spec['name']!r}; known: {sorted(CLASSIFIERS)}")
+    classifier = CLASSIFIERS[spec["name"]](**spec["params"])
+    known = dict(classifier.named_buffers())
+    if set(state) != set(known):
+        raise ValueError(f"{path}: classifier tensors {sorted(state)} do not match {spec['name']}'s "
+                         f"{sorted(known)}")
+    for k, v in state.items():  # fitted buffers may have other shapes than the unfitted twin's
+        owner, _, name = k.rpartition(".")      # a submodule's buffer (dotted name) is set on it
+        setattr(classifier.get_submodule(owner) if owner else classifier, name, v)
+    return classifier
 
 
 def _prefixed(tensors: Mapping[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:

@@ -73,15 +73,18 @@ def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tens
 
 @torch.no_grad()
 def evaluate_classifier(classifier: HealthClassifier, k: torch.Tensor, healthy: torch.Tensor,
-                        k_hat: torch.Tensor | None = None) -> dict[str, Any]:
-    """Confusion of the classifier on the actual k, and (``k_hat`` given) on the FDI estimates."""
+                        k_hat: torch.Tensor | None = None, verdict: HealthClassifier | None = None) -> dict[str, Any]:
+    """Confusion of the classifier on the actual k and (``k_hat`` given) the verdict's on the FDI estimates
+    (``chain_*``; the verdict classifier's, else the health classifier's), with the health classifier's
+    accuracy on the estimates (``chain_accuracy_health_classifier``) for comparison."""
     conf = confusion(classifier.predict(k), healthy)
     out: dict[str, Any] = {"classifier_accuracy": conf["accuracy"], "missed_fault_rate": conf["missed_fault_rate"],
                            "false_alarm_rate": conf["false_alarm_rate"], "classifier_confusion": conf}
     if k_hat is not None:
-        chain = confusion(classifier.predict(k_hat), healthy)
+        chain = confusion((classifier if verdict is None else verdict).predict(k_hat), healthy)
         out.update(chain_accuracy=chain["accuracy"], chain_missed_fault_rate=chain["missed_fault_rate"],
-                   chain_false_alarm_rate=chain["false_alarm_rate"])
+                   chain_false_alarm_rate=chain["false_alarm_rate"],
+                   chain_accuracy_health_classifier=confusion(classifier.predict(k_hat), healthy)["accuracy"])
     return out
 
 

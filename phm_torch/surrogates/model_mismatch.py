@@ -32,7 +32,7 @@ def mismatch_metrics(bundle: SurrogateBundle, k: torch.Tensor, healthy: torch.Te
         ``nrmse_median``: median over the records of RMS(signals - reference) / range(reference), the size
         of the modelling difference; ``err_k`` and ``fdi_mae_max`` (the largest per-parameter mean
         |k error|, k7 weighted by k6 as in err_k) of the FDI on ``signals``; ``chain_accuracy``, the
-        classifier's verdict on k_hat against ``healthy``; ``ood_rate_gappy`` (gappy residual above the
+        verdict (``bundle.verdict_healthy``) on k_hat against ``healthy``; ``ood_rate_gappy`` (gappy residual above the
         bundle's threshold), ``ood_rate_full`` (:class:`FullSignalCheck` of the full record, as the online
         pipeline runs it) and ``ood_rate`` (either); ``n`` records.
     """
@@ -55,7 +55,7 @@ def mismatch_metrics(bundle: SurrogateBundle, k: torch.Tensor, healthy: torch.Te
         found = bundle.diagnose(bundle.compress(signals.to(dtype)), noise=noise_level(signals).to(dtype))
         k_hat = found["k_hat"].double()
         full_flag = check(signals.to(dtype))
-        verdict = bundle.is_healthy(k_hat)
+        verdict = bundle.verdict_healthy(k_hat)
     gappy_flag = found["out_of_distribution"]
     k = k.double()
     return {"n": n, "nrmse_median": float(nrmse.median()), "err_k": err_k(k_hat, k),

@@ -1,0 +1,139 @@
+"""The verdict classifier, fitted on FDI estimates: it undoes an estimator's bias at the boundary that the
+health classifier of true fault vectors cannot; the bundle saves it and the online pipeline judges by it."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from phm_torch.online import OnlinePipeline
+from phm_torch.params import load_actuator
+from phm_torch.prognostics import DamageModel
+from phm_torch.surrogates import POD, SurrogateBundle, confusion
+from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
+from phm_torch.surrogates.fdi_mlp import FDIMLP
+from phm_torch.surrogates.verdict_classifier import fit_verdict_classifier, noisy_estimates
+
+
+def fault_vectors(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(n, 8) fault vectors and their health: faulty when the damage k1 + ... + k6 reaches 1.2."""
+    k = torch.rand(n, 8, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) ** 3
+    k[:, 6:] = 0.5
+    return k, k[:, :6].sum(1) < 1.2
+
+
+def shrinking_fdi(samples: torch.Tensor, level: torch.Tensor) -> torch.Tensor:
+    """A biased "FDI" whose samples are the fault vector itself: damage estimated at 60 %, plus the noise."""
+    k_hat = samples.clone()
+    k_hat[:, :6] = 0.6 * samples[:, :6]
+    return k_hat.clamp(0.0, 1.0)
+
+
+def test_noisy_estimates_add_the_rated_noise_and_tell_the_level():
+    samples = torch.ones(5000, 8, dtype=torch.float64)
+    seen = []
+
+    def fdi(s: torch.Tensor, level: torch.Tensor) -> torch.Tensor:
+        seen.append(level)
+        return s
+
+    k_hat = noisy_estimates(fdi, samples, torch.full((5000,), 2.0, dtype=torch.float64), 0.05, seed=0, block_rows=1500)
+    assert len(seen) == 4 and all(torch.equal(lv, torch.full_like(lv, 0.05)) for lv in seen)
+    assert float((k_hat - 1).std()) == pytest.approx(0.1, rel=0.03)        # 5 % of the RMS current 2
+    again = noisy_estimates(fdi, samples, torch.full((5000,), 2.0, dtype=torch.float64), 0.05, seed=0, block_rows=1500)
+    assert torch.equal(again, k_hat)
+    assert torch.equal(noisy_estimates(fdi, samples, torch.ones(5000, dtype=torch.float64), 0.0, seed=0), samples)
+    with pytest.raises(ValueError, match="noise must be >= 0"):
+        noisy_estimates(fdi, samples, torch.ones(5000, dtype=torch.float64), -0.1, seed=0)
+    with pytest.raises(ValueError, match="scale"):
+        noisy_estimates(fdi, samples, torch.ones(3, dtype=torch.float64), 0.0, seed=0)
+
+
+def test_verdict_classifier_undoes_the_estimators_bias():
+    k, healthy = fault_vectors(6000, 0)
+    kv, hv = fault_vectors(3000, 1)
+    truth = PolynomialSVM(degree=2).fit(k, healthy)
+    verdict = fit_verdict_classifier(PolynomialSVM(degree=2), shrinking_fdi, k, torch.ones(len(k), dtype=torch.float64),
+                                     healthy, 0.0, seed=0)
+    k_hat = shrinking_fdi(kv, torch.zeros(len(kv)))
+    on_truth, on_estimates = confusion(truth.predict(k_hat), hv), confusion(verdict.predict(k_hat), hv)
+    assert confusion(truth.predict(kv), hv)["accuracy"] > 0.97             # the health classifier is good on k ...
+    assert on_truth["missed_fault_rate"] > 0.3                             # ... and misses faults on the estimates
+    assert on_estimates["accuracy"] > 0.97 and on_estimates["missed_fault_rate"] < 0.05
+    with pytest.raises(ValueError, match="healthy must be"):
+        fit_verdict_classifier(PolynomialSVM(degree=2), shrinking_fdi, k, torch.ones(len(k)), healthy[:10], 0.0, 0)
+
+
+def test_bundle_saves_the_verdict_classifier_and_the_pipeline_judges_by_it(tmp_path):
+    k, healthy = fault_vectors(2000, 2)
+    truth = PolynomialSVM(degree=2).fit(k, healthy)
+    verdict = PolynomialSVM(degree=2).fit(shrinking_fdi(k, torch.zeros(len(k))), healthy)
+    t = torch.linspace(0, 1, 200)
+    shapes = torch.stack([torch.sin((i + 1) * 3.0 * t + i) for i in range(4)])                  # smooth records
+    snapshots = 1.0 + torch.randn(40, 4, generator=torch.Generator().manual_seed(0)) @ shapes    # float32, as a store
+    pod = POD(4).fit(snapshots)
+    plain = SurrogateBundle(pod, torch.arange(0, 200, 10), FDIMLP(4, 5), truth, 20000.0, 1.0)
+    both = SurrogateBundle(pod, torch.arange(0, 200, 10), plain.network, truth, 20000.0, 1.0,
+                           verdict_classifier=verdict)
+    kv = fault_vectors(500, 3)[0]
+    assert torch.equal(plain.verdict_score(kv), plain.health_score(kv))        # no verdict classifier: f
+    assert torch.equal(both.verdict_healthy(kv), verdict.predict(kv))
+    assert not torch.equal(both.verdict_score(kv), both.health_score(kv))
+    back = SurrogateBundle.load(both.save(tmp_path / "both.pt"))
+    assert torch.equal(back.verdict_score(kv), both.verdict_score(kv))
+    assert torch.equal(back.health_score(kv), both.health_score(kv))
+    assert SurrogateBundle.load(plain.save(tmp_path / "plain.pt")).verdict_classifier is None
+
+    f = torch.diag(torch.tensor([5e-4] * 6 + [0.0, 3e-4], dtype=torch.float64))
+    damage = DamageModel(f.tolist(), [1e-6] * 6 + [0.0, 1e-6], 100.0, 20000.0, 50.0,
+                         list(load_actuator().nominal_faults))
+    pipe = OnlinePipeline.from_bundle(back, damage, torch.tensor([0.02, 0.0, -0.02]),
+                                      torch.tensor([1.0] * 6 + [0.0, 1.0])).eval()
+    x = (1.0 + torch.randn(6, 4, generator=torch.Generator().manual_seed(1)) @ shapes)[:, back.indices]   # samples
+    with torch.no_grad():
+        k_hat, score, rul, ood, _ = pipe(x)
+        scripted = torch.jit.script(pipe)(x)
+    assert not ood.any()
+    torch.testing.assert_close(score, back.verdict_score(k_hat))              # the verdict, not f
+    assert pipe.classifier is back.classifier                                 # the RUL event stays f
+    assert pipe.verdict_classifier is back.verdict_classifier
+    for a, b in zip(scripted, (k_hat, score, rul), strict=False):
+        torch.testing.assert_close(a, b, equal_nan=True)
+
+
+def test_fit_verdict_classifier_script_adds_one_to_a_trained_bundle(tmp_path, monkeypatch, capsys):
+    import importlib.util
+    import json
+    from pathlib import Path
+
+    from surrogate_data import write_store
+
+    from phm_torch.surrogates.data import load_store
+
+    spec = importlib.util.spec_from_file_location(
+        "fit_verdict_classifier", Path(__file__).resolve().parents[1] / "scripts" / "fit_verdict_classifier.py")
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+    store = write_store(tmp_path / "store", {"train": 300, "val": 60}, noise=0.01)
+    data, _, _ = load_store(str(store), {"train": "train", "val": "val"}, {})
+    train = data["train"]
+    pod = POD(6).fit(train.current)
+    bundle = SurrogateBundle(pod, torch.linspace(0, pod.mean_.shape[0] - 1, 12).round().long(), FDIMLP(6, 5),
+                             PolynomialSVM(degree=2).fit(train.k, train.healthy), 20000.0)
+    bundle.save(tmp_path / "in.pt")
+    samples, scale, healthy = script.read_samples(bundle, str(store), "train")
+    assert samples.shape == (300, 12) and torch.equal(samples, bundle.compress(train.current))
+    assert torch.equal(healthy, train.healthy.bool()) and scale.shape == (300,)
+    monkeypatch.setattr("sys.argv", ["fit_verdict_classifier.py", "--bundle", str(tmp_path / "in.pt"),
+                                     "--data-dir", str(store), "--out", str(tmp_path / "out.pt")])
+    script.main()
+    report = json.loads(capsys.readouterr().out)
+    out = SurrogateBundle.load(tmp_path / "out.pt")
+    assert isinstance(out.verdict_classifier, PolynomialSVM) and report["n"] == 300
+    assert set(report["val"]) == {"health_classifier", "verdict"}
+    kv = torch.rand(50, 8, dtype=torch.float64)
+    assert torch.equal(out.health_score(kv), bundle.health_score(kv))          # the health classifier is kept
+    monkeypatch.setattr("sys.argv", ["fit_verdict_classifier.py", "--bundle", str(tmp_path / "in.pt"),
+                                     "--data-dir", str(store), "--out", str(tmp_path / "x.pt"), "--split", "test"])
+    with pytest.raises(ValueError, match="split 'test' is not in the store"):
+        script.main()
