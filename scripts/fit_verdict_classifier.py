@@ -33,11 +33,7 @@ def read_samples(bundle: SurrogateBundle, data_dir: str, split: str
     """Selected samples (N, n_w) [A], RMS currents (N,) [A] and health (N,) bool of a split's records."""
     samples, scale, healthy = [], [], []
     with DatasetStore(data_dir) as store:
-        try:
-            view = store.split(split)
-        except KeyError:
-            raise ValueError(f"split {split!r} is not in the store {data_dir!r} "
-                             f"(it has {sorted(store.manifest.get('splits', {}))})") from None
+        view = store.split(split)       # a ValueError naming the store's splits if it has no such split
         for start in range(0, len(view), BLOCK):
             x = torch.as_tensor(np.asarray(view.current[start:start + BLOCK]), dtype=bundle.pod.mean_.dtype)
             samples.append(bundle.compress(x))

@@ -50,11 +50,7 @@ def squared_errors(bundles: dict[str, SurrogateBundle], data_dir: str, split: st
         store_cfg = store.metadata.get("config") or {}
         nominal = torch.tensor(common.actuator(DictConfig(store_cfg)).nominal_faults if "actuator" in store_cfg
                                else [0.0] * 6 + [0.5, 0.5], dtype=torch.float64)
-        try:
-            view = store.split(split)
-        except KeyError:
-            raise ValueError(f"--split {split!r} is not in the store {data_dir!r} "
-                             f"(it has {sorted(store.manifest.get('splits', {}))})") from None
+        view = store.split(split)       # a ValueError naming the store's splits if it has no such split
         for start in range(0, len(view), BLOCK):
             k = torch.as_tensor(np.asarray(view.K[start:start + BLOCK]), dtype=torch.float64)
             signals = torch.as_tensor(np.asarray(view.current[start:start + BLOCK]), dtype=torch.float64)
