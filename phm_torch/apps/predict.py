@@ -6,7 +6,8 @@ Each record holds:
   the actual k, 90 % coverage each by default, calibrated by phm-evaluate at several noise levels and
   taken at the record's estimated noise (``null`` out of distribution or for a pipeline exported without
   them);
-* ``health_score`` (> 0 healthy), ``healthy`` and ``p_faulty``, the probability that the actuator is faulty
+* ``health_score`` (> 0 healthy; the pipeline's verdict score, from the verdict classifier of FDI
+  estimates when the bundle has one), ``healthy`` and ``p_faulty``, the probability that the actuator is faulty
   given that score, calibrated on held-out records by phm-evaluate (``null`` out of distribution);
 * ``rul_hours`` {p5, p50, p95} (``null`` out of distribution: never a confident RUL from garbage);
 * ``out_of_distribution`` and the gappy ``residual`` [A];

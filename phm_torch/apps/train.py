@@ -9,7 +9,8 @@ Examples::
 
 Steps: POD of the training currents -> sample selection -> gappy POD layer -> FDI network (Lightning
 Trainer: progress bar, CSV/TensorBoard logs, checkpoints; LM or Adam, optionally end to end) -> health
-classifier -> verdict classifier of the FDI estimates -> evaluation on the validation split (clean, noisy, missing samples), latencies.
+classifier -> verdict classifier of the FDI estimates -> evaluation on the validation split (clean, noisy,
+missing samples), latencies.
 The work is done by :func:`train_surrogates` (a plain function of the composed config);
 :func:`main` is the thin Hydra entry point.
 """

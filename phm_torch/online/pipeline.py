@@ -1,7 +1,8 @@
 """One ``nn.Module`` for the whole online step, TorchScript-exportable.
 
 signal (B, n_e) or selected samples (B, n_w) -> gappy POD -> FDI MLP -> k_hat -> verdict score g(k_hat)
-(the verdict classifier of estimates, or the health classifier) -> deterministic RUL 5/50/95 % (the paper's delta-disturbed propagations) + an out-of-distribution flag.
+(the verdict classifier of estimates, or the health classifier) -> deterministic RUL 5/50/95 % (the
+paper's delta-disturbed propagations, stopped by the health classifier f) + an out-of-distribution flag.
 
 The damage ODE is linear, so its solution on the RUL grid is k(t) = k0 + A(t) (k_hat - k0 + delta u)
 with A(t) = expm(F t): the propagators are computed once at build time (and checked against the
@@ -296,8 +297,8 @@ class OnlinePipeline(nn.Module):
         each full record (:meth:`noise_level` on its first samples), the network's default level for
         selected samples alone (a system that sends only the samples can send its level here).
 
-        Returns (k_hat (B, 8), verdict score g(k_hat) (B,) (> 0 healthy), RUL (B, 3) [h] at 5/50/95 % - NaN when untrustworthy,
-        out_of_distribution (B,) bool, gappy residual (B,) [A]).
+        Returns (k_hat (B, 8), verdict score g(k_hat) (B,) (> 0 healthy), RUL (B, 3) [h] at 5/50/95 % - NaN
+        when untrustworthy, out_of_distribution (B,) bool, gappy residual (B,) [A]).
         """
         if x.dim() != 2:
             raise ValueError("online: input must be (B, n) with n = n_full or n_points")

@@ -4,10 +4,10 @@ The health score f(k_hat) of an *estimated* fault vector gets the verdict right 
 paper-scale signals, against 99 % for the true k: the FDI error moves vectors across the boundary. The
 verdict classifier fitted on estimates (:mod:`phm_torch.surrogates.verdict_classifier`) raises that to
 about 95 % (``chain_accuracy`` of phm-train), still not 99 %, and the sign of the score hides which
-records are the doubtful ones. :func:`calibrate_verdict`
-fits P(faulty | s) = sigmoid(a s + b) to held-out records (phm-evaluate: the FDI band's split, with
-its measurement noise), so that a score near the boundary reads as a coin toss and a clear one as
-near-certain; the online pipeline carries (a, b) and returns the probability.
+records are the doubtful ones. :func:`calibrate_verdict` fits P(faulty | s) = sigmoid(a s + b) to
+held-out records (phm-evaluate: the FDI band's split, with its measurement noise), so that a score near
+the boundary reads as a coin toss and a clear one as near-certain; the online pipeline carries (a, b)
+and returns the probability.
 """
 
 from __future__ import annotations
