@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from phm_torch.data import DatasetStore
-from phm_torch.surrogates import SurrogateBundle, build_classifier, confusion, noise_level, rms
+from phm_torch.surrogates import SurrogateBundle, build_classifier, confusion, rms
 from phm_torch.surrogates.verdict_classifier import fit_verdict_classifier
 
 BLOCK = 4000     # records read at a time
@@ -53,8 +53,7 @@ def verdicts(bundle: SurrogateBundle, data_dir: str, split: str) -> dict[str, di
         view = store.split(split)
         for start in range(0, len(view), BLOCK):
             x = torch.as_tensor(np.asarray(view.current[start:start + BLOCK]), dtype=bundle.pod.mean_.dtype)
-            level = noise_level(x.double()).to(x.dtype)
-            k_hat.append(bundle.fdi(bundle.compress(x), noise=level).double())
+            k_hat.append(bundle.estimate(x))
             healthy.append(torch.as_tensor(np.asarray(view.healthy[start:start + BLOCK])).bool())
     k_hat, healthy = torch.cat(k_hat), torch.cat(healthy)
     keys = ("accuracy", "missed_fault_rate", "false_alarm_rate")
@@ -82,7 +81,7 @@ def main() -> None:
     samples, scale, healthy = read_samples(bundle, args.data_dir, args.split)
     spec = bundle.classifier
     bundle.verdict_classifier = fit_verdict_classifier(
-        build_classifier(spec.name, **spec.get_params()), lambda s, level: bundle.network(bundle.gappy(s)[0], level),
+        build_classifier(spec.name, **spec.get_params()), lambda s, level: bundle.fdi(s, noise=level),
         samples, scale, healthy, args.noise, args.seed)
     fit_s = time.perf_counter() - t0
     bundle.save(args.out)

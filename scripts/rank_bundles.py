@@ -60,9 +60,7 @@ def squared_errors(bundles: dict[str, SurrogateBundle], data_dir: str, split: st
             counts.append(fault_count(k, nominal).clamp(max=3))
             healthy.append(torch.as_tensor(np.asarray(view.healthy[start:start + BLOCK])).bool())
             for name, bundle in bundles.items():
-                dtype = bundle.pod.mean_.dtype
-                with torch.no_grad():
-                    k_hat = bundle.fdi(bundle.compress(signals.to(dtype)), noise=level.to(dtype)).double()
+                k_hat = bundle.estimate(signals, level)
                 sq[name].append(err_k_per_signal(k_hat, k).pow(2))
                 verdicts[name].append(bundle.verdict_healthy(k_hat))
     return ({name: torch.cat(q) for name, q in sq.items()}, torch.cat(counts),

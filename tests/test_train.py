@@ -87,6 +87,9 @@ def test_bundle_round_trip(lm_run, store):
     samples = bundle.compress(signals(k, 0.01, 1))
     assert torch.allclose(bundle.fdi(samples), arrays["k_hat"], atol=1e-5)
     assert torch.allclose(bundle(samples), arrays["k_hat"], atol=1e-5)
+    # estimate: the online FDI on full records (noise level estimated per record), float64
+    estimate = bundle.estimate(signals(k, 0.01, 1))
+    assert estimate.dtype == torch.float64 and torch.allclose(estimate, arrays["k_hat"].double(), atol=1e-5)
     scripted = torch.jit.script(bundle)                        # exportable as it is (issue 5)
     holed = samples.clone()
     holed[:, :2] = float("nan")

@@ -7,6 +7,8 @@ FDI network and the health classifier, and answers the online questions:
 * ``bundle.coefficients(samples, mask=None) -> (alpha (B, n_m), residual (B,) [A])``: gappy POD;
 * ``bundle.fdi(samples, mask=None, noise=None) -> k_hat (B, 8)`` in [0, 1]: the fault vector (also ``forward``;
   ``noise`` (B,), the records' relative noise, for a noise-aware network);
+* ``bundle.estimate(signals (B, n_e), noise=None) -> k_hat (B, 8)`` float64: the FDI on full records as the
+  online pipeline runs it (the selected samples, the network told each record's estimated noise level);
 * ``bundle.diagnose(samples, mask=None) -> dict``: k_hat, alpha, residual and the ``out_of_distribution``
   flag (residual above ``residual_threshold``);
 * ``bundle.health_score(k (B, 8)) -> f (B,)`` float64: **positive = healthy**, negative = faulty, zero on
@@ -49,7 +51,8 @@ from torch import nn
 from .. import __version__
 from ..faults import FAULT_NAMES
 from ..io.atomic import atomic_open
-from .classifiers import CLASSIFIERS, HealthClassifier
+from .augment import noise_level
+from .classifiers import HealthClassifier, build_classifier
 from .fdi_ensemble import FDIEnsemble, build_fdi_network
 from .fdi_mlp import FDIMLP
 from .gappy_pod import GappyPOD
@@ -137,6 +140,15 @@ class SurrogateBundle(nn.Module):
     def forward(self, samples: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         """Same as :meth:`fdi` (the exported entry point)."""
         return self.fdi(samples, mask)
+
+    @torch.no_grad()
+    def estimate(self, signals: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """k_hat (B, 8) float64 of full records ``signals`` (B, n_e) [A], as the online pipeline estimates it:
+        the selected samples, the network told ``noise`` (B,), each record's relative noise level (None:
+        estimated from the record, :func:`~.augment.noise_level`)."""
+        dtype = self.pod.mean_.dtype
+        level = noise_level(signals.to(torch.float64)) if noise is None else noise
+        return self.fdi(self.compress(signals.to(dtype)), noise=level.to(dtype)).double()
 
     def diagnose(self, samples: torch.Tensor, mask: torch.Tensor | None = None,
                  noise: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
@@ -267,9 +279,10 @@ def _spec(classifier: HealthClassifier | None) -> dict[str, Any] | None:
 
 def _classifier(spec: Mapping[str, Any], state: Mapping[str, torch.Tensor], path: Path) -> HealthClassifier:
     """A fitted classifier rebuilt from its spec ``{"name", "params"}`` and its saved buffers."""
-    if spec["name"] not in CLASSIFIERS:
-        raise ValueError(f"{path}: unknown classifier {spec['name']!r}; known: {sorted(CLASSIFIERS)}")
-    classifier = CLASSIFIERS[spec["name"]](**spec["params"])
+    try:
+        classifier = build_classifier(spec["name"], **spec["params"])
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
     known = dict(classifier.named_buffers())
     if set(state) != set(known):
         raise ValueError(f"{path}: classifier tensors {sorted(state)} do not match {spec['name']}'s "

@@ -81,10 +81,11 @@ def evaluate_classifier(classifier: HealthClassifier, k: torch.Tensor, healthy: 
     out: dict[str, Any] = {"classifier_accuracy": conf["accuracy"], "missed_fault_rate": conf["missed_fault_rate"],
                            "false_alarm_rate": conf["false_alarm_rate"], "classifier_confusion": conf}
     if k_hat is not None:
-        chain = confusion((classifier if verdict is None else verdict).predict(k_hat), healthy)
+        by_health = confusion(classifier.predict(k_hat), healthy)
+        chain = by_health if verdict is None else confusion(verdict.predict(k_hat), healthy)
         out.update(chain_accuracy=chain["accuracy"], chain_missed_fault_rate=chain["missed_fault_rate"],
                    chain_false_alarm_rate=chain["false_alarm_rate"],
-                   chain_accuracy_health_classifier=confusion(classifier.predict(k_hat), healthy)["accuracy"])
+                   chain_accuracy_health_classifier=by_health["accuracy"])
     return out
 
 
