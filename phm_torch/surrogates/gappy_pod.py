@@ -10,7 +10,14 @@ f = V_hat^T M (f_hat - y0_hat) (the paper has no missing samples, M = I, and no 
   A signal whose remaining samples cannot determine the n_m coefficients (singular G, e.g. fewer
   present samples than modes) gets NaN coefficients and an infinite residual; the batch goes on.
 * With every sample present the solution is one matrix product with the precomputed G^-1 V_hat^T
-  (the online fast path); otherwise each signal gets its own G, solved batched by Cholesky.
+  (the online fast path); otherwise each signal gets its own G, solved batched by Cholesky. For least
+  squares with few samples missing (at most ``WOODBURY_MAX`` in any signal of the batch), G is the
+  complete matrix minus the outer products of the k missing rows U (k, n_m), and the Woodbury identity
+  gives G^-1 from the precomputed complete inverse and one k x k system S = I - U G^-1 U^T per signal:
+  end-to-end training (a few dropped samples per record) then costs little more than the fast path,
+  with hundreds of samples per record as with thirty (a per-signal G costs n_w x n_m x n_m). Where some
+  S is nearly singular (the dropped samples held modes no other sample sees) the batch is solved per
+  signal, which also decides what is singular.
 * The layer is differentiable in the samples (and in its buffers if they are made parameters).
 * It also returns the reconstruction residual, the RMS over the present samples of
   f_hat - y0_hat - V_hat alpha [signal unit]: zero when n_w = n_m (plain least squares); downstream it
@@ -35,6 +42,11 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+# most missing samples per signal solved by the Woodbury identity (k x k systems); more: a G per signal
+WOODBURY_MAX = 8
+# smallest eigenvalue of S = I - U G^-1 U^T for the update (float32 loses eps / lambda_min(S) of alpha)
+WOODBURY_MIN_EIGENVALUE = 1e-3
+
 
 class GappyPOD(nn.Module):
     """``forward(samples, mask=None) -> (alpha, residual)``.
@@ -51,7 +63,8 @@ class GappyPOD(nn.Module):
 
     Buffers: ``indices`` (n_w,) int64, ``modes_hat`` (n_w, n_m), ``mean_hat`` (n_w,), ``solve_matrix``
     (n_m, n_w) = G^-1 V_hat^T R^-1 for the complete case (computed in float64), ``noise_covariance``
-    (n_w, n_w) (the identity for least squares) and ``prior_precision`` (n_m,) (1 / lambda + ridge).
+    (n_w, n_w) (the identity for least squares), ``prior_precision`` (n_m,) (1 / lambda + ridge) and
+    ``gram_inverse`` (n_m, n_m), the inverse of the complete G.
     """
 
     def __init__(self, modes: torch.Tensor, mean: torch.Tensor, indices: torch.Tensor | None = None,
@@ -100,8 +113,10 @@ class GappyPOD(nn.Module):
         self.register_buffer("prior_precision", precision.to(modes.dtype))
         v = modes.detach().to(torch.float64)
         weighted = torch.linalg.solve(cov, v).T                                    # V_hat^T R^-1 (n_m, n_w)
-        self.register_buffer("solve_matrix", torch.linalg.solve(self._gram(v, weighted, precision), weighted)
-                             .to(modes.dtype).contiguous())
+        gram = self._gram(v, weighted, precision)
+        self.register_buffer("solve_matrix", torch.linalg.solve(gram, weighted).to(modes.dtype).contiguous())
+        self.register_buffer("gram_inverse", torch.linalg.inv(gram).to(modes.dtype).contiguous())
+        self.woodbury_max, self.woodbury_min_eigenvalue = WOODBURY_MAX, WOODBURY_MIN_EIGENVALUE
 
     @staticmethod
     def _gram(v: torch.Tensor, weighted: torch.Tensor, precision: torch.Tensor) -> torch.Tensor:
@@ -142,6 +157,12 @@ class GappyPOD(nn.Module):
             return alpha, resid.pow(2).mean(-1).sqrt()
         w = valid.to(samples.dtype)
         count = w.sum(-1)
+        missing = ~valid
+        most = int(missing.sum(-1).max())
+        if not self.bayesian and most <= self.woodbury_max:
+            alpha, resid, accurate = self._woodbury(centred, missing, most, w, count)
+            if bool(accurate.all()):
+                return alpha, resid
         vm = self.modes_hat.unsqueeze(0) * w.unsqueeze(-1)                        # (B, n_w, n_m)
         if self.bayesian:   # R restricted to the present samples (identity rows/columns for the missing),
             # factorised in float64: R's spread of scales (truncated modes + noise) can defeat float32
@@ -153,8 +174,38 @@ class GappyPOD(nn.Module):
         else:
             weighted = vm.transpose(1, 2)
         gram = weighted @ vm + torch.diag(self.prior_precision)
+        return self._solve(gram, weighted @ centred.unsqueeze(-1), centred, w, count)
+
+    def _woodbury(self, centred: torch.Tensor, missing: torch.Tensor, most: int, w: torch.Tensor,
+                  count: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Least squares without the (at most ``most``) missing samples of each signal, by the Woodbury
+        identity on the complete G^-1 (module docstring); arguments as :meth:`_solve`. Returns alpha,
+        residual and whether each signal's S is far enough from singular for the update to be accurate
+        (its smallest eigenvalue, which G_s's conditioning divides, above ``WOODBURY_MIN_EIGENVALUE``);
+        the caller solves the batch per signal otherwise, which also decides what is singular."""
+        rows = torch.topk(missing.to(centred.dtype), most, dim=-1).indices                 # (B, k)
+        u = self.modes_hat[rows] * missing.gather(-1, rows).to(centred.dtype).unsqueeze(-1)  # (B, k, n_m)
+        a0 = (centred @ self.modes_hat) @ self.gram_inverse                              # G^-1 rhs (B, n_m)
+        wu = u @ self.gram_inverse                                                       # U G^-1 (B, k, n_m)
+        eye = torch.eye(most, dtype=centred.dtype, device=centred.device)
+        small = eye - wu @ u.transpose(1, 2)                                             # S (B, k, k)
+        factor, info = torch.linalg.cholesky_ex(small)
+        # S's eigenvalues lie in (0, 1]; the squared smallest Cholesky pivot stands for the smallest
+        accurate = (info == 0) & (torch.diagonal(factor, dim1=-2, dim2=-1).amin(-1).pow(2) > self.woodbury_min_eigenvalue)
+        if self.ridge == 0.0:
+            accurate = accurate & (count >= self.modes_hat.shape[1])
+        chol = torch.linalg.cholesky(torch.where(accurate.reshape(-1, 1, 1), small, eye))
+        c = torch.cholesky_solve(u @ a0.unsqueeze(-1), chol)                              # (B, k, 1)
+        alpha = a0 + (wu.transpose(1, 2) @ c).squeeze(-1)
+        resid = (centred - alpha @ self.modes_hat.T) * w
+        return alpha, (resid.pow(2).sum(-1) / count.clamp(min=1.0)).sqrt(), accurate
+
+    def _solve(self, gram: torch.Tensor, rhs: torch.Tensor, centred: torch.Tensor, w: torch.Tensor,
+               count: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """alpha (B, n_m) and residual (B,) from each signal's G (B, n_m, n_m) and right-hand side
+        (B, n_m, 1); ``centred`` (B, n_w) samples minus the mean (0 where missing), ``w`` (B, n_w) 1 where
+        present, ``count`` (B,) present samples."""
         eye = torch.eye(gram.shape[-1], dtype=gram.dtype, device=gram.device)
-        rhs = weighted @ centred.unsqueeze(-1)                                     # (B, n_m, 1)
         factor, info = torch.linalg.cholesky_ex(gram)
         pivots = torch.diagonal(factor, dim1=-2, dim2=-1)
         # Numerically singular too: squared pivot ratio (~ 1 / cond G) below n_m machine epsilons.
