@@ -1,5 +1,6 @@
 """The verdict classifier, fitted on FDI estimates: it undoes an estimator's bias at the boundary that the
-health classifier of true fault vectors cannot; the bundle saves it and the online pipeline judges by it."""
+health classifier of true fault vectors cannot; the bundle saves it, the online pipeline judges by it and
+stops the RUL of a measured estimate on it."""
 
 from __future__ import annotations
 
@@ -95,10 +96,34 @@ def test_bundle_saves_the_verdict_classifier_and_the_pipeline_judges_by_it(tmp_p
         scripted = torch.jit.script(pipe)(x)
     assert not ood.any()
     torch.testing.assert_close(score, back.verdict_score(k_hat))              # the verdict, not f
-    assert pipe.classifier is back.classifier                                 # the RUL event stays f
+    assert pipe.classifier is back.classifier                                 # the RUL event of a known k
     assert pipe.verdict_classifier is back.verdict_classifier
     for a, b in zip(scripted, (k_hat, score, rul), strict=False):
         torch.testing.assert_close(a, b, equal_nan=True)
+
+
+def test_a_measured_rul_stops_on_the_verdict_and_agrees_with_it():
+    k, healthy = fault_vectors(3000, 4)
+    truth = PolynomialSVM(degree=2).fit(k, healthy)
+    verdict = PolynomialSVM(degree=2).fit(shrinking_fdi(k, torch.zeros(len(k))), healthy)
+    t = torch.linspace(0, 1, 200)
+    pod = POD(4).fit(1.0 + torch.randn(40, 4, generator=torch.Generator().manual_seed(0))
+                     @ torch.stack([torch.sin((i + 1) * 3.0 * t + i) for i in range(4)]))
+    bundle = SurrogateBundle(pod, torch.arange(0, 200, 10), FDIMLP(4, 5), truth, 20000.0, 1.0,
+                             verdict_classifier=verdict)
+    f = torch.diag(torch.tensor([5e-4] * 6 + [0.0, 3e-4], dtype=torch.float64))
+    damage = DamageModel(f.tolist(), [1e-6] * 6 + [0.0, 1e-6], 100.0, 20000.0, 50.0,
+                         list(load_actuator().nominal_faults))
+    pipe = OnlinePipeline.from_bundle(bundle, damage, torch.zeros(3), torch.tensor([1.0] * 6 + [0.0, 1.0])).eval()
+    k_hat = shrinking_fdi(fault_vectors(2000, 5)[0], torch.zeros(2000)).to(torch.float32)
+    with torch.no_grad():
+        measured, known = pipe.rul(k_hat, True), pipe.rul(k_hat, False)
+        scripted = torch.jit.script(pipe).rul(k_hat, True)
+    g_healthy, f_healthy = bundle.verdict_healthy(k_hat), bundle.health_score(k_hat) > 0
+    assert int((g_healthy != f_healthy).sum()) > 50                   # the two classifiers disagree on these
+    assert torch.equal(measured[:, 1] > 0, g_healthy)                 # an estimate's RUL agrees with its verdict
+    assert torch.equal(known[:, 1] > 0, f_healthy)                    # a known k's RUL with the health classifier
+    torch.testing.assert_close(scripted, measured)
 
 
 def test_fit_verdict_classifier_script_adds_one_to_a_trained_bundle(tmp_path, monkeypatch, capsys):

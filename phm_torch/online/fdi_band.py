@@ -101,7 +101,7 @@ def _bisect_all(pipeline: OnlinePipeline, k_hat: torch.Tensor, scale: torch.Tens
     dtype = k_hat.dtype
 
     def rul_at(j: int, eta: float) -> torch.Tensor:
-        return pipeline.propagations(k_hat, torch.full((3,), eta, dtype=dtype), scale)[:, j]
+        return pipeline.propagations(k_hat, torch.full((3,), eta, dtype=dtype), scale, True)[:, j]
 
     # each objective rises with eta (more damage, shorter RUL); the coverage bounds keep the bracket end
     # on their covering side (the statistic is a step function of eta), the median the midpoint

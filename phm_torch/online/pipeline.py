@@ -2,7 +2,13 @@
 
 signal (B, n_e) or selected samples (B, n_w) -> gappy POD -> FDI MLP -> k_hat -> verdict score g(k_hat)
 (the verdict classifier of estimates, or the health classifier) -> deterministic RUL 5/50/95 % (the
-paper's delta-disturbed propagations, stopped by the health classifier f) + an out-of-distribution flag.
+paper's delta-disturbed propagations) + an out-of-distribution flag.
+
+The propagations of a known k stop where the health classifier f(k) of true fault vectors turns faulty;
+those of a measured k_hat where the verdict score g does, the classifier fitted on FDI estimates. So the
+RUL of a record agrees with its verdict: stopped by f, an estimate that g calls faulty (the FDI bias near
+the boundary, which g undoes) kept a positive median RUL, up to thousands of hours, and one g calls healthy a
+zero RUL (6 % of the paper store's val records with the pretrained pipeline; docs/prognostics.md). Without a verdict classifier g is f.
 
 The damage ODE is linear, so its solution on the RUL grid is k(t) = k0 + A(t) (k_hat - k0 + delta u)
 with A(t) = expm(F t): the propagators are computed once at build time (and checked against the
@@ -211,46 +217,55 @@ class OnlinePipeline(nn.Module):
             raise ValueError("rebase: x must be (B, n_full) and bench_nominal (n_full,)")
         return x.to(self.nominal_record.dtype) - (bench_nominal.to(self.nominal_record.dtype) - self.nominal_record)
 
-    def _score_rows(self, k: torch.Tensor) -> torch.Tensor:
-        """Health score minus threshold (N,) of fault vectors k (N, 8), in blocks of ``SCORE_BLOCK`` rows: a
-        batch's trajectories are ~50 rows per record, and a block's hidden activations stay in cache (the
-        classifier ran twice as fast so on 200,000 rows, bandwidth-bound otherwise). Blocks give the same
-        scores: every row is scored on its own."""
+    def _score_rows(self, k: torch.Tensor, measured: bool) -> torch.Tensor:
+        """Score minus threshold (N,) of fault vectors k (N, 8): the verdict classifier's for ``measured``
+        (trajectories of an FDI estimate), the health classifier's otherwise. In blocks of ``SCORE_BLOCK``
+        rows: a batch's trajectories are ~50 rows per record, and a block's hidden activations stay in cache
+        (the classifier ran twice as fast so on 200,000 rows, bandwidth-bound otherwise). Blocks give the
+        same scores: every row is scored on its own."""
         if k.shape[0] <= self.score_block:
-            return self.classifier(k) - self.classifier.threshold
-        return torch.cat([self.classifier(block) for block in k.split(self.score_block)]) - self.classifier.threshold
+            return self._classify(k, measured)
+        return torch.cat([self._classify(block, measured) for block in k.split(self.score_block)])
 
-    def _score_at(self, dk: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
+    def _classify(self, k: torch.Tensor, measured: bool) -> torch.Tensor:
+        """One block of :meth:`_score_rows` (TorchScript calls each submodule by name)."""
+        if measured:
+            return self.verdict_classifier(k) - self.verdict_classifier.threshold
+        return self.classifier(k) - self.classifier.threshold
+
+    def _score_at(self, dk: torch.Tensor, index: torch.Tensor, measured: bool) -> torch.Tensor:
         """Score of k0 + A(t_index) dk for per-(sample, quantile) grid indices: dk (B, 3, 8), index (B, 3)."""
         a = self.propagators[index]                                                        # (B, 3, 8, 8)
         k = self.nominal + (a @ dk.unsqueeze(-1)).squeeze(-1)
         b = dk.shape[0]
-        return self._score_rows(k.reshape(-1, 8).clamp(0.0, 1.0)).reshape(b, 3)
+        return self._score_rows(k.reshape(-1, 8).clamp(0.0, 1.0), measured).reshape(b, 3)
 
     def rul(self, k: torch.Tensor, measured: bool = False) -> torch.Tensor:
         """Deterministic RUL 5/50/95 % [h] (B, 3) from fault vectors (B, 8); 0 if already faulty,
         the horizon if still healthy there.
 
         ``measured``: k is an FDI estimate, so its error band (``fdi_deltas`` x ``fdi_direction``) joins the
-        physics band; False for a known k. The bounds are the shortest / the longest of the three
-        propagations (:func:`phm_torch.prognostics.rul.ordered_bounds`).
+        physics band and the verdict classifier stops the propagations; False for a known k (the health
+        classifier stops them). The bounds are the shortest / the longest of the three propagations
+        (:func:`phm_torch.prognostics.rul.ordered_bounds`).
         """
         fdi = self.fdi_deltas if measured else torch.zeros_like(self.fdi_deltas)
-        rul = self.propagations(k, fdi, self.fdi_direction)
+        rul = self.propagations(k, fdi, self.fdi_direction, measured)
         return torch.stack([rul.amin(-1), rul[:, 1], rul.amax(-1)], dim=-1)
 
-    def propagations(self, k: torch.Tensor, fdi_deltas: torch.Tensor, fdi_direction: torch.Tensor) -> torch.Tensor:
+    def propagations(self, k: torch.Tensor, fdi_deltas: torch.Tensor, fdi_direction: torch.Tensor,
+                     measured: bool = False) -> torch.Tensor:
         """RUL [h] (B, 3) of the three propagations q, unordered: from k (B, 8) with its damage moved by
         ``deltas[q] direction + fdi_deltas[q] fdi_direction`` (fdi_deltas (3,), fdi_direction (8,)), on a
         wear clock sped up by ``rate_scales[q]``
-        (exact for the linear damage ODE: RUL / s), capped at the horizon."""
+        (exact for the linear damage ODE: RUL / s), capped at the horizon; ``measured`` as :meth:`rul`."""
         shift = self.deltas.view(3, 1) * self.direction + fdi_deltas.view(3, 1) * fdi_direction
-        rul = self.rul_shifted(k, shift) / self.rate_scales
+        rul = self.rul_shifted(k, shift, measured) / self.rate_scales
         return rul.clamp(max=float(self.times[-1]))
 
-    def rul_shifted(self, k: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+    def rul_shifted(self, k: torch.Tensor, shift: torch.Tensor, measured: bool = False) -> torch.Tensor:
         """RUL [h] (B, 3) of three noise-free propagations from k (B, 8) with its damage |k - k_nom| moved by
-        shift (3, 8), unordered.
+        shift (3, 8), unordered, stopped by the verdict classifier for ``measured`` (:meth:`rul`).
 
         The score is evaluated on a coarse grid (every ``coarse`` grid steps), the first faulty coarse
         interval is bisected down to one grid step, and the crossing is interpolated linearly in that step.
@@ -268,7 +283,7 @@ class OnlinePipeline(nn.Module):
             coarse = torch.cat([coarse, torch.tensor([n_t - 1], device=k.device)])
         traj = self.nominal + torch.einsum("tij,bqj->tbqi", self.propagators[coarse], dk)      # (Tc, B, 3, 8)
         n_c = traj.shape[0]
-        score = self._score_rows(traj.reshape(-1, 8).clamp(0.0, 1.0)).reshape(n_c, b, 3)
+        score = self._score_rows(traj.reshape(-1, 8).clamp(0.0, 1.0), measured).reshape(n_c, b, 3)
         faulty = score <= 0
         any_faulty = faulty.any(0)
         first = torch.argmax(faulty.to(torch.int64), dim=0)                                     # (B, 3)
@@ -279,7 +294,7 @@ class OnlinePipeline(nn.Module):
         s0 = score.gather(0, prev.unsqueeze(0)).squeeze(0)
         for _ in range(self.bisections):
             mid = torch.div(lo + hi, 2, rounding_mode="floor")
-            s_mid = self._score_at(dk, mid)
+            s_mid = self._score_at(dk, mid, measured)
             inner = mid > lo
             bad = (s_mid <= 0) & inner
             good = (s_mid > 0) & inner
