@@ -63,7 +63,7 @@ class GappyPOD(nn.Module):
 
     Buffers: ``indices`` (n_w,) int64, ``modes_hat`` (n_w, n_m), ``mean_hat`` (n_w,), ``solve_matrix``
     (n_m, n_w) = G^-1 V_hat^T R^-1 for the complete case (computed in float64), ``noise_covariance``
-    (n_w, n_w) (the identity for least squares), ``prior_precision`` (n_m,) (1 / lambda + ridge) and
+    (n_w, n_w) (empty, (0, 0), for least squares), ``prior_precision`` (n_m,) (1 / lambda + ridge) and
     ``gram_inverse`` (n_m, n_m), the inverse of the complete G.
     """
 
@@ -109,7 +109,9 @@ class GappyPOD(nn.Module):
         self.register_buffer("indices", indices.clone())
         self.register_buffer("modes_hat", modes.detach().clone().contiguous())
         self.register_buffer("mean_hat", mean.detach().clone())
-        self.register_buffer("noise_covariance", cov.to(modes.dtype).contiguous())
+        # least squares needs no R: an (n_w, n_w) identity would be most of an exported pipeline at 1000 samples
+        self.register_buffer("noise_covariance", cov.to(modes.dtype).contiguous() if self.bayesian
+                             else torch.zeros(0, 0, dtype=modes.dtype))
         self.register_buffer("prior_precision", precision.to(modes.dtype))
         v = modes.detach().to(torch.float64)
         weighted = torch.linalg.solve(cov, v).T                                    # V_hat^T R^-1 (n_m, n_w)
@@ -231,7 +233,7 @@ class GappyPOD(nn.Module):
         """2-norm condition number of the complete gappy matrix G = V_hat^T R^-1 V_hat + diag(prior precision)
         (V_hat^T V_hat + ridge I for least squares)."""
         v = self.modes_hat.to(torch.float64)
-        weighted = torch.linalg.solve(self.noise_covariance.to(torch.float64), v).T
+        weighted = torch.linalg.solve(self.noise_covariance.to(torch.float64), v).T if self.bayesian else v.T
         return float(torch.linalg.cond(self._gram(v, weighted, self.prior_precision.to(torch.float64))))
 
     def extra_repr(self) -> str:
