@@ -255,8 +255,9 @@ def test_sweep_configs(name, key, values):
 
 def test_best_experiment_composes(compose):
     cfg = compose("train", ["experiment=surrogates_best"])
-    assert cfg.selector._target_.endswith("MinErrorSelector") and cfg.model.optimizer == "adam"
-    assert (cfg.n_modes, cfg.n_points, cfg.n_hidden, cfg.n_layers, cfg.n_members) == (40, 100, 256, 2, 4)
+    assert cfg.selector._target_.endswith("UniformSelector") and cfg.model.optimizer == "adam"
+    assert (cfg.n_modes, cfg.n_points, cfg.n_hidden, cfg.n_layers, cfg.n_members) == (40, 1000, 256, 2, 4)
+    assert cfg.model.fit.patience >= cfg.model.fit.max_epochs     # the whole cosine schedule
     assert cfg.model.network.input_scaling == "robust"          # the model group's own setting is kept
     robust = compose("train", ["experiment=robust_30_points"])
     assert robust.gappy.estimator == "bayesian" and robust.model.end_to_end and robust.model.optimizer == "adam"
