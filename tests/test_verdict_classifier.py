@@ -124,6 +124,17 @@ def test_a_measured_rul_stops_on_the_verdict_and_agrees_with_it():
     assert torch.equal(measured[:, 1] > 0, g_healthy)                 # an estimate's RUL agrees with its verdict
     assert torch.equal(known[:, 1] > 0, f_healthy)                    # a known k's RUL with the health classifier
     torch.testing.assert_close(scripted, measured)
+    # through forward, with a physics band that moves the median start away from k_hat: still no life left
+    # at 5 and 50 % for a record the verdict calls faulty
+    shifted = OnlinePipeline.from_bundle(bundle, damage, torch.full((3,), -0.05),
+                                         torch.tensor([1.0] * 6 + [0.0, 1.0])).eval()
+    alpha = 3.0 * torch.randn(300, 4, generator=torch.Generator().manual_seed(6))
+    samples = bundle.pod.reconstruct(alpha)[:, bundle.indices]                   # in the span: in distribution
+    with torch.no_grad():
+        k_hat, score, rul, ood, _ = shifted(samples)
+    assert not ood.any() and bool((score <= 0).any()) and bool((score > 0).any())
+    assert torch.equal(rul[score <= 0, :2], torch.zeros_like(rul[score <= 0, :2]))
+    assert bool((rul[score > 0, 1] > 0).all())
 
 
 def test_fit_verdict_classifier_script_adds_one_to_a_trained_bundle(tmp_path, monkeypatch, capsys):

@@ -8,7 +8,9 @@ The propagations of a known k stop where the health classifier f(k) of true faul
 those of a measured k_hat where the verdict score g does, the classifier fitted on FDI estimates. So the
 RUL of a record agrees with its verdict: stopped by f, an estimate that g calls faulty (the FDI bias near
 the boundary, which g undoes) kept a positive median RUL, up to thousands of hours, and one g calls healthy a
-zero RUL (6 % of the paper store's val records with the pretrained pipeline; docs/prognostics.md). Without a verdict classifier g is f.
+zero RUL (6 % of the paper store's val records with the pretrained pipeline; docs/prognostics.md). A
+record g calls faulty gets zero at 5 and 50 % (its median propagation starts a small δ_50 away from k_hat).
+Without a verdict classifier g is f.
 
 The damage ODE is linear, so its solution on the RUL grid is k(t) = k0 + A(t) (k_hat - k0 + delta u)
 with A(t) = expm(F t): the propagators are computed once at build time (and checked against the
@@ -347,5 +349,9 @@ class OnlinePipeline(nn.Module):
         score = self.verdict_classifier(k_hat) - self.verdict_classifier.threshold
         ood = (~enough) | flat | foreign | (residual > self.residual_threshold) | ~torch.isfinite(residual)
         rul = self.rul(k_hat, True)
+        # the median propagation starts δ_50 of damage away from k_hat, which can move a record just across
+        # the verdict's boundary: a faulty verdict has no life left at 5 and 50 %
+        faulty = (score <= 0).unsqueeze(1) & (torch.arange(3, device=rul.device) < 2)
+        rul = torch.where(faulty, torch.zeros_like(rul), rul)
         rul = torch.where(ood.unsqueeze(1), torch.full_like(rul, float("nan")), rul)
         return k_hat, score, rul, ood, residual
