@@ -149,14 +149,15 @@ class GappyPOD(nn.Module):
         """
         if samples.dim() != 2 or samples.shape[1] != self.modes_hat.shape[0]:
             raise ValueError(f"samples must be (B, {self.modes_hat.shape[0]}), got {list(samples.shape)}")
-        valid = torch.isfinite(samples)
+        centred = samples - self.mean_hat
+        valid = torch.isfinite(centred)
         if mask is not None:
             valid = valid & mask
-        centred = torch.where(valid, samples - self.mean_hat, torch.zeros_like(samples))
-        if bool(valid.all()):
+        if bool(valid.all()):   # the online fast path: few passes over the (B, n_w) samples
             alpha = centred @ self.solve_matrix.T
-            resid = centred - alpha @ self.modes_hat.T
-            return alpha, resid.pow(2).mean(-1).sqrt()
+            resid = torch.linalg.vector_norm(centred - alpha @ self.modes_hat.T, dim=-1)
+            return alpha, resid / self.modes_hat.shape[0] ** 0.5
+        centred = torch.where(valid, centred, torch.zeros_like(centred))
         w = valid.to(samples.dtype)
         count = w.sum(-1)
         missing = ~valid
