@@ -71,6 +71,8 @@ def main() -> None:
     ap.add_argument("--check-split", default="val", help="records the verdicts are reported on ('' : none)")
     ap.add_argument("--noise", type=float, default=0.01, help="relative current noise of the fitting records")
     ap.add_argument("--seed", type=int, default=11, help="seeds the noise draw")
+    ap.add_argument("--max-missed-fault-rate", type=float, default=None,
+                    help="raise the verdict threshold until at most this fraction of the fitting faults pass")
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     if not args.noise >= 0:
@@ -82,11 +84,11 @@ def main() -> None:
     spec = bundle.classifier
     bundle.verdict_classifier = fit_verdict_classifier(
         build_classifier(spec.name, **spec.get_params()), lambda s, level: bundle.fdi(s, noise=level),
-        samples, scale, healthy, args.noise, args.seed)
+        samples, scale, healthy, args.noise, args.seed, args.max_missed_fault_rate)
     fit_s = time.perf_counter() - t0
     bundle.save(args.out)
     report = {"bundle": args.bundle, "out": args.out, "split": args.split, "n": len(healthy),
-              "noise": args.noise, "fit_s": round(fit_s, 1)}
+              "noise": args.noise, "max_missed_fault_rate": args.max_missed_fault_rate, "fit_s": round(fit_s, 1)}
     if args.check_split:
         report[args.check_split] = verdicts(bundle, args.data_dir, args.check_split)
     print(json.dumps(report, indent=2))

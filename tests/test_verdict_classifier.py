@@ -65,6 +65,32 @@ def test_verdict_classifier_undoes_the_estimators_bias():
         fit_verdict_classifier(PolynomialSVM(degree=2), shrinking_fdi, k, torch.ones(len(k)), healthy[:10], 0.0, 0)
 
 
+def test_verdict_classifier_calibrated_to_a_missed_fault_rate():
+    """calibration.max_missed_fault_rate applies to the verdict too: its threshold rises until no more than
+    that fraction of the fitting faults' estimates pass, which on fresh estimates trades missed faults for
+    false alarms."""
+    k, healthy = fault_vectors(6000, 0)
+    kv, hv = fault_vectors(3000, 1)
+    ones = torch.ones(len(k), dtype=torch.float64)
+
+    def noisy_fdi(s: torch.Tensor, level: torch.Tensor) -> torch.Tensor:     # the same error on every call
+        error = 0.05 * torch.randn(s.shape, generator=torch.Generator().manual_seed(5), dtype=s.dtype)
+        return (shrinking_fdi(s, level) + error).clamp(0.0, 1.0)
+
+    plain = fit_verdict_classifier(PolynomialSVM(degree=2), noisy_fdi, k, ones, healthy, 0.0, seed=0)
+    strict = fit_verdict_classifier(PolynomialSVM(degree=2), noisy_fdi, k, ones, healthy, 0.0, seed=0,
+                                    max_missed_fault_rate=0.002)
+    k_fit = noisy_fdi(k, ones)
+    assert float(strict.threshold) > 0.0 == float(plain.threshold)
+    faults = int((~healthy).sum())
+    assert confusion(strict.predict(k_fit), healthy)["missed_fault_rate"] <= 0.002 + 1.0 / faults   # a quantile
+    assert confusion(plain.predict(k_fit), healthy)["missed_fault_rate"] > 0.01
+    k_hat = noisy_fdi(kv, torch.zeros(len(kv)))
+    before, after = confusion(plain.predict(k_hat), hv), confusion(strict.predict(k_hat), hv)
+    assert after["missed_fault_rate"] < before["missed_fault_rate"]
+    assert after["false_alarm_rate"] > before["false_alarm_rate"]
+
+
 def test_bundle_saves_the_verdict_classifier_and_the_pipeline_judges_by_it(tmp_path):
     k, healthy = fault_vectors(2000, 2)
     truth = PolynomialSVM(degree=2).fit(k, healthy)

@@ -323,7 +323,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         t0 = time.perf_counter()
         verdict = fit_verdict_classifier(_instantiate(cfg.classifier, "classifier"),
                                          lambda s, level: network(gappy(s)[0], level), samples_tr,
-                                         rms(train.current), train.healthy, noise, seed + 11)
+                                         rms(train.current), train.healthy, noise, seed + 11, max_missed)
         timing["verdict_classifier_fit_s"] = time.perf_counter() - t0
 
     store_cfg = info["metadata"].get("config") or {}

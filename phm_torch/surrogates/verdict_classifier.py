@@ -52,13 +52,20 @@ def noisy_estimates(estimate: Estimator, samples: torch.Tensor, scale: torch.Ten
 
 
 def fit_verdict_classifier(classifier: HealthClassifier, estimate: Estimator, samples: torch.Tensor,
-                           scale: torch.Tensor, healthy: torch.Tensor, noise: float, seed: int) -> HealthClassifier:
+                           scale: torch.Tensor, healthy: torch.Tensor, noise: float, seed: int,
+                           max_missed_fault_rate: float | None = None) -> HealthClassifier:
     """Fit ``classifier`` (unfitted) on the estimates of the training records and their true labels.
 
-    Args as :func:`noisy_estimates`; ``healthy`` (N,) bool, the records' assessed health. Returns the
-    fitted classifier, whose ``predict(k_hat)`` is the verdict on a measured actuator.
+    Args as :func:`noisy_estimates`; ``healthy`` (N,) bool, the records' assessed health;
+    ``max_missed_fault_rate``: None, or raise the threshold until at most this fraction of the faulty
+    records' estimates score healthy (:meth:`HealthClassifier.calibrate`, the same trade as for the health
+    classifier: fewer missed faults for more false alarms). Returns the fitted classifier, whose
+    ``predict(k_hat)`` is the verdict on a measured actuator.
     """
     if healthy.shape != samples.shape[:1]:
         raise ValueError(f"verdict classifier: healthy must be ({samples.shape[0]},), got {tuple(healthy.shape)}")
     k_hat = noisy_estimates(estimate, samples, scale, noise, seed)
-    return classifier.fit(k_hat, healthy.bool())
+    classifier.fit(k_hat, healthy.bool())
+    if max_missed_fault_rate is not None:
+        classifier.calibrate(k_hat, healthy.bool(), max_missed_fault_rate)
+    return classifier
