@@ -103,7 +103,9 @@ def main() -> None:
         out["conditions"][name] = row
         print(f"{name:>27}: NRMSE {next(iter(row.values()))['raw']['nrmse_median']:.4f}; " + "; ".join(
             f"{b} err_k {m['raw']['err_k']:.4f} (rebased {m['rebased']['err_k']:.4f}), chain "
-            f"{m['raw']['chain_accuracy']:.3f} ({m['rebased']['chain_accuracy']:.3f}), OOD {m['raw']['ood_rate']:.3f}"
+            f"{m['raw']['chain_accuracy']:.3f} ({m['rebased']['chain_accuracy']:.3f}; missed "
+            f"{m['raw']['chain_missed_fault_rate']:.3f}, false alarms {m['raw']['chain_false_alarm_rate']:.3f}), "
+            f"OOD {m['raw']['ood_rate']:.3f}"
             for b, m in row.items()), flush=True)
     out["elapsed_s"] = time.perf_counter() - t0
     common.write_json(Path(args.out), out)

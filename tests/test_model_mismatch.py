@@ -51,7 +51,10 @@ def test_own_records_give_the_bundles_own_figures(bundle, vectors):
         k_hat = bundle.fdi(bundle.compress(reference))
     assert m["n"] == 40 and m["nrmse_median"] == 0.0
     assert m["err_k"] == pytest.approx(err_k(k_hat.double(), k), rel=1e-12)
-    assert m["chain_accuracy"] == pytest.approx(float((bundle.verdict_healthy(k_hat) == healthy).double().mean()))
+    verdict = bundle.verdict_healthy(k_hat)
+    assert m["chain_accuracy"] == pytest.approx(float((verdict == healthy).double().mean()))
+    assert m["chain_missed_fault_rate"] == pytest.approx(float(verdict[~healthy].double().mean()))
+    assert m["chain_false_alarm_rate"] == pytest.approx(float((~verdict[healthy]).double().mean()))
     assert m["ood_rate"] == 0.0                                   # clean records of the training family
 
 

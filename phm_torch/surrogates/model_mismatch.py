@@ -14,7 +14,7 @@ import torch
 from .augment import noise_level, rms
 from .bundle import SurrogateBundle
 from .full_signal_check import FullSignalCheck
-from .metrics import err_k, fdi_mae
+from .metrics import confusion, err_k, fdi_mae
 
 
 def mismatch_metrics(bundle: SurrogateBundle, k: torch.Tensor, healthy: torch.Tensor, reference: torch.Tensor,
@@ -32,7 +32,9 @@ def mismatch_metrics(bundle: SurrogateBundle, k: torch.Tensor, healthy: torch.Te
         ``nrmse_median``: median over the records of RMS(signals - reference) / range(reference), the size
         of the modelling difference; ``err_k`` and ``fdi_mae_max`` (the largest per-parameter mean
         |k error|, k7 weighted by k6 as in err_k) of the FDI on ``signals``; ``chain_accuracy``, the
-        verdict (``bundle.verdict_healthy``) on k_hat against ``healthy``; ``ood_rate_gappy`` (gappy residual above the
+        verdict (``bundle.verdict_healthy``) on k_hat against ``healthy``, and which way it errs:
+        ``chain_missed_fault_rate`` (of the faulty records, judged healthy) and ``chain_false_alarm_rate``
+        (of the healthy, judged faulty); ``ood_rate_gappy`` (gappy residual above the
         bundle's threshold), ``ood_rate_full`` (:class:`FullSignalCheck` of the full record, as the online
         pipeline runs it) and ``ood_rate`` (either); ``n`` records.
     """
@@ -58,8 +60,10 @@ def mismatch_metrics(bundle: SurrogateBundle, k: torch.Tensor, healthy: torch.Te
         verdict = bundle.verdict_healthy(k_hat)
     gappy_flag = found["out_of_distribution"]
     k = k.double()
+    chain = confusion(verdict, healthy)
     return {"n": n, "nrmse_median": float(nrmse.median()), "err_k": err_k(k_hat, k),
             "fdi_mae_max": max(fdi_mae(k_hat, k, weighted=True)),
-            "chain_accuracy": float((verdict == healthy.bool()).double().mean()),
+            "chain_accuracy": chain["accuracy"], "chain_missed_fault_rate": chain["missed_fault_rate"],
+            "chain_false_alarm_rate": chain["false_alarm_rate"],
             "ood_rate_gappy": float(gappy_flag.double().mean()), "ood_rate_full": float(full_flag.double().mean()),
             "ood_rate": float((gappy_flag | full_flag).double().mean())}
