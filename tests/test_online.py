@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import logging
 import math
 import subprocess
 import sys
@@ -255,6 +256,31 @@ def test_predict_refuses_a_baseline_without_the_training_nominal_record(pipeline
     csv = "examples/workbench_hidden_cogging.csv"
     with pytest.raises(ValueError, match="baseline: the pipeline .* holds no nominal record"):
         predict(compose("predict", [f"pipeline={tmp_path / 'online.pt'}", f"measurements={csv}", f"baseline={csv}"]))
+
+
+def test_predict_warns_when_a_baseline_could_be_given_and_is_not(pipeline, compose, tmp_path, caplog):
+    from phm_torch.apps.predict import predict
+
+    pipe = copy.deepcopy(pipeline)
+    pipe.nominal_record.copy_(pipeline.mean_signal)
+    export_torchscript(pipe, tmp_path / "online.pt")
+    t = torch.arange(N_FULL, dtype=torch.float64) / 20000.0
+    csv = tmp_path / "run.csv"
+    csv.write_text("time,command,position,current\n"
+                   + "".join(f"{a:.8g},0,0,{b:.8g}\n" for a, b in zip(t.tolist(), pipeline.mean_signal.tolist())))
+    args = [f"pipeline={tmp_path / 'online.pt'}", f"measurements={csv}"]
+    with caplog.at_level(logging.WARNING, logger="phm_torch.apps.predict"):
+        metrics, _ = predict(compose("predict", args))
+    assert not metrics["baseline"] and sum("no baseline" in r.getMessage() for r in caplog.records) == 1
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="phm_torch.apps.predict"):
+        metrics, _ = predict(compose("predict", [*args, f"baseline={csv}"]))
+    assert metrics["baseline"] and not any("no baseline" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    export_torchscript(pipeline, tmp_path / "plain.pt")              # no nominal record: nothing to give
+    with caplog.at_level(logging.WARNING, logger="phm_torch.apps.predict"):
+        predict(compose("predict", [f"pipeline={tmp_path / 'plain.pt'}", f"measurements={csv}"]))
+    assert not any("no baseline" in r.getMessage() for r in caplog.records)
 
 
 def test_bundle_carries_the_nominal_record_into_the_pipeline(pipeline, tmp_path):
