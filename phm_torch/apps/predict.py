@@ -101,7 +101,7 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         log.warning("%s was exported before the verdict calibration existed: p_faulty is null", model_path)
     intervals, noise_known = hasattr(model, "k_interval"), hasattr(model, "noise_level")
     bench_nominal = _bench_nominal(cfg, model)
-    if bench_nominal is None and bool(torch.isfinite(model.nominal_record).all()):
+    if bench_nominal is None and hasattr(model, "rebase") and bool(torch.isfinite(model.nominal_record).all()):
         # a bench differing from the training model by 0.5 % of the current can turn 14 % of the faults
         # into "healthy" verdicts; the rebase restores them (docs/surrogates.md, modelling differences)
         log.warning("no baseline: the measurements are read as records of the training model; on another "
