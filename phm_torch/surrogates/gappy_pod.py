@@ -188,7 +188,7 @@ class GappyPOD(nn.Module):
         the caller solves the batch per signal otherwise, which also decides what is singular."""
         rows = torch.topk(missing.to(centred.dtype), most, dim=-1).indices                 # (B, k)
         u = self.modes_hat[rows] * missing.gather(-1, rows).to(centred.dtype).unsqueeze(-1)  # (B, k, n_m)
-        a0 = (centred @ self.modes_hat) @ self.gram_inverse                              # G^-1 rhs (B, n_m)
+        a0 = centred @ self.solve_matrix.T                                               # G^-1 rhs (B, n_m)
         wu = u @ self.gram_inverse                                                       # U G^-1 (B, k, n_m)
         eye = torch.eye(most, dtype=centred.dtype, device=centred.device)
         small = eye - wu @ u.transpose(1, 2)                                             # S (B, k, k)
@@ -197,7 +197,7 @@ class GappyPOD(nn.Module):
         accurate = (info == 0) & (torch.diagonal(factor, dim1=-2, dim2=-1).amin(-1).pow(2) > self.woodbury_min_eigenvalue)
         if self.ridge == 0.0:
             accurate = accurate & (count >= self.modes_hat.shape[1])
-        chol = torch.linalg.cholesky(torch.where(accurate.reshape(-1, 1, 1), small, eye))
+        chol = torch.where(accurate.reshape(-1, 1, 1), factor, eye)    # the others are solved per signal
         c = torch.cholesky_solve(u @ a0.unsqueeze(-1), chol)                              # (B, k, 1)
         alpha = a0 + (wu.transpose(1, 2) @ c).squeeze(-1)
         resid = (centred - alpha @ self.modes_hat.T) * w
