@@ -12,6 +12,7 @@ import textwrap
 import pytest
 import torch
 
+from phm_torch.io import write_measurement
 from phm_torch.online import OnlinePipeline
 from phm_torch.online.export import export_torchscript
 from phm_torch.params import load_actuator
@@ -264,10 +265,10 @@ def test_predict_warns_when_a_baseline_could_be_given_and_is_not(pipeline, compo
     pipe = copy.deepcopy(pipeline)
     pipe.nominal_record.copy_(pipeline.mean_signal)
     export_torchscript(pipe, tmp_path / "online.pt")
-    t = torch.arange(N_FULL, dtype=torch.float64) / 20000.0
-    csv = tmp_path / "run.csv"
-    csv.write_text("time,command,position,current\n"
-                   + "".join(f"{a:.8g},0,0,{b:.8g}\n" for a, b in zip(t.tolist(), pipeline.mean_signal.tolist())))
+    zeros = torch.zeros(N_FULL, dtype=torch.float64)
+    csv = write_measurement(tmp_path / "run.csv", {"time": torch.arange(N_FULL, dtype=torch.float64) / 20000.0,
+                                                  "command": zeros, "position": zeros,
+                                                  "current": pipeline.mean_signal})
     args = [f"pipeline={tmp_path / 'online.pt'}", f"measurements={csv}"]
     with caplog.at_level(logging.WARNING, logger="phm_torch.apps.predict"):
         metrics, _ = predict(compose("predict", args))

@@ -78,11 +78,16 @@ def _current(path: str, model: Any, resample: bool) -> torch.Tensor:
     return torch.cat([current, current.new_full((1, n_full - n), float("nan"))], 1)
 
 
+def _can_rebase(model: Any) -> bool:
+    """Whether the pipeline carries its training model's nominal record (so a bench baseline applies)."""
+    return hasattr(model, "rebase") and bool(torch.isfinite(model.nominal_record).all())
+
+
 def _bench_nominal(cfg: DictConfig, model: Any) -> torch.Tensor | None:
     """The mean of the ``baseline`` records (healthy records of the measuring bench), or None."""
     if cfg.get("baseline") is None:
         return None
-    if not hasattr(model, "rebase") or not bool(torch.isfinite(model.nominal_record).all()):
+    if not _can_rebase(model):
         raise ValueError(f"baseline: the pipeline {str(cfg.pipeline)!r} holds no nominal record of its training "
                          f"model (exported before baselines existed, or trained on a store without a nominal split)")
     return torch.cat([_current(p, model, bool(cfg.resample)) for p in _paths(cfg.baseline, "baseline")]).mean(0)
@@ -101,7 +106,7 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         log.warning("%s was exported before the verdict calibration existed: p_faulty is null", model_path)
     intervals, noise_known = hasattr(model, "k_interval"), hasattr(model, "noise_level")
     bench_nominal = _bench_nominal(cfg, model)
-    if bench_nominal is None and hasattr(model, "rebase") and bool(torch.isfinite(model.nominal_record).all()):
+    if bench_nominal is None and _can_rebase(model):
         # a bench differing from the training model by 0.5 % of the current can turn 14 % of the faults
         # into "healthy" verdicts; the rebase restores them (docs/surrogates.md, modelling differences)
         log.warning("no baseline: the measurements are read as records of the training model; on another "
