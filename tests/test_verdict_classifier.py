@@ -30,6 +30,18 @@ def shrinking_fdi(samples: torch.Tensor, level: torch.Tensor) -> torch.Tensor:
     return k_hat.clamp(0.0, 1.0)
 
 
+def smooth_records(n: int, seed: int) -> torch.Tensor:
+    """(n, 200) smooth records, float32 as a store's: four fixed shapes with random weights."""
+    t = torch.linspace(0, 1, 200)
+    shapes = torch.stack([torch.sin((i + 1) * 3.0 * t + i) for i in range(4)])
+    return 1.0 + torch.randn(n, 4, generator=torch.Generator().manual_seed(seed)) @ shapes
+
+
+def smooth_pod() -> POD:
+    """A 4-mode POD of 40 smooth records."""
+    return POD(4).fit(smooth_records(40, 0))
+
+
 def test_noisy_estimates_add_the_rated_noise_and_tell_the_level():
     samples = torch.ones(5000, 8, dtype=torch.float64)
     seen = []
@@ -95,10 +107,7 @@ def test_bundle_saves_the_verdict_classifier_and_the_pipeline_judges_by_it(tmp_p
     k, healthy = fault_vectors(2000, 2)
     truth = PolynomialSVM(degree=2).fit(k, healthy)
     verdict = PolynomialSVM(degree=2).fit(shrinking_fdi(k, torch.zeros(len(k))), healthy)
-    t = torch.linspace(0, 1, 200)
-    shapes = torch.stack([torch.sin((i + 1) * 3.0 * t + i) for i in range(4)])                  # smooth records
-    snapshots = 1.0 + torch.randn(40, 4, generator=torch.Generator().manual_seed(0)) @ shapes    # float32, as a store
-    pod = POD(4).fit(snapshots)
+    pod = smooth_pod()
     plain = SurrogateBundle(pod, torch.arange(0, 200, 10), FDIMLP(4, 5), truth, 20000.0, 1.0)
     both = SurrogateBundle(pod, torch.arange(0, 200, 10), plain.network, truth, 20000.0, 1.0,
                            verdict_classifier=verdict)
@@ -116,7 +125,7 @@ def test_bundle_saves_the_verdict_classifier_and_the_pipeline_judges_by_it(tmp_p
                          list(load_actuator().nominal_faults))
     pipe = OnlinePipeline.from_bundle(back, damage, torch.tensor([0.02, 0.0, -0.02]),
                                       torch.tensor([1.0] * 6 + [0.0, 1.0])).eval()
-    x = (1.0 + torch.randn(6, 4, generator=torch.Generator().manual_seed(1)) @ shapes)[:, back.indices]   # samples
+    x = smooth_records(6, 1)[:, back.indices]                                                    # samples
     with torch.no_grad():
         k_hat, score, rul, ood, _ = pipe(x)
         scripted = torch.jit.script(pipe)(x)
@@ -132,9 +141,7 @@ def test_a_measured_rul_stops_on_the_verdict_and_agrees_with_it():
     k, healthy = fault_vectors(3000, 4)
     truth = PolynomialSVM(degree=2).fit(k, healthy)
     verdict = PolynomialSVM(degree=2).fit(shrinking_fdi(k, torch.zeros(len(k))), healthy)
-    t = torch.linspace(0, 1, 200)
-    pod = POD(4).fit(1.0 + torch.randn(40, 4, generator=torch.Generator().manual_seed(0))
-                     @ torch.stack([torch.sin((i + 1) * 3.0 * t + i) for i in range(4)]))
+    pod = smooth_pod()
     bundle = SurrogateBundle(pod, torch.arange(0, 200, 10), FDIMLP(4, 5), truth, 20000.0, 1.0,
                              verdict_classifier=verdict)
     f = torch.diag(torch.tensor([5e-4] * 6 + [0.0, 3e-4], dtype=torch.float64))
