@@ -1,123 +1,320 @@
-"""Fit the LF shape functions to the HF model (see ``physics/dc_motor.py``).
+"""Fit the LF shape coefficients to the HF model, validate on held-out vectors, keep or reject the fit.
 
-Procedure: simulate the HF test bench on the test chirp for a design set of fault vectors that
-exercise the shape functions (single-phase shorts at four levels, eccentricity at two amplitudes and
-four phases, mixed cases, nominal); then choose the coefficients (a_k, a_R, a_L, commutation width) that
-minimise the sum over cases of the squared envelope-current discrepancy LF - HF, each case normalised
-by its HF range, with batched-finite-difference Levenberg-Marquardt. The discrepancy is then reported
-on an independent random set of fault vectors.
+Procedure (``phm-fit-lf``, :func:`run_fit`):
+
+1. Fault vectors (:func:`fault_sets`): a *design* set (the nominal vector, then half importance-sampled
+   as the training data are, half uniform on [0, 1]^8) and two held-out sets drawn from independent
+   seed streams: ``importance`` (the seed paper's scaled Latin hypercube about nominal, k7 uniform) and
+   ``uniform`` (Latin hypercube on [0, 1]^8).
+2. One batched HF simulation of all of them on the command (the cost of the procedure).
+3. :func:`fit_shape`: the coefficients (a_k, a_R, a_L, commutation width) that minimise
+   sum over design vectors and channels of NRMSE^2 (LF - HF, RMS over the record divided by the HF
+   range of that vector and channel), with the project's bounded Levenberg-Marquardt
+   (:func:`~phm_torch.fitting.batched_levenberg_marquardt`, one LF call per Jacobian), inside physical
+   bounds (:data:`PHYSICAL_BOUNDS`), starting from the physical values.
+4. :func:`discrepancy` on both held-out sets with the physical values (``LFShape()``: 1, 1, 2, 0) and the
+   fitted ones, and :func:`decide`.
+
+Decision rule (:func:`decide`): the fitted coefficients are kept only if, on *both* held-out sets and
+for *both* channels (envelope current, position), neither the median nor the max NRMSE grows by more
+than ``max_worsening`` (relative; default 0: no worsening at all), and the median current NRMSE falls
+by at least ``min_gain`` (relative; default 2 %) on both sets. Otherwise the physical values are kept.
+The physical values are the safe default: they follow from the winding geometry (EMF and resistance
+proportional to the healthy turns, inductance to their square, instantaneous commutation), so a fit
+has to earn its departure from them on vectors it has not seen.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import fields, replace
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field, fields
 
+import numpy as np
 import torch
+from scipy.stats import qmc
 
-from .command import Chirp
+from .data.sampling import ImportanceSampler
+from .faults import N_FAULTS
 from .fitting import batched_levenberg_marquardt
 from .params import ActuatorParams, LFShape
 from .simulator import EMASimulator
 
 COEFFICIENTS = tuple(f.name for f in fields(LFShape))
-BOUNDS = {"emf_short_gain": (0.0, 2.0), "resistance_short_gain": (0.0, 2.0),
-          "inductance_short_exponent": (0.0, 4.0), "commutation_width": (0.0, math.pi / 3)}
+CHANNELS = ("current", "position")
+HELD_OUT = ("importance", "uniform")
+# Physical ranges of the coefficients: EMF and resistance fall with the shorted fraction s at a rate
+# near 1 (a_k, a_R = 1 +- 0.5: the short takes turns out of both); the inductance of a winding goes
+# with the square of its turns (a_L = 2, between linear and cubic); the HF commutation transient lasts
+# a few PWM periods, a small fraction of a 60-degree sector at the speeds of a position test, so a
+# blend wider than 0.25 rad (electrical) fits the commutation ripple, not the commutation.
+PHYSICAL_BOUNDS: dict[str, tuple[float, float]] = {
+    "emf_short_gain": (0.5, 1.5), "resistance_short_gain": (0.5, 1.5),
+    "inductance_short_exponent": (1.0, 3.0), "commutation_width": (0.0, 0.25)}
 
 
-def design_faults(nominal: tuple[float, ...]) -> torch.Tensor:
-    """Fault vectors used for the fit, (n, 8)."""
-    cases = [list(nominal)]
-    for phase in (2, 3, 4):
-        for level in (0.25, 0.5, 0.75, 1.0):
-            k = list(nominal)
-            k[phase] = level
-            cases.append(k)
-    for amp in (0.5, 1.0):
-        for ph in (0.0, 0.25, 0.5, 0.75):
-            k = list(nominal)
-            k[5], k[6] = amp, ph
-            cases.append(k)
-    for mix in ((0.3, 0.0, 0.6, 0.0, 0.0, 0.4, 0.2, 0.5), (0.0, 0.2, 0.0, 0.5, 0.3, 0.7, 0.8, 0.6)):
-        cases.append(list(mix))
-    return torch.tensor(cases, dtype=torch.float64)
+@dataclass(frozen=True)
+class LFFitSettings:
+    """Sizes and rules of the LF shape fit (the ``fit`` node of ``conf/fit_lf.yaml``).
+
+    Attributes:
+        n_design: fault vectors the coefficients are fitted on (the nominal one included), >= 2.
+        n_importance, n_uniform: held-out vectors, importance-sampled / uniform, each >= 1.
+        max_iter: Levenberg-Marquardt iterations (each: two batched LF simulations), >= 1.
+        seed: seeds the Latin hypercubes (four independent streams: two design halves, two held-out sets).
+        duration: simulated record [s] (a prefix of the command); ``None``: the command's duration.
+        bounds: {coefficient: [low, high]} overriding :data:`PHYSICAL_BOUNDS`.
+        fd_step: forward-difference step of the coefficients (absolute).
+        min_gain: relative fall of the held-out median current NRMSE required on both sets, in [0, 1).
+        max_worsening: relative growth tolerated in any held-out median or max NRMSE, >= 0.
+    """
+
+    n_design: int
+    n_importance: int
+    n_uniform: int
+    max_iter: int
+    seed: int
+    duration: float | None = None
+    bounds: Mapping[str, Sequence[float]] = field(default_factory=dict)
+    fd_step: float = 1e-3
+    min_gain: float = 0.02
+    max_worsening: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name, low in (("n_design", 2), ("n_importance", 1), ("n_uniform", 1), ("max_iter", 1), ("seed", 0)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise ValueError(f"fit.{name} must be an integer >= {low}, got {v!r}")
+        if self.duration is not None and not _positive(self.duration):
+            raise ValueError(f"fit.duration must be > 0 (or null for the command's duration), got {self.duration!r}")
+        if not _positive(self.fd_step):
+            raise ValueError(f"fit.fd_step must be > 0, got {self.fd_step!r}")
+        if not (_number(self.min_gain) and 0.0 <= self.min_gain < 1.0):
+            raise ValueError(f"fit.min_gain must be in [0, 1), got {self.min_gain!r}")
+        if not (_number(self.max_worsening) and self.max_worsening >= 0.0):
+            raise ValueError(f"fit.max_worsening must be >= 0, got {self.max_worsening!r}")
+        bounds = dict(PHYSICAL_BOUNDS)
+        for name, pair in dict(self.bounds or {}).items():
+            if name not in PHYSICAL_BOUNDS:
+                raise ValueError(f"fit.bounds: unknown coefficient {name!r}; known: {list(COEFFICIENTS)}")
+            pair = list(pair) if isinstance(pair, Sequence) and not isinstance(pair, str) else [pair]
+            if len(pair) != 2 or not all(_number(v) for v in pair) or not 0.0 <= pair[0] < pair[1]:
+                raise ValueError(f"fit.bounds.{name} must be [low, high] with 0 <= low < high, got {pair!r}")
+            bounds[name] = (float(pair[0]), float(pair[1]))
+        physical = asdict(LFShape())
+        for name, (lo, hi) in bounds.items():
+            if not lo <= physical[name] <= hi:
+                raise ValueError(f"fit.bounds.{name} = [{lo}, {hi}] must contain the physical value {physical[name]}")
+        object.__setattr__(self, "bounds", bounds)
 
 
-def random_faults(n: int, seed: int, importance: bool) -> torch.Tensor:
-    """Independent check set, (n, 8): uniform in [0, 1]^8 (k8 = 0.5), or concentrated near nominal as
-    the training data are (k_i = u^8 for the damages, k7 uniform, k8 = 0.5 +- 0.5 u^8)."""
-    g = torch.Generator().manual_seed(seed)
-    u = torch.rand(n, 8, generator=g, dtype=torch.float64)
-    if not importance:
-        u[:, 7] = 0.5
-        return u
-    k = u ** 8
-    k[:, 6] = u[:, 6]
-    sign = torch.where(torch.rand(n, generator=g, dtype=torch.float64) < 0.5, -1.0, 1.0)
-    k[:, 7] = 0.5 + 0.5 * sign * k[:, 7]
-    return k
+def _number(v: object) -> bool:
+    return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
 
 
-def discrepancy(lf: torch.Tensor, hf: torch.Tensor) -> torch.Tensor:
-    """RMS(LF - HF) / range(HF) of the envelope current per case, (n,) fraction."""
-    rng = hf.amax(-1) - hf.amin(-1)
-    return (lf - hf).pow(2).mean(-1).sqrt() / rng
+def _positive(v: object) -> bool:
+    return _number(v) and v > 0
 
 
-def simulate_current(params: ActuatorParams, fidelity: str, faults: torch.Tensor, command: Chirp,
-                     shape: dict[str, torch.Tensor] | None = None) -> torch.Tensor:
-    sim = EMASimulator(params, fidelity)
+# ---- fault vectors -------------------------------------------------------------------------------
+def uniform_faults(n: int, seed: np.random.SeedSequence | int) -> np.ndarray:
+    """n fault vectors (n, 8) from a Latin hypercube on [0, 1]^8 (the whole domain)."""
+    return qmc.LatinHypercube(d=N_FAULTS, rng=np.random.default_rng(seed)).random(n)
+
+
+def fault_sets(params: ActuatorParams, settings: LFFitSettings) -> dict[str, torch.Tensor]:
+    """The design set and the two held-out sets, float64 (n, 8) each, deterministic in ``settings.seed``.
+
+    The design set is the nominal vector, ceil((n_design - 1) / 2) importance-sampled vectors and the rest
+    uniform; every set has its own seed stream, so the held-out sets share no vector with the design.
+    """
+    s_imp, s_uni, s_held_imp, s_held_uni = np.random.SeedSequence(settings.seed).spawn(4)
+    sampler = ImportanceSampler(params.nominal_faults, uniform=(6,), radius=1.0)
+    n_imp = math.ceil((settings.n_design - 1) / 2)
+    parts = [np.asarray(params.nominal_faults)[None], sampler.sample(n_imp, s_imp)]
+    if settings.n_design - 1 - n_imp > 0:
+        parts.append(uniform_faults(settings.n_design - 1 - n_imp, s_uni))
+    design = np.concatenate(parts)
+    sets = {"design": design, "importance": sampler.sample(settings.n_importance, s_held_imp),
+            "uniform": uniform_faults(settings.n_uniform, s_held_uni)}
+    return {k: torch.as_tensor(v, dtype=torch.float64) for k, v in sets.items()}
+
+
+# ---- simulation and discrepancy ------------------------------------------------------------------
+def simulate(params: ActuatorParams, fidelity: str, faults: torch.Tensor, command, duration: float,
+             shapes: torch.Tensor | None = None) -> torch.Tensor:
+    """Channels ``CHANNELS`` of a batched run, (B, 2, T): envelope current [A] and position [rad].
+
+    ``shapes`` (B, 4): LF shape coefficients per vector, in ``COEFFICIENTS`` order (LF only; default the
+    coefficients of ``params``).
+    """
+    scales = None if shapes is None else {f"lf_{c}": shapes[:, i] for i, c in enumerate(COEFFICIENTS)}
     with torch.no_grad():
-        return sim.run(faults, command, command.duration, scales=shape, channels=["current"])["current"]
+        sig = EMASimulator(params, fidelity).run(faults, command, duration, scales=scales, channels=list(CHANNELS))
+    return torch.stack([sig[c] for c in CHANNELS], dim=1)
 
 
-def fit_shapes(params: ActuatorParams, hf_current: torch.Tensor, faults: torch.Tensor, command: Chirp,
-               max_iter: int = 12) -> tuple[LFShape, dict]:
-    """Fit the LF shape coefficients to HF envelope currents (n, T) of ``faults`` (n, 8)."""
-    n = faults.shape[0]
-    rng = (hf_current.amax(-1) - hf_current.amin(-1)).unsqueeze(-1)
+def discrepancy(model: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """NRMSE per vector and channel (B, 2): RMS(model - reference) over the record / range of reference."""
+    span = (reference.amax(-1) - reference.amin(-1)).clamp(min=1e-12)
+    return (model - reference).pow(2).mean(-1).sqrt() / span
+
+
+def summarize(d: torch.Tensor) -> dict[str, dict[str, float]]:
+    """{channel: {median, mean, max}} of per-vector NRMSE (B, 2), fractions."""
+    return {c: {"median": float(d[:, i].median()), "mean": float(d[:, i].mean()), "max": float(d[:, i].max())}
+            for i, c in enumerate(CHANNELS)}
+
+
+def as_vector(shape: LFShape) -> torch.Tensor:
+    return torch.tensor([getattr(shape, c) for c in COEFFICIENTS], dtype=torch.float64)
+
+
+# ---- fit -----------------------------------------------------------------------------------------
+@dataclass
+class ShapeFit:
+    """Outcome of :func:`fit_shape`: ``shape`` (fitted coefficients), ``std`` (Gauss-Newton standard
+    deviation per coefficient), ``cost_history`` (0.5 sum NRMSE^2 per iteration), ``iterations``,
+    ``converged``, ``at_bound`` (coefficients that ended on a bound)."""
+
+    shape: LFShape
+    std: dict[str, float]
+    cost_history: list[float]
+    iterations: int
+    converged: bool
+    at_bound: list[str]
+
+
+def fit_shape(params: ActuatorParams, faults: torch.Tensor, reference: torch.Tensor, command, duration: float,
+              bounds: Mapping[str, Sequence[float]] | None = None, max_iter: int = 8, fd_step: float = 1e-3,
+              start: LFShape | None = None) -> ShapeFit:
+    """Fit the LF shape coefficients so that LF reproduces ``reference`` (B, 2, T) of ``faults`` (B, 8).
+
+    Residual: (LF - reference) / range(reference) / sqrt(T) per vector and channel, so the cost is
+    0.5 sum NRMSE^2. Every Levenberg-Marquardt evaluation of P coefficient vectors is one LF run of P * B.
+    """
+    b = faults.shape[0]
+    span = (reference.amax(-1) - reference.amin(-1)).clamp(min=1e-12).unsqueeze(-1)
+    norm = math.sqrt(reference.shape[-1])
 
     def residuals(x: torch.Tensor) -> torch.Tensor:
         p = x.shape[0]
-        shape = {f"lf_{name}": x[:, i].repeat_interleave(n) for i, name in enumerate(COEFFICIENTS)}
-        cur = simulate_current(params, "lf", faults.repeat(p, 1), command, shape).view(p, n, -1)
-        return ((cur - hf_current) / rng / math.sqrt(cur.shape[-1])).reshape(p, -1)
+        out = simulate(params, "lf", faults.repeat(p, 1), command, duration, x.repeat_interleave(b, dim=0))
+        return ((out.view(p, b, *reference.shape[1:]) - reference) / span / norm).reshape(p, -1)
 
-    x0 = torch.tensor([getattr(params.lf_shape, c) for c in COEFFICIENTS], dtype=torch.float64)
-    lo = torch.tensor([BOUNDS[c][0] for c in COEFFICIENTS], dtype=torch.float64)
-    hi = torch.tensor([BOUNDS[c][1] for c in COEFFICIENTS], dtype=torch.float64)
-    x0 = torch.minimum(torch.maximum(x0, lo), hi)
-    res = batched_levenberg_marquardt(residuals, x0, lo, hi, step=1e-3, max_iter=max_iter)
-    fitted = LFShape(**{c: float(v) for c, v in zip(COEFFICIENTS, res.x)})
-    std = res.covariance().diagonal().sqrt()
-    return fitted, {"cost_history": res.history, "iterations": res.iterations,
-                    "std": {c: float(s) for c, s in zip(COEFFICIENTS, std)}}
-
-
-def evaluate(params: ActuatorParams, faults: torch.Tensor, command: Chirp, hf: torch.Tensor | None = None
-             ) -> dict:
-    """LF-vs-HF envelope discrepancy for ``faults``: per case and summary (fractions of HF range)."""
-    hf = hf if hf is not None else simulate_current(params, "hf", faults, command)
-    lf = simulate_current(params, "lf", faults, command)
-    d = discrepancy(lf, hf)
-    return {"per_case": d.tolist(), "mean": float(d.mean()), "median": float(d.median()), "max": float(d.max())}
+    bounds = {**PHYSICAL_BOUNDS, **dict(bounds or {})}
+    lo = torch.tensor([bounds[c][0] for c in COEFFICIENTS], dtype=torch.float64)
+    hi = torch.tensor([bounds[c][1] for c in COEFFICIENTS], dtype=torch.float64)
+    x0 = torch.minimum(torch.maximum(as_vector(start or LFShape()), lo), hi)
+    res = batched_levenberg_marquardt(residuals, x0, lo, hi, step=fd_step, max_iter=max_iter)
+    std = res.covariance().diagonal().clamp(min=0).sqrt()
+    span_x = hi - lo
+    at_bound = [c for i, c in enumerate(COEFFICIENTS) if min(res.x[i] - lo[i], hi[i] - res.x[i]) < 1e-6 * span_x[i]]
+    return ShapeFit(LFShape(**{c: float(v) for c, v in zip(COEFFICIENTS, res.x)}),
+                    {c: float(s) for c, s in zip(COEFFICIENTS, std)}, list(res.history), res.iterations,
+                    res.converged, at_bound)
 
 
-def run_fit(params: ActuatorParams, command: Chirp | None = None, n_check: int = 24, seed: int = 0) -> dict:
-    """Full procedure; returns a JSON-able report including the fitted coefficients."""
-    command = command or Chirp()
-    design = design_faults(params.nominal_faults)
-    hf_design = simulate_current(params, "hf", design, command)
-    before = evaluate(params, design, command, hf_design)
-    fitted, info = fit_shapes(params, hf_design, design, command)
-    tuned = replace(params, lf_shape=fitted)
-    after = evaluate(tuned, design, command, hf_design)
-    checks = {}
-    for name, importance in (("importance_sampled", True), ("uniform", False)):
-        k = random_faults(n_check, seed, importance)
-        checks[name] = {"faults": k.tolist(), "before": evaluate(params, k, command),
-                        "after": evaluate(tuned, k, command)}
-    return {"fitted": {c: getattr(fitted, c) for c in COEFFICIENTS}, "fit": info,
-            "design": {"before": before, "after": after, "nominal_before": before["per_case"][0],
-                       "nominal_after": after["per_case"][0]},
-            "random_check": checks}
+# ---- decision ------------------------------------------------------------------------------------
+@dataclass
+class Decision:
+    """Which coefficients to keep: ``keep`` is ``"fitted"`` or ``"physical"``; ``reasons`` says why."""
+
+    keep: str
+    reasons: list[str]
+
+    @property
+    def accepted(self) -> bool:
+        return self.keep == "fitted"
+
+
+def decide(before: Mapping[str, Mapping[str, Mapping[str, float]]], after: Mapping[str, Mapping[str, Mapping[str, float]]],
+           min_gain: float = 0.02, max_worsening: float = 0.0) -> Decision:
+    """Apply the decision rule (module docstring) to held-out summaries ``{set: {channel: {median, max}}}``
+    with the physical values (``before``) and the fitted ones (``after``)."""
+    reasons, ok = [], True
+    for name in before:
+        for channel in CHANNELS:
+            for stat in ("median", "max"):
+                b, a = before[name][channel][stat], after[name][channel][stat]
+                if a > b * (1.0 + max_worsening):
+                    ok = False
+                    reasons.append(f"{name} {channel} {stat} NRMSE worsens {100 * b:.2f} -> {100 * a:.2f} %")
+        b, a = before[name]["current"]["median"], after[name]["current"]["median"]
+        gain = 1.0 - a / b if b > 0 else 0.0
+        if gain < min_gain:
+            ok = False
+            reasons.append(f"{name} median current NRMSE falls by {100 * gain:.1f} % "
+                           f"({100 * b:.2f} -> {100 * a:.2f} %), less than the {100 * min_gain:g} % required")
+    if ok:
+        gains = ", ".join(f"{n} {100 * before[n]['current']['median']:.2f} -> {100 * after[n]['current']['median']:.2f} %"
+                          for n in before)
+        return Decision("fitted", [(f"held-out median current NRMSE improves on every set ({gains}) and no "
+                                   f"held-out median or max worsens by more than {100 * max_worsening:g} %")])
+    return Decision("physical", reasons)
+
+
+# ---- whole procedure -----------------------------------------------------------------------------
+@dataclass
+class LFFitResult:
+    """Outcome of :func:`run_fit` / :func:`fit_and_validate`.
+
+    Attributes:
+        shape: the coefficients to use (fitted or physical, per ``decision``).
+        fit: the Levenberg-Marquardt outcome.  decision: which was kept and why.
+        summary: {set: {"physical" | "fitted" (| "input"): {channel: {median, mean, max}}}} for the
+            design and held-out sets, NRMSE fractions.
+        per_vector: {set: {"faults", "physical", "fitted"}} (lists, (n, 8) and (n, 2)).
+    """
+
+    shape: LFShape
+    fit: ShapeFit
+    decision: Decision
+    summary: dict
+    per_vector: dict
+
+
+def fit_and_validate(params: ActuatorParams, command, duration: float, sets: Mapping[str, torch.Tensor],
+                     references: Mapping[str, torch.Tensor], settings: LFFitSettings) -> LFFitResult:
+    """Fit on ``sets["design"]`` against ``references["design"]``, validate on the held-out sets, decide.
+
+    ``references[name]`` (n, 2, T) are the target signals of ``sets[name]`` (the HF runs; tests may pass
+    other targets). The physical and fitted LF runs of every set are one batched LF call.
+    """
+    physical = LFShape()
+    fit = fit_shape(params, sets["design"], references["design"], command, duration, settings.bounds,
+                    settings.max_iter, settings.fd_step, start=physical)
+    names = list(sets)
+    candidates = {"physical": physical, "fitted": fit.shape}
+    if params.lf_shape != physical:
+        candidates["input"] = params.lf_shape
+    faults = torch.cat([sets[n] for n in names])
+    k_all = faults.repeat(len(candidates), 1)
+    shapes = torch.cat([as_vector(s).expand(faults.shape[0], -1) for s in candidates.values()])
+    runs = simulate(params, "lf", k_all, command, duration, shapes).split(faults.shape[0])
+    summary, per_vector = {n: {} for n in names}, {n: {"faults": sets[n].tolist()} for n in names}
+    for label, run in zip(candidates, runs):
+        for n, part in zip(names, run.split([sets[n].shape[0] for n in names])):
+            d = discrepancy(part, references[n])
+            summary[n][label] = summarize(d)
+            per_vector[n][label] = d.tolist()
+    held = [n for n in names if n != "design"]
+    decision = decide({n: summary[n]["physical"] for n in held}, {n: summary[n]["fitted"] for n in held},
+                      settings.min_gain, settings.max_worsening)
+    return LFFitResult(fit.shape if decision.accepted else physical, fit, decision, summary, per_vector)
+
+
+def run_fit(params: ActuatorParams, command, settings: LFFitSettings) -> LFFitResult:
+    """The whole procedure: sample the sets, one batched HF run of all of them, fit, validate, decide."""
+    duration = settings.duration if settings.duration is not None else getattr(command, "duration", None)
+    if duration is None:
+        raise ValueError("fit.duration is required when the command has no duration")
+    periods = duration * params.pwm_frequency
+    if round(periods) < 1 or abs(periods - round(periods)) > 1e-6:
+        raise ValueError(f"fit.duration must be a positive whole number of control periods "
+                         f"(1/{params.pwm_frequency:g} s), got {duration!r}")
+    sets = fault_sets(params, settings)
+    names = list(sets)
+    hf = simulate(params, "hf", torch.cat([sets[n] for n in names]), command, duration)
+    references = dict(zip(names, hf.split([sets[n].shape[0] for n in names])))
+    return fit_and_validate(params, command, duration, sets, references, settings)

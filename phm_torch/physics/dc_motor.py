@@ -10,7 +10,7 @@ around the Hall edges, sum of weights 2), and
   k_eq = sum_x w_x k_e (1 - a_k s_x)(1 + eps cos(theta_m - phi - alpha_x)),
   R_eq = sum_x w_x R (1 - a_R s_x),    L_eq = sum_x w_x L (1 - s_x) ** a_L,
 
-with a_k, a_R, a_L and the width fitted to the HF model (``scripts/fit_lf_shapes.py``; values in
+with a_k, a_R, a_L and the width fitted to the HF model (``phm-fit-lf``, ``phm_torch/lf_fit.py``; values in
 ``conf/actuator/*.yaml: lf_shape``).
 """
 
