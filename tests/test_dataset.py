@@ -33,6 +33,7 @@ APP = "phm_torch.apps.generate"
 TINY = ("dataset.fidelity=lf", "command.duration=0.02", "dataset.n_train=10", "dataset.n_val=3",
         "dataset.n_rul=2", "dataset.chunk_size=6", "assessment.sweep.frequencies=[15,30,60,90,130]",
         "assessment.sweep.cycles=3", "assessment.sweep.group_size=5", "progress=false", "threads=1",
+        "+dataset.healthy_fraction=null",     # the paper's scaling: no calibration pilot
         "dataset.n_labels=0")
 N_CHUNKS = 3  # 1 + 10 + 3 + 2 = 16 rows in chunks of 6
 # the same with 20 labels: at most 8 per chunk -> 3 chunks of 7 rows (the last padded with one k_0 row)

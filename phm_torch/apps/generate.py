@@ -29,6 +29,7 @@ from omegaconf import DictConfig
 from .. import __version__
 from ..assessment import AssessmentFunction
 from ..command import time_grid
+from ..data import calibration
 from ..data import generation as gen
 from ..data.labels import LabelComputer, make_label_plan
 from ..data.store import DatasetStore, read_json
@@ -93,8 +94,12 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
 
     fp, data_cfg = fingerprint(cfg)
     gen.prepare_store(data_dir, fp, data_cfg, bool(cfg.get("overwrite", False)))
-    plan = gen.make_plan(spec, params.nominal_faults, seed)
-    label_plan = make_label_plan(spec, params.nominal_faults, seed)
+    # the importance sampler calibrated to dataset.healthy_fraction (a pilot, cached in data_dir)
+    sampling, pilot_s = calibration.load_or_calibrate(
+        data_dir, fp, lambda: calibration.calibrate_spec(spec, params.nominal_faults, assessment, seed))
+    q = float(sampling["distance_exponent"])
+    plan = gen.make_plan(spec, params.nominal_faults, seed, q)
+    label_plan = make_label_plan(spec, params.nominal_faults, seed, q)
     plans = [p for p in (plan, label_plan) if p is not None]
     t0 = time.perf_counter()
     counts = {"computed": 0, "reused": 0, "repaired": 0}
@@ -122,9 +127,10 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             seeds = {"seed": seed, **plan.seeds, **(label_plan.seeds if label_plan is not None else {})}
             metadata = {"config": common.plain(cfg), "fingerprint": fp, "seeds": seeds,
                         "package_version": __version__, "git_revision": git_revision(),
-                        "torch_version": torch.__version__, "margin_names": list(gen.MARGIN_NAMES)}
+                        "torch_version": torch.__version__, "margin_names": list(gen.MARGIN_NAMES),
+                        "sampling": sampling, "assessment_sweep": assessment.record()}
             extra = {"seed": seed, "package_version": __version__, "chunk_size": plan.chunk_size,
-                     "n_chunks": plan.n_chunks}
+                     "n_chunks": plan.n_chunks, "sampling": sampling, "assessment_sweep": assessment.record()}
             if label_plan is not None:
                 extra |= {"label_chunk_size": label_plan.chunk_size, "n_label_chunks": label_plan.n_chunks}
             gen.merge(data_dir, plan, fp, grid.numpy(), command(grid).numpy(), metadata, extra, labels=label_plan)
@@ -141,9 +147,13 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if label_plan is not None:
         metrics["label_chunks"] = {"total": label_plan.n_chunks, **label_counts}
     metrics["wall_time_s"] = round(wall, 2)
+    metrics["sampling"] = {**sampling, "pilot_s": round(pilot_s, 2)}
+    metrics["assessment_sweep"] = {"frequencies": list(assessment.sweep.frequencies),
+                                   "amplitude": assessment.sweep.amplitude, "auto": assessment.auto}
     if manifest is not None:
         metrics["splits"] = {s: {"count": v["count"], "healthy": v["healthy"],
-                                 "healthy_fraction": round(v["healthy"] / v["count"], 4) if v["count"] else None}
+                                 "healthy_fraction": round(v["healthy"] / v["count"], 4) if v["count"] else None,
+                                 "unmeasurable": v.get("unmeasurable")}
                              for s, v in manifest["splits"].items()}
     timing: dict[str, float] = {}
     if computer is not None:
@@ -153,6 +163,8 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if labeller is not None and labeller.vectors:   # vectors assessed for the labels split, padding included
         metrics["labels_per_s"] = round(labeller.vectors / max(labeller.timing["labels_s"], 1e-9), 2)
         timing |= labeller.timing
+    if pilot_s:
+        timing["pilot_s"] = pilot_s
     if timing and assessment.vectors:
         metrics["assessment_ms_per_vector"] = round(1000 * assessment.wall_s / assessment.vectors, 3)
         metrics["timing_s"] = {k: round(v, 2) for k, v in timing.items()}

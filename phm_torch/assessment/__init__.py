@@ -1,9 +1,10 @@
 """Health assessment of an actuator from its LF frequency response (ema_reference.md §4)."""
 
+from .design import SweepDesign
 from .frequency_response import FrequencyResponse, LoopResponse, SineSweep
 from .health import Assessment, AssessmentFunction, HealthRequirements
 from .linear import LinearLoop, linear_loop
-from .margins import MARGIN_NAMES, Margins, margins
+from .margins import MARGIN_NAMES, Margins, margins, unmeasurable_counts
 
 __all__ = [
            "MARGIN_NAMES",
@@ -15,6 +16,8 @@ __all__ = [
            "LoopResponse",
            "Margins",
            "SineSweep",
+           "SweepDesign",
            "linear_loop",
            "margins",
+           "unmeasurable_counts",
 ]

@@ -19,15 +19,17 @@ same batch size: the last group is padded by repeating its last frequency).
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 
 from ..faults import as_fault_tensor
 from ..params import ActuatorParams
 from ..simulator import EMASimulator
+from .design import AUTO, SweepDesign
 
 
 @dataclass(frozen=True)
@@ -36,34 +38,55 @@ class SineSweep:
 
     Attributes:
         frequencies: test frequencies [Hz], increasing; each is snapped so that ``measure_cycles``
-            cycles span a whole number of control periods (no spectral leakage).
-        amplitude: command amplitude [rad, user side], the same at every frequency.
+            cycles span a whole number of control periods (no spectral leakage). ``"auto"``: derived from
+            the actuator's linearised loop by ``design`` (:meth:`resolve`).
+        amplitude: command amplitude [rad, user side], the same at every frequency; ``"auto"``: derived
+            from the actuator's friction, play, stroke and limits by ``design``.
         cycles: cycles simulated per frequency (from rest), the last ``measure_cycles`` measured.
         measure_cycles: cycles in the Fourier window.
         min_duration: shortest simulation [s] (lets the closed-loop transient decay at high frequency).
         substeps: LF substeps per control period.
         group_size: frequencies simulated together in one batch.
         compile: fuse the simulator substep with ``torch.compile`` (worth it for batches >~ 256).
+        design: how the ``"auto"`` values are derived (:class:`~phm_torch.assessment.design.SweepDesign`).
     """
 
-    frequencies: tuple[float, ...]
-    amplitude: float
+    frequencies: tuple[float, ...] | str
+    amplitude: float | str
     cycles: int
     measure_cycles: int
     min_duration: float
     substeps: int
     group_size: int
     compile: bool
+    design: SweepDesign = field(default_factory=SweepDesign)
 
     def __post_init__(self) -> None:
-        freqs = tuple(float(f) for f in self.frequencies)
-        object.__setattr__(self, "frequencies", freqs)
-        if len(freqs) < 2:
-            raise ValueError(f"assessment.sweep.frequencies needs at least 2 values, got {list(freqs)}")
-        if any(not math.isfinite(f) or f <= 0 for f in freqs) or any(b <= a for a, b in itertools.pairwise(freqs)):
-            raise ValueError(f"assessment.sweep.frequencies must be positive and increasing, got {list(freqs)}")
-        if not (math.isfinite(self.amplitude) and self.amplitude > 0):
+        if isinstance(self.frequencies, str):
+            if self.frequencies != AUTO:
+                raise ValueError(f"assessment.sweep.frequencies must be a list of frequencies [Hz] or "
+                                 f"'{AUTO}', got {self.frequencies!r}")
+        else:
+            try:
+                freqs = tuple(float(f) for f in self.frequencies)
+            except (TypeError, ValueError):
+                raise ValueError(f"assessment.sweep.frequencies must be a list of frequencies [Hz] or "
+                                 f"'{AUTO}', got {self.frequencies!r}") from None
+            object.__setattr__(self, "frequencies", freqs)
+            if len(freqs) < 2:
+                raise ValueError(f"assessment.sweep.frequencies needs at least 2 values, got {list(freqs)}")
+            if any(not math.isfinite(f) or f <= 0 for f in freqs) or \
+                    any(b <= a for a, b in itertools.pairwise(freqs)):
+                raise ValueError(f"assessment.sweep.frequencies must be positive and increasing, got {list(freqs)}")
+        if isinstance(self.amplitude, str):
+            if self.amplitude != AUTO:
+                raise ValueError(f"assessment.sweep.amplitude must be a number [rad] or '{AUTO}', "
+                                 f"got {self.amplitude!r}")
+        elif isinstance(self.amplitude, bool) or not isinstance(self.amplitude, (int, float)) or \
+                not (math.isfinite(self.amplitude) and self.amplitude > 0):
             raise ValueError(f"assessment.sweep.amplitude must be > 0 [rad], got {self.amplitude}")
+        if not isinstance(self.design, SweepDesign):
+            raise ValueError(f"assessment.sweep.design must be a SweepDesign, got {self.design!r}")
         if int(self.measure_cycles) != self.measure_cycles or self.measure_cycles < 1:
             raise ValueError(f"assessment.sweep.measure_cycles must be an integer >= 1, got {self.measure_cycles}")
         if int(self.cycles) != self.cycles or self.cycles <= self.measure_cycles:
@@ -75,6 +98,19 @@ class SineSweep:
             raise ValueError(f"assessment.sweep.substeps must be an integer >= 1, got {self.substeps}")
         if int(self.group_size) != self.group_size or self.group_size < 1:
             raise ValueError(f"assessment.sweep.group_size must be an integer >= 1, got {self.group_size}")
+
+    @property
+    def is_resolved(self) -> bool:
+        """Both the frequencies and the amplitude are numbers (no ``"auto"``)."""
+        return not isinstance(self.frequencies, str) and not isinstance(self.amplitude, str)
+
+    def resolve(self, params: ActuatorParams) -> SineSweep:
+        """This sweep with ``"auto"`` frequencies and amplitude derived for ``params`` (explicit values win)."""
+        if self.is_resolved:
+            return self
+        freqs = self.design.frequencies(params) if isinstance(self.frequencies, str) else self.frequencies
+        amp = self.design.amplitude(params, freqs[-1]) if isinstance(self.amplitude, str) else self.amplitude
+        return dataclasses.replace(self, frequencies=freqs, amplitude=amp)
 
 
 @dataclass
@@ -98,13 +134,13 @@ class FrequencyResponse:
     Args:
         params: actuator datasheet; the measurement samples the LVDT once per control period (at the
             instants the controller samples it), whatever ``params.sample_rate``.
-        sweep: the test signals.
+        sweep: the test signals (``"auto"`` values resolved for ``params``).
         device: where to simulate (float64).
     """
 
     def __init__(self, params: ActuatorParams, sweep: SineSweep, device: str | torch.device = "cpu"):
         self.params = params.replace(sample_rate=params.pwm_frequency)
-        self.sweep = sweep
+        self.sweep = sweep = sweep.resolve(params)
         self.device = torch.device(device)
         self.sim = EMASimulator(self.params, "lf", substeps=int(sweep.substeps), device=self.device,
                                 compile=bool(sweep.compile))

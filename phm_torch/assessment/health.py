@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
@@ -66,7 +67,8 @@ class AssessmentFunction:
 
     Args:
         params: actuator datasheet.
-        sweep: test signals (frequencies, amplitude, ...).
+        sweep: test signals (frequencies, amplitude, ...); ``"auto"`` values are derived for ``params``
+            (:class:`~phm_torch.assessment.design.SweepDesign`), ``self.sweep`` is the resolved sweep.
         requirements: thresholds.
         device: simulation device.
 
@@ -76,9 +78,10 @@ class AssessmentFunction:
     def __init__(self, params: ActuatorParams, sweep: SineSweep, requirements: HealthRequirements,
                  device: str | torch.device = "cpu"):
         self.params = params
-        self.sweep = sweep
+        self.sweep = sweep.resolve(params)
+        self.auto = {name: isinstance(getattr(sweep, name), str) for name in ("frequencies", "amplitude")}
         self.requirements = requirements
-        self.response = FrequencyResponse(params, sweep, device)
+        self.response = FrequencyResponse(params, self.sweep, device)
         self._nominal: Margins | None = None
         self.wall_s = 0.0          # time spent simulating [s]
         self.vectors = 0           # fault vectors assessed
@@ -102,6 +105,17 @@ class AssessmentFunction:
             raise ValueError(f"assessment.sweep.frequencies: the nominal bandwidth is not on the grid "
                              f"[{f[0]}, {f[-1]}] Hz (got {bw}); extend the grid")
         return bw
+
+    def record(self) -> dict[str, Any]:
+        """JSON-able account of the sweep actually used: frequencies [Hz], amplitude [rad], which of them
+        were derived (``auto``), the derivation (linear loop figures, amplitude bounds) when any was, and
+        the nominal actuator's measured margins."""
+        out: dict[str, Any] = {"frequencies": list(self.sweep.frequencies), "amplitude": self.sweep.amplitude,
+                               "auto": dict(self.auto)}
+        if any(self.auto.values()):
+            out["design"] = self.sweep.design.record(self.params)
+        out["nominal_margins"] = {k: round(float(v[0]), 4) for k, v in self.nominal.as_dict().items()}
+        return out
 
     def __call__(self, faults: torch.Tensor) -> Assessment:
         """Assess (B, 8) fault vectors."""

@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 MARGIN_NAMES = ("crossover_hz", "phase_margin_deg", "phase_crossover_hz", "gain_margin_db", "bandwidth_hz")
@@ -38,6 +39,18 @@ class Margins:
     def stacked(self) -> torch.Tensor:
         """(B, 5) in the order of ``MARGIN_NAMES``."""
         return torch.stack([getattr(self, n) for n in MARGIN_NAMES], -1)
+
+
+# The requirements that a margin column decides, and its column: a nan there is "not measurable on the grid".
+UNMEASURABLE_COLUMNS = {"phase_margin": 1, "gain_margin": 3, "bandwidth": 4}
+
+
+def unmeasurable_counts(stacked: np.ndarray | torch.Tensor) -> dict[str, int]:
+    """How many rows of a (n, 5) ``Margins.stacked()`` array have a phase margin, gain margin or bandwidth
+    that could not be measured on the grid (nan; such a row is labelled faulty). An ``inf`` bandwidth
+    (|T| above -3 dB on the whole grid) is a measured lower bound, not counted."""
+    a = np.asarray(stacked, dtype=np.float64).reshape(-1, len(MARGIN_NAMES))
+    return {name: int(np.isnan(a[:, col]).sum()) for name, col in UNMEASURABLE_COLUMNS.items()}
 
 
 def first_fall(x: torch.Tensor, level: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

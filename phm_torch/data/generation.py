@@ -31,7 +31,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from ..assessment import MARGIN_NAMES, AssessmentFunction
+from ..assessment import MARGIN_NAMES, AssessmentFunction, unmeasurable_counts
 from ..effects import build_effects
 from ..params import ActuatorParams
 from ..simulator import EMASimulator
@@ -56,7 +56,7 @@ from .store import (
 log = logging.getLogger(__name__)
 
 SPLITS = ("nominal", "train", "val", "rul")   # the signal splits (the optional labels split: labels.py)
-STREAMS = ("train", "val", "rul", "labels", "randomize")   # child i of SeedSequence(seed) seeds STREAMS[i]
+STREAMS = ("train", "val", "rul", "labels", "randomize", "pilot")   # child i of SeedSequence(seed) seeds STREAMS[i]
 STAGES = ("all", "chunks", "merge")
 ROWS_PER_H5_CHUNK = 1    # HDF5 chunk shape (1, n_e) of the signal arrays: a random row read reads that row only
 
@@ -85,6 +85,11 @@ class DatasetSpec:
             unchanged: health stays a property of the fault vector.
         randomize: effect parameters drawn per ``train`` record, ``{name: {param: [low, high]}}`` (uniform;
             domain randomisation, :mod:`phm_torch.data.randomization`); the other splits keep ``effects``.
+        healthy_fraction: the healthy fraction the full-domain splits (train, val, labels) are sampled
+            for: the importance sampler's distance exponent is calibrated on a pilot of assessment labels
+            (:mod:`phm_torch.data.calibration`); null = the paper's scaling, no pilot.
+        healthy_fraction_tolerance: the paper's scaling is kept when the pilot is within this of the target.
+        pilot_size: fault vectors of the calibration pilot (assessed in batches of ``chunk_size``).
     """
 
     n_train: int
@@ -101,6 +106,9 @@ class DatasetSpec:
     effects: Mapping[str, Mapping[str, Any] | None] = field(default_factory=dict)
     randomize: Mapping[str, Mapping[str, Sequence[float]]] = field(default_factory=dict)
     randomized: tuple[randomization.RandomizedParam, ...] = field(init=False, repr=False, default=())
+    healthy_fraction: float | None = 0.3
+    healthy_fraction_tolerance: float = 0.05
+    pilot_size: int = 1536
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "uniform", tuple(int(i) for i in self.uniform))
@@ -114,7 +122,7 @@ class DatasetSpec:
         object.__setattr__(self, "effects", effects)
         object.__setattr__(self, "randomized", randomization.parse_randomization(self.randomize, effects))
         for name, low in (("n_train", 1), ("n_val", 0), ("n_rul", 0), ("chunk_size", 1), ("n_labels", 0),
-                          ("label_chunk_size", 1)):
+                          ("label_chunk_size", 1), ("pilot_size", 16)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
                 raise ValueError(f"dataset.{name} must be an integer >= {low}, got {v!r}")
@@ -124,6 +132,11 @@ class DatasetSpec:
             raise ValueError(f"dataset.fidelity must be 'hf' or 'lf', got {self.fidelity!r}")
         if self.substeps is not None and (not isinstance(self.substeps, int) or self.substeps < 1):
             raise ValueError(f"dataset.substeps must be null or an integer >= 1, got {self.substeps!r}")
+        h, tol = self.healthy_fraction, self.healthy_fraction_tolerance
+        if h is not None and (isinstance(h, bool) or not isinstance(h, (int, float)) or not 0.0 < h < 1.0):
+            raise ValueError(f"dataset.healthy_fraction must be in (0, 1) or null, got {h!r}")
+        if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not 0.0 <= tol < 1.0:
+            raise ValueError(f"dataset.healthy_fraction_tolerance must be in [0, 1), got {tol!r}")
 
     @property
     def counts(self) -> dict[str, int]:
@@ -169,10 +182,12 @@ class Plan:
         return chunk * self.chunk_size, min((chunk + 1) * self.chunk_size, self.n_rows)
 
 
-def make_plan(spec: DatasetSpec, nominal: Sequence[float], seed: int) -> Plan:
-    """Sample every signal split (seeds spawned from ``seed``: one independent stream per split)."""
+def make_plan(spec: DatasetSpec, nominal: Sequence[float], seed: int, distance_exponent: float = 1.0) -> Plan:
+    """Sample every signal split (seeds spawned from ``seed``: one independent stream per split); train and
+    val with the calibrated ``distance_exponent`` (``calibration.py``; 1 = the paper), rul with the paper's
+    scaling on its restricted domain (near-nominal actuators whatever the calibration)."""
     streams = {name: s for name, s in seed_streams(seed).items() if name in spec.counts}
-    full = ImportanceSampler(tuple(nominal), spec.uniform, 1.0)
+    full = ImportanceSampler(tuple(nominal), spec.uniform, 1.0, distance_exponent)
     near = ImportanceSampler(tuple(nominal), spec.uniform, float(spec.rul_radius))
     blocks, offsets, start = [], {}, 0
     for name, n in spec.counts.items():
@@ -258,7 +273,7 @@ def prepare_store(data_dir: Path, fingerprint: str, config: Mapping[str, Any], o
                              f"(fingerprint {old!r}, this config {fingerprint!r}); choose another data_dir "
                              "or pass overwrite=true to delete it and start over")
         log.warning("overwrite=true: deleting the store in %s", data_dir)
-        for name in (MANIFEST_FILE, DATASET_FILE, STORE_FILE):
+        for name in (MANIFEST_FILE, DATASET_FILE, STORE_FILE, "sampling.json"):   # sampling.json: calibration.py
             (data_dir / name).unlink(missing_ok=True)
         shutil.rmtree(data_dir / CHUNK_DIR, ignore_errors=True)
     write_json(marker, {"fingerprint": fingerprint, "config": config})
@@ -354,6 +369,7 @@ def _merge_plan(f: Any, data_dir: Path, plan: Plan, fingerprint: str, n_e: int) 
     names = plan.layout.arrays
     hashes = {s: {a: hashlib.sha256() for a in names} for s in plan.offsets}
     healthy = dict.fromkeys(plan.offsets, 0)
+    unmeasurable = {s: dict.fromkeys(("phase_margin", "gain_margin", "bandwidth"), 0) for s in plan.offsets}
     out = {}
     for s, (a, b) in plan.offsets.items():
         g = f.create_group(s, track_order=True)
@@ -381,7 +397,12 @@ def _merge_plan(f: Any, data_dir: Path, plan: Plan, fingerprint: str, n_e: int) 
                 out[s][name][lo - a:hi - a] = part
                 hashes[s][name].update(part.tobytes())
             healthy[s] += int(arrays["healthy"][lo - start:hi - start].sum())
-    return {s: {"count": b - a, "healthy": healthy[s], "sha256": {n: hashes[s][n].hexdigest() for n in names}}
+            for key, v in unmeasurable_counts(arrays["margins"][lo - start:hi - start]).items():
+                unmeasurable[s][key] += v
+    # unmeasurable: rows whose margin has no crossing on the test grid (nan; labelled faulty)
+    return {s: {"count": b - a, "healthy": healthy[s],
+                "healthy_fraction": round(healthy[s] / (b - a), 4) if b > a else None,
+                "unmeasurable": unmeasurable[s], "sha256": {n: hashes[s][n].hexdigest() for n in names}}
             for s, (a, b) in plan.offsets.items()}
 
 

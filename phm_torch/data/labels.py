@@ -34,13 +34,15 @@ def label_chunk_rows(n_labels: int, label_chunk_size: int) -> int:
     return math.ceil(n_labels / n_chunks)
 
 
-def make_label_plan(spec: DatasetSpec, nominal: Sequence[float], seed: int) -> Plan | None:
-    """The labels split's row list: K (n_labels, 8) from the full-domain importance sampler and the
-    ``labels`` seed stream; None when ``spec.n_labels`` is 0 (the store then has no labels split)."""
+def make_label_plan(spec: DatasetSpec, nominal: Sequence[float], seed: int,
+                    distance_exponent: float = 1.0) -> Plan | None:
+    """The labels split's row list: K (n_labels, 8) from the full-domain importance sampler (with the
+    calibrated ``distance_exponent``, as train) and the ``labels`` seed stream; None when ``spec.n_labels``
+    is 0 (the store then has no labels split)."""
     streams = seed_streams(seed)
     if spec.n_labels == 0:
         return None
-    full = ImportanceSampler(tuple(nominal), spec.uniform, 1.0)
+    full = ImportanceSampler(tuple(nominal), spec.uniform, 1.0, distance_exponent)
     k = full.sample(spec.n_labels, streams[LABELS])
     rows = label_chunk_rows(spec.n_labels, spec.label_chunk_size)
     return Plan(k, {LABELS: (0, spec.n_labels)}, rows, seed_record({LABELS: streams[LABELS]}), LABEL_CHUNKS)

@@ -14,6 +14,11 @@ With d_i = |k_i - k_0,i| / (reach of parameter i on that side) the normalised di
 d = max_i d_i = r * max_i u_i ** n_r, and P(d <= a) = P(max_i u_i <= (a/r) ** (1/n_r)) = a / r:
 uniform on [0, r]. ``radius`` r < 1 restricts the domain to the neighbourhood of nominal (the paper's
 RUL validation set).
+
+``distance_exponent`` q generalises the paper's scaling: the rescaling exponent becomes n_r / q, so that
+P(d <= a) = P(max_i u_i <= (a/r) ** (q/n_r)) = (a/r) ** q. q = 1 is the paper's (d uniform); q > 1 moves
+the samples away from nominal (fewer healthy actuators), q < 1 towards it. ``calibration.py`` chooses q
+so that a configured fraction of the sampled actuators is healthy.
 """
 
 from __future__ import annotations
@@ -36,11 +41,13 @@ class ImportanceSampler:
         nominal: k_0, 8 values in [0, 1].
         uniform: 0-based indices of the parameters left uniform on [0, 1] (k7 -> index 6).
         radius: r in (0, 1], the largest normalised distance from nominal.
+        distance_exponent: q > 0, P(d <= a) = (a / r) ** q (1: the paper's scaling, d uniform).
     """
 
     nominal: tuple[float, ...]
     uniform: tuple[int, ...]
     radius: float
+    distance_exponent: float = 1.0
 
     def __post_init__(self) -> None:
         nominal = tuple(float(v) for v in self.nominal)
@@ -56,6 +63,9 @@ class ImportanceSampler:
             raise ValueError("sampling.uniform: at least one parameter must be rescaled")
         if not (math.isfinite(self.radius) and 0.0 < self.radius <= 1.0):
             raise ValueError(f"sampling.radius must be in (0, 1], got {self.radius}")
+        q = self.distance_exponent
+        if isinstance(q, bool) or not isinstance(q, (int, float)) or not (math.isfinite(q) and q > 0):
+            raise ValueError(f"sampling.distance_exponent must be a number > 0, got {q!r}")
 
     @property
     def rescaled(self) -> tuple[int, ...]:
@@ -64,8 +74,13 @@ class ImportanceSampler:
 
     @property
     def n_rescaled(self) -> int:
-        """n_r, the exponent of the rescaling."""
+        """n_r, the number of rescaled parameters (the paper's exponent of the rescaling)."""
         return len(self.rescaled)
+
+    @property
+    def exponent(self) -> float:
+        """The exponent of the rescaling, n_r / q (the paper: n_r)."""
+        return self.n_rescaled / float(self.distance_exponent)
 
     def sample(self, n: int, seed: int | np.random.SeedSequence) -> np.ndarray:
         """n fault vectors (n, 8) float64; deterministic in ``seed``."""
@@ -79,7 +94,7 @@ class ImportanceSampler:
         """Map points of the unit hypercube J (n, 8) to fault vectors K (n, 8)."""
         j = np.asarray(j, dtype=np.float64)
         k = j.copy()
-        p, r = self.n_rescaled, self.radius
+        p, r = self.exponent, self.radius
         for i in self.rescaled:
             k0 = self.nominal[i]
             if k0 == 0.0:

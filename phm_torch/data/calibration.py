@@ -1,0 +1,186 @@
+"""Importance sampling calibrated to a healthy fraction (``dataset.healthy_fraction``), for any actuator.
+
+The paper's scaling (``sampling.py``, distance exponent q = 1: the normalised distance d from nominal is
+uniform) puts ~30 % of the reference actuator's sampled vectors in the healthy class, but another
+actuator's assessment can be more or less tolerant of the same normalised damages. The calibration:
+
+1. **Pilot**: ``pilot_size`` vectors with the paper's scaling (d uniform on [0, 1]) from their own seed
+   stream (``pilot``, child 5 of ``SeedSequence(seed)``), labelled by the assessment function alone.
+2. **Health against distance**: h(d) = P(healthy | d), estimated by a non-increasing step function of d
+   (isotonic regression, pool-adjacent-violators: the further from nominal, the less likely healthy).
+3. **Exponent**: with P(d <= a) = a^q the expected healthy fraction is H(q) = integral h(d) d(d^q), for
+   the step function sum_i h_i (e_{i+1}^q - e_i^q), non-increasing in q; q solves H(q) = target by
+   bisection on log q within ``exponent_bounds``.
+4. **Keep the paper's** q = 1 when the pilot's own healthy fraction is within ``tolerance`` of the target,
+   so that an actuator the paper's scaling already suits (the reference) keeps exactly its data.
+
+The calibration depends only on the config and the seed (the pilot's stream), so every shard, resume
+and merge computes the same q; it is also cached in ``data_dir/sampling.json`` under the store's
+fingerprint, so only the first run pays the pilot.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .sampling import ImportanceSampler
+from .store import read_json, write_json
+
+CALIBRATION_FILE = "sampling.json"
+
+
+def isotonic_decreasing(y: np.ndarray) -> np.ndarray:
+    """Least-squares non-increasing fit of y (n,) in the given order (pool adjacent violators)."""
+    means: list[float] = []
+    sizes: list[int] = []
+    for v in np.asarray(y, dtype=np.float64):
+        means.append(float(v))
+        sizes.append(1)
+        while len(means) > 1 and means[-2] < means[-1]:     # violates "non-increasing": pool the two
+            m, n = means.pop(), sizes.pop()
+            means[-1] = (means[-1] * sizes[-1] + m * n) / (sizes[-1] + n)
+            sizes[-1] += n
+    return np.repeat(means, sizes)
+
+
+@dataclass
+class ExponentCalibrator:
+    """Chooses the distance exponent q of the importance sampler for a target healthy fraction.
+
+    Args:
+        target: the healthy fraction wanted, in (0, 1).
+        tolerance: keep q = 1 (the paper) when the pilot's healthy fraction is within this of the target.
+        exponent_bounds: (low, high) search interval of q.
+
+    Fitted attributes (``fit``): ``edges_`` (n + 1,) and ``health_`` (n,) the step function h(d) on
+    [edges_i, edges_i+1) (d normalised by the radius), ``pilot_fraction_``, ``exponent_`` (q),
+    ``expected_fraction_`` (H(q)), ``kept_paper_``, ``reached_`` (False: the target lies outside
+    H(exponent_bounds), q is clamped to the nearer bound).
+    """
+
+    target: float
+    tolerance: float = 0.05
+    exponent_bounds: tuple[float, float] = (0.05, 20.0)
+
+    def __post_init__(self) -> None:
+        t = self.target
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0.0 < t < 1.0:
+            raise ValueError(f"dataset.healthy_fraction must be in (0, 1) or null, got {t!r}")
+        tol = self.tolerance
+        if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not 0.0 <= tol < 1.0:
+            raise ValueError(f"dataset.healthy_fraction_tolerance must be in [0, 1), got {tol!r}")
+        lo, hi = self.exponent_bounds
+        if not 0 < lo < 1 < hi:
+            raise ValueError(f"exponent_bounds must be (low, high) with 0 < low < 1 < high, got {self.exponent_bounds}")
+
+    def expected_fraction(self, q: float) -> float:
+        """H(q) of the fitted step function [-]."""
+        return float(np.sum(self.health_ * np.diff(self.edges_ ** q)))
+
+    def fit(self, distance: np.ndarray, healthy: np.ndarray) -> ExponentCalibrator:
+        """Fit on a pilot sampled with q = 1: ``distance`` (n,) d / r in [0, 1], ``healthy`` (n,) bool."""
+        d = np.asarray(distance, dtype=np.float64)
+        h = np.asarray(healthy, dtype=np.float64)
+        if d.ndim != 1 or d.shape != h.shape or d.size < 2:
+            raise ValueError(f"pilot: distance and healthy must be two (n,) arrays with n >= 2, got {d.shape} "
+                             f"and {h.shape}")
+        order = np.argsort(d, kind="stable")
+        d, h = d[order], h[order]
+        self.health_ = isotonic_decreasing(h)
+        self.edges_ = np.concatenate([[0.0], 0.5 * (d[1:] + d[:-1]), [1.0]]).clip(0.0, 1.0)
+        self.pilot_fraction_ = float(h.mean())
+        self.kept_paper_ = abs(self.pilot_fraction_ - self.target) <= self.tolerance
+        self.reached_ = True
+        if self.kept_paper_:
+            self.exponent_ = 1.0
+        else:
+            lo, hi = (math.log(b) for b in self.exponent_bounds)
+            if self.expected_fraction(math.exp(lo)) < self.target:       # H non-increasing in q
+                self.exponent_, self.reached_ = math.exp(lo), False
+            elif self.expected_fraction(math.exp(hi)) > self.target:
+                self.exponent_, self.reached_ = math.exp(hi), False
+            else:
+                for _ in range(60):
+                    mid = 0.5 * (lo + hi)
+                    lo, hi = (mid, hi) if self.expected_fraction(math.exp(mid)) > self.target else (lo, mid)
+                self.exponent_ = math.exp(0.5 * (lo + hi))
+            self.exponent_ = float(f"{self.exponent_:.4g}")
+        self.expected_fraction_ = self.expected_fraction(self.exponent_)
+        return self
+
+
+def calibrate(sampler: ImportanceSampler, assess: Callable[[np.ndarray], np.ndarray], target: float,
+              tolerance: float, pilot_size: int, seed: np.random.SeedSequence) -> dict[str, Any]:
+    """Draw the pilot with ``sampler`` (its distance exponent must be 1), label it with ``assess``
+    (K (n, 8) -> healthy (n,) bool) and fit the exponent.
+
+    Returns:
+        JSON-able record: ``healthy_fraction_target``, ``tolerance``, ``pilot_size``,
+        ``pilot_healthy_fraction``, ``distance_exponent`` (q), ``rescale_exponent`` (n_r / q),
+        ``paper_exponent`` (n_r), ``expected_healthy_fraction``, ``kept_paper``, ``reached``.
+    """
+    if sampler.distance_exponent != 1.0:
+        raise ValueError(f"the pilot uses the paper's scaling (distance_exponent 1), got {sampler.distance_exponent}")
+    k = sampler.sample(pilot_size, seed)
+    healthy = np.asarray(assess(k), dtype=bool)
+    cal = ExponentCalibrator(target, tolerance).fit(sampler.distance(k) / sampler.radius, healthy)
+    q = cal.exponent_
+    return {"healthy_fraction_target": target, "tolerance": tolerance, "pilot_size": int(pilot_size),
+            "pilot_healthy_fraction": round(cal.pilot_fraction_, 4), "distance_exponent": q,
+            "rescale_exponent": round(sampler.n_rescaled / q, 6), "paper_exponent": sampler.n_rescaled,
+            "expected_healthy_fraction": round(cal.expected_fraction_, 4), "kept_paper": bool(cal.kept_paper_),
+            "reached": bool(cal.reached_)}
+
+
+def paper_record(sampler: ImportanceSampler) -> dict[str, Any]:
+    """The record of an uncalibrated store (``dataset.healthy_fraction: null``): the paper's scaling."""
+    return {"healthy_fraction_target": None, "distance_exponent": 1.0, "rescale_exponent": float(sampler.n_rescaled),
+            "paper_exponent": sampler.n_rescaled}
+
+
+def load_or_calibrate(data_dir: Path, fingerprint: str, run: Callable[[], dict[str, Any]]) -> tuple[dict[str, Any], float]:
+    """The calibration cached in ``data_dir/sampling.json`` under ``fingerprint``, or ``run()``'s, cached.
+
+    Returns:
+        (the record, seconds spent on the pilot: 0 when cached).
+    """
+    path = Path(data_dir) / CALIBRATION_FILE
+    if path.is_file():
+        try:
+            cached = read_json(path)
+        except (OSError, ValueError):
+            cached = {}
+        if isinstance(cached, Mapping) and cached.get("fingerprint") == fingerprint and "calibration" in cached:
+            return dict(cached["calibration"]), 0.0
+    t0 = time.perf_counter()
+    record = run()
+    wall = time.perf_counter() - t0
+    write_json(path, {"fingerprint": fingerprint, "calibration": record})
+    return record, wall
+
+
+def calibrate_spec(spec: Any, nominal: Any, assessment: Any, seed: int) -> dict[str, Any]:
+    """The calibration of a ``DatasetSpec``: the paper's record when ``spec.healthy_fraction`` is null, else
+    a pilot of ``spec.pilot_size`` vectors from the ``pilot`` seed stream, assessed in batches of
+    ``spec.chunk_size`` (the assessment batch of the signal chunks: a compiled sweep compiles once)."""
+    from .generation import seed_streams  # generation -> store; imported here to keep this module light
+    from .labels import LabelComputer
+
+    sampler = ImportanceSampler(tuple(nominal), spec.uniform, 1.0)
+    if spec.healthy_fraction is None:
+        return paper_record(sampler)
+    labeller = LabelComputer(assessment, nominal, spec.chunk_size)
+
+    def assess(k: np.ndarray) -> np.ndarray:
+        return np.concatenate([labeller(k[i:i + spec.chunk_size])["healthy"]
+                               for i in range(0, len(k), spec.chunk_size)]).astype(bool)
+
+    return calibrate(sampler, assess, float(spec.healthy_fraction), float(spec.healthy_fraction_tolerance),
+                     spec.pilot_size, seed_streams(seed)["pilot"])
