@@ -78,11 +78,18 @@ class ActuatorParams:
     short_circuit_max: float
     nominal_faults: tuple[float, ...]
     lf_shape: LFShape = field(default_factory=LFShape)
+    # Optional, 0 = not declared: teeth of the pinion on the motor shaft, the gear-mesh order per motor turn
+    # (the workbench adds it to the rotor-angle orders it analyses).
+    pinion_teeth: int = 0
 
     def __post_init__(self) -> None:
         for f in fields(self):
             name, value = f.name, getattr(self, f.name)
             if name in ("nominal_faults", "lf_shape"):
+                continue
+            if name == "pinion_teeth":
+                if isinstance(value, bool) or int(value) != value or value < 0:
+                    raise ValueError(f"actuator.{name} must be an integer >= 0 (0 = not declared), got {value!r}")
                 continue
             if name in _INTEGER:
                 if int(value) != value or value <= 0:
@@ -125,7 +132,8 @@ class ActuatorParams:
         unknown = sorted(set(data) - known)
         if unknown:
             raise ValueError(f"actuator: unknown parameter(s) {unknown}; known: {sorted(known)}")
-        missing = sorted(f.name for f in fields(cls) if f.name not in data and f.name != "lf_shape")
+        missing = sorted(f.name for f in fields(cls) if f.name not in data and f.default is dataclasses.MISSING
+                         and f.default_factory is dataclasses.MISSING)
         if missing:
             raise ValueError(f"actuator: missing parameter(s) {missing}")
         shape = data.pop("lf_shape", None) or {}

@@ -17,7 +17,7 @@ from .params import ActuatorParams
 
 # Fields that define the discretisation or the topology; they are not per-sample tensors.
 STRUCTURAL = ("pole_pairs", "stator_slots", "pwm_frequency", "sample_rate", "filter_cutoff",
-              "short_circuit_max", "nominal_faults", "lf_shape")
+              "short_circuit_max", "nominal_faults", "lf_shape", "pinion_teeth")
 TENSOR_FIELDS = tuple(f.name for f in fields(ActuatorParams) if f.name not in STRUCTURAL)
 
 

@@ -92,14 +92,19 @@ def settings_from_config(cfg: DictConfig) -> tuple[WorkbenchSettings, HighBandNo
                        alpha=common.number(score.get("alpha", 0.01), "score.alpha", 0.0, True),
                        grid=grid, alias_ratio=common.number(score.get("alias_ratio", 1e-3), "score.alias_ratio", 0.0),
                        rank_tol=common.number(score.get("rank_tol", 1e-3), "score.rank_tol", 0.0),
-                       min_gain=common.number(score.get("min_gain", 0.01), "score.min_gain", 0.0))
+                       min_gain=common.number(score.get("min_gain", 0.01), "score.min_gain", 0.0),
+                       data_orders=common.integer(score.get("data_orders", 3), "score.data_orders", 0))
     refit = _mapping(cfg.get("refit"), "refit")
     free = _mapping(refit.get("free"), "refit.free")
     closure = _mapping(cfg.get("closure"), "closure")
+    harmonics = closure.get("harmonics")  # null: from the actuator's orders and the residual's
+    if harmonics is not None and not isinstance(harmonics, list):
+        raise ValueError(f"closure.harmonics must be null or a list of orders, got {harmonics!r}")
     cl = ClosureSettings(
         enabled=str(closure.get("enabled", "auto")), equation=str(closure.get("equation", "torque")),
-        harmonics=tuple(common.integer(h, f"closure.harmonics[{i}]", 1)
-                        for i, h in enumerate(common.plain(closure.get("harmonics", [1, 2, 4, 8, 24, 48])))),
+        harmonics=None if harmonics is None else tuple(common.integer(h, f"closure.harmonics[{i}]", 1)
+                                                       for i, h in enumerate(harmonics)),
+        data_orders=common.integer(closure.get("data_orders", 3), "closure.data_orders", 0),
         hidden=common.integer(closure.get("hidden", 8), "closure.hidden", 0),
         output_scale=common.number(closure.get("output_scale", 1e-3), "closure.output_scale", 0.0, True),
         ridge=common.number(closure.get("ridge", 1.0), "closure.ridge", 0.0),
@@ -132,7 +137,9 @@ def _diagnostics(node: dict) -> DiagnosticSettings:
     for key, v in node.items():
         if not hasattr(defaults, key):
             raise ValueError(f"diagnostics: unknown key {key!r}; known: {sorted(vars(defaults))}")
-        if isinstance(getattr(defaults, key), int):
+        if key == "max_harmonic":  # null: twice the actuator's highest structural order
+            values[key] = None if v is None else common.integer(v, "diagnostics.max_harmonic", 1)
+        elif isinstance(getattr(defaults, key), int):
             values[key] = common.integer(v, f"diagnostics.{key}", 1)
         else:
             values[key] = common.number(v, f"diagnostics.{key}", 0.0, strict=True)
@@ -154,8 +161,12 @@ def build_workbench(cfg: DictConfig) -> Workbench:
     settings, noise = settings_from_config(cfg)
     n_threads = cfg.get("threads", 1)
     n_threads = None if n_threads is None else common.integer(n_threads, "threads", 1)
+    # the chosen actuator's name for the report's provenance (common.choice is the lead's helper; until it
+    # exists the shipped default is the only name the config can carry)
+    choice = getattr(common, "choice", None)
+    name = (choice(cfg, "actuator") if choice is not None else "ema_reference") or "custom"
     return Workbench(params, fid, spec, _names(cfg.get("free", []), "free"), groups, faults, channels, settings,
-                     noise, (bounds[0], bounds[1]), common.device(cfg.get("device", "cpu")), n_threads)
+                     noise, (bounds[0], bounds[1]), common.device(cfg.get("device", "cpu")), n_threads, name)
 
 
 def run_workbench(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:

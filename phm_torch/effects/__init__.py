@@ -7,6 +7,7 @@ from .inverter_dead_time import InverterDeadTime
 from .position_sensor_lag import PositionSensorLag
 from .stribeck_friction import StribeckFriction
 from .torque_constant_saturation import TorqueConstantSaturation
+from .torque_ripple import TorqueRipple
 from .transmission_compliance import TransmissionCompliance
 from .viscous_friction import ViscousFriction
 from .winding_temperature import WindingTemperature
@@ -22,6 +23,7 @@ __all__ = [
     "PositionSensorLag",
     "StribeckFriction",
     "TorqueConstantSaturation",
+    "TorqueRipple",
     "TransmissionCompliance",
     "ViscousFriction",
     "WindingTemperature",

@@ -51,6 +51,8 @@ class ScoreSettings:
             (one-step estimate here, the actual reduction once refitted). With tens of thousands of samples a
             test detects immaterial structure (e.g. LF-vs-HF model error); an unmodelled effect of RMS
             0.66 sigma, the size at which the NRMSE reaches 1.2x the noise floor, explains 30 %.
+        data_orders: how many of the residual's strongest rotor-angle orders are proposed as the ``order`` of
+            candidates that have one (``torque_ripple``), unless ``grid`` gives their orders.
     """
 
     step: float = 0.1
@@ -60,6 +62,7 @@ class ScoreSettings:
     alias_ratio: float = 1e-3
     rank_tol: float = 1e-3
     min_gain: float = 0.01
+    data_orders: int = 3
 
     def __post_init__(self) -> None:
         if not (0 < self.step <= 10):
@@ -68,6 +71,8 @@ class ScoreSettings:
             raise ValueError(f"score.hac_lags must be >= 0, got {self.hac_lags!r}")
         if not 0 < self.alpha < 1:
             raise ValueError(f"score.alpha must be in (0, 1), got {self.alpha!r}")
+        if self.data_orders < 0:
+            raise ValueError(f"score.data_orders must be >= 0, got {self.data_orders!r}")
         if not 0 <= self.min_gain < 1:
             raise ValueError(f"score.min_gain must be in [0, 1), got {self.min_gain!r}")
         for name, g in self.grid.items():
@@ -143,9 +148,15 @@ def newey_west(g: np.ndarray, lags: int) -> np.ndarray:
     return v
 
 
-def score_tests(cal: Calibration, names: Sequence[str], settings: ScoreSettings) -> list[Candidate]:
+def score_tests(cal: Calibration, names: Sequence[str], settings: ScoreSettings,
+                given: Mapping[str, Sequence[str]] | None = None) -> list[Candidate]:
     """Score-test every effect in ``names`` against the calibrated model (one simulator call).
 
+    Args:
+        given: {candidate: [other candidates]}: the candidate is tested for what it adds beyond the others'
+            signatures (projected off them, as off the free parameters). A ``torque_ripple`` probed at an
+            order next to the cogging order would otherwise borrow the cogging residual's leakage: over a
+            partial rotor turn neighbouring orders are not orthogonal.
     Returns the candidates ranked by p-value (most significant first).
     """
     names = [n for n in names if n not in cal.space.effects]
@@ -165,15 +176,28 @@ def score_tests(cal: Calibration, names: Sequence[str], settings: ScoreSettings)
     cands = []
     for name in names:
         idx = [j for j, d in enumerate(dirs) if d.effect == name]
-        cands.append(_test(name, [dirs[j] for j in idx], sig[:, idx], eff[:, idx], r, jac, cal, settings))
+        e, res = eff[:, idx], r
+        others = [j for j, d in enumerate(dirs) if d.effect in (given or {}).get(name, ()) and d.effect in names]
+        if others:
+            q = _span(eff[:, others], settings.rank_tol)
+            e, res = e - q @ (q.T @ e), r - q @ (q.T @ r)
+        cands.append(_test(name, [dirs[j] for j in idx], sig[:, idx], e, res, jac, cal, settings, float(r @ r)))
     for c in cands:
         c.significant = c.aliased_with is None and c.p_value < alpha_k and c.explained_fraction >= settings.min_gain
     cands.sort(key=lambda c: (c.log10_p, -c.score))
     return cands
 
 
+def _span(s: torch.Tensor, tol: float) -> torch.Tensor:
+    """Orthonormal basis (m, k) of the columns of s, directions below ``tol`` x the largest singular value dropped."""
+    u, sv, _ = torch.linalg.svd(s, full_matrices=False)
+    return u[:, sv > tol * sv.max()] if sv.numel() and float(sv.max()) > 0 else s[:, :0]
+
+
 def _test(name: str, dirs: list[Direction], raw: torch.Tensor, eff: torch.Tensor, r: torch.Tensor,
-          jac: torch.Tensor, cal: Calibration, settings: ScoreSettings) -> Candidate:
+          jac: torch.Tensor, cal: Calibration, settings: ScoreSettings, rr: float | None = None) -> Candidate:
+    """One candidate's test; ``rr``: the residual sum of squares its explained fraction is a share of
+    (default ``r @ r``; the full residual's when ``r`` is conditioned on other candidates)."""
     cls = EFFECTS[name]
     a = (eff.T @ eff).numpy()
     raw_energy = (raw * raw).sum(0).numpy()
@@ -214,7 +238,7 @@ def _test(name: str, dirs: list[Direction], raw: torch.Tensor, eff: torch.Tensor
         log_p = float(stats.norm.logsf(z))
     else:
         log_p = chi2_logsf(stat, dof)
-    rr = float(r @ r)
+    rr = float(r @ r) if rr is None else rr
     explained = float(u @ np.linalg.pinv(a, rcond=1e-10, hermitian=True) @ u) / rr if rr > 0 else 0.0
     d = dirs[best]
     start = dict(d.values)

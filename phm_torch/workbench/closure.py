@@ -169,11 +169,15 @@ def scales_from(simulated: Sequence[dict[str, torch.Tensor]]) -> tuple[float, fl
 class ClosureSettings:
     """Neural closure: ``enabled`` ``auto`` (when no candidate is significant, the residual is not white and the
     NRMSE exceeds ``ratio`` x the noise floor), ``always`` or ``never``; the network (see :class:`ClosureNet`),
-    its ridge prior weight, finite-difference step and fit settings."""
+    its ridge prior weight, finite-difference step and fit settings.
+
+    ``harmonics``: rotor-angle orders fed to the network; ``None`` (default) derives them from the actuator
+    (:func:`~.orders.closure_orders`) plus the residual's ``data_orders`` strongest orders."""
 
     enabled: str = "auto"
     equation: str = "torque"
-    harmonics: tuple[int, ...] = (1, 2, 4, 8, 24, 48)
+    harmonics: tuple[int, ...] | None = None
+    data_orders: int = 3
     hidden: int = 8
     output_scale: float = 1e-3
     ridge: float = 1.0
@@ -187,6 +191,8 @@ class ClosureSettings:
             raise ValueError(f"closure.enabled must be auto, always or never, got {self.enabled!r}")
         if self.equation not in EQUATIONS:
             raise ValueError(f"closure.equation must be one of {list(EQUATIONS)}, got {self.equation!r}")
+        if self.data_orders < 0:
+            raise ValueError(f"closure.data_orders must be >= 0, got {self.data_orders!r}")
         if not (self.ridge >= 0 and self.fd_step > 0 and self.ratio > 0):
             raise ValueError(f"closure.ridge >= 0, fd_step > 0, ratio > 0 required, got {self.ridge}, "
                              f"{self.fd_step}, {self.ratio}")
@@ -198,17 +204,22 @@ class ClosureResult:
 
     calibration: Calibration
     attribution: Attribution
+    harmonics: tuple[int, ...] = ()
 
 
 def fit_closure(cal: Calibration, cs: ClosureSettings, noise: Callable[[np.ndarray, float], float], fidelity: str,
-                device: str | torch.device = "cpu") -> ClosureResult:
+                device: str | torch.device = "cpu", harmonics: Sequence[int] | None = None) -> ClosureResult:
     """Fit a closure on top of ``cal``'s calibrated model and attribute it.
 
     The calibrated parameters are frozen at their values (they become part of the fixed model) and only the
     closure's output weights are fitted: the network's output is linear in them, so Gauss-Newton with a
-    ridge prior converges in a few iterations of (n_weights + 1) simulated rows each.
+    ridge prior converges in a few iterations of (n_weights + 1) simulated rows each. ``harmonics`` (the
+    rotor-angle orders of the inputs) overrides ``cs.harmonics``; one of them must be given.
     """
-    net = ClosureNet(cs.harmonics, cs.hidden, *scales_from(cal.simulated), equation=cs.equation,
+    harmonics = cs.harmonics if harmonics is None else harmonics
+    if harmonics is None:
+        raise ValueError("closure.harmonics: no orders given (the workbench derives them from the actuator)")
+    net = ClosureNet(harmonics, cs.hidden, *scales_from(cal.simulated), equation=cs.equation,
                      output_scale=cs.output_scale, seed=cs.seed)
     unit = "N m" if cs.equation == "torque" else "V"
     weights = tuple(FreeParameter(f"closure.w{i}", "closure", (i,), 0.0, -1e3, 1e3, cs.fd_step, unit,
@@ -223,7 +234,7 @@ def fit_closure(cal: Calibration, cs: ClosureSettings, noise: Callable[[np.ndarr
     fitted = fit_models(cal.evaluator, [sp], [None], cal.sigma, noise, cs.fit, priors=[prior],
                         on_iteration=progress)[0]
     feats = trace_features(fitted, net, fidelity, device)
-    return ClosureResult(fitted, attribute(net, fitted.x, feats))
+    return ClosureResult(fitted, attribute(net, fitted.x, feats), tuple(net.harmonics))
 
 
 def freeze(cal: Calibration) -> ParameterSpace:

@@ -24,13 +24,14 @@ PerRecord = Sequence[Mapping[str, np.ndarray]]
 @dataclass(frozen=True)
 class DiagnosticSettings:
     """Attributes: window [s] and count of worst windows; bins of the maps; max_harmonic (mechanical
-    order); max_lag [samples] of the correlation plots; whiteness_lags for the Ljung-Box test; reversal
+    order; ``None``: twice the actuator's highest structural order, see :func:`~.orders.max_order`);
+    max_lag [samples] of the correlation plots; whiteness_lags for the Ljung-Box test; reversal
     half-window [s]; alpha of the tests."""
 
     window: float = 0.025
     worst: int = 5
     bins: int = 24
-    max_harmonic: int = 48
+    max_harmonic: int | None = None
     max_lag: int = 200
     whiteness_lags: int = 50
     reversal_window: float = 0.01
@@ -38,6 +39,8 @@ class DiagnosticSettings:
 
     def __post_init__(self) -> None:
         for name in ("worst", "bins", "max_harmonic", "max_lag", "whiteness_lags"):
+            if getattr(self, name) is None and name == "max_harmonic":
+                continue
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"diagnostics.{name} must be >= 1, got {getattr(self, name)!r}")
         for name in ("window", "reversal_window"):

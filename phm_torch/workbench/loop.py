@@ -13,7 +13,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -40,6 +40,7 @@ from .diagnostics import (
 from .evidence import evidence, groups
 from .model import Evaluator
 from .noise import HighBandNoise
+from .orders import NAMED_ORDERS, actuator_orders, closure_orders, max_order, residual_orders
 from .parameters import ParameterSpace, build_space
 
 log = logging.getLogger(__name__)
@@ -104,6 +105,8 @@ class WorkbenchResult:
     timing: dict[str, float]
     settings: WorkbenchSettings
     fidelity: str
+    actuator: str = "unnamed"
+    orders: dict[str, Any] = field(default_factory=dict)
 
     @property
     def candidates(self) -> list[Candidate]:
@@ -127,6 +130,7 @@ class Workbench:
         settings: the loop's tunables.  noise: noise-floor estimator (strategy; default high-band PSD).
         scale_bounds: bounds of the datasheet multipliers.  device: simulation device.
         threads: intra-op threads while simulating (1: fastest for these small batched tensors).
+        actuator: the actuator's config name, for the report's provenance record.
     """
 
     def __init__(self, params: ActuatorParams, fidelity: str = "lf", effects: Mapping[str, Mapping | None] | None = None,
@@ -134,8 +138,8 @@ class Workbench:
                  faults: Sequence[float] | None = None, channels: Sequence[str] = ("position", "current"),
                  settings: WorkbenchSettings | None = None, noise: Callable[[np.ndarray, float], float] | None = None,
                  scale_bounds: tuple[float, float] = (0.2, 5.0), device: str | torch.device = "cpu",
-                 threads: int | None = 1):
-        self.params, self.fidelity = params, fidelity
+                 threads: int | None = 1, actuator: str = "unnamed"):
+        self.params, self.fidelity, self.actuator = params, fidelity, str(actuator)
         self.effects = {k: dict(v or {}) for k, v in (effects or {}).items()}
         self.free, self.groups = list(free), dict(DEFAULT_GROUPS if groups is None else groups)
         self.faults, self.channels = faults, tuple(channels)
@@ -147,6 +151,28 @@ class Workbench:
         self.space()  # validate the configuration before any simulation
 
     # ---- building blocks ------------------------------------------------------------------------------
+    @property
+    def max_order(self) -> int:
+        """Highest rotor-angle order analysed: ``diagnostics.max_harmonic`` or from the actuator's orders."""
+        return self.settings.diagnostics.max_harmonic or max_order(self.params)
+
+    def residual_orders(self, cal: Calibration, count: int, exclude: Sequence[int] = ()) -> list[int]:
+        """The strongest rotor-angle orders of ``cal``'s residual (see :func:`~.orders.residual_orders`)."""
+        return residual_orders(cal.normalised(), coordinates(cal), self.max_order, count, exclude)
+
+    def score_settings(self, cal: Calibration) -> ScoreSettings:
+        """The score settings with the residual's strongest orders as the probed ``order`` of every candidate
+        that has one (``torque_ripple``), unless the grid gives it; orders the library already names (the
+        cogging order) are left out."""
+        sc = self.settings.score
+        open_ = [n for n in self.library(cal) if "order" in EFFECTS[n].PARAMS and "order" not in sc.grid.get(n, {})]
+        if not open_:
+            return sc
+        named = actuator_orders(self.params)
+        found = self.residual_orders(cal, sc.data_orders, [named[k] for k in NAMED_ORDERS.values()])
+        grid = {n: {**sc.grid.get(n, {}), "order": [float(h) for h in found]} for n in open_ if found}
+        return replace(sc, grid={**sc.grid, **grid})
+
     def space(self, effects: Mapping[str, Mapping] | None = None, label: str = "model") -> ParameterSpace:
         """The model with ``effects`` (default the configured ones) and its free parameters."""
         effects = self.effects if effects is None else effects
@@ -172,8 +198,14 @@ class Workbench:
         return [n for n in names if n not in cal.space.effects]
 
     def rank(self, cal: Calibration) -> list[Candidate]:
-        """Score-test every library effect missing from ``cal``'s model; attach the evidence."""
-        cands = score_tests(cal, self.library(cal), self.settings.score)
+        """Score-test every library effect missing from ``cal``'s model; attach the evidence. A candidate with
+        an ``order`` (``torque_ripple``) is probed at the residual's strongest orders; with none found (no
+        rotor travel) it is not tested."""
+        sc = self.score_settings(cal)
+        names = [n for n in self.library(cal) if "order" not in EFFECTS[n].PARAMS or sc.grid.get(n, {}).get("order")]
+        # a ripple of free order is tested for what it adds beyond the effects of named orders (cogging)
+        given = {n: list(NAMED_ORDERS) for n in names if "order" in EFFECTS[n].PARAMS}
+        cands = score_tests(cal, names, sc, given)
         ds, p = self.settings.diagnostics, self.params
         grp = groups(coordinates(cal), [s["user_angle"].numpy() for s in cal.simulated], 2 * ds.bins,
                      p.pole_pairs, p.sample_rate, ds.reversal_window, p.stator_slots)
@@ -189,7 +221,7 @@ class Workbench:
                 continue
             parts = cal.evaluator.split((-c.contribution).unsqueeze(0))
             explained = [{ch: v[0].numpy() for ch, v in part.items()} for part in parts]
-            c.evidence = evidence(c.effect, explained, normed, grp, ds.max_harmonic, p.pole_pairs)
+            c.evidence = evidence(c.effect, explained, normed, grp, self.max_order, p.pole_pairs)
         return cands
 
     def confirm(self, cal: Calibration, cands: list[Candidate]) -> list[Candidate]:
@@ -221,7 +253,9 @@ class Workbench:
 
     def fit_closure(self, cal: Calibration) -> ClosureResult:
         """Fit a neural closure on top of ``cal``'s calibrated model (frozen) and attribute it to its inputs."""
-        return fit_closure(cal, self.settings.closure, self.noise, self.fidelity, self.device)
+        cs = self.settings.closure
+        orders = cs.harmonics or closure_orders(self.params, self.residual_orders(cal, cs.data_orders))
+        return fit_closure(cal, cs, self.noise, self.fidelity, self.device, orders)
 
     def diagnose(self, cal: Calibration) -> dict:
         """Where ``cal`` fails: worst windows, residual maps, harmonics, spectrum, whiteness, cross-correlation."""
@@ -233,7 +267,7 @@ class Workbench:
         return {"worst_windows": worst_windows(errors, measured, [r.name for r in recs], p.sample_rate, ds.window,
                                                ds.worst),
                 "profiles": profiles(normed, coords, ds, p.pole_pairs, p.sample_rate),
-                "harmonics": harmonics(normed, coords, ds.max_harmonic),
+                "harmonics": harmonics(normed, coords, self.max_order),
                 "spectrum": spectrum(errors, p.sample_rate),
                 "whiteness": whiteness(normed, ds),
                 "cross_correlation": cross_correlation(normed, [r.command.numpy() for r in recs], ds)}
@@ -291,8 +325,11 @@ class Workbench:
         timing["total_s"] = time.perf_counter() - t0
         timing["total_cpu_s"] = time.process_time() - c0
         timing["simulator_calls"] = float(ev.calls)
+        orders = {"actuator": actuator_orders(self.params), "max_order": self.max_order,
+                  "residual": self.residual_orders(model, max(s.score.data_orders, s.closure.data_orders, 3)),
+                  "closure": list(closure.harmonics) if closure is not None else None}
         return WorkbenchResult(list(records), model, current, rounds, before_after, closure, diags, metrics, noise,
-                               timing, s, self.fidelity)
+                               timing, s, self.fidelity, self.actuator, orders)
 
     def _wants_closure(self, cal: Calibration, rounds: list[Round], noise: list[dict[str, float]]) -> bool:
         mode = self.settings.closure.enabled

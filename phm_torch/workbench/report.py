@@ -10,6 +10,7 @@ first; ``fitted`` {parameter: [value, std]}; ``before_after`` rows; ``closure``;
 from __future__ import annotations
 
 import base64
+import hashlib
 import html
 import json
 import math
@@ -20,7 +21,9 @@ from typing import Any
 
 import numpy as np
 
+from ..effects import EFFECTS
 from ..io.atomic import atomic_open
+from ..provenance import actuator_record, describe
 from . import plots
 from .calibrate import Calibration
 from .candidates import Candidate
@@ -64,8 +67,22 @@ def _tests(diag: dict) -> dict:
                                   for c, v in diag["cross_correlation"].items()}}
 
 
+def label(effect: str, values: Mapping[str, float]) -> str:
+    """An effect's name, with its order when it has one (``torque_ripple, order 17``)."""
+    cls = EFFECTS.get(effect)
+    if cls is not None and "order" in cls.PARAMS and "order" in values:
+        return f"{effect}, order {values['order']:g}"
+    return effect
+
+
+def _file_record(path: Path) -> dict:
+    """{"path", "sha256"} of a measurement file (sha256 None when the file is gone)."""
+    digest = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else None
+    return {"path": str(path), "sha256": digest}
+
+
 def _candidate(c: Candidate, base: dict, noise: list[dict[str, float]]) -> dict:
-    row: dict[str, Any] = {"effect": c.effect, "score": c.score, "dof": c.dof, "p_value": c.p_value,
+    row: dict[str, Any] = {"effect": c.effect, "label": label(c.effect, c.start), "score": c.score, "dof": c.dof, "p_value": c.p_value,
                            "log10_p_value": c.log10_p, "significant": c.significant, "nrmse_after_refit": None,
                            "nrmse_after_refit_channels": None, "delta_nrmse": None, "delta_bic": c.delta_bic,
                            "explained_fraction": c.explained_fraction, "aliased_with": c.aliased_with,
@@ -100,21 +117,26 @@ def report_dict(res: WorkbenchResult) -> dict:
     if res.closure is not None:
         cm = res.metrics[res.closure.calibration.label]
         gain = (res.final.chi2 - res.closure.calibration.chi2) / res.final.chi2
-        closure = {"equation": res.settings.closure.equation, "inputs": res.closure.attribution.shares,
+        closure = {"equation": res.settings.closure.equation, "harmonics": list(res.closure.harmonics),
+                   "inputs": res.closure.attribution.shares,
                    "output_rms": res.closure.attribution.output_rms, "unit": res.closure.attribution.unit,
                    "nrmse": cm["nrmse"], "lead": next(iter(res.closure.attribution.shares), None),
                    "explained_fraction": gain, "explains": gain >= res.settings.score.min_gain}
+    params = model.space.params
     out = {
+        "actuator": actuator_record(res.actuator, params),
         "measurements": [str(r.path) if r.path else r.name for r in res.records],
+        "measurement_files": [_file_record(Path(r.path)) for r in res.records if r.path],
         "records": [{"name": r.name, "samples": len(r), "duration_s": r.duration, "t0": r.t0} for r in res.records],
         "fidelity": res.fidelity, "channels": list(model.evaluator.channels),
         "model": {"label": model.label, "effects": model.space.effect_values(model.x)},
         "nrmse": m0["nrmse"], "fit_percent": m0["fit_percent"], "noise_floor": m0["noise_floor"],
         "noise_std": m0["noise_std"], "worst_windows": d0["worst_windows"],
-        "tests": _tests(d0), "harmonics": harm,
+        "tests": _tests(d0), "harmonics": harm, "orders": res.orders,
         "candidates": [_candidate(c, m0, noise) for c in res.candidates],
         "significance_level": res.settings.score.alpha / k, "min_gain": res.settings.score.min_gain,
         "added": res.added,
+        "added_labels": [label(n, res.final.space.effects.get(n, {})) for n in res.added],
         "rounds": [{"model": r.model.label, "added": r.added, "ranking": [c.effect for c in r.candidates],
                     "significant": [c.effect for c in r.candidates if c.significant]} for r in res.rounds],
         "fitted": _fitted(model),
@@ -193,7 +215,7 @@ def html_page(report: dict, figs: dict[str, bytes]) -> str:
     summary = (f"Calibrated model NRMSE {_pct(report['nrmse'], 'total')} against a noise floor of "
                f"{_pct(report['noise_floor'], 'total')}. ")
     if best:
-        summary += (f"Most likely missing effect: <b>{html.escape(best['effect'])}</b> (p = {best['p_value']:.3g}; "
+        summary += (f"Most likely missing effect: <b>{html.escape(best['label'])}</b> (p = {best['p_value']:.3g}; "
                     f"{html.escape(best['evidence'].get('summary', ''))}); with it the NRMSE falls to "
                     f"{_pct(best, 'nrmse_after_refit')}.")
     else:
@@ -205,7 +227,7 @@ def html_page(report: dict, figs: dict[str, bytes]) -> str:
                  for r in report["before_after"]])
     cand = _table(["effect", "score T", "dof", "p-value", "residual explained", "significant", "NRMSE after refit",
                    "ΔBIC", "evidence", "physics"],
-                  [[c["effect"], c["score"], c["dof"], c["p_value"], _pct(c, "explained_fraction"),
+                  [[c["label"], c["score"], c["dof"], c["p_value"], _pct(c, "explained_fraction"),
                     "yes" if c["significant"] else "no", _pct(c, "nrmse_after_refit"), c["delta_bic"],
                     c["evidence"].get("summary") if c["evidence"] else None,
                     c["evidence"].get("explains") if c["evidence"] else None] for c in report["candidates"]])
@@ -227,12 +249,17 @@ def html_page(report: dict, figs: dict[str, bytes]) -> str:
         verdict = (f"It depends mostly on <b>{html.escape(str(cl['lead']))}</b>: the lead for writing the missing "
                    "effect." if cl["explains"] else "It does not explain the residual either: what is missing is not "
                    "a simple function of the state (e.g. a structural difference of the model).")
-        closure = (f"<h2>Neural closure</h2><p>No library effect explained the residual; a small network of the state "
-                   f"added to the {cl['equation']} equation explains {100 * cl['explained_fraction']:.1f} % of the "
+        inputs = ", ".join(map(str, cl["harmonics"]))
+        closure = (f"<h2>Neural closure</h2><p>No library effect explained the residual; a small network of the "
+                   f"rotor-angle orders {inputs}, speed, current and surface angle, added to the "
+                   f"{cl['equation']} equation, explains {100 * cl['explained_fraction']:.1f} % of the "
                    f"residual sum of squares (NRMSE {_pct(cl['nrmse'], 'total')}). {verdict}</p>"
                    + _table(["input", "share"], [[k, f"{100 * v:.1f} %"] for k, v in cl["inputs"].items()])
                    + img("closure.png"))
     timing = ", ".join(f"{k} {v:.1f}" for k, v in report["timing"].items())
+    files = ", ".join(f"{f['path']} (sha256 {str(f['sha256'])[:8]})" for f in report["measurement_files"]) \
+        or ", ".join(report["measurements"])
+    orders = ", ".join(f"{k} {v}" for k, v in report["orders"].get("actuator", {}).items())
     retrain = (f"<p>Train the surrogates on this physics: <code>phm-generate {html.escape(report['retrain'])}</code>, "
                "then <code>phm-train</code> on that store (docs/surrogates.md, modelling differences).</p>"
                if report.get("retrain") else "")
@@ -240,8 +267,11 @@ def html_page(report: dict, figs: dict[str, bytes]) -> str:
 <style>body{{font-family:sans-serif;max-width:1200px;margin:auto;padding:1em}}table{{border-collapse:collapse;
 margin:0.5em 0}}td,th{{border:1px solid #bbb;padding:3px 6px;font-size:90%;text-align:left}}img{{max-width:100%}}
 </style></head><body><h1>Model vs measurement</h1>
-<p>Measurements: {html.escape(", ".join(report["measurements"]))}; model fidelity {report["fidelity"].upper()};
-channels {", ".join(chans)}.</p><p>{summary}</p>
+<p>Actuator: {html.escape(describe(report["actuator"]))}; measurements: {html.escape(files)};
+model fidelity {report["fidelity"].upper()}; channels {", ".join(chans)}.</p><p>{summary}</p>
+<p>Rotor-angle orders: the actuator's {html.escape(orders)}; the residual's strongest
+{html.escape(", ".join(map(str, report["orders"].get("residual", []))) or "–")} (analysed up to
+{report["orders"].get("max_order", "–")}).</p>
 <h2>Add it and watch the error fall</h2>{ba}{img("before_after.png")}{retrain}
 <h2>Compare</h2><p>Calibrated model (configured effects) against the measurement.</p>{compare}{img("overlay.png")}
 <h2>Where it fails</h2><h3>Worst windows</h3>{worst}<h3>Residual maps</h3>{img("residual_maps.png")}
