@@ -14,8 +14,10 @@ from phm_torch.assessment import (
     FrequencyResponse,
     HealthRequirements,
     SineSweep,
+    SweepDesign,
     linear_loop,
     margins,
+    unmeasurable_counts,
 )
 from phm_torch.physics import mechanics
 
@@ -158,3 +160,94 @@ def test_healthy_fraction_of_the_importance_sampled_set(params, shipped):
     k = ImportanceSampler(params.nominal_faults, (6,), 1.0).sample(1024, 11)
     frac = float(af(torch.tensor(k)).healthy.double().mean())
     assert 0.15 <= frac <= 0.40
+
+
+# -- the sweep derived from the actuator (frequencies: auto, amplitude: auto) ----------------------------------
+
+@pytest.mark.parametrize("changes", [{}, {"gear_ratio": 400.0}, {"user_inertia": 0.8},
+                                     {"gear_ratio": 100.0, "supply_voltage": 56.0}])
+def test_derived_grid_brackets_the_loop(params, changes):
+    # The grid spans the linear loop's crossover, phase crossover and -3 dB bandwidth with margin on both
+    # sides, for the reference and for actuators whose crossovers move by ~2x.
+    p = params.replace(**changes)
+    sweep = instantiate_sweep().resolve(p)
+    f = np.asarray(sweep.frequencies)
+    m = _margins(FINE, *linear_loop(p).response(FINE))
+    lo = min(m["crossover_hz"], m["phase_crossover_hz"], m["bandwidth_hz"])
+    hi = max(m["crossover_hz"], m["phase_crossover_hz"], m["bandwidth_hz"])
+    assert f[0] <= lo / 2.0 and f[-1] >= hi * 1.5
+    assert np.all(np.diff(np.log10(f)) <= 1 / 12 + 1e-3)          # 12 points per decade or denser
+    coarse = _margins(f, *linear_loop(p).response(f))               # and the coarse grid measures the loop
+    assert coarse["crossover_hz"] == pytest.approx(m["crossover_hz"], rel=0.02)
+    assert coarse["phase_crossover_hz"] == pytest.approx(m["phase_crossover_hz"], rel=0.02)
+
+
+def instantiate_sweep(**changes) -> SineSweep:
+    return SineSweep("auto", "auto", 4, 2, 0.02, 1, 4, False, **changes)
+
+
+def test_derived_grid_follows_the_crossovers(params):
+    # gear ratio x2 halves the loop gain: the crossover falls 2.16x (28 -> 12.9 Hz), the phase crossover
+    # stays; the grid's lower end follows the crossover, its upper end the phase crossover.
+    ref = instantiate_sweep().resolve(params).frequencies
+    slow = instantiate_sweep().resolve(params.replace(gear_ratio=400.0)).frequencies
+    assert ref[0] / slow[0] == pytest.approx(27.88 / 12.91, rel=0.02)
+    assert slow[-1] / ref[-1] == pytest.approx(90.41 / 89.11, rel=0.02)
+    heavy = instantiate_sweep().resolve(params.replace(user_inertia=0.8)).frequencies  # resonance 79 -> 41 Hz
+    assert heavy[-1] < 0.65 * ref[-1]
+
+
+def test_derived_sweep_of_the_reference(params):
+    # The reference actuator gets back the hand-tuned sweep: 12..160 Hz (14 points then, 15 now), and the
+    # amplitude 4 x T_s / (2 k_e K_w K_pos) = 7.96e-5 rad (8e-5 then), friction the active bound.
+    sweep = instantiate_sweep().resolve(params)
+    assert sweep.frequencies[0] == pytest.approx(12.0, rel=0.02) and sweep.frequencies[-1] == pytest.approx(160, rel=0.02)
+    assert len(sweep.frequencies) == 15
+    expected = 4 * params.static_friction / (2 * params.back_emf_constant * params.speed_gain * params.position_gain)
+    assert sweep.amplitude == pytest.approx(expected, rel=1e-3) and sweep.amplitude == pytest.approx(8e-5, rel=0.01)
+    # explicit values win; doubling the friction doubles the amplitude
+    fixed = SineSweep((10.0, 20.0), 1e-4, 4, 2, 0.02, 1, 4, False)
+    assert fixed.resolve(params) is fixed
+    part = SineSweep((10.0, 20.0), "auto", 4, 2, 0.02, 1, 4, False).resolve(params)
+    assert part.frequencies == (10.0, 20.0) and part.amplitude == pytest.approx(expected, rel=1e-3)
+    rough = params.replace(static_friction=2 * params.static_friction, coulomb_friction=2 * params.coulomb_friction)
+    assert instantiate_sweep().resolve(rough).amplitude == pytest.approx(2 * sweep.amplitude, rel=1e-3)
+
+
+def test_derived_amplitude_refused_against_the_limits(params):
+    # friction so large that the break-away amplitude exceeds 1 % of the stroke: refused, naming the field
+    sticky = params.replace(static_friction=3.0, coulomb_friction=3.0)
+    with pytest.raises(ValueError, match="assessment.sweep.amplitude: auto"):
+        instantiate_sweep().resolve(sticky)
+
+
+def test_unmeasurable_counts():
+    # nan = no crossing on the grid (counted, labelled faulty); inf bandwidth = above the grid (a bound, not counted)
+    nan, inf = math.nan, math.inf
+    m = np.array([[20, 70, 80, 9, 70], [nan, nan, 80, 9, 70], [20, 70, nan, nan, inf], [nan, nan, nan, nan, nan]])
+    assert unmeasurable_counts(m) == {"phase_margin": 2, "gain_margin": 2, "bandwidth": 1}
+    req = HealthRequirements(45.0, 6.0, 0.9)
+    from phm_torch.assessment import Margins
+    healthy = req.healthy(Margins(*torch.as_tensor(m).T), 70.0)
+    assert healthy.tolist() == [True, False, False, False]
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"frequencies": "sometimes"}, "assessment.sweep.frequencies"),
+    ({"amplitude": "big"}, "assessment.sweep.amplitude"),
+])
+def test_bad_auto_sweep(change, field):
+    args = {"frequencies": "auto", "amplitude": "auto", "cycles": 4, "measure_cycles": 2, "min_duration": 0.0,
+            "substeps": 1, "group_size": 2, "compile": False, **change}
+    with pytest.raises(ValueError, match=field):
+        SineSweep(**args)
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"low_margin": 1.0}, "low_margin"), ({"high_margin": float("nan")}, "high_margin"),
+    ({"points_per_decade": 1}, "points_per_decade"), ({"stroke_fraction": 0.0}, "stroke_fraction"),
+    ({"friction_factor": -1.0}, "friction_factor"),
+])
+def test_bad_sweep_design(change, field):
+    with pytest.raises(ValueError, match=f"assessment.sweep.design.{field}"):
+        SweepDesign(**change)

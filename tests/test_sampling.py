@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from scipy.stats import kstest
 
+from phm_torch.data.calibration import ExponentCalibrator, calibrate, isotonic_decreasing
 from phm_torch.data.sampling import ImportanceSampler
 
 NOMINAL = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5)
@@ -75,3 +78,81 @@ def test_bad_sampler_config(kwargs, field):
     args = {"nominal": NOMINAL, "uniform": (6,), "radius": 1.0, **kwargs}
     with pytest.raises(ValueError, match=field):
         ImportanceSampler(**args)
+
+
+# -- the distance exponent q and its calibration to a healthy fraction (phm_torch/data/calibration.py) ---------
+
+@pytest.mark.parametrize("q", [0.5, 2.5])
+def test_distance_exponent(q):
+    # P(d <= a) = a ** q: d ** q is uniform; q = 1 is the paper's scaling, bit for bit
+    s = ImportanceSampler(NOMINAL, (6,), 1.0, q)
+    assert s.exponent == pytest.approx(7 / q)
+    assert kstest(s.distance(s.sample(4000, 5)) ** q, "uniform").pvalue > 0.01
+    assert np.array_equal(ImportanceSampler(NOMINAL, (6,), 1.0, 1.0).sample(500, 6), ImportanceSampler(NOMINAL, (6,), 1.0).sample(500, 6))
+
+
+@pytest.mark.parametrize("target", [0.15, 0.3, 0.4])
+def test_calibrated_exponent_on_a_synthetic_health_function(target):
+    # healthy <=> d <= c: the healthy fraction at exponent q is c ** q, so q* = ln(target) / ln(c)
+    c = 0.6
+    sampler = ImportanceSampler(NOMINAL, (6,), 1.0)
+
+    def assess(k):
+        return sampler.distance(k) <= c
+
+    rec = calibrate(sampler, assess, target, 0.02, 2000, np.random.SeedSequence(1))
+    assert not rec["kept_paper"] and rec["reached"]
+    assert rec["pilot_healthy_fraction"] == pytest.approx(c, abs=0.01)              # Latin hypercube: d uniform
+    assert rec["distance_exponent"] == pytest.approx(math.log(target) / math.log(c), rel=0.03)
+    assert rec["rescale_exponent"] == pytest.approx(7 / rec["distance_exponent"], rel=1e-4)
+    calibrated = ImportanceSampler(NOMINAL, (6,), 1.0, rec["distance_exponent"])
+    assert assess(calibrated.sample(4000, 2)).mean() == pytest.approx(target, abs=0.02)
+
+
+def test_calibration_keeps_the_paper_within_tolerance():
+    # a smooth health function already at the target: q stays exactly 1 (the store keeps its data)
+    sampler = ImportanceSampler(NOMINAL, (6,), 1.0)
+    rec = calibrate(sampler, lambda k: sampler.distance(k) <= 0.32, 0.3, 0.05, 1000, np.random.SeedSequence(3))
+    assert rec["kept_paper"] and rec["distance_exponent"] == 1.0 and rec["rescale_exponent"] == 7.0
+    # an unreachable target (nothing healthy beyond d = 1e-4): clamped to the bound, reported
+    rec = calibrate(sampler, lambda k: sampler.distance(k) <= 1e-4, 0.3, 0.05, 500, np.random.SeedSequence(3))
+    assert not rec["reached"] and rec["distance_exponent"] == pytest.approx(0.05)
+
+
+def test_isotonic_fit():
+    y = np.array([1, 0, 1, 1, 0, 0, 1, 0], dtype=float)
+    fit = isotonic_decreasing(y)
+    assert np.all(np.diff(fit) <= 1e-12) and fit.mean() == pytest.approx(y.mean())
+    assert fit.tolist() == pytest.approx([1, 2 / 3, 2 / 3, 2 / 3, 1 / 3, 1 / 3, 1 / 3, 0])
+
+
+def test_calibration_on_a_real_pilot(params):
+    # the reference actuator's assessment (a coarse auto sweep, 4 points per decade, for speed) pilot of 192
+    # vectors, target 0.5 (the paper's scaling gives ~0.3): a fresh sample at the calibrated q is 0.5 +- 0.1
+    import torch
+
+    from phm_torch.assessment import AssessmentFunction, HealthRequirements, SineSweep, SweepDesign
+
+    torch.set_num_threads(1)
+    sweep = SineSweep("auto", "auto", 3, 2, 0.02, 1, 4, False, SweepDesign(points_per_decade=4))
+    af = AssessmentFunction(params, sweep, HealthRequirements(45.0, 6.0, 0.9))
+    sampler = ImportanceSampler(params.nominal_faults, (6,), 1.0)
+
+    def assess(k):
+        return af(torch.as_tensor(k)).healthy.numpy()
+
+    rec = calibrate(sampler, assess, 0.5, 0.05, 192, np.random.SeedSequence(4))
+    assert not rec["kept_paper"] and rec["distance_exponent"] < 1.0
+    fresh = ImportanceSampler(params.nominal_faults, (6,), 1.0, rec["distance_exponent"]).sample(192, 5)
+    assert assess(fresh).mean() == pytest.approx(0.5, abs=0.1)
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    ({"target": 0.0}, "dataset.healthy_fraction"), ({"target": 1.2}, "dataset.healthy_fraction"),
+    ({"target": 0.3, "tolerance": -0.1}, "dataset.healthy_fraction_tolerance"),
+])
+def test_bad_calibration_config(kwargs, field):
+    with pytest.raises(ValueError, match=field):
+        ExponentCalibrator(**kwargs)
+    with pytest.raises(ValueError, match="sampling.distance_exponent"):
+        ImportanceSampler(NOMINAL, (6,), 1.0, 0.0)
