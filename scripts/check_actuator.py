@@ -67,7 +67,9 @@ def summary(report: dict) -> str:
                      f"{_fmt(row['bandwidth_hz']):>8}{'ok' if row['lf_step_stable'] else 'FAIL':>9}{hf:>9}"
                      f"{_fmt(agr.get('current_nrmse', math.nan) * 100, '.2f') + '%' if agr else '-':>9}"
                      f"{_fmt(agr.get('position_nrmse', math.nan) * 100, '.3f') + '%' if agr else '-':>10}"
-                     f"  {'yes' if row['stable'] else 'NO'}")
+                     f"  {'yes' if row['stable'] else 'NO'}"
+                     + ("  (play > sweep amplitude: margins not meaningful, judged in time)"
+                        if not row["frequency_response_valid"] else ""))
     v = report["verdict"]
     lines.append("verdict: " + ", ".join(f"{k} {'ok' if ok else 'FAIL'}" for k, ok in v.items() if k != "pass")
                  + f" -> {'PASS' if v['pass'] else 'FAIL'}  ({report['elapsed_s']} s)")
