@@ -429,3 +429,30 @@ def test_empty_splits_are_stored_and_read_as_zero_rows(compose, tmp_path):
             view = store.split(split)
             assert view.K.shape == (0, 8) and view.current.shape[0] == 0
         assert store.split("train").K.shape == (10, 8)
+
+
+def test_calibrated_sampling_is_recorded_and_cached(compose, tmp_path):
+    # dataset.healthy_fraction: a pilot of assessment labels calibrates the sampler; the calibration is in
+    # the metrics, the manifest and the metadata, cached in data_dir (a re-run pays no pilot, same store),
+    # and the manifest counts the unmeasurable margins of every split.
+    over = [o for o in TINY if "healthy_fraction" not in o]
+    args = [*over, "+dataset.healthy_fraction=0.5", "+dataset.pilot_size=24", f"data_dir={tmp_path}"]
+    metrics, _ = generate(compose("generate", args))
+    cal = metrics["sampling"]
+    assert cal["pilot_size"] == 24 and cal["healthy_fraction_target"] == 0.5 and cal["pilot_s"] > 0
+    assert cal["rescale_exponent"] == pytest.approx(7 / cal["distance_exponent"], rel=1e-4)
+    manifest = _manifest(tmp_path)
+    assert manifest["sampling"] == {k: v for k, v in cal.items() if k != "pilot_s"}
+    assert manifest["assessment_sweep"]["frequencies"] == [15.0, 30.0, 60.0, 90.0, 130.0]
+    assert manifest["assessment_sweep"]["auto"] == {"frequencies": False, "amplitude": True}
+    for split in ("train", "val"):
+        entry = manifest["splits"][split]
+        assert set(entry["unmeasurable"]) == {"phase_margin", "gain_margin", "bandwidth"}
+        assert entry["healthy_fraction"] == pytest.approx(entry["healthy"] / entry["count"], abs=1e-4)
+        assert metrics["splits"][split]["unmeasurable"] == entry["unmeasurable"]
+    with h5py.File(tmp_path / "dataset.h5", "r") as f:
+        margins = f["train"]["margins"][()]
+        assert json.loads(f.attrs["metadata"])["sampling"] == manifest["sampling"]
+    assert manifest["splits"]["train"]["unmeasurable"]["gain_margin"] == int(np.isnan(margins[:, 3]).sum())
+    again, _ = generate(compose("generate", [*args, "stage=merge"]))
+    assert again["sampling"]["pilot_s"] == 0 and _manifest(tmp_path) == manifest
