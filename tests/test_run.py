@@ -17,7 +17,7 @@ def test_phm_run_tiny_end_to_end(tmp_path):
         f"out_dir={tmp_path}",
         ('generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=8","dataset.chunk_size=64",'
          '"dataset.fidelity=lf"]'),
-        'cases=["fidelity=lf","command.duration=0.05"]',
+        'cases=["fidelity=lf","duration=0.05"]',
         'train=["n_modes=8","n_points=16","selector=qdeim"]',
         'evaluate=["rul.n_samples=20"]',
         'workbench=["measurements=examples/workbench_hidden_cogging.csv","refit.top=1","refit.rounds=1"]',
@@ -98,7 +98,7 @@ def test_paper_experiment_reaches_the_generate_stage():
 def test_a_later_run_of_some_stages_keeps_the_earlier_metrics(tmp_path):
     (tmp_path / "metrics.json").write_text(json.dumps({"train": {"err_k": 0.05}, "wall_s": {"train": 3.0}}))
     cfg = compose_stage("run", [f"out_dir={tmp_path}", "stages=[cases]",
-                                'cases=["fidelity=lf","command.duration=0.05"]'])
+                                'cases=["fidelity=lf","duration=0.05"]'])
     run_all(cfg)
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["train"] == {"err_k": 0.05} and "cases" in saved

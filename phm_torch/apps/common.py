@@ -22,6 +22,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from .. import provenance
 from ..effects import Effect, build_effects
 from ..faults import FAULT_NAMES, N_FAULTS, as_fault_tensor
 from ..io.atomic import atomic_open
@@ -91,6 +92,54 @@ def actuator(cfg: DictConfig) -> ActuatorParams:
         if str(e).startswith("actuator"):
             raise
         raise ValueError(f"actuator: {e}") from None
+
+
+def choice(cfg: DictConfig, key: str) -> str | None:
+    """The config-group option chosen for ``key`` (``actuator=<name>``) in this app, or ``None``.
+
+    Under ``@hydra.main`` (and inside ``phm-run``, which passes its own choice to every stage) Hydra's
+    runtime choices say it; outside (a composed config in a test or a notebook) the shipped config with the
+    same values names it, else ``None``.
+    """
+    from hydra.core.hydra_config import HydraConfig
+
+    if cfg.get(key) is None:
+        return None
+    if HydraConfig.initialized():
+        name = HydraConfig.get().runtime.choices.get(key)
+        if name:
+            return str(name)
+    return None
+
+
+def requested_provenance(cfg: DictConfig) -> dict[str, Any]:
+    """``{"actuator", "command"}`` records of what ``cfg`` chose (``None`` where its node is null or absent)."""
+    names = {key: choice(cfg, key) for key in provenance.KEYS}
+    config: dict[str, Any] = {}
+    if cfg.get("actuator") is not None:
+        config["actuator"] = provenance.actuator_values(actuator(cfg))
+    if cfg.get("command") is not None:
+        command(cfg.command)  # validated before it is recorded
+        config["command"] = plain(cfg.command)
+    return provenance.from_config(config, names)
+
+
+def reconcile_provenance(cfg: DictConfig, recorded: Mapping[str, Any] | None, where: str) -> dict[str, Any]:
+    """The actuator and command records an app consuming an artefact uses (see :func:`provenance.reconcile`):
+    an explicit ``actuator=``/``command=`` must match the artefact's record, else the artefact's is adopted."""
+    requested = requested_provenance(cfg)
+    recorded = recorded or {}
+    return {key: provenance.reconcile(recorded.get(key), requested[key], cfg.get(key) is not None, key, where)
+            for key in provenance.KEYS}
+
+
+def actuator_of(record: Mapping[str, Any] | None, cfg: DictConfig) -> ActuatorParams:
+    """The actuator of a provenance record, or of ``cfg`` when there is none (an artefact without provenance)."""
+    if record is not None:
+        return ActuatorParams.from_mapping(record["values"])
+    if cfg.get("actuator") is None:
+        raise ValueError("actuator: the artefact records no actuator; choose one with actuator=<name>")
+    return actuator(cfg)
 
 
 def fidelity(value: Any) -> str:

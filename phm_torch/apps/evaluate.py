@@ -17,12 +17,14 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
+from .. import provenance
 from ..data.store import DatasetStore
 from ..online import OnlinePipeline
 from ..online.export import export_torchscript
 from ..online.fdi_band import FDIBand, TooFewCalibrationSignals, calibrate_fdi_band
 from ..online.fdi_interval import FDIInterval, calibrate_fdi_interval, interval_quality
 from ..online.verdict import calibrate_verdict, shift_prior, verdict_quality
+from ..params import ActuatorParams
 from ..prognostics import DeterministicRUL, RULEstimator
 from ..prognostics.evaluation import RULComparison
 from ..prognostics.plots import error_panels, rul_vs_expected
@@ -35,10 +37,11 @@ from . import common
 log = logging.getLogger(__name__)
 
 
-def _reference(cfg: DictConfig, params, damage, k: torch.Tensor, deltas: torch.Tensor, cache: Path) -> torch.Tensor:
+def _reference(cfg: DictConfig, assessment: Any, params: ActuatorParams, damage: Any, k: torch.Tensor,
+               deltas: torch.Tensor, cache: Path) -> torch.Tensor:
     """Reference RULs, cached in ``cache`` under a key of everything they depend on."""
-    key_data = {"damage": common.plain(cfg.damage), "assessment": common.plain(cfg.assessment),
-                "actuator": common.plain(cfg.actuator), "reference": common.plain(cfg.reference),
+    key_data = {"damage": common.plain(cfg.damage), "assessment": common.plain(assessment),
+                "actuator": provenance.actuator_values(params), "reference": common.plain(cfg.reference),
                 "deltas": [round(float(d), 12) for d in deltas],
                 "k": hashlib.sha256(k.numpy().tobytes()).hexdigest()}
     key = hashlib.sha256(json.dumps(key_data, sort_keys=True).encode()).hexdigest()
@@ -46,7 +49,7 @@ def _reference(cfg: DictConfig, params, damage, k: torch.Tensor, deltas: torch.T
         stored = json.loads(cache.read_text())
         if stored.get("key") == key:
             return torch.tensor(stored["rul"], dtype=torch.float64)
-    assess = common.build(cfg.assessment, "assessment", params=params)
+    assess = common.build(assessment, "assessment", params=params)
     ref = reference_rul(damage, margin_score(assess), k, deltas,
                         common.number(cfg.reference.step_hours, "reference.step_hours", 0.0, strict=True),
                         common.integer(cfg.reference.refine_iterations, "reference.refine_iterations", 0))
@@ -164,11 +167,20 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     common.set_threads(cfg)
     prior = _verdict_prior(cfg)
     interval_settings = _interval_settings(cfg)
-    params = common.actuator(cfg)
+    with DatasetStore(cfg.data_dir) as store:
+        prov = common.reconcile_provenance(cfg, store.provenance, f"store {cfg.data_dir}")
+        assessment = cfg.assessment if cfg.get("assessment") is not None else \
+            (store.metadata.get("config") or {}).get("assessment")
+    if assessment is None:
+        raise ValueError(f"assessment: store {cfg.data_dir} records no assessment config; choose one with "
+                         "assessment=frequency_response")
+    params = common.actuator_of(prov["actuator"], cfg)
     damage = common.build(cfg.damage, "damage", nominal=list(params.nominal_faults))
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     bundle = SurrogateBundle.load(cfg.bundle)
+    for key in provenance.KEYS:   # the bundle must have been trained on a store of the same actuator and command
+        provenance.reconcile(bundle.provenance.get(key), prov[key], prov[key] is not None, key, f"bundle {cfg.bundle}")
     band_split = str(cfg.fdi_band.split)
     if band_split == cfg.split:
         raise ValueError(f"fdi_band.split must differ from split (both {band_split!r}): the FDI band would be "
@@ -223,7 +235,8 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         physics_only = torch.where(ood.unsqueeze(1), torch.full_like(physics_only, float("nan")), physics_only)
     t_est = time.perf_counter() - t0
     t0 = time.perf_counter()
-    reference = _reference(cfg, params, damage, k, deltas, Path(cfg.data_dir) / f"rul_reference_{cfg.split}.json")
+    reference = _reference(cfg, assessment, params, damage, k, deltas,
+                           Path(cfg.data_dir) / f"rul_reference_{cfg.split}.json")
     t_ref = time.perf_counter() - t0
     comparison = RULComparison(reference, true_k, full_flow.to(torch.float64))
     metrics: dict[str, Any] = comparison.metrics()
@@ -271,14 +284,14 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                        "fdi_interval": {"half_widths": pipeline.k_half_widths.tolist(), "noise_levels": noise_levels,
                                         "level": interval.level, "coverage": interval.coverage} if interval else None,
                        "calibration_noise": calibration_noise,
-                       "damage": common.plain(cfg.damage)})
+                       "damage": common.plain(cfg.damage), "provenance": prov})
     common.write_json(out_dir / "rul_predictions.json",
                       {"k": k.tolist(), "k_hat": k_hat.tolist(), "reference": reference.tolist(),
                        "true_k": true_k.tolist(), "full_flow": torch.nan_to_num(full_flow, nan=-1.0).tolist(),
                        "out_of_distribution": ood.tolist()})
     if cfg.export:
         path = out_dir / "online.pt"
-        export_torchscript(pipeline, path)
+        export_torchscript(pipeline, path, {"provenance": prov})
         reloaded = torch.jit.load(str(path))
         with torch.no_grad():
             again = reloaded(signals[:8])
@@ -286,6 +299,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         diff = max(float((a.double() - b.double()).abs().nan_to_num(0.0).max()) for a, b in zip(again, eager))
         metrics["export_max_abs_diff"] = diff
         metrics["export"] = str(path)
+    metrics.update(actuator=provenance.describe(prov["actuator"]), command=provenance.describe(prov["command"]))
     common.write_json(out_dir / "metrics.json", metrics)
     return metrics, {"pipeline": pipeline, "comparison": comparison, "figures": figures, "reference": reference}
 

@@ -11,6 +11,7 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
+from .. import provenance
 from ..online import OnlinePipeline
 from ..online.export import export_torchscript
 from ..surrogates.bundle import SurrogateBundle
@@ -76,7 +77,11 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     for key in ("deltas", "direction"):
         if key not in cal:
             raise ValueError(f"calibration {str(cal_path)!r} has no {key!r}")
-    damage = common.build(cfg.damage, "damage", nominal=list(common.actuator(cfg).nominal_faults))
+    prov = common.reconcile_provenance(cfg, bundle.provenance or None, f"bundle {cfg.bundle}")
+    for key in provenance.KEYS:   # the calibration must come from a run on the same actuator and command
+        provenance.reconcile((cal.get("provenance") or {}).get(key), prov[key], prov[key] is not None, key,
+                             f"calibration {cal_path}")
+    damage = common.build(cfg.damage, "damage", nominal=list(common.actuator_of(prov["actuator"], cfg).nominal_faults))
     fdi = {key: torch.tensor(cal[key]) for key in ("fdi_deltas", "fdi_direction") if key in cal}
     if len(fdi) < 2:
         log.warning("calibration %s has no FDI band (fdi_deltas, fdi_direction; written by phm-evaluate since "
@@ -88,13 +93,14 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                                           verdict=_verdict(cal, cal_path), **_fdi_interval(cal, cal_path),
                                           calibration_noise=_calibration_noise(cal, cal_path))
     out = Path(cfg.out)
-    scripted = export_torchscript(pipeline, out)
+    scripted = export_torchscript(pipeline, out, {"provenance": prov})
     probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)
     with torch.no_grad():
         diff = max(float((a.double() - b.double()).abs().nan_to_num(0.0).max())
                    for a, b in zip(torch.jit.load(str(out))(probe), pipeline(probe)))
     del scripted
-    return {"out": str(out), "max_abs_diff_reloaded": diff}, {"pipeline": pipeline}
+    return {"out": str(out), "max_abs_diff_reloaded": diff, "actuator": provenance.describe(prov["actuator"]),
+            "command": provenance.describe(prov["command"])}, {"pipeline": pipeline}
 
 
 @hydra.main(config_path=common.CONFIG_PATH, config_name="export", version_base="1.3")

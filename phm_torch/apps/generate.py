@@ -26,7 +26,7 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
-from .. import __version__
+from .. import __version__, provenance
 from ..assessment import AssessmentFunction
 from ..command import time_grid
 from ..data import calibration
@@ -80,6 +80,7 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     dev = common.device(cfg.get("device", "cpu"))
     assessment: AssessmentFunction = common.build(cfg.assessment, "assessment", params=params, device=dev)
     seed = common.integer(cfg.seed, "seed", 0)
+    prov = common.requested_provenance(cfg)   # which actuator and command this store belongs to
     count = common.integer(cfg.shard.count, "shard.count", 1)
     index = common.integer(cfg.shard.index, "shard.index", 0)
     if index >= count:
@@ -125,11 +126,11 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         if stage == "merge" or (stage == "all" and not missing):
             grid = time_grid(duration, params.sample_rate)
             seeds = {"seed": seed, **plan.seeds, **(label_plan.seeds if label_plan is not None else {})}
-            metadata = {"config": common.plain(cfg), "fingerprint": fp, "seeds": seeds,
+            metadata = {"config": common.plain(cfg), "fingerprint": fp, "seeds": seeds, "provenance": prov,
                         "package_version": __version__, "git_revision": git_revision(),
                         "torch_version": torch.__version__, "margin_names": list(gen.MARGIN_NAMES),
                         "sampling": sampling, "assessment_sweep": assessment.record()}
-            extra = {"seed": seed, "package_version": __version__, "chunk_size": plan.chunk_size,
+            extra = {"seed": seed, "provenance": prov, "package_version": __version__, "chunk_size": plan.chunk_size,
                      "n_chunks": plan.n_chunks, "sampling": sampling, "assessment_sweep": assessment.record()}
             if label_plan is not None:
                 extra |= {"label_chunk_size": label_plan.chunk_size, "n_label_chunks": label_plan.n_chunks}
@@ -142,6 +143,8 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     complete = gen.is_complete(data_dir, fp)
     manifest = read_json(data_dir / gen.MANIFEST_FILE) if complete else None
     metrics: dict[str, Any] = {"data_dir": str(data_dir), "complete": complete, "fingerprint": fp,
+                               "actuator": provenance.describe(prov["actuator"]),
+                               "command": provenance.describe(prov["command"]),
                                "shard": {"index": index, "count": count}, "stage": stage,
                                "chunks": {"total": plan.n_chunks, **counts}}
     if label_plan is not None:

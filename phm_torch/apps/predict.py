@@ -28,6 +28,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -35,8 +36,11 @@ import hydra
 import torch
 from omegaconf import DictConfig
 
+from .. import provenance
 from ..faults import FAULT_NAMES
 from ..io import read_measurement
+from ..online.command_check import CommandCheck, check_command
+from ..online.export import read_metadata
 from . import common
 
 log = logging.getLogger(__name__)
@@ -57,6 +61,11 @@ def _paths(value: Any, name: str) -> list[str]:
 
 
 def _current(path: str, model: Any, resample: bool) -> torch.Tensor:
+    """The envelope current (1, n_full) [A] of one measurement CSV (see :func:`_read`)."""
+    return _read(path, model, resample)[0]
+
+
+def _read(path: str, model: Any, resample: bool) -> tuple[torch.Tensor, Any]:
     """The envelope current (1, n_full) [A] of one measurement CSV, in the pipeline's dtype.
 
     The record's first sample is taken as the start of the test command, as for a record of the right
@@ -67,15 +76,34 @@ def _current(path: str, model: Any, resample: bool) -> torch.Tensor:
     current = torch.as_tensor(m.current, dtype=model.times.dtype).unsqueeze(0)
     n, n_full = current.shape[1], int(model.n_full)
     if n == n_full:
-        return current
+        return current, m
     if abs(n - n_full) > LENGTH_TOLERANCE * n_full:
         raise ValueError(f"{path}: current has {n} samples; the model expects {n_full} (the full test record; "
                          f"within {LENGTH_TOLERANCE:.0%} of that length the record is cut or its tail marked missing)")
     log.warning("%s: %d samples instead of %d: %s", path, n, n_full,
                 "the tail beyond the test record is dropped" if n > n_full else "the missing tail is marked missing")
     if n > n_full:
-        return current[:, :n_full]
-    return torch.cat([current, current.new_full((1, n_full - n), float("nan"))], 1)
+        return current[:, :n_full], m
+    return torch.cat([current, current.new_full((1, n_full - n), float("nan"))], 1), m
+
+
+def _pipeline_command(cfg: DictConfig, model_path: Path) -> tuple[dict[str, Any], Callable[[torch.Tensor], torch.Tensor] | None]:
+    """The pipeline's provenance (checked against an explicit ``actuator=``/``command=``) and its test command
+    (``None`` for a pipeline exported before it recorded one)."""
+    prov = common.reconcile_provenance(cfg, read_metadata(model_path).get("provenance"), f"pipeline {model_path}")
+    if prov["command"] is None:
+        log.warning("%s records no test command: the records' command columns are not checked", model_path)
+        return prov, None
+    return prov, common.command(prov["command"]["params"])
+
+
+def _command_check(m: Any, command: Callable[[torch.Tensor], torch.Tensor] | None, n_full: int) -> CommandCheck | None:
+    """The record's command column against the pipeline's test command, over the test record's length."""
+    if command is None:
+        return None
+    n = min(len(m.command), n_full)
+    t = torch.as_tensor(m.time[:n] - m.time[0], dtype=torch.float64)
+    return check_command(torch.as_tensor(m.command[:n]), command(t), float(m.sample_rate))
 
 
 def _can_rebase(model: Any) -> bool:
@@ -100,6 +128,7 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     model_path = Path(cfg.pipeline)
     if not model_path.is_file():
         raise ValueError(f"pipeline: no such file {str(model_path)!r} (export one with phm-evaluate or phm-export)")
+    prov, command = _pipeline_command(cfg, model_path)
     model = torch.jit.load(str(model_path))
     calibrated = hasattr(model, "faulty_probability")
     if not calibrated:
@@ -114,7 +143,10 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                     "moves the verdict (docs/surrogates.md, 'Modelling differences')")
     records = []
     for path in paths:
-        current = _current(path, model, bool(cfg.resample))
+        current, m = _read(path, model, bool(cfg.resample))
+        check = _command_check(m, command, int(model.n_full))
+        if check is not None and not check.ok:
+            log.warning("%s: %s; the record is out of distribution", path, check.reason())
         with torch.no_grad():
             noise = float(model.noise_level(current)[0]) if noise_known else float("nan")     # as measured
             if bench_nominal is not None:
@@ -130,22 +162,27 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         if noisy:
             log.warning("%s: estimated current noise %.2f %% of its RMS, more than twice the %.2f %% the "
                         "uncertainty outputs were calibrated at: they are too narrow", path, 100 * noise, 100 * reference)
-        trusted_bounds = bounds is not None and not bool(ood[0]) and bool(torch.isfinite(bounds).all())
+        reasons = (["pipeline"] if bool(ood[0]) else []) + (["command"] if check is not None and not check.ok else [])
+        out = bool(reasons)
+        trusted_bounds = bounds is not None and not out and bool(torch.isfinite(bounds).all())
         r = rul[0].tolist()
         records.append({
             "file": str(path),
             "k_hat": dict(zip(FAULT_NAMES, k_hat[0].tolist())),
             "k_interval": dict(zip(FAULT_NAMES, bounds.tolist())) if trusted_bounds else None,
             "health_score": float(score[0]), "healthy": bool(score[0] > 0),
-            "p_faulty": None if bool(ood[0]) or math.isnan(p_faulty) else p_faulty,
-            "rul_hours": None if any(math.isnan(v) for v in r) else dict(zip(("p5", "p50", "p95"), r)),
-            "out_of_distribution": bool(ood[0]), "residual": float(resid[0]),
+            "p_faulty": None if out or math.isnan(p_faulty) else p_faulty,
+            "rul_hours": None if out or any(math.isnan(v) for v in r) else dict(zip(("p5", "p50", "p95"), r)),
+            "out_of_distribution": out, "ood_reasons": reasons, "residual": float(resid[0]),
+            "command_check": None if check is None else {"nrmse": check.nrmse, "best_lag_s": check.best_lag_s,
+                                                         "gain": check.gain, "ok": check.ok},
             "noise": None if math.isnan(noise) else noise, "noise_above_calibration": noisy,
         })
     if cfg.out:
         common.write_json(Path(cfg.out), records)
     return {"files": len(records), "out_of_distribution": sum(r["out_of_distribution"] for r in records),
-            "baseline": bench_nominal is not None,
+            "baseline": bench_nominal is not None, "actuator": provenance.describe(prov["actuator"]),
+            "command": provenance.describe(prov["command"]),
             "noise_above_calibration": sum(bool(r["noise_above_calibration"]) for r in records)}, \
         {"records": records}
 

@@ -20,6 +20,7 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig
 
+from .. import provenance
 from ..data.store import DatasetStore
 from ..params import CONF_DIR
 from ..report.figures import err_alpha_vs_modes, fdi_per_parameter, hidden_neuron_study, placement
@@ -50,6 +51,35 @@ def _dotted(prefix: str, node: Any) -> list[str]:
     return [f"{prefix}={json.dumps(common.plain(node))}"]
 
 
+SHARED_GROUPS = ("actuator", "command")   # chosen once for the run and passed to every stage
+
+
+def shared_overrides(cfg: DictConfig) -> list[str]:
+    """The run's actuator and command for every stage: ``actuator=<name>`` and ``command=<name>`` (the
+    choice), then their values as dotted overrides (so ``phm-run actuator.gear_ratio=150`` reaches every
+    stage too), and the run's config search path (a user's own config folder)."""
+    out = []
+    for key in SHARED_GROUPS:
+        name = common.choice(cfg, key)
+        if name is None:
+            record = common.requested_provenance(cfg)[key]
+            name = provenance.known_name(key, record["sha256"]) if record else None
+        if name is None:
+            raise ValueError(f"{key}: phm-run needs a {key} config chosen by name ({key}=<name> of a "
+                             f"conf/{key}/<name>.yaml in the config search path)")
+        out += [f"{key}={name}", *_dotted(key, cfg[key])]
+    searchpath = _searchpath()
+    if searchpath:
+        out.append(f"hydra.searchpath={json.dumps(searchpath)}")
+    return out
+
+
+def _searchpath() -> list[str]:
+    from hydra.core.hydra_config import HydraConfig
+
+    return list(HydraConfig.get().searchpath) if HydraConfig.initialized() else []
+
+
 def generate_overrides(cfg: DictConfig) -> list[str]:
     """phm-generate's overrides in a run: the run's ``generate`` list, then the dataset/assessment settings
     that a data experiment (``phm-run experiment=paper``) put at the run level, which win."""
@@ -63,6 +93,9 @@ def _overrides(value: Any, name: str) -> list[str]:
     out = []
     for item in items:  # a shipped example file is found from any working directory
         key, _, path = item.partition("=")
+        if key.lstrip("+~").split(".")[0] in SHARED_GROUPS:
+            raise ValueError(f"{name}: {item!r} sets the actuator or command of one stage only; set it for the "
+                             f"whole run (phm-run {item.lstrip('+~')})")
         shipped = CONF_DIR.parent / path
         if key == "measurements" and path and not Path(path).exists() and shipped.is_file():
             item = f"{key}={shipped}"
@@ -132,13 +165,15 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     run_dir.mkdir(parents=True, exist_ok=True)
     data_dir, train_dir, eval_dir = run_dir / "data", run_dir / "train", run_dir / "evaluate"
     gen_over = generate_overrides(cfg)
+    shared = shared_overrides(cfg)
     plan = {
-        "cases": ("cases", [f"out_dir={run_dir / 'cases'}", *_overrides(cfg.cases, "cases")]),
-        "generate": ("generate", [f"data_dir={data_dir}", *gen_over]),
-        "train": ("train", [f"data_dir={data_dir}", f"out_dir={train_dir}", *_overrides(cfg.train, "train")]),
-        "evaluate": ("evaluate", [f"data_dir={data_dir}", f"bundle={train_dir / 'surrogates.pt'}",
+        "cases": ("cases", [*shared, f"out_dir={run_dir / 'cases'}", *_overrides(cfg.cases, "cases")]),
+        "generate": ("generate", [*shared, f"data_dir={data_dir}", *gen_over]),
+        "train": ("train", [*shared, f"data_dir={data_dir}", f"out_dir={train_dir}", *_overrides(cfg.train, "train")]),
+        "evaluate": ("evaluate", [*shared, f"data_dir={data_dir}", f"bundle={train_dir / 'surrogates.pt'}",
                                   f"out_dir={eval_dir}", *_overrides(cfg.evaluate, "evaluate")]),
-        "workbench": ("workbench", [f"out_dir={run_dir / 'workbench'}", *_overrides(cfg.workbench, "workbench")]),
+        "workbench": ("workbench", [*shared, f"out_dir={run_dir / 'workbench'}",
+                                    *_overrides(cfg.workbench, "workbench")]),
     }
     from .cases import run_cases
     from .evaluate import evaluate_rul

@@ -33,9 +33,10 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 from torch.utils.data import DataLoader, TensorDataset
 
+from .. import provenance
 from ..data.labels import LabelComputer, label_chunk_rows
 from ..data.sampling import ImportanceSampler
-from ..data.store import LABELS, read_labelled
+from ..data.store import LABELS, metadata_provenance, read_labelled
 from ..io.atomic import atomic_open
 from ..surrogates import POD, GappyPOD, SurrogateBundle, build_fdi_network, rms
 from ..surrogates.classifiers.refinement import BoundaryRefinement, refine_classifier
@@ -230,6 +231,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     t0 = time.perf_counter()
     data, grid, info = load_store(str(cfg.data_dir), splits, limits)
     train, val = data["train"], data["val"]
+    prov = common.reconcile_provenance(cfg, metadata_provenance(info["metadata"]), f"store {cfg.data_dir}")
     refine, sample, assess = _refinement(cfg, info["metadata"], seed)
     dt = torch.diff(grid)
     if not bool((dt > 0).all()) or float(dt.max() - dt.min()) > 1e-6 * float(dt.mean()):
@@ -355,14 +357,15 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         ood_full_residual_threshold=full_threshold, ood_full_rate_val=full_ood_val,
         eval_noise=noise, eval_missing=missing, best_epoch=keep.best_epoch, epochs_run=trainer.current_epoch,
         sample_rate=sample_rate, data_dir=str(cfg.data_dir), data_fingerprint=info["manifest"].get("fingerprint"),
-        timing={k: round(v, 4) for k, v in timing.items()}, seed=seed)
+        timing={k: round(v, 4) for k, v in timing.items()}, seed=seed,
+        actuator=provenance.describe(prov["actuator"]), command=provenance.describe(prov["command"]))
     err = quartiles(arrays["err_alpha"])
     metrics.update(err_alpha_q1=err["q1"], err_alpha_q3=err["q3"])
 
     bundle = SurrogateBundle(pod, selector.indices_, network, classifier, sample_rate, threshold, ridge,
                              selector={"name": selector.name, "params": selector.get_params()},
                              meta={"data_fingerprint": info["manifest"].get("fingerprint"), "seed": seed,
-                                   "model": metrics["model"], "n_train": len(train)},
+                                   "model": metrics["model"], "n_train": len(train), "provenance": prov},
                              full_residual_threshold=full_threshold, gappy_statistics=statistics,
                              nominal_record=info["nominal"], verdict_classifier=verdict)
     bundle.save(out_dir / "surrogates.pt")

@@ -39,6 +39,7 @@ import h5py
 import numpy as np
 
 from ..io.atomic import atomic_open
+from ..provenance import from_config
 
 ARRAYS = ("K", "current", "position", "healthy", "margins")
 LABELS = "labels"                              # the assessment-only split
@@ -163,6 +164,15 @@ class SplitView:
         return int(self.group["K"].shape[0])
 
 
+def metadata_provenance(metadata: Mapping[str, Any]) -> dict[str, Any]:
+    """``{"actuator", "command"}`` records of a store's ``metadata``; a store made before they were recorded
+    gets them from the generation config it keeps."""
+    recorded = metadata.get("provenance")
+    if recorded is not None:
+        return dict(recorded)
+    return from_config(metadata.get("config") or {})
+
+
 class DatasetStore:
     """Read access to a finished store (``dataset.h5`` + ``manifest.json``).
 
@@ -198,6 +208,12 @@ class DatasetStore:
         if name not in self.manifest["splits"]:
             raise ValueError(f"split {name!r} is not in the store {str(self.data_dir)!r}; splits: {self.splits}")
         return SplitView(self.file[name])
+
+    @property
+    def provenance(self) -> dict[str, Any]:
+        """``{"actuator", "command"}`` records of the store (see :mod:`phm_torch.provenance`); a store made
+        before they were recorded gets them from the generation config it keeps."""
+        return metadata_provenance(self.metadata)
 
     @property
     def time(self) -> np.ndarray:

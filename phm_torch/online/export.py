@@ -2,24 +2,49 @@
 
 from __future__ import annotations
 
+import json
 import os
+import zipfile
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import torch
 
 from ..io.atomic import atomic_open
 from .pipeline import OnlinePipeline
 
+METADATA_FILE = "phm_metadata.json"   # the extra file of the archive with the pipeline's provenance
 
-def export_torchscript(pipeline: OnlinePipeline, path: str | os.PathLike) -> torch.jit.ScriptModule:
+
+def export_torchscript(pipeline: OnlinePipeline, path: str | os.PathLike,
+                       metadata: Mapping[str, Any] | None = None) -> torch.jit.ScriptModule:
     """Script ``pipeline`` (eval mode) and write it atomically to ``path``; returns the scripted module.
 
-    The file loads with ``torch.jit.load`` in a process that never imports phm_torch.
+    ``metadata`` (JSON-able: the actuator and command the pipeline belongs to, under ``provenance``) is
+    stored as the archive's extra file ``phm_metadata.json``. The file loads with ``torch.jit.load`` in a
+    process that never imports phm_torch; :func:`read_metadata` reads the extra file back.
     """
     pipeline = pipeline.eval()
     scripted = torch.jit.script(pipeline)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    extra = {METADATA_FILE: json.dumps(dict(metadata or {}), sort_keys=True)}
     with atomic_open(path, "wb") as fh:
-        torch.jit.save(scripted, fh)
+        torch.jit.save(scripted, fh, _extra_files=extra)
     return scripted
+
+
+def read_metadata(path: str | os.PathLike) -> dict[str, Any]:
+    """The ``phm_metadata.json`` of an exported pipeline (``{}`` for a file exported before it existed)."""
+    try:   # the archive is a zip file: read the entry without loading (or running) the program
+        with zipfile.ZipFile(path) as archive:
+            names = [n for n in archive.namelist() if n.endswith(f"/extra/{METADATA_FILE}")]
+            if not names:
+                return {}
+            data = json.loads(archive.read(names[0]))
+    except (OSError, zipfile.BadZipFile, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not a readable exported pipeline ({type(e).__name__}: {e})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: {METADATA_FILE} must hold a JSON object, got {type(data).__name__}")
+    return data

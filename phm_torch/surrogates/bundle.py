@@ -167,6 +167,11 @@ class SurrogateBundle(nn.Module):
         return self.classifier.predict(k)
 
     @property
+    def provenance(self) -> dict[str, Any]:
+        """``{"actuator", "command"}`` records of the store it was trained on (``{}``: an older bundle)."""
+        return dict(self.extra.get("provenance") or {})
+
+    @property
     def verdict(self) -> HealthClassifier:
         """The classifier that judges FDI estimates: the verdict classifier, else the health classifier."""
         return self.classifier if self.verdict_classifier is None else self.verdict_classifier

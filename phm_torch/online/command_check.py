@@ -1,0 +1,73 @@
+"""Input contract of the online pipeline: is a record's ``command`` column the pipeline's test command?
+
+A pipeline knows only the records of its own test command. A record taken with another command (another
+amplitude or frequency range), or shifted against it (a trigger offset), gives a current that the FDI maps
+onto confident but wrong fault estimates, so the command is checked before the answer is trusted.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+NRMSE_TOLERANCE = 0.05     # RMS of (recorded - expected command) over the expected command's range
+MAX_LAG_S = 0.05           # the trigger offsets searched for the message [s]
+
+
+@dataclass(frozen=True)
+class CommandCheck:
+    """Outcome of :func:`check_command`.
+
+    Attributes:
+        nrmse: RMS difference between the recorded and the expected command over the expected one's range.
+        best_lag_s: the shift [s] of the recorded command that matches the expected one best (positive: the
+            record starts late), within +-``MAX_LAG_S``.
+        gain: least-squares gain of the recorded command on the expected one at that lag (1: same size).
+        ok: ``nrmse <= tolerance``.
+    """
+
+    nrmse: float
+    best_lag_s: float
+    gain: float
+    ok: bool
+
+    def reason(self) -> str:
+        """One line for the user, e.g. ``command differs from the pipeline's test command: NRMSE 0.31, ...``."""
+        return (f"command differs from the pipeline's test command: NRMSE {self.nrmse:.2f}, best lag "
+                f"{1000 * self.best_lag_s:.1f} ms, gain {self.gain:.2f}")
+
+
+def check_command(recorded: torch.Tensor, expected: torch.Tensor, sample_rate: float,
+                  tolerance: float = NRMSE_TOLERANCE) -> CommandCheck:
+    """Compare a record's command column with the pipeline's test command on the same time grid.
+
+    Args:
+        recorded: (n,) the record's command [rad].  expected: (n,) the test command at the record's times.
+        sample_rate: [Hz], to express the lag in seconds.  tolerance: the largest NRMSE accepted.
+
+    Raises:
+        ValueError: shapes differ, or the expected command is constant (nothing to compare with).
+    """
+    recorded, expected = recorded.double().flatten(), expected.double().flatten()
+    if recorded.shape != expected.shape:
+        raise ValueError(f"command: the record has {recorded.numel()} samples, the test command {expected.numel()}")
+    span = float(expected.max() - expected.min())
+    if not span > 0:
+        raise ValueError("command: the pipeline's test command is constant; nothing to check the record against")
+    nrmse = float((recorded - expected).pow(2).mean().sqrt()) / span
+    if nrmse <= tolerance:   # the search below only explains a mismatch
+        gain = float((recorded * expected).sum() / expected.pow(2).sum())
+        return CommandCheck(nrmse, 0.0, gain, True)
+    n = recorded.numel()
+    max_lag = min(round(MAX_LAG_S * sample_rate), n // 4)
+    best = (math.inf, 0, 1.0)
+    for lag in range(-max_lag, max_lag + 1):   # recorded[i] = expected[i - lag]: a record that starts late
+        r = recorded[max(lag, 0):n + min(lag, 0)]
+        e = expected[max(-lag, 0):n - max(lag, 0)]
+        gain = float((r * e).sum() / e.pow(2).sum().clamp_min(1e-300))
+        err = float((r - gain * e).pow(2).mean())
+        if err < best[0]:
+            best = (err, lag, gain)
+    return CommandCheck(nrmse, best[1] / sample_rate, best[2], False)
