@@ -123,8 +123,8 @@ def calibrate(sampler: ImportanceSampler, assess: Callable[[np.ndarray], np.ndar
 
     Returns:
         JSON-able record: ``healthy_fraction_target``, ``tolerance``, ``pilot_size``,
-        ``pilot_healthy_fraction``, ``distance_exponent`` (q), ``rescale_exponent`` (n_r / q),
-        ``paper_exponent`` (n_r), ``expected_healthy_fraction``, ``kept_paper``, ``reached``.
+        ``pilot_healthy_fraction``, ``distance_exponent`` (q; the paper: 1), ``expected_healthy_fraction``,
+        ``kept_paper``, ``reached``.
     """
     if sampler.distance_exponent != 1.0:
         raise ValueError(f"the pilot uses the paper's scaling (distance_exponent 1), got {sampler.distance_exponent}")
@@ -134,15 +134,13 @@ def calibrate(sampler: ImportanceSampler, assess: Callable[[np.ndarray], np.ndar
     q = cal.exponent_
     return {"healthy_fraction_target": target, "tolerance": tolerance, "pilot_size": int(pilot_size),
             "pilot_healthy_fraction": round(cal.pilot_fraction_, 4), "distance_exponent": q,
-            "rescale_exponent": round(sampler.n_rescaled / q, 6), "paper_exponent": sampler.n_rescaled,
             "expected_healthy_fraction": round(cal.expected_fraction_, 4), "kept_paper": bool(cal.kept_paper_),
             "reached": bool(cal.reached_)}
 
 
-def paper_record(sampler: ImportanceSampler) -> dict[str, Any]:
+def paper_record() -> dict[str, Any]:
     """The record of an uncalibrated store (``dataset.healthy_fraction: null``): the paper's scaling."""
-    return {"healthy_fraction_target": None, "distance_exponent": 1.0, "rescale_exponent": float(sampler.n_rescaled),
-            "paper_exponent": sampler.n_rescaled}
+    return {"healthy_fraction_target": None, "distance_exponent": 1.0}
 
 
 def load_or_calibrate(data_dir: Path, fingerprint: str, run: Callable[[], dict[str, Any]]) -> tuple[dict[str, Any], float]:
@@ -175,7 +173,7 @@ def calibrate_spec(spec: Any, nominal: Any, assessment: Any, seed: int) -> dict[
 
     sampler = ImportanceSampler(tuple(nominal), spec.uniform, 1.0)
     if spec.healthy_fraction is None:
-        return paper_record(sampler)
+        return paper_record()
     labeller = LabelComputer(assessment, nominal, spec.chunk_size)
 
     def assess(k: np.ndarray) -> np.ndarray:
