@@ -43,6 +43,7 @@ from .simulator import EMASimulator
 COEFFICIENTS = tuple(f.name for f in fields(LFShape))
 CHANNELS = ("current", "position")
 HELD_OUT = ("importance", "uniform")
+JITTER = 1e-3  # a change of every coefficient that no fit resolves (see ``fit_and_validate``)
 # Physical ranges of the coefficients: EMF and resistance fall with the shorted fraction s at a rate
 # near 1 (a_k, a_R = 1 +- 0.5: the short takes turns out of both); the inductance of a winding goes
 # with the square of its turns (a_L = 2, between linear and cubic); the HF commutation transient lasts
@@ -64,9 +65,15 @@ class LFFitSettings:
         seed: seeds the Latin hypercubes (four independent streams: two design halves, two held-out sets).
         duration: simulated record [s] (a prefix of the command); ``None``: the command's duration.
         bounds: {coefficient: [low, high]} overriding :data:`PHYSICAL_BOUNDS`.
-        fd_step: forward-difference step of the coefficients (absolute).
+        fd_step: forward-difference step of the coefficients (absolute): large enough to step over the
+            jitter of the cost (vectors whose current loop rings respond chaotically to any change; with
+            1e-3 the fit moved the coefficients by 5e-4 and "explained" noise).
         min_gain: relative fall of the held-out median current NRMSE required on both sets, in [0, 1).
         max_worsening: relative growth tolerated in any held-out median or max NRMSE, >= 0.
+        outlier_factor: design vectors whose current NRMSE with the physical coefficients exceeds this
+            multiple of the design median are left out of the fit (> 1; ``None``: keep all). Where a short
+            makes the current loop ring, LF and HF part ways whatever the coefficients, and least squares
+            would bend the coefficients towards those few vectors at the expense of all the others.
     """
 
     n_design: int
@@ -76,9 +83,10 @@ class LFFitSettings:
     seed: int
     duration: float | None = None
     bounds: Mapping[str, Sequence[float]] = field(default_factory=dict)
-    fd_step: float = 1e-3
+    fd_step: float = 0.02
     min_gain: float = 0.02
     max_worsening: float = 0.0
+    outlier_factor: float | None = 3.0
 
     def __post_init__(self) -> None:
         for name, low in (("n_design", 2), ("n_importance", 1), ("n_uniform", 1), ("max_iter", 1), ("seed", 0)):
@@ -93,6 +101,8 @@ class LFFitSettings:
             raise ValueError(f"fit.min_gain must be in [0, 1), got {self.min_gain!r}")
         if not (_number(self.max_worsening) and self.max_worsening >= 0.0):
             raise ValueError(f"fit.max_worsening must be >= 0, got {self.max_worsening!r}")
+        if self.outlier_factor is not None and not (_number(self.outlier_factor) and self.outlier_factor > 1.0):
+            raise ValueError(f"fit.outlier_factor must be > 1 (or null), got {self.outlier_factor!r}")
         bounds = dict(PHYSICAL_BOUNDS)
         for name, pair in dict(self.bounds or {}).items():
             if name not in PHYSICAL_BOUNDS:
@@ -175,7 +185,8 @@ def as_vector(shape: LFShape) -> torch.Tensor:
 class ShapeFit:
     """Outcome of :func:`fit_shape`: ``shape`` (fitted coefficients), ``std`` (Gauss-Newton standard
     deviation per coefficient), ``cost_history`` (0.5 sum NRMSE^2 per iteration), ``iterations``,
-    ``converged``, ``at_bound`` (coefficients that ended on a bound)."""
+    ``converged``, ``at_bound`` (coefficients that ended on a bound), ``excluded`` (design rows left out
+    of the fit as outliers, set by :func:`fit_and_validate`)."""
 
     shape: LFShape
     std: dict[str, float]
@@ -183,10 +194,11 @@ class ShapeFit:
     iterations: int
     converged: bool
     at_bound: list[str]
+    excluded: list[int] = field(default_factory=list)
 
 
 def fit_shape(params: ActuatorParams, faults: torch.Tensor, reference: torch.Tensor, command, duration: float,
-              bounds: Mapping[str, Sequence[float]] | None = None, max_iter: int = 8, fd_step: float = 1e-3,
+              bounds: Mapping[str, Sequence[float]] | None = None, max_iter: int = 8, fd_step: float = 0.02,
               start: LFShape | None = None) -> ShapeFit:
     """Fit the LF shape coefficients so that LF reproduces ``reference`` (B, 2, T) of ``faults`` (B, 8).
 
@@ -262,8 +274,9 @@ class LFFitResult:
     Attributes:
         shape: the coefficients to use (fitted or physical, per ``decision``).
         fit: the Levenberg-Marquardt outcome.  decision: which was kept and why.
-        summary: {set: {"physical" | "fitted" (| "input"): {channel: {median, mean, max}}}} for the
-            design and held-out sets, NRMSE fractions.
+        summary: {set: {"physical" | "fitted" | "jitter" (| "input"): {channel: {median, mean, max}}}} for
+            the design and held-out sets, NRMSE fractions ("jitter": the physical values + ``JITTER``, the
+            noise floor of the comparison; "input": the actuator's own coefficients, when not physical).
         per_vector: {set: {"faults", "physical", "fitted"}} (lists, (n, 8) and (n, 2)).
     """
 
@@ -282,10 +295,20 @@ def fit_and_validate(params: ActuatorParams, command, duration: float, sets: Map
     other targets). The physical and fitted LF runs of every set are one batched LF call.
     """
     physical = LFShape()
-    fit = fit_shape(params, sets["design"], references["design"], command, duration, settings.bounds,
+    design, reference = sets["design"], references["design"]
+    inliers = torch.arange(design.shape[0])
+    if settings.outlier_factor is not None:
+        shapes = as_vector(physical).expand(design.shape[0], -1)
+        d = discrepancy(simulate(params, "lf", design, command, duration, shapes), reference)[:, 0]
+        inliers = torch.nonzero(d <= settings.outlier_factor * d.median()).flatten()
+    fit = fit_shape(params, design[inliers], reference[inliers], command, duration, settings.bounds,
                     settings.max_iter, settings.fd_step, start=physical)
+    fit.excluded = sorted(set(range(design.shape[0])) - set(inliers.tolist()))
     names = list(sets)
-    candidates = {"physical": physical, "fitted": fit.shape}
+    # "jitter": the physical values moved by JITTER, far below what a fit resolves; how much the held-out
+    # NRMSE moves with it is the noise floor of any before/after comparison (ringing vectors).
+    jitter = LFShape(**{c: v + JITTER for c, v in asdict(physical).items()})
+    candidates = {"physical": physical, "fitted": fit.shape, "jitter": jitter}
     if params.lf_shape != physical:
         candidates["input"] = params.lf_shape
     faults = torch.cat([sets[n] for n in names])

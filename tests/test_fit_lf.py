@@ -98,6 +98,7 @@ def _cfg(compose, tmp_path, *overrides: str):
     ("fit.n_uniform=0", "fit.n_uniform"),
     ("+fit.min_gain=1.5", "fit.min_gain"),
     ("+fit.duration=0.00015", "fit.duration"),
+    ("+fit.outlier_factor=0.5", "fit.outlier_factor"),
     ("+fit.bounds={commutation_width: [0.1, 0.2]}", "fit.bounds.commutation_width"),
     ("+fit.bounds={turns: [0, 1]}", "turns"),
     ("out=fit.csv", "out must end in .yaml"),

@@ -90,7 +90,8 @@ def fit_lf(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     Returns:
         ``metrics``: the coefficients kept and which (``kept``: ``fitted`` | ``physical``) with the reasons,
         the fitted coefficients, held-out median/max NRMSE of current and position with the physical and
-        the fitted coefficients (fractions), wall time, output paths; ``objects``: ``result``
+        the fitted coefficients and with the physical ones + ``lf_fit.JITTER`` (the noise floor of the
+        comparison), fractions; wall time, output paths; ``objects``: ``result``
         (:class:`~phm_torch.lf_fit.LFFitResult`), ``params``, ``yaml``, ``report``, ``plot`` paths.
     """
     common.set_threads(cfg)
@@ -109,7 +110,7 @@ def fit_lf(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     result = lf_fit.run_fit(params, command, settings)
     wall = time.perf_counter() - t0
 
-    held = {name: {label: result.summary[name][label] for label in ("physical", "fitted")}
+    held = {name: {label: result.summary[name][label] for label in ("physical", "fitted", "jitter")}
             for name in lf_fit.HELD_OUT}
     kept = dataclasses.asdict(result.shape)
     header = [(f"phm-fit-lf: actuator {provenance.describe(records['actuator'])} with lf_shape fitted to HF on "
@@ -125,7 +126,7 @@ def fit_lf(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
               "physical": dataclasses.asdict(lf_fit.LFShape()), "input": dataclasses.asdict(params.lf_shape),
               "fit": {"std": result.fit.std, "cost_history": result.fit.cost_history,
                       "iterations": result.fit.iterations, "converged": result.fit.converged,
-                      "at_bound": result.fit.at_bound},
+                      "at_bound": result.fit.at_bound, "excluded_design_rows": result.fit.excluded},
               "settings": dataclasses.asdict(settings), "duration": duration, "wall_time_s": round(wall, 1),
               "nrmse": result.summary, "per_vector": result.per_vector, "actuator_yaml": str(yaml_path)}
     common.write_json(report_path, report)
