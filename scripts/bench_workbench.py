@@ -11,10 +11,15 @@
    (inertia x0.9..1.1, dry friction x0.8..1.3, k8 0.4..0.6); a fraction are controls with nothing hidden.
    A hit: the true effect ranks first and is significant. Also reported: top-3 rate, the NRMSE after adding
    it over the noise floor, false positives (controls with a significant candidate; other effects left
-   significant next to a hit).
+   significant next to a hit). The pool includes the generic ``torque_ripple`` at a random order (at least
+   4 orders from the cogging order, which names that ripple): a hit needs it named at its true order.
+
+``--actuator`` runs it on another actuator (conf/actuator/<name>.yaml or a YAML path), ``--command`` with
+another test command (conf/command/<name>.yaml or a path; its duration is set to ``--duration``); the JSON
+records both (phm_torch.provenance).
 
 Usage: python scripts/bench_workbench.py [--cases 12] [--duration 0.25] [--seed 0] [--data-fidelity lf|hf]
-           [--out results/bench_workbench.json]
+           [--actuator ema_reference] [--command chirp] [--out results/bench_workbench.json]
 """
 
 from __future__ import annotations
@@ -28,19 +33,21 @@ import time
 from pathlib import Path
 
 import torch
+from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from phm_torch.apps.workbench import settings_from_config
-from phm_torch.command import Chirp
 from phm_torch.effects import EFFECTS
 from phm_torch.io.atomic import atomic_open
 from phm_torch.params import CONF_DIR, load_actuator
+from phm_torch.provenance import actuator_record, command_record
 from phm_torch.workbench import Case, Workbench, WorkbenchSettings, record_from_measurement, synthesize
+from phm_torch.workbench.orders import actuator_orders, max_order
 
 # winding_temperature is left out: with back_emf/inertia/friction multipliers free it is aliased with them
 # (reported as "not testable"), so it cannot be a hit by construction.
 POOL = ("cogging_torque", "stribeck_friction", "aero_hinge_load", "inverter_dead_time", "position_sensor_lag",
-        "transmission_compliance", "torque_constant_saturation", "viscous_friction")
+        "transmission_compliance", "torque_constant_saturation", "viscous_friction", "torque_ripple")
 CHANNELS = ("position", "current")
 
 
@@ -62,6 +69,10 @@ def random_case(rng: random.Random, params, control: bool, seed: int, strength: 
             vals["phase"] = rng.uniform(0.0, 2 * math.pi)
         if name == "stribeck_friction":
             vals["velocity"] = rng.uniform(3.0, 10.0)
+        if name == "torque_ripple":  # an order the library does not name: >= 4 from the cogging order
+            cog = actuator_orders(params)["cogging"]
+            vals["order"] = float(rng.choice([h for h in range(8, max_order(params) - 3) if abs(h - cog) >= 4]))
+            vals["phase"] = rng.uniform(0.0, 2 * math.pi)
         effects[name] = vals
     info = {"effect": name, "values": effects.get(name, {}), "noise": noise, "k8": faults[7],
             "scales": scales}
@@ -73,13 +84,32 @@ def settings(rounds: int) -> WorkbenchSettings:
     return WorkbenchSettings(**{**base.__dict__, "rounds": rounds})
 
 
-def run_case(params, m, info: dict, rounds: int) -> dict:
-    wb = Workbench(params, settings=settings(rounds))
+def command_node(name: str) -> tuple[str, dict]:
+    """(name, config node) of conf/command/<name>.yaml or of a YAML path."""
+    path = Path(name)
+    if not path.suffix:
+        path = CONF_DIR / "command" / f"{name}.yaml"
+    if not path.is_file():
+        raise ValueError(f"--command: no such command file {str(path)!r}")
+    node = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    if not isinstance(node, dict) or "_target_" not in node:
+        raise ValueError(f"--command: {str(path)!r} is not a command config (no _target_)")
+    return (name if path.parent == CONF_DIR / "command" else str(path)), node
+
+
+def make_command(node: dict, duration: float):
+    """The command of config ``node`` with its duration set to ``duration`` [s]."""
+    return instantiate({**node, "duration": duration})
+
+
+def run_case(params, m, info: dict, rounds: int, actuator: str = "ema_reference") -> dict:
+    wb = Workbench(params, settings=settings(rounds), actuator=actuator)
     rec = record_from_measurement(m, params, CHANNELS, "bench")
     res = wb.run([rec])
     ranking = [c.effect for c in res.candidates]
     significant = [c.effect for c in res.candidates if c.significant]
-    out = {**info, "ranking": ranking[:3], "significant": significant, "added": res.added,
+    orders = {c.effect: c.start.get("order") for c in res.candidates if "order" in c.start}
+    out = {**info, "ranking": ranking[:3], "significant": significant, "added": res.added, "orders": orders,
            "timing": {k: round(v, 2) for k, v in res.timing.items()}}
     model = res.metrics["model"]
     out["nrmse_over_floor_before"] = model["nrmse"]["total"] / model["noise_floor"]["total"]
@@ -90,6 +120,8 @@ def run_case(params, m, info: dict, rounds: int) -> dict:
         out["false_positive"] = bool(significant)
     else:
         out["hit"] = bool(ranking and ranking[0] == info["effect"] and info["effect"] in significant)
+        if "order" in info["values"]:  # a ripple of free order must be named at its own order
+            out["hit"] = out["hit"] and orders.get(info["effect"]) == info["values"]["order"]
         out["top3"] = info["effect"] in ranking[:3]
         out["extra_significant"] = [e for e in significant if e != info["effect"]]
         out["at_floor"] = out["hit"] and out["nrmse_over_floor_after"] <= 1.2
@@ -108,16 +140,24 @@ def main() -> None:
     ap.add_argument("--data-fidelity", choices=("lf", "hf"), default="lf",
                     help="model that simulates the hit-rate measurements (the workbench's model stays LF)")
     ap.add_argument("--skip-timing", action="store_true", help="skip the 0.5 s loop-time case")
+    ap.add_argument("--actuator", default="ema_reference",
+                    help="conf/actuator/<name>.yaml or a path to an actuator YAML")
+    ap.add_argument("--command", default="chirp", help="conf/command/<name>.yaml or a path to a command YAML")
     ap.add_argument("--out", default="results/bench_workbench.json")
     args = ap.parse_args()
     torch.set_num_threads(max(1, torch.get_num_threads()))
-    params = load_actuator()
+    params = load_actuator(args.actuator)
+    cmd_name, cmd_node = command_node(args.command)
     report: dict = {"machine": {"cpus": torch.get_num_threads(), "platform": platform.platform(),
-                                "torch": torch.__version__}, "args": vars(args)}
+                                "torch": torch.__version__}, "args": vars(args),
+                    "actuator": actuator_record(args.actuator, params),
+                    "command": command_record(cmd_name, {**cmd_node, "duration": args.duration})}
     if not args.skip_timing:
-        m = synthesize(params, [Case({"cogging_torque": {"amplitude": 4e-3, "phase": 0.7}}, seed=99)], Chirp(), 0.5)[0]
+        m = synthesize(params, [Case({"cogging_torque": {"amplitude": 4e-3, "phase": 0.7}}, seed=99)],
+                       make_command(cmd_node, 0.5), 0.5)[0]
         t0 = time.perf_counter()
-        case = run_case(params, m, {"effect": "cogging_torque", "values": {}, "noise": {}, "k8": 0.5, "scales": {}}, 2)
+        case = run_case(params, m, {"effect": "cogging_torque", "values": {}, "noise": {}, "k8": 0.5, "scales": {}}, 2,
+                        args.actuator)
         report["loop_time"] = {"record_s": 0.5, "hit": case["hit"], **case["timing"],
                                "wall_with_report_s": round(time.perf_counter() - t0, 2)}
         print("loop time:", json.dumps(report["loop_time"]), flush=True)
@@ -129,11 +169,11 @@ def main() -> None:
     if not 0 < strength[0] <= strength[1]:
         raise ValueError(f"--strength must satisfy 0 < LOW <= HIGH, got {list(strength)}")
     built = [random_case(rng, params, control, 1000 + i, strength) for i, control in enumerate(kinds)]
-    ms = synthesize(params, [c for c, _ in built], Chirp(duration=args.duration), args.duration,
+    ms = synthesize(params, [c for c, _ in built], make_command(cmd_node, args.duration), args.duration,
                     fidelity=args.data_fidelity)
     cases = []
     for i, ((_, info), m) in enumerate(zip(built, ms, strict=True)):
-        out = run_case(params, m, info, args.rounds)
+        out = run_case(params, m, info, args.rounds, args.actuator)
         cases.append(out)
         print(f"[{i + 1}/{len(built)}]", json.dumps({k: out.get(k) for k in ("effect", "ranking", "significant", "hit",
                                                                                   "nrmse_over_floor_after")}),
