@@ -184,7 +184,7 @@ def as_vector(shape: LFShape) -> torch.Tensor:
 @dataclass
 class ShapeFit:
     """Outcome of :func:`fit_shape`: ``shape`` (fitted coefficients), ``std`` (Gauss-Newton standard
-    deviation per coefficient), ``cost_history`` (0.5 sum NRMSE^2 per iteration), ``iterations``,
+    deviation per coefficient; meaningless where ringing vectors make the cost jitter), ``cost_history`` (0.5 sum NRMSE^2 per iteration), ``iterations``,
     ``converged``, ``at_bound`` (coefficients that ended on a bound), ``excluded`` (design rows left out
     of the fit as outliers, set by :func:`fit_and_validate`)."""
 

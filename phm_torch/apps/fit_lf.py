@@ -59,6 +59,8 @@ def actuator_yaml(values: dict[str, Any], shape: lf_fit.LFShape, header: list[st
 
 def plot_report(result: lf_fit.LFFitResult, path: Path, title: str) -> Path:
     """Held-out NRMSE per vector, fitted against physical coefficients (one panel per channel), as PNG."""
+    from matplotlib.ticker import NullFormatter
+
     from ..plotting import plt  # matplotlib (Agg) only when plotting
 
     fig, axes = plt.subplots(1, len(lf_fit.CHANNELS), figsize=(8, 3.6))
@@ -73,6 +75,8 @@ def plot_report(result: lf_fit.LFFitResult, path: Path, title: str) -> Path:
         ax.plot([lo, hi], [lo, hi], "k:", lw=0.8)
         ax.set(xscale="log", yscale="log", xlabel=f"{channel} NRMSE, physical [%]",
                ylabel=f"{channel} NRMSE, fitted [%]")
+        for axis in (ax.xaxis, ax.yaxis):  # decade labels only: minor labels of a short log range overlap
+            axis.set_minor_formatter(NullFormatter())
         ax.legend(fontsize=7)
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
@@ -124,7 +128,8 @@ def fit_lf(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     report = {"provenance": records, "kept": result.decision.keep, "reasons": result.decision.reasons,
               "lf_shape": kept, "fitted": dataclasses.asdict(result.fit.shape),
               "physical": dataclasses.asdict(lf_fit.LFShape()), "input": dataclasses.asdict(params.lf_shape),
-              "fit": {"std": result.fit.std, "cost_history": result.fit.cost_history,
+              # no Gauss-Newton std: the cost jitters at the scale of the jitter candidate, not a smooth bowl
+              "fit": {"cost_history": result.fit.cost_history,
                       "iterations": result.fit.iterations, "converged": result.fit.converged,
                       "at_bound": result.fit.at_bound, "excluded_design_rows": result.fit.excluded},
               "settings": dataclasses.asdict(settings), "duration": duration, "wall_time_s": round(wall, 1),
