@@ -120,7 +120,8 @@ def test_app_tiny_run_writes_usable_actuator_yaml(compose, tmp_path):
     report = json.loads(objects["report"].read_text())
     assert report["provenance"]["actuator"]["name"] == "ema_reference"
     assert report["provenance"]["command"]["params"]["frequency"] == 10.0
-    assert "provenance" in path.read_text().split("\n", 4)[3]
+    header = path.read_text().split("\n", 4)[3]
+    assert json.loads(header.split(": ", 1)[1]) == report["provenance"]
     # the decision follows the rule on the reported numbers, and the coefficients kept are the right ones
     held = {n: {k: report["nrmse"][n][k] for k in ("physical", "fitted")} for n in lf_fit.HELD_OUT}
     decision = lf_fit.decide({n: held[n]["physical"] for n in held}, {n: held[n]["fitted"] for n in held})

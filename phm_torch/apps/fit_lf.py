@@ -121,8 +121,7 @@ def fit_lf(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
               f"command {provenance.describe(records['command'])}"),
               f"kept: {result.decision.keep} coefficients ({'; '.join(result.decision.reasons)})",
               f"report: {report_path.name}",
-              "provenance: " + json.dumps({"actuator": {k: records["actuator"][k] for k in ("name", "sha256")},
-                                          "command": records["command"]})]
+              "provenance (of the input actuator and the command): " + json.dumps(records)]
     with atomic_open(yaml_path, "w") as fh:
         fh.write(actuator_yaml(common.plain(cfg.actuator), result.shape, header))
     report = {"provenance": records, "kept": result.decision.keep, "reasons": result.decision.reasons,
