@@ -155,7 +155,10 @@ def _refinement(cfg: DictConfig, metadata: dict[str, Any], seed: int) -> tuple[B
                          f"the actuator, assessment and dataset config its labels were made with; set "
                          f"classifier_refine.rounds=0")
     params = common.actuator(store_cfg)
-    sampler = ImportanceSampler(tuple(params.nominal_faults), tuple(store_cfg.dataset.get("uniform", [])), 1.0)
+    # candidates drawn as the store's training vectors were: with its calibrated distance exponent
+    exponent = float((metadata.get("sampling") or {}).get("distance_exponent", 1.0))
+    sampler = ImportanceSampler(tuple(params.nominal_faults), tuple(store_cfg.dataset.get("uniform", [])), 1.0,
+                                distance_exponent=exponent)
     assessment = common.build(store_cfg.assessment, "assessment", params=params,
                               device=common.device(node.device))
     chunk = int(store_cfg.dataset.get("label_chunk_size", 4096))
