@@ -103,3 +103,29 @@ def test_a_later_run_of_some_stages_keeps_the_earlier_metrics(tmp_path):
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["train"] == {"err_k": 0.05} and "cases" in saved
     assert set(saved["wall_s"]) == {"train", "cases"}
+
+
+def test_workbench_demo_is_the_shipped_record_only_for_its_own_actuator(tmp_path, monkeypatch):
+    """The bundled hidden-cogging CSV belongs to the reference actuator and chirp (its .json says so); a run
+    of another actuator simulates its own hidden-effect record, scaled to that actuator."""
+    from phm_torch.apps import run as run_app
+    from phm_torch.apps import simulate as simulate_app
+
+    cfg = compose_stage("run", [])
+    shared = run_app.shared_overrides(cfg)
+    assert shared[0] == "actuator=ema_reference" and "command=chirp" in shared
+    assert run_app.workbench_measurement(cfg, shared, tmp_path).name == "workbench_hidden_cogging.csv"
+    calls = []
+    monkeypatch.setattr(simulate_app, "simulate_to_csv", lambda c: calls.append(c))
+    other = compose_stage("run", ["actuator.coulomb_friction=0.02", "actuator.static_friction=0.03"])
+    path = run_app.workbench_measurement(other, run_app.shared_overrides(other), tmp_path)
+    assert path == tmp_path / "hidden_cogging_torque.csv" and len(calls) == 1
+    sim = calls[0]
+    assert sim.actuator.coulomb_friction == 0.02 and sim.fidelity == "hf"
+    assert sim.effects.cogging_torque.amplitude == pytest.approx(0.4 * 0.02)
+    assert sim.noise.current == pytest.approx(3.3e-3 * sim.actuator.current_limit)
+
+
+def test_stage_lists_cannot_change_the_actuator_of_one_stage():
+    with pytest.raises(ValueError, match="whole run"):
+        run_all(compose_stage("run", ['train=["actuator.gear_ratio=150"]', "stages=[train]"]))

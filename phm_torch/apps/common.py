@@ -94,6 +94,9 @@ def actuator(cfg: DictConfig) -> ActuatorParams:
         raise ValueError(f"actuator: {e}") from None
 
 
+CHOICES = "choices"   # where a config composed by phm-run keeps its config-group choices (see choice)
+
+
 def choice(cfg: DictConfig, key: str) -> str | None:
     """The config-group option chosen for ``key`` (``actuator=<name>``) in this app, or ``None``.
 
@@ -105,6 +108,9 @@ def choice(cfg: DictConfig, key: str) -> str | None:
 
     if cfg.get(key) is None:
         return None
+    kept = (cfg.get(CHOICES) or {}).get(key)
+    if kept:
+        return str(kept)
     if HydraConfig.initialized():
         name = HydraConfig.get().runtime.choices.get(key)
         if name:

@@ -18,7 +18,7 @@ import hydra
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, open_dict
 
 from .. import provenance
 from ..data.store import DatasetStore
@@ -34,11 +34,20 @@ STAGES = ("cases", "generate", "train", "evaluate", "workbench", "report")
 
 
 def compose_stage(app: str, overrides: list[str]) -> DictConfig:
-    """The composed config of ``app`` (conf/<app>.yaml) with ``overrides``, inside or outside a Hydra app."""
+    """The composed config of ``app`` (conf/<app>.yaml) with ``overrides``, inside or outside a Hydra app.
+
+    The config-group choices of the shared groups (``actuator``, ``command``) are kept under ``choices``
+    (what :func:`common.choice` reads), since a composed config outside ``@hydra.main`` has no runtime."""
     if GlobalHydra.instance().is_initialized():
-        return compose(config_name=app, overrides=overrides)
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        return compose(config_name=app, overrides=overrides)
+        cfg = compose(config_name=app, overrides=overrides, return_hydra_config=True)
+    else:
+        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+            cfg = compose(config_name=app, overrides=overrides, return_hydra_config=True)
+    choices = {k: cfg.hydra.runtime.choices.get(k) for k in SHARED_GROUPS}
+    with open_dict(cfg):
+        del cfg["hydra"]
+        cfg[common.CHOICES] = choices
+    return cfg
 
 
 DATA_KEYS = ("dataset", "assessment")   # config nodes of phm-generate that a run-level experiment may set
@@ -100,6 +109,37 @@ def _overrides(value: Any, name: str) -> list[str]:
         if key == "measurements" and path and not Path(path).exists() and shipped.is_file():
             item = f"{key}={shipped}"
         out.append(item)
+    return out
+
+
+def workbench_measurement(cfg: DictConfig, shared: list[str], out_dir: Path) -> Path:
+    """The hidden-effect record the workbench stage diagnoses: the shipped example when the run's actuator and
+    command are the ones it was recorded with (its sidecar JSON says which), else one simulated now (HF) of
+    the run's actuator on its command, with the hidden effect scaled to that actuator (``workbench_demo``)."""
+    demo = cfg.workbench_demo
+    shipped = CONF_DIR.parent / str(demo.shipped)
+    sidecar = json.loads(shipped.with_suffix(".json").read_text()) if shipped.with_suffix(".json").is_file() else {}
+    requested = common.requested_provenance(cfg)
+    recorded = sidecar.get("provenance") or {}
+    if shipped.is_file() and all((recorded.get(k) or {}).get("sha256") == (requested[k] or {}).get("sha256")
+                                 for k in SHARED_GROUPS):
+        return shipped
+    from .simulate import simulate_to_csv
+
+    params = common.actuator(cfg)
+    effect = str(demo.effect)
+    amplitude = common.number(demo.amplitude_per_coulomb_friction, "workbench_demo.amplitude_per_coulomb_friction",
+                              0.0, strict=True) * params.coulomb_friction
+    noise = common.number(demo.current_noise_per_limit, "workbench_demo.current_noise_per_limit", 0.0)
+    out = out_dir / f"hidden_{effect}.csv"
+    print(f"[phm-run] workbench: simulating a record of {common.choice(cfg, 'actuator')} with a hidden {effect} "
+          f"(amplitude {amplitude:.3g} N m) -> {out}", flush=True)
+    simulate_to_csv(compose_stage("simulate", [
+        *shared, "fidelity=hf", f"+effects.{effect}.amplitude={amplitude}",
+        *(f"+effects.{effect}.{k}={json.dumps(v)}" for k, v in (common.plain(demo.params) or {}).items()),
+        f"seed={common.integer(demo.seed, 'workbench_demo.seed', 0)}", f"noise.current={noise * params.current_limit}",
+        f"noise.position={common.number(demo.position_noise, 'workbench_demo.position_noise', 0.0)}",
+        f"out={out}", "plot=false"]))
     return out
 
 
@@ -175,6 +215,8 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "workbench": ("workbench", [*shared, f"out_dir={run_dir / 'workbench'}",
                                     *_overrides(cfg.workbench, "workbench")]),
     }
+    if "workbench" in stages and not any(o.startswith("measurements=") for o in plan["workbench"][1]):
+        plan["workbench"][1].append(f"measurements={workbench_measurement(cfg, shared, run_dir / 'workbench')}")
     from .cases import run_cases
     from .evaluate import evaluate_rul
     from .generate import generate
