@@ -149,3 +149,29 @@ def test_intervals_cover_through_the_noise(records):
         assert float(inside.double().mean()) >= 0.85, (level, float(inside.double().mean()))
         widths[level] = float((upper - lower)[:, DAMAGE].mean())
     assert widths[0.06] > 1.3 * widths[0.01]
+
+
+def test_pretrained_pipeline_knows_its_actuator_and_flags_another_command(records, compose, tmp_path):
+    """The shipped pipeline records the reference actuator and chirp; a record whose command column is shifted
+    by 10 ms (a trigger offset) is out of distribution with the reason, not a confident verdict; an explicit
+    other actuator is refused."""
+    from phm_torch.online.export import read_metadata
+
+    recorded = read_metadata(PIPELINE)["provenance"]
+    assert recorded["actuator"]["name"] == "ema_reference" and recorded["command"]["name"] == "chirp"
+    sig, command = records
+    t = sig.time.numpy()
+    paths = []
+    for name, cmd in (("right", command(sig.time)), ("late", command(sig.time - 0.010))):
+        path = tmp_path / f"{name}.csv"
+        write_measurement(path, Measurement(t, cmd.numpy(), sig["position"][0].numpy(), sig["current"][0].numpy(),
+                                            sample_rate=20000.0))
+        paths.append(str(path))
+    _, out = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements=[{','.join(paths)}]"]))
+    right, late = out["records"]
+    assert not right["out_of_distribution"] and right["ood_reasons"] == [] and right["command_check"]["ok"]
+    assert late["out_of_distribution"] and late["ood_reasons"] == ["command"]
+    assert late["p_faulty"] is None and late["rul_hours"] is None and late["k_interval"] is None
+    assert late["command_check"]["best_lag_s"] == pytest.approx(0.010, abs=1e-4)
+    with pytest.raises(ValueError, match="differs from the actuator pipeline"):
+        predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements={paths[0]}", "actuator=ema_hvdc_rudder"]))
