@@ -87,3 +87,14 @@ def test_evaluate_refuses_bad_interval_settings_before_any_work(compose, tmp_pat
 
     with pytest.raises(ValueError, match=message):
         evaluate_rul(compose("evaluate", [override, f"data_dir={tmp_path / 'none'}", f"out_dir={tmp_path / 'out'}"]))
+
+
+def test_a_sparse_easiest_class_is_pooled_upwards():
+    """A calibration set with almost no record in the easiest class (a store sampled far from nominal) pools
+    that class with the next ones instead of taking a quantile of nothing."""
+    k_hat, k = population(2000, 3)
+    keep = difficulty_class(k_hat, NOMINAL, 0.3, 4) > 0
+    keep[:3] = True                                          # a few easy records only
+    interval = calibrate_fdi_interval(k_hat[keep], k[keep], NOMINAL, coverage=0.9, min_count=20)
+    assert interval.counts[0] < 20 and torch.isfinite(interval.half_widths).all()
+    assert (interval.half_widths[1:] >= interval.half_widths[:-1]).all()

@@ -88,10 +88,13 @@ def calibrate_fdi_interval(k_hat: torch.Tensor, k: torch.Tensor, nominal: torch.
     counts = [int((cls == c).sum()) for c in range(n_classes)]
     widths, pooled_from = torch.zeros(n_classes, 8, dtype=torch.float64), []
     for c in range(n_classes):
-        low = c
-        while low > 0 and sum(counts[low:c + 1]) < min_count:
-            low -= 1
-        rows = error[(cls >= low) & (cls <= c)]
+        low, high = c, c
+        while sum(counts[low:high + 1]) < min_count:   # pool with the classes below, then (the easiest
+            if low > 0:                                  # class, when sparse) with those above
+                low -= 1
+            else:
+                high += 1
+        rows = error[(cls >= low) & (cls <= high)]
         n = rows.shape[0]
         widths[c] = torch.quantile(rows, min(1.0, math.ceil((n + 1) * coverage) / n), dim=0)
         if c > 0:
