@@ -173,7 +173,7 @@ def figures(res: WorkbenchResult, report: dict) -> dict[str, bytes]:
                                          f"{rec.name}: measured vs simulated ({res.fidelity.upper()} model)"),
             "residual_maps.png": plots.maps({c.label: res.diagnostics[c.label]["profiles"] for c in shown}, chans),
             "harmonics.png": plots.harmonic_bars({c.label: res.diagnostics[c.label]["harmonics"] for c in shown}, chans,
-                                                 p.pole_pairs, p.stator_slots),
+                                                 p.pole_pairs, res.orders.get("actuator", {}).get("cogging", p.stator_slots)),
             "spectrum.png": plots.spectra({c.label: res.diagnostics[c.label]["spectrum"] for c in shown}, sigma0,
                                           p.sample_rate),
             "correlations.png": plots.correlations({c.label: res.diagnostics[c.label]["whiteness"] for c in shown},
