@@ -25,7 +25,8 @@ from phm_torch.simulator import EMASimulator
 
 P = load_actuator()
 BUILTIN = ("viscous_friction", "stribeck_friction", "cogging_torque", "transmission_compliance", "aero_hinge_load",
-           "inverter_dead_time", "winding_temperature", "position_sensor_lag", "torque_constant_saturation")
+           "inverter_dead_time", "winding_temperature", "position_sensor_lag", "torque_constant_saturation",
+           "torque_ripple")
 LF_CASES = (None, *BUILTIN)                    # row i enables LF_CASES[i] only; row 0: all at strength 0
 HF_CASES = (None, "inverter_dead_time", "winding_temperature", "cogging_torque")
 BARE_LF, BARE_HF = 0.25, 0.04  # [s] prefixes run without effects for the bit-identity checks
