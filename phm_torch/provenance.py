@@ -50,9 +50,21 @@ def digest(values: Mapping[str, Any]) -> str:
 
 
 def actuator_values(params: ActuatorParams) -> dict[str, Any]:
-    """The actuator's values as a plain mapping (the YAML's fields, ``lf_shape`` as a mapping)."""
+    """The actuator's values as a plain mapping (the YAML's fields, ``lf_shape`` as a mapping).
+
+    Optional fields at their defaults are left out, so that a field added to the datasheet later (with a
+    default that keeps the physics) does not change the hash of every actuator recorded before it."""
     values = dataclasses.asdict(params)
     values["nominal_faults"] = list(params.nominal_faults)
+    for f in dataclasses.fields(params):
+        if f.default is not dataclasses.MISSING:
+            default = f.default
+        elif f.default_factory is not dataclasses.MISSING:
+            default = f.default_factory()
+        else:
+            continue
+        if getattr(params, f.name) == default:
+            values.pop(f.name)
     return _canonical(values)
 
 

@@ -57,6 +57,8 @@ def main() -> None:
         raise SystemExit(f"fdi_model_mismatch: error: --effects {unknown} unknown; known: {sorted(EFFECTS)}")
     bundles = load_named_bundles(args.bundle)
     with DatasetStore(args.data_dir) as store:
+        for bundle in bundles.values():
+            bundle.check_store(store.provenance, f"store {args.data_dir}")
         cfg = DictConfig((store.metadata or {}).get("config") or {})
         if "actuator" not in cfg or "command" not in cfg or "dataset" not in cfg:
             raise SystemExit(f"fdi_model_mismatch: error: the store {args.data_dir!r} does not record the "

@@ -60,6 +60,8 @@ def main() -> None:
     t0 = time.perf_counter()
     results: dict[str, dict[str, dict[str, dict[str, float]]]] = {name: {} for name in bundles}
     with DatasetStore(args.data_dir) as store:
+        for bundle in bundles.values():
+            bundle.check_store(store.provenance, f"store {args.data_dir}")
         store_cfg = store.metadata.get("config") or {}
         nominal = torch.tensor(common.actuator(DictConfig(store_cfg)).nominal_faults if "actuator" in store_cfg
                                else [0.0] * 6 + [0.5, 0.5], dtype=torch.float64)

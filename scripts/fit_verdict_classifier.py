@@ -33,6 +33,7 @@ def read_samples(bundle: SurrogateBundle, data_dir: str, split: str
     """Selected samples (N, n_w) [A], RMS currents (N,) [A] and health (N,) bool of a split's records."""
     samples, scale, healthy = [], [], []
     with DatasetStore(data_dir) as store:
+        bundle.check_store(store.provenance, f"store {data_dir}")
         view = store.split(split)       # a ValueError naming the store's splits if it has no such split
         for start in range(0, len(view), BLOCK):
             x = torch.as_tensor(np.asarray(view.current[start:start + BLOCK]), dtype=bundle.pod.mean_.dtype)

@@ -47,6 +47,8 @@ def squared_errors(bundles: dict[str, SurrogateBundle], data_dir: str, split: st
     counts, healthy = [], []
     gen = torch.Generator().manual_seed(seed)
     with DatasetStore(data_dir) as store:
+        for bundle in bundles.values():
+            bundle.check_store(store.provenance, f"store {data_dir}")
         store_cfg = store.metadata.get("config") or {}
         nominal = torch.tensor(common.actuator(DictConfig(store_cfg)).nominal_faults if "actuator" in store_cfg
                                else [0.0] * 6 + [0.5, 0.5], dtype=torch.float64)

@@ -171,6 +171,17 @@ class SurrogateBundle(nn.Module):
         """``{"actuator", "command"}`` records of the store it was trained on (``{}``: an older bundle)."""
         return dict(self.extra.get("provenance") or {})
 
+    def check_store(self, store_provenance: Mapping[str, Any], where: str) -> None:
+        """Raise a ValueError when the store (its ``provenance``) belongs to another actuator or test command
+        than the one this bundle was trained for (a bundle or store without records passes)."""
+        from ..provenance import KEYS, describe
+
+        for key in KEYS:
+            mine, theirs = self.provenance.get(key), (store_provenance or {}).get(key)
+            if mine and theirs and mine.get("sha256") != theirs.get("sha256"):
+                raise ValueError(f"{where}: {key} {describe(theirs)} is not the {key} the bundle was trained for: "
+                                 f"{describe(mine)}")
+
     @property
     def verdict(self) -> HealthClassifier:
         """The classifier that judges FDI estimates: the verdict classifier, else the health classifier."""
