@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import torch
 
@@ -55,3 +57,24 @@ def time_grid(duration: float, sample_rate: float, dtype: torch.dtype = torch.fl
     if n < 2:
         raise ValueError(f"duration {duration} s at {sample_rate} Hz gives fewer than 2 samples")
     return torch.arange(n + 1, dtype=dtype, device=device) / sample_rate
+
+
+def load_command_node(name: str) -> tuple[str, dict[str, Any]]:
+    """(name, config node) of ``conf/command/<name>.yaml`` or of a YAML path (the name is then the path).
+
+    Raises:
+        ValueError: no such file, or a file that is not a command config (a mapping with a ``_target_``).
+    """
+    from omegaconf import OmegaConf
+
+    from .params import CONF_DIR
+
+    path = Path(name)
+    if not path.suffix:
+        path = CONF_DIR / "command" / f"{name}.yaml"
+    if not path.is_file():
+        raise ValueError(f"command: no such command file {str(path)!r}")
+    node = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    if not isinstance(node, dict) or "_target_" not in node:
+        raise ValueError(f"command: {str(path)!r} is not a command config (a mapping with a _target_)")
+    return (name if path.parent == CONF_DIR / "command" else str(path)), node

@@ -37,6 +37,7 @@ from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
 from phm_torch.apps.workbench import settings_from_config
+from phm_torch.command import load_command_node
 from phm_torch.effects import EFFECTS
 from phm_torch.io.atomic import atomic_open
 from phm_torch.params import CONF_DIR, load_actuator
@@ -86,15 +87,10 @@ def settings(rounds: int) -> WorkbenchSettings:
 
 def command_node(name: str) -> tuple[str, dict]:
     """(name, config node) of conf/command/<name>.yaml or of a YAML path."""
-    path = Path(name)
-    if not path.suffix:
-        path = CONF_DIR / "command" / f"{name}.yaml"
-    if not path.is_file():
-        raise ValueError(f"--command: no such command file {str(path)!r}")
-    node = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-    if not isinstance(node, dict) or "_target_" not in node:
-        raise ValueError(f"--command: {str(path)!r} is not a command config (no _target_)")
-    return (name if path.parent == CONF_DIR / "command" else str(path)), node
+    try:
+        return load_command_node(name)
+    except ValueError as e:
+        raise ValueError(f"--{e}") from None
 
 
 def make_command(node: dict, duration: float):

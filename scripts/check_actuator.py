@@ -20,25 +20,18 @@ from pathlib import Path
 
 import torch
 from hydra.utils import instantiate
-from omegaconf import OmegaConf
 
 from phm_torch.assessment.actuator_check import ActuatorCheck, single_fault_cases
+from phm_torch.command import load_command_node
 from phm_torch.io.atomic import atomic_open
-from phm_torch.params import CONF_DIR, load_actuator
+from phm_torch.params import load_actuator
 from phm_torch.provenance import actuator_record, command_record
 
 
 def load_command(name: str) -> tuple[str, dict, object]:
     """(name, config node, command object) of ``conf/command/<name>.yaml`` or a YAML path."""
-    path = Path(name)
-    if not path.suffix:
-        path = CONF_DIR / "command" / f"{name}.yaml"
-    if not path.is_file():
-        raise ValueError(f"command: no such command file {str(path)!r}")
-    node = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-    if not isinstance(node, dict) or "_target_" not in node:
-        raise ValueError(f"command: {str(path)!r} must be a mapping with a _target_")
-    return path.stem, node, instantiate(node)
+    label, node = load_command_node(name)
+    return Path(label).stem, node, instantiate(node)
 
 
 def _fmt(v: float, spec: str = ".1f") -> str:
