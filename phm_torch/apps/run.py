@@ -215,8 +215,6 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "workbench": ("workbench", [*shared, f"out_dir={run_dir / 'workbench'}",
                                     *_overrides(cfg.workbench, "workbench")]),
     }
-    if "workbench" in stages and not any(o.startswith("measurements=") for o in plan["workbench"][1]):
-        plan["workbench"][1].append(f"measurements={workbench_measurement(cfg, shared, run_dir / 'workbench')}")
     from .cases import run_cases
     from .evaluate import evaluate_rul
     from .generate import generate
@@ -242,6 +240,8 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             objects["report"] = build_report(run_dir, metrics, studies)
         else:
             app, overrides = plan[stage]
+            if stage == "workbench" and not any(o.startswith("measurements=") for o in overrides):
+                overrides = [*overrides, f"measurements={workbench_measurement(cfg, shared, run_dir / 'workbench')}"]
             stage_metrics, _ = functions[stage](compose_stage(app, overrides))
             metrics[stage] = stage_metrics
         timings[stage] = round(time.perf_counter() - t0, 2)
