@@ -133,3 +133,15 @@ def test_user_config_folder_reaches_every_stage(run_cli, tmp_path):
                       timeout=120)
     assert refused.returncode == 2
     assert "differs from the actuator" in refused.stderr and "my_ema" in refused.stderr
+
+
+def test_workbench_records_the_command_and_checks_the_files_against_it(compose):
+    from phm_torch.apps.workbench import build_workbench, command_provenance
+
+    demo = str(Path(__file__).resolve().parent.parent / "examples" / "workbench_hidden_cogging.csv")
+    cfg = compose("workbench", [f"measurements={demo}", "command=chirp"])
+    records = build_workbench(cfg).load(demo)
+    assert command_provenance(cfg, records)["name"] == "chirp"
+    assert command_provenance(compose("workbench", [f"measurements={demo}"]), records)["name"] == "measured"
+    with pytest.raises(ValueError, match=r"command=sine: .*workbench_hidden_cogging.csv: command differs"):
+        command_provenance(compose("workbench", [f"measurements={demo}", "command=sine"]), records)

@@ -129,3 +129,38 @@ def test_workbench_demo_is_the_shipped_record_only_for_its_own_actuator(tmp_path
 def test_stage_lists_cannot_change_the_actuator_of_one_stage():
     with pytest.raises(ValueError, match="whole run"):
         run_all(compose_stage("run", ['train=["actuator.gear_ratio=150"]', "stages=[train]"]))
+
+
+@pytest.mark.slow
+def test_phm_run_on_the_second_actuator_end_to_end(tmp_path):
+    """`phm-run actuator=ema_hvdc_rudder command=chirp_hvdc_rudder` at a small scale: every stage runs on the
+    270 V actuator and its own chirp, the sampling reaches the configured healthy fraction, every artefact
+    records that actuator and command, and the workbench finds the hidden cogging of that motor (its own
+    slot order), on a record simulated for it."""
+    from phm_torch.online.export import read_metadata
+
+    cfg = compose_stage("run", [
+        "actuator=ema_hvdc_rudder", "command=chirp_hvdc_rudder", f"out_dir={tmp_path}",
+        ('generate=["dataset.n_train=300","dataset.n_val=60","dataset.n_rul=8","dataset.chunk_size=128",'
+         '"dataset.fidelity=lf","dataset.n_labels=512","dataset.pilot_size=768"]'),
+        'cases=["fidelity=lf","duration=0.05"]',
+        'train=["n_modes=8","n_points=24","selector=qdeim","classifier_refine.rounds=1"]',
+        'evaluate=["rul.n_samples=20"]',
+        'workbench=["refit.top=1","refit.rounds=1"]',
+        "report.hidden_neurons=[4]", "report.hidden_epochs=5", "report.latency_repeats=20",
+    ])
+    run_all(cfg)
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert set(saved) >= {"cases", "generate", "train", "evaluate", "workbench", "report"}
+    manifest = json.loads((tmp_path / "data" / "manifest.json").read_text())
+    assert manifest["provenance"]["actuator"]["name"] == "ema_hvdc_rudder"
+    assert manifest["provenance"]["command"]["name"] == "chirp_hvdc_rudder"
+    assert 0.15 <= manifest["splits"]["train"]["healthy"] / manifest["splits"]["train"]["count"] <= 0.45
+    sha = manifest["provenance"]["actuator"]["sha256"]
+    assert saved["train"]["actuator"] == saved["evaluate"]["actuator"] == f"ema_hvdc_rudder (sha256 {sha[:8]})"
+    calibration = json.loads((tmp_path / "evaluate" / "rul_calibration.json").read_text())
+    assert calibration["provenance"]["actuator"]["sha256"] == sha
+    assert read_metadata(saved["evaluate"]["export"])["provenance"]["command"]["name"] == "chirp_hvdc_rudder"
+    assert 0.0 <= saved["train"]["err_k"] < 1.0 and saved["evaluate"]["export_max_abs_diff"] < 1e-5
+    report = json.loads((tmp_path / "workbench" / "report.json").read_text())
+    assert report["candidates"][0]["effect"] == "cogging_torque"

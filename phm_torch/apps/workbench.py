@@ -23,6 +23,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig
 
+from ..online.command_check import check_command
 from ..workbench import (
     ClosureSettings,
     DiagnosticSettings,
@@ -161,12 +162,24 @@ def build_workbench(cfg: DictConfig) -> Workbench:
     settings, noise = settings_from_config(cfg)
     n_threads = cfg.get("threads", 1)
     n_threads = None if n_threads is None else common.integer(n_threads, "threads", 1)
-    # the chosen actuator's name for the report's provenance (common.choice is the lead's helper; until it
-    # exists the shipped default is the only name the config can carry)
-    choice = getattr(common, "choice", None)
-    name = (choice(cfg, "actuator") if choice is not None else "ema_reference") or "custom"
+    name = common.choice(cfg, "actuator") or "custom"   # the report's provenance
     return Workbench(params, fid, spec, _names(cfg.get("free", []), "free"), groups, faults, channels, settings,
                      noise, (bounds[0], bounds[1]), common.device(cfg.get("device", "cpu")), n_threads, name)
+
+
+def command_provenance(cfg: DictConfig, records: list[Any]) -> dict[str, Any]:
+    """The test command of the report: the chosen ``command=`` (its record, and each file's command column
+    checked against it: a record of another command is an error naming the file) or, without one, the
+    files' own command columns (the model is driven by them either way)."""
+    requested = common.requested_provenance(cfg)["command"]
+    if requested is None:
+        return {"name": "measured", "source": "each measurement file's command column"}
+    command = common.command(cfg.command)
+    for record in records:
+        check = check_command(record.command, command(record.time.double()), record.sample_rate)
+        if not check.ok:
+            raise ValueError(f"command={requested['name']}: {record.path or record.name}: {check.reason()}")
+    return requested
 
 
 def run_workbench(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -180,10 +193,13 @@ def run_workbench(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     wb = build_workbench(cfg)
     measurements = common.plain(cfg.measurements)
     records = wb.load(measurements, resample=bool(cfg.get("resample", False)))
+    command = command_provenance(cfg, records)
     out_dir = Path(str(cfg.get("out_dir", "results/workbench"))).expanduser()
     result = wb.run(records)
     paths = write_report(result, out_dir, plot=bool(cfg.get("plot", True)))
     report = json.loads(paths["report.json"].read_text())
+    report["command"] = command
+    common.write_json(paths["report.json"], report)
     best = next((c for c in report["candidates"] if c["significant"]), None)
     metrics = {"nrmse": report["nrmse"], "noise_floor": report["noise_floor"],
                "best_candidate": best["effect"] if best else None,
