@@ -23,6 +23,7 @@ from ..online import OnlinePipeline
 from ..online.export import export_torchscript
 from ..online.fdi_band import FDIBand, TooFewCalibrationSignals, calibrate_fdi_band
 from ..online.fdi_interval import FDIInterval, calibrate_fdi_interval, interval_quality
+from ..online.input_contract import tracking_range
 from ..online.verdict import calibrate_verdict, shift_prior, verdict_quality
 from ..params import ActuatorParams
 from ..prognostics import DeterministicRUL, RULEstimator
@@ -195,6 +196,8 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         band_signals = _noisy(cfg, band_clean)
         band_healthy = torch.as_tensor(band_view.healthy[()]).bool()
         healthy = torch.as_tensor(view.healthy[()]).bool()
+        # the split's tracking NRMSE range: the input contract's position check (phm-predict)
+        tracking = tracking_range(torch.as_tensor(store.command), torch.as_tensor(view.position[()]))
     if k.shape[0] == 0:
         raise ValueError(f"split {cfg.split!r} of {cfg.data_dir} is empty")
     t0 = time.perf_counter()
@@ -283,7 +286,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                        "verdict_prior_faulty": verdict[2] if verdict else None,
                        "fdi_interval": {"half_widths": pipeline.k_half_widths.tolist(), "noise_levels": noise_levels,
                                         "level": interval.level, "coverage": interval.coverage} if interval else None,
-                       "calibration_noise": calibration_noise,
+                       "calibration_noise": calibration_noise, "tracking_nrmse": tracking,
                        "damage": common.plain(cfg.damage), "provenance": prov})
     common.write_json(out_dir / "rul_predictions.json",
                       {"k": k.tolist(), "k_hat": k_hat.tolist(), "reference": reference.tolist(),
@@ -291,7 +294,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                        "out_of_distribution": ood.tolist()})
     if cfg.export:
         path = out_dir / "online.pt"
-        export_torchscript(pipeline, path, {"provenance": prov})
+        export_torchscript(pipeline, path, {"provenance": prov, "tracking_nrmse": tracking})
         reloaded = torch.jit.load(str(path))
         with torch.no_grad():
             again = reloaded(signals[:8])

@@ -93,7 +93,8 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                                           verdict=_verdict(cal, cal_path), **_fdi_interval(cal, cal_path),
                                           calibration_noise=_calibration_noise(cal, cal_path))
     out = Path(cfg.out)
-    scripted = export_torchscript(pipeline, out, {"provenance": prov})
+    extra = {"tracking_nrmse": cal["tracking_nrmse"]} if cal.get("tracking_nrmse") is not None else {}   # input contract
+    scripted = export_torchscript(pipeline, out, {"provenance": prov, **extra})
     probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)
     with torch.no_grad():
         diff = max(float((a.double() - b.double()).abs().nan_to_num(0.0).max())

@@ -14,7 +14,12 @@ Each record holds:
 * ``noise``, the estimated relative measurement noise (noise std over the record's RMS current, before any
   baseline), and ``noise_above_calibration``: more than twice the noise of the records P(faulty) and the
   RUL band were calibrated on, and above ``NOISE_FLOOR`` (they are then too narrow, and so are the
-  intervals above their highest calibrated level; ``null`` when the pipeline does not know that level).
+  intervals above their highest calibrated level; ``null`` when the pipeline does not know that level);
+* ``ood_reasons``, every check of the input contract that fired (:mod:`phm_torch.online.input_contract`:
+  the pipeline's own checks by name, ``command``, ``tracking``, ``sign``, ``offset``, ``shape``, ``noise``,
+  ``spikes``), ``checks_skipped`` (``command`` and ``tracking`` for a CSV without command or position
+  columns, a current-only record), ``command_check``, ``tracking_check`` and ``messages`` (one line per failed
+  check). The record is computed by :func:`phm_torch.online.diagnosis.diagnose`.
 
 The model is a TorchScript file written by ``phm-evaluate``/``phm_torch.online.export``, loaded with
 ``torch.jit.load`` (no unpickling). An empty or ``nan`` cell of a CSV's ``current`` column is a missing
@@ -27,28 +32,26 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import hydra
+import numpy as np
 import torch
 from omegaconf import DictConfig
 
 from .. import provenance
-from ..faults import FAULT_NAMES
 from ..io import read_measurement
-from ..online.command_check import CommandCheck, check_command
+from ..online.corruptions import Record
+from ..online.diagnosis import NOISE_FLOOR, diagnose
 from ..online.export import read_metadata
+from ..online.input_contract import InputContract
 from . import common
 
 log = logging.getLogger(__name__)
 
-# Relative noise always tolerated, whatever the calibration level: the noise estimate of a few noise-free
-# heavy-fault records (ringing current) reaches 2.5 %: 1.3-1.5 % of the paper store's records read above this,
-# 0.4-0.5 % above 2 %.
-NOISE_FLOOR = 0.005
+__all__ = ["NOISE_FLOOR", "predict"]
 LENGTH_TOLERANCE = 0.01   # fraction of the test record a measurement may be shorter or longer by
 
 
@@ -72,7 +75,8 @@ def _read(path: str, model: Any, resample: bool) -> tuple[torch.Tensor, Any]:
     length. One longer or shorter than the test record by at most ``LENGTH_TOLERANCE`` of it (another
     implementation may stop one sample early or late) is cut to length, or its tail is marked missing (NaN:
     the gappy layer drops those samples), with a warning; a larger difference is an error naming the file."""
-    m = read_measurement(path, expected_rate=float(model.sample_rate), resample=resample, missing_ok=("current",))
+    m = read_measurement(path, expected_rate=float(model.sample_rate), resample=resample, missing_ok=("current",),
+                         optional=("command", "position"))
     current = torch.as_tensor(m.current, dtype=model.times.dtype).unsqueeze(0)
     n, n_full = current.shape[1], int(model.n_full)
     if n == n_full:
@@ -97,13 +101,11 @@ def _pipeline_command(cfg: DictConfig, model_path: Path) -> tuple[dict[str, Any]
     return prov, common.command(prov["command"]["params"])
 
 
-def _command_check(m: Any, command: Callable[[torch.Tensor], torch.Tensor] | None, n_full: int) -> CommandCheck | None:
-    """The record's command column against the pipeline's test command, over the test record's length."""
-    if command is None:
-        return None
-    n = min(len(m.command), n_full)
-    t = torch.as_tensor(m.time[:n] - m.time[0], dtype=torch.float64)
-    return check_command(torch.as_tensor(m.command[:n]), command(t), float(m.sample_rate))
+def _record(m: Any, current: torch.Tensor) -> Record:
+    """The measurement as a record of the test's length (command and position ``None`` when the CSV lacks them)."""
+    n = min(len(m.time), current.shape[1])
+    column = (lambda x: None if np.isnan(x).all() else torch.as_tensor(x[:n], dtype=torch.float64))
+    return Record(torch.as_tensor(m.time[:n], dtype=torch.float64), column(m.command), column(m.position), current[0])
 
 
 def _can_rebase(model: Any) -> bool:
@@ -133,7 +135,6 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     calibrated = hasattr(model, "faulty_probability")
     if not calibrated:
         log.warning("%s was exported before the verdict calibration existed: p_faulty is null", model_path)
-    intervals, noise_known = hasattr(model, "k_interval"), hasattr(model, "noise_level")
     bench_nominal = _bench_nominal(cfg, model)
     if bench_nominal is None and _can_rebase(model):
         # a bench differing from the training model by 0.5 % of the current can turn 14 % of the faults
@@ -141,43 +142,18 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         log.warning("no baseline: the measurements are read as records of the training model; on another "
                     "bench give baseline=<healthy record(s) of that bench>, since a small modelling difference "
                     "moves the verdict (docs/surrogates.md, 'Modelling differences')")
+    contract = InputContract.of(model, read_metadata(model_path), command)
     records = []
     for path in paths:
         current, m = _read(path, model, bool(cfg.resample))
-        check = _command_check(m, command, int(model.n_full))
-        if check is not None and not check.ok:
-            log.warning("%s: %s; the record is out of distribution", path, check.reason())
-        with torch.no_grad():
-            noise = float(model.noise_level(current)[0]) if noise_known else float("nan")     # as measured
-            if bench_nominal is not None:
-                current = model.rebase(current, bench_nominal)
-            k_hat, score, rul, ood, resid = model(current)
-            p_faulty = float(model.faulty_probability(score)[0]) if calibrated else float("nan")
-            if intervals and noise_known and "noise" in str(model.k_interval.schema):   # widths follow the noise
-                bounds = torch.stack(model.k_interval(k_hat, torch.tensor([noise], dtype=k_hat.dtype)), -1)[0]
-            else:
-                bounds = torch.stack(model.k_interval(k_hat), -1)[0] if intervals else None
-        reference = float(model.calibration_noise) if noise_known else float("nan")
-        noisy = None if math.isnan(reference) or math.isnan(noise) else noise > max(2.0 * reference, NOISE_FLOOR)
-        if noisy:
+        record = {"file": str(path), **diagnose(model, _record(m, current), contract, bench_nominal)}
+        for message in record["messages"]:
+            log.warning("%s: %s; the record is out of distribution", path, message)
+        if record["noise_above_calibration"]:
             log.warning("%s: estimated current noise %.2f %% of its RMS, more than twice the %.2f %% the "
-                        "uncertainty outputs were calibrated at: they are too narrow", path, 100 * noise, 100 * reference)
-        reasons = (["pipeline"] if bool(ood[0]) else []) + (["command"] if check is not None and not check.ok else [])
-        out = bool(reasons)
-        trusted_bounds = bounds is not None and not out and bool(torch.isfinite(bounds).all())
-        r = rul[0].tolist()
-        records.append({
-            "file": str(path),
-            "k_hat": dict(zip(FAULT_NAMES, k_hat[0].tolist())),
-            "k_interval": dict(zip(FAULT_NAMES, bounds.tolist())) if trusted_bounds else None,
-            "health_score": float(score[0]), "healthy": bool(score[0] > 0),
-            "p_faulty": None if out or math.isnan(p_faulty) else p_faulty,
-            "rul_hours": None if out or any(math.isnan(v) for v in r) else dict(zip(("p5", "p50", "p95"), r)),
-            "out_of_distribution": out, "ood_reasons": reasons, "residual": float(resid[0]),
-            "command_check": None if check is None else {"nrmse": check.nrmse, "best_lag_s": check.best_lag_s,
-                                                         "gain": check.gain, "ok": check.ok},
-            "noise": None if math.isnan(noise) else noise, "noise_above_calibration": noisy,
-        })
+                        "uncertainty outputs were calibrated at: they are too narrow", path, 100 * record["noise"],
+                        100 * float(model.calibration_noise))
+        records.append(record)
     if cfg.out:
         common.write_json(Path(cfg.out), records)
     return {"files": len(records), "out_of_distribution": sum(r["out_of_distribution"] for r in records),

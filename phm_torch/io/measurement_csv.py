@@ -166,7 +166,7 @@ def write_measurement(path: str | os.PathLike, data: Any, index: int | None = No
 
 # ---- reading --------------------------------------------------------------------------------------
 def read_measurement(path: str | os.PathLike, expected_rate: float | None = None, resample: bool = False,
-                     missing_ok: Iterable[str] = ()) -> Measurement:
+                     missing_ok: Iterable[str] = (), optional: Iterable[str] = ()) -> Measurement:
     """Read and validate a measurement CSV.
 
     Args:
@@ -178,6 +178,8 @@ def read_measurement(path: str | os.PathLike, expected_rate: float | None = None
             filter is applied: downsampling by a large factor should be filtered beforehand.)
         missing_ok: columns (not ``time``) whose empty or ``nan`` cells are missing samples, read as NaN (a
             reader that can drop samples, such as the online pipeline's current); elsewhere they are errors.
+        optional: required columns (``command``, ``position``) the file may lack (a current-only record from an
+            on-board system); an absent one reads as NaN throughout.
 
     Raises:
         ValueError: naming the file and the field: missing file, empty file or header, duplicate or
@@ -200,7 +202,8 @@ def read_measurement(path: str | os.PathLike, expected_rate: float | None = None
             raise ValueError(f"{path}: header column {i + 1} is empty")
         if header.index(name) != i:
             raise ValueError(f"{path}: duplicate column {name!r} in the header")
-    missing = [c for c in REQUIRED if c not in header]
+    absent = [c for c in optional if c in REQUIRED and c not in ("time", "current") and c not in header]
+    missing = [c for c in REQUIRED if c not in header and c not in absent]
     if missing:
         raise ValueError(f"{path}: missing required column(s) {missing}; header has {header}")
     body = rows[1:]
@@ -226,6 +229,7 @@ def read_measurement(path: str | os.PathLike, expected_rate: float | None = None
             data[r, c] = value
 
     cols = {name: data[:, i].copy() for i, name in enumerate(header)}
+    cols.update({name: np.full(len(body), math.nan) for name in absent})
     time = cols["time"]
     step = np.diff(time)
     bad = np.flatnonzero(step <= 0)

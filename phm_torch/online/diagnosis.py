@@ -1,0 +1,68 @@
+"""One record through an exported online pipeline and its input contract: the JSON record of ``phm-predict``.
+
+``phm-predict`` reads each CSV into a :class:`~phm_torch.online.corruptions.Record` and calls
+:func:`diagnose`; the corruption suite (``scripts/corruption_suite.py``) calls it on records in memory, so both
+take the same path. The record's fields are described in :mod:`phm_torch.apps.predict`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+
+from ..faults import FAULT_NAMES
+from .corruptions import Record
+from .input_contract import InputContract
+
+# Relative noise always tolerated, whatever the calibration level: the noise estimate of a few noise-free
+# heavy-fault records (ringing current) reaches 2.5 %: 1.3-1.5 % of the paper store's records read above this,
+# 0.4-0.5 % above 2 %.
+NOISE_FLOOR = 0.005
+
+
+def diagnose(model: Any, record: Record, contract: InputContract,
+             bench_nominal: torch.Tensor | None = None) -> dict[str, Any]:
+    """The diagnosis of one record by the exported pipeline ``model`` (``torch.jit.load``), as a JSON-able dict.
+
+    Args:
+        model: the pipeline.  record: its current (n_full,) [A] (NaN = missing), with its command and position
+            (``None``: a current-only record, whose command and tracking checks are skipped).
+        contract: the pipeline's :class:`InputContract`.
+        bench_nominal: (n_full,) [A] healthy record of the measuring bench (phm-predict's ``baseline``), or None.
+    """
+    current = torch.as_tensor(record.current, dtype=model.times.dtype).reshape(1, -1)
+    calibrated = hasattr(model, "faulty_probability")
+    intervals, noise_known = hasattr(model, "k_interval"), hasattr(model, "noise_level")
+    with torch.no_grad():
+        noise = float(model.noise_level(current)[0]) if noise_known else float("nan")     # as measured
+        if bench_nominal is not None:
+            current = model.rebase(current, bench_nominal)
+        k_hat, score, rul, ood, resid = model(current)
+        p_faulty = float(model.faulty_probability(score)[0]) if calibrated else float("nan")
+        if intervals and noise_known and "noise" in str(model.k_interval.schema):   # widths follow the noise
+            bounds = torch.stack(model.k_interval(k_hat, torch.tensor([noise], dtype=k_hat.dtype)), -1)[0]
+        else:
+            bounds = torch.stack(model.k_interval(k_hat), -1)[0] if intervals else None
+    reference = float(model.calibration_noise) if noise_known else float("nan")
+    noisy = None if math.isnan(reference) or math.isnan(noise) else noise > max(2.0 * reference, NOISE_FLOOR)
+    checks = contract.check(model, record, current[0], noise, bool(ood[0]), k_hat[0])
+    out = bool(checks.reasons)
+    trusted_bounds = bounds is not None and not out and bool(torch.isfinite(bounds).all())
+    r = rul[0].tolist()
+    command = checks.command
+    return {
+        "k_hat": dict(zip(FAULT_NAMES, k_hat[0].tolist())),
+        "k_interval": dict(zip(FAULT_NAMES, bounds.tolist())) if trusted_bounds else None,
+        "health_score": float(score[0]), "healthy": bool(score[0] > 0),
+        "p_faulty": None if out or math.isnan(p_faulty) else p_faulty,
+        "rul_hours": None if out or any(math.isnan(v) for v in r) else dict(zip(("p5", "p50", "p95"), r)),
+        "out_of_distribution": out, "ood_reasons": checks.reasons, "checks_skipped": checks.skipped,
+        "residual": float(resid[0]),
+        "command_check": None if command is None else {"nrmse": command.nrmse, "best_lag_s": command.best_lag_s,
+                                                       "gain": command.gain, "ok": command.ok},
+        "tracking_check": checks.tracking,
+        "noise": None if math.isnan(noise) else noise, "noise_above_calibration": noisy,
+        "messages": checks.messages,
+    }

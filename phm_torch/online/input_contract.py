@@ -1,0 +1,260 @@
+"""Input contract of an exported online pipeline: may its answer on this record be trusted, and if not, why?
+
+Every check that fires names itself in the record's ``ood_reasons``; ``out_of_distribution`` is their union.
+
+From the pipeline's own out-of-distribution flag, per internal check (:func:`pipeline_reasons`):
+
+* ``missing`` - too few finite selected samples;  ``flat`` - a flat line;
+* ``gappy_residual`` - the gappy residual above its training threshold;
+* ``pod_residual``, ``roughness``, ``plateau`` - the full-record statistics of
+  :class:`~phm_torch.surrogates.full_signal_check.FullSignalCheck`.
+
+A pipeline whose flag fired for a reason none of these explains (another structure) gives ``pipeline``.
+
+From the record's other columns (skipped, and listed in ``checks_skipped``, for a current-only record):
+
+* ``command`` - the command column is not the pipeline's test command (:mod:`.command_check`);
+* ``tracking`` - the position does not follow the command as an actuator of this type can: its tracking
+  NRMSE (RMS of position - command over the command's range) outside the range the pipeline's training
+  records span, widened by ``TRACKING_MARGIN`` (metadata ``tracking_nrmse``), or, for a pipeline without it,
+  above ``TRACKING_NRMSE_MAX`` or with a position range above ``POSITION_GAIN`` x the command's.
+
+From the current, against the noise calibration and the training model's nominal record (``nominal_record``):
+
+* ``noise`` - the estimated noise above ``NOISE_MARGIN`` x the highest level the intervals were calibrated at;
+* ``sign`` - the record's mean current has the other sign than the nominal record's (a probe the wrong way
+  round; the envelope current of any fault vector keeps its sign);
+* and, for a record whose estimate k_hat is near nominal (the checks a near-nominal answer must pass: its
+  record must look like the nominal one), counted in large faults as the intervals count them
+  (``|k_hat - k_0| > interval_level``, the phase k7 left out):
+  * ``offset`` (at most one large fault) - over the rest window (the leading samples where the nominal
+    record has not left zero yet: the actuator at rest) the record sits off the nominal record;
+  * ``shape`` (no large fault) - the record's correlation with the nominal record below ``SHAPE_MIN``;
+  * ``spikes`` (no large fault) - a second difference far above the record's noise and above the steps the
+    filtered current takes itself.
+
+A record whose k_hat has large faults skips the nominal comparisons: heavy faults reshape the record (24 val-like
+vectors: correlation with the nominal record down to 0.22, rest-window offsets up to 0.9 of its RMS); the
+consistency of such an answer needs a forward surrogate (issue 24, part 2). The thresholds were measured on
+clean records of the reference actuator (``scripts/corruption_suite.py``, docs/prognostics.md): over 24 random
+fault vectors at 0-3 % noise, records with no large fault in k_hat correlate >= 0.968 with the nominal one,
+sit within 0.012 of its RMS over the rest window with at most one, and step by at most 0.39 of it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from .command_check import CommandCheck, check_command
+from .corruptions import Record
+
+PIPELINE_CHECKS = ("missing", "flat", "gappy_residual", "pod_residual", "roughness", "plateau")
+TRACKING_MARGIN = 1.5        # the training range of the tracking NRMSE, widened by this factor on both sides
+# without a training range: a loop that follows its command with at most 90 deg of lag at equal amplitude
+# (its bandwidth covers the test command) misses it by |1 - e^{-j pi/2}| A / sqrt(2) over a range 2 A: 0.5
+TRACKING_NRMSE_MAX = 0.5
+# position range over the command's range: a loop does not move its load twice as far as commanded (no lower
+# bound: a heavy fault can stall the actuator, position range 0.09 x the command's on a paper-sampled vector)
+POSITION_GAIN = 2.0
+REST_LEVEL = 0.02            # the rest window: nominal |current| <= this x its RMS
+REST_MIN = 8                 # samples: a shorter rest window is no check
+OFFSET_MAX = 0.05            # |record - nominal| mean over the rest window, over the nominal RMS (+ 4 noise std)
+SHAPE_MIN = 0.9              # correlation with the nominal record
+NOISE_MAX = 0.1              # relative noise limit of a pipeline that does not record its calibrated levels
+NOISE_MARGIN = 1.5           # the intervals are held at their highest calibrated level up to this factor above it
+SPIKE_SIGMA = 12.0           # a spike: a second difference above this many noise std of a second difference...
+SPIKE_STEP = 0.8             # ... and above this fraction of the nominal RMS current (the current's own steps)
+
+
+@dataclass(frozen=True)
+class ContractChecks:
+    """Outcome of :meth:`InputContract.check` for one record."""
+
+    reasons: list[str]
+    skipped: list[str]
+    command: CommandCheck | None
+    tracking: dict[str, Any] | None
+    messages: list[str] = field(default_factory=list)
+
+
+def _nanmean(x: torch.Tensor) -> torch.Tensor:
+    finite = torch.isfinite(x)
+    return torch.where(finite, x, torch.zeros_like(x)).sum(-1) / finite.sum(-1).clamp(min=1)
+
+
+def _large_faults(model: Any, k_hat: torch.Tensor | None) -> int | None:
+    """Large faults in k_hat (8,), as the pipeline's intervals count them; None without an estimate or a count."""
+    try:
+        level, nominal, mask = float(model.interval_level), model.nominal, model.interval_mask
+    except (AttributeError, RuntimeError):
+        return None
+    if k_hat is None:
+        return None
+    return int((((k_hat.to(nominal.dtype).flatten() - nominal).abs() * mask) > level).sum())
+
+
+def pipeline_reasons(model: Any, x: torch.Tensor) -> list[list[str]] | None:
+    """Which of ``PIPELINE_CHECKS`` fire for each record x (B, n_full) or (B, n_points) [A] as the pipeline saw it
+    (after any rebase); ``None`` for a pipeline whose internals are not those of ``OnlinePipeline``.
+
+    Recomputed from the scripted pipeline's submodules and attributes, the same statistics and thresholds as
+    its forward; works for pipelines exported before this module existed (the shipped pretrained one).
+    """
+    try:
+        gappy, min_count, threshold = model.gappy, int(model.min_count), float(model.residual_threshold)
+        full = x.shape[1] == int(model.n_full)
+        samples = (x.index_select(1, gappy.indices) if full else x).to(gappy.modes_hat.dtype)
+        check = model.full_check if full and bool(model.has_full_check) else None
+    except (AttributeError, RuntimeError):
+        return None
+    valid = torch.isfinite(samples)
+    enough = valid.sum(1) >= min_count
+    filled = torch.where(enough.unsqueeze(1) & valid, samples, gappy.mean_hat.expand_as(samples))
+    with torch.no_grad():
+        _, residual = gappy(filled, torch.where(enough.unsqueeze(1), valid, torch.ones_like(valid)))
+        low, high = torch.aminmax(torch.where(valid, samples, samples.nanmean(1, keepdim=True)), dim=1)
+        flat = (high - low) < 1e-6 if bool(valid.all()) else \
+            torch.where(valid, samples, torch.zeros_like(samples)).std(1) < 1e-6     # as the forward decides
+        flags = {"missing": ~enough, "flat": flat,
+                 "gappy_residual": (residual > threshold) | ~torch.isfinite(residual)}
+        if check is not None:
+            flags["pod_residual"] = check.residual(x) > float(check.residual_threshold)
+            flags["roughness"] = check.roughness(x) > float(check.roughness_threshold)
+            flags["plateau"] = check.plateau(x) > float(check.plateau_threshold)
+    return [[name for name in PIPELINE_CHECKS if name in flags and bool(flags[name][i])] for i in range(x.shape[0])]
+
+
+def tracking_nrmse(command: torch.Tensor, position: torch.Tensor) -> float:
+    """RMS of (position - command) over the command's range: how closely the position follows the command."""
+    command, position = command.double().flatten(), position.double().flatten()
+    return float((position - command).pow(2).mean().sqrt()) / float(command.max() - command.min())
+
+
+def tracking_range(command: torch.Tensor, positions: torch.Tensor) -> list[float]:
+    """[min, max] tracking NRMSE of records' positions (B, n) [rad] against their command (n,) [rad]: what
+    phm-evaluate records in the exported pipeline's metadata (``tracking_nrmse``) from a store's split."""
+    command, positions = command.double().flatten(), positions.double()
+    if positions.dim() != 2 or positions.shape[1] != command.numel() or positions.shape[0] == 0:
+        raise ValueError(f"tracking_range: positions must be (B, {command.numel()}), got {tuple(positions.shape)}")
+    nrmse = (positions - command).pow(2).mean(1).sqrt() / float(command.max() - command.min())
+    return [float(nrmse.min()), float(nrmse.max())]
+
+
+@dataclass(frozen=True)
+class InputContract:
+    """What a record must satisfy for the pipeline's answer to be trusted.
+
+    Args:
+        command: the pipeline's test command, time [s] -> [rad] (None: the command column is not checked).
+        tracking_range: (low, high) tracking NRMSE of the pipeline's training records (None: the physical bound).
+        noise_max: relative noise above which the record is out of distribution.
+    """
+
+    command: Callable[[torch.Tensor], torch.Tensor] | None = None
+    tracking_range: tuple[float, float] | None = None
+    noise_max: float = NOISE_MAX
+    nominal: torch.Tensor | None = None      # the pipeline's nominal record (n_full,) [A], float64; None: unknown
+
+    @classmethod
+    def of(cls, model: Any, metadata: Mapping[str, Any],
+           command: Callable[[torch.Tensor], torch.Tensor] | None) -> InputContract:
+        """The contract of an exported pipeline from its metadata (:func:`~.export.read_metadata`)."""
+        tracking = metadata.get("tracking_nrmse")
+        if tracking is not None:
+            if not (isinstance(tracking, (list, tuple)) and len(tracking) == 2 and 0 <= tracking[0] <= tracking[1]):
+                raise ValueError(f"tracking_nrmse: expected [low, high] with 0 <= low <= high, got {tracking!r}")
+            tracking = (float(tracking[0]), float(tracking[1]))
+        levels = getattr(model, "interval_noise", None)
+        noise_max = NOISE_MAX if levels is None or levels.numel() < 2 else NOISE_MARGIN * float(levels[-1])
+        nominal = getattr(model, "nominal_record", None)
+        usable = nominal is not None and bool(torch.isfinite(nominal).all()) and float(nominal.abs().max()) > 0
+        return cls(command, tracking, noise_max, nominal.double() if usable else None)
+
+    def _tracking(self, record: Record) -> dict[str, Any]:
+        cmd, pos = record.command, record.position
+        nrmse = tracking_nrmse(cmd, pos)
+        gain = float(pos.max() - pos.min()) / float(cmd.max() - cmd.min())
+        if self.tracking_range is not None:
+            low, high = self.tracking_range[0] / TRACKING_MARGIN, self.tracking_range[1] * TRACKING_MARGIN
+            ok = low <= nrmse <= high
+        else:
+            low, high = 0.0, TRACKING_NRMSE_MAX
+            ok = nrmse <= high and gain <= POSITION_GAIN
+        return {"nrmse": nrmse, "range": [low, high], "position_gain": gain, "ok": bool(ok)}
+
+    def current_reasons(self, model: Any, current: torch.Tensor, noise: float, k_hat: torch.Tensor | None = None
+                        ) -> list[str]:
+        """The checks of the current (n_full,) [A] against the noise calibration and the nominal record, those
+        of a near-nominal answer given its estimate k_hat (8,) (None: skipped)."""
+        reasons = []
+        if not math.isnan(noise) and noise > self.noise_max:
+            reasons.append("noise")
+        nominal, x = self.nominal, current.double()
+        if nominal is None or nominal.shape != x.shape:
+            return reasons
+        scale = float(nominal.pow(2).mean().sqrt())
+        mean = float(_nanmean(x))
+        if mean * float(nominal.mean()) < 0:
+            reasons.append("sign")
+        large = _large_faults(model, k_hat)
+        if large is None or large > 1:
+            return reasons
+        quiet = (nominal.abs() <= REST_LEVEL * scale).int().cumprod(0)
+        rest = int(quiet.sum())
+        sigma = 0.0 if math.isnan(noise) else noise * float(_nanmean(x.pow(2)).sqrt())     # noise std [A]
+        if rest >= REST_MIN and abs(float(_nanmean(x[:rest] - nominal[:rest]))) > \
+                OFFSET_MAX * scale + 4.0 * sigma / math.sqrt(rest):
+            reasons.append("offset")
+        if large > 0:
+            return reasons
+        finite = torch.isfinite(x)
+        filled = torch.where(finite, x, nominal)
+        corr = torch.corrcoef(torch.stack([filled, nominal]))[0, 1]
+        if not bool(corr >= SHAPE_MIN):
+            reasons.append("shape")
+        d2 = (x[2:] - 2.0 * x[1:-1] + x[:-2]).abs()
+        d2 = d2[torch.isfinite(d2)]
+        # sqrt(6) sigma: the std of a second difference of white noise
+        if d2.numel() and float(d2.max()) > max(SPIKE_SIGMA * math.sqrt(6.0) * sigma, SPIKE_STEP * scale):
+            reasons.append("spikes")
+        return reasons
+
+    def check(self, model: Any, record: Record, current: torch.Tensor, noise: float, ood: bool,
+              k_hat: torch.Tensor | None = None) -> ContractChecks:
+        """Every check of one record: ``current`` (n_full,) [A] as the pipeline saw it (after any rebase),
+        ``noise`` its estimated relative noise (as measured), ``ood`` the pipeline's own flag, ``k_hat`` (8,) its
+        estimate (None: the checks of a near-nominal answer are skipped)."""
+        reasons, skipped, messages = [], [], []
+        if ood:
+            found = pipeline_reasons(model, current.unsqueeze(0))
+            reasons += (found[0] if found and found[0] else ["pipeline"])
+        command = tracking = None
+        has_command = record.command is not None and bool(torch.isfinite(record.command).all())
+        has_position = record.position is not None and bool(torch.isfinite(record.position).all())
+        if has_command and self.command is not None:
+            n = min(record.command.numel(), current.numel())
+            t = (record.time[:n] - record.time[0]).double()
+            rate = (record.time.numel() - 1) / float(record.time[-1] - record.time[0])
+            command = check_command(record.command[:n], self.command(t), rate)
+            if not command.ok:
+                reasons.append("command")
+                messages.append(command.reason())
+        elif not has_command:
+            skipped.append("command")
+        if has_command and has_position:
+            tracking = self._tracking(record)
+            if not tracking["ok"]:
+                reasons.append("tracking")
+                messages.append(f"position does not follow the command as this actuator can: tracking NRMSE "
+                                f"{tracking['nrmse']:.3f} outside [{tracking['range'][0]:.3f}, "
+                                f"{tracking['range'][1]:.3f}], position range {tracking['position_gain']:.2f} "
+                                f"x the command's")
+        else:
+            skipped.append("tracking")
+        reasons += [r for r in self.current_reasons(model, current, noise, k_hat) if r not in reasons]
+        return ContractChecks(reasons, skipped, command, tracking, messages)
