@@ -1,0 +1,145 @@
+"""Figures of two or more actuators side by side, from their phm-run output directories (same scale), with
+each figure's ratio to the first actuator's and whether it is within the allowed factor.
+
+Each ``--run name=dir`` is a ``phm-run`` out_dir (``data/manifest.json``, ``train/metrics.json``,
+``evaluate/metrics.json``); optional ``--lf name=report.json`` (a ``phm-fit-lf`` report: held-out HF-LF
+current NRMSE) and ``--workbench name=bench.json`` (``scripts/bench_workbench.py``: hit rate) add those.
+Figures where smaller is better (errors, missed faults) must be at most ``factor`` times the first's;
+figures where larger is better (accuracies, coverage, hit rate) at least the first's divided by ``factor``;
+the healthy fraction must lie in [0.15, 0.40].
+
+    python scripts/compare_actuators.py --run reference=/tmp/ref_paper/run --run rudder=/tmp/rud_paper/run \
+        --lf reference=ref_lf.report.json --lf rudder=rud_lf.report.json \
+        --workbench reference=results/bench_ref.json --workbench rudder=results/bench_rud.json --out cmp.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from phm_torch.io.atomic import atomic_open
+
+HEALTHY_RANGE = (0.15, 0.40)
+# figure -> (where: train | evaluate | lf | workbench | manifest, key, smaller is better)
+FIGURES: dict[str, tuple[str, str, bool]] = {
+    "hf_lf_current_nrmse_median": ("lf", "importance", True),
+    "healthy_fraction_train": ("manifest", "train", False),
+    "err_alpha_median": ("train", "err_alpha_median", True),
+    "err_k": ("train", "err_k", True),
+    "classifier_accuracy": ("train", "classifier_accuracy", False),
+    "classifier_missed_fault_rate": ("train", "missed_fault_rate", True),
+    "verdict_accuracy": ("train", "chain_accuracy", False),
+    "verdict_missed_fault_rate": ("train", "chain_missed_fault_rate", True),
+    "rul_err_median_true_k": ("evaluate", "rul_err_median_true_k", True),
+    "rul_band_coverage_true_k": ("evaluate", "rul_band_coverage_true_k", False),
+    "rul_err_median_full_flow": ("evaluate", "rul_err_median_full_flow", True),
+    "rul_band_coverage_full_flow": ("evaluate", "rul_band_coverage_full_flow", False),
+    "workbench_hit_rate": ("workbench", "hit_rate", False),
+}
+
+
+def _pairs(items: list[str] | None, flag: str) -> dict[str, Path]:
+    out: dict[str, Path] = {}
+    for item in items or []:
+        name, sep, path = item.partition("=")
+        if not sep or not name or not path:
+            raise SystemExit(f"compare_actuators: error: {flag} must be name=path, got {item!r}")
+        out[name] = Path(path)
+    return out
+
+
+def _read(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise SystemExit(f"compare_actuators: error: no such file {str(path)!r}")
+    return json.loads(path.read_text())
+
+
+def _lf_median(report: dict[str, Any]) -> float | None:
+    """Held-out importance-sampled median current NRMSE of the LF model the fit kept."""
+    kept = "fitted" if report.get("kept") == "fitted" else "physical"
+    try:
+        return float(report["nrmse"]["importance"][kept]["current"]["median"])
+    except (KeyError, TypeError):
+        return None
+
+
+def figures(run: Path, lf: Path | None, bench: Path | None) -> dict[str, float | None]:
+    """Every figure of one actuator (None where its source is missing)."""
+    sources = {"train": _read(run / "train" / "metrics.json"), "evaluate": _read(run / "evaluate" / "metrics.json")}
+    manifest = _read(run / "data" / "manifest.json")
+    out: dict[str, float | None] = {}
+    for name, (where, key, _) in FIGURES.items():
+        if where == "manifest":
+            split = manifest["splits"][key]
+            out[name] = split["healthy"] / split["count"] if split["count"] else None
+        elif where == "lf":
+            out[name] = _lf_median(_read(lf)) if lf else None
+        elif where == "workbench":
+            out[name] = float(_read(bench)["summary"][key]) if bench else None
+        else:
+            value = sources[where].get(key)
+            out[name] = float(value) if isinstance(value, (int, float)) else None
+    out["actuator"] = sources["train"].get("actuator")   # type: ignore[assignment]
+    return out
+
+
+def compare(table: dict[str, dict[str, Any]], factor: float) -> dict[str, dict[str, Any]]:
+    """Per actuator after the first: per figure the ratio to the first's and whether it meets the target."""
+    names = list(table)
+    base = table[names[0]]
+    verdicts: dict[str, dict[str, Any]] = {}
+    for name in names[1:]:
+        rows = {}
+        for fig, (_, _, smaller) in FIGURES.items():
+            a, b = base.get(fig), table[name].get(fig)
+            if a is None or b is None:
+                rows[fig] = {"ratio": None, "met": None}
+                continue
+            if fig == "healthy_fraction_train":
+                rows[fig] = {"ratio": b / a if a else None, "met": HEALTHY_RANGE[0] <= b <= HEALTHY_RANGE[1]}
+                continue
+            ratio = b / a if a else (math.inf if b else 1.0)
+            met = ratio <= factor if smaller else ratio >= 1.0 / factor
+            rows[fig] = {"ratio": ratio, "met": bool(met)}
+        verdicts[name] = rows
+    return verdicts
+
+
+def markdown(table: dict[str, dict[str, Any]], verdicts: dict[str, dict[str, Any]]) -> str:
+    names = list(table)
+    lines = ["| figure | " + " | ".join(names) + " | ratio | met |", "|---" * (len(names) + 3) + "|"]
+    for fig in FIGURES:
+        cells = ["-" if table[n].get(fig) is None else f"{table[n][fig]:.4g}" for n in names]
+        last = verdicts.get(names[-1], {}).get(fig, {}) if len(names) > 1 else {}
+        ratio = "-" if last.get("ratio") is None else f"{last['ratio']:.2f}"
+        met = {True: "yes", False: "**no**", None: "-"}[last.get("met")]
+        lines.append(f"| {fig} | " + " | ".join(cells) + f" | {ratio} | {met} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--run", action="append", required=True, help="name=phm-run out_dir (the first is the base)")
+    ap.add_argument("--lf", action="append", help="name=phm-fit-lf report JSON")
+    ap.add_argument("--workbench", action="append", help="name=bench_workbench JSON")
+    ap.add_argument("--factor", type=float, default=1.3, help="allowed factor against the first actuator")
+    ap.add_argument("--out", type=Path, default=None, help="JSON written (atomically)")
+    args = ap.parse_args()
+    if not args.factor >= 1.0:
+        raise SystemExit(f"compare_actuators: error: --factor must be >= 1, got {args.factor}")
+    runs, lfs, benches = _pairs(args.run, "--run"), _pairs(args.lf, "--lf"), _pairs(args.workbench, "--workbench")
+    table = {name: figures(path, lfs.get(name), benches.get(name)) for name, path in runs.items()}
+    verdicts = compare(table, args.factor)
+    print(markdown(table, verdicts))
+    if args.out:
+        with atomic_open(args.out, "w") as fh:
+            json.dump({"factor": args.factor, "figures": table, "verdicts": verdicts,
+                       "runs": {k: str(v) for k, v in runs.items()}}, fh, indent=2)
+
+
+if __name__ == "__main__":
+    main()
