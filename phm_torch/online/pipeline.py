@@ -26,6 +26,7 @@ from ..prognostics.damage import DamageModel
 from ..surrogates.augment import noise_level
 from ..surrogates.full_signal_check import FullSignalCheck
 from ..surrogates.metrics import ECC_PHASE
+from .consistency import ConsistencyCheck
 from .fdi_interval import DEFAULT_CLASSES, DEFAULT_LEVEL
 
 SCORE_BLOCK = 4096    # rows per classifier call in the RUL search
@@ -71,9 +72,12 @@ class OnlinePipeline(nn.Module):
         interval_level: damage above which a component of k_hat counts as a large fault, for the class.
         calibration_noise: relative current noise (std over the record's RMS) of the records the FDI band,
             verdict and intervals were calibrated on; None: unknown (NaN). See :meth:`noise_level`.
+        consistency: :class:`~phm_torch.online.consistency.ConsistencyCheck` (analysis by synthesis: can the
+            forward surrogate at k_hat reproduce the record?); a record it flags is out of distribution
+            (reason ``inconsistent``). None: no such check.
     """
 
-    __constants__ = ("noise_aware",)     # TorchScript compiles only the FDI call that applies
+    __constants__ = ("noise_aware", "has_consistency")     # TorchScript compiles only the FDI call that applies
 
     def __init__(self, gappy: nn.Module, fdi: nn.Module, classifier: nn.Module, damage: DamageModel,
                  deltas: torch.Tensor, direction: torch.Tensor, n_full: int, residual_threshold: float,
@@ -83,7 +87,7 @@ class OnlinePipeline(nn.Module):
                  verdict: tuple[float, float] | None = None, nominal_record: torch.Tensor | None = None,
                  k_half_widths: torch.Tensor | None = None, interval_level: float = DEFAULT_LEVEL,
                  calibration_noise: float | None = None, interval_noise: torch.Tensor | None = None,
-                 verdict_classifier: nn.Module | None = None):
+                 verdict_classifier: nn.Module | None = None, consistency: nn.Module | None = None):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
@@ -95,6 +99,8 @@ class OnlinePipeline(nn.Module):
         self.noise_aware = bool(getattr(fdi, "noise_input", False))
         self.has_full_check = full_check is not None
         self.full_check = full_check if full_check is not None else nn.Identity()
+        self.has_consistency = consistency is not None
+        self.consistency_check = consistency if consistency is not None else nn.Identity()
         t = damage.grid
         a, _ = damage.transitions(t)
         dtype = gappy.modes_hat.dtype
@@ -155,8 +161,11 @@ class OnlinePipeline(nn.Module):
                     fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None,
                     verdict: tuple[float, float] | None = None, k_half_widths: torch.Tensor | None = None,
                     interval_level: float = DEFAULT_LEVEL, calibration_noise: float | None = None,
-                    interval_noise: torch.Tensor | None = None) -> OnlinePipeline:
-        """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifiers, OOD threshold)."""
+                    interval_noise: torch.Tensor | None = None,
+                    consistency: dict | None = None) -> OnlinePipeline:
+        """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifiers, OOD threshold, and its
+        forward surrogate when it has one: the consistency check, thresholds from ``consistency``, the
+        ``{"thresholds", "noise_levels"}`` of :func:`~phm_torch.online.consistency.calibrate_consistency`)."""
         threshold = float(bundle.full_residual_threshold)
         check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_, residual_threshold=threshold)
         return cls(bundle.gappy, bundle.network, bundle.classifier, damage, deltas, direction,
@@ -165,7 +174,10 @@ class OnlinePipeline(nn.Module):
                    rate_scales=rate_scales, verdict=verdict, nominal_record=bundle.nominal_record,
                    k_half_widths=k_half_widths, interval_level=interval_level,
                    calibration_noise=calibration_noise, interval_noise=interval_noise,
-                   verdict_classifier=bundle.verdict)
+                   verdict_classifier=bundle.verdict, consistency=None if getattr(bundle, "forward_model", None) is None
+                   else ConsistencyCheck(bundle.forward_model, bundle.pod.mean_, bundle.pod.modes_, bundle.indices,
+                                         *[torch.tensor(consistency[key]) if consistency else None
+                                           for key in ("thresholds", "noise_levels")]))
 
     @torch.jit.export
     def noise_level(self, x: torch.Tensor) -> torch.Tensor:
@@ -201,6 +213,17 @@ class OnlinePipeline(nn.Module):
             w = self.k_half_widths[low, count] * (1.0 - frac) + self.k_half_widths[low + 1, count] * frac
         w = w.reshape(b, 8)
         return (k_hat - w).clamp(0.0, 1.0), (k_hat + w).clamp(0.0, 1.0)
+
+    @torch.jit.export
+    def consistency(self, x: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """Consistency (B,) of full records x (B, n_full) or selected samples (B, n_points) [A]: the residual
+        between the record and the one the forward surrogate predicts at the FDI's k_hat, normalised by the
+        record's noise, over its calibrated threshold (:mod:`phm_torch.online.consistency`); > 1 is
+        ``inconsistent`` (out of distribution). 0 when uncalibrated, NaN without a forward surrogate. ``noise``
+        as :meth:`forward` (selected samples without it: the largest calibrated level)."""
+        if self.has_consistency:
+            return self.consistency_check(x, self.forward(x, noise)[0], noise)
+        return torch.full((x.shape[0],), float("nan"), dtype=self.times.dtype, device=x.device)
 
     @torch.jit.export
     def faulty_probability(self, score: torch.Tensor) -> torch.Tensor:
@@ -353,6 +376,8 @@ class OnlinePipeline(nn.Module):
             k_hat = self.fdi(alpha)
         score = self.verdict_classifier(k_hat) - self.verdict_classifier.threshold
         ood = (~enough) | flat | foreign | (residual > self.residual_threshold) | ~torch.isfinite(residual)
+        if self.has_consistency:     # analysis by synthesis: NaN (no finite sample) compares False
+            ood = ood | (self.consistency_check(x, k_hat, noise) > 1.0)
         rul = self.rul(k_hat, True)
         # the median propagation starts δ_50 of damage away from k_hat, which can move a record just across
         # the verdict's boundary: a faulty verdict has no life left at 5 and 50 %

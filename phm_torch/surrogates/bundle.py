@@ -29,10 +29,11 @@ float, bool, None and tensors, read back with ``torch.load(weights_only=True)`` 
               "noise_input", "default_noise", "max_noise", "sample_rate", "signal", "unit",
               "fault_names", "health_convention", "selector": {"name", "params"},
               "classifier": {"name", "params"}, "verdict_classifier": {"name", "params"} or None,
+              "forward_model": {ForwardSurrogate params} or None (absent: older bundles),
               "gappy_ridge", "phm_torch_version", "extra": {...}},
      "tensors": {"pod.mean_", "pod.modes_", "pod.singular_values_", "pod.energy_", "indices",
                  "sample_times", "residual_threshold", "network.<state_dict>", "classifier.<state_dict>",
-                 "verdict_classifier.<state_dict>" (when it has one), and, for a Bayesian gappy layer,
+                 "verdict_classifier.<state_dict>" and "forward_model.<state_dict>" (when it has them), and, for a Bayesian gappy layer,
                  "gappy.noise_covariance", "gappy.prior_variance",
                  and, when the store had one, "nominal_record"}}
 """
@@ -55,6 +56,7 @@ from .augment import noise_level
 from .classifiers import HealthClassifier, build_classifier
 from .fdi_ensemble import FDIEnsemble, build_fdi_network
 from .fdi_mlp import FDIMLP
+from .forward import ForwardSurrogate
 from .gappy_pod import GappyPOD
 from .pod import POD
 
@@ -85,6 +87,8 @@ class SurrogateBundle(nn.Module):
             bench's own healthy record (:meth:`~phm_torch.online.OnlinePipeline.rebase`). None: unknown.
         verdict_classifier: fitted :class:`HealthClassifier` of FDI estimates (:mod:`.verdict_classifier`),
             the verdict on a measured actuator; None: ``classifier`` gives it too.
+        forward_model: fitted :class:`~.forward.ForwardSurrogate` k -> alpha, the online consistency check's
+            (analysis by synthesis, :mod:`phm_torch.online.consistency`); None: no such check.
     """
 
     __jit_unused_properties__: ClassVar[list[str]] = ["verdict"]   # scripting exports the FDI; the verdict is plain Python
@@ -94,7 +98,8 @@ class SurrogateBundle(nn.Module):
                  selector: Mapping[str, Any] | None = None, meta: Mapping[str, Any] | None = None,
                  full_residual_threshold: float = float("inf"),
                  gappy_statistics: Mapping[str, torch.Tensor] | None = None,
-                 nominal_record: torch.Tensor | None = None, verdict_classifier: HealthClassifier | None = None):
+                 nominal_record: torch.Tensor | None = None, verdict_classifier: HealthClassifier | None = None,
+                 forward_model: ForwardSurrogate | None = None):
         super().__init__()
         if network.n_inputs != pod.n_modes:
             raise ValueError(f"network has {network.n_inputs} inputs but the POD has {pod.n_modes} modes")
@@ -104,6 +109,7 @@ class SurrogateBundle(nn.Module):
         self.network = network
         self.classifier = classifier
         self.verdict_classifier = verdict_classifier
+        self.forward_model = forward_model
         self.sample_rate = float(sample_rate)
         self.selector_info = dict(selector or {})
         self.extra = dict(meta or {})
@@ -207,6 +213,7 @@ class SurrogateBundle(nn.Module):
                 "signal": "current", "unit": "A", "fault_names": list(FAULT_NAMES),
                 "health_convention": HEALTH_CONVENTION, "selector": self.selector_info,
                 "classifier": _spec(self.classifier), "verdict_classifier": _spec(self.verdict_classifier),
+                "forward_model": None if self.forward_model is None else self.forward_model.get_params(),
                 "gappy_ridge": self.gappy.ridge, "phm_torch_version": __version__, "extra": self.extra}
 
     def save(self, path: str | os.PathLike) -> Path:
@@ -220,7 +227,7 @@ class SurrogateBundle(nn.Module):
         if self.nominal_record is not None:
             tensors["nominal_record"] = self.nominal_record
         tensors.update({f"network.{k}": v.detach().cpu() for k, v in self.network.state_dict().items()})
-        for name in ("classifier", "verdict_classifier"):
+        for name in ("classifier", "verdict_classifier", "forward_model"):
             if getattr(self, name) is not None:
                 tensors.update({f"{name}.{k}": v.detach().cpu() for k, v in getattr(self, name).state_dict().items()})
         buf = io.BytesIO()
@@ -282,10 +289,17 @@ class SurrogateBundle(nn.Module):
         classifier = _classifier(meta["classifier"], _prefixed(t, "classifier."), path)
         verdict_spec = meta.get("verdict_classifier")
         verdict = None if verdict_spec is None else _classifier(verdict_spec, _prefixed(t, "verdict_classifier."), path)
+        forward_model = None
+        if meta.get("forward_model") is not None:
+            try:
+                forward_model = ForwardSurrogate(**meta["forward_model"])
+                forward_model.load_state_dict(_prefixed(t, "forward_model."))
+            except (TypeError, ValueError, RuntimeError) as e:
+                raise ValueError(f"{path}: forward_model: {e}") from None
         bundle = cls(pod, t["indices"], network, classifier, meta["sample_rate"],
                      float(t["residual_threshold"]), meta["gappy_ridge"], meta["selector"], meta["extra"],
                      float(t.get("full_residual_threshold", float("inf"))), _prefixed(t, "gappy.") or None,
-                     t.get("nominal_record"), verdict)
+                     t.get("nominal_record"), verdict, forward_model.eval() if forward_model else None)
         return bundle.eval()
 
 
