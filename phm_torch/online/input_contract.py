@@ -246,7 +246,7 @@ class InputContract:
                 messages.append(command.reason())
         elif not has_command:
             skipped.append("command")
-        if has_command and has_position:
+        if has_command and has_position and float(record.command.max() - record.command.min()) > 0:
             tracking = self._tracking(record)
             if not tracking["ok"]:
                 reasons.append("tracking")
@@ -254,7 +254,7 @@ class InputContract:
                                 f"{tracking['nrmse']:.3f} outside [{tracking['range'][0]:.3f}, "
                                 f"{tracking['range'][1]:.3f}], position range {tracking['position_gain']:.2f} "
                                 f"x the command's")
-        else:
+        else:     # no command or position column, or a constant command: nothing to follow
             skipped.append("tracking")
         reasons += [r for r in self.current_reasons(model, current, noise, k_hat) if r not in reasons]
         return ContractChecks(reasons, skipped, command, tracking, messages)
