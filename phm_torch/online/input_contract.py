@@ -7,7 +7,9 @@ From the pipeline's own out-of-distribution flag, per internal check (:func:`pip
 * ``missing`` - too few finite selected samples;  ``flat`` - a flat line;
 * ``gappy_residual`` - the gappy residual above its training threshold;
 * ``pod_residual``, ``roughness``, ``plateau`` - the full-record statistics of
-  :class:`~phm_torch.surrogates.full_signal_check.FullSignalCheck`.
+  :class:`~phm_torch.surrogates.full_signal_check.FullSignalCheck`;
+* ``inconsistent`` - a pipeline with a consistency check (:mod:`.consistency`, analysis by synthesis): the
+  record is not the one its own k_hat predicts (its scripted ``consistency(x)`` above 1).
 
 A pipeline whose flag fired for a reason none of these explains (another structure) gives ``pipeline``.
 
@@ -53,7 +55,7 @@ import torch
 from .command_check import CommandCheck, check_command
 from .corruptions import Record
 
-PIPELINE_CHECKS = ("missing", "flat", "gappy_residual", "pod_residual", "roughness", "plateau")
+PIPELINE_CHECKS = ("missing", "flat", "gappy_residual", "pod_residual", "roughness", "plateau", "inconsistent")
 TRACKING_MARGIN = 1.5        # the training range of the tracking NRMSE, widened by this factor on both sides
 # without a training range: a loop that follows its command with at most 90 deg of lag at equal amplitude
 # (its bandwidth covers the test command) misses it by |1 - e^{-j pi/2}| A / sqrt(2) over a range 2 A: 0.5
@@ -126,6 +128,8 @@ def pipeline_reasons(model: Any, x: torch.Tensor) -> list[list[str]] | None:
             flags["pod_residual"] = check.residual(x) > float(check.residual_threshold)
             flags["roughness"] = check.roughness(x) > float(check.roughness_threshold)
             flags["plateau"] = check.plateau(x) > float(check.plateau_threshold)
+        if bool(getattr(model, "has_consistency", False)):
+            flags["inconsistent"] = model.consistency(x) > 1.0        # NaN (no finite sample) compares False
     return [[name for name in PIPELINE_CHECKS if name in flags and bool(flags[name][i])] for i in range(x.shape[0])]
 
 
