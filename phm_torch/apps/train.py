@@ -42,6 +42,7 @@ from ..surrogates import POD, GappyPOD, SurrogateBundle, build_fdi_network, rms
 from ..surrogates.classifiers.refinement import BoundaryRefinement, refine_classifier
 from ..surrogates.data import load_store
 from ..surrogates.evaluate import evaluate_classifier, evaluate_fdi, measure_latency, quartiles
+from ..surrogates.forward import fit_forward_check
 from ..surrogates.full_signal_check import FullSignalCheck
 from ..surrogates.gappy_pod import gappy_statistics
 from ..surrogates.lightning_fdi import NOISE_INPUT_NEEDS, FDIModule, KeepBest
@@ -334,6 +335,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     store_cfg = info["metadata"].get("config") or {}
     nominal = (torch.tensor(common.actuator(DictConfig(store_cfg)).nominal_faults) if "actuator" in store_cfg
                else None)
+    forward = fit_forward_check(pod, gappy, network, train.k, train.current, nominal, seed + 13) if cfg.forward_check else None
     metrics, arrays = evaluate_fdi(pod, gappy, network, val.current, val.k, noise, missing, seed, nominal)
     t0 = time.perf_counter()
     with torch.no_grad():
@@ -351,7 +353,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         n_val=len(val), n_modes=n_modes, n_points=n_points, n_hidden=n_hidden,
         n_layers=n_layers, n_members=n_members,
         selector=selector.name, selector_params=selector.get_params(), classifier=classifier.name,
-        gappy_estimator=estimator,
+        gappy_estimator=estimator, forward_check=forward.summary() if forward else None,
         model=module.optimizer_name + ("_e2e" if end_to_end else ""), fdi_inputs=fit["inputs"],
         classifier_threshold=float(classifier.threshold), n_classifier_train=len(k_all),
         classifier_refine=refine_info,
@@ -370,7 +372,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                              meta={"data_fingerprint": info["manifest"].get("fingerprint"), "seed": seed,
                                    "model": metrics["model"], "n_train": len(train), "provenance": prov},
                              full_residual_threshold=full_threshold, gappy_statistics=statistics,
-                             nominal_record=info["nominal"], verdict_classifier=verdict)
+                             nominal_record=info["nominal"], verdict_classifier=verdict, forward_model=forward)
     bundle.save(out_dir / "surrogates.pt")
     with torch.no_grad():
         arrays.update(healthy=val.healthy, score=bundle.health_score(val.k), score_chain=bundle.verdict_score(arrays["k_hat"]),

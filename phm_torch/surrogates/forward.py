@@ -22,6 +22,7 @@ counts by its amperes, as in the residual).
 from __future__ import annotations
 
 import math
+import time
 from typing import Any
 
 import torch
@@ -51,8 +52,8 @@ class ForwardSurrogate(nn.Module):
 
     Fitted buffers:
         input_mean_, input_std_ (9,): feature standardisation.   alpha_mean_ (n_m,) [A], alpha_scale_ () [A]:
-        output scaling.   error_ () [A]: held-out RMS error per coefficient vector, ||alpha - f(k)|| (record
-        RMS x sqrt(n_e) for orthonormal modes).   floor_full_, floor_samples_ (): relative record residual at
+        output scaling.   error_ () [A]: held-out (weighted) RMS error per coefficient vector, ||alpha - f(k)||
+        (record RMS x sqrt(n_e) for orthonormal modes).   floor_full_, floor_samples_ (): relative record residual at
         the FDI's estimates of noise-free held-out records, on the full record's rows and on the selected
         samples (set by :func:`~phm_torch.online.consistency.fit_forward_check`; 0 until then).
         best_epoch_ (int), n_fit_ (int).
@@ -111,12 +112,16 @@ class ForwardSurrogate(nn.Module):
         x = (self.features(k.to(self.input_mean_.dtype)) - self.input_mean_) / self.input_std_
         return self.alpha_mean_ + self.alpha_scale_ * self.net(x)
 
-    def fit(self, k: torch.Tensor, alpha: torch.Tensor) -> ForwardSurrogate:
+    def fit(self, k: torch.Tensor, alpha: torch.Tensor, weight: torch.Tensor | None = None) -> ForwardSurrogate:
         """Fit to fault vectors k (N, 8) and their records' POD coefficients alpha (N, n_modes) [A]; returns self.
 
-        Adam on the mean squared error of alpha / alpha_scale_, a random ``holdout`` fraction of the rows held
-        out; the weights of the epoch with the lowest held-out error are kept (early stopping after
-        ``patience`` epochs without improvement). Deterministic for a given ``seed`` (one thread)."""
+        Adam on the weighted mean squared error of alpha / alpha_scale_, a random ``holdout`` fraction of the
+        rows held out; the weights of the epoch with the lowest held-out error are kept (early stopping after
+        ``patience`` epochs without improvement). Deterministic for a given ``seed`` (one thread).
+
+        ``weight`` (N,) > 0: each row's weight (None: equal). The records' currents span decades (0.65 to 400 A
+        RMS on an LF store: a few heavy shorts), so :func:`fit_forward_check` weighs each by 1 / its mean square:
+        the loss is then the relative residual the consistency statistic measures, not the few largest records'."""
         if k.dim() != 2 or k.shape[1] != N_FAULTS or alpha.dim() != 2 or alpha.shape != (k.shape[0], self.n_modes):
             raise ValueError(f"forward.fit: k must be (N, 8) and alpha (N, {self.n_modes}), got {tuple(k.shape)} "
                              f"and {tuple(alpha.shape)}")
@@ -126,6 +131,9 @@ class ForwardSurrogate(nn.Module):
             raise ValueError(f"forward.fit: {n} rows leave too few to fit with holdout={self.holdout}")
         if not (bool(torch.isfinite(k).all()) and bool(torch.isfinite(alpha).all())):
             raise ValueError("forward.fit: k and alpha must be finite")
+        weight = torch.ones(n) if weight is None else weight.to(self.input_mean_.dtype)
+        if weight.shape != (n,) or not bool((weight > 0).all()):
+            raise ValueError(f"forward.fit: weight must be (N,) = ({n},) and > 0")
         gen = torch.Generator().manual_seed(self.seed)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(self.seed)
@@ -139,8 +147,10 @@ class ForwardSurrogate(nn.Module):
         feats = self.features(k)
         self.input_mean_ = feats[rows].mean(0)
         self.input_std_ = feats[rows].std(0).clamp(min=1e-6)
-        self.alpha_mean_ = alpha[rows].mean(0)
-        self.alpha_scale_ = (alpha[rows] - self.alpha_mean_).pow(2).sum(1).mean().sqrt().clamp(min=1e-12)
+        weight = (weight / weight[rows].mean()).to(dtype)
+        w = weight[rows].unsqueeze(1)
+        self.alpha_mean_ = (w * alpha[rows]).sum(0) / w.sum()
+        self.alpha_scale_ = (w.squeeze(1) * (alpha[rows] - self.alpha_mean_).pow(2).sum(1)).mean().sqrt().clamp(min=1e-12)
         x = (feats - self.input_mean_) / self.input_std_
         target = (alpha - self.alpha_mean_) / self.alpha_scale_
         optimizer = torch.optim.Adam(self.net.parameters(), lr=self.lr)
@@ -151,11 +161,11 @@ class ForwardSurrogate(nn.Module):
             for batch in rows[torch.randperm(rows.numel(), generator=gen)].split(self.batch_size):
                 optimizer.zero_grad()
                 with torch.enable_grad():     # also under a caller's no_grad
-                    loss = (self.net(x[batch]) - target[batch]).pow(2).sum(1).mean()
+                    loss = (weight[batch] * (self.net(x[batch]) - target[batch]).pow(2).sum(1)).mean()
                     loss.backward()
                 optimizer.step()
             with torch.no_grad():
-                held = float((self.net(x[hold]) - target[hold]).pow(2).sum(1).mean())
+                held = float((weight[hold] * (self.net(x[hold]) - target[hold]).pow(2).sum(1)).mean())
             scheduler.step(held)
             if held < best:
                 best, best_epoch = held, epoch
@@ -168,6 +178,13 @@ class ForwardSurrogate(nn.Module):
         self.error_ = torch.tensor(best, dtype=dtype).sqrt() * self.alpha_scale_
         self.best_epoch_, self.n_fit_ = best_epoch, int(rows.numel())
         return self
+
+    def summary(self) -> dict[str, float]:
+        """Fit figures: held-out RMS coefficient error [A] and relative to the coefficients' spread, the residual
+        floors, best epoch, rows fitted, wall time [s]."""
+        return {"error": float(self.error_), "relative_error": float(self.error_ / self.alpha_scale_),
+                "floor_full": float(self.floor_full_), "floor_samples": float(self.floor_samples_),
+                "best_epoch": self.best_epoch_, "n_fit": self.n_fit_, "fit_s": round(getattr(self, "fit_s_", 0.0), 2)}
 
     def extra_repr(self) -> str:
         return f"n_modes={self.n_modes}, n_hidden={self.n_hidden}, n_layers={self.n_layers}"
@@ -203,23 +220,31 @@ STRIDE = 16      # every 16th sample of a full record: 626 of 10,001, as FullSig
 
 @torch.no_grad()
 def fit_forward_check(pod: nn.Module, gappy: nn.Module, network: nn.Module, k: torch.Tensor, current: torch.Tensor,
-                      seed: int = 0, block_rows: int = 2048, **params: Any) -> ForwardSurrogate:
+                      nominal: torch.Tensor | None = None, seed: int = 0, block_rows: int = 2048,
+                      **params: Any) -> ForwardSurrogate:
     """A forward surrogate fitted on a store's training records, with its residual floors.
 
     Args:
         pod: the bundle's fitted :class:`~.pod.POD` (n_e samples, n_m modes).  gappy: its gappy layer.
         network: its FDI network (alpha [, noise] -> k_hat).
         k: (N, 8) fault vectors of the training records.  current: (N, n_e) their records [A].
+        nominal: (8,) nominal fault vector (its eccentricity centres the phase features; None: 0).
         seed: the surrogate's seed.  params: other :class:`ForwardSurrogate` arguments.
+
+    The fit's wall time [s] is ``fit_s_``; :meth:`ForwardSurrogate.summary` gives the figures phm-train reports.
 
     The targets are the records' full POD projections. ``floor_full_`` and ``floor_samples_`` are the
     medians over the held-out rows of the relative residual (:func:`consistency_statistic` with noise 0 and
     floor 1) of the noise-free records at the FDI's own estimates, on every ``STRIDE``-th sample and on
     the selected samples."""
-    params.setdefault("nominal_eccentricity", 0.0)
+    t0 = time.perf_counter()
+    if nominal is not None:
+        params.setdefault("nominal_eccentricity", float(nominal[ECC_AMPLITUDE]))
     model = ForwardSurrogate(pod.n_modes, seed=seed, **params)
     alpha = torch.cat([pod(current[i:i + block_rows].to(pod.mean_.dtype)) for i in range(0, len(current), block_rows)])
-    model.fit(k, alpha.to(torch.float32))
+    mean_square = torch.cat([current[i:i + block_rows].to(torch.float64).pow(2).mean(1)
+                             for i in range(0, len(current), block_rows)])
+    model.fit(k, alpha.to(torch.float32), 1.0 / mean_square.clamp(min=1e-12))
     n_hold = max(1, round(model.holdout * len(k)))
     hold = torch.randperm(len(k), generator=torch.Generator().manual_seed(seed))[:n_hold]    # fit's own draw
     y = current[hold].to(pod.mean_.dtype)
@@ -234,4 +259,5 @@ def fit_forward_check(pod: nn.Module, gappy: nn.Module, network: nn.Module, k: t
     sel = consistency_statistic(samples, gappy.mean_hat, gappy.modes_hat, pred, zero, one)
     model.floor_full_ = full.median().to(model.floor_full_.dtype)
     model.floor_samples_ = sel.median().to(model.floor_samples_.dtype)
+    model.fit_s_ = time.perf_counter() - t0
     return model.eval()
