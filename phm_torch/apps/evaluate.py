@@ -20,6 +20,7 @@ from omegaconf import DictConfig
 from .. import provenance
 from ..data.store import DatasetStore
 from ..online import OnlinePipeline
+from ..online.consistency import calibrate_consistency
 from ..online.export import export_torchscript
 from ..online.fdi_band import FDIBand, TooFewCalibrationSignals, calibrate_fdi_band
 from ..online.fdi_interval import FDIInterval, calibrate_fdi_interval, interval_quality
@@ -228,6 +229,8 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     pipeline.calibration_noise.fill_(calibration_noise)
     interval, noise_levels = _fdi_intervals(interval_settings, pipeline, band_k_hat, band_ood, band_clean, band_k,
                                             int(cfg.seed))
+    consistency = calibrate_consistency(pipeline, band_clean, interval_settings[2], int(cfg.seed), common.number(
+        cfg.consistency.quantile, "consistency.quantile", 0.0, strict=True)) if pipeline.has_consistency else None
     with torch.no_grad():
         true_k = pipeline.rul(k.to(pipeline.times.dtype)).to(torch.float64)
         true_k_by_band = {v: p.rul(k.to(p.times.dtype)).to(torch.float64) for v, p in pipelines.items()}
@@ -273,7 +276,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     metrics.update(rul_err_median_true_k_monte_carlo=gauss["rul_err_median_true_k"],
                    rul_band_coverage_true_k_monte_carlo=gauss["rul_band_coverage_true_k"],
                    deltas=deltas.tolist(), deltas_saturated=det.saturated_, estimate_wall_s=round(t_est, 3), reference_wall_s=round(t_ref, 3),
-                   ood_fraction=float(ood.double().mean()))
+                   ood_fraction=float(ood.double().mean()), consistency=consistency)
     figures = {"rul_vs_expected": rul_vs_expected(reference, {"RUL from true k": true_k, "full online flow":
                                                               full_flow.to(torch.float64)},
                                                   out_dir / "rul_vs_expected.png"),
@@ -286,7 +289,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                        "verdict_prior_faulty": verdict[2] if verdict else None,
                        "fdi_interval": {"half_widths": pipeline.k_half_widths.tolist(), "noise_levels": noise_levels,
                                         "level": interval.level, "coverage": interval.coverage} if interval else None,
-                       "calibration_noise": calibration_noise, "tracking_nrmse": tracking,
+                       "calibration_noise": calibration_noise, "tracking_nrmse": tracking, "consistency": consistency,
                        "damage": common.plain(cfg.damage), "provenance": prov})
     common.write_json(out_dir / "rul_predictions.json",
                       {"k": k.tolist(), "k_hat": k_hat.tolist(), "reference": reference.tolist(),

@@ -91,7 +91,11 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                                           fdi.get("fdi_deltas"), fdi.get("fdi_direction"),
                                           torch.tensor(cal["rate_scales"]) if "rate_scales" in cal else None,
                                           verdict=_verdict(cal, cal_path), **_fdi_interval(cal, cal_path),
-                                          calibration_noise=_calibration_noise(cal, cal_path))
+                                          calibration_noise=_calibration_noise(cal, cal_path),
+                                          consistency=cal.get("consistency"))
+    if pipeline.has_consistency and cal.get("consistency") is None:
+        log.warning("calibration %s has no consistency thresholds (phm-evaluate writes them for a bundle with a "
+                    "forward surrogate): the consistency check never flags", cal_path)
     out = Path(cfg.out)
     extra = {"tracking_nrmse": cal["tracking_nrmse"]} if cal.get("tracking_nrmse") is not None else {}   # input contract
     scripted = export_torchscript(pipeline, out, {"provenance": prov, **extra})
