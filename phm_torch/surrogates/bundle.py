@@ -91,7 +91,7 @@ class SurrogateBundle(nn.Module):
             (analysis by synthesis, :mod:`phm_torch.online.consistency`); None: no such check.
     """
 
-    __jit_unused_properties__: ClassVar[list[str]] = ["verdict"]   # scripting exports the FDI; the verdict is plain Python
+    __jit_unused_properties__: ClassVar[list[str]] = ["verdict", "provenance"]   # scripting exports the FDI; these are plain Python
 
     def __init__(self, pod: POD, indices: torch.Tensor, network: FDIMLP | FDIEnsemble, classifier: HealthClassifier,
                  sample_rate: float, residual_threshold: float = float("inf"), gappy_ridge: float = 0.0,
