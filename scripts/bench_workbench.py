@@ -6,7 +6,7 @@
 2. Hit rate: ``--cases`` random measurements (LF simulation, or HF with ``--data-fidelity hf``: data from
    another model than the workbench's LF one, as from a bench or another implementation; ``--duration`` s of
    the test chirp): one hidden
-   library effect with random strength (``--strength``: 0.25x..2x its default, log-uniform) and shape, random noise
+   library effect with random strength (see below) and shape, random noise
    (current 0.01..0.04 A, position 1e-5..4e-5 rad) and a datasheet off nominal in the free parameters
    (inertia x0.9..1.1, dry friction x0.8..1.3, k8 0.4..0.6); a fraction are controls with nothing hidden.
    A hit: the true effect ranks first and is significant. Also reported: top-3 rate, the NRMSE after adding
@@ -14,11 +14,35 @@
    significant next to a hit). The pool includes the generic ``torque_ripple`` at a random order (at least
    4 orders from the cogging order, which names that ripple): a hit needs it named at its true order.
 
+Hidden strength (``--strength-mode``):
+
+* ``snr`` (default): the strength is set by detectability, the same on every actuator. Each case draws a
+  signature SNR log-uniform in ``--snr`` (default 0.2..5): the RMS change of the compared channels
+  (current, position) that the effect makes, in units of the noise std the case adds, root-mean-square over
+  the two channels (phm_torch.workbench.detectability; noise-free simulations with the bench's data-fidelity
+  model, with and without the effect, same faults and multipliers). The strength parameters drawn as in
+  ``default`` mode are the probe (and fix the mix of an effect with two, e.g. hinge stiffness and bias); they
+  are scaled by one factor to the drawn SNR, checked by a re-simulation and corrected once if off by > 20 %.
+  Why 0.2..5: an effect of SNR s can explain at most s^2 / (1 + s^2) of the residual, so s ~ 0.1 is the
+  workbench's practical-significance limit (1 % of the residual sum of squares); the lower end is twice
+  that, so a miss there is a real failure (signature absorbed by the free parameters, or mistaken for
+  another effect), not one by construction, while the upper end (NRMSE 5x the floor) is an effect nobody
+  could miss. The range spans what ``default`` mode draws on the reference actuator (40 draws: median
+  0.57, 10-90 % 0.13..2.5), so the reference's hit rate keeps its meaning, whereas on the 270 V rudder
+  actuator the same absolute strengths give 0.03..0.3 for cogging, Stribeck, ripple and viscous friction.
+  The per-case SNR draws use their own random stream (per ``--seed`` and case), so the cases (effect,
+  noise, datasheet) are those of ``default`` mode with the same seed.
+* ``default``: a log-uniform multiple (``--strength``: 0.25x..2x) of the effect's default value, in absolute
+  units chosen for the reference actuator (relatively tiny on a larger actuator).
+
+Phase-like parameters (ripple order and phase, cogging phase, Stribeck velocity) are drawn as they are in both.
+
 ``--actuator`` runs it on another actuator (conf/actuator/<name>.yaml or a YAML path), ``--command`` with
 another test command (conf/command/<name>.yaml or a path; its duration is set to ``--duration``); the JSON
 records both (phm_torch.provenance).
 
 Usage: python scripts/bench_workbench.py [--cases 12] [--duration 0.25] [--seed 0] [--data-fidelity lf|hf]
+           [--strength-mode snr|default] [--snr 0.2 5] [--strength 0.25 2]
            [--actuator ema_reference] [--command chirp] [--out results/bench_workbench.json]
 """
 
@@ -43,6 +67,7 @@ from phm_torch.io.atomic import atomic_open
 from phm_torch.params import CONF_DIR, load_actuator
 from phm_torch.provenance import actuator_record, command_record
 from phm_torch.workbench import Case, Workbench, WorkbenchSettings, record_from_measurement, synthesize
+from phm_torch.workbench.detectability import scale_to_snr, signature_snr
 from phm_torch.workbench.orders import actuator_orders, max_order
 
 # winding_temperature is left out: with back_emf/inertia/friction multipliers free it is aliased with them
@@ -50,6 +75,7 @@ from phm_torch.workbench.orders import actuator_orders, max_order
 POOL = ("cogging_torque", "stribeck_friction", "aero_hinge_load", "inverter_dead_time", "position_sensor_lag",
         "transmission_compliance", "torque_constant_saturation", "viscous_friction", "torque_ripple")
 CHANNELS = ("position", "current")
+SNR_RANGE = (0.2, 5.0)  # signature RMS / noise std; why: module docstring
 
 
 def random_case(rng: random.Random, params, control: bool, seed: int, strength: tuple[float, float]
@@ -78,6 +104,31 @@ def random_case(rng: random.Random, params, control: bool, seed: int, strength: 
     info = {"effect": name, "values": effects.get(name, {}), "noise": noise, "k8": faults[7],
             "scales": scales}
     return Case(effects, noise, faults, scales, seed), info
+
+
+def snr_cases(params, built: list[tuple[Case, dict]], snr: tuple[float, float], seed: int, command, duration: float,
+              fidelity: str) -> list[tuple[Case, dict]]:
+    """Rescale the hidden strengths of ``built`` to signature SNRs drawn log-uniform in ``snr``.
+
+    The drawn strengths are the probe; each case's SNR comes from its own stream (``seed``, case index) so
+    that the cases stay those of ``default`` mode. ``info`` gains ``strength`` {mode, snr_target, snr,
+    probe_values, probe_snr, factor, corrected} and its ``values`` become the scaled ones.
+    """
+    if not 0 < snr[0] <= snr[1]:
+        raise ValueError(f"--snr must satisfy 0 < LOW <= HIGH, got {list(snr)}")
+    lo, hi = math.log(snr[0]), math.log(snr[1])
+    targets = [math.exp(random.Random(f"snr:{seed}:{i}").uniform(lo, hi)) if info["effect"] else None
+               for i, (_, info) in enumerate(built)]
+    cases, details = scale_to_snr(params, [c for c, _ in built], targets, command, duration, fidelity)
+    out = []
+    for (_, info), case, target, d in zip(built, cases, targets, details, strict=True):
+        info = dict(info)
+        if info["effect"] is not None:
+            info["strength"] = {"mode": "snr", "snr_target": target, "snr": d["snr"], "probe_values": info["values"],
+                                "probe_snr": d["probe_snr"], "factor": d["factor"], "corrected": d["corrected"]}
+            info["values"] = dict(case.effects[info["effect"]])
+        out.append((case, info))
+    return out
 
 
 def settings(rounds: int) -> WorkbenchSettings:
@@ -132,6 +183,10 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--strength", type=float, nargs=2, default=(0.25, 2.0), metavar=("LOW", "HIGH"),
                     help="hidden strength range, multiples of the effect's default (log-uniform)")
+    ap.add_argument("--strength-mode", choices=("snr", "default"), default="snr",
+                    help="snr: hidden strength set to a drawn signature SNR (--snr); default: --strength multiples")
+    ap.add_argument("--snr", type=float, nargs=2, default=SNR_RANGE, metavar=("LOW", "HIGH"),
+                    help="signature SNR range (RMS change / noise std, log-uniform) of --strength-mode snr")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--data-fidelity", choices=("lf", "hf"), default="lf",
                     help="model that simulates the hit-rate measurements (the workbench's model stays LF)")
@@ -165,15 +220,23 @@ def main() -> None:
     if not 0 < strength[0] <= strength[1]:
         raise ValueError(f"--strength must satisfy 0 < LOW <= HIGH, got {list(strength)}")
     built = [random_case(rng, params, control, 1000 + i, strength) for i, control in enumerate(kinds)]
-    ms = synthesize(params, [c for c, _ in built], make_command(cmd_node, args.duration), args.duration,
-                    fidelity=args.data_fidelity)
+    command = make_command(cmd_node, args.duration)
+    if args.strength_mode == "snr":
+        built = snr_cases(params, built, (float(args.snr[0]), float(args.snr[1])), args.seed, command,
+                          args.duration, args.data_fidelity)
+    else:  # record the signature SNR the absolute strengths give on this actuator
+        snrs = signature_snr(params, [c for c, _ in built], command, args.duration, args.data_fidelity)
+        built = [(c, {**info, "strength": {"mode": "default", "snr": s}} if info["effect"] else info)
+                 for (c, info), s in zip(built, snrs, strict=True)]
+    ms = synthesize(params, [c for c, _ in built], command, args.duration, fidelity=args.data_fidelity)
     cases = []
     for i, ((_, info), m) in enumerate(zip(built, ms, strict=True)):
         out = run_case(params, m, info, args.rounds, args.actuator)
         cases.append(out)
-        print(f"[{i + 1}/{len(built)}]", json.dumps({k: out.get(k) for k in ("effect", "ranking", "significant", "hit",
-                                                                                  "nrmse_over_floor_after")}),
-              flush=True)
+        snr = out.get("strength", {}).get("snr")
+        print(f"[{i + 1}/{len(built)}]", json.dumps({**{k: out.get(k) for k in ("effect", "ranking", "significant", "hit",
+                                                                                    "nrmse_over_floor_after")},
+                                                      "snr": snr}), flush=True)
     hits = [c for c in cases if c["effect"] is not None]
     ctrl = [c for c in cases if c["effect"] is None]
     per_effect: dict[str, list[bool]] = {}
@@ -188,6 +251,9 @@ def main() -> None:
         "extra_significant_rate": sum(bool(c["extra_significant"]) for c in hits) / max(len(hits), 1),
         "false_positive_rate": sum(c["false_positive"] for c in ctrl) / max(len(ctrl), 1),
         "per_effect": {k: f"{sum(v)}/{len(v)}" for k, v in sorted(per_effect.items())},
+        "strength_mode": args.strength_mode,
+        "snr_hits": sorted(round(c["strength"]["snr"], 3) for c in hits if c["hit"]),
+        "snr_misses": sorted(round(c["strength"]["snr"], 3) for c in hits if not c["hit"]),
         "mean_loop_s": sum(c["timing"]["loop_s"] for c in cases) / len(cases),
         "mean_loop_cpu_s": sum(c["timing"]["loop_cpu_s"] for c in cases) / len(cases),
     }
