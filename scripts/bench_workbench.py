@@ -29,7 +29,7 @@ Hidden strength (``--strength-mode``):
   another effect), not one by construction, while the upper end (NRMSE 5x the floor) is an effect nobody
   could miss. The range spans what ``default`` mode draws on the reference actuator (40 draws: median
   0.57, 10-90 % 0.13..2.5), so the reference's hit rate keeps its meaning, whereas on the 270 V rudder
-  actuator the same absolute strengths give 0.03..0.3 for cogging, Stribeck, ripple and viscous friction.
+  actuator the same absolute strengths give 0.03..0.35 for cogging, Stribeck, ripple and viscous friction.
   The per-case SNR draws use their own random stream (per ``--seed`` and case), so the cases (effect,
   noise, datasheet) are those of ``default`` mode with the same seed.
 * ``default``: a log-uniform multiple (``--strength``: 0.25x..2x) of the effect's default value, in absolute
