@@ -38,9 +38,12 @@ def compose() -> Callable[..., DictConfig]:
     """compose(config_name, overrides) -> the composed config, as the command line would build it."""
     from hydra import compose as hydra_compose
 
+    from phm_torch.apps.common import keep_choices
+
     def _compose(config_name: str, overrides: Sequence[str] = ()) -> DictConfig:
-        with _hydra_context():
-            return hydra_compose(config_name=config_name, overrides=list(overrides))
+        with _hydra_context():   # the actuator/command choices kept, as under the command line
+            return keep_choices(hydra_compose(config_name=config_name, overrides=list(overrides),
+                                              return_hydra_config=True))
 
     return _compose
 

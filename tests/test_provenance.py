@@ -96,7 +96,9 @@ def test_train_refuses_a_store_of_another_actuator_and_evaluate_adopts_it(compos
         "trainer.enable_progress_bar=false"]))
     recorded = objects["bundle"].provenance
     assert recorded["actuator"]["sha256"] == manifest["provenance"]["actuator"]["sha256"]
-    assert metrics["actuator"].startswith("custom")               # values of no shipped actuator
+    # the chosen config's name with the hash of the values actually used (gear ratio 180, not the shipped 200)
+    assert metrics["actuator"] == f"ema_reference (sha256 {recorded['actuator']['sha256'][:8]})"
+    assert provenance.known_name("actuator", recorded["actuator"]["sha256"]) is None
 
 
 @pytest.mark.parametrize("app", ["phm_torch.apps.simulate", "phm_torch.apps.train"])

@@ -97,6 +97,18 @@ def actuator(cfg: DictConfig) -> ActuatorParams:
 CHOICES = "choices"   # where a config composed by phm-run keeps its config-group choices (see choice)
 
 
+def keep_choices(cfg: DictConfig, keys: tuple[str, ...] = provenance.KEYS) -> DictConfig:
+    """A config composed with ``return_hydra_config=True`` without its ``hydra`` node, the config-group choices
+    of ``keys`` kept under ``choices`` (what :func:`choice` reads outside ``@hydra.main``)."""
+    from omegaconf import open_dict
+
+    choices = {k: cfg.hydra.runtime.choices.get(k) for k in keys}
+    with open_dict(cfg):
+        del cfg["hydra"]
+        cfg[CHOICES] = choices
+    return cfg
+
+
 def choice(cfg: DictConfig, key: str) -> str | None:
     """The config-group option chosen for ``key`` (``actuator=<name>``) in this app, or ``None``.
 

@@ -18,7 +18,7 @@ import hydra
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
-from omegaconf import DictConfig, open_dict
+from omegaconf import DictConfig
 
 from .. import provenance
 from ..data.store import DatasetStore
@@ -43,11 +43,7 @@ def compose_stage(app: str, overrides: list[str]) -> DictConfig:
     else:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             cfg = compose(config_name=app, overrides=overrides, return_hydra_config=True)
-    choices = {k: cfg.hydra.runtime.choices.get(k) for k in SHARED_GROUPS}
-    with open_dict(cfg):
-        del cfg["hydra"]
-        cfg[common.CHOICES] = choices
-    return cfg
+    return common.keep_choices(cfg, SHARED_GROUPS)
 
 
 DATA_KEYS = ("dataset", "assessment")   # config nodes of phm-generate that a run-level experiment may set
