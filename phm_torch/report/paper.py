@@ -33,6 +33,11 @@ def build_report(run_dir: Path, metrics: dict[str, Any], studies: dict[str, Any]
     r.paragraph("Every figure below was measured by this run (see metrics.json beside this report); the paper's "
                 "figures are quoted from Berri, Dalla Vedova and Mainini. Rates and errors are in %.")
     tr, ev, gen = metrics.get("train", {}), metrics.get("evaluate", {}), metrics.get("generate", {})
+    actuator = gen.get("actuator") or tr.get("actuator") or ev.get("actuator")
+    command = gen.get("command") or tr.get("command") or ev.get("command")
+    r.paragraph(f"Actuator: {actuator or 'not recorded'}; test command: {command or 'not recorded'} (name and "
+                "SHA-256 of the values, as every artefact of the run records them). The paper's figures are for "
+                "its own actuator and chirp: on another actuator they are a point of comparison, not a target.")
     r.section("Summary: ours, the paper's, the target")
     rows = []
     ours = {"err_alpha_median": tr.get("err_alpha_median"), "err_k": tr.get("err_k"),
