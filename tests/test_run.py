@@ -142,7 +142,7 @@ def test_phm_run_on_the_second_actuator_end_to_end(tmp_path):
     cfg = compose_stage("run", [
         "actuator=ema_hvdc_rudder", "command=chirp_hvdc_rudder", f"out_dir={tmp_path}",
         ('generate=["dataset.n_train=300","dataset.n_val=60","dataset.n_rul=8","dataset.chunk_size=128",'
-         '"dataset.fidelity=lf","dataset.n_labels=512","dataset.pilot_size=768"]'),
+         '"dataset.fidelity=lf","dataset.n_labels=512","+dataset.pilot_size=768"]'),
         'cases=["fidelity=lf","duration=0.05"]',
         'train=["n_modes=8","n_points=24","selector=qdeim","classifier_refine.rounds=1"]',
         'evaluate=["rul.n_samples=20"]',
