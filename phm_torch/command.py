@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -67,13 +66,9 @@ def load_command_node(name: str) -> tuple[str, dict[str, Any]]:
     """
     from omegaconf import OmegaConf
 
-    from .params import CONF_DIR
+    from .params import CONF_DIR, config_file
 
-    path = Path(name)
-    if not path.suffix:
-        path = CONF_DIR / "command" / f"{name}.yaml"
-    if not path.is_file():
-        raise ValueError(f"command: no such command file {str(path)!r}")
+    path = config_file("command", name)
     node = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
     if not isinstance(node, dict) or "_target_" not in node:
         raise ValueError(f"command: {str(path)!r} is not a command config (a mapping with a _target_)")

@@ -145,13 +145,23 @@ class ActuatorParams:
         return cls(**data, lf_shape=LFShape(**{k: float(v) for k, v in shape.items()}))
 
 
-def load_actuator(name: str = "ema_reference", **overrides: Any) -> ActuatorParams:
-    """Load ``conf/actuator/<name>.yaml`` (or a path to a YAML file) with optional overrides."""
+def config_file(group: str, name: str) -> Path:
+    """``conf/<group>/<name>.yaml`` for a bare name, else ``name`` as a path to a YAML file.
+
+    Raises:
+        ValueError: no such file (the message starts with ``group``).
+    """
     path = Path(name)
     if not path.suffix:
-        path = CONF_DIR / "actuator" / f"{name}.yaml"
+        path = CONF_DIR / group / f"{name}.yaml"
     if not path.is_file():
-        raise ValueError(f"actuator: no such actuator file {str(path)!r}")
+        raise ValueError(f"{group}: no such {group} file {str(path)!r}")
+    return path
+
+
+def load_actuator(name: str = "ema_reference", **overrides: Any) -> ActuatorParams:
+    """Load ``conf/actuator/<name>.yaml`` (or a path to a YAML file) with optional overrides."""
+    path = config_file("actuator", name)
     data = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
     assert isinstance(data, dict)
     data.update(overrides)
