@@ -24,7 +24,8 @@ from omegaconf import OmegaConf
 from phm_torch.apps import common
 from phm_torch.apps.generate import generate
 from phm_torch.data.datamodule import EMADataModule
-from phm_torch.data.generation import SPLITS, STREAMS, DatasetSpec, seed_streams
+from phm_torch.data.generation import STREAMS, DatasetSpec, seed_streams
+from phm_torch.data.spec import SPLITS
 from phm_torch.data.store import DatasetStore, read_labelled
 from phm_torch.params import CONF_DIR
 from phm_torch.simulator import EMASimulator

@@ -22,8 +22,9 @@ import numpy as np
 import torch
 
 from ..assessment import AssessmentFunction
-from .generation import DatasetSpec, Plan, seed_record, seed_streams
+from .generation import Plan, seed_record, seed_streams
 from .sampling import ImportanceSampler
+from .spec import DatasetSpec
 from .store import LABEL_CHUNKS, LABELS
 
 
