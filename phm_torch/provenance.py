@@ -139,6 +139,15 @@ def reconcile(recorded: Mapping[str, Any] | None, requested: Mapping[str, Any] |
     return recorded
 
 
+def require_same(recorded: Mapping[str, Any] | None, used: Mapping[str, Any], where: str) -> None:
+    """Check that an artefact ``where`` (its ``recorded`` records, ``None`` for none) belongs to the actuator and
+    command ``used`` (records, a key ``None`` where nothing is known): :func:`reconcile` with every known
+    record treated as explicit, so a difference is a ValueError naming both."""
+    recorded = recorded or {}
+    for key in KEYS:
+        reconcile(recorded.get(key), used.get(key), used.get(key) is not None, key, where)
+
+
 def known_name(key: str, sha256: str) -> str | None:
     """The shipped config (``conf/<key>/<name>.yaml``) whose values hash to ``sha256``, or ``None``."""
     from omegaconf import OmegaConf

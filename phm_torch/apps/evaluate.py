@@ -181,8 +181,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     bundle = SurrogateBundle.load(cfg.bundle)
-    for key in provenance.KEYS:   # the bundle must have been trained on a store of the same actuator and command
-        provenance.reconcile(bundle.provenance.get(key), prov[key], prov[key] is not None, key, f"bundle {cfg.bundle}")
+    provenance.require_same(bundle.provenance, prov, f"bundle {cfg.bundle}")   # trained on a store of the same
     band_split = str(cfg.fdi_band.split)
     if band_split == cfg.split:
         raise ValueError(f"fdi_band.split must differ from split (both {band_split!r}): the FDI band would be "

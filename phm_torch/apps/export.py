@@ -78,9 +78,7 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         if key not in cal:
             raise ValueError(f"calibration {str(cal_path)!r} has no {key!r}")
     prov = common.reconcile_provenance(cfg, bundle.provenance or None, f"bundle {cfg.bundle}")
-    for key in provenance.KEYS:   # the calibration must come from a run on the same actuator and command
-        provenance.reconcile((cal.get("provenance") or {}).get(key), prov[key], prov[key] is not None, key,
-                             f"calibration {cal_path}")
+    provenance.require_same(cal.get("provenance"), prov, f"calibration {cal_path}")   # a run on the same
     damage = common.build(cfg.damage, "damage", nominal=list(common.actuator_of(prov["actuator"], cfg).nominal_faults))
     fdi = {key: torch.tensor(cal[key]) for key in ("fdi_deltas", "fdi_direction") if key in cal}
     if len(fdi) < 2:

@@ -104,8 +104,7 @@ def fit_lf(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     settings: lf_fit.LFFitSettings = common.build(cfg.fit, "fit")
     duration = settings.duration if settings.duration is not None else getattr(command, "duration", None)
     common.number(duration, "fit.duration", 0.0, strict=True)
-    names = {key: common.choice(cfg, key) for key in provenance.KEYS}
-    records = provenance.from_config({key: common.plain(cfg[key]) for key in provenance.KEYS}, names)
+    records = common.requested_provenance(cfg)
     yaml_path = output_path(cfg.get("out"), f"{records['actuator']['name']}_lf.yaml")
     stem = yaml_path.with_suffix("")
     report_path, plot_path = Path(f"{stem}.report.json"), Path(f"{stem}.report.png")

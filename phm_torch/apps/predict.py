@@ -91,10 +91,11 @@ def _read(path: str, model: Any, resample: bool) -> tuple[torch.Tensor, Any]:
     return torch.cat([current, current.new_full((1, n_full - n), float("nan"))], 1), m
 
 
-def _pipeline_command(cfg: DictConfig, model_path: Path) -> tuple[dict[str, Any], Callable[[torch.Tensor], torch.Tensor] | None]:
-    """The pipeline's provenance (checked against an explicit ``actuator=``/``command=``) and its test command
-    (``None`` for a pipeline exported before it recorded one)."""
-    prov = common.reconcile_provenance(cfg, read_metadata(model_path).get("provenance"), f"pipeline {model_path}")
+def _pipeline_command(cfg: DictConfig, metadata: dict[str, Any], model_path: Path
+                      ) -> tuple[dict[str, Any], Callable[[torch.Tensor], torch.Tensor] | None]:
+    """The pipeline's provenance (from its ``metadata``, checked against an explicit ``actuator=``/``command=``)
+    and its test command (``None`` for a pipeline exported before it recorded one)."""
+    prov = common.reconcile_provenance(cfg, metadata.get("provenance"), f"pipeline {model_path}")
     if prov["command"] is None:
         log.warning("%s records no test command: the records' command columns are not checked", model_path)
         return prov, None
@@ -130,7 +131,8 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     model_path = Path(cfg.pipeline)
     if not model_path.is_file():
         raise ValueError(f"pipeline: no such file {str(model_path)!r} (export one with phm-evaluate or phm-export)")
-    prov, command = _pipeline_command(cfg, model_path)
+    metadata = read_metadata(model_path)
+    prov, command = _pipeline_command(cfg, metadata, model_path)
     model = torch.jit.load(str(model_path))
     calibrated = hasattr(model, "faulty_probability")
     if not calibrated:
@@ -142,7 +144,7 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         log.warning("no baseline: the measurements are read as records of the training model; on another "
                     "bench give baseline=<healthy record(s) of that bench>, since a small modelling difference "
                     "moves the verdict (docs/surrogates.md, 'Modelling differences')")
-    contract = InputContract.of(model, read_metadata(model_path), command)
+    contract = InputContract.of(model, metadata, command)
     records = []
     for path in paths:
         current, m = _read(path, model, bool(cfg.resample))

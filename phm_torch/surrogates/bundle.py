@@ -180,13 +180,9 @@ class SurrogateBundle(nn.Module):
     def check_store(self, store_provenance: Mapping[str, Any], where: str) -> None:
         """Raise a ValueError when the store (its ``provenance``) belongs to another actuator or test command
         than the one this bundle was trained for (a bundle or store without records passes)."""
-        from ..provenance import KEYS, describe
+        from ..provenance import require_same
 
-        for key in KEYS:
-            mine, theirs = self.provenance.get(key), (store_provenance or {}).get(key)
-            if mine and theirs and mine.get("sha256") != theirs.get("sha256"):
-                raise ValueError(f"{where}: {key} {describe(theirs)} is not the {key} the bundle was trained for: "
-                                 f"{describe(mine)}")
+        require_same(store_provenance, self.provenance, where)
 
     @property
     def verdict(self) -> HealthClassifier:
