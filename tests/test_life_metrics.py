@@ -1,0 +1,229 @@
+"""Prognostic metrics of life tracks (Saxena et al. 2010) on hand-built tracks with known answers."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+
+from phm_torch.prognostics import life_metrics as lm
+
+EVERY = 200.0
+
+
+def _q(p5, p50, p95):
+    return {"p5": p5, "p50": p50, "p95": p95}
+
+
+def _band(rul, lo, mid, hi):
+    """A band scaled on the true RUL, clipped at 0 (after EOL every quantile is 0)."""
+    r = max(rul, 0.0)
+    return _q(lo * r, mid * r, hi * r)
+
+
+def make_life(eols, tracker=(0.5, 1.0, 1.5), snapshot=(1.9, 2.0, 2.1), after=2):
+    """truth and track dicts in issue 25's format: inspections every 200 h from 0 to two after EOL;
+    the tracker's and snapshot's quantiles are fixed multiples of the true RUL; healthy until EOL."""
+    truth = {"every_hours": EVERY, "actuators": {}}
+    track = {"actuators": {}}
+    for n, eol in enumerate(eols):
+        a = f"A{n:03d}"
+        hours = [EVERY * i for i in range(int(eol // EVERY) + 1 + after)]
+        truth["actuators"][a] = {"rate_scale": 1.0, "eol_hours": eol, "k0": [0.0] * 8, "inspections": [
+            {"hours": h, "file": f"{a}_{i}.csv", "k_true": [0.0] * 8, "healthy": h < eol, "rul_true": eol - h}
+            for i, h in enumerate(hours)]}
+        track["actuators"][a] = {"inspections": [
+            {"hours": h, "file": f"{a}_{i}.csv", "healthy": h < eol, "p_faulty": float(h >= eol),
+             "rul_hours": _band(eol - h, *tracker), "rul_censored": False, "out_of_distribution": False,
+             "fused": True, "snapshot_rul_hours": _band(eol - h, *snapshot), "snapshot_rul_censored": False}
+            for i, h in enumerate(hours)]}
+    return track, truth
+
+
+# ---------------------------------------------------------------- array functions
+
+def test_lambda_index_takes_first_inspection_at_or_after_t_lambda():
+    hours = np.arange(0.0, 1200.0, 200.0)
+    assert lm.lambda_index(hours, 0.0, 1050.0, 0.5) == 3          # t_lambda = 525 -> 600
+    assert lm.lambda_index(hours, 0.0, 1000.0, 0.4) == 2          # t_lambda = 400 exactly
+    assert lm.lambda_index(hours[:2], 0.0, 1050.0, 0.5) is None
+
+
+def test_alpha_lambda_cone_edges():
+    hours = np.array([0.0, 200.0, 400.0, 600.0, 800.0])
+    true = 1050.0 - hours                                         # 450 h at the lambda inspection (600 h)
+    good, bad = true.copy(), true.copy()
+    good[3], bad[3] = 450.0 * 1.19, 450.0 * 1.21
+    assert lm.alpha_lambda(hours, true, good, 0.0, 1050.0, 0.2, 0.5) is True
+    assert lm.alpha_lambda(hours, true, bad, 0.0, 1050.0, 0.2, 0.5) is False
+    bad[2] = bad[4] = 0.0                                         # other inspections do not matter
+    good[2] = good[4] = 0.0
+    assert lm.alpha_lambda(hours, true, good, 0.0, 1050.0, 0.2, 0.5) is True
+
+
+def test_relative_accuracy_values():
+    ra = lm.relative_accuracy(np.array([100.0, 100.0, 100.0, 100.0]), np.array([100.0, 80.0, 150.0, np.inf]))
+    np.testing.assert_allclose(ra[:3], [1.0, 0.8, 0.5])
+    assert ra[3] == -np.inf
+
+
+def test_prognostic_horizon_is_sustained():
+    hours = np.array([0.0, 200.0, 400.0, 600.0, 800.0])
+    true = 1000.0 - hours
+    # bounds +- 0.1 x 1000 = 100 h: in, out, in, in, in -> the horizon starts at 400 h, not at 0 h
+    pred = true + np.array([50.0, 150.0, -99.0, 0.0, 100.0])
+    assert lm.prognostic_horizon(hours, true, pred, 1000.0, 1000.0, 0.1) == pytest.approx(600.0)
+    assert lm.prognostic_horizon(hours, true, true, 1000.0, 1000.0, 0.1) == pytest.approx(1000.0)
+    last_out = true + np.array([0.0, 0.0, 0.0, 0.0, 101.0])
+    assert lm.prognostic_horizon(hours, true, last_out, 1000.0, 1000.0, 0.1) == 0.0
+
+
+def test_coverage_width_and_censored_bounds():
+    true = np.array([100.0, 100.0, 100.0, 100.0])
+    p5 = np.array([50.0, 101.0, 50.0, np.inf])
+    p95 = np.array([150.0, 150.0, np.inf, np.inf])
+    np.testing.assert_array_equal(lm.covered(true, p5, p95), [True, False, True, False])
+    w = lm.relative_band_width(true, p5, p95)
+    np.testing.assert_allclose(w[:2], [1.0, 0.49])
+    assert np.isinf(w[2]) and np.isinf(w[3])
+
+
+def test_eol_detection_delay():
+    hours = np.array([0.0, 200.0, 400.0, 600.0])
+    assert lm.eol_detection_delay(hours, np.array([0, 0, 1, 1]), 350.0) == pytest.approx(50.0)
+    assert lm.eol_detection_delay(hours, np.array([0, 1, 1, 1]), 350.0) == pytest.approx(-150.0)
+    assert math.isinf(lm.eol_detection_delay(hours, np.zeros(4), 350.0))
+
+
+# ---------------------------------------------------------------- evaluate_life on hand-built tracks
+
+def test_perfect_tracker_against_biased_snapshot():
+    track, truth = make_life([1050.0, 1450.0])
+    r = lm.evaluate_life(track, truth)
+    t, s = r["tracker"], r["snapshot"]
+    assert t["alpha_lambda"] == 1.0 and t["relative_accuracy"] == pytest.approx(1.0)
+    assert t["prognostic_horizon"] == pytest.approx(1.0)                # the whole life
+    assert t["prognostic_horizon_hours"] == pytest.approx(1250.0)       # median of 1050 and 1450
+    assert t["coverage_5_95"] == 1.0
+    assert t["median_relative_band_width_second_half"] == pytest.approx(1.0)   # (1.5 - 0.5) by construction
+    assert t["eol_detection_delay"] == pytest.approx(150.0)           # EOL 1050 -> 1200, 1450 -> 1600
+    assert t["eol_flagged_within_one_inspection"] == 1.0 and t["positive_p50_when_faulty"] == 0
+    # the snapshot p50 is twice the truth: outside the cone, RA = 0, band [1.9, 2.1] x RUL misses it
+    assert s["alpha_lambda"] == 0.0 and s["relative_accuracy"] == pytest.approx(0.0)
+    assert s["coverage_5_95"] == 0.0
+    assert s["median_relative_band_width_second_half"] == pytest.approx(0.2)
+    # PH bounds +- 105 h (A000): only the 1000 h inspection (RUL 50 h, error 50 h) is inside -> 50 h
+    assert r["per_actuator"]["A000"]["snapshot"]["prognostic_horizon_hours"] == pytest.approx(50.0)
+    assert s["positive_p50_when_faulty"] is None                       # no snapshot verdict in the track
+    tg = r["targets"]
+    assert tg["coverage_5_95"]["passed"] and tg["alpha_lambda"]["passed"] and tg["prognostic_horizon"]["passed"]
+    assert tg["median_relative_band_width_second_half"]["passed"]      # 1.0 <= 1.0
+    assert not tg["band_width_ratio_to_snapshot"]["passed"]
+    assert tg["band_width_ratio_to_snapshot"]["value"] == pytest.approx(5.0)
+    assert not r["all_targets_passed"]
+    assert r["n_actuators"] == 2 and r["n_inspections"] == 6 + 2 + 8 + 2
+
+
+def test_biased_tracker_fails_targets():
+    track, truth = make_life([1050.0, 1450.0, 2050.0], tracker=(1.25, 1.3, 1.35))
+    r = lm.evaluate_life(track, truth)
+    assert r["tracker"]["alpha_lambda"] == 0.0
+    assert r["tracker"]["coverage_5_95"] == 0.0
+    assert r["tracker"]["relative_accuracy"] == pytest.approx(0.7)
+    failed = {k for k, v in r["targets"].items() if not v["passed"]}
+    assert {"coverage_5_95", "alpha_lambda", "prognostic_horizon"} <= failed
+
+
+def test_censored_bounds_count_as_infinite():
+    track, truth = make_life([1050.0])
+    insp = track["actuators"]["A000"]["inspections"]
+    for i in insp[3:6]:                      # second half (>= 525 h): 600, 800, 1000 h
+        i["rul_hours"]["p95"] = None
+        i["rul_censored"] = True
+    insp[0]["rul_hours"] = None              # every bound beyond the horizon: p5 = +inf misses the truth
+    r = lm.evaluate_life(track, truth)
+    a = r["per_actuator"]["A000"]["tracker"]
+    assert a["coverage_5_95"] == pytest.approx(5 / 6)
+    assert a["median_relative_band_width_second_half"] is None           # +inf, written as null
+    assert r["tracker"]["median_relative_band_width_second_half"] is None
+    assert not r["targets"]["median_relative_band_width_second_half"]["passed"]
+    assert not r["targets"]["band_width_ratio_to_snapshot"]["passed"]
+
+
+def test_eol_delay_in_inspections_and_early_flags():
+    track, truth = make_life([1050.0, 1050.0, 1050.0], tracker=(0.5, 1.0, 1.5))
+    for n, a in enumerate(("A000", "A001", "A002")):
+        for i in track["actuators"][a]["inspections"]:
+            i["rul_hours"]["p50"] = max(1050.0 - i["hours"], 1.0)      # never 0: only the verdict flags
+            # A000 flagged at 1200 h (first after EOL), A001 at 1400 h (two late), A002 at 600 h (early)
+            i["healthy"] = i["hours"] < (1200.0, 1400.0, 600.0)[n]
+    r = lm.evaluate_life(track, truth)
+    per = r["per_actuator"]
+    assert per["A000"]["tracker"]["eol_detection_delay_hours"] == pytest.approx(150.0)
+    assert per["A001"]["tracker"]["eol_detection_delay_hours"] == pytest.approx(350.0)
+    assert per["A002"]["tracker"]["eol_detection_delay_hours"] == pytest.approx(-450.0)
+    assert [per[a]["tracker"]["eol_flagged_within_one_inspection"] for a in per] == [True, False, False]
+    assert r["tracker"]["eol_flagged_within_one_inspection"] == pytest.approx(1 / 3)
+    assert r["tracker"]["eol_flagged_early"] == pytest.approx(1 / 3)
+    # the verdict says faulty while p50 >= 1 h: A000 at 1200, 1400; A001 at 1400; A002 at 600..1400
+    assert r["tracker"]["positive_p50_when_faulty"] == 2 + 1 + 5
+    assert not r["targets"]["positive_p50_when_faulty"]["passed"]
+
+
+def test_never_flagged_is_infinite_delay():
+    track, truth = make_life([1050.0])
+    for i in track["actuators"]["A000"]["inspections"]:
+        i["healthy"] = True
+        i["rul_hours"] = _q(10.0, 20.0, None)
+    r = lm.evaluate_life(track, truth)
+    assert r["per_actuator"]["A000"]["tracker"]["eol_detection_delay_hours"] is None
+    assert r["tracker"]["eol_never_flagged"] == 1 and r["tracker"]["eol_flagged_within_one_inspection"] == 0.0
+
+
+def test_out_of_distribution_inspections_are_excluded_but_counted():
+    track, truth = make_life([1050.0])
+    base = lm.evaluate_life(track, truth)
+    insp = track["actuators"]["A000"]["inspections"]
+    for i in (insp[1], insp[4]):
+        i.update(out_of_distribution=True, fused=False, rul_hours=_q(1e5, 2e5, 3e5))
+    r = lm.evaluate_life(track, truth)
+    assert r["n_out_of_distribution"] == 2
+    for key in ("coverage_5_95", "alpha_lambda", "prognostic_horizon", "median_relative_band_width_second_half"):
+        assert r["tracker"][key] == base["tracker"][key]
+    assert r["tracker"]["coverage_5_95_n"] == base["tracker"]["coverage_5_95_n"] - 2
+
+
+def test_a_run_without_eol_is_counted_not_scored():
+    track, truth = make_life([1050.0, 1450.0])
+    truth["actuators"]["A001"]["eol_hours"] = None
+    r = lm.evaluate_life(track, truth)
+    assert r["n_without_eol"] == 1 and r["tracker"]["alpha_lambda_n"] == 1
+
+
+# ---------------------------------------------------------------- bad input
+
+@pytest.mark.parametrize("edit, message", [
+    (lambda tr, gt: tr["actuators"].update(B999=tr["actuators"]["A000"]), "'B999' is in the track"),
+    (lambda tr, gt: gt["actuators"].pop("A001"), "'A001' is in the track but not in the truth"),
+    (lambda tr, gt: tr["actuators"].pop("A001"), "'A001' is in the truth but not in the track"),
+    (lambda tr, gt: tr["actuators"]["A001"]["inspections"][2].update(hours=401.0), "'A001' inspection 2"),
+    (lambda tr, gt: tr["actuators"]["A000"]["inspections"].pop(), "'A000' has 7 inspections in the track"),
+    (lambda tr, gt: gt.update(every_hours=0), "every_hours must be > 0, got 0"),
+    (lambda tr, gt: gt["actuators"]["A000"].update(eol_hours=math.inf), "'A000' eol_hours = inf"),
+])
+def test_input_validation_names_the_actuator_and_value(edit, message):
+    track, truth = make_life([1050.0, 1450.0])
+    track, truth = copy.deepcopy(track), copy.deepcopy(truth)
+    edit(track, truth)
+    with pytest.raises(ValueError, match=message.replace("(", r"\(")):
+        lm.evaluate_life(track, truth)
+
+
+@pytest.mark.parametrize("kwargs", [{"alpha": 0.0}, {"alpha": 1.5}, {"lam": -0.1}, {"horizon_alpha": 0.0}])
+def test_bad_settings(kwargs):
+    track, truth = make_life([1050.0])
+    name = next(iter(kwargs))
+    with pytest.raises(ValueError, match=f"{name} = "):
+        lm.evaluate_life(track, truth, **kwargs)
