@@ -227,3 +227,33 @@ def test_bad_settings(kwargs):
     name = next(iter(kwargs))
     with pytest.raises(ValueError, match=f"{name} = "):
         lm.evaluate_life(track, truth, **kwargs)
+
+
+# ---------------------------------------------------------------- figures
+
+def test_plot_life_writes_figures_and_fleet_table(tmp_path):
+    from phm_torch.faults import FAULT_NAMES
+    from phm_torch.prognostics.life_plots import fleet_rows, plot_life, select_actuators
+
+    track, truth = make_life([1050.0, 1450.0, 2050.0])
+    for n, a in enumerate(truth["actuators"]):
+        truth["actuators"][a]["rate_scale"] = (1.5, 0.7, 1.0)[n]
+        for g, i in zip(truth["actuators"][a]["inspections"], track["actuators"][a]["inspections"]):
+            g["k_true"][0] = 1e-4 * g["hours"]
+            i["k_hat"] = {name: (1.1e-4 * g["hours"] if j == 0 else 0.0) for j, name in enumerate(FAULT_NAMES)}
+            i["k_filtered"] = {name: (1e-4 * g["hours"] if j == 0 else 0.0) for j, name in enumerate(FAULT_NAMES)}
+            i["k_interval"] = {FAULT_NAMES[0]: [0.9e-4 * g["hours"], 1.2e-4 * g["hours"]]}
+    last = track["actuators"]["A001"]["inspections"][-1]
+    last["rul_hours"] = None                                  # censored: listed last in the fleet
+    paths = plot_life(track, truth, tmp_path, max_actuators=2)
+    assert [p.name for p in paths] == ["life_rul.png", "life_damage.png", "life_fleet.csv", "life_fleet.png"]
+    assert all(p.stat().st_size > 1000 for p in paths if p.suffix == ".png")
+    # two of three, spread over the wear-rate scale: the slowest (A001, s 0.7) and the fastest (A000, s 1.5)
+    assert select_actuators(truth, 2) == ["A001", "A000"]
+    rows = fleet_rows(track, truth)
+    assert [r["actuator"] for r in rows] == ["A000", "A002", "A001"]
+    assert rows[-1]["rul_p5"] is None and rows[0]["rul_true"] == pytest.approx(1050.0 - 1400.0)
+    text = (tmp_path / "life_fleet.csv").read_text().splitlines()
+    assert text[0].startswith("actuator,hours,rul_p5") and len(text) == 4
+    with pytest.raises(ValueError, match="max_actuators must be an int >= 1, got 0"):
+        plot_life(track, truth, tmp_path, max_actuators=0)
