@@ -202,6 +202,26 @@ def test_a_run_without_eol_is_counted_not_scored():
     assert r["n_without_eol"] == 1 and r["tracker"]["alpha_lambda_n"] == 1
 
 
+
+def test_calibrated_lognormal_predictor_covers_90_percent():
+    """p50 = RUL_true exp(sigma z), band p50 exp(+-1.645 sigma): the truth lies in the band iff |z| <= 1.645
+    (90 %), the relative width has median 2 sinh(1.645 sigma) and alpha-lambda is P(|sigma z| <~ alpha)."""
+    rng = np.random.default_rng(0)
+    sigma, zq = 0.1, 1.645
+    eols = list(rng.uniform(2000.0, 6000.0, 60).round())
+    track, truth = make_life(eols)
+    for a, t in track["actuators"].items():
+        for i in t["inspections"]:
+            rul = max(truth["actuators"][a]["eol_hours"] - i["hours"], 0.0)
+            m = rul * math.exp(sigma * rng.standard_normal())
+            i["rul_hours"] = _q(m * math.exp(-zq * sigma), m, m * math.exp(zq * sigma))
+    r = lm.evaluate_life(track, truth)["tracker"]
+    n = r["coverage_5_95_n"]
+    assert n > 800 and abs(r["coverage_5_95"] - 0.90) < 3 * math.sqrt(0.09 / n)
+    assert r["median_relative_band_width_second_half"] == pytest.approx(2 * math.sinh(zq * sigma), rel=0.05)
+    # within the 20 % cone: log-ratio in [log 0.8, log 1.2] = [-2.23, 1.82] sigma -> 0.953
+    assert r["alpha_lambda"] == pytest.approx(0.953, abs=0.08)
+
 # ---------------------------------------------------------------- bad input
 
 @pytest.mark.parametrize("edit, message", [
