@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import json
 import math
 
 import numpy as np
@@ -150,6 +151,7 @@ def test_censored_bounds_count_as_infinite():
     assert r["tracker"]["median_relative_band_width_second_half"] is None
     assert not r["targets"]["median_relative_band_width_second_half"]["passed"]
     assert not r["targets"]["band_width_ratio_to_snapshot"]["passed"]
+    json.dumps(r, allow_nan=False)                                        # strict JSON: no Infinity
 
 
 def test_eol_delay_in_inspections_and_early_flags():
@@ -180,6 +182,7 @@ def test_never_flagged_is_infinite_delay():
     r = lm.evaluate_life(track, truth)
     assert r["per_actuator"]["A000"]["tracker"]["eol_detection_delay_hours"] is None
     assert r["tracker"]["eol_never_flagged"] == 1 and r["tracker"]["eol_flagged_within_one_inspection"] == 0.0
+    json.dumps(r, allow_nan=False)
 
 
 def test_out_of_distribution_inspections_are_excluded_but_counted():
