@@ -70,18 +70,20 @@ class RULEstimator:
         out = torch.cat([self.score(flat[i:i + chunk]) for i in range(0, flat.shape[0], chunk)])
         return out.reshape(k.shape[:-1])
 
-    def first_crossing(self, k0: torch.Tensor, eps: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def first_crossing(self, k0: torch.Tensor, eps: torch.Tensor | None = None,
+                       scale: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Time [h] of the first healthy -> faulty transition per sample, and whether it was censored.
 
         Args:
             k0: (B, 8) initial fault vectors.   eps: (B, n_blocks, 8) rate noise, or None.
+            scale: (B,) wear-rate scales s, or None (s = 1).
         Returns:
             (rul (B,), censored (B,) bool). Already-faulty samples get 0; samples still healthy at the
             horizon get the horizon and ``censored = True``.
         """
         d = self.damage
         t = d.grid
-        traj = d.integrate(k0, eps)                                  # (T, B, 8)
+        traj = d.integrate(k0, eps, scale=scale)                     # (T, B, 8)
         first, any_faulty = self._first_faulty_index(traj)
         rul = torch.where(any_faulty, t[first], torch.full_like(t[first], d.horizon))
         inside = any_faulty & (first > 0)
@@ -90,11 +92,12 @@ class RULEstimator:
             start = traj[first[b] - 1, b]                              # (n, 8) last healthy grid state
             t_start = t[first[b] - 1]
             e = eps[b] if eps is not None else None
+            sc = scale[b] if scale is not None else None
             lo = torch.zeros(b.numel(), dtype=torch.float64)
             hi = torch.full_like(lo, d.step)
             for _ in range(self.refine_iterations):
                 mid = 0.5 * (lo + hi)
-                k_mid = self._advance(start, t_start, mid, e)
+                k_mid = self._advance(start, t_start, mid, e, sc)
                 bad = self._scores(k_mid) <= 0
                 hi = torch.where(bad, mid, hi)
                 lo = torch.where(bad, lo, mid)
@@ -128,8 +131,10 @@ class RULEstimator:
             first[inside] = idx.gather(1, bad.float().argmax(1, keepdim=True)).squeeze(1)
         return first, any_faulty
 
-    def _advance(self, k: torch.Tensor, t0: torch.Tensor, tau: torch.Tensor, eps: torch.Tensor | None) -> torch.Tensor:
-        """k after a per-sample time tau from per-sample start t0: one batched odeint on rescaled time."""
+    def _advance(self, k: torch.Tensor, t0: torch.Tensor, tau: torch.Tensor, eps: torch.Tensor | None,
+                 scale: torch.Tensor | None = None) -> torch.Tensor:
+        """k after a per-sample time tau from per-sample start t0 (wear-rate scale per sample, or None):
+        one batched odeint on rescaled time."""
         f, k_nom, block = self.damage.rate, self.damage.nominal, self.damage.block
         rate = None
         if eps is not None:
@@ -138,6 +143,8 @@ class RULEstimator:
 
         def rhs(s: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
             dy = (y - k_nom) @ f.T
+            if scale is not None:
+                dy = dy * scale.unsqueeze(-1)
             if rate is not None:
                 dy = dy + rate
             return dy * tau.unsqueeze(-1)
@@ -146,11 +153,17 @@ class RULEstimator:
         return odeint(rhs, k, s, method="rk4", options={"step_size": 0.25})[-1]
 
     def estimate(self, k0: torch.Tensor, generator: torch.Generator | None = None) -> RULEstimate:
-        """Monte Carlo over eps: RUL 5/50/95 % per initial vector, Gaussian fit and empirical quantiles."""
+        """Monte Carlo over eps and the wear-rate scale s (one s per run: a run is one possible actuator):
+        RUL 5/50/95 % per initial vector, Gaussian fit and empirical quantiles.
+
+        eps is drawn first, then s (nothing when ``rate_scale_sigma`` is 0), so the eps of a seed do not
+        depend on the rate-scale setting.
+        """
         k0 = torch.as_tensor(k0, dtype=torch.float64)
         b, n = k0.shape[0], self.n_samples
         eps = self.damage.sample_noise(b * n, generator)
-        rul, censored = self.first_crossing(k0.repeat_interleave(n, 0), eps)
+        scale = self.damage.sample_rate_scale(b * n, generator) if self.damage.rate_scale_sigma > 0 else None
+        rul, censored = self.first_crossing(k0.repeat_interleave(n, 0), eps, scale)
         rul, censored = rul.view(b, n), censored.view(b, n)
         mean, std = rul.mean(1), rul.std(1)
         gauss = torch.stack([(mean + _Z[q] * std).clamp(min=0.0) for q in QUANTILES], dim=1)
@@ -186,7 +199,8 @@ class DeterministicRUL:
     health score is not monotone along u (less damage on a shorted phase can fail as soon or sooner):
     on the paper run its upper bound equals its median for ~10 % of the vectors. s_q is the median over
     the calibration set of RUL_50 / (Monte Carlo q-quantile RUL): the physics noise acts as a spread of
-    the wear clock.
+    the wear clock. The Monte Carlo runs draw the per-actuator wear-rate scale too (``rate_scale_sigma``
+    of the damage model), so both variants' bands are calibrated to cover it as well as eps.
 
     Args:
         estimator: the Monte Carlo estimator (its damage model and score are reused).
