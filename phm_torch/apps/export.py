@@ -66,6 +66,24 @@ def _calibration_noise(cal: dict[str, Any], path: Path) -> float | None:
     return float(noise)
 
 
+def _damage(cal: dict[str, Any], cfg: DictConfig, path: Path) -> dict[str, Any]:
+    """The damage config for the pipeline's metadata: the calibration's (the law its RUL band was calibrated
+    with), warned about when its law differs from the composed one the propagators are built from."""
+    composed = common.plain(cfg.damage)
+    damage = cal.get("damage")
+    if damage is None:
+        return composed
+    if not isinstance(damage, dict):
+        raise ValueError(f"calibration {str(path)!r}: damage must be a mapping (the damage config), got {damage!r}")
+    differ = [key for key in ("rate", "noise_std", "noise_correlation_hours", "rate_scale_sigma")
+              if damage.get(key) != composed.get(key)]
+    if differ:
+        log.warning("calibration %s was made with another damage law than the composed one (%s differ): the "
+                    "pipeline's propagators follow the composed law, its metadata and RUL band the calibration's",
+                    path, ", ".join(differ))
+    return damage
+
+
 def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Build the pipeline from the bundle, the damage model and the RUL calibration; write and re-check it."""
     bundle = SurrogateBundle.load(cfg.bundle)
@@ -90,12 +108,13 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                                           torch.tensor(cal["rate_scales"]) if "rate_scales" in cal else None,
                                           verdict=_verdict(cal, cal_path), **_fdi_interval(cal, cal_path),
                                           calibration_noise=_calibration_noise(cal, cal_path),
-                                          consistency=cal.get("consistency"))
+                                          consistency=cal.get("consistency"), residual_limits=cal.get("gappy_residual"))
     if pipeline.has_consistency and cal.get("consistency") is None:
         log.warning("calibration %s has no consistency thresholds (phm-evaluate writes them for a bundle with a "
                     "forward surrogate): the consistency check never flags", cal_path)
     out = Path(cfg.out)
     extra = {"tracking_nrmse": cal["tracking_nrmse"]} if cal.get("tracking_nrmse") is not None else {}   # input contract
+    extra["damage"] = _damage(cal, cfg, cal_path)        # the tracker's process model (phm-track)
     scripted = export_torchscript(pipeline, out, {"provenance": prov, **extra})
     probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)
     with torch.no_grad():

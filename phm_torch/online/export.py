@@ -21,8 +21,9 @@ def export_torchscript(pipeline: OnlinePipeline, path: str | os.PathLike,
                        metadata: Mapping[str, Any] | None = None) -> torch.jit.ScriptModule:
     """Script ``pipeline`` (eval mode) and write it atomically to ``path``; returns the scripted module.
 
-    ``metadata`` (JSON-able: the actuator and command the pipeline belongs to, under ``provenance``) is
-    stored as the archive's extra file ``phm_metadata.json``. The file loads with ``torch.jit.load`` in a
+    ``metadata`` (JSON-able: the actuator and command the pipeline belongs to, under ``provenance``; the input
+    contract's ``tracking_nrmse``; the damage config, under ``damage``, which phm-track takes as its process
+    model) is stored as the archive's extra file ``phm_metadata.json``. The file loads with ``torch.jit.load`` in a
     process that never imports phm_torch; :func:`read_metadata` reads the extra file back.
     """
     pipeline = pipeline.eval()
