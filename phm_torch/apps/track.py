@@ -1,0 +1,115 @@
+"""``phm-track``: life tracking of a fleet from its inspection records (:mod:`phm_torch.tracking`).
+
+Reads the index CSV (``actuator,hours,file[,event]``), runs phm-predict's diagnosis on each record, fuses each
+actuator's in-distribution inspections with a particle filter over (k, s) and writes ``track.json``
+(per inspection: k_hat and its interval, the filtered k, the wear-rate scale, the tracker's RUL 5/50/95 % and
+phm-predict's snapshot RUL, censored bounds null) and ``fleet.json`` (each actuator's latest state, by RUL 5 %).
+With ``truth=`` (a life split's truth.json) it scores both methods (:mod:`phm_torch.prognostics.life_metrics`)
+into ``metrics.json`` and draws the figures. Rerun with the same settings to resume an interrupted run.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import math
+from pathlib import Path
+from typing import Any
+
+import hydra
+import torch
+from omegaconf import DictConfig
+
+from .. import provenance
+from ..online.export import read_metadata
+from ..online.input_contract import InputContract
+from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
+from ..tracking.inspection import inspect_record
+from . import common
+from .predict import _pipeline_command, _read, _record  # phm-predict's record path, reused as is
+
+log = logging.getLogger(__name__)
+
+
+def _sha256(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _settings(cfg: DictConfig) -> TrackerSettings:
+    dof = cfg.measurement_dof
+    return TrackerSettings(n_particles=cfg.n_particles, rul_particles=cfg.rul_particles, seed=cfg.seed,
+                           measurement_dof=math.inf if dof in (math.inf, ".inf", "inf") else dof)
+
+
+def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Track every actuator of ``cfg.index`` with the pipeline ``cfg.pipeline``; returns (metrics, objects)."""
+    torch.set_num_threads(common.integer(cfg.threads, "threads", 1))
+    model_path = Path(cfg.pipeline)
+    if not model_path.is_file():
+        raise ValueError(f"pipeline: no such file {str(model_path)!r} (export one with phm-evaluate or phm-export)")
+    metadata = read_metadata(model_path)
+    prov, command = _pipeline_command(cfg, metadata, model_path)
+    model = torch.jit.load(str(model_path))
+    settings = _settings(cfg)
+    tracker, described = build_tracker(model, metadata, common.plain(cfg.damage), settings, str(model_path))
+    index = read_index(cfg.index)
+    contract = InputContract.of(model, metadata, command)
+    resample = bool(cfg.resample)
+
+    def diagnose_rows(rows: list) -> list[dict[str, Any]]:
+        out = []
+        for row in rows:
+            current, m = _read(str(row.path), model, resample)
+            found = inspect_record(model, _record(m, current), contract)
+            for message in found["messages"]:
+                log.warning("%s: %s; the inspection is out of distribution (not fused)", row.path, message)
+            out.append(found)
+        return out
+
+    out_dir = Path(cfg.out_dir)
+    run_key = {"pipeline_sha256": _sha256(model_path), "settings": vars(settings), **described}
+    actuators = track_fleet(index, tracker, model, diagnose_rows, out_dir / "state" if cfg.resume else None,
+                            run_key, common.integer(cfg.chunk_size, "chunk_size", 1))
+    result = {"pipeline": str(model_path), "actuator": prov["actuator"], "command": prov["command"],
+              "tracker": {"settings": vars(settings), **described}, "actuators": actuators,
+              "fleet": fleet_list(actuators)}
+    common.write_json(out_dir / "track.json", result)
+    common.write_json(out_dir / "fleet.json", result["fleet"])
+    inspections = [i for a in actuators.values() for i in a["inspections"]]
+    metrics: dict[str, Any] = {
+        "actuators": len(actuators), "inspections": len(inspections),
+        "fused": sum(i["fused"] for i in inspections),
+        "out_of_distribution": sum(i["out_of_distribution"] for i in inspections),
+        "damage_source": described["damage_source"], "out_dir": str(out_dir),
+        "actuator": provenance.describe(prov["actuator"]), "command": provenance.describe(prov["command"])}
+    objects: dict[str, Any] = {"track": result}
+    if cfg.truth is not None:
+        from ..prognostics.life_metrics import evaluate_life
+        from ..prognostics.life_plots import plot_life
+
+        truth_path = Path(cfg.truth)
+        if not truth_path.is_file():
+            raise ValueError(f"truth: no such file {str(truth_path)!r}")
+        truth = json.loads(truth_path.read_text())
+        scores = evaluate_life(result, truth)
+        common.write_json(out_dir / "metrics.json", {**scores, "tracking": metrics})
+        objects["life_metrics"] = scores
+        objects["figures"] = plot_life(result, truth, out_dir)
+        metrics["tracker"], metrics["snapshot"] = scores.get("tracker"), scores.get("snapshot")
+    return metrics, objects
+
+
+@hydra.main(config_path=common.CONFIG_PATH, config_name="track", version_base="1.3")
+@common.report_errors("phm-track")
+def main(cfg: DictConfig) -> None:
+    metrics, _ = track(cfg)
+    print(json.dumps(metrics, indent=2), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,138 @@
+"""The damage law as the tracker's process model: dk/dt = s F (k - k0) + eps.
+
+s is the actuator's wear-rate scale (lognormal, median 1, log-std ``rate_scale_sigma``), eps an i.i.d. normal
+rate per component (std ``noise_std`` [1/h]) held constant over blocks of ``noise_correlation_hours``. The ODE
+is linear, so between inspections the noise-free part is exact: k(t + dt) - k0 = expm(s F dt) (k(t) - k0).
+The block phase of eps is unknown to the tracker: its integral over dt is taken with the variance of a
+random-phase block process (triangular autocorrelation of width T_c),
+
+    Var(int_0^dt eps) = std^2 (dt^2 - dt^3 / (3 T_c))   for dt <= T_c,
+                        std^2 (dt T_c - T_c^2 / 3)      for dt >= T_c,
+
+which is the exact variance when the block boundaries fall uniformly at random (dt << T_c: one block, a
+constant rate, std dt; dt >> T_c: a random walk of T_c-long steps).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+log = logging.getLogger(__name__)
+
+N_FAULTS = 8
+TAYLOR_NORM = 0.5        # ||tau F|| per Taylor sub-step: 14 terms reach 1e-16 of the vector
+TAYLOR_TERMS = 14
+
+
+@dataclass(frozen=True)
+class DamageLaw:
+    """Process model of the tracker.
+
+    Args:
+        rate: F (8, 8) [1/h], float64.
+        nominal: k0 (8,), the actuator's nominal fault vector.
+        noise_std: std of eps per component (8,) [1/h].
+        noise_correlation_hours: block length T_c of eps [h].
+        rate_scale_sigma: log-std of the wear-rate scale s (the prior of log s is N(0, sigma^2)).
+        horizon_hours: the pipeline's RUL horizon [h] (a bound at or beyond it is censored).
+    """
+
+    rate: torch.Tensor
+    nominal: torch.Tensor
+    noise_std: torch.Tensor
+    noise_correlation_hours: float
+    rate_scale_sigma: float
+    horizon_hours: float
+
+    def __post_init__(self) -> None:
+        if tuple(self.rate.shape) != (N_FAULTS, N_FAULTS) or not bool(torch.isfinite(self.rate).all()):
+            raise ValueError(f"damage.rate must be a finite 8x8 matrix, got shape {tuple(self.rate.shape)}")
+        if tuple(self.noise_std.shape) != (N_FAULTS,) or bool((self.noise_std < 0).any()):
+            raise ValueError(f"damage.noise_std must be 8 values >= 0, got {self.noise_std.tolist()}")
+        if tuple(self.nominal.shape) != (N_FAULTS,):
+            raise ValueError(f"nominal must have 8 entries, got {self.nominal.tolist()}")
+        for name in ("noise_correlation_hours", "horizon_hours"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"damage.{name} must be > 0, got {value!r}")
+        if not (math.isfinite(self.rate_scale_sigma) and self.rate_scale_sigma >= 0):
+            raise ValueError(f"damage.rate_scale_sigma must be >= 0, got {self.rate_scale_sigma!r}")
+
+    @classmethod
+    def from_config(cls, damage: Mapping[str, Any], model: Any, source: str) -> DamageLaw:
+        """The law of a damage config (``conf/damage`` keys) for the exported pipeline ``model``: k0 and the
+        horizon are the pipeline's (``nominal``, ``times[-1]``), and F must reproduce its propagators
+        (``propagators[1] = expm(F step)``), else a ValueError naming ``source``."""
+        missing = [k for k in ("rate", "noise_std", "noise_correlation_hours") if k not in damage]
+        if missing:
+            raise ValueError(f"damage config ({source}) lacks {missing}")
+        sigma = damage.get("rate_scale_sigma")
+        if sigma is None:
+            log.warning("damage config (%s) has no rate_scale_sigma: the wear-rate scale s is held at 1 (the "
+                        "law before the rate scale existed)", source)
+        law = cls(torch.tensor(damage["rate"], dtype=torch.float64),
+                  model.nominal.detach().to(torch.float64).clone(),
+                  torch.tensor(damage["noise_std"], dtype=torch.float64),
+                  float(damage["noise_correlation_hours"]), 0.0 if sigma is None else float(sigma),
+                  float(model.times[-1]))
+        law.check_pipeline(model, source)
+        return law
+
+    def check_pipeline(self, model: Any, source: str) -> None:
+        """F must reproduce the pipeline's first propagator step (float32 pipelines: to 1e-5)."""
+        times, props = model.times.to(torch.float64), model.propagators.to(torch.float64)
+        step = float(times[1] - times[0])
+        expected = torch.linalg.matrix_exp(self.rate * step)
+        err = float((props[1] - expected).abs().max())
+        if err > 1e-5:
+            raise ValueError(f"damage config ({source}): its rate F does not match the pipeline's propagators "
+                             f"(max |expm(F {step:g} h) - propagator| = {err:.3g}); give the damage config the "
+                             f"pipeline was exported with")
+
+    def propagate(self, dk: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
+        """expm(tau F) dk: dk (N, 8) deviations from k0, tau (N,) wear-clock times s dt [h] -> (N, 8).
+
+        A Taylor series applied to the vectors (no matrix exponential per particle), in as many equal
+        sub-steps as make ||tau F|| <= ``TAYLOR_NORM`` for the largest tau of the batch."""
+        f = self.rate.to(dk.dtype)
+        norm = float(torch.linalg.matrix_norm(f, ord=1))
+        tau = tau.to(dk.dtype)
+        longest = float(tau.abs().max()) if tau.numel() else 0.0
+        steps = max(1, math.ceil(longest * norm / TAYLOR_NORM))
+        h = (tau / steps).unsqueeze(-1)
+        out = dk
+        for _ in range(steps):
+            term, total = out, out
+            for n in range(1, TAYLOR_TERMS + 1):
+                term = (term @ f.T) * h / n
+                total = total + term
+            out = total
+        return out
+
+    def noise_std_over(self, dt: torch.Tensor) -> torch.Tensor:
+        """Std (N, 8) [-] of int eps over intervals dt (N,) [h] (random block phase; module docstring)."""
+        tc = self.noise_correlation_hours
+        dt = dt.to(torch.float64).clamp(min=0.0).unsqueeze(-1)
+        var = torch.where(dt <= tc, dt ** 2 - dt ** 3 / (3.0 * tc), dt * tc - tc ** 2 / 3.0)
+        return self.noise_std.to(dt) * var.clamp(min=0.0).sqrt()
+
+
+def damage_config(metadata: Mapping[str, Any], fallback: Mapping[str, Any] | None, source: str
+                  ) -> tuple[dict[str, Any], str]:
+    """The damage config of an exported pipeline: its metadata's ``damage`` (written by phm-export since the
+    tracker exists), else ``fallback`` (the composed ``conf/damage``) with a warning; (config, where from)."""
+    damage = metadata.get("damage")
+    if isinstance(damage, Mapping):
+        return dict(damage), f"{source} metadata"
+    if fallback is None:
+        raise ValueError(f"{source} carries no damage config (exported before phm-export wrote it) and none "
+                         f"was given")
+    log.warning("%s carries no damage config (exported before phm-export wrote it): using the composed "
+                "conf/damage; check it is the one the pipeline was exported with", source)
+    return dict(fallback), "conf/damage"

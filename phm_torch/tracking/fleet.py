@@ -1,0 +1,157 @@
+"""A whole fleet through the tracker: index rows -> diagnoses -> filter -> ``track.json`` records, resumable.
+
+Actuators are processed in fixed chunks (``chunk_size`` consecutive actuators of the index): the chunk's records
+are diagnosed, then the filter runs one round per inspection number across the chunk's actuators (a batched
+update), and each actuator's state is written atomically (:mod:`.state`). A rerun skips every chunk whose
+actuators all have a state with the run's fingerprint and recomputes the others whole, with the same batches
+as an uninterrupted run, so both give the same numbers.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import torch
+
+from ..faults import FAULT_NAMES
+from .index import Inspection
+from .inspection import measurement
+from .measurement import interval_scale
+from .particle_filter import Posterior, Tracker
+from .state import fingerprint, load_state, save_state
+
+log = logging.getLogger(__name__)
+
+Diagnose = Callable[[Sequence[Inspection]], list[dict[str, Any]]]
+QUANTILES = ("p5", "p50", "p95")
+
+
+def censor(values: Sequence[float | None], horizon: float) -> tuple[dict[str, float | None], bool]:
+    """{p5, p50, p95} with each bound at or beyond ``horizon`` (or NaN / None) as None, and whether any was."""
+    out = {q: (None if v is None or math.isnan(v) or v >= horizon else float(v)) for q, v in zip(QUANTILES, values)}
+    return out, any(v is None for v in out.values())
+
+
+def _healthy(diagnosis: Mapping[str, Any], rul: Mapping[str, float | None] | None, fused: bool) -> bool:
+    """The tracker's verdict: the inspection's own (phm-predict's) for a fused one, and faulty wherever the
+    posterior's median RUL is 0 (most particles past the health classifier's boundary); an OOD inspection's
+    verdict is not trusted, so there the posterior alone decides (the record's own verdict before a track)."""
+    if rul is None:
+        return bool(diagnosis["healthy"])
+    past = rul["p50"] is not None and rul["p50"] <= 0.0
+    return (bool(diagnosis["healthy"]) or not fused) and not past
+
+
+def inspection_record(row: Inspection, diagnosis: Mapping[str, Any], post: Posterior, i: int, fused: bool,
+                      horizon: float) -> dict[str, Any]:
+    """One inspection of ``track.json`` (row ``i`` of the batch summary ``post``)."""
+    tracked = bool(post.tracked[i])
+    rul, rul_censored = censor(post.rul[i].tolist(), horizon) if tracked else (None, False)
+    snap = diagnosis.get("rul_hours")
+    snapshot, snap_censored = censor([snap[q] for q in QUANTILES], horizon) if snap is not None else (None, False)
+    return {
+        "hours": row.hours, "file": row.file, "event": row.event or None,
+        "k_hat": dict(diagnosis["k_hat"]),
+        "k_interval": diagnosis.get("k_interval"),
+        "k_filtered": dict(zip(FAULT_NAMES, post.k_mean[i].tolist())) if tracked else None,
+        "k_filtered_interval": {n: [lo, hi] for n, lo, hi in zip(FAULT_NAMES, post.k_low[i].tolist(),
+                                                                 post.k_high[i].tolist())} if tracked else None,
+        "rate_scale": dict(zip(QUANTILES, post.rate_scale[i].tolist())) if tracked else None,
+        "p_faulty": diagnosis.get("p_faulty"), "healthy": _healthy(diagnosis, rul, fused),
+        "snapshot_healthy": bool(diagnosis["healthy"]),
+        "rul_hours": rul, "rul_censored": rul_censored,
+        "out_of_distribution": bool(diagnosis["out_of_distribution"]),
+        "ood_reasons": list(diagnosis.get("ood_reasons", [])), "fused": fused,
+        "snapshot_rul_hours": snapshot, "snapshot_rul_censored": snap_censored,
+        "noise": diagnosis.get("noise"),
+    }
+
+
+def _run_chunk(tracker: Tracker, model: Any, rows: Mapping[str, list[Inspection]], diagnose: Diagnose
+               ) -> dict[str, list[dict[str, Any]]]:
+    """Diagnose and filter the inspections of a few actuators; {actuator: inspection records}."""
+    flat = [row for actuator_rows in rows.values() for row in actuator_rows]
+    found = diagnose(flat)
+    if len(found) != len(flat):
+        raise ValueError(f"diagnose returned {len(found)} diagnoses for {len(flat)} records")
+    diagnoses = dict(zip(((r.actuator, r.line) for r in flat), found))
+    dof = tracker.settings.measurement_dof
+    out: dict[str, list[dict[str, Any]]] = {a: [] for a in rows}
+    for r in range(max(len(v) for v in rows.values())):
+        batch = [v[r] for v in rows.values() if len(v) > r]
+        diag = [diagnoses[(row.actuator, row.line)] for row in batch]
+        meas = [measurement(model, d) for d in diag]
+        k_hat = torch.stack([m[0] for m in meas])
+        scale = interval_scale(k_hat, torch.stack([m[1] for m in meas]), torch.stack([m[2] for m in meas]), dof)
+        fuse = torch.tensor([not d["out_of_distribution"] for d in diag])
+        faulty = torch.tensor([not d["healthy"] for d in diag])
+        restart = torch.tensor([row.event == "maintenance" for row in batch])
+        post = tracker.update([row.actuator for row in batch], torch.tensor([row.hours for row in batch]),
+                              k_hat, scale, fuse, faulty, restart)
+        for i, (row, d) in enumerate(zip(batch, diag)):
+            out[row.actuator].append(inspection_record(row, d, post, i, bool(fuse[i]) and bool(post.tracked[i]),
+                                                       tracker.law.horizon_hours))
+    return out
+
+
+def track_fleet(index: Mapping[str, list[Inspection]], tracker: Tracker, model: Any, diagnose: Diagnose,
+                state_dir: str | os.PathLike | None = None, run_key: Any = None, chunk_size: int = 64
+                ) -> dict[str, dict[str, Any]]:
+    """Track every actuator of ``index`` ({actuator: inspections in time order}, :func:`~.index.read_index`).
+
+    Args:
+        tracker: the filter (its settings and law are part of the run's fingerprint via ``run_key``).
+        model: the exported pipeline.
+        diagnose: inspections -> their diagnoses, in order (phm-predict's, :mod:`.inspection`).
+        state_dir: folder of the per-actuator states (None: not resumable).
+        run_key: JSON-able description of the run (pipeline hash, settings, law): a state made under another
+            key is recomputed.
+        chunk_size: actuators per batched filter run.
+
+    Returns {actuator: {"inspections": [...]}} in index order.
+    """
+    if chunk_size < 1:
+        raise ValueError(f"chunk_size must be >= 1, got {chunk_size!r}")
+    actuators = list(index)
+    result: dict[str, dict[str, Any]] = {}
+    resumed = 0
+    for start in range(0, len(actuators), chunk_size):
+        chunk = actuators[start:start + chunk_size]
+        keys = {a: fingerprint([run_key, [(r.hours, r.file, r.event) for r in index[a]]]) for a in chunk}
+        stored = {a: load_state(state_dir, a, keys[a]) for a in chunk} if state_dir is not None else {}
+        if state_dir is not None and all(v is not None for v in stored.values()):
+            for a in chunk:
+                particles, inspections = stored[a]
+                tracker.load_state(a, particles)
+                result[a] = {"inspections": inspections}
+            resumed += len(chunk)
+            continue
+        records = _run_chunk(tracker, model, {a: index[a] for a in chunk}, diagnose)
+        for a in chunk:
+            result[a] = {"inspections": records[a]}
+            if state_dir is not None:
+                save_state(state_dir, a, keys[a], tracker.state(a), records[a])
+    if resumed:
+        log.info("resumed %d of %d actuators from %s", resumed, len(actuators), state_dir)
+    return result
+
+
+def fleet_list(actuators: Mapping[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """The latest state of each actuator, sorted by RUL 5 % (censored or unknown last, then by id)."""
+    rows = []
+    for a, track in actuators.items():
+        if not track["inspections"]:
+            continue
+        last = track["inspections"][-1]
+        rows.append({"actuator": a, "hours": last["hours"], "rul_hours": last["rul_hours"],
+                     "rul_censored": last["rul_censored"], "healthy": last["healthy"], "p_faulty": last["p_faulty"]})
+
+    def key(row: dict[str, Any]) -> tuple[int, float, str]:
+        p5 = (row["rul_hours"] or {}).get("p5")
+        return (1, 0.0, row["actuator"]) if p5 is None else (0, p5, row["actuator"])
+
+    return sorted(rows, key=key)

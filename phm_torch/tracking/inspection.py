@@ -1,0 +1,82 @@
+"""The pipeline's answer on each inspection record: phm-predict's diagnosis, as the tracker's measurement.
+
+Per record (:func:`inspect_record`) the tracker takes phm-predict's own path
+(:func:`~phm_torch.online.diagnosis.diagnose` with the pipeline's input contract), so an inspection's k_hat,
+interval, verdict, OOD flag and reasons are exactly phm-predict's; the snapshot RUL stored beside the
+tracker's is phm-predict's ``rul_hours``. :func:`inspect_currents` is the same diagnosis for current-only
+records held in memory, batched through the pipeline (the fleet benchmark): a record without command and
+position columns skips the same two checks in :func:`diagnose`.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+
+from ..faults import FAULT_NAMES
+from ..online.corruptions import Record
+from ..online.diagnosis import NOISE_FLOOR, diagnose
+from ..online.input_contract import InputContract, pipeline_reasons
+
+
+def require_calibrated(model: Any, source: str) -> None:
+    """A pipeline whose k_hat intervals are NaN (not calibrated by phm-evaluate) cannot weigh its estimates."""
+    widths = getattr(model, "k_half_widths", None)
+    if widths is None or not hasattr(model, "k_interval") or not bool(torch.isfinite(widths).all()):
+        raise ValueError(f"pipeline {source}: no calibrated k_hat intervals (k_half_widths NaN or absent), so the "
+                         f"tracker cannot weigh its estimates; export it with a rul_calibration.json written by "
+                         f"phm-evaluate")
+
+
+def inspect_record(model: Any, record: Record, contract: InputContract) -> dict[str, Any]:
+    """phm-predict's diagnosis of one record (the dict of :func:`diagnose`)."""
+    return diagnose(model, record, contract)
+
+
+def inspect_currents(model: Any, currents: torch.Tensor, contract: InputContract) -> list[dict[str, Any]]:
+    """The diagnoses of current-only records (B, n_full) [A], batched: the fields of :func:`diagnose` that the
+    tracker reads (k_hat, k_interval, healthy, p_faulty, rul_hours, out_of_distribution, ood_reasons, noise)."""
+    x = currents.to(model.times.dtype)
+    with torch.no_grad():
+        noise = model.noise_level(x)
+        k_hat, score, rul, ood, _ = model(x)
+        lower, upper = model.k_interval(k_hat, noise.to(k_hat.dtype))
+        p_faulty = model.faulty_probability(score)
+    flagged = ood.nonzero().flatten().tolist()
+    found = pipeline_reasons(model, x[flagged]) if flagged else []
+    own = dict(zip(flagged, found or [[] for _ in flagged]))
+    out = []
+    for i in range(x.shape[0]):
+        reasons = (own[i] or ["pipeline"]) if i in own else []
+        reasons += [r for r in contract.current_reasons(model, x[i], float(noise[i]), k_hat[i]) if r not in reasons]
+        bad = bool(reasons)
+        bounds = torch.stack([lower[i], upper[i]], -1)
+        r = rul[i].tolist()
+        out.append({"k_hat": dict(zip(FAULT_NAMES, k_hat[i].tolist())),
+                    "k_interval": None if bad else dict(zip(FAULT_NAMES, bounds.tolist())),
+                    "health_score": float(score[i]), "healthy": bool(score[i] > 0),
+                    "p_faulty": None if bad or math.isnan(float(p_faulty[i])) else float(p_faulty[i]),
+                    "rul_hours": None if bad or any(math.isnan(v) for v in r) else dict(zip(("p5", "p50", "p95"), r)),
+                    "out_of_distribution": bad, "ood_reasons": reasons, "checks_skipped": ["command", "tracking"],
+                    "noise": float(noise[i]),
+                    "noise_above_calibration": float(noise[i]) > max(2.0 * float(model.calibration_noise),
+                                                                     NOISE_FLOOR)})
+    return out
+
+
+def measurement(model: Any, diagnosis: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(k_hat (8,), lower (8,), upper (8,)) of one diagnosis. Out of distribution, phm-predict reports no interval:
+    the calibrated one is recomputed (only for the record; an OOD inspection is never fused)."""
+    k_hat = torch.tensor([diagnosis["k_hat"][n] for n in FAULT_NAMES], dtype=torch.float64)
+    if diagnosis.get("k_interval") is not None:
+        bounds = torch.tensor([diagnosis["k_interval"][n] for n in FAULT_NAMES], dtype=torch.float64)
+        return k_hat, bounds[:, 0], bounds[:, 1]
+    noise = diagnosis.get("noise")
+    with torch.no_grad():
+        args = (k_hat.to(model.k_half_widths.dtype).unsqueeze(0),)
+        if noise is not None and "noise" in str(model.k_interval.schema):
+            args += (torch.tensor([noise], dtype=model.k_half_widths.dtype),)
+        lower, upper = model.k_interval(*args)
+    return k_hat, lower[0].to(torch.float64), upper[0].to(torch.float64)
