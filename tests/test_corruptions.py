@@ -116,3 +116,18 @@ def test_current_only_csv_skips_command_and_tracking(suite, compose, tmp_path):
     assert good["checks_skipped"] == ["command", "tracking"] and good["command_check"] is None
     assert not good["out_of_distribution"] and not good["healthy"]               # the friction fault, found
     assert bad["out_of_distribution"] and bad["ood_reasons"] == ["sign"] and bad["p_faulty"] is None
+
+
+def test_a_dead_position_sensor_is_caught_on_a_healthy_answer_only():
+    """A motor with every phase shorted does not move: its record tracks like a dead sensor (NRMSE ~0.35 on a
+    sine), so only an answer the pipeline calls healthy is held to the healthy records' range."""
+    from phm_torch.online.input_contract import InputContract, tracking_nrmse
+    t = torch.arange(4001, dtype=torch.float64) / 20000.0
+    cmd = 5e-3 * torch.sin(2 * np.pi * 10 * t)
+    dead = Record(t, cmd, torch.zeros_like(cmd), torch.ones_like(cmd))
+    good = Record(t, cmd, 0.95 * torch.sin(2 * np.pi * 10 * t - 0.2) * 5e-3, torch.ones_like(cmd))
+    assert tracking_nrmse(cmd, dead.position) == pytest.approx(0.5 / np.sqrt(2), rel=1e-3)
+    contract = InputContract(tracking_range=(0.08, 0.49), tracking_range_healthy=(0.03, 0.19))
+    assert contract._tracking(dead, healthy=False)["ok"] and not contract._tracking(dead, healthy=True)["ok"]
+    assert contract._tracking(good, healthy=True)["ok"] and contract._tracking(good, healthy=None)["ok"]
+    assert InputContract(tracking_range=(0.08, 0.49))._tracking(dead, healthy=True)["ok"]   # no healthy range

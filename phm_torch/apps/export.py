@@ -108,12 +108,13 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                                           torch.tensor(cal["rate_scales"]) if "rate_scales" in cal else None,
                                           verdict=_verdict(cal, cal_path), **_fdi_interval(cal, cal_path),
                                           calibration_noise=_calibration_noise(cal, cal_path),
-                                          consistency=cal.get("consistency"))
+                                          consistency=cal.get("consistency"), residual_limits=cal.get("gappy_residual"))
     if pipeline.has_consistency and cal.get("consistency") is None:
         log.warning("calibration %s has no consistency thresholds (phm-evaluate writes them for a bundle with a "
                     "forward surrogate): the consistency check never flags", cal_path)
     out = Path(cfg.out)
-    extra = {"tracking_nrmse": cal["tracking_nrmse"]} if cal.get("tracking_nrmse") is not None else {}   # input contract
+    extra = {key: cal[key] for key in ("tracking_nrmse", "tracking_nrmse_healthy")      # the input contract's
+             if cal.get(key) is not None}
     extra["damage"] = _damage(cal, cfg, cal_path)        # the tracker's process model (phm-track)
     scripted = export_torchscript(pipeline, out, {"provenance": prov, **extra})
     probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)

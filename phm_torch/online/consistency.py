@@ -26,6 +26,7 @@ from torch import nn
 
 from ..surrogates.augment import add_noise, noise_level, rms
 from ..surrogates.forward import STRIDE, ForwardSurrogate, consistency_statistic
+from .noise_threshold import conformal_quantile, interpolate_levels
 
 NOISE_WINDOW = 1024
 DEFAULT_QUANTILE = 0.995
@@ -84,15 +85,7 @@ class ConsistencyCheck(nn.Module):
 
     def threshold(self, noise: torch.Tensor, full: bool) -> torch.Tensor:
         """Threshold (B,) at relative noise levels (B,), linear between the calibrated levels."""
-        row = self.thresholds[0 if full else 1]
-        levels = self.noise_levels
-        n = levels.shape[0]
-        if n == 1:
-            return row[0].expand(noise.shape[0])
-        x = torch.minimum(torch.maximum(noise.to(levels.dtype), levels[0]), levels[-1])
-        low = (torch.searchsorted(levels, x, right=True) - 1).clamp(0, n - 2)
-        frac = (x - levels[low]) / (levels[low + 1] - levels[low])
-        return row[low] * (1.0 - frac) + row[low + 1] * frac
+        return interpolate_levels(self.noise_levels, self.thresholds[0 if full else 1], noise)
 
     def record_noise(self, x: torch.Tensor, noise: torch.Tensor | None) -> torch.Tensor:
         """The records' relative noise (B,): ``noise`` when given, else estimated from a full record, else (selected
@@ -154,9 +147,7 @@ def calibrate_consistency(pipeline: nn.Module, clean: torch.Tensor, levels: Sequ
         if int(keep.sum()) < 1:
             raise ValueError(f"consistency: no in-distribution calibration record at noise {level}")
         for row, stat in zip(rows, (full[keep], samples[keep])):
-            stat = stat[torch.isfinite(stat)].to(torch.float64).sort().values
-            rank = min(stat.numel(), math.ceil((stat.numel() + 1) * quantile)) - 1
-            row.append(float(stat[rank]))
+            row.append(conformal_quantile(stat, quantile))
     out = {"thresholds": rows, "noise_levels": [float(v) for v in levels], "quantile": float(quantile)}
     pipeline.consistency_check.set_thresholds(torch.tensor(rows), torch.tensor(out["noise_levels"]))
     return out

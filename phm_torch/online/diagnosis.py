@@ -47,7 +47,7 @@ def diagnose(model: Any, record: Record, contract: InputContract,
             bounds = torch.stack(model.k_interval(k_hat), -1)[0] if intervals else None
     reference = float(model.calibration_noise) if noise_known else float("nan")
     noisy = None if math.isnan(reference) or math.isnan(noise) else noise > max(2.0 * reference, NOISE_FLOOR)
-    checks = contract.check(model, record, current[0], noise, bool(ood[0]), k_hat[0])
+    checks = contract.check(model, record, current[0], noise, bool(ood[0]), k_hat[0], bool(score[0] > 0))
     out = bool(checks.reasons)
     trusted_bounds = bounds is not None and not out and bool(torch.isfinite(bounds).all())
     r = rul[0].tolist()

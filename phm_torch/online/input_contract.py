@@ -5,7 +5,7 @@ Every check that fires names itself in the record's ``ood_reasons``; ``out_of_di
 From the pipeline's own out-of-distribution flag, per internal check (:func:`pipeline_reasons`):
 
 * ``missing`` - too few finite selected samples;  ``flat`` - a flat line;
-* ``gappy_residual`` - the gappy residual above its training threshold;
+* ``gappy_residual`` - the gappy residual above its threshold at the record's noise (noise_threshold.py);
 * ``pod_residual``, ``roughness``, ``plateau`` - the full-record statistics of
   :class:`~phm_torch.surrogates.full_signal_check.FullSignalCheck`;
 * ``inconsistent`` - a pipeline with a consistency check (:mod:`.consistency`, analysis by synthesis): the
@@ -122,6 +122,8 @@ def pipeline_reasons(model: Any, x: torch.Tensor) -> list[list[str]] | None:
         low, high = torch.aminmax(torch.where(valid, samples, samples.nanmean(1, keepdim=True)), dim=1)
         flat = (high - low) < 1e-6 if bool(valid.all()) else \
             torch.where(valid, samples, torch.zeros_like(samples)).std(1) < 1e-6     # as the forward decides
+        if hasattr(model, "gappy_residual_limit"):        # per record, at its noise (noise_threshold.py)
+            threshold = model.gappy_residual_limit(x)
         flags = {"missing": ~enough, "flat": flat,
                  "gappy_residual": (residual > threshold) | ~torch.isfinite(residual)}
         if check is not None:
@@ -149,6 +151,16 @@ def tracking_range(command: torch.Tensor, positions: torch.Tensor) -> list[float
     return [float(nrmse.min()), float(nrmse.max())]
 
 
+def _range(metadata: Mapping[str, Any], key: str) -> tuple[float, float] | None:
+    """A [low, high] tracking NRMSE range of the pipeline's metadata (None when absent)."""
+    value = metadata.get(key)
+    if value is None:
+        return None
+    if not (isinstance(value, (list, tuple)) and len(value) == 2 and 0 <= value[0] <= value[1]):
+        raise ValueError(f"{key}: expected [low, high] with 0 <= low <= high, got {value!r}")
+    return float(value[0]), float(value[1])
+
+
 @dataclass(frozen=True)
 class InputContract:
     """What a record must satisfy for the pipeline's answer to be trusted.
@@ -157,34 +169,36 @@ class InputContract:
         command: the pipeline's test command, time [s] -> [rad] (None: the command column is not checked).
         tracking_range: (low, high) tracking NRMSE of the pipeline's training records (None: the physical bound).
         noise_max: relative noise above which the record is out of distribution.
+        nominal: the pipeline's nominal record (n_full,) [A] (None: the checks against it are skipped).
+        tracking_range_healthy: (low, high) tracking NRMSE of the healthy training records, for a record the
+            pipeline calls healthy (None: ``tracking_range``).
     """
 
     command: Callable[[torch.Tensor], torch.Tensor] | None = None
     tracking_range: tuple[float, float] | None = None
     noise_max: float = NOISE_MAX
     nominal: torch.Tensor | None = None      # the pipeline's nominal record (n_full,) [A], float64; None: unknown
+    tracking_range_healthy: tuple[float, float] | None = None    # that of the healthy training records
 
     @classmethod
     def of(cls, model: Any, metadata: Mapping[str, Any],
            command: Callable[[torch.Tensor], torch.Tensor] | None) -> InputContract:
         """The contract of an exported pipeline from its metadata (:func:`~.export.read_metadata`)."""
-        tracking = metadata.get("tracking_nrmse")
-        if tracking is not None:
-            if not (isinstance(tracking, (list, tuple)) and len(tracking) == 2 and 0 <= tracking[0] <= tracking[1]):
-                raise ValueError(f"tracking_nrmse: expected [low, high] with 0 <= low <= high, got {tracking!r}")
-            tracking = (float(tracking[0]), float(tracking[1]))
+        tracking, healthy = (_range(metadata, key) for key in ("tracking_nrmse", "tracking_nrmse_healthy"))
         levels = getattr(model, "interval_noise", None)
         noise_max = NOISE_MAX if levels is None or levels.numel() < 2 else NOISE_MARGIN * float(levels[-1])
         nominal = getattr(model, "nominal_record", None)
         usable = nominal is not None and bool(torch.isfinite(nominal).all()) and float(nominal.abs().max()) > 0
-        return cls(command, tracking, noise_max, nominal.double() if usable else None)
+        return cls(command, tracking, noise_max, nominal.double() if usable else None, healthy)
 
-    def _tracking(self, record: Record) -> dict[str, Any]:
+    def _tracking(self, record: Record, healthy: bool | None = None) -> dict[str, Any]:
         cmd, pos = record.command, record.position
         nrmse = tracking_nrmse(cmd, pos)
         gain = float(pos.max() - pos.min()) / float(cmd.max() - cmd.min())
-        if self.tracking_range is not None:
-            low, high = self.tracking_range[0] / TRACKING_MARGIN, self.tracking_range[1] * TRACKING_MARGIN
+        known = self.tracking_range_healthy if healthy and self.tracking_range_healthy is not None \
+            else self.tracking_range
+        if known is not None:
+            low, high = known[0] / TRACKING_MARGIN, known[1] * TRACKING_MARGIN
             ok = low <= nrmse <= high
         else:
             low, high = 0.0, TRACKING_NRMSE_MAX
@@ -229,10 +243,12 @@ class InputContract:
         return reasons
 
     def check(self, model: Any, record: Record, current: torch.Tensor, noise: float, ood: bool,
-              k_hat: torch.Tensor | None = None) -> ContractChecks:
+              k_hat: torch.Tensor | None = None, healthy: bool | None = None) -> ContractChecks:
         """Every check of one record: ``current`` (n_full,) [A] as the pipeline saw it (after any rebase),
         ``noise`` its estimated relative noise (as measured), ``ood`` the pipeline's own flag, ``k_hat`` (8,) its
-        estimate (None: the checks of a near-nominal answer are skipped)."""
+        estimate (None: the checks of a near-nominal answer are skipped), ``healthy`` its verdict (True: the
+        position must follow the command as the healthy training records do, a dead or reversed sensor on a
+        healthy actuator; None or False: as any training record does)."""
         reasons, skipped, messages = [], [], []
         if ood:
             found = pipeline_reasons(model, current.unsqueeze(0))
@@ -251,7 +267,7 @@ class InputContract:
         elif not has_command:
             skipped.append("command")
         if has_command and has_position and float(record.command.max() - record.command.min()) > 0:
-            tracking = self._tracking(record)
+            tracking = self._tracking(record, healthy)
             if not tracking["ok"]:
                 reasons.append("tracking")
                 messages.append(f"position does not follow the command as this actuator can: tracking NRMSE "

@@ -19,6 +19,8 @@ torchdiffeq integration in the tests), leaving a batched matrix product and one 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from torch import nn
 
@@ -28,6 +30,7 @@ from ..surrogates.full_signal_check import FullSignalCheck
 from ..surrogates.metrics import ECC_PHASE
 from .consistency import ConsistencyCheck
 from .fdi_interval import DEFAULT_CLASSES, DEFAULT_LEVEL
+from .noise_threshold import NoiseScaledThreshold
 
 SCORE_BLOCK = 4096    # rows per classifier call in the RUL search
 NOISE_WINDOW, NOISE_ROWS = 1024, 64     # the noise estimate of a noise-aware FDI: samples, rows per block
@@ -75,6 +78,8 @@ class OnlinePipeline(nn.Module):
         consistency: :class:`~phm_torch.online.consistency.ConsistencyCheck` (analysis by synthesis: can the
             forward surrogate at k_hat reproduce the record?); a record it flags is out of distribution
             (reason ``inconsistent``). None: no such check.
+        residual_limits: (thresholds [A], noise levels) of the gappy residual per relative noise level
+            (:mod:`phm_torch.online.noise_threshold`); None: ``residual_threshold`` at every noise.
     """
 
     __constants__ = ("noise_aware", "has_consistency")     # TorchScript compiles only the FDI call that applies
@@ -87,7 +92,8 @@ class OnlinePipeline(nn.Module):
                  verdict: tuple[float, float] | None = None, nominal_record: torch.Tensor | None = None,
                  k_half_widths: torch.Tensor | None = None, interval_level: float = DEFAULT_LEVEL,
                  calibration_noise: float | None = None, interval_noise: torch.Tensor | None = None,
-                 verdict_classifier: nn.Module | None = None, consistency: nn.Module | None = None):
+                 verdict_classifier: nn.Module | None = None, consistency: nn.Module | None = None,
+                 residual_limits: tuple[Sequence[float], Sequence[float]] | None = None):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
@@ -144,6 +150,8 @@ class OnlinePipeline(nn.Module):
         self.n_points = int(gappy.modes_hat.shape[0])
         self.n_modes = int(gappy.modes_hat.shape[1])
         self.residual_threshold = float(residual_threshold)
+        self.residual_limit = NoiseScaledThreshold(*(([residual_threshold], None) if residual_limits is None
+                                                     else residual_limits), dtype=dtype)
         # least squares needs n_m + 1 present samples for a residual; the Bayesian layer's prior makes
         # any count solvable and its residual (shrinkage included) is informative from one sample
         floor = 1 if bool(getattr(gappy, "bayesian", False)) else self.n_modes + 1
@@ -162,10 +170,11 @@ class OnlinePipeline(nn.Module):
                     verdict: tuple[float, float] | None = None, k_half_widths: torch.Tensor | None = None,
                     interval_level: float = DEFAULT_LEVEL, calibration_noise: float | None = None,
                     interval_noise: torch.Tensor | None = None,
-                    consistency: dict | None = None) -> OnlinePipeline:
+                    consistency: dict | None = None, residual_limits: dict | None = None) -> OnlinePipeline:
         """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifiers, OOD threshold, and its
         forward surrogate when it has one: the consistency check, thresholds from ``consistency``, the
-        ``{"thresholds", "noise_levels"}`` of :func:`~phm_torch.online.consistency.calibrate_consistency`)."""
+        ``{"thresholds", "noise_levels"}`` of :func:`~phm_torch.online.consistency.calibrate_consistency`;
+        ``residual_limits`` that of :func:`~phm_torch.online.noise_threshold.calibrate_gappy_residual`)."""
         threshold = float(bundle.full_residual_threshold)
         check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_, residual_threshold=threshold)
         return cls(bundle.gappy, bundle.network, bundle.classifier, damage, deltas, direction,
@@ -177,7 +186,9 @@ class OnlinePipeline(nn.Module):
                    verdict_classifier=bundle.verdict, consistency=None if getattr(bundle, "forward_model", None) is None
                    else ConsistencyCheck(bundle.forward_model, bundle.pod.mean_, bundle.pod.modes_, bundle.indices,
                                          *[torch.tensor(consistency[key]) if consistency else None
-                                           for key in ("thresholds", "noise_levels")]))
+                                           for key in ("thresholds", "noise_levels")]),
+                   residual_limits=None if residual_limits is None else (residual_limits["thresholds"],
+                                                                         residual_limits["noise_levels"]))
 
     @torch.jit.export
     def noise_level(self, x: torch.Tensor) -> torch.Tensor:
@@ -224,6 +235,24 @@ class OnlinePipeline(nn.Module):
         if self.has_consistency:
             return self.consistency_check(x, self.forward(x, noise)[0], noise)
         return torch.full((x.shape[0],), float("nan"), dtype=self.times.dtype, device=x.device)
+
+    @torch.jit.export
+    def gappy_residual_limit(self, x: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
+        """Threshold (B,) [A] of the gappy residual (the last output of ``forward``) for records x (B, n_full) or
+        (B, n_points): interpolated at ``noise`` (B,) or the full records' estimated noise; for selected samples
+        without it, the largest calibrated threshold."""
+        if noise is None and x.shape[1] == self.n_full and self.residual_limit.levels.shape[0] > 1:
+            noise = self._estimated_noise(x)
+        return self._limit(noise, x[:, 0])
+
+    def _estimated_noise(self, x: torch.Tensor) -> torch.Tensor:
+        """Relative noise (B,) of full records from their first NOISE_WINDOW samples, in cache-sized blocks."""
+        return torch.cat([noise_level(rows.to(self.times.dtype), self.noise_window) for rows in x.split(self.noise_rows)])
+
+    def _limit(self, noise: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
+        if noise is None:
+            return self.residual_limit.values[-1].expand(like.shape[0])
+        return self.residual_limit(noise)
 
     @torch.jit.export
     def faulty_probability(self, score: torch.Tensor) -> torch.Tensor:
@@ -349,9 +378,8 @@ class OnlinePipeline(nn.Module):
             samples = x.index_select(1, self.gappy.indices)
             if self.has_full_check:      # NaN (missing samples) compares False: the gappy checks decide then
                 foreign = self.full_check(x)
-            if self.noise_aware and noise is None:     # the first NOISE_WINDOW samples, in cache-sized blocks
-                noise = torch.cat([noise_level(rows.to(self.times.dtype), self.noise_window)
-                                   for rows in x.split(self.noise_rows)])
+            if noise is None and (self.noise_aware or self.residual_limit.levels.shape[0] > 1):
+                noise = self._estimated_noise(x)
         elif x.shape[1] == self.n_points:
             samples = x
         else:
@@ -375,7 +403,7 @@ class OnlinePipeline(nn.Module):
         else:
             k_hat = self.fdi(alpha)
         score = self.verdict_classifier(k_hat) - self.verdict_classifier.threshold
-        ood = (~enough) | flat | foreign | (residual > self.residual_threshold) | ~torch.isfinite(residual)
+        ood = (~enough) | flat | foreign | (residual > self._limit(noise, residual)) | ~torch.isfinite(residual)
         if self.has_consistency:     # analysis by synthesis: NaN (no finite sample) compares False
             ood = ood | (self.consistency_check(x, k_hat, noise) > 1.0)
         rul = self.rul(k_hat, True)
