@@ -35,8 +35,20 @@ def interval_scale(k_hat: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor
 
 def log_likelihood(k: torch.Tensor, k_hat: torch.Tensor, scale: torch.Tensor, dof: float) -> torch.Tensor:
     """log p(k_hat | k) (B, P) up to a constant per row, components independent: particles k (B, P, 8),
-    estimates k_hat (B, 8), scales (B, 8)."""
-    z = (k_hat.unsqueeze(1).to(k) - k) / scale.unsqueeze(1).to(k)
-    if math.isinf(dof):
-        return -0.5 * (z * z).sum(-1)
-    return -0.5 * (dof + 1.0) * torch.log1p(z * z / dof).sum(-1)
+    estimates k_hat (B, 8), scales (B, 8).
+
+    The pipeline's k_hat is clamped to [0, 1]: an estimate at a bound says only that k + e fell beyond it, so
+    there the likelihood is the tail probability (a censored, Tobit reading; Gaussian tail). Read as a
+    point, a zero estimate of an undamaged component would pull the particles up to the noise's mean
+    positive part, and the law would then grow that phantom damage and bias s low."""
+    k_hat, scale = k_hat.unsqueeze(1).to(k), scale.unsqueeze(1).to(k)
+    z = (k_hat - k) / scale
+    point = -0.5 * z * z if math.isinf(dof) else -0.5 * (dof + 1.0) * torch.log1p(z * z / dof)
+    low, high = k_hat <= BOUND, k_hat >= 1.0 - BOUND
+    tail = torch.special.log_ndtr(torch.where(high, -z, z))      # P(e <= -k) at 0, P(e >= 1 - k) at 1
+    # per row and component, either the point density or the tail applies to every particle: their different
+    # normalisations are constants of the row and cancel in the weights
+    return torch.where(low | high, tail, point).sum(-1)
+
+
+BOUND = 1e-9       # an estimate within this of 0 or 1 sits at the clamp

@@ -53,8 +53,8 @@ class TrackerSettings:
     n_particles: int = 512
     rul_particles: int = 128
     seed: int = 0
-    measurement_dof: float = 4.0
-    shrink: float = 0.98
+    measurement_dof: float = 10.0
+    shrink: float = 0.8
     max_rate_scale: float = 8.0
     bisections: int = 6
 

@@ -1,0 +1,205 @@
+"""Life tracker (phm_torch.tracking): the filter's physics and numbers on a small synthetic pipeline, driven
+by synthetic k_hat (no records): propagation, process noise, convergence of k and s, band narrowing, RUL
+against the pipeline's own propagation, censoring, OOD, maintenance, batch independence."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from phm_torch.online import OnlinePipeline
+from phm_torch.params import load_actuator
+from phm_torch.prognostics import DamageModel
+from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
+from phm_torch.surrogates.fdi_mlp import FDIMLP
+from phm_torch.surrogates.gappy_pod import GappyPOD
+from phm_torch.tracking import DamageLaw, ParticleRUL, Tracker, TrackerSettings
+from phm_torch.tracking.fleet import censor
+
+N_FULL, N_MODES = 2001, 6
+NOMINAL = list(load_actuator().nominal_faults)
+HALF_WIDTH = 0.02          # calibrated 90 % half-width of the synthetic pipeline's k_hat (k7: 0.4)
+
+
+def damage_config() -> dict:
+    f = torch.diag(torch.tensor([5e-4] * 6 + [0.0, 3e-4], dtype=torch.float64))
+    f[1, 0] = 2e-4
+    return {"rate": f.tolist(), "noise_std": [1e-6] * 6 + [0.0, 1e-6], "noise_correlation_hours": 100.0,
+            "horizon_hours": 20000.0, "step_hours": 50.0, "rate_scale_sigma": 0.35}
+
+
+def make_pipeline(calibrated: bool = True) -> OnlinePipeline:
+    g = torch.Generator().manual_seed(0)
+    t = torch.linspace(0, 1, N_FULL, dtype=torch.float64)
+    modes = torch.linalg.qr(torch.stack([torch.sin((i + 1) * 3.0 * t + i) for i in range(N_MODES)], 1))[0]
+    mean = 1.0 + 0.5 * torch.sin(9 * t)
+    gappy = GappyPOD(modes, mean, torch.linspace(0, N_FULL - 1, 24).round().long())
+    torch.manual_seed(0)
+    fdi = FDIMLP(N_MODES, 10).double()
+    k = torch.rand(400, 8, generator=g, dtype=torch.float64) ** 3
+    k[:, 6:] = 0.5
+    clf = PolynomialSVM(degree=2).fit(k, k[:, :6].amax(1) < 0.3)
+    cfg = {key: v for key, v in damage_config().items() if key != "rate_scale_sigma"}
+    widths = torch.full((4, 8), HALF_WIDTH, dtype=torch.float64)
+    widths[:, 6] = 0.4
+    pipe = OnlinePipeline(gappy, fdi, clf, DamageModel(**cfg, nominal=NOMINAL), torch.zeros(3),
+                          torch.tensor([1.0] * 6 + [0.0, 1.0]), N_FULL, residual_threshold=0.05,
+                          k_half_widths=widths if calibrated else None)
+    pipe.modes, pipe.mean_signal = modes, mean
+    return pipe.eval()
+
+
+@pytest.fixture(scope="module")
+def pipeline() -> OnlinePipeline:
+    return make_pipeline()
+
+
+@pytest.fixture(scope="module")
+def law(pipeline) -> DamageLaw:
+    return DamageLaw.from_config(damage_config(), pipeline, "test")
+
+
+def tracker(pipeline, law, **kw) -> Tracker:
+    settings = TrackerSettings(**{"n_particles": 256, "rul_particles": 64, **kw})
+    return Tracker(law, ParticleRUL(pipeline, law, settings.max_rate_scale, settings.bisections), settings)
+
+
+def truth_path(law: DamageLaw, k_start: list[float], s: float, n: int, every: float = 200.0) -> torch.Tensor:
+    """Noise-free k (n, 8) at 0, every, 2 every, ... for rate scale s."""
+    dk = torch.tensor(k_start, dtype=torch.float64) - law.nominal
+    out = [law.nominal + law.propagate(dk.unsqueeze(0), torch.tensor([s * i * every]))[0] for i in range(n)]
+    return torch.stack(out)
+
+
+def scale_of(k: torch.Tensor, width: float = HALF_WIDTH) -> torch.Tensor:
+    s = torch.full_like(k, width / 2.132)
+    s[..., 6] = 0.4 / 2.132
+    return s
+
+
+def test_propagation_is_the_matrix_exponential_of_s_f_dt(law):
+    dk = torch.rand(5, 8, dtype=torch.float64)
+    tau = torch.tensor([0.0, 30.0, 400.0, 5000.0, 60000.0], dtype=torch.float64)
+    exact = torch.stack([torch.linalg.matrix_exp(law.rate * t) @ v for t, v in zip(tau, dk)])
+    torch.testing.assert_close(law.propagate(dk, tau), exact, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("dt", [40.0, 100.0, 700.0])
+def test_process_noise_std_is_that_of_block_constant_rates_with_a_random_phase(law, dt):
+    g = torch.Generator().manual_seed(1)
+    n, tc = 40000, law.noise_correlation_hours
+    phase = torch.rand(n, generator=g, dtype=torch.float64) * tc          # where the first block ends
+    blocks = math.ceil(dt / tc) + 2
+    eps = torch.randn(n, blocks, generator=g, dtype=torch.float64)
+    edges = torch.cat([torch.zeros(n, 1, dtype=torch.float64), phase.unsqueeze(1)
+                       + tc * torch.arange(blocks - 1, dtype=torch.float64)], 1).clamp(max=dt)
+    lengths = torch.diff(torch.cat([edges, torch.full((n, 1), dt, dtype=torch.float64)], 1), dim=1)
+    integral = (eps * lengths).sum(1)                                     # unit std per block
+    expected = float(law.noise_std_over(torch.tensor([dt]))[0, 0]) / float(law.noise_std[0])
+    assert abs(float(integral.std()) / expected - 1.0) < 0.02
+
+
+def test_exact_measurements_converge_to_the_true_k_and_s(pipeline, law):
+    k = truth_path(law, [0.02, 0.01, 0.0, 0.0, 0.0, 0.02] + NOMINAL[6:], 1.6, 15)
+    tr = tracker(pipeline, law)
+    for i in range(k.shape[0]):
+        post = tr.update(["A"], torch.tensor([200.0 * i]), k[i:i + 1], scale_of(k[i:i + 1], 0.002),
+                         torch.tensor([True]))
+    assert float((post.k_mean[0] - k[-1])[[0, 1, 5]].abs().max()) < 0.005
+    assert abs(float(post.rate_scale[0, 1]) / 1.6 - 1.0) < 0.05
+
+
+def run_noisy(pipeline, law, s_true: float, n: int, seed: int = 0) -> list:
+    g = torch.Generator().manual_seed(seed)
+    k = truth_path(law, [0.05, 0.0, 0.0, 0.0, 0.0, 0.01] + NOMINAL[6:], s_true, n)
+    tr = tracker(pipeline, law, seed=seed)
+    out = []
+    for i in range(n):
+        k_hat = (k[i] + HALF_WIDTH / 1.645 * torch.randn(8, generator=g, dtype=torch.float64)).clamp(0, 1)
+        k_hat[6] = k[i, 6]
+        out.append(tr.update(["A"], torch.tensor([200.0 * i]), k_hat.unsqueeze(0), scale_of(k_hat.unsqueeze(0)),
+                             torch.tensor([True])))
+    return out
+
+
+def test_an_actuator_wearing_twice_as_fast_as_the_fleet_moves_its_rate_scale_toward_2(pipeline, law):
+    runs = [run_noisy(pipeline, law, 2.0, 12, seed) for seed in range(4)]
+    first = torch.stack([posts[0].rate_scale[0, 1] for posts in runs])
+    last = torch.stack([posts[-1].rate_scale[0, 1] for posts in runs])
+    assert float((first - 1.0).abs().max()) < 0.1            # the fleet prior: median 1
+    assert float(last.median()) > 1.6, last                  # 2.4 h of wear per 200 h at 12 inspections
+
+
+def test_the_rul_band_narrows_with_more_inspections(pipeline, law):
+    posts = run_noisy(pipeline, law, 1.0, 14)
+    width = [float((p.rul[0, 2] - p.rul[0, 0]) / p.rul[0, 1]) for p in posts]
+    assert width[-1] < 0.5 * width[1], width
+
+
+def test_particle_rul_is_the_pipelines_propagation_on_a_wear_clock(pipeline, law):
+    rul = ParticleRUL(pipeline, law, bisections=8)
+    k = torch.tensor([[0.05, 0.0, 0.02, 0.0, 0.0, 0.0, 0.5, 0.5], [0.1] * 6 + [0.5, 0.5]], dtype=torch.float64)
+    with torch.no_grad():
+        reference = pipeline.rul(k)[:, 1]                   # zero deltas: the noise-free propagation, s = 1
+    tau = rul.wear_clock_crossing(k, law.horizon_hours)
+    torch.testing.assert_close(tau, reference, rtol=0.01, atol=5.0)
+    q, censored = rul(k.unsqueeze(1).expand(2, 4, 8), torch.full((2, 4), 2.0, dtype=torch.float64))
+    torch.testing.assert_close(q[:, 1], reference / 2.0, rtol=0.01, atol=5.0)     # noise-free RUL = RUL_1 / s
+    assert not censored.any()
+
+
+def test_rul_bounds_at_the_horizon_are_censored_and_a_faulty_verdict_has_no_life_left(pipeline, law):
+    tr = tracker(pipeline, law)
+    nominal = torch.tensor([NOMINAL], dtype=torch.float64)  # no damage: the law never moves it
+    q, censored = tr.rul_model(nominal.expand(1, 4, 8).unsqueeze(0)[0], torch.ones(1, 4, dtype=torch.float64))
+    assert censored.all() and torch.isnan(q).all()
+    # a barely damaged actuator: its slow particles outlive the horizon, its fast ones do not
+    post = tr.update(["A"], torch.tensor([0.0]), nominal, scale_of(nominal, 1e-4), torch.tensor([True]))
+    assert post.censored[0].tolist() == [False, False, True] and torch.isnan(post.rul[0, 2])
+    assert 0 < float(post.rul[0, 0]) < float(post.rul[0, 1]) < 20000.0
+    assert censor([1200.0, 20000.0, float("nan")], 20000.0) == ({"p5": 1200.0, "p50": None, "p95": None}, True)
+    worn = torch.tensor([[0.2, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5]], dtype=torch.float64)
+    post = tr.update(["B"], torch.tensor([0.0]), worn, scale_of(worn), torch.tensor([True]), torch.tensor([False]))
+    assert float(post.rul[0, 0]) > 0
+    post = tr.update(["C"], torch.tensor([0.0]), worn, scale_of(worn), torch.tensor([True]), torch.tensor([True]))
+    assert float(post.rul[0, 0]) == 0.0 and float(post.rul[0, 1]) == 0.0 and float(post.rul[0, 2]) > 0
+
+
+def test_an_ood_inspection_is_predicted_but_not_fused(pipeline, law):
+    tr = tracker(pipeline, law)
+    k = torch.tensor([[0.05, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5]], dtype=torch.float64)
+    tr.update(["A"], torch.tensor([0.0]), k, scale_of(k), torch.tensor([True]))
+    log_s = tr.log_s[0].clone()
+    wild = torch.tensor([[0.9] * 6 + [0.5, 0.5]], dtype=torch.float64)
+    post = tr.update(["A"], torch.tensor([200.0]), wild, scale_of(wild), torch.tensor([False]))
+    assert torch.equal(tr.log_s[0], log_s)                  # no reweighting: s untouched
+    assert float(post.k_mean[0, 0]) < 0.07                   # moved by the law only (~5 % in 200 h)
+    first = tr.update(["B"], torch.tensor([0.0]), wild, scale_of(wild), torch.tensor([False]))
+    assert not first.tracked[0] and torch.isnan(first.rul).all()     # an OOD first inspection starts nothing
+
+
+def test_maintenance_restarts_the_track(pipeline, law):
+    posts = run_noisy(pipeline, law, 2.0, 10)
+    tr = tracker(pipeline, law)
+    for i, p in enumerate(posts):      # rebuild the worn track, then restart it at a repaired state
+        k = p.k_mean
+        tr.update(["A"], torch.tensor([200.0 * i]), k, scale_of(k, 0.002), torch.tensor([True]))
+    fresh = torch.tensor([[0.01, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5]], dtype=torch.float64)
+    post = tr.update(["A"], torch.tensor([2200.0]), fresh, scale_of(fresh), torch.tensor([True]),
+                     restart=torch.tensor([True]))
+    assert abs(float(post.k_mean[0, 0]) - 0.01) < 0.01
+    band = post.rate_scale[0]
+    assert float(band[2] / band[0]) > math.exp(2 * 1.645 * 0.35) * 0.8           # back to the fleet prior
+
+
+def test_an_actuators_track_does_not_depend_on_its_batch(pipeline, law):
+    k = torch.tensor([[0.05, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5], [0.02, 0.01, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5]],
+                     dtype=torch.float64)
+    together, alone = tracker(pipeline, law), tracker(pipeline, law)
+    for i in range(3):
+        a = together.update(["A", "B"], torch.tensor([200.0 * i] * 2), k, scale_of(k), torch.tensor([True, True]))
+        b = alone.update(["B"], torch.tensor([200.0 * i]), k[1:], scale_of(k[1:]), torch.tensor([True]))
+    torch.testing.assert_close(a.k_mean[1], b.k_mean[0], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(a.rate_scale[1], b.rate_scale[0], rtol=1e-12, atol=1e-12)
