@@ -1,0 +1,126 @@
+"""phm-track end to end on a small synthetic pipeline and records: track.json, OOD, maintenance, resume of an
+interrupted run, and one-line errors for bad input."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+from test_tracking import N_FULL, damage_config, make_pipeline
+
+from phm_torch.io import write_measurement
+from phm_torch.online.export import export_torchscript
+
+
+def record(pipe, alpha: torch.Tensor) -> dict:
+    zeros = torch.zeros(N_FULL, dtype=torch.float64)
+    return {"time": torch.arange(N_FULL, dtype=torch.float64) / 20000.0, "command": zeros, "position": zeros,
+            "current": pipe.mean_signal + pipe.modes @ alpha}
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    """A pipeline (with its damage config in the metadata) and an index of 3 actuators x 4 inspections."""
+    root = tmp_path_factory.mktemp("fleet")
+    pipe = make_pipeline()
+    export_torchscript(pipe, root / "online.pt", {"damage": damage_config()})
+    export_torchscript(make_pipeline(calibrated=False), root / "raw.pt", {"damage": damage_config()})
+    export_torchscript(pipe, root / "old.pt")                      # no damage config: the composed fallback
+    g = torch.Generator().manual_seed(0)
+    rows = ["actuator,hours,file,event"]
+    for a in range(3):
+        base = torch.randn(6, generator=g, dtype=torch.float64) * 0.3
+        for i in range(4):
+            path = root / "records" / f"A{a}_{i}.csv"
+            data = record(pipe, base + 0.02 * i)
+            if a == 1 and i == 2:                                  # not like any training record
+                data["current"] = torch.randn(N_FULL, generator=g, dtype=torch.float64)
+            write_measurement(path, data)
+            rows.append(f"A{a},{200 * i},records/{path.name},{'maintenance' if a == 2 and i == 2 else ''}")
+    (root / "index.csv").write_text("\n".join(rows) + "\n")
+    return root
+
+
+def run(compose, root, out, *extra):
+    from phm_torch.apps.track import track
+
+    return track(compose("track", [f"index={root / 'index.csv'}", f"pipeline={root / 'online.pt'}",
+                                   f"out_dir={out}", "n_particles=64", "rul_particles=16", "chunk_size=1", *extra]))
+
+
+def test_track_json_fleet_ood_and_maintenance(fleet, compose, tmp_path):
+    metrics, _ = run(compose, fleet, tmp_path)
+    track = json.loads((tmp_path / "track.json").read_text())
+    assert metrics["inspections"] == 12 and metrics["damage_source"].endswith("metadata")
+    insp = track["actuators"]["A1"]["inspections"]
+    assert insp[2]["out_of_distribution"] and not insp[2]["fused"] and insp[2]["ood_reasons"]
+    assert all(i["fused"] for k, i in enumerate(insp) if k != 2)
+    keys = {"hours", "file", "k_hat", "k_filtered", "k_interval", "rate_scale", "p_faulty", "healthy", "rul_hours",
+            "rul_censored", "out_of_distribution", "ood_reasons", "fused", "snapshot_rul_hours",
+            "snapshot_rul_censored"}
+    assert keys <= set(insp[0])
+    for i in (x for a in track["actuators"].values() for x in a["inspections"]):
+        if i["rul_hours"] is not None:          # censored bounds are null, never the horizon
+            assert all(v is None or v < 20000.0 for v in i["rul_hours"].values())
+            assert i["rul_censored"] == any(v is None for v in i["rul_hours"].values())
+    a2 = track["actuators"]["A2"]["inspections"]
+    assert a2[2]["event"] == "maintenance"
+    width = [i["rate_scale"]["p95"] / i["rate_scale"]["p5"] for i in a2]
+    assert width[2] > width[1]                              # the restarted track forgets the old wear rate
+    assert len(track["fleet"]) == 3
+    assert json.loads((tmp_path / "fleet.json").read_text()) == track["fleet"]
+
+
+def test_an_interrupted_run_resumes_to_the_same_result(fleet, compose, tmp_path, monkeypatch):
+    import phm_torch.apps.track as app
+
+    run(compose, fleet, tmp_path / "whole")
+    calls = {"n": 0}
+    real = app.inspect_record
+
+    def flaky(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 6:                                  # dies inside the second actuator
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(app, "inspect_record", flaky)
+    with pytest.raises(KeyboardInterrupt):
+        run(compose, fleet, tmp_path / "resumed")
+    assert (tmp_path / "resumed" / "state" / "A0.pt").is_file()
+    assert not (tmp_path / "resumed" / "state" / "A1.pt").exists()
+    monkeypatch.setattr(app, "inspect_record", real)
+    resumed = json.loads(json.dumps(run(compose, fleet, tmp_path / "resumed")[1]["track"]))
+    expected = json.loads((tmp_path / "whole" / "track.json").read_text())
+    assert resumed["actuators"] == expected["actuators"] and resumed["fleet"] == expected["fleet"]
+
+
+@pytest.mark.parametrize("rows, message", [
+    (["A0,0,records/A0_0.csv,", "A0,400,records/A0_1.csv,", "A0,200,records/A0_2.csv,"],
+     r"line 4 \(actuator A0\): hours 200 not after the previous inspection's 400 \(line 3\)"),
+    (["A0,0,records/A0_0.csv,", "A0,0,records/A0_1.csv,"], r"line 3 \(actuator A0\): duplicate hours 0 \(line 2\)"),
+    (["A0,0,records/nope.csv,"], r"line 2 \(actuator A0\): no such file 'records/nope.csv'"),
+    (["A0,0,records/A0_0.csv,repair"], r"line 2 \(actuator A0\): unknown event 'repair'"),
+    (["A0,ten,records/A0_0.csv,"], r"line 2 \(actuator A0\): hours 'ten' is not a number"),
+])
+def test_bad_index_rows_are_one_line_errors(fleet, compose, tmp_path, rows, message):
+    index = tmp_path / "index.csv"
+    index.write_text("\n".join(["actuator,hours,file,event", *[r.replace("records/", f"{fleet}/records/")
+                                                               for r in rows]]) + "\n")
+    with pytest.raises(ValueError, match=message.replace("records/", ".*records/")) as err:
+        run(compose, fleet, tmp_path / "out", f"index={index}")
+    assert "\n" not in str(err.value)
+
+
+def test_missing_columns_uncalibrated_pipeline_and_old_pipeline(fleet, compose, tmp_path, caplog):
+    index = tmp_path / "nofile.csv"
+    index.write_text("actuator,hours\nA0,0\n")
+    with pytest.raises(ValueError, match=r"missing column\(s\) \['file'\]"):
+        run(compose, fleet, tmp_path, f"index={index}")
+    with pytest.raises(ValueError, match="no calibrated k_hat intervals"):
+        run(compose, fleet, tmp_path, f"pipeline={fleet / 'raw.pt'}")
+    # an older pipeline: the composed conf/damage, whose F is not this pipeline's, is refused by name
+    with pytest.raises(ValueError, match="does not match the pipeline's propagators"):
+        run(compose, fleet, tmp_path, f"pipeline={fleet / 'old.pt'}")
+    assert any("carries no damage config" in r.getMessage() for r in caplog.records)
