@@ -131,3 +131,8 @@ def test_a_dead_position_sensor_is_caught_on_a_healthy_answer_only():
     assert contract._tracking(dead, healthy=False)["ok"] and not contract._tracking(dead, healthy=True)["ok"]
     assert contract._tracking(good, healthy=True)["ok"] and contract._tracking(good, healthy=None)["ok"]
     assert InputContract(tracking_range=(0.08, 0.49))._tracking(dead, healthy=True)["ok"]   # no healthy range
+    # a reversed sensor reads NRMSE ~0.7, inside a wide faulty range, but anti-correlated with its command
+    reversed_ = Record(t, cmd, -good.position, good.current)
+    wide = InputContract(tracking_range=(0.03, 0.8))
+    assert wide._tracking(good)["ok"] and not wide._tracking(reversed_)["ok"]
+    assert wide._tracking(reversed_)["correlation"] < -0.9

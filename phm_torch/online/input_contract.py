@@ -19,7 +19,9 @@ From the record's other columns (skipped, and listed in ``checks_skipped``, for 
 * ``tracking`` - the position does not follow the command as an actuator of this type can: its tracking
   NRMSE (RMS of position - command over the command's range) outside the range the pipeline's training
   records span, widened by ``TRACKING_MARGIN`` (metadata ``tracking_nrmse``), or, for a pipeline without it,
-  above ``TRACKING_NRMSE_MAX`` or with a position range above ``POSITION_GAIN`` x the command's.
+  above ``TRACKING_NRMSE_MAX`` or with a position range above ``POSITION_GAIN`` x the command's; an answer
+  the pipeline calls healthy is held to the healthy training records' range (``tracking_nrmse_healthy``); a
+  position anti-correlated with the command (below ``REVERSED_CORRELATION``) is a reversed sensor.
 
 From the current, against the noise calibration and the training model's nominal record (``nominal_record``):
 
@@ -56,6 +58,9 @@ from .command_check import CommandCheck, check_command
 from .corruptions import Record
 
 PIPELINE_CHECKS = ("missing", "flat", "gappy_residual", "pod_residual", "roughness", "plateau", "inconsistent")
+# a position anti-correlated with its command is a reversed sensor; a stalled actuator (a double short stops it)
+# correlates near 0 either way, the val records of the paper store 0.82 and above
+REVERSED_CORRELATION = -0.5
 TRACKING_MARGIN = 1.5        # the training range of the tracking NRMSE, widened by this factor on both sides
 # without a training range: a loop that follows its command with at most 90 deg of lag at equal amplitude
 # (its bandwidth covers the test command) misses it by |1 - e^{-j pi/2}| A / sqrt(2) over a range 2 A: 0.5
@@ -195,6 +200,7 @@ class InputContract:
         cmd, pos = record.command, record.position
         nrmse = tracking_nrmse(cmd, pos)
         gain = float(pos.max() - pos.min()) / float(cmd.max() - cmd.min())
+        corr = float(torch.corrcoef(torch.stack([pos.double().flatten(), cmd.double().flatten()]))[0, 1])
         known = self.tracking_range_healthy if healthy and self.tracking_range_healthy is not None \
             else self.tracking_range
         if known is not None:
@@ -203,7 +209,8 @@ class InputContract:
         else:
             low, high = 0.0, TRACKING_NRMSE_MAX
             ok = nrmse <= high and gain <= POSITION_GAIN
-        return {"nrmse": nrmse, "range": [low, high], "position_gain": gain, "ok": bool(ok)}
+        ok = ok and not corr < REVERSED_CORRELATION          # NaN (a constant position) is not reversed
+        return {"nrmse": nrmse, "range": [low, high], "position_gain": gain, "correlation": corr, "ok": bool(ok)}
 
     def current_reasons(self, model: Any, current: torch.Tensor, noise: float, k_hat: torch.Tensor | None = None
                         ) -> list[str]:
@@ -273,7 +280,7 @@ class InputContract:
                 messages.append(f"position does not follow the command as this actuator can: tracking NRMSE "
                                 f"{tracking['nrmse']:.3f} outside [{tracking['range'][0]:.3f}, "
                                 f"{tracking['range'][1]:.3f}], position range {tracking['position_gain']:.2f} "
-                                f"x the command's")
+                                f"x the command's, correlation {tracking['correlation']:.2f}")
         else:     # no command or position column, or a constant command: nothing to follow
             skipped.append("tracking")
         reasons += [r for r in self.current_reasons(model, current, noise, k_hat) if r not in reasons]
