@@ -266,6 +266,8 @@ def test_plot_life_writes_figures_and_fleet_table(tmp_path):
             i["k_hat"] = {name: (1.1e-4 * g["hours"] if j == 0 else 0.0) for j, name in enumerate(FAULT_NAMES)}
             i["k_filtered"] = {name: (1e-4 * g["hours"] if j == 0 else 0.0) for j, name in enumerate(FAULT_NAMES)}
             i["k_interval"] = {FAULT_NAMES[0]: [0.9e-4 * g["hours"], 1.2e-4 * g["hours"]]}
+            i["k_filtered_interval"] = {FAULT_NAMES[0]: [0.95e-4 * g["hours"], 1.05e-4 * g["hours"]]}
+    track["actuators"]["A000"]["inspections"][1]["k_interval"] = None          # one inspection without
     last = track["actuators"]["A001"]["inspections"][-1]
     last["rul_hours"] = None                                  # censored: listed last in the fleet
     paths = plot_life(track, truth, tmp_path, max_actuators=2)

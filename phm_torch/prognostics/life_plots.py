@@ -109,9 +109,17 @@ def _named(values: Any, names: Sequence[str]) -> dict[str, float]:
     return dict(zip(names, values))
 
 
+def _interval(insp: Sequence[Mapping[str, Any]], key: str, name: str, centre: np.ndarray) -> np.ndarray:
+    """(2, n) distances below / above ``centre`` of the inspections' ``key`` interval of ``name``; NaN where
+    there is none (a null interval, or a track without that key)."""
+    lohi = np.array([((i.get(key) or {}).get(name) or [np.nan, np.nan]) for i in insp], float).reshape(-1, 2)
+    return np.stack([centre - lohi[:, 0], lohi[:, 1] - centre]).clip(min=0)
+
+
 def damage_figure(track: Mapping[str, Any], truth: Mapping[str, Any], ids: Sequence[str], path: Path) -> Path:
-    """One panel per actuator: the true k (line), the filtered k (dashed, with its interval) and k_hat
-    (dots) of every damage component that moves over the life (the phase k7 is never a damage)."""
+    """One panel per actuator: the true k (line), the filtered k (dashed, shaded ``k_filtered_interval``)
+    and k_hat (dots, bars ``k_interval``) of every damage component that moves over the life (the phase k7
+    is never a damage)."""
     fig, axes = _grid(len(ids))
     for ax, a in zip(axes, ids):
         g, insp = truth["actuators"][a], track["actuators"][a]["inspections"]
@@ -126,12 +134,12 @@ def damage_figure(track: Mapping[str, Any], truth: Mapping[str, Any], ids: Seque
             filt = np.array([_named(i.get("k_filtered"), FAULT_NAMES).get(name, np.nan) for i in insp], float)
             khat = np.array([_named(i.get("k_hat"), FAULT_NAMES).get(name, np.nan) for i in insp], float)
             ax.plot(hours, filt, "--", color=color, lw=1.0, label=f"{name} filtered")
-            ax.plot(hours, khat, ".", color=color, ms=4, alpha=0.6, label=f"{name} k_hat")
-            band = [(i.get("k_interval") or {}).get(name) for i in insp]
-            ok = np.array([b is not None for b in band])
-            if ok.any():
-                lohi = np.array([b for b in band if b is not None], float)
-                ax.fill_between(hours[ok], lohi[:, 0], lohi[:, 1], color=color, alpha=0.12)
+            bars = _interval(insp, "k_interval", name, khat)      # the measurement's calibrated interval
+            ax.errorbar(hours, khat, yerr=bars, fmt=".", color=color, ms=4, alpha=0.6, elinewidth=0.5,
+                        label=f"{name} k_hat")
+            band = _interval(insp, "k_filtered_interval", name, filt)
+            if np.isfinite(band).any():
+                ax.fill_between(hours, filt - band[0], filt + band[1], color=color, alpha=0.15)
         eol = g.get("eol_hours")
         if eol is not None:
             ax.axvline(float(eol), color="k", lw=0.6)
