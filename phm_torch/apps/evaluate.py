@@ -328,7 +328,8 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if cfg.export:
         path = out_dir / "online.pt"
         export_torchscript(pipeline, path, {"provenance": prov, "tracking_nrmse": tracking,
-                                            "tracking_nrmse_healthy": tracking_healthy})
+                                            "tracking_nrmse_healthy": tracking_healthy,
+                                            "damage": common.plain(cfg.damage)})    # phm-track's process model
         reloaded = torch.jit.load(str(path))
         with torch.no_grad():
             again = reloaded(signals[:8])
