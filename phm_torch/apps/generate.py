@@ -7,6 +7,8 @@ Examples::
     phm-generate dataset.n_train=200 seed=3 data_dir=/tmp/d
     phm-generate -m hydra/launcher=joblib shard.count=2 'shard.index=range(2)'   # two processes
     phm-generate stage=merge                                # merge after independently run shards
+    phm-generate dataset.life.n_actuators=40                # + run-to-failure histories in <data_dir>/life
+    phm-generate stage=life dataset.life.n_actuators=40     # only those (no store needed)
 
 Re-running a command resumes it; see docs/dataset.md. The work is done by :func:`generate` (a plain
 function of the composed config); :func:`main` is the thin Hydra entry point.
@@ -31,6 +33,7 @@ from ..assessment import AssessmentFunction
 from ..command import time_grid
 from ..data import calibration
 from ..data import generation as gen
+from ..data import life as life_split
 from ..data.labels import LabelComputer, make_label_plan
 from ..data.store import DatasetStore, read_json
 from ..params import CONF_DIR
@@ -40,6 +43,10 @@ log = logging.getLogger(__name__)
 
 # Config nodes that determine the data (the fingerprint); the rest only says where and how to run.
 DATA_NODES = ("actuator", "command", "dataset", "assessment", "seed")
+# dataset.life is not in it: a life split is added to a finished store without invalidating it; the life
+# data record their own settings (truth.json) and resume per actuator on their own key.
+NOT_FINGERPRINTED = ("life",)
+STAGES = (*gen.STAGES, "life")   # life: only the life split (no store)
 
 
 def git_revision() -> str:
@@ -58,6 +65,8 @@ def git_revision() -> str:
 def fingerprint(cfg: DictConfig) -> tuple[str, dict[str, Any]]:
     """SHA-256 of the data-defining config (canonical JSON) and that config."""
     data = {key: common.plain(cfg.get(key)) for key in DATA_NODES}
+    if isinstance(data["dataset"], dict):
+        data["dataset"] = {k: v for k, v in data["dataset"].items() if k not in NOT_FINGERPRINTED}
     data["package_version"] = __version__
     text = json.dumps(data, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest(), data
@@ -86,12 +95,18 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if index >= count:
         raise ValueError(f"shard.index must be in [0, shard.count - 1] = [0, {count - 1}], got {index}")
     stage = cfg.get("stage", "all")
-    if stage not in gen.STAGES:
-        raise ValueError(f"stage must be one of {list(gen.STAGES)}, got {stage!r}")
+    if stage not in STAGES:
+        raise ValueError(f"stage must be one of {list(STAGES)}, got {stage!r}")
     common.set_threads(cfg)
     if not isinstance(cfg.data_dir, str) or not cfg.data_dir.strip():
         raise ValueError(f"data_dir must be a directory path, got {cfg.data_dir!r}")
     data_dir = Path(cfg.data_dir).expanduser().resolve()
+    if stage == "life":
+        if spec.life.n_actuators == 0:
+            raise ValueError("stage=life needs dataset.life.n_actuators > 0, got 0")
+        gen.check_writable(data_dir)
+        life = _life(cfg, spec, params, command, duration, assessment, seed, prov, dev, data_dir)
+        return {"data_dir": str(data_dir), "stage": stage, "life": life}, {"data_dir": data_dir}
 
     fp, data_cfg = fingerprint(cfg)
     gen.prepare_store(data_dir, fp, data_cfg, bool(cfg.get("overwrite", False)))
@@ -141,6 +156,9 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     wall = time.perf_counter() - t0
 
     complete = gen.is_complete(data_dir, fp)
+    life = None
+    if spec.life.n_actuators > 0 and stage != "chunks" and index == 0:   # one shard writes it
+        life = _life(cfg, spec, params, command, duration, assessment, seed, prov, dev, data_dir)
     manifest = read_json(data_dir / gen.MANIFEST_FILE) if complete else None
     metrics: dict[str, Any] = {"data_dir": str(data_dir), "complete": complete, "fingerprint": fp,
                                "actuator": provenance.describe(prov["actuator"]),
@@ -168,10 +186,36 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         timing |= labeller.timing
     if pilot_s:
         timing["pilot_s"] = pilot_s
+    if life is not None:
+        metrics["life"] = life
     if timing and assessment.vectors:
         metrics["assessment_ms_per_vector"] = round(1000 * assessment.wall_s / assessment.vectors, 3)
         metrics["timing_s"] = {k: round(v, 2) for k, v in timing.items()}
     return metrics, {"data_dir": data_dir, "manifest": manifest, "plan": plan, "label_plan": label_plan}
+
+
+def _life(cfg: DictConfig, spec: gen.DatasetSpec, params: Any, command: Any, duration: float, assessment: Any,
+          seed: int, prov: dict[str, Any], dev: torch.device, data_dir: Path) -> dict[str, Any]:
+    """Write (or resume) the life split of ``cfg`` into ``<data_dir>/life``; returns its metrics."""
+    if cfg.get("damage") is None:
+        raise ValueError("damage: the life split needs a damage model (damage=coupled)")
+    damage = common.build(cfg.damage, "damage", nominal=list(params.nominal_faults))
+    life = spec.life
+    simulate = life_split.simulator(params, spec.fidelity, spec.substeps, spec.effects, life.compile, command,
+                                    duration, dev)
+    generator = life_split.LifeGenerator(life, damage, lambda k: assessment(k).healthy, simulate,
+                                         gen.seed_streams(seed)["life"], params.nominal_faults, spec.uniform,
+                                         spec.label_chunk_size)
+    signal = {"fidelity": spec.fidelity, "substeps": spec.substeps, "effects": common.plain(spec.effects)}
+    settings = life_split.settings_record(life)
+    key_data = {"life": {k: v for k, v in settings.items() if k not in ("n_actuators", "batch", "compile")},
+                "seed": seed, "actuator": prov["actuator"], "command": prov["command"],
+                "damage": common.plain(cfg.damage), "assessment": common.plain(cfg.assessment), "signal": signal}
+    header = {"actuator": prov["actuator"], "command": prov["command"], "damage": common.plain(cfg.damage),
+              "every_hours": float(life.every), "life": settings, "seed": seed, "signal": signal,
+              "assessment": common.plain(cfg.assessment), "package_version": __version__}
+    return life_split.generate_life(data_dir / life_split.LIFE_DIR, generator, key_data, header,
+                                    bool(cfg.get("overwrite", False)), bool(cfg.get("progress", True)))
 
 
 def open_store(data_dir: str | Path, verify: bool = False) -> DatasetStore:

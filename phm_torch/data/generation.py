@@ -55,7 +55,7 @@ from .store import (
 
 log = logging.getLogger(__name__)
 
-STREAMS = ("train", "val", "rul", "labels", "randomize", "pilot")   # child i of SeedSequence(seed) seeds STREAMS[i]
+STREAMS = ("train", "val", "rul", "labels", "randomize", "pilot", "life")   # child i of SeedSequence(seed) seeds STREAMS[i]
 STAGES = ("all", "chunks", "merge")
 ROWS_PER_H5_CHUNK = 1    # HDF5 chunk shape (1, n_e) of the signal arrays: a random row read reads that row only
 

@@ -13,6 +13,7 @@ from typing import Any
 
 from ..effects import build_effects
 from . import randomization
+from .life import LifeSpec
 
 SPLITS = ("nominal", "train", "val", "rul")   # the signal splits (the optional labels split: labels.py)
 
@@ -46,6 +47,9 @@ class DatasetSpec:
             (:mod:`phm_torch.data.calibration`); null = the paper's scaling, no pilot.
         healthy_fraction_tolerance: the paper's scaling is kept when the pilot is within this of the target.
         pilot_size: fault vectors of the calibration pilot (assessed in batches of ``chunk_size``).
+        life: the run-to-failure ``life`` split (:class:`~phm_torch.data.life.LifeSpec`, or a mapping of its
+            fields); ``n_actuators`` 0 (the default) = none. Not part of the store's fingerprint: a life split
+            can be added to a finished store.
     """
 
     n_train: int
@@ -65,6 +69,7 @@ class DatasetSpec:
     healthy_fraction: float | None = 0.3
     healthy_fraction_tolerance: float = 0.05
     pilot_size: int = 1536
+    life: LifeSpec | Mapping[str, Any] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "uniform", tuple(int(i) for i in self.uniform))
@@ -77,6 +82,7 @@ class DatasetSpec:
             raise ValueError(f"dataset.{e}") from None
         object.__setattr__(self, "effects", effects)
         object.__setattr__(self, "randomized", randomization.parse_randomization(self.randomize, effects))
+        object.__setattr__(self, "life", LifeSpec.of(self.life))
         for name, low in (("n_train", 1), ("n_val", 0), ("n_rul", 0), ("chunk_size", 1), ("n_labels", 0),
                           ("label_chunk_size", 1), ("pilot_size", 16)):
             v = getattr(self, name)
