@@ -149,6 +149,8 @@ def test_censored_bounds_count_as_infinite():
     assert a["coverage_5_95"] == pytest.approx(5 / 6)
     assert a["median_relative_band_width_second_half"] is None           # +inf, written as null
     assert r["tracker"]["median_relative_band_width_second_half"] is None
+    assert r["tracker"]["relative_band_width_second_half_censored"] == 1.0
+    assert r["snapshot"]["relative_band_width_second_half_censored"] == 0.0
     assert not r["targets"]["median_relative_band_width_second_half"]["passed"]
     assert not r["targets"]["band_width_ratio_to_snapshot"]["passed"]
     json.dumps(r, allow_nan=False)                                        # strict JSON: no Infinity

@@ -110,7 +110,10 @@ def _quantiles(inspection: Mapping[str, Any], key: str) -> tuple[float, float, f
 
 
 def _finite_or_none(x: float | None) -> float | None:
-    return None if x is None or not math.isfinite(x) else float(x)
+    """x as a JSON number (ints stay ints), None for None and +-inf."""
+    if x is None or not math.isfinite(x):
+        return None
+    return x if isinstance(x, int) and not isinstance(x, bool) else float(x)
 
 
 def _median(values: Sequence[float]) -> float | None:
@@ -218,6 +221,7 @@ def _fleet(per: Mapping[str, Mapping[str, Any]], method: str) -> dict[str, Any]:
         "coverage_5_95": float(cov.mean()) if cov.size else None, "coverage_5_95_n": int(cov.size),
         "median_relative_band_width_second_half": _finite_or_none(_median(width)) if width.size else None,
         "relative_band_width_second_half_n": int(width.size),
+        "relative_band_width_second_half_censored": float(np.isinf(width).mean()) if width.size else None,
         "p50_within_alpha_second_half": float(in_a.mean()) if in_a.size else None,
         "eol_detection_delay": _finite_or_none(_median(delays)),
         "eol_flagged_within_one_inspection": (float(np.mean([v["eol_flagged_within_one_inspection"]
