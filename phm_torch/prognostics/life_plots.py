@@ -117,37 +117,40 @@ def _interval(insp: Sequence[Mapping[str, Any]], key: str, name: str, centre: np
 
 
 def damage_figure(track: Mapping[str, Any], truth: Mapping[str, Any], ids: Sequence[str], path: Path) -> Path:
-    """One panel per actuator: the true k (line), the filtered k (dashed, shaded ``k_filtered_interval``)
-    and k_hat (dots, bars ``k_interval``) of every damage component that moves over the life (the phase k7
-    is never a damage)."""
+    """One panel per actuator, each damage component that moves over the life (the phase k7 is never a
+    damage) as its change since the truth's initial k0 (so a drift around 0.5 shares the axis with damages
+    near 0): true (line), filtered (dashed, ``k_filtered_interval`` shaded), k_hat (dots, ``k_interval``
+    bars)."""
     fig, axes = _grid(len(ids))
+    handles: dict[str, Any] = {}
     for ax, a in zip(axes, ids):
         g, insp = truth["actuators"][a], track["actuators"][a]["inspections"]
         gh = np.array([float(i["hours"]) for i in g["inspections"]])
         k_true = np.array([i["k_true"] for i in g["inspections"]], float).reshape(len(gh), -1)
+        k0 = np.asarray(g.get("k0") or k_true[0], float)
         hours = np.array([float(i["hours"]) for i in insp])
         moving = [j for j in range(k_true.shape[1]) if j != PHASE_INDEX and np.ptp(k_true[:, j]) > 1e-9]
-        for c, j in enumerate(moving):
+        for j in moving:
             name = FAULT_NAMES[j] if j < len(FAULT_NAMES) else f"k{j + 1}"
-            color = f"C{c}"
-            ax.plot(gh, k_true[:, j], "-", color=color, lw=1.4, label=f"{name} true")
+            color = f"C{j}"                                      # one colour per component in every panel
+            handles[name], = ax.plot(gh, k_true[:, j] - k0[j], "-", color=color, lw=1.4)
             filt = np.array([_named(i.get("k_filtered"), FAULT_NAMES).get(name, np.nan) for i in insp], float)
             khat = np.array([_named(i.get("k_hat"), FAULT_NAMES).get(name, np.nan) for i in insp], float)
-            ax.plot(hours, filt, "--", color=color, lw=1.0, label=f"{name} filtered")
+            ax.plot(hours, filt - k0[j], "--", color=color, lw=1.0)
             bars = _interval(insp, "k_interval", name, khat)      # the measurement's calibrated interval
-            ax.errorbar(hours, khat, yerr=bars, fmt=".", color=color, ms=4, alpha=0.6, elinewidth=0.5,
-                        label=f"{name} k_hat")
+            ax.errorbar(hours, khat - k0[j], yerr=bars, fmt=".", color=color, ms=3, alpha=0.5, elinewidth=0.5)
             band = _interval(insp, "k_filtered_interval", name, filt)
             if np.isfinite(band).any():
-                ax.fill_between(hours, filt - band[0], filt + band[1], color=color, alpha=0.15)
+                ax.fill_between(hours, filt - k0[j] - band[0], filt - k0[j] + band[1], color=color, alpha=0.15)
         eol = g.get("eol_hours")
         if eol is not None:
             ax.axvline(float(eol), color="k", lw=0.6)
-        ax.set_title(f"{a}: damage components", fontsize=9)
+        ax.set_title(f"{a}: true (line), filtered (dashed), k_hat (dots)", fontsize=9)
         ax.set_xlabel("hours [h]")
-        ax.set_ylabel("k [-]")
+        ax.set_ylabel("k - k0 [-]")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=6, ncol=2)
+    if handles:
+        axes[0].legend(list(handles.values()), list(handles), fontsize=7, loc="upper left")
     return save_figure(fig, path)
 
 
