@@ -13,6 +13,7 @@ import torch
 from phm_torch.apps.generate import fingerprint
 from phm_torch.command import Chirp
 from phm_torch.data import life as life_split
+from phm_torch.data import life_files
 from phm_torch.data.generation import seed_streams
 from phm_torch.io import read_measurement
 from phm_torch.params import load_actuator
@@ -124,7 +125,7 @@ def analytic_eol(k0: list[float], s: float) -> float:
 
 def test_life_split_schedule_truth_and_records(tmp_path):
     gen = make_generator(noise=0.0)
-    metrics = life_split.generate_life(tmp_path, gen, {"k": 1}, {"every_hours": 200.0}, progress=False)
+    metrics = life_files.generate_life(tmp_path, gen, {"k": 1}, {"every_hours": 200.0}, progress=False)
     assert metrics["computed"] == 3 and metrics["censored"] == 0
     truth = json.loads((tmp_path / "truth.json").read_text())
     assert list(truth["actuators"]) == ["A000", "A001", "A002"] and truth["every_hours"] == 200.0
@@ -161,7 +162,7 @@ def test_life_records_carry_the_relative_current_noise(tmp_path):
     gen = life_split.LifeGenerator(life_split.LifeSpec(n_actuators=1, initial_damage=0.02, batch=4, compile=False,
                                                        noise=0.05), gen.damage, gen.assess_fn, gen.simulate,
                                    gen.stream, NOMINAL, uniform=[6])
-    life_split.generate_life(tmp_path, gen, {"k": 1}, {}, progress=False)
+    life_files.generate_life(tmp_path, gen, {"k": 1}, {}, progress=False)
     a = json.loads((tmp_path / "truth.json").read_text())["actuators"]["A000"]
     i = a["inspections"][-1]
     rec = read_measurement(tmp_path / i["file"])
@@ -173,28 +174,28 @@ def test_life_records_carry_the_relative_current_noise(tmp_path):
 
 
 def test_life_split_resumes_per_actuator_and_is_deterministic(tmp_path):
-    life_split.generate_life(tmp_path / "a", make_generator(n=2), {"k": 1}, {}, progress=False)
+    life_files.generate_life(tmp_path / "a", make_generator(n=2), {"k": 1}, {}, progress=False)
     part = (tmp_path / "a" / "A001" / "part.json").read_text()
-    more = life_split.generate_life(tmp_path / "a", make_generator(n=3), {"k": 1}, {}, progress=False)
+    more = life_files.generate_life(tmp_path / "a", make_generator(n=3), {"k": 1}, {}, progress=False)
     assert (more["computed"], more["reused"]) == (1, 2)
     assert (tmp_path / "a" / "A001" / "part.json").read_text() == part                 # untouched
     (tmp_path / "a" / "A001" / "part.json").unlink()                                     # interrupted actuator
-    again = life_split.generate_life(tmp_path / "a", make_generator(n=3), {"k": 1}, {}, progress=False)
+    again = life_files.generate_life(tmp_path / "a", make_generator(n=3), {"k": 1}, {}, progress=False)
     assert (again["computed"], again["reused"]) == (1, 2)
     assert (tmp_path / "a" / "A001" / "part.json").read_text() == part                 # the same history again
-    fresh = life_split.generate_life(tmp_path / "b", make_generator(n=3), {"k": 1}, {}, progress=False)
+    fresh = life_files.generate_life(tmp_path / "b", make_generator(n=3), {"k": 1}, {}, progress=False)
     assert fresh["computed"] == 3
     assert (tmp_path / "b" / "truth.json").read_text() == (tmp_path / "a" / "truth.json").read_text()
     with pytest.raises(ValueError, match="different settings"):
-        life_split.generate_life(tmp_path / "a", make_generator(n=3), {"k": 2}, {}, progress=False)
-    redo = life_split.generate_life(tmp_path / "a", make_generator(n=3), {"k": 2}, {}, overwrite=True, progress=False)
+        life_files.generate_life(tmp_path / "a", make_generator(n=3), {"k": 2}, {}, progress=False)
+    redo = life_files.generate_life(tmp_path / "a", make_generator(n=3), {"k": 2}, {}, overwrite=True, progress=False)
     assert redo["computed"] == 3
 
 
 def test_censored_history_at_the_inspection_cap(tmp_path):
     """A life longer than max_inspections is kept whole, its end of life unknown (null, censored)."""
     gen = make_generator(n=1, sigma=0.0, max_inspections=3, after_eol=1)
-    life_split.generate_life(tmp_path, gen, {"k": 1}, {}, progress=False)
+    life_files.generate_life(tmp_path, gen, {"k": 1}, {}, progress=False)
     a = json.loads((tmp_path / "truth.json").read_text())["actuators"]["A000"]
     assert a["eol_hours"] is None and a["censored"] and len(a["inspections"]) == 3
     assert all(i["rul_true"] is None and i["healthy"] for i in a["inspections"])

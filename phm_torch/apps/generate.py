@@ -31,7 +31,7 @@ from omegaconf import DictConfig
 from .. import __version__, provenance
 from ..assessment import AssessmentFunction
 from ..command import time_grid
-from ..data import calibration
+from ..data import calibration, life_files
 from ..data import generation as gen
 from ..data import life as life_split
 from ..data.labels import LabelComputer, make_label_plan
@@ -214,7 +214,7 @@ def _life(cfg: DictConfig, spec: gen.DatasetSpec, params: Any, command: Any, dur
     header = {"actuator": prov["actuator"], "command": prov["command"], "damage": common.plain(cfg.damage),
               "every_hours": float(life.every), "life": settings, "seed": seed, "signal": signal,
               "assessment": common.plain(cfg.assessment), "package_version": __version__}
-    return life_split.generate_life(data_dir / life_split.LIFE_DIR, generator, key_data, header,
+    return life_files.generate_life(data_dir / life_files.LIFE_DIR, generator, key_data, header,
                                     bool(cfg.get("overwrite", False)), bool(cfg.get("progress", True)))
 
 
