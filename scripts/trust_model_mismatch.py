@@ -10,7 +10,8 @@ mode it reports the flagged rate and, separately for the flagged and the unflagg
 damage component outside its interval; the corruption suite's "right"). A flag that means something has
 err_k and wrong rates on its flagged records well above those of its unflagged ones; a flag that rejects a
 whole bench for a harmless difference has a high flagged rate with unflagged-like errors. The first row,
-``none``, is the training model itself.
+``none``, is the training model itself. In the baseline mode the bench's healthy record is also read as measured
+(:mod:`phm_torch.online.bench_check`): a bench too far from the training model flags every record (``bench``).
 
     python scripts/trust_model_mismatch.py [--pipeline pretrained/online_surrogates_best.pt] [--n 60]
         [--effects cogging_torque ...] [--out scripts/trust_model_mismatch.json]
@@ -36,19 +37,20 @@ from phm_torch.data.sampling import ImportanceSampler
 from phm_torch.effects import EFFECTS
 from phm_torch.faults import FAULT_NAMES
 from phm_torch.io.atomic import atomic_open
+from phm_torch.online.bench_check import check_bench
 from phm_torch.online.corruptions import Record
 from phm_torch.online.diagnosis import diagnose
 from phm_torch.online.export import read_metadata
 from phm_torch.simulator import EMASimulator
 
 NOISE = 0.01          # relative current noise of the records (the calibration's)
-STRENGTH = 0.5        # each effect at this fraction of its default strength
+STRENGTH = 0.5        # each effect at this fraction of its default strength (--strength)
 
 
-def half_strength(name: str) -> dict[str, float]:
-    """The effect's parameters with every strength parameter at ``STRENGTH`` x its default."""
+def scaled_strength(name: str, strength: float = STRENGTH) -> dict[str, float]:
+    """The effect's parameters with every strength parameter at ``strength`` x its default."""
     cls = EFFECTS[name]
-    return {p: spec.default * (STRENGTH if p in cls.STRENGTH else 1.0) for p, spec in cls.PARAMS.items()}
+    return {p: spec.default * (strength if p in cls.STRENGTH else 1.0) for p, spec in cls.PARAMS.items()}
 
 
 def simulate(params: Any, k: torch.Tensor, command: Any, effects: dict[str, dict[str, float]], cache: Path
@@ -93,12 +95,15 @@ def condition(model: Any, pipeline: Path, k: torch.Tensor, sim: dict[str, torch.
     records = [Record(sim["time"], sim["command"][i], sim["position"][i], _noisy(sim["current"][i], rng))
                for i in range(k.shape[0])]
     out: dict[str, Any] = {}
+    bench = check_bench(model, baseline)
     for mode, bench_nominal in (("raw", None), ("baseline", baseline)):
-        rows = [judgement(diagnose(model, r, contract, bench_nominal), k[i], healthy[i]) for i, r in enumerate(records)]
+        rows = [judgement(diagnose(model, r, contract, bench_nominal, bench if bench_nominal is not None else None),
+                          k[i], healthy[i]) for i, r in enumerate(records)]
         flagged = [r for r in rows if r["flagged"]]
         out[mode] = {"flagged_rate": len(flagged) / len(rows), "all": _summary(rows), "flagged": _summary(flagged),
                      "unflagged": _summary([r for r in rows if not r["flagged"]]),
                      "reasons": sorted({x for r in rows for x in r["reasons"]})}
+    out["bench_check"] = None if bench is None else bench.as_dict()
     return out
 
 
@@ -109,11 +114,14 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--effects", nargs="*", default=None, help="effect names (default: the whole library)")
     ap.add_argument("--cache", type=Path, default=CACHE)
     ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--strength", type=float, default=STRENGTH, help="fraction of each effect's default strength")
     ap.add_argument("--out", type=Path, default=Path("scripts/trust_model_mismatch.json"))
     args = ap.parse_args(argv)
     unknown = [e for e in args.effects or [] if e not in EFFECTS]
     if unknown:
         raise SystemExit(f"trust_model_mismatch: error: --effects {unknown} unknown; known: {sorted(EFFECTS)}")
+    if not args.strength > 0:
+        raise SystemExit(f"trust_model_mismatch: error: --strength must be > 0, got {args.strength}")
     if args.n < 1:
         raise SystemExit(f"trust_model_mismatch: error: --n must be >= 1, got {args.n}")
     torch.set_num_threads(1)
@@ -125,7 +133,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     t0 = time.perf_counter()
     conditions: dict[str, Any] = {}
     for name in ["none", *(args.effects if args.effects is not None else sorted(EFFECTS))]:
-        effects = {} if name == "none" else {name: half_strength(name)}
+        effects = {} if name == "none" else {name: scaled_strength(name, args.strength)}
         sim = simulate(params, k, command, effects, args.cache)
         conditions[name] = {"effect": effects.get(name), **condition(model, args.pipeline, k, sim, args.seed)}
         raw, base = conditions[name]["raw"], conditions[name]["baseline"]
@@ -134,7 +142,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
               f"flagged {raw['flagged']['wrong_rate']} unflagged {raw['unflagged']['wrong_rate']}", flush=True)
     meta = read_metadata(args.pipeline).get("provenance") or {}
     report = {"pipeline": str(args.pipeline), "actuator": meta.get("actuator"), "command": meta.get("command"),
-              "n_vectors": args.n, "noise": NOISE, "strength": STRENGTH, "machine": platform.platform(),
+              "n_vectors": args.n, "noise": NOISE, "strength": args.strength, "machine": platform.platform(),
               "conditions": conditions, "wall_s": round(time.perf_counter() - t0, 1)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_open(args.out, "w") as fh:

@@ -17,7 +17,7 @@ Each record holds:
   intervals above their highest calibrated level; ``null`` when the pipeline does not know that level);
 * ``ood_reasons``, every check of the input contract that fired (:mod:`phm_torch.online.input_contract`:
   the pipeline's own checks by name, ``command``, ``tracking``, ``sign``, ``offset``, ``shape``, ``noise``,
-  ``spikes``), ``checks_skipped`` (``command`` and ``tracking`` for a CSV without command or position
+  ``spikes``, ``bench``), ``checks_skipped`` (``command`` and ``tracking`` for a CSV without command or position
   columns, a current-only record), ``command_check``, ``tracking_check`` and ``messages`` (one line per failed
   check). The record is computed by :func:`phm_torch.online.diagnosis.diagnose`.
 
@@ -25,7 +25,9 @@ The model is a TorchScript file written by ``phm-evaluate``/``phm_torch.online.e
 ``torch.jit.load`` (no unpickling). An empty or ``nan`` cell of a CSV's ``current`` column is a missing
 sample, which the pipeline drops (too many, and the record is out of distribution). With ``baseline`` (healthy records of the measuring bench), every
 measurement is first moved onto the training model by the difference between that bench's healthy record
-and the training model's.
+and the training model's; that healthy record, read as measured, must land within ``BENCH_TOLERANCE`` interval
+half-widths of nominal, else the bench differs too much for a baseline to correct and every record is out of
+distribution with the reason ``bench`` (:mod:`phm_torch.online.bench_check`; the metrics' ``bench_check``).
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ from omegaconf import DictConfig
 
 from .. import provenance
 from ..io import read_measurement
+from ..online.bench_check import check_bench
 from ..online.corruptions import Record
 from ..online.diagnosis import NOISE_FLOOR, diagnose
 from ..online.export import read_metadata
@@ -145,10 +148,13 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                     "bench give baseline=<healthy record(s) of that bench>, since a small modelling difference "
                     "moves the verdict (docs/surrogates.md, 'Modelling differences')")
     contract = InputContract.of(model, metadata, command)
+    bench = None if bench_nominal is None else check_bench(model, bench_nominal)
+    if bench is not None and not bench.ok:
+        log.warning("%s; every record is out of distribution (reason 'bench')", bench.message())
     records = []
     for path in paths:
         current, m = _read(path, model, bool(cfg.resample))
-        record = {"file": str(path), **diagnose(model, _record(m, current), contract, bench_nominal)}
+        record = {"file": str(path), **diagnose(model, _record(m, current), contract, bench_nominal, bench)}
         for message in record["messages"]:
             log.warning("%s: %s; the record is out of distribution", path, message)
         if record["noise_above_calibration"]:
@@ -159,7 +165,8 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if cfg.out:
         common.write_json(Path(cfg.out), records)
     return {"files": len(records), "out_of_distribution": sum(r["out_of_distribution"] for r in records),
-            "baseline": bench_nominal is not None, "actuator": provenance.describe(prov["actuator"]),
+            "baseline": bench_nominal is not None, "bench_check": None if bench is None else bench.as_dict(),
+            "actuator": provenance.describe(prov["actuator"]),
             "command": provenance.describe(prov["command"]),
             "noise_above_calibration": sum(bool(r["noise_above_calibration"]) for r in records)}, \
         {"records": records}

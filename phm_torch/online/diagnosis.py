@@ -13,6 +13,7 @@ from typing import Any
 import torch
 
 from ..faults import FAULT_NAMES
+from .bench_check import BenchCheck
 from .corruptions import Record
 from .input_contract import InputContract
 
@@ -23,7 +24,7 @@ NOISE_FLOOR = 0.005
 
 
 def diagnose(model: Any, record: Record, contract: InputContract,
-             bench_nominal: torch.Tensor | None = None) -> dict[str, Any]:
+             bench_nominal: torch.Tensor | None = None, bench: BenchCheck | None = None) -> dict[str, Any]:
     """The diagnosis of one record by the exported pipeline ``model`` (``torch.jit.load``), as a JSON-able dict.
 
     Args:
@@ -31,6 +32,8 @@ def diagnose(model: Any, record: Record, contract: InputContract,
             (``None``: a current-only record, whose command and tracking checks are skipped).
         contract: the pipeline's :class:`InputContract`.
         bench_nominal: (n_full,) [A] healthy record of the measuring bench (phm-predict's ``baseline``), or None.
+        bench: :func:`~.bench_check.check_bench` of that record (once per bench); a bench it finds too far from
+            the training model makes the record out of distribution with the reason ``bench``.
     """
     current = torch.as_tensor(record.current, dtype=model.times.dtype).reshape(1, -1)
     calibrated = hasattr(model, "faulty_probability")
@@ -48,6 +51,9 @@ def diagnose(model: Any, record: Record, contract: InputContract,
     reference = float(model.calibration_noise) if noise_known else float("nan")
     noisy = None if math.isnan(reference) or math.isnan(noise) else noise > max(2.0 * reference, NOISE_FLOOR)
     checks = contract.check(model, record, current[0], noise, bool(ood[0]), k_hat[0], bool(score[0] > 0))
+    if bench is not None and not bench.ok:
+        checks.reasons.append("bench")
+        checks.messages.append(bench.message())
     out = bool(checks.reasons)
     trusted_bounds = bounds is not None and not out and bool(torch.isfinite(bounds).all())
     r = rul[0].tolist()
