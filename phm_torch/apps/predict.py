@@ -151,6 +151,10 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     bench = None if bench_nominal is None else check_bench(model, bench_nominal)
     if bench is not None and not bench.ok:
         log.warning("%s; every record is out of distribution (reason 'bench')", bench.message())
+    elif bench is not None and not bench.healthy:     # within tolerance, but a known-healthy record read faulty
+        log.warning("the bench's healthy baseline record reads faulty (%s %.1f interval half-widths from nominal): "
+                    "the verdicts of this bench lean to 'faulty'; check it with phm-workbench", bench.worst,
+                    bench.max_deviation)
     records = []
     for path in paths:
         current, m = _read(path, model, bool(cfg.resample))
