@@ -145,7 +145,7 @@ def test_particle_rul_is_the_pipelines_propagation_on_a_wear_clock(pipeline, law
         reference = pipeline.rul(k)[:, 1]                   # zero deltas: the noise-free propagation, s = 1
     tau = rul.wear_clock_crossing(k, law.horizon_hours)
     torch.testing.assert_close(tau, reference, rtol=0.01, atol=5.0)
-    q, censored = rul(k.unsqueeze(1).expand(2, 4, 8), torch.full((2, 4), 2.0, dtype=torch.float64))
+    q, censored, _ = rul(k.unsqueeze(1).expand(2, 4, 8), torch.full((2, 4), 2.0, dtype=torch.float64))
     torch.testing.assert_close(q[:, 1], reference / 2.0, rtol=0.01, atol=5.0)     # noise-free RUL = RUL_1 / s
     assert not censored.any()
 
@@ -153,7 +153,7 @@ def test_particle_rul_is_the_pipelines_propagation_on_a_wear_clock(pipeline, law
 def test_rul_bounds_at_the_horizon_are_censored_and_a_faulty_verdict_has_no_life_left(pipeline, law):
     tr = tracker(pipeline, law)
     nominal = torch.tensor([NOMINAL], dtype=torch.float64)  # no damage: the law never moves it
-    q, censored = tr.rul_model(nominal.expand(1, 4, 8).unsqueeze(0)[0], torch.ones(1, 4, dtype=torch.float64))
+    q, censored, _ = tr.rul_model(nominal.expand(1, 4, 8).unsqueeze(0)[0], torch.ones(1, 4, dtype=torch.float64))
     assert censored.all() and torch.isnan(q).all()
     # a barely damaged actuator: its slow particles outlive the horizon, its fast ones do not
     post = tr.update(["A"], torch.tensor([0.0]), nominal, scale_of(nominal, 1e-4), torch.tensor([True]))
@@ -203,3 +203,87 @@ def test_an_actuators_track_does_not_depend_on_its_batch(pipeline, law):
         b = alone.update(["B"], torch.tensor([200.0 * i]), k[1:], scale_of(k[1:]), torch.tensor([True]))
     torch.testing.assert_close(a.k_mean[1], b.k_mean[0], rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(a.rate_scale[1], b.rate_scale[0], rtol=1e-12, atol=1e-12)
+
+
+def exact_rate_scale_band(law: DamageLaw, k_hat: torch.Tensor, sd: torch.Tensor, hours: list[float]) -> list[float]:
+    """5/50/95 % of s of the exact posterior for noise-free paths, Gaussian errors of std ``sd`` (8,), a flat
+    prior on the initial k and the lognormal prior on s: per s the measurements are a linear regression on the
+    initial k, whose marginal likelihood is closed form (no clamped estimate: the damage stays above 0)."""
+    comps = [0, 1, 2, 3, 4, 5, 7]
+    grid = torch.exp(torch.linspace(-1.5, 1.5, 241, dtype=torch.float64))
+    w = 1.0 / sd[comps] ** 2
+    y = (k_hat - law.nominal)[:, comps]
+    log_p = []
+    for s in grid.tolist():
+        a = torch.linalg.matrix_exp(law.rate * s * torch.tensor(hours, dtype=torch.float64).view(-1, 1, 1))
+        a = a[:, comps][:, :, comps]
+        h = torch.einsum("tji,j,tjk->ik", a, w, a)
+        x = torch.linalg.solve(h, torch.einsum("tji,j,tj->i", a, w, y))
+        resid = ((y - torch.einsum("tij,j->ti", a, x)) ** 2 * w).sum()
+        log_p.append(float(-0.5 * resid - 0.5 * torch.logdet(h) - 0.5 * (math.log(s) / law.rate_scale_sigma) ** 2
+                           - math.log(s)))
+    p = torch.softmax(torch.tensor(log_p), 0)
+    cdf = p.cumsum(0)
+    return [float(grid[int(torch.searchsorted(cdf, torch.tensor(q, dtype=cdf.dtype)))]) for q in (0.05, 0.5, 0.95)]
+
+
+def test_the_rate_scale_band_is_the_exact_posteriors_and_covers_the_true_s(law):
+    """20 actuators with s from the fleet prior, 8 inspections: the filter's 5/50/95 % of s agree with the exact
+    posterior's, and its 5-95 % band covers the true s of at least 16 (resampling every inspection, the first
+    version covered ~40 %)."""
+    g = torch.Generator().manual_seed(1)
+    n_act, n = 20, 8
+    s_true = torch.exp(law.rate_scale_sigma * torch.randn(n_act, generator=g, dtype=torch.float64))
+    k0 = law.nominal.repeat(n_act, 1)
+    k0[:, :6] = 0.05 + 0.05 * torch.rand(n_act, 6, generator=g, dtype=torch.float64)
+    tr = Tracker(law, None, TrackerSettings(n_particles=256, rul_particles=16))
+    ids, k_hats = [f"S{i}" for i in range(n_act)], []
+    for i in range(n):
+        k = law.nominal + law.propagate(k0 - law.nominal, s_true * 200.0 * i)
+        k_hat = (k + HALF_WIDTH / 1.645 * torch.randn(n_act, 8, generator=g, dtype=torch.float64)).clamp(0, 1)
+        k_hat[:, 6] = k[:, 6]
+        k_hats.append(k_hat)
+        post = tr.update(ids, torch.full((n_act,), 200.0 * i), k_hat, scale_of(k_hat, HALF_WIDTH * 2.132 / 1.645),
+                         torch.ones(n_act, dtype=torch.bool))
+    band = post.rate_scale
+    assert int(((band[:, 0] <= s_true) & (s_true <= band[:, 2])).sum()) >= 16
+    sd = scale_of(k_hats[0][:1], HALF_WIDTH * 2.132 / 1.645)[0]
+    for a in range(0, n_act, 4):            # five of them against the exact posterior
+        exact = exact_rate_scale_band(law, torch.stack([k[a] for k in k_hats]), sd, [200.0 * i for i in range(n)])
+        assert max(abs(math.log(f / e)) for f, e in zip(band[a].tolist(), exact)) < 0.05, (band[a], exact)
+
+
+def test_the_warm_started_crossing_is_the_cold_one(pipeline, law):
+    rul = ParticleRUL(pipeline, law, bisections=10)
+    g = torch.Generator().manual_seed(3)
+    k = torch.tensor(NOMINAL, dtype=torch.float64).repeat(16, 1)
+    k[:, :6] = 0.02 + 0.1 * torch.rand(16, 6, generator=g, dtype=torch.float64)
+    tau_max = torch.full((16,), 8 * law.horizon_hours, dtype=torch.float64)
+    cold = rul.wear_clock_crossing(k, float(tau_max[0]))
+    guess = cold * (1.0 + 0.05 * torch.randn(16, generator=g, dtype=torch.float64))      # a noisy previous one
+    guess[:3] = float("nan")                                                            # unknown: cold search
+    torch.testing.assert_close(rul.warm_crossing(k, guess, tau_max), cold, rtol=2e-3, atol=1.0)
+
+
+def test_a_band_calibrated_with_the_rate_scale_has_that_share_removed_once(pipeline, law):
+    from phm_torch.tracking.particle_rul import eps_log_sigmas
+
+    lo, hi = eps_log_sigmas(pipeline, law, False)
+    assert lo == hi == 0.0                                          # the synthetic pipeline: no band
+    wide = make_pipeline()
+    wide.rate_scales.copy_(torch.tensor([math.exp(1.645 * 0.5), 1.0, math.exp(-1.645 * 0.4)]))
+    lo, hi = eps_log_sigmas(wide, law, True)
+    assert abs(hi - math.sqrt(0.5 ** 2 - 0.35 ** 2)) < 1e-4 and abs(lo - math.sqrt(0.4 ** 2 - 0.35 ** 2)) < 1e-4
+    narrow = make_pipeline()
+    narrow.rate_scales.copy_(torch.tensor([math.exp(1.645 * 0.16), 1.0, math.exp(-1.645 * 0.1)]))
+    assert eps_log_sigmas(narrow, law, True) == pytest.approx((0.1, 0.16), rel=1e-4)   # cannot hold s: eps alone
+
+
+def test_a_pipeline_calibrated_before_the_rate_scale_tracks_s_with_the_composed_prior(pipeline):
+    from phm_torch.tracking import build_tracker
+
+    old = {k: v for k, v in damage_config().items() if k != "rate_scale_sigma"}
+    tr, described = build_tracker(pipeline, {"damage": old}, damage_config(), TrackerSettings(), "test")
+    assert tr.law.rate_scale_sigma == 0.35 and not described["band_included_rate_scale"]
+    tr, described = build_tracker(pipeline, {"damage": damage_config()}, None, TrackerSettings(), "test")
+    assert described["band_included_rate_scale"]

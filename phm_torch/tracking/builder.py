@@ -3,6 +3,7 @@ pipeline), checked against its propagators, and the per-particle RUL with its ow
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Mapping
 from typing import Any
 
@@ -11,18 +12,31 @@ from .inspection import require_calibrated
 from .particle_filter import Tracker, TrackerSettings
 from .particle_rul import ParticleRUL, eps_log_sigmas
 
+log = logging.getLogger(__name__)
+
 
 def build_tracker(model: Any, metadata: Mapping[str, Any], fallback_damage: Mapping[str, Any] | None,
                   settings: TrackerSettings, source: str) -> tuple[Tracker, dict[str, Any]]:
     """(tracker, description) for the pipeline ``model`` with metadata ``metadata`` (:func:`read_metadata`).
 
-    The pipeline's own RUL band (``rate_scales``) is the future-eps spread; a pipeline whose metadata carries a
-    damage law with a rate scale had it calibrated with s in the law, so that share is removed
-    (:func:`~.particle_rul.eps_log_sigmas`). The description (JSON) names the law's source and the band."""
+    The pipeline's own RUL band (``rate_scales``) is the future-eps spread. Whether that band already holds the
+    spread of s depends on the law it was calibrated with (the metadata's ``damage``, which phm-evaluate and
+    phm-export copy from the calibration): since the rate scale exists, the Monte Carlo RUL draws one s per run
+    when the config's ``rate_scale_sigma`` > 0, and that share is removed (:func:`~.particle_rul.eps_log_sigmas`);
+    a config without the key was calibrated before, with eps alone. The shipped pipeline has no damage config at
+    all (the composed ``conf/damage`` stands in, with a warning), and was calibrated before too. The prior of s
+    (the tracking) is the law's ``rate_scale_sigma``, or the composed config's where the pipeline's has none.
+    The description (JSON) names the law's source and the band."""
     require_calibrated(model, source)
     damage, where = damage_config(metadata, fallback_damage, source)
+    calibrated_sigma = damage.get("rate_scale_sigma")
+    if calibrated_sigma is None and fallback_damage is not None and fallback_damage.get("rate_scale_sigma"):
+        log.warning("%s: its damage config predates the wear-rate scale; s is tracked with the composed "
+                    "conf/damage's prior (rate_scale_sigma %s), its RUL band read as eps alone", source,
+                    fallback_damage["rate_scale_sigma"])
+        damage = {**damage, "rate_scale_sigma": fallback_damage["rate_scale_sigma"]}
     law = DamageLaw.from_config(damage, model, where)
-    with_s = where.endswith("metadata") and law.rate_scale_sigma > 0
+    with_s = where.endswith("metadata") and bool(calibrated_sigma) and float(calibrated_sigma) > 0
     eps = eps_log_sigmas(model, law, with_s)
     rul = ParticleRUL(model, law, settings.max_rate_scale, settings.bisections, eps)
     return Tracker(law, rul, settings), {"damage": damage, "damage_source": where,

@@ -1,10 +1,8 @@
 """Measurement model: the pipeline's k_hat and its calibrated error.
 
 phm-evaluate calibrates, per difficulty class and noise level, the half-width w of a 90 % interval of the true
-k around k_hat (``OnlinePipeline.k_interval``). The tracker reads k_hat = k + e with e a Student-t of ``dof``
-degrees of freedom (a Gaussian for ``dof = inf``) whose central 90 % is +/- w: scale = w / t_0.95(dof). The
-heavy tail keeps one wrong estimate (an ambiguous fault pattern the FDI maps to another component) from
-wiping out the particles that explain the other inspections.
+k around k_hat (``OnlinePipeline.k_interval``). The tracker reads k_hat = k + e with e of scale w / t_0.95(dof)
+(``dof = inf``, the default: the Gaussian whose central 90 % is +/- w), in the Kalman filters of :mod:`.kalman`.
 """
 
 from __future__ import annotations
@@ -31,24 +29,3 @@ def interval_scale(k_hat: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor
     The interval is clamped to [0, 1], so the half-width is the larger of the two sides."""
     w = torch.maximum(upper - k_hat, k_hat - lower).to(torch.float64)
     return (w / t_quantile_95(dof)).clamp(min=MIN_SCALE)
-
-
-def log_likelihood(k: torch.Tensor, k_hat: torch.Tensor, scale: torch.Tensor, dof: float) -> torch.Tensor:
-    """log p(k_hat | k) (B, P) up to a constant per row, components independent: particles k (B, P, 8),
-    estimates k_hat (B, 8), scales (B, 8).
-
-    The pipeline's k_hat is clamped to [0, 1]: an estimate at a bound says only that k + e fell beyond it, so
-    there the likelihood is the tail probability (a censored, Tobit reading; Gaussian tail). Read as a
-    point, a zero estimate of an undamaged component would pull the particles up to the noise's mean
-    positive part, and the law would then grow that phantom damage and bias s low."""
-    k_hat, scale = k_hat.unsqueeze(1).to(k), scale.unsqueeze(1).to(k)
-    z = (k_hat - k) / scale
-    point = -0.5 * z * z if math.isinf(dof) else -0.5 * (dof + 1.0) * torch.log1p(z * z / dof)
-    low, high = k_hat <= BOUND, k_hat >= 1.0 - BOUND
-    tail = torch.special.log_ndtr(torch.where(high, -z, z))      # P(e <= -k) at 0, P(e >= 1 - k) at 1
-    # per row and component, either the point density or the tail applies to every particle: their different
-    # normalisations are constants of the row and cancel in the weights
-    return torch.where(low | high, tail, point).sum(-1)
-
-
-BOUND = 1e-9       # an estimate within this of 0 or 1 sits at the clamp

@@ -1,16 +1,24 @@
-"""Particle filter over (k, log s) per actuator, batched in torch across particles and actuators.
+"""Particle filter over the wear-rate scale s per actuator, with a Kalman filter over k inside each particle
+(Rao-Blackwellised), batched in torch across particles and actuators.
 
-State of one actuator: P equally weighted particles, each a fault vector k (8,) and a log wear-rate scale
-log s. One inspection at hours h with the pipeline's estimate k_hat and its error scale:
+State of one actuator: P weighted particles, each a log wear-rate scale log s, the Gaussian of k given that s
+(mean (8,), covariance (8, 8); :mod:`.kalman`), the standard normals that draw its RUL sample of k, and its last
+wear-clock crossing (the warm start of its RUL search). One inspection at hours h with the pipeline's estimate
+k_hat and its error scale:
 
-1. *initialise* (first fused inspection of a track, or a ``restart`` after maintenance): k ~ k_hat + scale z
-   reflected into [0, 1], log s ~ N(0, sigma_s^2) (the fleet prior of the damage law);
-2. *predict* from the previous inspection (dt = h - h_prev): the exact noise-free propagation
-   expm(s F dt) of each particle with its own s, eps added at mid-interval with the variance of the
-   block-constant rate (:class:`~.damage_law.DamageLaw`), k clamped to [0, 1];
-3. *update* (in-distribution inspections only; an OOD one stops after the prediction, ``fused`` false):
-   weights from the measurement model (:mod:`.measurement`), systematic resampling, a Liu-West kernel step
-   (:mod:`.resampling`), log s held within +/- log(max_rate_scale).
+1. *initialise* (first fused inspection of a track, or a ``restart`` after maintenance): log s ~ N(0, sigma_s^2)
+   (the fleet prior of the damage law), k ~ N(k_hat, scale^2) for every particle, equal weights;
+2. *predict* from the previous inspection (dt = h - h_prev): each particle's Kalman filter with the exact
+   expm(s F dt) of its own s and the variance of the block-constant eps (:class:`~.damage_law.DamageLaw`);
+3. *update* (in-distribution inspections only; an OOD one stops after the prediction, ``fused`` false): each
+   particle's Kalman update, its weight times its marginal likelihood of k_hat; only when the effective sample
+   size falls below ``resample_ess`` x P, systematic resampling and a Liu-West kernel step on log s
+   (:mod:`.resampling`), held within +/- log(max_rate_scale). Sampling k as well (the first version) made the
+   weights degenerate on 8 precisely measured components; s alone is one dimension and keeps its spread;
+4. *summarise*: weighted 5/50/95 % of s; k's mean and 5/95 % from one sample of k per particle; the RUL band
+   from the first ``rul_particles`` particles' samples, weighted (after a resampling the copies whose
+   ancestor has a known crossing are put there first, in random order: the particles are exchangeable, so
+   the subset stays a random sample of the cloud).
 
 k7, the eccentricity phase, has no rate and no eps: it is a constant the measurements refine.
 
@@ -28,12 +36,10 @@ from dataclasses import dataclass
 
 import torch
 
+from . import kalman
 from .damage_law import N_FAULTS, DamageLaw
-from .measurement import log_likelihood
-from .particle_rul import ParticleRUL
+from .particle_rul import HUGE, ParticleRUL, weighted_quantiles
 from .resampling import liu_west, systematic_indices
-
-D = N_FAULTS + 1     # particle dimension: k (8) and log s
 
 
 @dataclass
@@ -42,21 +48,24 @@ class TrackerSettings:
 
     Args:
         n_particles: particles per actuator.
-        rul_particles: particles (every P / this one) whose RUL makes the 5/50/95 % band.
+        rul_particles: particles (the first this many, weighted) whose RUL makes the 5/50/95 % band.
         seed: base seed of the per-(actuator, inspection) generators.
-        measurement_dof: Student-t degrees of freedom of the k_hat error (inf: Gaussian).
+        measurement_dof: degrees of freedom of the Student-t whose 90 % interval is the calibrated one; the
+            Kalman filters read its scale as a Gaussian's (inf: the Gaussian of that interval).
         shrink: Liu-West a in (0, 1] (1: no kernel step).
         max_rate_scale: the particles' s stays within [1 / this, this].
-        bisections: halvings of the RUL crossing interval.
+        bisections: halvings of the RUL crossing interval (cold search).
+        resample_ess: resample when the effective sample size is below this fraction of n_particles.
     """
 
-    n_particles: int = 512
-    rul_particles: int = 128
+    n_particles: int = 128
+    rul_particles: int = 64
     seed: int = 0
-    measurement_dof: float = 10.0
-    shrink: float = 0.8
+    measurement_dof: float = math.inf
+    shrink: float = 0.9
     max_rate_scale: float = 8.0
     bisections: int = 6
+    resample_ess: float = 0.5
 
     def __post_init__(self) -> None:
         for name in ("n_particles", "rul_particles", "seed", "bisections"):
@@ -65,9 +74,11 @@ class TrackerSettings:
                                                                                   else 2):
                 raise ValueError(f"tracker.{name} must be an integer >= {0 if name in ('seed', 'bisections') else 2}"
                                  f", got {value!r}")
-        if self.n_particles % self.rul_particles:
-            raise ValueError(f"tracker.rul_particles ({self.rul_particles}) must divide tracker.n_particles "
+        if self.rul_particles > self.n_particles:
+            raise ValueError(f"tracker.rul_particles ({self.rul_particles}) must be <= tracker.n_particles "
                              f"({self.n_particles})")
+        if not 0.0 <= float(self.resample_ess) <= 1.0:
+            raise ValueError(f"tracker.resample_ess must be in [0, 1], got {self.resample_ess!r}")
         self.measurement_dof = float(self.measurement_dof)
         if not self.measurement_dof > 0:
             raise ValueError(f"tracker.measurement_dof must be > 0 (inf: Gaussian), got {self.measurement_dof!r}")
@@ -115,69 +126,63 @@ class Tracker:
         rul: the per-particle RUL (:class:`~.particle_rul.ParticleRUL`); None: no RUL (NaN).
         settings: :class:`TrackerSettings`.
 
-    State per actuator id (rows of ``k`` (A, P, 8), ``log_s`` (A, P), ``hours`` (A,) [h], ``steps`` (A,)
-    inspections seen, ``tracked`` (A,) bool); :meth:`state` / :meth:`load_state` move one actuator's in and out.
+    State per actuator id, rows of: ``k`` (A, P, 8) and ``k_cov`` (A, P, 8, 8) the Gaussian of k per particle,
+    ``log_s`` (A, P), ``log_w`` (A, P) normalised log weights, ``z_k`` (A, P, 8) the normals of each particle's
+    RUL sample of k, ``tau`` (A, P) [h] last wear-clock crossings (NaN: unknown), ``hours`` (A,) [h], ``steps``
+    (A,) inspections seen, ``tracked`` (A,) bool; :meth:`state` / :meth:`load_state` move one actuator's in and out.
     """
+
+    FIELDS = ("k", "k_cov", "log_s", "log_w", "z_k", "tau", "hours", "steps", "tracked")
+    PARTICLE_FIELDS = ("k", "k_cov", "log_s", "log_w", "z_k", "tau")
 
     def __init__(self, law: DamageLaw, rul: ParticleRUL | None, settings: TrackerSettings | None = None):
         self.law, self.rul_model = law, rul
         self.settings = settings or TrackerSettings()
-        p = self.settings.n_particles
         self.rows: dict[str, int] = {}
-        self.k = torch.zeros(0, p, N_FAULTS, dtype=torch.float64)
-        self.log_s = torch.zeros(0, p, dtype=torch.float64)
-        self.hours = torch.zeros(0, dtype=torch.float64)
-        self.steps = torch.zeros(0, dtype=torch.int64)
-        self.tracked = torch.zeros(0, dtype=torch.bool)
+        for name, value in self._blank(0).items():
+            setattr(self, name, value)
+
+    def _blank(self, n: int) -> dict[str, torch.Tensor]:
+        p, f64 = self.settings.n_particles, torch.float64
+        return {"k": torch.zeros(n, p, N_FAULTS, dtype=f64), "k_cov": torch.zeros(n, p, N_FAULTS, N_FAULTS, dtype=f64),
+                "log_s": torch.zeros(n, p, dtype=f64), "log_w": torch.full((n, p), -math.log(p), dtype=f64),
+                "z_k": torch.zeros(n, p, N_FAULTS, dtype=f64), "tau": torch.full((n, p), float("nan"), dtype=f64),
+                "hours": torch.zeros(n, dtype=f64), "steps": torch.zeros(n, dtype=torch.int64),
+                "tracked": torch.zeros(n, dtype=torch.bool)}
 
     # ---- state of one actuator ------------------------------------------------------------------------
-    def _row(self, actuator: str) -> int:
-        if actuator not in self.rows:
-            self.rows[actuator] = len(self.rows)
-            p = self.settings.n_particles
-            self.k = torch.cat([self.k, torch.zeros(1, p, N_FAULTS, dtype=torch.float64)])
-            self.log_s = torch.cat([self.log_s, torch.zeros(1, p, dtype=torch.float64)])
-            self.hours = torch.cat([self.hours, torch.zeros(1, dtype=torch.float64)])
-            self.steps = torch.cat([self.steps, torch.zeros(1, dtype=torch.int64)])
-            self.tracked = torch.cat([self.tracked, torch.zeros(1, dtype=torch.bool)])
-        return self.rows[actuator]
-
     def reserve(self, actuators: Sequence[str]) -> None:
         """Allocate rows for ``actuators`` at once (one concatenation instead of one per actuator)."""
         new = [a for a in dict.fromkeys(actuators) if a not in self.rows]
         if not new:
             return
-        p, n = self.settings.n_particles, len(new)
         for a in new:
             self.rows[a] = len(self.rows)
-        self.k = torch.cat([self.k, torch.zeros(n, p, N_FAULTS, dtype=torch.float64)])
-        self.log_s = torch.cat([self.log_s, torch.zeros(n, p, dtype=torch.float64)])
-        self.hours = torch.cat([self.hours, torch.zeros(n, dtype=torch.float64)])
-        self.steps = torch.cat([self.steps, torch.zeros(n, dtype=torch.int64)])
-        self.tracked = torch.cat([self.tracked, torch.zeros(n, dtype=torch.bool)])
+        for name, value in self._blank(len(new)).items():
+            setattr(self, name, torch.cat([getattr(self, name), value]))
 
     def state(self, actuator: str) -> dict[str, torch.Tensor]:
         """One actuator's state as tensors (for :mod:`.state`)."""
         r = self.rows[actuator]
-        return {"k": self.k[r].clone(), "log_s": self.log_s[r].clone(), "hours": self.hours[r].clone(),
-                "steps": self.steps[r].clone(), "tracked": self.tracked[r].clone()}
+        return {name: getattr(self, name)[r].clone() for name in self.FIELDS}
 
     def load_state(self, actuator: str, state: dict[str, torch.Tensor]) -> None:
         """Restore one actuator's state written by :meth:`state`."""
-        if tuple(state["k"].shape) != tuple(self.k.shape[1:]):
-            raise ValueError(f"state of {actuator!r}: particles {tuple(state['k'].shape)}, the tracker has "
-                             f"{tuple(self.k.shape[1:])}")
-        r = self._row(actuator)
-        self.k[r], self.log_s[r] = state["k"], state["log_s"]
-        self.hours[r], self.steps[r], self.tracked[r] = state["hours"], state["steps"], state["tracked"]
+        if tuple(state["k"].shape) != tuple(self.k.shape[1:]) or set(state) != set(self.FIELDS):
+            raise ValueError(f"state of {actuator!r}: particles {tuple(state['k'].shape)} with {sorted(state)}, the "
+                             f"tracker has {tuple(self.k.shape[1:])} with {sorted(self.FIELDS)}")
+        self.reserve([actuator])
+        r = self.rows[actuator]
+        for name in self.FIELDS:
+            getattr(self, name)[r] = state[name]
 
     # ---- one inspection per actuator of a batch -------------------------------------------------------
     def _normals(self, actuators: Sequence[str], rows: torch.Tensor) -> torch.Tensor:
-        """(B, P, 2 D + 9) standard normals, one generator per (actuator, inspection number): [0, 8) eps or the
-        initial k, 8 the initial log s, [9, 18) the kernel step, 18 (first particle) the resampling comb, 26 the
-        future-eps factor of the RUL."""
+        """(B, P, 13) standard normals, one generator per (actuator, inspection number): [0, 8) the RUL sample's
+        normals of a new track, 8 the initial log s, 9 the kernel step, 10 (first particle) the resampling comb,
+        11 the future-eps factor of the RUL, 12 the order of the resampled copies."""
         p = self.settings.n_particles
-        out = torch.empty(len(actuators), p, 2 * D + N_FAULTS + 1, dtype=torch.float64)
+        out = torch.empty(len(actuators), p, N_FAULTS + 5, dtype=torch.float64)
         g = torch.Generator()
         for i, (a, step) in enumerate(zip(actuators, self.steps[rows].tolist())):
             g.manual_seed(actuator_seed(self.settings.seed, a, step))
@@ -209,75 +214,95 @@ class Tracker:
         faulty = torch.zeros(b, dtype=torch.bool) if faulty is None else torch.as_tensor(faulty).bool().reshape(b)
         restart = torch.zeros(b, dtype=torch.bool) if restart is None else torch.as_tensor(restart).bool().reshape(b)
         z = self._normals(actuators, rows)
-        k, log_s, tracked = self.k[rows], self.log_s[rows], self.tracked[rows] & ~restart
+        st = {name: getattr(self, name)[rows] for name in self.PARTICLE_FIELDS}
+        tracked = self.tracked[rows] & ~restart
         cap = math.log(self.settings.max_rate_scale)
 
-        # 2. predict the tracked rows to this inspection
-        dt = (hours - self.hours[rows]).clamp(min=0.0)
+        # 2. predict the tracked rows to this inspection; the crossings move by the wear clock s dt
         if bool(tracked.any()):
-            s = log_s.exp()
-            k = self._predict(k, s, dt, z[..., :N_FAULTS], tracked)
+            i = tracked.nonzero().flatten()
+            s, dt = st["log_s"][i].exp(), (hours[i] - self.hours[rows[i]]).clamp(min=0.0)
+            st["k"][i], st["k_cov"][i] = kalman.predict(self.law, st["k"][i], st["k_cov"][i], s, dt)
+            tau = st["tau"][i]
+            st["tau"][i] = torch.where(tau >= HUGE, tau, tau - s * dt.unsqueeze(1))
         # 1. initialise the untracked rows that have a fused inspection
         init = ~tracked & fuse
         if bool(init.any()):
-            k0 = reflect_unit(k_hat.unsqueeze(1) + scale.unsqueeze(1) * z[..., :N_FAULTS])
-            s0 = (self.law.rate_scale_sigma * z[..., N_FAULTS]).clamp(-cap, cap)
-            k = torch.where(init.view(-1, 1, 1), k0, k)
-            log_s = torch.where(init.view(-1, 1), s0, log_s)
+            i = init.nonzero().flatten()
+            p = st["log_s"].shape[1]
+            st["k"][i], st["k_cov"][i] = kalman.start(k_hat[i], scale[i], p)
+            st["log_s"][i] = (self.law.rate_scale_sigma * z[i, :, N_FAULTS]).clamp(-cap, cap)
+            st["log_w"][i] = -math.log(p)
+            st["z_k"][i] = z[i, :, :N_FAULTS]
+            st["tau"][i] = float("nan")
         # 3. fuse the tracked in-distribution rows
         upd = tracked & fuse
         if bool(upd.any()):
-            k, log_s = self._fuse(k, log_s, k_hat, scale, z, upd, cap)
+            self._fuse(st, k_hat, scale, z, upd, cap)
         now_tracked = tracked | init
-        self.k[rows], self.log_s[rows], self.tracked[rows] = k, log_s, now_tracked
+        post = self._summary(st, now_tracked, z[:, :, N_FAULTS + 3], fuse & faulty)
+        for name, value in st.items():
+            getattr(self, name)[rows] = value
+        self.tracked[rows] = now_tracked
         self.hours[rows] = torch.where(now_tracked, hours, self.hours[rows])
         self.steps[rows] += 1
-        return self._summary(k, log_s, now_tracked, z[:, :, -1], fuse & faulty)
+        return post
 
-    def _predict(self, k: torch.Tensor, s: torch.Tensor, dt: torch.Tensor, z: torch.Tensor,
-                 rows: torch.Tensor) -> torch.Tensor:
-        """Particles k (B, P, 8) with rates s (B, P) moved by dt (B,) [h] where ``rows`` (B,) bool."""
-        b, p, _ = k.shape
-        k0 = self.law.nominal
-        tau = (s * dt.unsqueeze(1) * rows.unsqueeze(1)).reshape(-1) / 2.0     # half of each wear-clock step
-        half = self.law.propagate((k - k0).reshape(-1, N_FAULTS), tau)
-        noise = self.law.noise_std_over(dt * rows).unsqueeze(1) * z              # int eps over dt (B, P, 8)
-        moved = self.law.propagate(half + noise.reshape(-1, N_FAULTS), tau)
-        return (k0 + moved.reshape(b, p, N_FAULTS)).clamp(0.0, 1.0)
-
-    def _fuse(self, k: torch.Tensor, log_s: torch.Tensor, k_hat: torch.Tensor, scale: torch.Tensor,
-              z: torch.Tensor, rows: torch.Tensor, cap: float) -> tuple[torch.Tensor, torch.Tensor]:
-        """Weight, resample and move the particles of ``rows`` (B,) bool; the other rows are returned as given."""
+    def _fuse(self, st: dict[str, torch.Tensor], k_hat: torch.Tensor, scale: torch.Tensor, z: torch.Tensor,
+              rows: torch.Tensor, cap: float) -> None:
+        """Kalman-update and reweight the particles of ``rows`` (B,) bool in ``st`` (in place); resample and move
+        those whose ESS fell below the threshold."""
         idx = rows.nonzero().flatten()
-        kr, sr = k[idx], log_s[idx]
-        log_w = log_likelihood(kr, k_hat[idx], scale[idx], self.settings.measurement_dof)
-        u = torch.special.ndtr(z[idx, 0, 2 * D])        # one uniform per row for the systematic comb
+        st["k"][idx], st["k_cov"][idx], loglik = kalman.update(st["k"][idx], st["k_cov"][idx], k_hat[idx],
+                                                               scale[idx])
+        log_w = st["log_w"][idx] + loglik
+        log_w = log_w - torch.logsumexp(log_w, dim=1, keepdim=True)
+        st["log_w"][idx] = log_w
+        ess = 1.0 / torch.exp(2.0 * log_w).sum(1)
+        low = ess < self.settings.resample_ess * log_w.shape[1]
+        if not bool(low.any()):
+            return
+        idx, log_w = idx[low], log_w[low]
+        p = log_w.shape[1]
+        u = torch.special.ndtr(z[idx, 0, N_FAULTS + 2])        # one uniform per row for the systematic comb
         anc = systematic_indices(log_w, u)
-        x = torch.cat([kr, sr.unsqueeze(-1)], -1).gather(1, anc.unsqueeze(-1).expand(-1, -1, D))
-        x = liu_west(x, z[idx, :, D:2 * D], self.settings.shrink)
-        k, log_s = k.clone(), log_s.clone()
-        k[idx] = x[..., :N_FAULTS].clamp(0.0, 1.0)
-        log_s[idx] = x[..., N_FAULTS].clamp(-cap, cap)
-        return k, log_s
+        # the copies are exchangeable: put those whose ancestor has a known crossing first (random order), so
+        # the RUL subset (the first rul_particles) keeps its warm starts
+        known = torch.isfinite(st["tau"][idx].gather(1, anc))
+        key = torch.special.ndtr(z[idx, :, N_FAULTS + 4]) - known.to(torch.float64)
+        anc = anc.gather(1, torch.argsort(key, dim=1))
+        for name in self.PARTICLE_FIELDS:
+            v = st[name][idx]
+            shape = anc.shape + (1,) * (v.dim() - 2)
+            st[name][idx] = v.gather(1, anc.reshape(shape).expand_as(v))
+        log_s = liu_west(st["log_s"][idx].unsqueeze(-1), z[idx, :, N_FAULTS + 1:N_FAULTS + 2], self.settings.shrink)
+        st["log_s"][idx] = log_s.squeeze(-1).clamp(-cap, cap)
+        st["log_w"][idx] = -math.log(p)
 
-    def _summary(self, k: torch.Tensor, log_s: torch.Tensor, tracked: torch.Tensor, z_eps: torch.Tensor,
+    def _summary(self, st: dict[str, torch.Tensor], tracked: torch.Tensor, z_eps: torch.Tensor,
                  faulty: torch.Tensor) -> Posterior:
-        b = k.shape[0]
-        q = torch.tensor([0.05, 0.95], dtype=torch.float64)
-        k_q = torch.quantile(k, q, dim=1)                                           # (2, B, 8)
-        s_q = torch.quantile(log_s.exp(), torch.tensor([0.05, 0.5, 0.95], dtype=torch.float64), dim=1).T
+        """Weighted summaries of the batch; refreshes ``st["tau"]`` of the RUL subset."""
+        k_mean_p, log_s = st["k"], st["log_s"]
+        b = k_mean_p.shape[0]
+        w = torch.softmax(st["log_w"], dim=1)
+        k = kalman.sample(k_mean_p, st["k_cov"], st["z_k"]).clamp(0.0, 1.0)           # one k per particle
+        k_q = weighted_quantiles(k, w, (0.05, 0.95))                                     # (B, 2, 8)
+        s_q = weighted_quantiles(log_s.exp(), w, (0.05, 0.5, 0.95))                      # (B, 3)
         rul = torch.full((b, 3), float("nan"), dtype=torch.float64)
         censored = torch.zeros(b, 3, dtype=torch.bool)
         if self.rul_model is not None and bool(tracked.any()):
             idx = tracked.nonzero().flatten()
-            stride = self.settings.n_particles // self.settings.rul_particles
-            r, c = self.rul_model(k[idx, ::stride], log_s[idx, ::stride].exp(), z_eps[idx, ::stride])
+            m = min(self.settings.rul_particles, k.shape[1])
+            wm = w[idx, :m] / w[idx, :m].sum(1, keepdim=True)
+            r, c, tau = self.rul_model(k[idx, :m], log_s[idx, :m].exp(), z_eps[idx, :m], wm, st["tau"][idx, :m])
             rul[idx], censored[idx] = r, c
+            st["tau"][idx, :m] = tau
         # the inspection's verdict says faulty: no life left at 5 and 50 %
         stop = (faulty & tracked).unsqueeze(1) & (torch.arange(3) < 2)
         rul = torch.where(stop, torch.zeros_like(rul), rul)
         censored = censored & ~stop
         nan = ~tracked.view(-1, 1)
-        return Posterior(k.mean(1).masked_fill(nan, float("nan")), k_q[0].masked_fill(nan, float("nan")),
-                         k_q[1].masked_fill(nan, float("nan")), s_q.masked_fill(nan, float("nan")), rul, censored,
+        k_mean = (w.unsqueeze(-1) * k_mean_p).sum(1).clamp(0.0, 1.0)
+        return Posterior(k_mean.masked_fill(nan, float("nan")), k_q[:, 0].masked_fill(nan, float("nan")),
+                         k_q[:, 1].masked_fill(nan, float("nan")), s_q.masked_fill(nan, float("nan")), rul, censored,
                          tracked.clone())
