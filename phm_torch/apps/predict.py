@@ -21,8 +21,9 @@ Each record holds:
   columns, a current-only record), ``command_check``, ``tracking_check`` and ``messages`` (one line per failed
   check). The record is computed by :func:`phm_torch.online.diagnosis.diagnose`.
 
-The model is a TorchScript file written by ``phm-evaluate``/``phm_torch.online.export``, loaded with
-``torch.jit.load`` (no unpickling). An empty or ``nan`` cell of a CSV's ``current`` column is a missing
+The model is a file written by ``phm-evaluate`` or ``phm-export`` in any of its formats (TorchScript ``.pt``,
+torch.export ``.pt2``, AOTInductor ``.aoti.pt2``; :mod:`phm_torch.online.formats`), the format read from the
+file (``format=`` insists on one); the JSON is the same for every format (no unpickling). An empty or ``nan`` cell of a CSV's ``current`` column is a missing
 sample, which the pipeline drops (too many, and the record is out of distribution). With ``baseline`` (healthy records of the measuring bench), every
 measurement is first moved onto the training model by the difference between that bench's healthy record
 and the training model's; that healthy record, read as measured, must land within ``BENCH_TOLERANCE`` interval
@@ -48,8 +49,8 @@ from ..io import read_measurement
 from ..online.bench_check import check_bench
 from ..online.corruptions import Record
 from ..online.diagnosis import NOISE_FLOOR, diagnose
-from ..online.export import read_metadata
 from ..online.input_contract import InputContract
+from ..online.loaded import LoadedPipeline, load_pipeline
 from . import common
 
 log = logging.getLogger(__name__)
@@ -66,12 +67,12 @@ def _paths(value: Any, name: str) -> list[str]:
     return paths
 
 
-def _current(path: str, model: Any, resample: bool) -> torch.Tensor:
+def _current(path: str, model: LoadedPipeline, resample: bool) -> torch.Tensor:
     """The envelope current (1, n_full) [A] of one measurement CSV (see :func:`_read`)."""
     return _read(path, model, resample)[0]
 
 
-def _read(path: str, model: Any, resample: bool) -> tuple[torch.Tensor, Any]:
+def _read(path: str, model: LoadedPipeline, resample: bool) -> tuple[torch.Tensor, Any]:
     """The envelope current (1, n_full) [A] of one measurement CSV, in the pipeline's dtype.
 
     The record's first sample is taken as the start of the test command, as for a record of the right
@@ -80,7 +81,7 @@ def _read(path: str, model: Any, resample: bool) -> tuple[torch.Tensor, Any]:
     the gappy layer drops those samples), with a warning; a larger difference is an error naming the file."""
     m = read_measurement(path, expected_rate=float(model.sample_rate), resample=resample, missing_ok=("current",),
                          optional=("command", "position"))
-    current = torch.as_tensor(m.current, dtype=model.times.dtype).unsqueeze(0)
+    current = torch.as_tensor(m.current, dtype=model.dtype).unsqueeze(0)
     n, n_full = current.shape[1], int(model.n_full)
     if n == n_full:
         return current, m
@@ -112,16 +113,11 @@ def _record(m: Any, current: torch.Tensor) -> Record:
     return Record(torch.as_tensor(m.time[:n], dtype=torch.float64), column(m.command), column(m.position), current[0])
 
 
-def _can_rebase(model: Any) -> bool:
-    """Whether the pipeline carries its training model's nominal record (so a bench baseline applies)."""
-    return hasattr(model, "rebase") and bool(torch.isfinite(model.nominal_record).all())
-
-
-def _bench_nominal(cfg: DictConfig, model: Any) -> torch.Tensor | None:
+def _bench_nominal(cfg: DictConfig, model: LoadedPipeline) -> torch.Tensor | None:
     """The mean of the ``baseline`` records (healthy records of the measuring bench), or None."""
     if cfg.get("baseline") is None:
         return None
-    if not _can_rebase(model):
+    if not model.can_rebase:
         raise ValueError(f"baseline: the pipeline {str(cfg.pipeline)!r} holds no nominal record of its training "
                          f"model (exported before baselines existed, or trained on a store without a nominal split)")
     return torch.cat([_current(p, model, bool(cfg.resample)) for p in _paths(cfg.baseline, "baseline")]).mean(0)
@@ -132,16 +128,13 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     training model with the bench's healthy ``baseline`` records, when given)."""
     paths = _paths(cfg.measurements, "measurements")
     model_path = Path(cfg.pipeline)
-    if not model_path.is_file():
-        raise ValueError(f"pipeline: no such file {str(model_path)!r} (export one with phm-evaluate or phm-export)")
-    metadata = read_metadata(model_path)
+    model = load_pipeline(model_path, cfg.get("format"))       # checks the file and its format
+    metadata = model.metadata
     prov, command = _pipeline_command(cfg, metadata, model_path)
-    model = torch.jit.load(str(model_path))
-    calibrated = hasattr(model, "faulty_probability")
-    if not calibrated:
+    if not model.calibrated:
         log.warning("%s was exported before the verdict calibration existed: p_faulty is null", model_path)
     bench_nominal = _bench_nominal(cfg, model)
-    if bench_nominal is None and _can_rebase(model):
+    if bench_nominal is None and model.can_rebase:
         # a bench differing from the training model by 0.5 % of the current can turn 14 % of the faults
         # into "healthy" verdicts; the rebase restores them (docs/surrogates.md, modelling differences)
         log.warning("no baseline: the measurements are read as records of the training model; on another "

@@ -26,6 +26,7 @@ from typing import Any
 import torch
 
 from ..faults import FAULT_NAMES
+from .loaded import as_loaded
 
 # the bench's healthy record may read this many interval half-widths from nominal (any damage component);
 # between the harmless differences (<= 8) and the harmful ones (>= 17) of the measurement above
@@ -63,13 +64,13 @@ class BenchCheck:
 @torch.no_grad()
 def check_bench(model: Any, bench_nominal: torch.Tensor) -> BenchCheck | None:
     """Read the bench's healthy record (n_full,) [A] (the mean of its baseline records) as measured with the
-    exported pipeline ``model``; None for a pipeline without calibrated intervals (nothing to measure in)."""
-    if not hasattr(model, "k_interval"):
+    exported pipeline ``model`` (a :class:`~.loaded.LoadedPipeline`, or a scripted / eager pipeline); None for a
+    pipeline without calibrated intervals (nothing to measure in)."""
+    model = as_loaded(model)
+    step = model.run(bench_nominal.reshape(1, -1).to(model.dtype))
+    k_hat, score, lower, upper = step.k_hat, step.score, step.k_lower, step.k_upper
+    if lower is None or upper is None:
         return None
-    x = bench_nominal.reshape(1, -1).to(model.times.dtype)
-    k_hat, score, _, _, _ = model(x)
-    noise = model.noise_level(x) if hasattr(model, "noise_level") else None
-    lower, upper = model.k_interval(k_hat, noise) if "noise" in str(model.k_interval.schema) else model.k_interval(k_hat)
     half = ((upper - lower) / 2.0)[0].double()
     if not bool(torch.isfinite(half).all()):
         return None

@@ -16,6 +16,7 @@ from ..faults import FAULT_NAMES
 from .bench_check import BenchCheck
 from .corruptions import Record
 from .input_contract import InputContract
+from .loaded import as_loaded
 
 # Relative noise always tolerated, whatever the calibration level: the noise estimate of a few noise-free
 # heavy-fault records (ringing current) reaches 2.5 %: 1.3-1.5 % of the paper store's records read above this,
@@ -25,30 +26,25 @@ NOISE_FLOOR = 0.005
 
 def diagnose(model: Any, record: Record, contract: InputContract,
              bench_nominal: torch.Tensor | None = None, bench: BenchCheck | None = None) -> dict[str, Any]:
-    """The diagnosis of one record by the exported pipeline ``model`` (``torch.jit.load``), as a JSON-able dict.
+    """The diagnosis of one record by the exported pipeline ``model``, as a JSON-able dict.
 
     Args:
-        model: the pipeline.  record: its current (n_full,) [A] (NaN = missing), with its command and position
-            (``None``: a current-only record, whose command and tracking checks are skipped).
+        model: the pipeline: a :class:`~.loaded.LoadedPipeline` of any format (:func:`~.loaded.load_pipeline`),
+            or a scripted / eager ``OnlinePipeline``.
+        record: its current (n_full,) [A] (NaN = missing), with its command and position (``None``: a
+            current-only record, whose command and tracking checks are skipped).
         contract: the pipeline's :class:`InputContract`.
         bench_nominal: (n_full,) [A] healthy record of the measuring bench (phm-predict's ``baseline``), or None.
         bench: :func:`~.bench_check.check_bench` of that record (once per bench); a bench it finds too far from
             the training model makes the record out of distribution with the reason ``bench``.
     """
-    current = torch.as_tensor(record.current, dtype=model.times.dtype).reshape(1, -1)
-    calibrated = hasattr(model, "faulty_probability")
-    intervals, noise_known = hasattr(model, "k_interval"), hasattr(model, "noise_level")
-    with torch.no_grad():
-        noise = float(model.noise_level(current)[0]) if noise_known else float("nan")     # as measured
-        if bench_nominal is not None:
-            current = model.rebase(current, bench_nominal)
-        k_hat, score, rul, ood, resid = model(current)
-        p_faulty = float(model.faulty_probability(score)[0]) if calibrated else float("nan")
-        if intervals and noise_known and "noise" in str(model.k_interval.schema):   # widths follow the noise
-            bounds = torch.stack(model.k_interval(k_hat, torch.tensor([noise], dtype=k_hat.dtype)), -1)[0]
-        else:
-            bounds = torch.stack(model.k_interval(k_hat), -1)[0] if intervals else None
-    reference = float(model.calibration_noise) if noise_known else float("nan")
+    model = as_loaded(model)
+    current = torch.as_tensor(record.current, dtype=model.dtype).reshape(1, -1)
+    step = model.run(current, bench_nominal)
+    k_hat, score, rul, ood, resid, current = step.k_hat, step.score, step.rul, step.ood, step.residual, step.current
+    noise, p_faulty = float(step.noise[0]), float(step.p_faulty[0])      # noise as measured, before the baseline
+    bounds = None if step.k_lower is None else torch.stack([step.k_lower, step.k_upper], -1)[0]
+    reference = float(getattr(model, "calibration_noise", float("nan")))
     noisy = None if math.isnan(reference) or math.isnan(noise) else noise > max(2.0 * reference, NOISE_FLOOR)
     checks = contract.check(model, record, current[0], noise, bool(ood[0]), k_hat[0], bool(score[0] > 0))
     if bench is not None and not bench.ok:

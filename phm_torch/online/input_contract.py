@@ -110,8 +110,11 @@ def pipeline_reasons(model: Any, x: torch.Tensor) -> list[list[str]] | None:
     (after any rebase); ``None`` for a pipeline whose internals are not those of ``OnlinePipeline``.
 
     Recomputed from the scripted pipeline's submodules and attributes, the same statistics and thresholds as
-    its forward; works for pipelines exported before this module existed (the shipped pretrained one).
+    its forward; works for pipelines exported before this module existed (the shipped pretrained one). A loaded
+    pipeline of another format (:class:`~.loaded.LoadedPipeline`) answers from its own outputs.
     """
+    if callable(getattr(type(model), "pipeline_reasons", None)):
+        return model.pipeline_reasons(x)
     try:
         gappy, min_count, threshold = model.gappy, int(model.min_count), float(model.residual_threshold)
         full = x.shape[1] == int(model.n_full)

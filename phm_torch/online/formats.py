@@ -1,0 +1,152 @@
+"""Deployment formats of the online pipeline: TorchScript, torch.export (``.pt2``), AOTInductor packages.
+
+Every writer writes atomically (:func:`~phm_torch.io.atomic.atomic_open`) one file that loads in a process that
+never imports phm_torch, with the pipeline's metadata (provenance, tracking ranges, damage) inside it as the extra
+file ``phm_metadata.json`` (:func:`~phm_torch.online.export.read_metadata` reads it for every format). The
+non-TorchScript formats add ``format`` and ``pipeline`` (the constants phm-predict needs besides the program:
+lengths, dtype, nominal vector and record, interval level, the output and reason names) to it.
+
+* ``torchscript`` (``.pt``): the scripted :class:`~phm_torch.online.pipeline.OnlinePipeline`, its methods
+  included (``torch.jit.load``); TorchScript is deprecated from torch 2.9 on, but it is the design card's format.
+* ``export`` (``.pt2``): two :class:`torch.export.ExportedProgram` of :class:`~phm_torch.online.step.OnlineStep`,
+  dynamic batch: ``model`` for full records (B, n_full) (what ``torch.export.load`` returns) and ``samples`` for
+  selected samples (B, n_points) (``torch.export.pt2_archive._package.load_pt2(path).exported_programs``).
+* ``aoti`` (``.aoti.pt2``): the same two programs compiled by AOTInductor into one package
+  (``torch._inductor.aoti_load_package(path, model_name="model" | "samples")``), no Python needed to run it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ..io.atomic import atomic_open
+from .export import METADATA_FILE, export_torchscript
+from .input_contract import PIPELINE_CHECKS
+from .pipeline import OnlinePipeline
+from .step import STEP_OUTPUTS, OnlineStep
+
+PROGRAMS = {"model": True, "samples": False}     # program name -> full records (else selected samples)
+EXAMPLE_BATCH = 4     # tracing batch: any size > 1 (a batch of 1 would be specialised), dynamic from 1 up
+MAX_BATCH = 1 << 20
+
+
+def _finite_list(t: torch.Tensor) -> list[float] | None:
+    return [float(v) for v in t.flatten().tolist()] if bool(torch.isfinite(t).all()) else None
+
+
+def pipeline_constants(pipeline: OnlinePipeline) -> dict[str, Any]:
+    """What phm-predict reads of a pipeline besides its outputs, JSON-able (float32 values round-trip exactly)."""
+    noise = float(pipeline.calibration_noise)
+    return {"dtype": str(pipeline.times.dtype).removeprefix("torch."), "n_full": pipeline.n_full,
+            "n_points": pipeline.n_points, "sample_rate": pipeline.sample_rate,
+            "interval_level": pipeline.interval_level, "calibration_noise": None if math.isnan(noise) else noise,
+            "calibrated": bool(torch.isfinite(pipeline.verdict_scale)),
+            "nominal": _finite_list(pipeline.nominal), "interval_mask": _finite_list(pipeline.interval_mask),
+            "interval_noise": _finite_list(pipeline.interval_noise),
+            "nominal_record": _finite_list(pipeline.nominal_record),
+            "inputs": ["x (B, n) current [A], NaN = missing", "offset (n,) [A] subtracted first (zeros: none)"],
+            "outputs": list(STEP_OUTPUTS), "reasons": list(PIPELINE_CHECKS), "programs": dict(PROGRAMS)}
+
+
+def export_programs(pipeline: OnlinePipeline) -> dict[str, torch.export.ExportedProgram]:
+    """The two :class:`OnlineStep` programs (full records, selected samples) of ``pipeline``, batch dynamic."""
+    pipeline = pipeline.eval()
+    dtype = pipeline.times.dtype
+    batch = torch.export.Dim("batch", min=1, max=MAX_BATCH)
+    out = {}
+    for name, full in PROGRAMS.items():
+        step = OnlineStep(pipeline, full)
+        n = step.length
+        # in-distribution example records: the mean signal (a NaN would only be data, not a traced branch)
+        x = pipeline.gappy.mean_hat.new_zeros(EXAMPLE_BATCH, n, dtype=dtype) + (
+            pipeline.nominal_record if full and bool(torch.isfinite(pipeline.nominal_record).all())
+            else torch.ones(n, dtype=dtype))
+        with torch.no_grad():
+            out[name] = torch.export.export(step, (x, torch.zeros(n, dtype=dtype)),
+                                            dynamic_shapes={"x": {0: batch}, "offset": None}, strict=False)
+    return out
+
+
+def _metadata(pipeline: OnlinePipeline, metadata: Mapping[str, Any] | None, fmt: str) -> str:
+    return json.dumps({**dict(metadata or {}), "format": fmt, "pipeline": pipeline_constants(pipeline)},
+                      sort_keys=True)
+
+
+def write_export(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None,
+                 programs: dict[str, torch.export.ExportedProgram] | None = None) -> None:
+    """Write the ``export`` format (a ``.pt2`` archive of :func:`export_programs`) atomically to ``path``."""
+    from torch.export.pt2_archive._package import package_pt2  # what torch.export.save writes, several programs
+
+    programs = programs or export_programs(pipeline)
+    with atomic_open(path, "wb") as fh:
+        package_pt2(fh, exported_programs=programs,
+                    extra_files={METADATA_FILE: _metadata(pipeline, metadata, "export")})
+
+
+def write_aoti(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None,
+               programs: dict[str, torch.export.ExportedProgram] | None = None) -> None:
+    """Compile :func:`export_programs` with AOTInductor (a C++ compiler is needed) and write the package
+    atomically to ``path``; minutes on a small CPU."""
+    from torch.export.pt2_archive._package import package_pt2
+
+    programs = programs or export_programs(pipeline)
+    files = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, ep in programs.items():
+            options = {"aot_inductor.package": True, "aot_inductor.model_name_for_generated_files": name,
+                       "aot_inductor.output_path": str(Path(tmp) / name)}
+            files[name] = torch._inductor.aot_compile(ep.module(), ep.example_inputs[0], options=options)
+        with atomic_open(path, "wb") as fh:
+            package_pt2(fh, aoti_files=files, extra_files={METADATA_FILE: _metadata(pipeline, metadata, "aoti")})
+
+
+def _write_torchscript(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None,
+                       programs: Any = None) -> None:
+    export_torchscript(pipeline, path, metadata)
+
+
+# format name -> (file suffix, writer(pipeline, path, metadata, programs))
+WRITERS: dict[str, tuple[str, Callable[..., None]]] = {
+    "torchscript": (".pt", _write_torchscript), "export": (".pt2", write_export), "aoti": (".aoti.pt2", write_aoti)}
+
+
+def check_formats(formats: str | Sequence[str]) -> list[str]:
+    """The format names, each known (``ValueError`` naming ``format`` and the value otherwise), duplicates dropped."""
+    names = [formats] if isinstance(formats, str) else list(formats)
+    if not names or not all(isinstance(n, str) for n in names):
+        raise ValueError(f"format must be one of {sorted(WRITERS)} or a list of them, got {formats!r}")
+    for n in names:
+        if n not in WRITERS:
+            raise ValueError(f"format: unknown format {n!r}; known: {', '.join(WRITERS)}")
+    return list(dict.fromkeys(names))
+
+
+def format_path(out: str | os.PathLike, fmt: str) -> Path:
+    """The file of format ``fmt`` beside ``out``: its name without a known suffix, plus the format's suffix."""
+    out = Path(out)
+    name = out.name
+    for suffix, _ in sorted(WRITERS.values(), key=lambda w: -len(w[0])):
+        if name.endswith(suffix):
+            name = name[: -len(suffix)]
+            break
+    return out.with_name(name + WRITERS[fmt][0])
+
+
+def write_formats(pipeline: OnlinePipeline, out: str | os.PathLike, formats: str | Sequence[str],
+                  metadata: Mapping[str, Any] | None = None) -> dict[str, Path]:
+    """Write ``pipeline`` in each of ``formats`` beside ``out`` (:func:`format_path`); returns format -> path."""
+    names = check_formats(formats)
+    programs = export_programs(pipeline) if set(names) - {"torchscript"} else None
+    paths = {}
+    for name in names:
+        paths[name] = format_path(out, name)
+        WRITERS[name][1](pipeline, paths[name], metadata, programs)
+    return paths

@@ -1,0 +1,221 @@
+"""An exported online pipeline loaded from any format, behind one interface (what phm-predict diagnoses with).
+
+:func:`load_pipeline` reads a file written by :mod:`phm_torch.online.formats` and returns a
+:class:`LoadedPipeline`: :meth:`~LoadedPipeline.run` gives every output of the online step for a batch of records
+(:class:`StepResult`), :meth:`~LoadedPipeline.pipeline_reasons` which of the pipeline's checks fired, and the
+attributes the input contract reads (``dtype``, ``n_full``, ``sample_rate``, ``nominal``, ``nominal_record``, ...).
+A TorchScript file answers through its scripted methods (as phm-predict always has, older files included), an
+``export`` or ``aoti`` file through one call of its :class:`~phm_torch.online.step.OnlineStep` program. The format
+is the one the file's metadata names, else its suffix; a ``format`` given that the file is not of is an error.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from .export import read_metadata
+from .input_contract import pipeline_reasons
+from .step import STEP_OUTPUTS
+
+FORMATS = ("torchscript", "export", "aoti")
+
+
+@dataclass(frozen=True)
+class StepResult:
+    """Outputs of the online step for B records: k_hat (B, 8); k_lower, k_upper (B, 8) or None (a pipeline
+    without intervals); score (B,) (> 0 healthy); p_faulty (B,) (NaN uncalibrated); rul (B, 3) [h]; ood (B,) bool;
+    residual (B,) [A]; noise (B,) relative noise as measured (NaN unknown); current (B, n) [A] as the pipeline saw
+    it (after the bench baseline)."""
+
+    k_hat: torch.Tensor
+    k_lower: torch.Tensor | None
+    k_upper: torch.Tensor | None
+    score: torch.Tensor
+    p_faulty: torch.Tensor
+    rul: torch.Tensor
+    ood: torch.Tensor
+    residual: torch.Tensor
+    noise: torch.Tensor
+    current: torch.Tensor
+
+
+class LoadedPipeline:
+    """Common interface of a loaded pipeline (see the module docstring); ``format`` names its file format."""
+
+    format = ""
+    metadata: dict[str, Any]
+    dtype: torch.dtype
+    n_full: int
+    sample_rate: float
+
+    def run(self, x: torch.Tensor, bench_nominal: torch.Tensor | None = None) -> StepResult:
+        """Every output for records x (B, n_full) or (B, n_points) [A] as measured; ``bench_nominal`` (n_full,) [A]:
+        the measuring bench's healthy record, whose difference from the training model is removed first."""
+        raise NotImplementedError
+
+    def pipeline_reasons(self, x: torch.Tensor) -> list[list[str]] | None:
+        """Which pipeline checks fire for records x as the pipeline sees them (see :func:`.pipeline_reasons`)."""
+        raise NotImplementedError
+
+    def __call__(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """The pipeline's own five outputs (k_hat, score, rul, ood, residual) of records x, as ``forward``."""
+        r = self.run(x)
+        return r.k_hat, r.score, r.rul, r.ood, r.residual
+
+    @property
+    def calibrated(self) -> bool:
+        """Whether P(faulty) can be calibrated (a TorchScript file older than the verdict calibration cannot)."""
+        return True
+
+    @property
+    def can_rebase(self) -> bool:
+        """Whether the pipeline carries its training model's nominal record (so a bench baseline applies)."""
+        nominal = getattr(self, "nominal_record", None)
+        return nominal is not None and bool(torch.isfinite(nominal).all())
+
+
+class TorchScriptPipeline(LoadedPipeline):
+    """A scripted (or eager) :class:`~phm_torch.online.OnlinePipeline`; other attributes pass through to it."""
+
+    format = "torchscript"
+
+    def __init__(self, module: Any, metadata: dict[str, Any] | None = None):
+        self.module, self.metadata = module, dict(metadata or {})
+        self.dtype = module.times.dtype
+
+    def __getattr__(self, name: str) -> Any:
+        if name == "module":      # not set yet (unpickling, copy): no recursion
+            raise AttributeError(name)
+        return getattr(self.module, name)
+
+    @property
+    def calibrated(self) -> bool:
+        return hasattr(self.module, "faulty_probability")
+
+    @property
+    def can_rebase(self) -> bool:
+        return hasattr(self.module, "rebase") and super().can_rebase
+
+    def run(self, x: torch.Tensor, bench_nominal: torch.Tensor | None = None) -> StepResult:
+        m = self.module
+        x = x.to(self.dtype)
+        nan = torch.full((x.shape[0],), float("nan"), dtype=self.dtype)
+        noise_known = hasattr(m, "noise_level") and x.shape[1] == int(m.n_full)
+        with torch.no_grad():
+            noise = m.noise_level(x) if noise_known else nan      # as measured, before the baseline
+            current = m.rebase(x, bench_nominal) if bench_nominal is not None else x
+            k_hat, score, rul, ood, residual = m(current)
+            p_faulty = m.faulty_probability(score) if self.calibrated else nan
+            lower = upper = None
+            if hasattr(m, "k_interval"):       # widths follow the noise where the file's method takes it
+                lower, upper = m.k_interval(k_hat, noise.to(k_hat.dtype)) \
+                    if noise_known and "noise" in str(m.k_interval.schema) else m.k_interval(k_hat)
+        return StepResult(k_hat, lower, upper, score, p_faulty, rul, ood, residual, noise, current)
+
+    def pipeline_reasons(self, x: torch.Tensor) -> list[list[str]] | None:
+        return pipeline_reasons(self.module, x)
+
+
+def _tensor(values: list[float] | None, dtype: torch.dtype) -> torch.Tensor | None:
+    return None if values is None else torch.tensor(values, dtype=dtype)
+
+
+class ProgramPipeline(LoadedPipeline):
+    """An ``export`` (``.pt2``) or ``aoti`` file: its two :class:`~.step.OnlineStep` programs, ``model`` for full
+    records and ``samples`` for selected samples, and the constants of its metadata's ``pipeline``."""
+
+    def __init__(self, programs: dict[str, Any], metadata: dict[str, Any], fmt: str, path: str):
+        const = metadata.get("pipeline")
+        if not isinstance(const, dict) or set(const.get("outputs", [])) != set(STEP_OUTPUTS):
+            raise ValueError(f"pipeline: {path!r} has no online-step metadata of this phm_torch version "
+                             f"(re-export it with phm-export)")
+        self.programs, self.metadata, self.format = programs, metadata, fmt
+        self.dtype = getattr(torch, const["dtype"])
+        self.n_full, self.n_points = int(const["n_full"]), int(const["n_points"])
+        self.sample_rate, self.interval_level = float(const["sample_rate"]), float(const["interval_level"])
+        noise = const["calibration_noise"]
+        self.calibration_noise = torch.tensor(math.nan if noise is None else noise, dtype=self.dtype)
+        for name in ("nominal", "interval_mask", "interval_noise", "nominal_record"):
+            setattr(self, name, _tensor(const[name], self.dtype))
+        self.reason_names = list(const["reasons"])
+
+    def _outputs(self, x: torch.Tensor, offset: torch.Tensor | None) -> dict[str, torch.Tensor]:
+        n = x.shape[1]
+        if n not in (self.n_full, self.n_points) or x.dim() != 2:
+            raise ValueError(f"records: expected (B, {self.n_full}) full records or (B, {self.n_points}) selected "
+                             f"samples, got {tuple(x.shape)}")
+        program = self.programs["model" if n == self.n_full else "samples"]
+        offset = torch.zeros(n, dtype=self.dtype) if offset is None else offset
+        with torch.no_grad():
+            out = program(x.to(self.dtype).contiguous(), offset.contiguous())
+        return dict(zip(STEP_OUTPUTS, out))
+
+    def run(self, x: torch.Tensor, bench_nominal: torch.Tensor | None = None) -> StepResult:
+        x = x.to(self.dtype)
+        offset = None
+        if bench_nominal is not None:    # as OnlinePipeline.rebase: x - (bench_nominal - nominal_record)
+            if self.nominal_record is None or bench_nominal.shape != self.nominal_record.shape:
+                raise ValueError("rebase: the pipeline has no nominal record of the record's length")
+            offset = bench_nominal.to(self.dtype) - self.nominal_record
+        o = self._outputs(x, offset)
+        current = x if offset is None else x - offset
+        return StepResult(o["k_hat"], o["k_lower"], o["k_upper"], o["score"], o["p_faulty"], o["rul"], o["ood"],
+                          o["residual"], o["noise"], current)
+
+    def pipeline_reasons(self, x: torch.Tensor) -> list[list[str]] | None:
+        flags = self._outputs(x, None)["reasons"]
+        return [[name for name, on in zip(self.reason_names, row.tolist()) if on] for row in flags]
+
+
+def _format_of(path: Path, metadata: dict[str, Any]) -> str:
+    named = metadata.get("format")
+    if named is not None:
+        return str(named)
+    if path.name.endswith(".aoti.pt2"):
+        return "aoti"
+    return "export" if path.suffix == ".pt2" else "torchscript"
+
+
+def load_pipeline(path: str | os.PathLike, format: str | None = None) -> LoadedPipeline:
+    """Load an exported pipeline of any format (see the module docstring); ``ValueError`` naming the field and
+    value for an unknown format or a file not of the format asked for."""
+    path = Path(path)
+    if format is not None and format not in FORMATS:
+        raise ValueError(f"format: unknown format {format!r}; known: {', '.join(FORMATS)}")
+    if not path.is_file():
+        raise ValueError(f"pipeline: no such file {str(path)!r} (export one with phm-evaluate or phm-export)")
+    metadata = read_metadata(path)
+    found = _format_of(path, metadata)
+    if format is not None and found != format:
+        raise ValueError(f"pipeline: {str(path)!r} is a {found!r} file, not format={format!r}")
+    if found == "torchscript":
+        try:
+            with warnings.catch_warnings():     # the deprecation of TorchScript, chosen here on purpose
+                warnings.filterwarnings("ignore", message=r".*torch\.jit\.load. is deprecated", category=DeprecationWarning)
+                module = torch.jit.load(str(path))
+        except RuntimeError as e:
+            raise ValueError(f"pipeline: {str(path)!r} is not a TorchScript file ({str(e).splitlines()[0]})") from None
+        return TorchScriptPipeline(module, metadata)
+    if found == "export":
+        from torch.export.pt2_archive._package import load_pt2
+        programs = {name: ep.module() for name, ep in load_pt2(str(path)).exported_programs.items()}
+    elif found == "aoti":
+        programs = {name: torch._inductor.aoti_load_package(str(path), model_name=name) for name in ("model", "samples")}
+    else:
+        raise ValueError(f"pipeline: {str(path)!r} names the unknown format {found!r}")
+    if set(programs) != {"model", "samples"}:
+        raise ValueError(f"pipeline: {str(path)!r} holds the programs {sorted(programs)}, not model and samples")
+    return ProgramPipeline(programs, metadata, found, str(path))
+
+
+def as_loaded(model: Any) -> LoadedPipeline:
+    """``model`` as a :class:`LoadedPipeline` (a scripted or eager ``OnlinePipeline`` is wrapped)."""
+    return model if isinstance(model, LoadedPipeline) else TorchScriptPipeline(model)
+

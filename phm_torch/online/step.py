@@ -1,0 +1,198 @@
+"""The whole online step as one traceable ``forward``: what ``torch.export`` (and AOTInductor) capture.
+
+:class:`OnlineStep` wraps an :class:`~phm_torch.online.pipeline.OnlinePipeline` for one input length (full
+records (B, n_full) or selected samples (B, n_points)) and returns every output phm-predict reads as a flat
+tuple of tensors (``STEP_OUTPUTS``), computed with the pipeline's own submodules and buffers, so it equals the
+pipeline's ``forward`` + ``k_interval`` + ``faulty_probability`` + ``noise_level`` + ``consistency`` and the
+reasons of :func:`~phm_torch.online.input_contract.pipeline_reasons` (no submodule access needed afterwards).
+
+What the eager pipeline decides with Python control flow on data, the step decides with tensors:
+
+* the complete-record fast path of the gappy layer against its masked least squares: both are computed and
+  the one the pipeline takes ("every sample present" in the batch) is selected with ``torch.where``
+  (:func:`masked_gappy` replays ``GappyPOD.forward``'s choice between the Woodbury update, at a fixed
+  ``WOODBURY_MAX`` rows, and the per-signal Cholesky solve). ``torch.cond`` would skip the unused path, but it
+  refuses the aliased buffers of the layers, and ONNX / ExecuTorch runtimes serve straight-line graphs best;
+* the RUL event search: the coarse grid is a constant of the step, the bisection count is a constant, and
+  the classifier scores every row at once (the pipeline's ``SCORE_BLOCK`` split is a cache optimisation that
+  gives the same scores; a split into a data-dependent number of blocks cannot be traced);
+* the noise estimate: one call over the batch (the pipeline's 64-row blocks give the same per-row values).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from ..surrogates.augment import noise_level
+from .input_contract import PIPELINE_CHECKS
+from .pipeline import OnlinePipeline
+
+# outputs of OnlineStep.forward, in order (the names phm-predict and the file's metadata use)
+STEP_OUTPUTS = ("k_hat", "k_lower", "k_upper", "score", "p_faulty", "rul", "ood", "residual", "noise",
+                "consistency", "reasons")
+
+
+def masked_gappy(gappy: nn.Module, samples: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``gappy(samples, mask)`` (alpha (B, n_m), residual (B,)) of a ``GappyPOD``, without data-dependent Python
+    control flow: every path it may take is computed and the one it would take is selected (per batch, as it
+    decides). samples (B, n_w) [A], NaN = missing; mask (B, n_w) bool, False = missing."""
+    centred = samples - gappy.mean_hat
+    valid = torch.isfinite(centred) & mask
+    n_w = gappy.modes_hat.shape[0]
+    fast = centred @ gappy.solve_matrix.T
+    fast_resid = torch.linalg.vector_norm(centred - fast @ gappy.modes_hat.T, dim=-1) / n_w ** 0.5
+    centred = torch.where(valid, centred, torch.zeros_like(centred))
+    w = valid.to(samples.dtype)
+    count = w.sum(-1)
+    missing = ~valid
+    vm = gappy.modes_hat.unsqueeze(0) * w.unsqueeze(-1)                               # (B, n_w, n_m)
+    if gappy.bayesian:     # as GappyPOD.forward: R restricted to the present samples, factorised in float64
+        w64 = w.to(torch.float64)
+        cov = gappy.noise_covariance.to(torch.float64) * (w64.unsqueeze(-1) * w64.unsqueeze(-2)) \
+            + torch.diag_embed(1.0 - w64)
+        weighted = torch.cholesky_solve(vm.to(torch.float64), torch.linalg.cholesky(cov)).transpose(1, 2).to(vm.dtype)
+    else:
+        weighted = vm.transpose(1, 2)
+    gram = weighted @ vm + torch.diag(gappy.prior_precision)
+    alpha, resid = gappy._solve(gram, weighted @ centred.unsqueeze(-1), centred, w, count)
+    rows = min(int(gappy.woodbury_max), n_w)
+    if not gappy.bayesian and rows > 0:
+        # rows past a signal's own missing count are zero in U: S is the identity there, as for the signals
+        # with fewer missing samples than the batch's most in GappyPOD.forward
+        w_alpha, w_resid, accurate = gappy._woodbury(centred, missing, rows, w, count)
+        use = (missing.sum(-1).amax() <= gappy.woodbury_max) & accurate.all()
+        alpha, resid = torch.where(use, w_alpha, alpha), torch.where(use, w_resid, resid)
+    complete = valid.all()
+    return torch.where(complete, fast, alpha), torch.where(complete, fast_resid, resid)
+
+
+class OnlineStep(nn.Module):
+    """One input length of an :class:`OnlinePipeline` as a single traceable ``forward``.
+
+    Args:
+        pipeline: the eager pipeline (put in eval mode; its numbers are not changed).
+        full: True for full records (B, n_full), False for selected samples (B, n_points).
+    """
+
+    def __init__(self, pipeline: OnlinePipeline, full: bool):
+        super().__init__()
+        self.pipeline = pipeline.eval()
+        self.full = bool(full)
+        self.length = pipeline.n_full if full else pipeline.n_points
+        n_t = int(pipeline.propagators.shape[0])
+        coarse = list(range(0, n_t, pipeline.coarse))
+        coarse += [] if coarse[-1] == n_t - 1 else [n_t - 1]
+        self.register_buffer("coarse_index", torch.tensor(coarse, dtype=torch.long))
+        self.register_buffer("phases", torch.arange(3) < 2)          # RUL 5 and 50 % of a faulty verdict
+        self.horizon = float(pipeline.times[-1])
+        self.estimate_noise = self.full and (pipeline.noise_aware or pipeline.residual_limit.levels.shape[0] > 1)
+
+    def _score(self, k: torch.Tensor) -> torch.Tensor:
+        """Verdict score minus threshold (N,) of fault vectors k (N, 8), all rows at once."""
+        clf = self.pipeline.verdict_classifier
+        return clf(k) - clf.threshold
+
+    def _rul(self, k: torch.Tensor) -> torch.Tensor:
+        """``OnlinePipeline.rul(k, measured=True)`` (B, 3) [h] of FDI estimates k (B, 8), traceable."""
+        p = self.pipeline
+        shift = p.deltas.view(3, 1) * p.direction + p.fdi_deltas.view(3, 1) * p.fdi_direction
+        b = k.shape[0]
+        dev = k - p.nominal
+        side = torch.where(dev >= 0, torch.ones_like(dev), -torch.ones_like(dev)).unsqueeze(1)
+        dk = side * (dev.abs().unsqueeze(1) + shift.to(dev.dtype).unsqueeze(0)).clamp(min=0.0)   # (B, 3, 8)
+        coarse = self.coarse_index
+        traj = p.nominal + torch.einsum("tij,bqj->tbqi", p.propagators[coarse], dk)             # (Tc, B, 3, 8)
+        n_c = traj.shape[0]
+        score = self._score(traj.reshape(-1, 8).clamp(0.0, 1.0)).reshape(n_c, b, 3)
+        faulty = score <= 0
+        any_faulty = faulty.any(0)
+        first = torch.argmax(faulty.to(torch.int64), dim=0)                                     # (B, 3)
+        prev = (first - 1).clamp(min=0)
+        hi, lo = coarse[first], coarse[prev]
+        s1 = score.gather(0, first.unsqueeze(0)).squeeze(0)
+        s0 = score.gather(0, prev.unsqueeze(0)).squeeze(0)
+        for _ in range(p.bisections):
+            mid = torch.div(lo + hi, 2, rounding_mode="floor")
+            kk = p.nominal + (p.propagators[mid] @ dk.unsqueeze(-1)).squeeze(-1)
+            s_mid = self._score(kk.reshape(-1, 8).clamp(0.0, 1.0)).reshape(b, 3)
+            inner = mid > lo
+            bad = (s_mid <= 0) & inner
+            good = (s_mid > 0) & inner
+            hi, s1 = torch.where(bad, mid, hi), torch.where(bad, s_mid, s1)
+            lo, s0 = torch.where(good, mid, lo), torch.where(good, s_mid, s0)
+        t0, t1 = p.times[lo], p.times[hi]
+        frac = (s0 / (s0 - s1).clamp(min=1e-12)).clamp(0.0, 1.0)
+        crossing = torch.where(first > 0, t0 + frac * (t1 - t0), torch.zeros_like(t0))
+        rul = torch.where(any_faulty, crossing, torch.full_like(crossing, self.horizon))
+        rul = (rul / p.rate_scales).clamp(max=self.horizon)
+        return torch.stack([rul.amin(-1), rul[:, 1], rul.amax(-1)], dim=-1)
+
+    def _complete(self, samples: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The pipeline's path for a batch with every sample present: (alpha, residual, enough, flat)."""
+        g = self.pipeline.gappy
+        centred = samples - g.mean_hat
+        alpha = centred @ g.solve_matrix.T
+        resid = torch.linalg.vector_norm(centred - alpha @ g.modes_hat.T, dim=-1) / g.modes_hat.shape[0] ** 0.5
+        low, high = torch.aminmax(samples, dim=1)
+        return alpha, resid, torch.ones_like(resid, dtype=torch.bool), (high - low) < 1e-6
+
+    def _gappy(self, samples: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The pipeline's path for a batch with missing samples: (alpha, residual, enough, flat)."""
+        p = self.pipeline
+        valid = torch.isfinite(samples)
+        enough = valid.sum(1) >= p.min_count
+        filled = torch.where(enough.unsqueeze(1) & valid, samples, p.gappy.mean_hat.expand_as(samples))
+        mask = torch.where(enough.unsqueeze(1), valid, torch.ones_like(valid))
+        alpha, resid = masked_gappy(p.gappy, filled, mask)
+        flat = torch.where(valid, samples, torch.zeros_like(samples)).std(1) < 1e-6
+        return alpha, resid, enough, flat
+
+    def forward(self, x: torch.Tensor, offset: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """Args: x (B, length) current [A] as measured (NaN = missing); offset (length,) [A] subtracted before
+        the pipeline (a bench's difference at nominal, ``bench_nominal - nominal_record``: the pipeline's
+        ``rebase``; zeros for none).
+
+        Returns ``STEP_OUTPUTS``: k_hat (B, 8); k_lower, k_upper (B, 8) its intervals (at the measured noise for
+        full records, the first calibrated level for selected samples; NaN uncalibrated); verdict score (B,)
+        (> 0 healthy); P(faulty) (B,) (NaN uncalibrated); RUL 5/50/95 % (B, 3) [h] (NaN out of distribution);
+        out_of_distribution (B,) bool; gappy residual (B,) [A]; relative noise (B,) as measured, before the offset
+        (NaN for selected samples); consistency (B,) (> 1 inconsistent, NaN without a forward surrogate);
+        reasons (B, len(PIPELINE_CHECKS)) bool, which of the pipeline's checks fired.
+        """
+        p = self.pipeline
+        dtype = p.times.dtype
+        b = x.shape[0]
+        false = torch.zeros(b, dtype=torch.bool, device=x.device)
+        nan = torch.full((b,), float("nan"), dtype=dtype, device=x.device)
+        x = x.to(dtype)
+        measured = noise_level(x) if self.full else nan
+        x = x - offset.to(dtype)
+        noise = noise_level(x, p.noise_window) if self.estimate_noise else None
+        samples = x.index_select(1, p.gappy.indices) if self.full else x
+        samples = samples.to(p.gappy.modes_hat.dtype)
+        alpha, residual, enough, flat = self._gappy(samples)
+        if p.n_points >= p.min_count:     # both paths computed, the pipeline's choice selected (see __init__)
+            complete = torch.isfinite(samples).all()
+            alpha, residual, enough, flat = (torch.where(complete, a, b) for a, b in
+                                             zip(self._complete(samples), (alpha, residual, enough, flat)))
+        k_hat = p.fdi(alpha, noise) if p.noise_aware else p.fdi(alpha)
+        score = self._score(k_hat)
+        check = p.full_check if self.full and p.has_full_check else None
+        pod, rough, plateau = (false, false, false) if check is None else \
+            (check.residual(x) > check.residual_threshold, check.roughness(x) > check.roughness_threshold,
+             check.plateau(x) > check.plateau_threshold)
+        gappy_flag = (residual > p._limit(noise, residual)) | ~torch.isfinite(residual)
+        consistency = p.consistency_check(x, k_hat, noise) if p.has_consistency else nan
+        inconsistent = consistency > 1.0          # NaN (no finite sample, or no check) compares False
+        flags = {"missing": ~enough, "flat": flat, "gappy_residual": gappy_flag, "pod_residual": pod,
+                 "roughness": rough, "plateau": plateau, "inconsistent": inconsistent}
+        reasons = torch.stack([flags[name] for name in PIPELINE_CHECKS], 1)
+        ood = reasons.any(1)
+        rul = self._rul(k_hat)
+        rul = torch.where((score <= 0).unsqueeze(1) & self.phases, torch.zeros_like(rul), rul)
+        rul = torch.where(ood.unsqueeze(1), torch.full_like(rul, float("nan")), rul)
+        lower, upper = p.k_interval(k_hat, measured) if self.full else p.k_interval(k_hat)
+        return (k_hat, lower, upper, score, p.faulty_probability(score), rul, ood, residual, measured,
+                consistency, reasons)
+
