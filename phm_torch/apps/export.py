@@ -1,4 +1,5 @@
-"""``phm-export``: the online pipeline as TorchScript (see :mod:`phm_torch.online.export`)."""
+"""``phm-export``: the online pipeline in one or several deployment formats (``format=torchscript`` by default,
+``format=[torchscript,export,aoti]``; see :mod:`phm_torch.online.formats`), each reloaded and compared with eager."""
 
 from __future__ import annotations
 
@@ -13,7 +14,8 @@ from omegaconf import DictConfig
 
 from .. import provenance
 from ..online import OnlinePipeline
-from ..online.export import export_torchscript
+from ..online.formats import check_formats, write_formats
+from ..online.loaded import load_pipeline
 from ..surrogates.bundle import SurrogateBundle
 from . import common
 
@@ -86,6 +88,7 @@ def _damage(cal: dict[str, Any], cfg: DictConfig, path: Path) -> dict[str, Any]:
 
 def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Build the pipeline from the bundle, the damage model and the RUL calibration; write and re-check it."""
+    formats = check_formats(common.plain(cfg.get("format", "torchscript")))
     bundle = SurrogateBundle.load(cfg.bundle)
     cal_path = Path(cfg.calibration)
     if not cal_path.is_file():
@@ -116,13 +119,17 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     extra = {key: cal[key] for key in ("tracking_nrmse", "tracking_nrmse_healthy")      # the input contract's
              if cal.get(key) is not None}
     extra["damage"] = _damage(cal, cfg, cal_path)        # the tracker's process model (phm-track)
-    scripted = export_torchscript(pipeline, out, {"provenance": prov, **extra})
+    paths = write_formats(pipeline, out, formats, {"provenance": prov, **extra})
     probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)
+    diffs = {}
     with torch.no_grad():
-        diff = max(float((a.double() - b.double()).abs().nan_to_num(0.0).max())
-                   for a, b in zip(torch.jit.load(str(out))(probe), pipeline(probe)))
-    del scripted
-    return {"out": str(out), "max_abs_diff_reloaded": diff, "actuator": provenance.describe(prov["actuator"]),
+        eager = pipeline(probe)
+        for name, path in paths.items():      # each file reloaded as phm-predict reads it
+            again = load_pipeline(path, name)(probe)
+            diffs[name] = max(float((a.double() - b.double()).abs().nan_to_num(0.0).max()) for a, b in zip(again, eager))
+    return {"out": str(next(iter(paths.values()))), "files": {k: str(v) for k, v in paths.items()},
+            "max_abs_diff_reloaded": max(diffs.values()), "max_abs_diff_by_format": diffs,
+            "actuator": provenance.describe(prov["actuator"]),
             "command": provenance.describe(prov["command"])}, {"pipeline": pipeline}
 
 

@@ -21,6 +21,7 @@ import json
 import math
 import os
 import tempfile
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -86,7 +87,9 @@ def write_export(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Ma
     from torch.export.pt2_archive._package import package_pt2  # what torch.export.save writes, several programs
 
     programs = programs or export_programs(pipeline)
-    with atomic_open(path, "wb") as fh:
+    with atomic_open(path, "wb") as fh, warnings.catch_warnings():
+        # buffers sharing storage (e.g. the verdict classifier that is the health classifier) are stored once
+        warnings.filterwarnings("ignore", message="No complete tensor found in the group")
         package_pt2(fh, exported_programs=programs,
                     extra_files={METADATA_FILE: _metadata(pipeline, metadata, "export")})
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import os
 import warnings
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -174,13 +175,25 @@ class ProgramPipeline(LoadedPipeline):
         return [[name for name, on in zip(self.reason_names, row.tolist()) if on] for row in flags]
 
 
+SUFFIXES = {".aoti.pt2": "aoti", ".pt2": "export", ".pt": "torchscript"}     # longest first
+
+
 def _format_of(path: Path, metadata: dict[str, Any]) -> str:
-    named = metadata.get("format")
-    if named is not None:
-        return str(named)
-    if path.name.endswith(".aoti.pt2"):
-        return "aoti"
-    return "export" if path.suffix == ".pt2" else "torchscript"
+    """The file's format from its content (the metadata's ``format``; a TorchScript archive has ``code/``), which
+    must be the one its suffix names (``ValueError`` naming the file otherwise)."""
+    found = metadata.get("format")
+    if found is None:
+        with zipfile.ZipFile(path) as archive:      # read_metadata has checked it is one
+            names = archive.namelist()
+        found = "torchscript" if any("/code/" in n or n.endswith("constants.pkl") for n in names) else None
+    by_name = next((fmt for suffix, fmt in SUFFIXES.items() if path.name.endswith(suffix)), None)
+    if found is None:
+        raise ValueError(f"pipeline: {str(path)!r} is no exported pipeline (no TorchScript code, no "
+                         f"phm_metadata.json naming its format)")
+    if by_name is not None and by_name != found:
+        raise ValueError(f"pipeline: {str(path)!r} holds a {found!r} pipeline but its name ends as a {by_name!r} "
+                         f"file's ({', '.join(f'{k} {v}' for k, v in SUFFIXES.items())})")
+    return str(found)
 
 
 def load_pipeline(path: str | os.PathLike, format: str | None = None) -> LoadedPipeline:
@@ -203,13 +216,18 @@ def load_pipeline(path: str | os.PathLike, format: str | None = None) -> LoadedP
         except RuntimeError as e:
             raise ValueError(f"pipeline: {str(path)!r} is not a TorchScript file ({str(e).splitlines()[0]})") from None
         return TorchScriptPipeline(module, metadata)
-    if found == "export":
-        from torch.export.pt2_archive._package import load_pt2
-        programs = {name: ep.module() for name, ep in load_pt2(str(path)).exported_programs.items()}
-    elif found == "aoti":
-        programs = {name: torch._inductor.aoti_load_package(str(path), model_name=name) for name in ("model", "samples")}
-    else:
-        raise ValueError(f"pipeline: {str(path)!r} names the unknown format {found!r}")
+    try:
+        if found == "export":
+            from torch.export.pt2_archive._package import load_pt2
+            programs = {name: ep.module() for name, ep in load_pt2(str(path)).exported_programs.items()}
+        elif found == "aoti":
+            programs = {name: torch._inductor.aoti_load_package(str(path), model_name=name)
+                        for name in ("model", "samples")}
+        else:
+            raise ValueError(f"pipeline: {str(path)!r} names the unknown format {found!r}")
+    except (RuntimeError, KeyError, zipfile.BadZipFile) as e:
+        raise ValueError(f"pipeline: {str(path)!r} is not a readable {found!r} file ({type(e).__name__}: "
+                         f"{str(e).splitlines()[0] if str(e) else ''})") from None
     if set(programs) != {"model", "samples"}:
         raise ValueError(f"pipeline: {str(path)!r} holds the programs {sorted(programs)}, not model and samples")
     return ProgramPipeline(programs, metadata, found, str(path))

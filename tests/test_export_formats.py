@@ -1,0 +1,207 @@
+"""Deployment formats of the online pipeline (issue 27): the traceable OnlineStep equals the eager pipeline, every
+format equals eager within 1e-5 (float32) on full and selected-sample records, with missing samples, batch 1 and
+256, and out-of-distribution records; files load without phm_torch; phm-predict gives the same JSON from each."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+import torch
+
+from phm_torch.io import write_measurement
+from phm_torch.online import OnlinePipeline
+from phm_torch.online.formats import check_formats, format_path, write_formats
+from phm_torch.online.input_contract import PIPELINE_CHECKS, pipeline_reasons
+from phm_torch.online.loaded import load_pipeline
+from phm_torch.online.step import STEP_OUTPUTS, OnlineStep
+from phm_torch.params import load_actuator
+from phm_torch.prognostics import DamageModel
+from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
+from phm_torch.surrogates.fdi_mlp import FDIMLP
+from phm_torch.surrogates.full_signal_check import FullSignalCheck
+from phm_torch.surrogates.gappy_pod import GappyPOD
+
+N_FULL, N_MODES, N_POINTS = 2001, 6, 24
+TOL = 1e-5
+pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit.*` is deprecated:DeprecationWarning")
+
+
+def _damage() -> DamageModel:
+    f = torch.diag(torch.tensor([5e-4] * 6 + [0.0, 3e-4], dtype=torch.float64))
+    f[1, 0] = 2e-4
+    return DamageModel(f.tolist(), [1e-6] * 6 + [0.0, 1e-6], 100.0, 20000.0, 50.0, list(load_actuator().nominal_faults))
+
+
+@pytest.fixture(scope="module")
+def pipeline() -> OnlinePipeline:
+    """A small float32 pipeline with every calibrated part a paper-scale one has but the forward surrogate."""
+    torch.set_num_threads(1)
+    torch.manual_seed(0)
+    t = torch.linspace(0, 1, N_FULL, dtype=torch.float64)
+    modes = torch.linalg.qr(torch.stack([torch.sin((i + 1) * 3.0 * t + i) for i in range(N_MODES)], 1))[0].float()
+    mean = (1.0 + 0.5 * torch.sin(9 * t)).float()
+    k = torch.rand(400, 8, generator=torch.Generator().manual_seed(0), dtype=torch.float64) ** 3
+    k[:, 6:] = 0.5
+    clf = PolynomialSVM(degree=2).fit(k.float(), k[:, :6].amax(1) < 0.3)
+    widths = torch.full((2, 4, 8), 0.05) * torch.tensor([1.0, 2.0]).view(2, 1, 1)
+    pipe = OnlinePipeline(GappyPOD(modes, mean, torch.linspace(0, N_FULL - 1, N_POINTS).round().long()),
+                          FDIMLP(N_MODES, 10), clf, _damage(), torch.tensor([0.02, 0.0, -0.02]),
+                          torch.tensor([1.0] * 6 + [0.0, 1.0]), N_FULL, residual_threshold=0.05,
+                          full_check=FullSignalCheck(modes, mean, residual_threshold=0.2, plateau_threshold=0.5),
+                          verdict=(-2.0, 0.3), k_half_widths=widths, interval_noise=torch.tensor([0.0, 0.05]),
+                          calibration_noise=0.01, residual_limits=([0.05, 0.2], [0.01, 0.1]), nominal_record=mean)
+    pipe.modes, pipe.mean_signal = modes, mean
+    return pipe.eval()
+
+
+def records(pipe: OnlinePipeline, n: int, seed: int = 1) -> torch.Tensor:
+    """n in-span full records (n, N_FULL) [A] with 1 % white noise; the 2nd misses 3 samples, the 3rd is noise
+    (out of distribution)."""
+    g = torch.Generator().manual_seed(seed)
+    x = pipe.mean_signal + (5.0 * torch.randn(n, N_MODES, generator=g)) @ pipe.modes.T
+    x = x + 0.01 * torch.randn(x.shape, generator=g)
+    if n > 2:
+        x[1, pipe.gappy.indices[[2, 9, 17]]] = float("nan")
+        x[2] = torch.randn(N_FULL, generator=g)
+    return x
+
+
+def eager(pipe: OnlinePipeline, x: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The outputs of the eager pipeline and its methods, named as OnlineStep's."""
+    with torch.no_grad():
+        k_hat, score, rul, ood, residual = pipe(x)
+        full = x.shape[1] == N_FULL
+        noise = pipe.noise_level(x) if full else torch.full((x.shape[0],), float("nan"))
+        lower, upper = pipe.k_interval(k_hat, noise) if full else pipe.k_interval(k_hat)
+        found = pipeline_reasons(pipe, x)
+    reasons = torch.tensor([[name in row for name in PIPELINE_CHECKS] for row in found])
+    return {"k_hat": k_hat, "k_lower": lower, "k_upper": upper, "score": score, "rul": rul, "ood": ood,
+            "residual": residual, "noise": noise, "p_faulty": pipe.faulty_probability(score), "reasons": reasons}
+
+
+def assert_equal_outputs(got: dict[str, torch.Tensor], ref: dict[str, torch.Tensor]) -> None:
+    for name, value in ref.items():
+        assert got[name].dtype == value.dtype, name
+        torch.testing.assert_close(got[name], value, rtol=TOL, atol=TOL, equal_nan=True, msg=name)
+
+
+@pytest.fixture(scope="module")
+def files(pipeline, tmp_path_factory):
+    out = tmp_path_factory.mktemp("formats") / "online.pt"
+    return write_formats(pipeline, out, ["torchscript", "export"], {"provenance": None, "tracking_nrmse": [0.01, 0.2]})
+
+
+@pytest.fixture(scope="module")
+def loaded(files):
+    return {fmt: load_pipeline(path) for fmt, path in files.items()}
+
+
+def test_step_equals_the_eager_pipeline_and_its_reasons(pipeline):
+    x = records(pipeline, 6)
+    for full in (True, False):
+        inputs = x if full else x.index_select(1, pipeline.gappy.indices)
+        step = OnlineStep(pipeline, full)
+        with torch.no_grad():
+            got = dict(zip(STEP_OUTPUTS, step(inputs, torch.zeros(inputs.shape[1]))))
+        ref = eager(pipeline, inputs)
+        assert_equal_outputs(got, ref)
+        assert bool(ref["ood"][2]) and not bool(ref["ood"][[0, 1, 3]].any())      # noise flagged, the gappy one not
+        assert bool(torch.isnan(got["rul"][2]).all()) and bool(torch.isfinite(got["rul"][[0, 1, 3]]).all())
+    assert torch.isfinite(ref["p_faulty"]).all() and torch.isfinite(ref["k_lower"]).all()
+
+
+@pytest.mark.parametrize("batch", [1, 256])
+@pytest.mark.parametrize("full", [True, False])
+def test_every_format_equals_eager(pipeline, loaded, batch, full):
+    x = records(pipeline, max(batch, 3), seed=batch)
+    x = x if full else x.index_select(1, pipeline.gappy.indices)
+    cases = [x[:batch]] if batch > 1 else [x[i:i + 1] for i in range(3)]   # batch 1: clean, 3 missing, noise
+    for fmt, model in loaded.items():
+        assert model.format == fmt
+        for xb in cases:
+            r = model.run(xb)
+            got = {name: getattr(r, name) for name in ("k_hat", "k_lower", "k_upper", "score", "p_faulty", "rul",
+                                                         "ood", "residual", "noise")}
+            ref = eager(pipeline, xb)
+            got["reasons"] = torch.tensor([[n in row for n in PIPELINE_CHECKS] for row in model.pipeline_reasons(xb)])
+            if not bool(ref["ood"].any()):       # pipeline_reasons lists nothing for a record in distribution
+                ref["reasons"] = got["reasons"] = torch.zeros(0)
+            assert_equal_outputs(got, ref)
+
+
+def test_export_file_loads_and_runs_without_phm_torch(pipeline, files, tmp_path):
+    x = records(pipeline, 5)
+    samples = x.index_select(1, pipeline.gappy.indices)
+    torch.save({"x": x, "s": samples}, tmp_path / "x.pt")
+    code = textwrap.dedent(f"""
+        import sys, torch
+        from torch.export.pt2_archive._package import load_pt2
+        x = torch.load({str(tmp_path / 'x.pt')!r}, weights_only=True)
+        programs = load_pt2({str(files['export'])!r}).exported_programs   # torch.export.load gives 'model'
+        full, samples = programs['model'].module(), programs['samples'].module()
+        out = [full(x['x'], torch.zeros(x['x'].shape[1])), samples(x['s'], torch.zeros(x['s'].shape[1]))]
+        torch.save([list(o) for o in out], {str(tmp_path / 'out.pt')!r})
+        assert not any(name.startswith('phm_torch') for name in sys.modules), 'phm_torch was imported'
+    """)
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=tmp_path)
+    loaded = torch.load(tmp_path / "out.pt", weights_only=True)
+    for got, inputs in zip(loaded, (x, samples)):
+        ref = eager(pipeline, inputs)
+        out = dict(zip(STEP_OUTPUTS, got))
+        for name in ("k_hat", "score", "rul", "ood", "residual", "k_lower", "p_faulty"):
+            torch.testing.assert_close(out[name], ref[name], rtol=TOL, atol=TOL, equal_nan=True)
+
+
+def test_predict_gives_the_same_json_from_every_format(pipeline, files, compose, tmp_path):
+    from phm_torch.apps.predict import predict
+
+    x = records(pipeline, 4, seed=3)
+    zeros = torch.zeros(N_FULL, dtype=torch.float64)
+    time = torch.arange(N_FULL, dtype=torch.float64) / 20000.0
+    csvs = [str(write_measurement(tmp_path / f"r{i}.csv", {"time": time, "command": zeros, "position": zeros,
+                                                          "current": x[i].nan_to_num(1.0).double()}))
+            for i in range(4)]
+    lines = Path(csvs[1]).read_text().splitlines()        # record 1: its 3 missing samples as empty cells
+    column = lines[0].split(",").index("current")
+    for i in torch.isnan(x[1]).nonzero().flatten().tolist():
+        cells = lines[i + 1].split(",")
+        cells[column] = ""
+        lines[i + 1] = ",".join(cells)
+    Path(csvs[1]).write_text("\n".join(lines) + "\n")
+    outs = {}
+    for fmt, path in files.items():
+        args = [f"pipeline={path}", f"measurements=[{','.join(csvs)}]", f"format={fmt}", f"baseline={csvs[0]}"]
+        _, objects = predict(compose("predict", args))
+        outs[fmt] = json.dumps(objects["records"], sort_keys=True)
+    assert outs["torchscript"] == outs["export"]
+    records_ = json.loads(outs["export"])
+    assert records_[2]["out_of_distribution"] and records_[2]["rul_hours"] is None
+    assert records_[1]["k_interval"] is not None and not records_[1]["out_of_distribution"]
+
+
+def test_bad_formats_and_files_are_one_line_errors(files, loaded, tmp_path):
+    with pytest.raises(ValueError, match="format: unknown format 'onnx'"):
+        check_formats(["torchscript", "onnx"])
+    with pytest.raises(ValueError, match="format: unknown format 'tflite'"):
+        load_pipeline(files["export"], "tflite")
+    with pytest.raises(ValueError, match="is a 'export' file, not format='torchscript'"):
+        load_pipeline(files["export"], "torchscript")
+    wrong = tmp_path / "online.pt2"
+    wrong.write_bytes(files["torchscript"].read_bytes())               # TorchScript named as an export file
+    with pytest.raises(ValueError, match="holds a 'torchscript' pipeline but its name ends as a 'export'"):
+        load_pipeline(wrong)
+    with pytest.raises(ValueError, match=r"records: expected \(B, 2001\) full records or \(B, 24\)"):
+        loaded["export"].run(torch.zeros(2, 100))
+    assert format_path(tmp_path / "a.pt", "aoti").name == "a.aoti.pt2"
+    assert format_path(tmp_path / "a.aoti.pt2", "torchscript").name == "a.pt"
+
+
+def test_export_cli_refuses_an_unknown_format(run_cli):
+    result = run_cli("phm_torch.apps.export", "format=[torchscript,onnx]")
+    assert result.returncode == 2
+    assert "format: unknown format 'onnx'" in result.stderr
