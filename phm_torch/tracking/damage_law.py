@@ -142,6 +142,34 @@ class DamageLaw:
             out = total
         return (table[j].to(dk.dtype) @ out.unsqueeze(-1)).squeeze(-1)
 
+    def expm(self, tau: torch.Tensor) -> torch.Tensor:
+        """expm(tau F) (N, 8, 8) for wear-clock times tau (N,) [h]: the table entry below tau times the Taylor
+        polynomial of the rest (as :meth:`propagate`, for a filter that moves a covariance too)."""
+        tau = tau.to(torch.float64)
+        n = self.rate.shape[0]
+        eye = torch.eye(n, dtype=torch.float64)
+        if not tau.numel() or self._norm == 0.0:
+            return eye.expand(tau.shape[0], n, n).clone()
+        table = self._table(float(tau.abs().max()))
+        j = torch.div(tau, self._table_step, rounding_mode="floor").long().clamp(0, table.shape[0] - 1)
+        rest = tau - j.to(tau) * self._table_step
+        steps = max(1, math.ceil(float(rest.abs().max()) * self._norm / TAYLOR_NORM - 1e-9))
+        h = rest / steps
+        powers = self._powers                                                      # (T + 1, 8, 8): F^n / n!
+        coef = h.unsqueeze(-1) ** torch.arange(TAYLOR_TERMS + 1, dtype=torch.float64)    # (N, T + 1)
+        step = (coef @ powers.reshape(TAYLOR_TERMS + 1, -1)).reshape(-1, n, n)
+        out = step
+        for _ in range(steps - 1):
+            out = out @ step
+        return table[j] @ out
+
+    @functools.cached_property
+    def _powers(self) -> torch.Tensor:
+        out = [torch.eye(self.rate.shape[0], dtype=torch.float64)]
+        for k in range(1, TAYLOR_TERMS + 1):
+            out.append(out[-1] @ self.rate / k)
+        return torch.stack(out)
+
     def noise_std_over(self, dt: torch.Tensor) -> torch.Tensor:
         """Std (N, 8) [-] of int eps over intervals dt (N,) [h] (random block phase; module docstring)."""
         tc = self.noise_correlation_hours

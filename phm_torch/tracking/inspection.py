@@ -47,22 +47,23 @@ def inspect_currents(model: Any, currents: torch.Tensor, contract: InputContract
     flagged = ood.nonzero().flatten().tolist()
     found = pipeline_reasons(model, x[flagged]) if flagged else []
     own = dict(zip(flagged, found or [[] for _ in flagged]))
+    # the batch's numbers as Python lists once (per-record tensor indexing and tolist cost more than the pipeline)
+    k_list, lo_list, hi_list = k_hat.tolist(), lower.tolist(), upper.tolist()
+    score_list, rul_list, p_list, noise_list = score.tolist(), rul.tolist(), p_faulty.tolist(), noise.tolist()
+    noise_max = max(2.0 * float(model.calibration_noise), NOISE_FLOOR)
     out = []
     for i in range(x.shape[0]):
         reasons = (own[i] or ["pipeline"]) if i in own else []
-        reasons += [r for r in contract.current_reasons(model, x[i], float(noise[i]), k_hat[i]) if r not in reasons]
+        reasons += [r for r in contract.current_reasons(model, x[i], noise_list[i], k_hat[i]) if r not in reasons]
         bad = bool(reasons)
-        bounds = torch.stack([lower[i], upper[i]], -1)
-        r = rul[i].tolist()
-        out.append({"k_hat": dict(zip(FAULT_NAMES, k_hat[i].tolist())),
-                    "k_interval": None if bad else dict(zip(FAULT_NAMES, bounds.tolist())),
-                    "health_score": float(score[i]), "healthy": bool(score[i] > 0),
-                    "p_faulty": None if bad or math.isnan(float(p_faulty[i])) else float(p_faulty[i]),
+        r = rul_list[i]
+        out.append({"k_hat": dict(zip(FAULT_NAMES, k_list[i])),
+                    "k_interval": None if bad else {n: [a, b] for n, a, b in zip(FAULT_NAMES, lo_list[i], hi_list[i])},
+                    "health_score": score_list[i], "healthy": score_list[i] > 0,
+                    "p_faulty": None if bad or math.isnan(p_list[i]) else p_list[i],
                     "rul_hours": None if bad or any(math.isnan(v) for v in r) else dict(zip(("p5", "p50", "p95"), r)),
                     "out_of_distribution": bad, "ood_reasons": reasons, "checks_skipped": ["command", "tracking"],
-                    "noise": float(noise[i]),
-                    "noise_above_calibration": float(noise[i]) > max(2.0 * float(model.calibration_noise),
-                                                                     NOISE_FLOOR)})
+                    "noise": noise_list[i], "noise_above_calibration": noise_list[i] > noise_max})
     return out
 
 

@@ -33,7 +33,7 @@ log = logging.getLogger(__name__)
 
 HUGE = 1e30     # the RUL of a particle still healthy at the end of its search (censored)
 WARM_WIDTH = 0.1   # relative half-width of the warm bracket (at least one grid step)
-REFINE = 3         # Illinois steps in a warm bracket
+REFINE = 2         # Illinois steps in a warm bracket
 
 
 def eps_log_sigmas(model: Any, law: DamageLaw, band_includes_rate_scale: bool) -> tuple[float, float]:
