@@ -146,6 +146,7 @@ class ProgramPipeline(LoadedPipeline):
         for name in ("nominal", "interval_mask", "interval_noise", "nominal_record"):
             setattr(self, name, _tensor(const[name], self.dtype))
         self.reason_names = list(const["reasons"])
+        self.indices = torch.tensor(const["indices"], dtype=torch.long)     # the selected samples of a full record
 
     def _outputs(self, x: torch.Tensor, offset: torch.Tensor | None) -> dict[str, torch.Tensor]:
         n = x.shape[1]
