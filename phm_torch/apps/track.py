@@ -22,8 +22,8 @@ import torch
 from omegaconf import DictConfig
 
 from .. import provenance
-from ..online.export import read_metadata
 from ..online.input_contract import InputContract
+from ..online.loaded import TorchScriptPipeline, load_pipeline
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
 from ..tracking.inspection import inspect_record
 from . import common
@@ -51,11 +51,13 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Track every actuator of ``cfg.index`` with the pipeline ``cfg.pipeline``; returns (metrics, objects)."""
     torch.set_num_threads(common.integer(cfg.threads, "threads", 1))
     model_path = Path(cfg.pipeline)
-    if not model_path.is_file():
-        raise ValueError(f"pipeline: no such file {str(model_path)!r} (export one with phm-evaluate or phm-export)")
-    metadata = read_metadata(model_path)
+    loaded = load_pipeline(model_path)        # checks the file; phm-predict's reader and diagnosis take it
+    if not isinstance(loaded, TorchScriptPipeline):
+        raise ValueError(f"pipeline: {str(model_path)!r} is a {loaded.format!r} file; phm-track needs the "
+                         f"TorchScript pipeline (its classifier and propagators drive the filter's RUL)")
+    metadata = loaded.metadata
     prov, command = _pipeline_command(cfg, metadata, model_path)
-    model = torch.jit.load(str(model_path))
+    model = loaded.module
     settings = _settings(cfg)
     tracker, described = build_tracker(model, metadata, common.plain(cfg.damage), settings, str(model_path))
     index = read_index(cfg.index)
@@ -65,8 +67,8 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     def diagnose_rows(rows: list) -> list[dict[str, Any]]:
         out = []
         for row in rows:
-            current, m = _read(str(row.path), model, resample)
-            found = inspect_record(model, _record(m, current), contract)
+            current, m = _read(str(row.path), loaded, resample)
+            found = inspect_record(loaded, _record(m, current), contract)
             for message in found["messages"]:
                 log.warning("%s: %s; the inspection is out of distribution (not fused)", row.path, message)
             out.append(found)
