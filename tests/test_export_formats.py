@@ -205,3 +205,33 @@ def test_export_cli_refuses_an_unknown_format(run_cli):
     result = run_cli("phm_torch.apps.export", "format=[torchscript,onnx]")
     assert result.returncode == 2
     assert "format: unknown format 'onnx'" in result.stderr
+
+
+@pytest.mark.slow
+def test_aoti_package_equals_eager_and_runs_without_phm_torch(pipeline, tmp_path):
+    """AOTInductor: both programs compiled into one package (about 2-3 min of C++ compilation on 2 cores)."""
+    path = write_formats(pipeline, tmp_path / "online.pt", ["aoti"])["aoti"]
+    assert path.name == "online.aoti.pt2"
+    model = load_pipeline(path)
+    assert model.format == "aoti"
+    x = records(pipeline, 256, seed=5)
+    for inputs in (x, x.index_select(1, pipeline.gappy.indices)):
+        for xb in (inputs, inputs[:1], inputs[1:2], inputs[2:3]):         # batch 256; clean, 3 missing, noise
+            r = model.run(xb)
+            ref = eager(pipeline, xb)
+            ref.pop("reasons")
+            assert_equal_outputs({name: getattr(r, name) for name in ref}, ref)
+    torch.save(x, tmp_path / "x.pt")
+    code = textwrap.dedent(f"""
+        import sys, torch
+        from torch._inductor.package import load_package
+        x = torch.load({str(tmp_path / 'x.pt')!r}, weights_only=True)
+        out = load_package({str(path)!r}, model_name='model')(x, torch.zeros(x.shape[1]))
+        torch.save(list(out), {str(tmp_path / 'out.pt')!r})
+        assert not any(name.startswith('phm_torch') for name in sys.modules), 'phm_torch was imported'
+    """)
+    subprocess.run([sys.executable, "-c", code], check=True, cwd=tmp_path)
+    out = dict(zip(STEP_OUTPUTS, torch.load(tmp_path / "out.pt", weights_only=True)))
+    ref = eager(pipeline, x)
+    for name in ("k_hat", "score", "rul", "ood", "residual"):
+        torch.testing.assert_close(out[name], ref[name], rtol=TOL, atol=TOL, equal_nan=True)
