@@ -287,3 +287,36 @@ def test_a_pipeline_calibrated_before_the_rate_scale_tracks_s_with_the_composed_
     assert tr.law.rate_scale_sigma == 0.35 and not described["band_included_rate_scale"]
     tr, described = build_tracker(pipeline, {"damage": damage_config()}, None, TrackerSettings(), "test")
     assert described["band_included_rate_scale"]
+
+
+def test_the_kalman_update_is_the_joint_one_and_a_clamped_reading_is_a_bound():
+    from phm_torch.tracking import kalman
+
+    g = torch.Generator().manual_seed(4)
+    a = torch.randn(2, 3, 8, 8, generator=g, dtype=torch.float64)
+    c = a @ a.transpose(-1, -2) * 1e-4 + 1e-6 * torch.eye(8, dtype=torch.float64)
+    m = 0.3 + 0.05 * torch.randn(2, 3, 8, generator=g, dtype=torch.float64)
+    k_hat = 0.3 + 0.05 * torch.randn(2, 8, generator=g, dtype=torch.float64)
+    scale = torch.full((2, 8), 0.01, dtype=torch.float64)
+    m1, c1, ll = kalman.update(m, c, k_hat, scale)
+    s_mat = c + torch.diag_embed(scale ** 2).unsqueeze(1)
+    gain = c @ torch.linalg.inv(s_mat)
+    innov = (k_hat.unsqueeze(1) - m).unsqueeze(-1)
+    torch.testing.assert_close(m1, m + (gain @ innov).squeeze(-1))
+    torch.testing.assert_close(c1, c - gain @ c)
+    exact = -0.5 * (innov.transpose(-1, -2) @ torch.linalg.solve(s_mat, innov)).reshape(2, 3) \
+        - 0.5 * torch.logdet(s_mat)
+    torch.testing.assert_close(ll - ll[:, :1], exact - exact[:, :1])        # up to a constant per row
+    # k_hat clamped at 0 on a component whose prior sits at 0.02 +/- 0.01: it says k + e <= 0, so k moves down
+    # and its variance shrinks, by the moments of the truncated normal; a prior far above 0 is improbable
+    m0 = torch.full((1, 2, 8), 0.3, dtype=torch.float64)
+    m0[0, :, 0] = torch.tensor([0.02, 0.1], dtype=torch.float64)
+    c0 = torch.diag_embed(torch.full((1, 2, 8), 1e-4, dtype=torch.float64))
+    k_hat0 = m0[0, 0].unsqueeze(0).clone()
+    k_hat0[0, 0] = 0.0
+    m2, c2, ll2 = kalman.update(m0, c0, k_hat0, torch.full((1, 8), 0.01, dtype=torch.float64))
+    assert float(m2[0, 0, 0]) < 0.02 and float(c2[0, 0, 0, 0]) < 1e-4
+    v = 2e-4                                                      # var of k + e
+    assert float(ll2[0, 0] - ll2[0, 1]) == pytest.approx(
+        float(torch.special.log_ndtr(torch.tensor(-0.02 / v ** 0.5)) - torch.special.log_ndtr(torch.tensor(-0.1 / v ** 0.5))),
+        rel=1e-6)
