@@ -12,7 +12,7 @@ lengths, dtype, nominal vector and record, interval level, the output and reason
   dynamic batch: ``model`` for full records (B, n_full) (what ``torch.export.load`` returns) and ``samples`` for
   selected samples (B, n_points) (``torch.export.pt2_archive._package.load_pt2(path).exported_programs``).
 * ``aoti`` (``.aoti.pt2``): the same two programs compiled by AOTInductor into one package
-  (``torch._inductor.aoti_load_package(path, model_name="model" | "samples")``), no Python needed to run it.
+  (``torch._inductor.package.load_package(path, model_name="model" | "samples")``), no Python needed to run it.
 """
 
 from __future__ import annotations

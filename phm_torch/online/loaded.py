@@ -222,7 +222,7 @@ def load_pipeline(path: str | os.PathLike, format: str | None = None) -> LoadedP
             from torch.export.pt2_archive._package import load_pt2
             programs = {name: ep.module() for name, ep in load_pt2(str(path)).exported_programs.items()}
         elif found == "aoti":
-            from torch._inductor.package import load_package   # aoti_load_package, with the model's name
+            from torch._inductor.package import load_package  # aoti_load_package, with the model's name
             programs = {name: load_package(str(path), model_name=name) for name in ("model", "samples")}
         else:
             raise ValueError(f"pipeline: {str(path)!r} names the unknown format {found!r}")
