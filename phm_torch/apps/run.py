@@ -1,8 +1,9 @@
 """``phm-run``: the main job, every stage of phm_torch end to end, and a report against the seed paper.
 
 Stages (each the plain function of its own app, composed from its own config plus the overrides listed
-under its name in conf/run.yaml): cases (virtual bench), generate, train, evaluate (RUL + TorchScript
-export and reload), workbench (hidden-effect demo), report (report/index.html). ``metrics.json`` merges
+under its name in conf/run.yaml): cases (virtual bench), generate (with a life split of run-to-failure
+histories), train, evaluate (RUL + TorchScript export and reload), track (phm-track on the life split: the
+fused RUL against the single-record one), workbench (hidden-effect demo), report (report/index.html). ``metrics.json`` merges
 every stage's metrics under the stage's name.
 """
 
@@ -30,7 +31,7 @@ from ..timing import call_times_us, percentiles_us
 from . import common
 
 log = logging.getLogger(__name__)
-STAGES = ("cases", "generate", "train", "evaluate", "workbench", "report")
+STAGES = ("cases", "generate", "train", "evaluate", "track", "workbench", "report")
 
 
 def compose_stage(app: str, overrides: list[str]) -> DictConfig:
@@ -208,17 +209,21 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "train": ("train", [*shared, f"data_dir={data_dir}", f"out_dir={train_dir}", *_overrides(cfg.train, "train")]),
         "evaluate": ("evaluate", [*shared, f"data_dir={data_dir}", f"bundle={train_dir / 'surrogates.pt'}",
                                   f"out_dir={eval_dir}", *_overrides(cfg.evaluate, "evaluate")]),
+        "track": ("track", [*shared, f"index={data_dir / 'life' / 'index.csv'}", f"pipeline={eval_dir / 'online.pt'}",
+                            f"truth={data_dir / 'life' / 'truth.json'}", f"out_dir={run_dir / 'track'}",
+                            *_overrides(cfg.track, "track")]),
         "workbench": ("workbench", [*shared, f"out_dir={run_dir / 'workbench'}",
                                     *_overrides(cfg.workbench, "workbench")]),
     }
     from .cases import run_cases
     from .evaluate import evaluate_rul
     from .generate import generate
+    from .track import track
     from .train import train_surrogates
     from .workbench import run_workbench
 
     functions = {"cases": run_cases, "generate": generate, "train": train_surrogates, "evaluate": evaluate_rul,
-                 "workbench": run_workbench}
+                 "track": track, "workbench": run_workbench}
     # resumable: a run of some stages keeps the metrics of the stages run before in this out_dir (and the
     # report stage sees them); each stage run now replaces its own entry
     previous = run_dir / "metrics.json"
@@ -236,6 +241,9 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             objects["report"] = build_report(run_dir, metrics, studies)
         else:
             app, overrides = plan[stage]
+            if stage == "track" and not (data_dir / "life" / "index.csv").is_file():
+                raise ValueError(f"stages: track needs the life split of the generate stage ({data_dir / 'life'} "
+                                 "has no index.csv); give the generate stage dataset.life.n_actuators > 0")
             if stage == "workbench" and not any(o.startswith("measurements=") for o in overrides):
                 overrides = [*overrides, f"measurements={workbench_measurement(cfg, shared, run_dir / 'workbench')}"]
             stage_metrics, _ = functions[stage](compose_stage(app, overrides))

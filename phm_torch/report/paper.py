@@ -106,6 +106,8 @@ def build_report(run_dir: Path, metrics: dict[str, Any], studies: dict[str, Any]
     r.paragraph("Both are calibrated on the noisy val records (docs/prognostics.md): split-conformal half-widths "
                 "per number of large faults of k_hat, and Platt scaling of the health score.")
 
+    _life_section(r, run_dir)
+
     r.section("Online latencies (paper: milliseconds on a desktop; targets FDI <= 100 us, full step <= 1 ms)")
     lat = studies.get("latency", {})
     r.table(["quantity", "ours"], [["FDI p50 [us] (phm-train)", tr.get("fdi_latency_us_p50")]]
@@ -133,6 +135,40 @@ def build_report(run_dir: Path, metrics: dict[str, Any], studies: dict[str, Any]
         for png in sorted((run_dir / "cases").glob("*.png"))[:3]:
             r.figure(png, png.stem)
     return r.write(run_dir / "report" / "index.html")
+
+
+LIFE_ROWS = (   # metric of phm_torch.prognostics.life_metrics, its label, its key in the targets block
+    ("coverage_5_95", "true RUL inside the 5-95 % band", "coverage_5_95"),
+    ("median_relative_band_width_second_half", "median (p95 - p5) / true RUL, second half of life",
+     "median_relative_band_width_second_half"),
+    ("alpha_lambda", "alpha-lambda accuracy (alpha 0.2, lambda 0.5)", "alpha_lambda"),
+    ("relative_accuracy", "relative accuracy at lambda 0.5 (median)", None),
+    ("prognostic_horizon", "prognostic horizon / life (median, alpha 0.1)", "prognostic_horizon"),
+    ("eol_detection_delay", "end-of-life detection delay [h] (median)", None),
+    ("eol_flagged_within_one_inspection", "end of life flagged within one inspection", "eol_flagged_within_one_inspection"),
+    ("positive_p50_when_faulty", "positive RUL p50 on a faulty verdict (count)", "positive_p50_when_faulty"))
+
+
+def _life_section(r: HtmlReport, run_dir: Path) -> None:
+    """Life tracking (phm-track on the life split): the fused RUL against the single-record one (not in the
+    paper: its RUL is a snapshot)."""
+    scores = _load(run_dir / "track" / "metrics.json")
+    r.section("Life tracking: inspections fused over each actuator's life vs one record at a time (not in the paper)")
+    if not scores:
+        r.paragraph("(track stage not run)")
+        return
+    targets = scores.get("targets", {})
+    rows = []
+    for key, label, target_key in LIFE_ROWS:
+        t = targets.get(target_key) if target_key else None
+        rows.append([label, scores["tracker"].get(key), scores["snapshot"].get(key),
+                     "" if t is None else t["target"], "" if t is None else ("yes" if t["passed"] else "no")])
+    r.table(["Saxena et al. (2010) metric", "tracker", "snapshot", "target", "met"], rows)
+    r.paragraph(f"{scores.get('n_actuators')} actuators, {scores.get('n_inspections')} inspections "
+                f"({scores.get('n_out_of_distribution')} out of distribution, not fused); metric definitions in "
+                "docs/prognostics.md (Life tracking metrics). An empty cell is an infinite value (a censored band).")
+    for name in ("life_rul", "life_damage", "life_fleet"):
+        r.figure(run_dir / "track" / f"{name}.png", name.replace("_", " "))
 
 
 def _pct(v: float | None) -> float | None:
