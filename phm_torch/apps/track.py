@@ -44,7 +44,7 @@ def _settings(cfg: DictConfig) -> TrackerSettings:
     dof = cfg.measurement_dof
     return TrackerSettings(n_particles=cfg.n_particles, rul_particles=cfg.rul_particles, seed=cfg.seed,
                            measurement_dof=math.inf if dof in (math.inf, ".inf", "inf") else dof,
-                           resample_ess=cfg.resample_ess)
+                           resample_ess=cfg.resample_ess, verdict=cfg.verdict)
 
 
 def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:

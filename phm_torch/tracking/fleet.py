@@ -36,18 +36,19 @@ def censor(values: Sequence[float | None], horizon: float) -> tuple[dict[str, fl
     return out, any(v is None for v in out.values())
 
 
-def _healthy(diagnosis: Mapping[str, Any], rul: Mapping[str, float | None] | None, fused: bool) -> bool:
-    """The tracker's verdict: the inspection's own (phm-predict's) for a fused one, and faulty wherever the
-    posterior's median RUL is 0 (most particles past the health classifier's boundary); an OOD inspection's
-    verdict is not trusted, so there the posterior alone decides (the record's own verdict before a track)."""
+def _healthy(diagnosis: Mapping[str, Any], rul: Mapping[str, float | None] | None, fused: bool,
+             record_verdict: bool) -> bool:
+    """The tracker's verdict: faulty wherever the posterior's median RUL is 0 (most of its probability past the
+    health classifier's boundary); with ``record_verdict`` also wherever a fused inspection's own (phm-predict's)
+    verdict is faulty. Before a track, the record's own verdict."""
     if rul is None:
         return bool(diagnosis["healthy"])
     past = rul["p50"] is not None and rul["p50"] <= 0.0
-    return (bool(diagnosis["healthy"]) or not fused) and not past
+    return (bool(diagnosis["healthy"]) or not fused or not record_verdict) and not past
 
 
 def inspection_record(row: Inspection, diagnosis: Mapping[str, Any], post: Posterior, i: int, fused: bool,
-                      horizon: float) -> dict[str, Any]:
+                      horizon: float, record_verdict: bool = False) -> dict[str, Any]:
     """One inspection of ``track.json`` (row ``i`` of the batch summary ``post``)."""
     tracked = bool(post.tracked[i])
     rul, rul_censored = censor(post.rul[i].tolist(), horizon) if tracked else (None, False)
@@ -61,7 +62,7 @@ def inspection_record(row: Inspection, diagnosis: Mapping[str, Any], post: Poste
         "k_filtered_interval": {n: [lo, hi] for n, lo, hi in zip(FAULT_NAMES, post.k_low[i].tolist(),
                                                                  post.k_high[i].tolist())} if tracked else None,
         "rate_scale": dict(zip(QUANTILES, post.rate_scale[i].tolist())) if tracked else None,
-        "p_faulty": diagnosis.get("p_faulty"), "healthy": _healthy(diagnosis, rul, fused),
+        "p_faulty": diagnosis.get("p_faulty"), "healthy": _healthy(diagnosis, rul, fused, record_verdict),
         "snapshot_healthy": bool(diagnosis["healthy"]),
         "rul_hours": rul, "rul_censored": rul_censored,
         "out_of_distribution": bool(diagnosis["out_of_distribution"]),
@@ -88,13 +89,14 @@ def _run_chunk(tracker: Tracker, model: Any, rows: Mapping[str, list[Inspection]
         k_hat = torch.stack([m[0] for m in meas])
         scale = interval_scale(k_hat, torch.stack([m[1] for m in meas]), torch.stack([m[2] for m in meas]), dof)
         fuse = torch.tensor([not d["out_of_distribution"] for d in diag])
-        faulty = torch.tensor([not d["healthy"] for d in diag])
+        record_verdict = tracker.settings.verdict == "record"
+        faulty = torch.tensor([not d["healthy"] and record_verdict for d in diag])
         restart = torch.tensor([row.event == "maintenance" for row in batch])
         post = tracker.update([row.actuator for row in batch], torch.tensor([row.hours for row in batch]),
                               k_hat, scale, fuse, faulty, restart)
         for i, (row, d) in enumerate(zip(batch, diag)):
             out[row.actuator].append(inspection_record(row, d, post, i, bool(fuse[i]) and bool(post.tracked[i]),
-                                                       tracker.law.horizon_hours))
+                                                       tracker.law.horizon_hours, record_verdict))
     return out
 
 

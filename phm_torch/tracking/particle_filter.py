@@ -56,6 +56,8 @@ class TrackerSettings:
         max_rate_scale: the particles' s stays within [1 / this, this].
         bisections: halvings of the RUL crossing interval (cold search).
         resample_ess: resample when the effective sample size is below this fraction of n_particles.
+        verdict: ``posterior``: an inspection is faulty where the posterior's median RUL is 0; ``record``: also
+            where the record's own verdict (phm-predict's) is faulty, whose RUL 5 % and 50 % are then 0.
     """
 
     n_particles: int = 128
@@ -66,6 +68,7 @@ class TrackerSettings:
     max_rate_scale: float = 8.0
     bisections: int = 6
     resample_ess: float = 0.5
+    verdict: str = "record"
 
     def __post_init__(self) -> None:
         for name in ("n_particles", "rul_particles", "seed", "bisections"):
@@ -79,6 +82,8 @@ class TrackerSettings:
                              f"({self.n_particles})")
         if not 0.0 <= float(self.resample_ess) <= 1.0:
             raise ValueError(f"tracker.resample_ess must be in [0, 1], got {self.resample_ess!r}")
+        if self.verdict not in ("posterior", "record"):
+            raise ValueError(f"tracker.verdict must be 'posterior' or 'record', got {self.verdict!r}")
         self.measurement_dof = float(self.measurement_dof)
         if not self.measurement_dof > 0:
             raise ValueError(f"tracker.measurement_dof must be > 0 (inf: Gaussian), got {self.measurement_dof!r}")
