@@ -57,6 +57,7 @@ class ConsistencyCheck(nn.Module):
         self.register_buffer("modes_hat", modes[idx].clone().contiguous())
         self.register_buffer("floors", torch.stack([model.floor_full_, model.floor_samples_]).to(dtype))
         self.n_full, self.n_points = int(mean.shape[0]), int(idx.numel())
+        self.stride = STRIDE
         self.noise_window = NOISE_WINDOW
         self.set_thresholds(thresholds, noise_levels)
 
@@ -78,7 +79,8 @@ class ConsistencyCheck(nn.Module):
         estimates k_hat (B, 8), the records' relative noise (B,) given."""
         alpha = self.model(k_hat)
         if x.shape[1] == self.n_full:
-            y = x.index_select(1, self.rows).to(self.mean_rows.dtype)
+            # a strided slice, not index_select on dim 1: the same rows (arange(0, n, STRIDE)) at ~2/3 of the cost
+            y = x[:, ::self.stride].to(self.mean_rows.dtype)
             return consistency_statistic(y, self.mean_rows, self.modes_rows, alpha, noise, self.floors[0])
         return consistency_statistic(x.to(self.mean_hat.dtype), self.mean_hat, self.modes_hat, alpha, noise,
                                      self.floors[1])
