@@ -21,9 +21,9 @@ from .. import provenance
 from ..data.store import DatasetStore
 from ..online import OnlinePipeline
 from ..online.consistency import calibrate_consistency
-from ..online.export import export_torchscript
 from ..online.fdi_band import FDIBand, TooFewCalibrationSignals, calibrate_fdi_band
 from ..online.fdi_interval import FDIInterval, calibrate_fdi_interval, interval_quality
+from ..online.formats import check_formats, write_checked
 from ..online.input_contract import tracking_range
 from ..online.noise_threshold import calibrate_gappy_residual
 from ..online.verdict import calibrate_verdict, shift_prior, verdict_quality
@@ -196,6 +196,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     common.set_threads(cfg)
     prior = _verdict_prior(cfg)
     interval_settings = _interval_settings(cfg)
+    formats = check_formats(common.plain(cfg.get("export_formats", "torchscript"))) if cfg.export else []
     with DatasetStore(cfg.data_dir) as store:
         prov = common.reconcile_provenance(cfg, store.provenance, f"store {cfg.data_dir}")
         assessment = cfg.assessment if cfg.get("assessment") is not None else \
@@ -325,18 +326,14 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                       {"k": k.tolist(), "k_hat": k_hat.tolist(), "reference": reference.tolist(),
                        "true_k": true_k.tolist(), "full_flow": torch.nan_to_num(full_flow, nan=-1.0).tolist(),
                        "out_of_distribution": ood.tolist()})
-    if cfg.export:
-        path = out_dir / "online.pt"
-        export_torchscript(pipeline, path, {"provenance": prov, "tracking_nrmse": tracking,
-                                            "tracking_nrmse_healthy": tracking_healthy,
-                                            "damage": common.plain(cfg.damage)})    # phm-track's process model
-        reloaded = torch.jit.load(str(path))
-        with torch.no_grad():
-            again = reloaded(signals[:8])
-            eager = pipeline(signals[:8])
-        diff = max(float((a.double() - b.double()).abs().nan_to_num(0.0).max()) for a, b in zip(again, eager))
-        metrics["export_max_abs_diff"] = diff
-        metrics["export"] = str(path)
+    if cfg.export:        # each format of export_formats beside online.pt, reloaded and compared with eager
+        checked = write_checked(pipeline, out_dir / "online.pt", formats,
+                                {"provenance": prov, "tracking_nrmse": tracking,
+                                 "tracking_nrmse_healthy": tracking_healthy,
+                                 "damage": common.plain(cfg.damage)}, signals[:8])    # phm-track's process model
+        metrics["export_max_abs_diff"] = max(checked["max_abs_diff"].values())
+        metrics["export"] = next(iter(checked["files"].values()))
+        metrics["export_files"], metrics["export_max_abs_diff_by_format"] = checked["files"], checked["max_abs_diff"]
     metrics.update(actuator=provenance.describe(prov["actuator"]), command=provenance.describe(prov["command"]))
     common.write_json(out_dir / "metrics.json", metrics)
     return metrics, {"pipeline": pipeline, "comparison": comparison, "figures": figures, "reference": reference}

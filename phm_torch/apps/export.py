@@ -14,8 +14,7 @@ from omegaconf import DictConfig
 
 from .. import provenance
 from ..online import OnlinePipeline
-from ..online.formats import check_formats, write_formats
-from ..online.loaded import load_pipeline
+from ..online.formats import check_formats, write_checked
 from ..surrogates.bundle import SurrogateBundle
 from . import common
 
@@ -119,15 +118,10 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     extra = {key: cal[key] for key in ("tracking_nrmse", "tracking_nrmse_healthy")      # the input contract's
              if cal.get(key) is not None}
     extra["damage"] = _damage(cal, cfg, cal_path)        # the tracker's process model (phm-track)
-    paths = write_formats(pipeline, out, formats, {"provenance": prov, **extra})
-    probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)
-    diffs = {}
-    with torch.no_grad():
-        eager = pipeline(probe)
-        for name, path in paths.items():      # each file reloaded as phm-predict reads it
-            again = load_pipeline(path, name)(probe)
-            diffs[name] = max(float((a.double() - b.double()).abs().nan_to_num(0.0).max()) for a, b in zip(again, eager))
-    return {"out": str(next(iter(paths.values()))), "files": {k: str(v) for k, v in paths.items()},
+    probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)      # each file reloaded as phm-predict reads it
+    checked = write_checked(pipeline, out, formats, {"provenance": prov, **extra}, probe)
+    diffs = checked["max_abs_diff"]
+    return {"out": next(iter(checked["files"].values())), "files": checked["files"],
             "max_abs_diff_reloaded": max(diffs.values()), "max_abs_diff_by_format": diffs,
             "actuator": provenance.describe(prov["actuator"]),
             "command": provenance.describe(prov["command"])}, {"pipeline": pipeline}

@@ -22,7 +22,7 @@ Each record holds:
   check). The record is computed by :func:`phm_torch.online.diagnosis.diagnose`.
 
 The model is a file written by ``phm-evaluate`` or ``phm-export`` in any of its formats (TorchScript ``.pt``,
-torch.export ``.pt2``, AOTInductor ``.aoti.pt2``; :mod:`phm_torch.online.formats`), the format read from the
+torch.export ``.pt2``, AOTInductor ``.aoti.pt2``, ONNX ``.onnx.zip`` (complete records only); :mod:`phm_torch.online.formats`), the format read from the
 file (``format=`` insists on one); the JSON is the same for every format (no unpickling). An empty or ``nan`` cell of a CSV's ``current`` column is a missing
 sample, which the pipeline drops (too many, and the record is out of distribution). With ``baseline`` (healthy records of the measuring bench), every
 measurement is first moved onto the training model by the difference between that bench's healthy record
@@ -50,7 +50,7 @@ from ..online.bench_check import check_bench
 from ..online.corruptions import Record
 from ..online.diagnosis import NOISE_FLOOR, diagnose
 from ..online.input_contract import InputContract
-from ..online.loaded import LoadedPipeline, load_pipeline
+from ..online.loaded import LoadedPipeline, UnservedRecord, load_pipeline
 from . import common
 
 log = logging.getLogger(__name__)
@@ -151,7 +151,10 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     records = []
     for path in paths:
         current, m = _read(path, model, bool(cfg.resample))
-        record = {"file": str(path), **diagnose(model, _record(m, current), contract, bench_nominal, bench)}
+        try:
+            record = {"file": str(path), **diagnose(model, _record(m, current), contract, bench_nominal, bench)}
+        except UnservedRecord as e:       # a format that serves complete records only (onnx)
+            raise UnservedRecord(f"measurements: {str(path)!r}: {e}") from None
         for message in record["messages"]:
             log.warning("%s: %s; the record is out of distribution", path, message)
         if record["noise_above_calibration"]:

@@ -13,6 +13,8 @@ lengths, dtype, nominal vector and record, interval level, the output and reason
   selected samples (B, n_points) (``torch.export.pt2_archive._package.load_pt2(path).exported_programs``).
 * ``aoti`` (``.aoti.pt2``): the same two programs compiled by AOTInductor into one package
   (``torch._inductor.package.load_package(path, model_name="model" | "samples")``), no Python needed to run it.
+* ``onnx`` (``.onnx.zip``): the two programs as ONNX models run with ONNX Runtime, complete records only
+  (:mod:`.onnx_format`; the optional extra ``phm-torch[onnx]``).
 """
 
 from __future__ import annotations
@@ -58,14 +60,15 @@ def pipeline_constants(pipeline: OnlinePipeline) -> dict[str, Any]:
             "outputs": list(STEP_OUTPUTS), "reasons": list(PIPELINE_CHECKS), "programs": dict(PROGRAMS)}
 
 
-def export_programs(pipeline: OnlinePipeline) -> dict[str, torch.export.ExportedProgram]:
-    """The two :class:`OnlineStep` programs (full records, selected samples) of ``pipeline``, batch dynamic."""
+def export_programs(pipeline: OnlinePipeline, complete_only: bool = False) -> dict[str, torch.export.ExportedProgram]:
+    """The two :class:`OnlineStep` programs (full records, selected samples) of ``pipeline``, batch dynamic;
+    ``complete_only``: without the missing-sample path (see :class:`OnlineStep`)."""
     pipeline = pipeline.eval()
     dtype = pipeline.times.dtype
     batch = torch.export.Dim("batch", min=1, max=MAX_BATCH)
     out = {}
     for name, full in PROGRAMS.items():
-        step = OnlineStep(pipeline, full)
+        step = OnlineStep(pipeline, full, complete_only)
         n = step.length
         # in-distribution example records: the mean signal (a NaN would only be data, not a traced branch)
         x = pipeline.gappy.mean_hat.new_zeros(EXAMPLE_BATCH, n, dtype=dtype) + (
@@ -77,9 +80,11 @@ def export_programs(pipeline: OnlinePipeline) -> dict[str, torch.export.Exported
     return out
 
 
-def _metadata(pipeline: OnlinePipeline, metadata: Mapping[str, Any] | None, fmt: str) -> str:
-    return json.dumps({**dict(metadata or {}), "format": fmt, "pipeline": pipeline_constants(pipeline)},
-                      sort_keys=True)
+def _metadata(pipeline: OnlinePipeline, metadata: Mapping[str, Any] | None, fmt: str, limits: str | None = None) -> str:
+    """The file's metadata; ``limits``: what the format cannot serve (then ``pipeline.missing_samples`` is false:
+    records with a missing sample are refused by the loader)."""
+    const = {**pipeline_constants(pipeline), "missing_samples": limits is None, "limits": limits}
+    return json.dumps({**dict(metadata or {}), "format": fmt, "pipeline": const}, sort_keys=True)
 
 
 def write_export(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None,
@@ -117,9 +122,20 @@ def _write_torchscript(pipeline: OnlinePipeline, path: str | os.PathLike, metada
     export_torchscript(pipeline, path, metadata)
 
 
+def write_onnx(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None,
+               programs: Any = None) -> None:
+    """Write the ``onnx`` format (:mod:`.onnx_format`: complete records only) atomically to ``path``."""
+    from . import onnx_format
+
+    onnx_format.require()
+    onnx_format.write_onnx(export_programs(pipeline, complete_only=True), path,
+                           _metadata(pipeline, metadata, "onnx", onnx_format.LIMITS))
+
+
 # format name -> (file suffix, writer(pipeline, path, metadata, programs))
 WRITERS: dict[str, tuple[str, Callable[..., None]]] = {
-    "torchscript": (".pt", _write_torchscript), "export": (".pt2", write_export), "aoti": (".aoti.pt2", write_aoti)}
+    "torchscript": (".pt", _write_torchscript), "export": (".pt2", write_export), "aoti": (".aoti.pt2", write_aoti),
+    "onnx": (".onnx.zip", write_onnx)}
 
 
 def check_formats(formats: str | Sequence[str]) -> list[str]:
@@ -130,6 +146,10 @@ def check_formats(formats: str | Sequence[str]) -> list[str]:
     for n in names:
         if n not in WRITERS:
             raise ValueError(f"format: unknown format {n!r}; known: {', '.join(WRITERS)}")
+    if "onnx" in names:      # an optional extra: refused before any work when it is not installed
+        from .onnx_format import require
+
+        require()
     return list(dict.fromkeys(names))
 
 
@@ -148,9 +168,33 @@ def write_formats(pipeline: OnlinePipeline, out: str | os.PathLike, formats: str
                   metadata: Mapping[str, Any] | None = None) -> dict[str, Path]:
     """Write ``pipeline`` in each of ``formats`` beside ``out`` (:func:`format_path`); returns format -> path."""
     names = check_formats(formats)
-    programs = export_programs(pipeline) if set(names) - {"torchscript"} else None
+    programs = export_programs(pipeline) if set(names) & {"export", "aoti"} else None
     paths = {}
     for name in names:
         paths[name] = format_path(out, name)
         WRITERS[name][1](pipeline, paths[name], metadata, programs)
     return paths
+
+
+def write_checked(pipeline: OnlinePipeline, out: str | os.PathLike, formats: str | Sequence[str],
+                  metadata: Mapping[str, Any] | None, probe: torch.Tensor) -> dict[str, Any]:
+    """:func:`write_formats`, then each file reloaded as phm-predict reads it
+    (:func:`~phm_torch.online.loaded.load_pipeline`) and its five outputs on ``probe`` (B, n_full) [A] compared
+    with eager. Returns ``{"files": {format: path}, "max_abs_diff": {format: largest |reloaded - eager|}}``
+    (NaN where both are NaN counts as equal; a NaN on one side only is an infinite difference)."""
+    from .loaded import load_pipeline
+
+    paths = write_formats(pipeline, out, formats, metadata)
+    diffs = {}
+    with torch.no_grad():
+        eager = pipeline(probe)
+        for name, path in paths.items():
+            again = load_pipeline(path, name)(probe)
+            diffs[name] = max(_max_diff(a, b) for a, b in zip(again, eager))
+    return {"files": {k: str(v) for k, v in paths.items()}, "max_abs_diff": diffs}
+
+
+def _max_diff(a: torch.Tensor, b: torch.Tensor) -> float:
+    a, b = a.double(), b.double()
+    same_nan = torch.isnan(a) & torch.isnan(b)
+    return float(torch.where(same_nan, torch.zeros_like(a), (a - b).abs().nan_to_num(float("inf"))).max())

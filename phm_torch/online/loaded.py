@@ -25,7 +25,11 @@ from .export import read_metadata
 from .input_contract import pipeline_reasons
 from .step import STEP_OUTPUTS
 
-FORMATS = ("torchscript", "export", "aoti")
+FORMATS = ("torchscript", "export", "aoti", "onnx")
+
+
+class UnservedRecord(ValueError):
+    """A record the loaded file's format cannot serve (e.g. one with a missing sample for an ``onnx`` file)."""
 
 
 @dataclass(frozen=True)
@@ -147,6 +151,8 @@ class ProgramPipeline(LoadedPipeline):
             setattr(self, name, _tensor(const[name], self.dtype))
         self.reason_names = list(const["reasons"])
         self.indices = torch.tensor(const["indices"], dtype=torch.long)     # the selected samples of a full record
+        self.missing_samples = bool(const.get("missing_samples", True))     # False: complete records only
+        self.limits = const.get("limits")
 
     def _outputs(self, x: torch.Tensor, offset: torch.Tensor | None) -> dict[str, torch.Tensor]:
         n = x.shape[1]
@@ -154,6 +160,14 @@ class ProgramPipeline(LoadedPipeline):
             raise ValueError(f"records: expected (B, {self.n_full}) full records or (B, {self.n_points}) selected "
                              f"samples, got {tuple(x.shape)}")
         program = self.programs["model" if n == self.n_full else "samples"]
+        if not self.missing_samples:
+            samples = x.index_select(1, self.indices) if n == self.n_full else x
+            gaps = (~torch.isfinite(samples)).sum(1)
+            if bool(gaps.any()):
+                i = int(gaps.nonzero()[0, 0])
+                raise UnservedRecord(f"record {i} misses {int(gaps[i])} of its {self.n_points} selected samples "
+                                     f"(NaN); this {self.format!r} pipeline serves {self.limits}; use its "
+                                     f"torchscript, export or aoti file for such records")
         offset = torch.zeros(n, dtype=self.dtype) if offset is None else offset
         with torch.no_grad():
             out = program(x.to(self.dtype).contiguous(), offset.contiguous())
@@ -176,7 +190,7 @@ class ProgramPipeline(LoadedPipeline):
         return [[name for name, on in zip(self.reason_names, row.tolist()) if on] for row in flags]
 
 
-SUFFIXES = {".aoti.pt2": "aoti", ".pt2": "export", ".pt": "torchscript"}     # longest first
+SUFFIXES = {".aoti.pt2": "aoti", ".onnx.zip": "onnx", ".pt2": "export", ".pt": "torchscript"}   # longest first
 
 
 def _format_of(path: Path, metadata: dict[str, Any]) -> str:
@@ -224,6 +238,9 @@ def load_pipeline(path: str | os.PathLike, format: str | None = None) -> LoadedP
         elif found == "aoti":
             from torch._inductor.package import load_package  # aoti_load_package, with the model's name
             programs = {name: load_package(str(path), model_name=name) for name in ("model", "samples")}
+        elif found == "onnx":
+            from .onnx_format import load_onnx
+            programs = load_onnx(path)
         else:
             raise ValueError(f"pipeline: {str(path)!r} names the unknown format {found!r}")
     except (RuntimeError, KeyError, zipfile.BadZipFile) as e:

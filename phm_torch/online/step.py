@@ -73,12 +73,19 @@ class OnlineStep(nn.Module):
     Args:
         pipeline: the eager pipeline (put in eval mode; its numbers are not changed).
         full: True for full records (B, n_full), False for selected samples (B, n_points).
+        complete_only: only the complete-record path (no masked least squares, no Cholesky: what runtimes
+            without linear solves, e.g. ONNX, can run); equal to the pipeline only for records without a missing
+            sample, which the caller must ensure.
     """
 
-    def __init__(self, pipeline: OnlinePipeline, full: bool):
+    def __init__(self, pipeline: OnlinePipeline, full: bool, complete_only: bool = False):
         super().__init__()
+        if complete_only and pipeline.n_points < pipeline.min_count:
+            raise ValueError(f"complete_only: the pipeline needs {pipeline.min_count} of its {pipeline.n_points} "
+                             f"samples, so every record takes its missing-sample path (no complete-record step)")
         self.pipeline = pipeline.eval()
         self.full = bool(full)
+        self.complete_only = bool(complete_only)
         self.length = pipeline.n_full if full else pipeline.n_points
         n_t = int(pipeline.propagators.shape[0])
         coarse = list(range(0, n_t, pipeline.coarse))
@@ -171,8 +178,11 @@ class OnlineStep(nn.Module):
         noise = noise_level(x, p.noise_window) if self.estimate_noise else None
         samples = x.index_select(1, p.gappy.indices) if self.full else x
         samples = samples.to(p.gappy.modes_hat.dtype)
-        alpha, residual, enough, flat = self._gappy(samples)
-        if p.n_points >= p.min_count:     # both paths computed, the pipeline's choice selected (see __init__)
+        if self.complete_only:     # the caller guarantees every sample present (no linear solve in the graph)
+            alpha, residual, enough, flat = self._complete(samples)
+        else:
+            alpha, residual, enough, flat = self._gappy(samples)
+        if p.n_points >= p.min_count and not self.complete_only:     # both paths, the pipeline's choice selected
             complete = torch.isfinite(samples).all()
             alpha, residual, enough, flat = (torch.where(complete, a, b) for a, b in
                                              zip(self._complete(samples), (alpha, residual, enough, flat)))
