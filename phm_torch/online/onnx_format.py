@@ -19,6 +19,7 @@ is exact for the sorted 1-D level tables it reads.
 from __future__ import annotations
 
 import importlib.util
+import logging
 import os
 import tempfile
 import zipfile
@@ -64,8 +65,14 @@ def onnx_bytes(program: torch.export.ExportedProgram, metadata: str) -> bytes:
     require()
     program = program.run_decompositions({torch.ops.aten.searchsorted.Tensor: _searchsorted_by_count})
     batch = torch.export.Dim("batch", min=1, max=1 << 20)
-    onnx_program = torch.onnx.export(program, dynamic_shapes={"x": {0: batch}, "offset": None}, dynamo=True,
-                                     input_names=["x", "offset"], output_names=list(STEP_OUTPUTS), verbose=False)
+    quiet = logging.getLogger("onnx_ir")       # one INFO line per deduplicated constant, hundreds per program
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    try:
+        onnx_program = torch.onnx.export(program, dynamic_shapes={"x": {0: batch}, "offset": None}, dynamo=True,
+                                         input_names=["x", "offset"], output_names=list(STEP_OUTPUTS), verbose=False)
+    finally:
+        quiet.setLevel(level)
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "step.onnx"
         onnx_program.save(str(path), external_data=False)
