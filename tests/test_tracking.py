@@ -213,17 +213,15 @@ def exact_rate_scale_band(law: DamageLaw, k_hat: torch.Tensor, sd: torch.Tensor,
     grid = torch.exp(torch.linspace(-1.5, 1.5, 241, dtype=torch.float64))
     w = 1.0 / sd[comps] ** 2
     y = (k_hat - law.nominal)[:, comps]
-    log_p = []
-    for s in grid.tolist():
-        a = torch.linalg.matrix_exp(law.rate * s * torch.tensor(hours, dtype=torch.float64).view(-1, 1, 1))
-        a = a[:, comps][:, :, comps]
-        h = torch.einsum("tji,j,tjk->ik", a, w, a)
-        x = torch.linalg.solve(h, torch.einsum("tji,j,tj->i", a, w, y))
-        resid = ((y - torch.einsum("tij,j->ti", a, x)) ** 2 * w).sum()
-        log_p.append(float(-0.5 * resid - 0.5 * torch.logdet(h) - 0.5 * (math.log(s) / law.rate_scale_sigma) ** 2
-                           - math.log(s)))
-    p = torch.softmax(torch.tensor(log_p), 0)
-    cdf = p.cumsum(0)
+    t = torch.tensor(hours, dtype=torch.float64)
+    a = torch.linalg.matrix_exp(law.rate * (grid.view(-1, 1) * t).reshape(-1, 1, 1))        # (G T, 8, 8)
+    a = a.reshape(len(grid), len(hours), 8, 8)[:, :, comps][:, :, :, comps]
+    h = torch.einsum("gtji,j,gtjk->gik", a, w, a)
+    x = torch.linalg.solve(h, torch.einsum("gtji,j,tj->gi", a, w, y))
+    resid = ((y - torch.einsum("gtij,gj->gti", a, x)) ** 2 * w).sum((1, 2))
+    log_s = grid.log()
+    log_p = -0.5 * resid - 0.5 * torch.logdet(h) - 0.5 * (log_s / law.rate_scale_sigma) ** 2 - log_s
+    cdf = torch.softmax(log_p, 0).cumsum(0)
     return [float(grid[int(torch.searchsorted(cdf, torch.tensor(q, dtype=cdf.dtype)))]) for q in (0.05, 0.5, 0.95)]
 
 
