@@ -5,6 +5,7 @@ format equals eager within 1e-5 (float32) on full and selected-sample records, w
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 import textwrap
@@ -228,10 +229,15 @@ def test_export_cli_refuses_an_unknown_format(run_cli):
     assert "format: unknown format 'tflite'" in result.stderr
 
 
-@pytest.mark.slow
-def test_aoti_package_equals_eager_and_runs_without_phm_torch(pipeline, tmp_path):
+@pytest.fixture(scope="module")
+def aoti_file(pipeline, tmp_path_factory):
     """AOTInductor: both programs compiled into one package (about 2-3 min of C++ compilation on 2 cores)."""
-    path = write_formats(pipeline, tmp_path / "online.pt", ["aoti"])["aoti"]
+    return write_formats(pipeline, tmp_path_factory.mktemp("aoti") / "online.pt", ["aoti"])["aoti"]
+
+
+@pytest.mark.slow
+def test_aoti_package_equals_eager_and_runs_without_phm_torch(pipeline, aoti_file, tmp_path):
+    path = aoti_file
     assert path.name == "online.aoti.pt2"
     model = load_pipeline(path)
     assert model.format == "aoti"
@@ -256,6 +262,39 @@ def test_aoti_package_equals_eager_and_runs_without_phm_torch(pipeline, tmp_path
     ref = eager(pipeline, x)
     for name in ("k_hat", "score", "rul", "ood", "residual"):
         torch.testing.assert_close(out[name], ref[name], rtol=TOL, atol=TOL, equal_nan=True)
+
+
+@pytest.mark.slow
+def test_cpp_example_runs_the_aoti_package_as_python_does(pipeline, aoti_file, tmp_path):
+    """examples/aoti_cpp: built with g++ against the torch wheel's libtorch (about 40 s), it runs one record through
+    the package with AOTIModelPackageLoader and prints what Python's load_package gives (and eager, within 1e-5)."""
+    if shutil.which("g++") is None:
+        pytest.skip("no g++ on this machine: the C++ example cannot be built")
+    root = Path(__file__).resolve().parents[1] / "examples" / "aoti_cpp"
+    binary = tmp_path / "phm_aoti"
+    subprocess.run(["bash", str(root / "build.sh"), str(binary)], check=True, capture_output=True, timeout=600)
+    model = load_pipeline(aoti_file)
+    x = records(pipeline, 3, seed=11)          # clean, 3 missing samples, noise (OOD)
+    cases = [(x[i:i + 1], "model") for i in range(3)] + [(x[1:2].index_select(1, pipeline.gappy.indices), "samples")]
+    for xb, name in cases:
+        xb.numpy().astype("<f4").tofile(tmp_path / "record.f32")
+        run = subprocess.run([str(binary), str(aoti_file), str(tmp_path / "record.f32"), name], capture_output=True,
+                             text=True, check=True, timeout=120)
+        lines = run.stdout.strip().splitlines()
+        assert len(lines) == len(STEP_OUTPUTS)
+        python = model._outputs(xb, None)
+        ref = eager(pipeline, xb)
+        for i, (line, out_name) in enumerate(zip(lines, STEP_OUTPUTS)):
+            index, *values = line.split()
+            assert int(index) == i
+            got = torch.tensor([float(v) for v in values], dtype=torch.float64)
+            want = python[out_name].double().flatten()
+            torch.testing.assert_close(got, want, rtol=0.0, atol=0.0, equal_nan=True, msg=out_name)   # same kernels
+            if out_name in ref and out_name != "reasons":
+                torch.testing.assert_close(got, ref[out_name].double().flatten(), rtol=TOL, atol=TOL, equal_nan=True)
+        assert (lines[STEP_OUTPUTS.index("rul")].split()[1] == "nan") == bool(ref["ood"][0])
+    bad = subprocess.run([str(binary), str(aoti_file)], check=False, capture_output=True, text=True)
+    assert bad.returncode == 2 and "usage:" in bad.stderr
 
 
 ONNX_SKIP = "the onnx extra is not installed: pip install 'phm-torch[onnx]'"
