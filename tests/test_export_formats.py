@@ -40,6 +40,10 @@ def _damage() -> DamageModel:
 
 @pytest.fixture(scope="module")
 def pipeline() -> OnlinePipeline:
+    return small_pipeline()
+
+
+def small_pipeline() -> OnlinePipeline:
     """A small float32 pipeline with every calibrated part a paper-scale one has but the forward surrogate."""
     torch.set_num_threads(1)
     torch.manual_seed(0)
@@ -295,105 +299,3 @@ def test_cpp_example_runs_the_aoti_package_as_python_does(pipeline, aoti_file, t
         assert (lines[STEP_OUTPUTS.index("rul")].split()[1] == "nan") == bool(ref["ood"][0])
     bad = subprocess.run([str(binary), str(aoti_file)], check=False, capture_output=True, text=True)
     assert bad.returncode == 2 and "usage:" in bad.stderr
-
-
-ONNX_SKIP = "the onnx extra is not installed: pip install 'phm-torch[onnx]'"
-
-
-@pytest.fixture(scope="module")
-def onnx_file(pipeline, tmp_path_factory):
-    for module in ("onnx", "onnxscript", "onnxruntime"):
-        pytest.importorskip(module, reason=ONNX_SKIP)
-    out = tmp_path_factory.mktemp("onnx") / "online.pt"
-    return write_formats(pipeline, out, ["onnx"], {"provenance": None})["onnx"]
-
-
-def complete_records(pipe: OnlinePipeline, n: int, seed: int) -> torch.Tensor:
-    """records() with the record of missing samples made complete (the ONNX file refuses it): the 3rd is noise."""
-    x = records(pipe, n, seed)
-    return torch.where(torch.isfinite(x), x, pipe.mean_signal)
-
-
-@pytest.mark.parametrize("full", [True, False])
-def test_onnx_equals_eager_on_complete_records(pipeline, onnx_file, full):
-    model = load_pipeline(onnx_file)
-    assert onnx_file.name == "online.onnx.zip" and model.format == "onnx" and not model.missing_samples
-    x = complete_records(pipeline, 256, seed=7)
-    x = x if full else x.index_select(1, pipeline.gappy.indices)
-    for xb in (x, x[:1], x[2:3]):          # batch 256; batch 1: clean, out of distribution (NaN RUL)
-        r = model.run(xb)
-        ref = eager(pipeline, xb)
-        ref.pop("reasons")
-        got = {name: getattr(r, name) for name in ref}
-        # ONNX Runtime's float32 GEMMs give k_hat within an ulp (6e-8) of torch's, and the RUL's threshold
-        # crossing amplifies that (measured: 3 of 768 values 1.2-1.6x over 1e-5 relative, 2e-4 h of 11 h): the RUL
-        # is compared with the eager RUL of ONNX's own k_hat at 1e-5, and with eager's own at 1e-4
-        torch.testing.assert_close(got.pop("rul"), ref.pop("rul"), rtol=1e-4, atol=1e-4, equal_nan=True)
-        with torch.no_grad():
-            rul = pipeline.rul(r.k_hat, True)
-        rul = torch.where((r.score <= 0).unsqueeze(1) & (torch.arange(3) < 2), torch.zeros_like(rul), rul)
-        torch.testing.assert_close(r.rul, torch.where(r.ood.unsqueeze(1), torch.nan, rul), rtol=TOL, atol=TOL,
-                                   equal_nan=True)
-        assert_equal_outputs(got, ref)
-    assert bool(model.run(x[2:3]).ood[0]) and bool(torch.isnan(model.run(x[2:3]).rul).all())
-
-
-def test_onnx_refuses_records_with_missing_samples(pipeline, onnx_file, compose, tmp_path):
-    from phm_torch.apps.predict import predict
-    from phm_torch.online.export import read_metadata
-    from phm_torch.online.loaded import UnservedRecord
-
-    limits = read_metadata(onnx_file)["pipeline"]
-    assert limits["missing_samples"] is False and "complete records only" in limits["limits"]
-    x = records(pipeline, 4)
-    model = load_pipeline(onnx_file, "onnx")
-    for xb in (x, x.index_select(1, pipeline.gappy.indices)):
-        with pytest.raises(UnservedRecord, match="record 1 misses 3 of its 24 selected samples"):
-            model.run(xb)
-    gap = x[0].clone()
-    gap[1] = float("nan")               # not a selected sample: the complete-record path, served as eager serves it
-    assert 1 not in pipeline.gappy.indices.tolist()
-    torch.testing.assert_close(model.run(gap[None]).k_hat, eager(pipeline, gap[None])["k_hat"], rtol=TOL, atol=TOL)
-    time = torch.arange(N_FULL, dtype=torch.float64) / 20000.0
-    zeros = torch.zeros(N_FULL, dtype=torch.float64)
-    csv = write_measurement(tmp_path / "gappy.csv", {"time": time, "command": zeros, "position": zeros,
-                                                     "current": x[0].double()})
-    lines = Path(csv).read_text().splitlines()
-    column = lines[0].split(",").index("current")
-    cells = lines[int(pipeline.gappy.indices[4]) + 1].split(",")
-    cells[column] = ""
-    lines[int(pipeline.gappy.indices[4]) + 1] = ",".join(cells)
-    Path(csv).write_text("\n".join(lines) + "\n")
-    with pytest.raises(UnservedRecord, match=r"measurements: '.*gappy.csv': record 0 misses 1 of its 24"):
-        predict(compose("predict", [f"pipeline={onnx_file}", f"measurements=[{csv}]"]))
-
-
-def test_onnx_file_runs_without_phm_torch(pipeline, onnx_file, tmp_path):
-    x = complete_records(pipeline, 5, seed=2)
-    torch.save(x, tmp_path / "x.pt")
-    code = textwrap.dedent(f"""
-        import sys, zipfile, torch, onnxruntime
-        x = torch.load({str(tmp_path / 'x.pt')!r}, weights_only=True).numpy()
-        model = zipfile.ZipFile({str(onnx_file)!r}).read('online/model.onnx')
-        out = onnxruntime.InferenceSession(model).run(None, {{'x': x, 'offset': x[0] * 0}})
-        torch.save([torch.from_numpy(o) for o in out], {str(tmp_path / 'out.pt')!r})
-        assert not any(name.startswith('phm_torch') for name in sys.modules), 'phm_torch was imported'
-    """)
-    subprocess.run([sys.executable, "-c", code], check=True, cwd=tmp_path)
-    out = dict(zip(STEP_OUTPUTS, torch.load(tmp_path / "out.pt", weights_only=True)))
-    ref = eager(pipeline, x)
-    for name in ("k_hat", "score", "rul", "ood", "residual", "k_lower", "p_faulty"):
-        tol = 1e-4 if name == "rul" else TOL       # see test_onnx_equals_eager_on_complete_records
-        torch.testing.assert_close(out[name], ref[name], rtol=tol, atol=tol, equal_nan=True)
-
-
-def test_a_missing_onnx_extra_is_one_clear_error(monkeypatch, onnx_file):
-    import importlib.util
-
-    real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "onnxruntime" else real(name, *a))
-    with pytest.raises(ValueError, match=r"format: 'onnx' needs the optional packages onnxruntime.*"
-                                         r"pip install 'phm-torch\[onnx\]'"):
-        check_formats(["torchscript", "onnx"])
-    with pytest.raises(ValueError, match=r"pip install 'phm-torch\[onnx\]'"):
-        load_pipeline(onnx_file)

@@ -15,6 +15,8 @@ lengths, dtype, nominal vector and record, interval level, the output and reason
   (``torch._inductor.package.load_package(path, model_name="model" | "samples")``), no Python needed to run it.
 * ``onnx`` (``.onnx.zip``): the two programs as ONNX models run with ONNX Runtime, complete records only
   (:mod:`.onnx_format`; the optional extra ``phm-torch[onnx]``).
+* ``executorch`` (``.pte.zip``): the two programs as methods of one ExecuTorch program, complete records, batches
+  up to 256 per call (:mod:`.executorch_format`; the optional extra ``phm-torch[executorch]``).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import torch
 
 from ..io.atomic import atomic_open
 from .export import METADATA_FILE, export_torchscript
+from .extras import EXTRAS, require
 from .input_contract import PIPELINE_CHECKS
 from .pipeline import OnlinePipeline
 from .step import STEP_OUTPUTS, OnlineStep
@@ -60,12 +63,13 @@ def pipeline_constants(pipeline: OnlinePipeline) -> dict[str, Any]:
             "outputs": list(STEP_OUTPUTS), "reasons": list(PIPELINE_CHECKS), "programs": dict(PROGRAMS)}
 
 
-def export_programs(pipeline: OnlinePipeline, complete_only: bool = False) -> dict[str, torch.export.ExportedProgram]:
-    """The two :class:`OnlineStep` programs (full records, selected samples) of ``pipeline``, batch dynamic;
-    ``complete_only``: without the missing-sample path (see :class:`OnlineStep`)."""
+def export_programs(pipeline: OnlinePipeline, complete_only: bool = False, max_batch: int = MAX_BATCH
+                    ) -> dict[str, torch.export.ExportedProgram]:
+    """The two :class:`OnlineStep` programs (full records, selected samples) of ``pipeline``, batch dynamic from 1
+    to ``max_batch``; ``complete_only``: without the missing-sample path (see :class:`OnlineStep`)."""
     pipeline = pipeline.eval()
     dtype = pipeline.times.dtype
-    batch = torch.export.Dim("batch", min=1, max=MAX_BATCH)
+    batch = torch.export.Dim("batch", min=1, max=max_batch)
     out = {}
     for name, full in PROGRAMS.items():
         step = OnlineStep(pipeline, full, complete_only)
@@ -80,10 +84,13 @@ def export_programs(pipeline: OnlinePipeline, complete_only: bool = False) -> di
     return out
 
 
-def _metadata(pipeline: OnlinePipeline, metadata: Mapping[str, Any] | None, fmt: str, limits: str | None = None) -> str:
+def _metadata(pipeline: OnlinePipeline, metadata: Mapping[str, Any] | None, fmt: str, limits: str | None = None,
+              max_batch: int | None = None) -> str:
     """The file's metadata; ``limits``: what the format cannot serve (then ``pipeline.missing_samples`` is false:
-    records with a missing sample are refused by the loader)."""
-    const = {**pipeline_constants(pipeline), "missing_samples": limits is None, "limits": limits}
+    records with a missing sample are refused by the loader); ``max_batch``: records per program call (the loader
+    splits larger batches), None: no bound."""
+    const = {**pipeline_constants(pipeline), "missing_samples": limits is None, "limits": limits,
+             "max_batch": max_batch}
     return json.dumps({**dict(metadata or {}), "format": fmt, "pipeline": const}, sort_keys=True)
 
 
@@ -127,15 +134,24 @@ def write_onnx(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapp
     """Write the ``onnx`` format (:mod:`.onnx_format`: complete records only) atomically to ``path``."""
     from . import onnx_format
 
-    onnx_format.require()
     onnx_format.write_onnx(export_programs(pipeline, complete_only=True), path,
                            _metadata(pipeline, metadata, "onnx", onnx_format.LIMITS))
+
+
+def write_executorch(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None,
+                     programs: Any = None) -> None:
+    """Write the ``executorch`` format (:mod:`.executorch_format`: complete records, batches up to its
+    ``MAX_BATCH``) atomically to ``path``."""
+    from . import executorch_format as et
+
+    et.write_executorch(export_programs(pipeline, complete_only=True, max_batch=et.MAX_BATCH), path,
+                        _metadata(pipeline, metadata, "executorch", et.LIMITS, et.MAX_BATCH))
 
 
 # format name -> (file suffix, writer(pipeline, path, metadata, programs))
 WRITERS: dict[str, tuple[str, Callable[..., None]]] = {
     "torchscript": (".pt", _write_torchscript), "export": (".pt2", write_export), "aoti": (".aoti.pt2", write_aoti),
-    "onnx": (".onnx.zip", write_onnx)}
+    "onnx": (".onnx.zip", write_onnx), "executorch": (".pte.zip", write_executorch)}
 
 
 def check_formats(formats: str | Sequence[str]) -> list[str]:
@@ -146,10 +162,9 @@ def check_formats(formats: str | Sequence[str]) -> list[str]:
     for n in names:
         if n not in WRITERS:
             raise ValueError(f"format: unknown format {n!r}; known: {', '.join(WRITERS)}")
-    if "onnx" in names:      # an optional extra: refused before any work when it is not installed
-        from .onnx_format import require
-
-        require()
+    for n in names:          # an optional extra: refused before any work when it is not installed
+        if n in EXTRAS:
+            require(n)
     return list(dict.fromkeys(names))
 
 

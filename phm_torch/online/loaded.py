@@ -25,7 +25,7 @@ from .export import read_metadata
 from .input_contract import pipeline_reasons
 from .step import STEP_OUTPUTS
 
-FORMATS = ("torchscript", "export", "aoti", "onnx")
+FORMATS = ("torchscript", "export", "aoti", "onnx", "executorch")
 
 
 class UnservedRecord(ValueError):
@@ -153,6 +153,7 @@ class ProgramPipeline(LoadedPipeline):
         self.indices = torch.tensor(const["indices"], dtype=torch.long)     # the selected samples of a full record
         self.missing_samples = bool(const.get("missing_samples", True))     # False: complete records only
         self.limits = const.get("limits")
+        self.max_batch = const.get("max_batch")      # records per program call (None: any)
 
     def _outputs(self, x: torch.Tensor, offset: torch.Tensor | None) -> dict[str, torch.Tensor]:
         n = x.shape[1]
@@ -169,8 +170,11 @@ class ProgramPipeline(LoadedPipeline):
                                      f"(NaN); this {self.format!r} pipeline serves {self.limits}; use its "
                                      f"torchscript, export or aoti file for such records")
         offset = torch.zeros(n, dtype=self.dtype) if offset is None else offset
+        x = x.to(self.dtype).contiguous()
+        chunks = [x] if self.max_batch is None else x.split(int(self.max_batch))
         with torch.no_grad():
-            out = program(x.to(self.dtype).contiguous(), offset.contiguous())
+            outs = [program(c.contiguous(), offset.contiguous()) for c in chunks]
+        out = outs[0] if len(outs) == 1 else [torch.cat(parts) for parts in zip(*outs)]
         return dict(zip(STEP_OUTPUTS, out))
 
     def run(self, x: torch.Tensor, bench_nominal: torch.Tensor | None = None) -> StepResult:
@@ -190,7 +194,8 @@ class ProgramPipeline(LoadedPipeline):
         return [[name for name, on in zip(self.reason_names, row.tolist()) if on] for row in flags]
 
 
-SUFFIXES = {".aoti.pt2": "aoti", ".onnx.zip": "onnx", ".pt2": "export", ".pt": "torchscript"}   # longest first
+SUFFIXES = {".aoti.pt2": "aoti", ".onnx.zip": "onnx", ".pte.zip": "executorch", ".pt2": "export",
+            ".pt": "torchscript"}    # longest first
 
 
 def _format_of(path: Path, metadata: dict[str, Any]) -> str:
@@ -241,6 +246,9 @@ def load_pipeline(path: str | os.PathLike, format: str | None = None) -> LoadedP
         elif found == "onnx":
             from .onnx_format import load_onnx
             programs = load_onnx(path)
+        elif found == "executorch":
+            from .executorch_format import load_executorch
+            programs = load_executorch(path)
         else:
             raise ValueError(f"pipeline: {str(path)!r} names the unknown format {found!r}")
     except (RuntimeError, KeyError, zipfile.BadZipFile) as e:

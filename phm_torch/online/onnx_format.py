@@ -18,7 +18,6 @@ is exact for the sorted 1-D level tables it reads.
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import os
 import tempfile
@@ -30,40 +29,18 @@ import torch
 
 from ..io.atomic import atomic_open
 from .export import METADATA_FILE
+from .extras import require, without_searchsorted
 from .step import STEP_OUTPUTS
 
-EXTRA = "pip install 'phm-torch[onnx]'  (or: pip install onnx onnxscript onnxruntime)"
-WRITE_MODULES = ("onnx", "onnxscript", "onnxruntime")       # the exporter and the reload check
-RUN_MODULES = ("onnxruntime",)
 ARCHIVE_DIR = "online"
 LIMITS = ("complete records only: ONNX has no linear solve (Cholesky) for the masked least squares of a record "
           "with missing samples")
 
 
-def require(modules: tuple[str, ...] = WRITE_MODULES) -> None:
-    """``ValueError`` naming the format and the pip install to run when one of ``modules`` is not installed."""
-    missing = [m for m in modules if importlib.util.find_spec(m) is None]
-    if missing:
-        raise ValueError(f"format: 'onnx' needs the optional packages {', '.join(missing)}, not installed; "
-                         f"run: {EXTRA}")
-
-
-def _searchsorted_by_count(sorted_sequence: torch.Tensor, values: torch.Tensor, *, out_int32: bool = False,
-                           right: bool = False, side: str | None = None, sorter: torch.Tensor | None = None
-                           ) -> torch.Tensor:
-    """``torch.searchsorted`` of a sorted 1-D sequence as the count of its entries below each value (ONNX has
-    no searchsorted); the decomposition of ``aten.searchsorted.Tensor`` used before the ONNX translation."""
-    if sorted_sequence.dim() != 1 or sorter is not None:
-        raise NotImplementedError("searchsorted for ONNX: a sorted 1-D sequence without sorter only")
-    v = values.unsqueeze(-1)
-    below = (sorted_sequence <= v) if (right or side == "right") else (sorted_sequence < v)
-    return below.sum(-1).to(torch.int32 if out_int32 else torch.int64)
-
-
 def onnx_bytes(program: torch.export.ExportedProgram, metadata: str) -> bytes:
     """One exported :class:`OnlineStep` program (complete_only) as a serialised ONNX model, batch dynamic."""
-    require()
-    program = program.run_decompositions({torch.ops.aten.searchsorted.Tensor: _searchsorted_by_count})
+    require("onnx")
+    program = without_searchsorted(program)
     batch = torch.export.Dim("batch", min=1, max=1 << 20)
     quiet = logging.getLogger("onnx_ir")       # one INFO line per deduplicated constant, hundreds per program
     level = quiet.level
@@ -112,7 +89,7 @@ class OnnxProgram:
 
 def load_onnx(path: str | os.PathLike, names: tuple[str, ...] = ("model", "samples")) -> dict[str, Callable]:
     """The programs ``names`` of an ``onnx`` archive, each an :class:`OnnxProgram`."""
-    require(RUN_MODULES)
+    require("onnx", write=False)
     with zipfile.ZipFile(path) as archive:
         data = {name: archive.read(f"{ARCHIVE_DIR}/{name}.onnx") for name in names}
     return {name: OnnxProgram(blob) for name, blob in data.items()}
