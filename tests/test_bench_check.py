@@ -13,6 +13,8 @@ from phm_torch.online.corruptions import Record
 from phm_torch.online.diagnosis import diagnose
 from phm_torch.online.input_contract import InputContract
 
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+
 PIPELINE = Path(__file__).resolve().parents[1] / "pretrained" / "online_surrogates_best.pt"
 
 

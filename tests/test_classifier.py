@@ -9,6 +9,8 @@ from surrogate_data import faults, health
 from phm_torch.surrogates import CLASSIFIERS, PolynomialSVM, build_classifier, confusion
 from phm_torch.surrogates.classifiers.polynomial_svm import monomial_map
 
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+
 
 @pytest.mark.parametrize("degree,gamma,coef0", [(3, 0.125, 1.0), (2, 0.7, 0.3), (4, 1.0, 0.0)])
 def test_feature_map_is_the_polynomial_kernel(degree, gamma, coef0):

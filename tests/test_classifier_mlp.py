@@ -16,6 +16,8 @@ from phm_torch.surrogates.classifiers import CLASSIFIERS, RBFSVM, MLPClassifier,
 from phm_torch.surrogates.classifiers.base import WARP_EPS, warp_inputs
 from phm_torch.surrogates.classifiers.polynomial_svm import monomial_map
 
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+
 SMALL = {"hidden": [32, 32], "epochs": 40, "batch_size": 128, "lr": 3e-3}
 
 

@@ -19,6 +19,8 @@ from phm_torch.apps.predict import predict
 from phm_torch.online.corruptions import CORRUPTIONS, Record, corrupt
 from phm_torch.online.input_contract import PIPELINE_CHECKS, pipeline_reasons
 
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "corruption_suite.py"
 PIPELINE = ROOT / "pretrained" / "online_surrogates_best.pt"

@@ -29,7 +29,7 @@ from phm_torch.surrogates.gappy_pod import GappyPOD
 
 N_FULL, N_MODES, N_POINTS = 2001, 6, 24
 TOL = 1e-5
-pytestmark = pytest.mark.filterwarnings("ignore:`torch.jit.*` is deprecated:DeprecationWarning")
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
 
 
 def _damage() -> DamageModel:

@@ -28,6 +28,8 @@ from phm_torch.surrogates.fdi_ensemble import build_fdi_network
 from phm_torch.surrogates.lightning_fdi import FDIModule, KeepBest
 from phm_torch.surrogates.selectors import build_selector
 
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+
 
 def teacher_data(n: int, seed: int, n_in: int = 6) -> tuple[torch.Tensor, torch.Tensor]:
     """Inputs (n, n_in) and targets (n, 8) in [0.05, 0.95] from a random network of the same form."""

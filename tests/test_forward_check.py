@@ -17,6 +17,8 @@ from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
 from phm_torch.surrogates.fdi_mlp import FDIMLP
 from phm_torch.surrogates.forward import ForwardSurrogate, fit_forward_check
 
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+
 N_E, N_LATENT = 801, 10
 WEIGHTS = torch.linspace(3.0, 0.6, N_LATENT, dtype=torch.float64)
 NOMINAL = list(load_actuator().nominal_faults)

@@ -12,6 +12,8 @@ from phm_torch.surrogates import POD, GappyPOD, drop_samples
 from phm_torch.surrogates.gappy_pod import WOODBURY_MAX
 from phm_torch.surrogates.selectors import build_selector
 
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+
 
 @pytest.fixture(scope="module")
 def pod() -> POD:

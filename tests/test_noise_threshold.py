@@ -11,6 +11,8 @@ from phm_torch.online.noise_threshold import NoiseScaledThreshold, calibrate_gap
 from phm_torch.surrogates import POD, GappyPOD, add_noise, rms
 from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
 
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+
 
 def test_threshold_interpolates_between_levels_and_holds_beyond():
     t = NoiseScaledThreshold([1.0, 3.0, 4.0], [0.01, 0.03, 0.1], dtype=torch.float64)

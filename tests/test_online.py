@@ -22,6 +22,8 @@ from phm_torch.surrogates.fdi_mlp import FDIMLP
 from phm_torch.surrogates.full_signal_check import FullSignalCheck
 from phm_torch.surrogates.gappy_pod import GappyPOD
 
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+
 N_FULL, N_MODES = 2001, 6
 NOMINAL = list(load_actuator().nominal_faults)
 

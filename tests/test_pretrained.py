@@ -15,6 +15,8 @@ from phm_torch.io import Measurement, write_measurement
 from phm_torch.params import CONF_DIR, load_actuator
 from phm_torch.simulator import EMASimulator
 
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+
 PIPELINE = CONF_DIR.parent / "pretrained" / "online_surrogates_best.pt"
 K = torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5],      # nominal
                   [0.3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5],      # dry friction x1.6

@@ -11,6 +11,8 @@ from phm_torch.apps.export import export
 from phm_torch.apps.predict import predict
 from phm_torch.apps.run import compose_stage, generate_overrides, run_all
 
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+
 
 def test_phm_run_tiny_end_to_end(tmp_path):
     cfg = compose_stage("run", [

@@ -12,6 +12,8 @@ from test_tracking import N_FULL, damage_config, make_pipeline
 from phm_torch.io import write_measurement
 from phm_torch.online.export import export_torchscript
 
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+
 
 def record(pipe, alpha: torch.Tensor) -> dict:
     zeros = torch.zeros(N_FULL, dtype=torch.float64)

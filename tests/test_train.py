@@ -18,6 +18,8 @@ from phm_torch.surrogates.data import load_store
 from phm_torch.surrogates.full_signal_check import FullSignalCheck
 from phm_torch.surrogates.ood_calibration import ood_thresholds
 
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+
 REQUIRED = ("err_alpha_median", "err_alpha_iqr", "err_k", "fdi_mae", "classifier_accuracy", "missed_fault_rate",
             "false_alarm_rate", "fdi_latency_us_p50")
 QUICK = ("n_modes=10", "n_points=16", "n_hidden=12", "eval.latency_repeats=50", "trainer.enable_progress_bar=false",

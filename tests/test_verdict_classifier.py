@@ -15,6 +15,8 @@ from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
 from phm_torch.surrogates.fdi_mlp import FDIMLP
 from phm_torch.surrogates.verdict_classifier import fit_verdict_classifier, noisy_estimates
 
+pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+
 
 def fault_vectors(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     """(n, 8) fault vectors and their health: faulty when the damage k1 + ... + k6 reaches 1.2."""
