@@ -1,7 +1,7 @@
 """Online latency and throughput of exported pipelines, every format side by side, one thread; writes JSON.
 
 Each ``--model`` file (TorchScript ``.pt``, torch.export ``.pt2``, AOTInductor ``.aoti.pt2``, ONNX ``.onnx.zip``
-run with ONNX Runtime at the same thread count; the same pipeline
+run with ONNX Runtime at the same thread count, ExecuTorch ``.pte.zip``; the same pipeline
 exported by ``phm-export format=[...]``) is loaded with :func:`phm_torch.online.loaded.load_pipeline` and timed on
 the same records (the store's ``rul`` split with ``--data-dir``, else the pipeline's nominal record), in
 alternating order (round-robin over the formats, ``--rounds`` rounds, medians over all of them):

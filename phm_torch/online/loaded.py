@@ -5,7 +5,9 @@
 (:class:`StepResult`), :meth:`~LoadedPipeline.pipeline_reasons` which of the pipeline's checks fired, and the
 attributes the input contract reads (``dtype``, ``n_full``, ``sample_rate``, ``nominal``, ``nominal_record``, ...).
 A TorchScript file answers through its scripted methods (as phm-predict always has, older files included), an
-``export`` or ``aoti`` file through one call of its :class:`~phm_torch.online.step.OnlineStep` program. The format
+``export``, ``aoti``, ``onnx`` or ``executorch`` file through one call of its
+:class:`~phm_torch.online.step.OnlineStep` program (the last two: complete records only, :class:`UnservedRecord`
+otherwise). The format
 is the one the file's metadata names, else its suffix; a ``format`` given that the file is not of is an error.
 """
 
