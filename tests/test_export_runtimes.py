@@ -22,6 +22,8 @@ from phm_torch.online.formats import check_formats, format_path, write_formats
 from phm_torch.online.loaded import UnservedRecord, load_pipeline
 from phm_torch.online.step import STEP_OUTPUTS
 
+pytestmark = pytest.mark.torchscript      # the JSON of phm-predict is compared with a TorchScript file's
+
 
 @pytest.fixture(scope="module")
 def pipeline() -> OnlinePipeline:
@@ -185,3 +187,40 @@ def test_executorch_file_runs_without_phm_torch(pipeline, executorch_file, tmp_p
     for name in ("k_hat", "score", "rul", "ood", "residual", "k_lower", "p_faulty"):
         tol = ET_RUL_RTOL if name == "rul" else TOL
         torch.testing.assert_close(out[name], ref[name], rtol=tol, atol=tol, equal_nan=True)
+
+
+def _close(a, b, path: str = "") -> None:
+    """JSON values equal, numbers within 1e-5 (the RUL within the runtime's tolerance, ET_RUL_RTOL)."""
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), path
+        for key in a:
+            _close(a[key], b[key], f"{path}.{key}")
+    elif isinstance(a, list):
+        assert len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b)):
+            _close(x, y, f"{path}[{i}]")
+    elif isinstance(a, float) and not isinstance(b, bool):
+        tol = ET_RUL_RTOL if ".rul_hours" in path else TOL
+        assert b == pytest.approx(a, rel=tol, abs=tol), path
+    else:
+        assert a == b, path
+
+
+def test_predict_gives_the_same_json_from_onnx_and_executorch(pipeline, onnx_file, executorch_file, compose,
+                                                               tmp_path):
+    from phm_torch.apps.predict import predict
+
+    torchscript = write_formats(pipeline, tmp_path / "online.pt", ["torchscript"])["torchscript"]
+    x = complete_records(pipeline, 4, seed=3)
+    zeros = torch.zeros(N_FULL, dtype=torch.float64)
+    time = torch.arange(N_FULL, dtype=torch.float64) / 20000.0
+    csvs = [str(write_measurement(tmp_path / f"r{i}.csv", {"time": time, "command": zeros, "position": zeros,
+                                                          "current": x[i].double()})) for i in range(4)]
+    outs = {}
+    for path in (torchscript, onnx_file, executorch_file):
+        args = [f"pipeline={path}", f"measurements=[{','.join(csvs)}]", f"baseline={csvs[0]}"]
+        outs[path.name] = predict(compose("predict", args))[1]["records"]
+    assert outs["online.pt"][2]["out_of_distribution"] and outs["online.pt"][2]["rul_hours"] is None
+    assert sum(r["rul_hours"] is not None for r in outs["online.pt"]) >= 2      # RULs to compare
+    for name in ("online.onnx.zip", "online.pte.zip"):
+        _close(outs["online.pt"], outs[name], name)
