@@ -14,13 +14,38 @@ from phm_torch.apps.run import compose_stage, generate_overrides, run_all
 pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
 
 
+TINY_LIFE = ('generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=8","dataset.chunk_size=64",'
+             '"dataset.fidelity=lf","dataset.life.n_actuators=2","dataset.life.compile=false"]')
+
+
+@pytest.mark.slow
+def test_phm_run_tiny_with_the_life_split_and_the_track_stage(tmp_path):
+    """The default stage list with a life split (~7 min on the shared 2-core host: the life records and their phi_a
+    labels); phm-track itself is tested fast in tests/test_tracking_app.py."""
+    cfg = compose_stage("run", [
+        f"out_dir={tmp_path}", TINY_LIFE, 'cases=["fidelity=lf","duration=0.05"]',
+        'train=["n_modes=8","n_points=16","selector=qdeim"]', 'evaluate=["rul.n_samples=20"]',
+        'track=["n_particles=128","rul_particles=32"]',
+        'workbench=["measurements=examples/workbench_hidden_cogging.csv","refit.top=1","refit.rounds=1"]',
+        "report.hidden_neurons=[4]", "report.hidden_epochs=2", "report.latency_repeats=5",
+    ])
+    run_all(cfg)
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    # the track stage: both life histories tracked with the evaluate stage's pipeline, scored against the truth
+    assert saved["track"]["actuators"] == 2 and saved["track"]["inspections"] >= 2 * 3
+    life = json.loads((tmp_path / "track" / "metrics.json").read_text())
+    assert set(life["targets"]) >= {"coverage_5_95", "alpha_lambda", "prognostic_horizon",
+                                    "eol_flagged_within_one_inspection", "positive_p50_when_faulty"}
+    assert life["n_actuators"] == 2 and set(life["tracker"]) == set(life["snapshot"])
+    assert "Life tracking" in (tmp_path / "report" / "index.html").read_text()
+
+
 def test_phm_run_tiny_end_to_end(tmp_path):
     cfg = compose_stage("run", [
-        f"out_dir={tmp_path}",
+        f"out_dir={tmp_path}", "stages=[cases,generate,train,evaluate,workbench,report]",
         ('generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=8","dataset.chunk_size=64",'
-         '"dataset.fidelity=lf","dataset.life.n_actuators=2","dataset.life.compile=false"]'),
+         '"dataset.fidelity=lf","dataset.life.n_actuators=0"]'),
         'cases=["fidelity=lf","duration=0.05"]',
-        'track=["n_particles=128","rul_particles=32"]',
         'train=["n_modes=8","n_points=16","selector=qdeim"]',
         'evaluate=["rul.n_samples=20"]',
         'workbench=["measurements=examples/workbench_hidden_cogging.csv","refit.top=1","refit.rounds=1"]',
@@ -28,13 +53,7 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     ])
     run_all(cfg)
     saved = json.loads((tmp_path / "metrics.json").read_text())
-    assert set(saved) >= {"cases", "generate", "train", "evaluate", "track", "workbench", "report", "wall_s"}
-    # the track stage: both life histories tracked with the evaluate stage's pipeline, scored against the truth
-    assert saved["track"]["actuators"] == 2 and saved["track"]["inspections"] >= 2 * 3
-    life = json.loads((tmp_path / "track" / "metrics.json").read_text())
-    assert set(life["targets"]) >= {"coverage_5_95", "alpha_lambda", "prognostic_horizon",
-                                    "eol_flagged_within_one_inspection", "positive_p50_when_faulty"}
-    assert life["n_actuators"] == 2 and set(life["tracker"]) == set(life["snapshot"])
+    assert set(saved) >= {"cases", "generate", "train", "evaluate", "workbench", "report", "wall_s"}
     assert 0.0 <= saved["train"]["err_k"] < 1.0
     assert saved["evaluate"]["export_max_abs_diff"] < 1e-5           # TorchScript reloads equal to eager
     assert saved["evaluate"]["fdi_band_n_used"] >= 10                # the full-flow band is calibrated on val
@@ -87,7 +106,7 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     for heading in ("Gappy-POD coefficient error vs retained modes", "Placement of the sample points",
                     "err_k and timings vs hidden neurons", "confusion table", "RUL vs expected RUL",
                     "Three-panel RUL error comparison", "Online latencies", "Workbench",
-                    "k_hat intervals and P(faulty)", "Life tracking"):
+                    "k_hat intervals and P(faulty)"):
         assert heading in html, heading
     assert html.count("data:image/png;base64,") >= 6                  # figures embedded, offline
     top = json.loads((tmp_path / "workbench" / "report.json").read_text())["candidates"][0]["effect"]
