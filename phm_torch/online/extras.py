@@ -32,7 +32,8 @@ def searchsorted_by_count(sorted_sequence: torch.Tensor, values: torch.Tensor, *
     nor ExecuTorch's portable kernels have searchsorted): a decomposition of ``aten.searchsorted.Tensor``, exact for
     the sorted noise-level tables the step interpolates in."""
     if sorted_sequence.dim() != 1 or sorter is not None:
-        raise NotImplementedError("searchsorted rewrite: a sorted 1-D sequence without sorter only")
+        raise ValueError(f"searchsorted rewrite: a sorted 1-D sequence without sorter only, got a "
+                         f"{sorted_sequence.dim()}-D sequence{' with a sorter' if sorter is not None else ''}")
     v = values.unsqueeze(-1)
     below = (sorted_sequence <= v) if (right or side == "right") else (sorted_sequence < v)
     return below.sum(-1).to(torch.int32 if out_int32 else torch.int64)

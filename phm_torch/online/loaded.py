@@ -13,6 +13,7 @@ is the one the file's metadata names, else its suffix; a ``format`` given that t
 
 from __future__ import annotations
 
+import abc
 import math
 import os
 import warnings
@@ -53,7 +54,7 @@ class StepResult:
     current: torch.Tensor
 
 
-class LoadedPipeline:
+class LoadedPipeline(abc.ABC):
     """Common interface of a loaded pipeline (see the module docstring); ``format`` names its file format."""
 
     format = ""
@@ -62,14 +63,14 @@ class LoadedPipeline:
     n_full: int
     sample_rate: float
 
+    @abc.abstractmethod
     def run(self, x: torch.Tensor, bench_nominal: torch.Tensor | None = None) -> StepResult:
         """Every output for records x (B, n_full) or (B, n_points) [A] as measured; ``bench_nominal`` (n_full,) [A]:
         the measuring bench's healthy record, whose difference from the training model is removed first."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def pipeline_reasons(self, x: torch.Tensor) -> list[list[str]] | None:
         """Which pipeline checks fire for records x as the pipeline sees them (see :func:`.pipeline_reasons`)."""
-        raise NotImplementedError
 
     def __call__(self, x: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """The pipeline's own five outputs (k_hat, score, rul, ood, residual) of records x, as ``forward``."""
