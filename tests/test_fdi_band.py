@@ -90,3 +90,43 @@ def test_bad_calibration_input(pipeline):  # noqa: F811
         calibrate_fdi_band(measured, records, k[:10])
     with pytest.raises(TooFewCalibrationSignals, match="at least 40"):
         calibrate_fdi_band(measured, records, k, min_used=40)
+
+
+class NominalIsFaulty(nn.Module):
+    """A verdict classifier fitted on an FDI that never returns the nominal vector: it calls every k faulty."""
+
+    def __init__(self):
+        super().__init__()
+        self.register_buffer("threshold", torch.tensor(0.0, dtype=torch.float64))
+
+    def forward(self, k: torch.Tensor) -> torch.Tensor:
+        return -torch.ones(k.shape[0], dtype=k.dtype)
+
+
+@pytest.mark.torchscript
+def test_a_verdict_that_cannot_cover_hands_the_upper_bound_to_the_health_classifier(pipeline):  # noqa: F811
+    measured, records, k = case(pipeline, 300, seed=4)
+    blind = OnlinePipeline(measured.gappy, measured.fdi, measured.classifier, damage(), measured.deltas,
+                           measured.direction, N_FULL, residual_threshold=1e3,
+                           verdict_classifier=NominalIsFaulty()).eval()
+    band = calibrate_fdi_band(blind, records, k)
+    # the 95 % bound could not cover under the verdict (every propagation stops at once) and switched; the 5 %
+    # bound covers trivially and keeps the verdict
+    assert band.health_stop == [2] and blind.health_stop_index.tolist() == [2]
+    assert not band.saturated[2] and band.deltas[2] < 0
+    blind.fdi_deltas.copy_(band.deltas)
+    blind.fdi_direction.copy_(band.direction)
+    with torch.no_grad():
+        truth, est = blind.rul(k)[:, 1], blind(records)[2]
+    ok = truth > 0
+    assert float((est[ok, 0] == 0).double().mean()) == 1.0          # the verdict says faulty: nothing left at 5 %
+    assert float((truth[ok] <= est[ok, 2]).double().mean()) >= 0.95 - 1e-9   # the switched bound covers
+    # the health-stopped upper propagation is the one the health classifier would give from the same start
+    shift = blind.deltas.view(3, 1) * blind.direction + band.deltas.view(3, 1).to(blind.direction) * band.direction.to(
+        blind.direction)
+    k_hat = blind(records)[0]
+    torch.testing.assert_close(blind.rul_shifted(k_hat, shift, True)[:, 2], blind.rul_shifted(k_hat, shift, False)[:, 2])
+    scripted = torch.jit.script(blind)
+    torch.testing.assert_close(scripted(records)[2], blind(records)[2])
+    with pytest.raises(ValueError, match="fdi_health_stop"):
+        blind.set_health_stop([1])

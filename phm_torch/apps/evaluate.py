@@ -245,6 +245,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if band is not None:
         pipeline.fdi_deltas.copy_(band.deltas.to(pipeline.fdi_deltas))
         pipeline.fdi_direction.copy_(band.direction.to(pipeline.fdi_direction))
+        pipeline.set_health_stop(band.health_stop)
     with torch.no_grad():
         band_k_hat, band_score, _, band_ood, _ = pipeline(band_signals.to(pipeline.times.dtype))
     verdict = _verdict(prior, band_score, band_ood, band_healthy)
@@ -291,6 +292,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         fdi_band_deltas=pipeline.fdi_deltas.tolist() if band else None,       # as the pipeline holds them
         fdi_band_direction=pipeline.fdi_direction.tolist() if band else None,
         fdi_band_saturated=band.saturated if band else None,
+        fdi_band_health_stop=band.health_stop if band else None,
         verdict_calibration=list(verdict[:2]) if verdict else None,
         verdict_prior_faulty=verdict[2] if verdict else None,
         **({f"verdict_{key}": value for key, value in verdict_quality(p_faulty[~ood], ~healthy[~ood]).items()}
@@ -314,6 +316,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                       {"band": det.variant, "deltas": pipeline.deltas.tolist(), "direction": det.direction.tolist(),
                        "rate_scales": pipeline.rate_scales.tolist(), "initial_state_deltas": deltas.tolist(),
                        "fdi_deltas": pipeline.fdi_deltas.tolist(), "fdi_direction": pipeline.fdi_direction.tolist(),
+                       "fdi_health_stop": pipeline.health_stop_index.tolist(),
                        "verdict": list(verdict[:2]) if verdict else None,
                        "verdict_prior_faulty": verdict[2] if verdict else None,
                        "fdi_interval": {"half_widths": pipeline.k_half_widths.tolist(), "noise_levels": noise_levels,

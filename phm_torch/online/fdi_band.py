@@ -20,6 +20,14 @@ signals against the RUL of their true k:
   pulling k_hat onto nominal, where the RUL is the horizon. An overestimated RUL is the unsafe side,
   so it is off unless asked for.
 
+Where the verdict classifier g stops a bound's propagations, the bound can fail to cover whatever eta: an FDI
+that cannot identify a component (eccentricity under a short stroke that turns the motor less than a
+revolution) returns its prior for it, g learns nothing about that component's true value, and calls even
+the nominal vector faulty, so no shift towards nominal lengthens the RUL (measured: the 270 V rudder
+actuator's 95 % bound ended on the bracket, band coverage 19 %). That bound's bisection is then repeated with
+its propagations stopped by the health classifier f, which knows the true k: its shifted starts are
+hypotheses about the true k (``health_stop``; :meth:`OnlinePipeline.set_health_stop`).
+
 The calibration signals must not be the ones the band is evaluated on (``phm-evaluate`` uses ``val``
 and evaluates on ``rul``), and may be corrupted with measurement noise so that the band also covers it.
 """
@@ -45,13 +53,16 @@ class FDIBand:
         deltas: (3,) eta_5, eta_50, eta_95 in units of ``direction`` (larger = more damage).
         direction: (8,) FDI error scale s: mean |k_hat - k| per component, 0 for a non-growing one.
         n_used: calibration signals used (in distribution, healthy under the true k).
-        saturated: per quantile, whether the bisection ended on the bracket.
+        saturated: per quantile, whether the bisection ended on the bracket (after the switch below).
+        health_stop: quantiles (0: 5 %, 2: 95 %) whose verdict-stopped bisection ended on its non-covering
+            bracket end and that the health classifier stops instead (set on the pipeline).
     """
 
     deltas: torch.Tensor
     direction: torch.Tensor
     n_used: int
     saturated: list[bool]
+    health_stop: list[int]
 
 
 def calibrate_fdi_band(pipeline: OnlinePipeline, signals: torch.Tensor, k: torch.Tensor, coverage: float = 0.9,
@@ -90,14 +101,25 @@ def calibrate_fdi_band(pipeline: OnlinePipeline, signals: torch.Tensor, k: torch
         k, k_hat, target = k[keep], k_hat[keep], target[keep]
         scale = (k_hat - k).abs().mean(0) * (pipeline.direction > 0).to(dtype)
         tail = 0.5 * (1.0 - coverage)
+        pipeline.set_health_stop(None)
         deltas, saturated = _bisect_all(pipeline, k_hat, scale, target, tail, bracket, iterations, correct_median)
-    return FDIBand(torch.tensor(deltas, dtype=torch.float64), scale.to(torch.float64), int(keep.sum()), saturated)
+        # the 5 % bound fails to cover at +bracket (more damage), the 95 % bound at -bracket (less damage)
+        stuck = [j for j, sign in ((0, 1.0), (2, -1.0)) if saturated[j] and deltas[j] * sign > 0]
+        if stuck:
+            pipeline.set_health_stop(stuck)
+            again, again_saturated = _bisect_all(pipeline, k_hat, scale, target, tail, bracket, iterations,
+                                                 correct_median, only=stuck)
+            for j in stuck:
+                deltas[j], saturated[j] = again[j], again_saturated[j]
+    return FDIBand(torch.tensor(deltas, dtype=torch.float64), scale.to(torch.float64), int(keep.sum()), saturated,
+                   stuck)
 
 
 def _bisect_all(pipeline: OnlinePipeline, k_hat: torch.Tensor, scale: torch.Tensor, target: torch.Tensor,
-                tail: float, bracket: float, iterations: int, correct_median: bool) -> tuple[list[float], list[bool]]:
+                tail: float, bracket: float, iterations: int, correct_median: bool,
+                only: list[int] | None = None) -> tuple[list[float], list[bool]]:
     """eta_5, eta_50 (0 unless ``correct_median``), eta_95 by bisection, and whether each ended on the
-    bracket."""
+    bracket; ``only``: bisect these quantiles, 0 (unsaturated) for the others."""
     dtype = k_hat.dtype
 
     def rul_at(j: int, eta: float) -> torch.Tensor:
@@ -110,7 +132,7 @@ def _bisect_all(pipeline: OnlinePipeline, k_hat: torch.Tensor, scale: torch.Tens
                   (lambda eta: (1.0 - tail) - float((target <= rul_at(2, eta)).to(dtype).mean()), "lo"))
     deltas, saturated = [], []
     for j, (objective, side) in enumerate(objectives):
-        if j == 1 and not correct_median:
+        if (j == 1 and not correct_median) or (only is not None and j not in only):
             deltas.append(0.0)
             saturated.append(False)
             continue

@@ -80,6 +80,8 @@ class OnlinePipeline(nn.Module):
             (reason ``inconsistent``). None: no such check.
         residual_limits: (thresholds [A], noise levels) of the gappy residual per relative noise level
             (:mod:`phm_torch.online.noise_threshold`); None: ``residual_threshold`` at every noise.
+        fdi_health_stop: quantiles (0: 5 %, 2: 95 %) of a measured k_hat's band stopped by the health classifier
+            (:meth:`set_health_stop`); None: every one by the verdict classifier.
     """
 
     __constants__ = ("noise_aware", "has_consistency")     # TorchScript compiles only the FDI call that applies
@@ -93,7 +95,8 @@ class OnlinePipeline(nn.Module):
                  k_half_widths: torch.Tensor | None = None, interval_level: float = DEFAULT_LEVEL,
                  calibration_noise: float | None = None, interval_noise: torch.Tensor | None = None,
                  verdict_classifier: nn.Module | None = None, consistency: nn.Module | None = None,
-                 residual_limits: tuple[Sequence[float], Sequence[float]] | None = None):
+                 residual_limits: tuple[Sequence[float], Sequence[float]] | None = None,
+                 fdi_health_stop: Sequence[int] | None = None):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
@@ -162,6 +165,25 @@ class OnlinePipeline(nn.Module):
         if self.coarse < 1:
             raise ValueError(f"online.coarse must be >= 1, got {coarse}")
         self.bisections = max(0, (self.coarse - 1).bit_length())   # down to one grid step
+        n_t = int(t.shape[0])
+        coarse_index = list(range(0, n_t, self.coarse))
+        coarse_index += [] if coarse_index[-1] == n_t - 1 else [n_t - 1]
+        self.register_buffer("coarse_index", torch.tensor(coarse_index, dtype=torch.long))
+        self.mixed_stop = False
+        self.register_buffer("health_stop_index", torch.zeros(0, dtype=torch.long))
+        self.set_health_stop(fdi_health_stop)
+
+    def set_health_stop(self, quantiles: Sequence[int] | None) -> None:
+        """Stop the propagations of a *measured* k_hat at these quantiles (0: 5 %, 2: 95 %) by the health
+        classifier f instead of the verdict classifier g. The FDI band's shifted starts are hypotheses about
+        the true k; where g cannot cover them (it calls even the nominal vector faulty: an FDI that never
+        returns a component it cannot identify teaches g nothing about its true value),
+        :func:`~phm_torch.online.fdi_band.calibrate_fdi_band` switches that quantile to f."""
+        q = sorted({int(v) for v in (quantiles or [])})
+        if any(v not in (0, 2) for v in q):
+            raise ValueError(f"online.fdi_health_stop: quantiles must be among 0 (5 %) and 2 (95 %), got {q}")
+        self.health_stop_index = torch.tensor(q, dtype=torch.long, device=self.times.device)
+        self.mixed_stop = len(q) > 0
 
     @classmethod
     def from_bundle(cls, bundle: nn.Module, damage: DamageModel, deltas: torch.Tensor, direction: torch.Tensor,
@@ -170,7 +192,8 @@ class OnlinePipeline(nn.Module):
                     verdict: tuple[float, float] | None = None, k_half_widths: torch.Tensor | None = None,
                     interval_level: float = DEFAULT_LEVEL, calibration_noise: float | None = None,
                     interval_noise: torch.Tensor | None = None,
-                    consistency: dict | None = None, residual_limits: dict | None = None) -> OnlinePipeline:
+                    consistency: dict | None = None, residual_limits: dict | None = None,
+                    fdi_health_stop: Sequence[int] | None = None) -> OnlinePipeline:
         """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifiers, OOD threshold, and its
         forward surrogate when it has one: the consistency check, thresholds from ``consistency``, the
         ``{"thresholds", "noise_levels"}`` of :func:`~phm_torch.online.consistency.calibrate_consistency`;
@@ -188,7 +211,8 @@ class OnlinePipeline(nn.Module):
                                          *[torch.tensor(consistency[key]) if consistency else None
                                            for key in ("thresholds", "noise_levels")]),
                    residual_limits=None if residual_limits is None else (residual_limits["thresholds"],
-                                                                         residual_limits["noise_levels"]))
+                                                                         residual_limits["noise_levels"]),
+                   fdi_health_stop=fdi_health_stop)
 
     @torch.jit.export
     def noise_level(self, x: torch.Tensor) -> torch.Tensor:
@@ -271,13 +295,14 @@ class OnlinePipeline(nn.Module):
             raise ValueError("rebase: x must be (B, n_full) and bench_nominal (n_full,)")
         return x.to(self.nominal_record.dtype) - (bench_nominal.to(self.nominal_record.dtype) - self.nominal_record)
 
-    def _score_rows(self, k: torch.Tensor, measured: bool) -> torch.Tensor:
+    def _score_rows(self, k: torch.Tensor, measured: bool, blocked: bool = True) -> torch.Tensor:
         """Score minus threshold (N,) of fault vectors k (N, 8): the verdict classifier's for ``measured``
-        (trajectories of an FDI estimate), the health classifier's otherwise. In blocks of ``SCORE_BLOCK``
-        rows: a batch's trajectories are ~50 rows per record, and a block's hidden activations stay in cache
-        (the classifier ran twice as fast so on 200,000 rows, bandwidth-bound otherwise). Blocks give the
-        same scores: every row is scored on its own."""
-        if k.shape[0] <= self.score_block:
+        (trajectories of an FDI estimate), the health classifier's otherwise. ``blocked``: in blocks of
+        ``SCORE_BLOCK`` rows: a batch's trajectories are ~50 rows per record, and a block's hidden activations
+        stay in cache (the classifier ran twice as fast so on 200,000 rows, bandwidth-bound otherwise). Blocks
+        give the same scores (every row is scored on its own); a traced step scores all rows at once, since a
+        data-dependent number of blocks cannot be traced."""
+        if not blocked or k.shape[0] <= self.score_block:
             return self._classify(k, measured)
         return torch.cat([self._classify(block, measured) for block in k.split(self.score_block)])
 
@@ -287,42 +312,50 @@ class OnlinePipeline(nn.Module):
             return self.verdict_classifier(k) - self.verdict_classifier.threshold
         return self.classifier(k) - self.classifier.threshold
 
-    def _score_at(self, dk: torch.Tensor, index: torch.Tensor, measured: bool) -> torch.Tensor:
-        """Score of k0 + A(t_index) dk for per-(sample, quantile) grid indices: dk (B, 3, 8), index (B, 3)."""
-        a = self.propagators[index]                                                        # (B, 3, 8, 8)
-        k = self.nominal + (a @ dk.unsqueeze(-1)).squeeze(-1)
-        b = dk.shape[0]
-        return self._score_rows(k.reshape(-1, 8).clamp(0.0, 1.0), measured).reshape(b, 3)
+    def _stop_scores(self, k: torch.Tensor, measured: bool, blocked: bool) -> torch.Tensor:
+        """Stopping score (M, 3) of the three propagations' states k (M, 3, 8): the verdict classifier's for
+        ``measured`` except at the quantiles :meth:`set_health_stop` names, the health classifier's otherwise."""
+        m = k.shape[0]
+        score = self._score_rows(k.reshape(-1, 8).clamp(0.0, 1.0), measured, blocked).reshape(m, 3)
+        if measured and self.mixed_stop:
+            cols = self.health_stop_index
+            rows = k.index_select(1, cols).reshape(-1, 8).clamp(0.0, 1.0)
+            score = score.index_copy(1, cols, self._score_rows(rows, False, blocked).reshape(m, cols.shape[0]))
+        return score
 
-    def rul(self, k: torch.Tensor, measured: bool = False) -> torch.Tensor:
+    def rul(self, k: torch.Tensor, measured: bool = False, blocked: bool = True) -> torch.Tensor:
         """Deterministic RUL 5/50/95 % [h] (B, 3) from fault vectors (B, 8); 0 if already faulty,
         the horizon if still healthy there.
 
         ``measured``: k is an FDI estimate, so its error band (``fdi_deltas`` x ``fdi_direction``) joins the
-        physics band and the verdict classifier stops the propagations; False for a known k (the health
-        classifier stops them). The bounds are the shortest / the longest of the three propagations
-        (:func:`phm_torch.prognostics.rul.ordered_bounds`).
+        physics band and the verdict classifier stops the propagations (the health classifier at the
+        quantiles of :meth:`set_health_stop`); False for a known k (the health classifier stops them). The
+        bounds are the shortest / the longest of the three propagations
+        (:func:`phm_torch.prognostics.rul.ordered_bounds`). ``blocked`` as :meth:`_score_rows`.
         """
         fdi = self.fdi_deltas if measured else torch.zeros_like(self.fdi_deltas)
-        rul = self.propagations(k, fdi, self.fdi_direction, measured)
+        rul = self.propagations(k, fdi, self.fdi_direction, measured, blocked)
         return torch.stack([rul.amin(-1), rul[:, 1], rul.amax(-1)], dim=-1)
 
     def propagations(self, k: torch.Tensor, fdi_deltas: torch.Tensor, fdi_direction: torch.Tensor,
-                     measured: bool = False) -> torch.Tensor:
+                     measured: bool = False, blocked: bool = True) -> torch.Tensor:
         """RUL [h] (B, 3) of the three propagations q, unordered: from k (B, 8) with its damage moved by
         ``deltas[q] direction + fdi_deltas[q] fdi_direction`` (fdi_deltas (3,), fdi_direction (8,)), on a
         wear clock sped up by ``rate_scales[q]``
         (exact for the linear damage ODE: RUL / s), capped at the horizon; ``measured`` as :meth:`rul`."""
         shift = self.deltas.view(3, 1) * self.direction + fdi_deltas.view(3, 1) * fdi_direction
-        rul = self.rul_shifted(k, shift, measured) / self.rate_scales
-        return rul.clamp(max=float(self.times[-1]))
+        rul = self.rul_shifted(k, shift, measured, blocked) / self.rate_scales
+        return torch.minimum(rul, self.times[-1])     # a tensor bound: the traced step reads no Python float
 
-    def rul_shifted(self, k: torch.Tensor, shift: torch.Tensor, measured: bool = False) -> torch.Tensor:
+    def rul_shifted(self, k: torch.Tensor, shift: torch.Tensor, measured: bool = False,
+                    blocked: bool = True) -> torch.Tensor:
         """RUL [h] (B, 3) of three noise-free propagations from k (B, 8) with its damage |k - k_nom| moved by
-        shift (3, 8), unordered, stopped by the verdict classifier for ``measured`` (:meth:`rul`).
+        shift (3, 8), unordered, stopped as :meth:`rul` says for ``measured``.
 
-        The score is evaluated on a coarse grid (every ``coarse`` grid steps), the first faulty coarse
-        interval is bisected down to one grid step, and the crossing is interpolated linearly in that step.
+        The score is evaluated on a coarse grid (``coarse_index``: every ``coarse`` grid steps and the last),
+        the first faulty coarse interval is bisected down to one grid step, and the crossing is interpolated
+        linearly in that step. Straight-line tensor code (a fixed number of bisections), so that
+        :class:`~phm_torch.online.step.OnlineStep` traces this very search.
         """
         b = k.shape[0]
         dev = k - self.nominal
@@ -331,13 +364,10 @@ class OnlinePipeline(nn.Module):
         side = torch.where(dev >= 0, torch.ones_like(dev), -torch.ones_like(dev)).unsqueeze(1)
         magnitude = dev.abs().unsqueeze(1) + shift.to(dev.dtype).unsqueeze(0)
         dk = side * magnitude.clamp(min=0.0)                                                    # (B, 3, 8)
-        n_t = self.propagators.shape[0]
-        coarse = torch.arange(0, n_t, self.coarse, device=k.device)
-        if int(coarse[-1]) != n_t - 1:
-            coarse = torch.cat([coarse, torch.tensor([n_t - 1], device=k.device)])
+        coarse = self.coarse_index
         traj = self.nominal + torch.einsum("tij,bqj->tbqi", self.propagators[coarse], dk)      # (Tc, B, 3, 8)
         n_c = traj.shape[0]
-        score = self._score_rows(traj.reshape(-1, 8).clamp(0.0, 1.0), measured).reshape(n_c, b, 3)
+        score = self._stop_scores(traj.reshape(-1, 3, 8), measured, blocked).reshape(n_c, b, 3)
         faulty = score <= 0
         any_faulty = faulty.any(0)
         first = torch.argmax(faulty.to(torch.int64), dim=0)                                     # (B, 3)
@@ -348,7 +378,8 @@ class OnlinePipeline(nn.Module):
         s0 = score.gather(0, prev.unsqueeze(0)).squeeze(0)
         for _ in range(self.bisections):
             mid = torch.div(lo + hi, 2, rounding_mode="floor")
-            s_mid = self._score_at(dk, mid, measured)
+            states = self.nominal + (self.propagators[mid] @ dk.unsqueeze(-1)).squeeze(-1)      # (B, 3, 8)
+            s_mid = self._stop_scores(states, measured, blocked)
             inner = mid > lo
             bad = (s_mid <= 0) & inner
             good = (s_mid > 0) & inner
@@ -357,7 +388,7 @@ class OnlinePipeline(nn.Module):
         t0, t1 = self.times[lo], self.times[hi]
         frac = (s0 / (s0 - s1).clamp(min=1e-12)).clamp(0.0, 1.0)                             # linear zero
         crossing = torch.where(first > 0, t0 + frac * (t1 - t0), torch.zeros_like(t0))
-        return torch.where(any_faulty, crossing, torch.full_like(crossing, float(self.times[-1])))
+        return torch.where(any_faulty, crossing, self.times[-1].expand_as(crossing))
 
     def forward(self, x: torch.Tensor, noise: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:

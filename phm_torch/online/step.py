@@ -13,9 +13,10 @@ What the eager pipeline decides with Python control flow on data, the step decid
   (:func:`masked_gappy` replays ``GappyPOD.forward``'s choice between the Woodbury update, at a fixed
   ``WOODBURY_MAX`` rows, and the per-signal Cholesky solve). ``torch.cond`` would skip the unused path, but it
   refuses the aliased buffers of the layers, and ONNX / ExecuTorch runtimes serve straight-line graphs best;
-* the RUL event search: the coarse grid is a constant of the step, the bisection count is a constant, and
-  the classifier scores every row at once (the pipeline's ``SCORE_BLOCK`` split is a cache optimisation that
-  gives the same scores; a split into a data-dependent number of blocks cannot be traced);
+* the RUL event search is the pipeline's own (:meth:`OnlinePipeline.rul_shifted`: a constant coarse grid and
+  bisection count), called with ``blocked=False`` so that the classifier scores every row at once (the
+  pipeline's ``SCORE_BLOCK`` split is a cache optimisation that gives the same scores; a split into a
+  data-dependent number of blocks cannot be traced);
 * the noise estimate: one call over the batch (the pipeline's 64-row blocks give the same per-row values).
 """
 
@@ -87,53 +88,13 @@ class OnlineStep(nn.Module):
         self.full = bool(full)
         self.complete_only = bool(complete_only)
         self.length = pipeline.n_full if full else pipeline.n_points
-        n_t = int(pipeline.propagators.shape[0])
-        coarse = list(range(0, n_t, pipeline.coarse))
-        coarse += [] if coarse[-1] == n_t - 1 else [n_t - 1]
-        self.register_buffer("coarse_index", torch.tensor(coarse, dtype=torch.long))
         self.register_buffer("phases", torch.arange(3) < 2)          # RUL 5 and 50 % of a faulty verdict
-        self.horizon = float(pipeline.times[-1])
         self.estimate_noise = self.full and (pipeline.noise_aware or pipeline.residual_limit.levels.shape[0] > 1)
 
     def _score(self, k: torch.Tensor) -> torch.Tensor:
         """Verdict score minus threshold (N,) of fault vectors k (N, 8), all rows at once."""
         clf = self.pipeline.verdict_classifier
         return clf(k) - clf.threshold
-
-    def _rul(self, k: torch.Tensor) -> torch.Tensor:
-        """``OnlinePipeline.rul(k, measured=True)`` (B, 3) [h] of FDI estimates k (B, 8), traceable."""
-        p = self.pipeline
-        shift = p.deltas.view(3, 1) * p.direction + p.fdi_deltas.view(3, 1) * p.fdi_direction
-        b = k.shape[0]
-        dev = k - p.nominal
-        side = torch.where(dev >= 0, torch.ones_like(dev), -torch.ones_like(dev)).unsqueeze(1)
-        dk = side * (dev.abs().unsqueeze(1) + shift.to(dev.dtype).unsqueeze(0)).clamp(min=0.0)   # (B, 3, 8)
-        coarse = self.coarse_index
-        traj = p.nominal + torch.einsum("tij,bqj->tbqi", p.propagators[coarse], dk)             # (Tc, B, 3, 8)
-        n_c = traj.shape[0]
-        score = self._score(traj.reshape(-1, 8).clamp(0.0, 1.0)).reshape(n_c, b, 3)
-        faulty = score <= 0
-        any_faulty = faulty.any(0)
-        first = torch.argmax(faulty.to(torch.int64), dim=0)                                     # (B, 3)
-        prev = (first - 1).clamp(min=0)
-        hi, lo = coarse[first], coarse[prev]
-        s1 = score.gather(0, first.unsqueeze(0)).squeeze(0)
-        s0 = score.gather(0, prev.unsqueeze(0)).squeeze(0)
-        for _ in range(p.bisections):
-            mid = torch.div(lo + hi, 2, rounding_mode="floor")
-            kk = p.nominal + (p.propagators[mid] @ dk.unsqueeze(-1)).squeeze(-1)
-            s_mid = self._score(kk.reshape(-1, 8).clamp(0.0, 1.0)).reshape(b, 3)
-            inner = mid > lo
-            bad = (s_mid <= 0) & inner
-            good = (s_mid > 0) & inner
-            hi, s1 = torch.where(bad, mid, hi), torch.where(bad, s_mid, s1)
-            lo, s0 = torch.where(good, mid, lo), torch.where(good, s_mid, s0)
-        t0, t1 = p.times[lo], p.times[hi]
-        frac = (s0 / (s0 - s1).clamp(min=1e-12)).clamp(0.0, 1.0)
-        crossing = torch.where(first > 0, t0 + frac * (t1 - t0), torch.zeros_like(t0))
-        rul = torch.where(any_faulty, crossing, torch.full_like(crossing, self.horizon))
-        rul = (rul / p.rate_scales).clamp(max=self.horizon)
-        return torch.stack([rul.amin(-1), rul[:, 1], rul.amax(-1)], dim=-1)
 
     def _complete(self, samples: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """The pipeline's path for a batch with every sample present: (alpha, residual, enough, flat)."""
@@ -199,7 +160,7 @@ class OnlineStep(nn.Module):
                  "roughness": rough, "plateau": plateau, "inconsistent": inconsistent}
         reasons = torch.stack([flags[name] for name in PIPELINE_CHECKS], 1)
         ood = reasons.any(1)
-        rul = self._rul(k_hat)
+        rul = p.rul(k_hat, True, blocked=False)
         rul = torch.where((score <= 0).unsqueeze(1) & self.phases, torch.zeros_like(rul), rul)
         rul = torch.where(ood.unsqueeze(1), torch.full_like(rul, float("nan")), rul)
         lower, upper = p.k_interval(k_hat, measured) if self.full else p.k_interval(k_hat)
