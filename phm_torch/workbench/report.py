@@ -9,9 +9,7 @@ first; ``fitted`` {parameter: [value, std]}; ``before_after`` rows; ``closure``;
 
 from __future__ import annotations
 
-import base64
 import hashlib
-import html
 import json
 import math
 import os
@@ -23,7 +21,8 @@ import numpy as np
 
 from ..effects import EFFECTS
 from ..io.atomic import atomic_open
-from ..provenance import actuator_record, describe
+from ..provenance import actuator_record
+from ..report.workbench import html_page
 from . import plots
 from .calibrate import Calibration
 from .candidates import Candidate
@@ -185,104 +184,6 @@ def figures(res: WorkbenchResult, report: dict) -> dict[str, bytes]:
     if res.closure is not None:
         figs["closure.png"] = plots.attribution(res.closure.attribution.shares, "Neural closure: what it depends on")
     return figs
-
-
-def _table(head: list[str], rows: list[list[Any]]) -> str:
-    def cell(v: Any) -> str:
-        if isinstance(v, float):
-            return f"{v:.4g}"
-        return html.escape(str(v)) if v is not None else "–"
-
-    h = "".join(f"<th>{html.escape(x)}</th>" for x in head)
-    body = "".join("<tr>" + "".join(f"<td>{cell(v)}</td>" for v in r) + "</tr>" for r in rows)
-    return f"<table><tr>{h}</tr>{body}</table>"
-
-
-def _pct(d: Mapping[str, float] | None, key: str) -> str:
-    return f"{100 * d[key]:.3f} %" if d and d.get(key) is not None else "–"
-
-
-def html_page(report: dict, figs: dict[str, bytes]) -> str:
-    """Self-contained HTML page (figures inline as base64 PNG)."""
-    chans = report["channels"]
-
-    def img(name: str) -> str:
-        if name not in figs:
-            return ""
-        return f'<img alt="{name}" src="data:image/png;base64,{base64.b64encode(figs[name]).decode()}">'
-
-    best = next((c for c in report["candidates"] if c["significant"]), None)
-    summary = (f"Calibrated model NRMSE {_pct(report['nrmse'], 'total')} against a noise floor of "
-               f"{_pct(report['noise_floor'], 'total')}. ")
-    if best:
-        summary += (f"Most likely missing effect: <b>{html.escape(best['label'])}</b> (p = {best['p_value']:.3g}; "
-                    f"{html.escape(best['evidence'].get('summary', ''))}); with it the NRMSE falls to "
-                    f"{_pct(best, 'nrmse_after_refit')}.")
-    else:
-        summary += "No library effect explains the residual beyond noise."
-    ba = _table(["model", *[f"NRMSE {c}" for c in chans], "NRMSE total", "white residual", "BIC", "fitted"],
-                [[r["model"], *[_pct(r["nrmse"], c) for c in chans], _pct(r["nrmse"], "total"),
-                  "yes" if r["white"] else "no", r["bic"],
-                  "; ".join(f"{k} = {v[0]:.4g} ± {v[1]:.2g}" for k, v in r["fitted"].items() if v[0] is not None)]
-                 for r in report["before_after"]])
-    cand = _table(["effect", "score T", "dof", "p-value", "residual explained", "significant", "NRMSE after refit",
-                   "ΔBIC", "evidence", "physics"],
-                  [[c["label"], c["score"], c["dof"], c["p_value"], _pct(c, "explained_fraction"),
-                    "yes" if c["significant"] else "no", _pct(c, "nrmse_after_refit"), c["delta_bic"],
-                    c["evidence"].get("summary") if c["evidence"] else None,
-                    c["evidence"].get("explains") if c["evidence"] else None] for c in report["candidates"]])
-    compare = _table(["channel", "NRMSE", "fit %", "noise floor (NRMSE of a perfect model)", "noise std"],
-                     [[c, _pct(report["nrmse"], c), report["fit_percent"][c], _pct(report["noise_floor"], c),
-                       report["noise_std"][c]] for c in chans])
-    worst = _table(["record", "t start [s]", "t end [s]", "NRMSE"],
-                   [[w["record"], w["t_start"], w["t_end"], _pct(w, "nrmse")] for w in report["worst_windows"]])
-    tests = _table(["channel", "whiteness p (Ljung-Box)", "white", "residual–command p", "uncorrelated"],
-                   [[c, report["tests"]["whiteness"][c]["p_value"], report["tests"]["whiteness"][c]["white"],
-                     report["tests"]["cross_correlation"][c]["p_value"],
-                     report["tests"]["cross_correlation"][c]["uncorrelated"]] for c in chans])
-    fitted = _table(["parameter", "value", "std"], [[k, v[0], v[1]] for k, v in report["fitted"].items()])
-    harm = _table(["channel", "top mechanical harmonics (order: amplitude r/σ)"],
-                  [[c, ", ".join(f"{h['order']}: {h['amplitude']:.3g}" for h in hs)] for c, hs in report["harmonics"].items()])
-    closure = ""
-    if report["closure"]:
-        cl = report["closure"]
-        verdict = (f"It depends mostly on <b>{html.escape(str(cl['lead']))}</b>: the lead for writing the missing "
-                   "effect." if cl["explains"] else "It does not explain the residual either: what is missing is not "
-                   "a simple function of the state (e.g. a structural difference of the model).")
-        inputs = ", ".join(map(str, cl["harmonics"]))
-        closure = (f"<h2>Neural closure</h2><p>No library effect explained the residual; a small network of the "
-                   f"rotor-angle orders {inputs}, speed, current and surface angle, added to the "
-                   f"{cl['equation']} equation, explains {100 * cl['explained_fraction']:.1f} % of the "
-                   f"residual sum of squares (NRMSE {_pct(cl['nrmse'], 'total')}). {verdict}</p>"
-                   + _table(["input", "share"], [[k, f"{100 * v:.1f} %"] for k, v in cl["inputs"].items()])
-                   + img("closure.png"))
-    timing = ", ".join(f"{k} {v:.1f}" for k, v in report["timing"].items())
-    files = ", ".join(f"{f['path']} (sha256 {str(f['sha256'])[:8]})" for f in report["measurement_files"]) \
-        or ", ".join(report["measurements"])
-    orders = ", ".join(f"{k} {v}" for k, v in report["orders"].get("actuator", {}).items())
-    retrain = (f"<p>Train the surrogates on this physics: <code>phm-generate {html.escape(report['retrain'])}</code>, "
-               "then <code>phm-train</code> on that store (docs/surrogates.md, modelling differences).</p>"
-               if report.get("retrain") else "")
-    return f"""<!DOCTYPE html><html><head><meta charset="utf-8"><title>phm_torch workbench report</title>
-<style>body{{font-family:sans-serif;max-width:1200px;margin:auto;padding:1em}}table{{border-collapse:collapse;
-margin:0.5em 0}}td,th{{border:1px solid #bbb;padding:3px 6px;font-size:90%;text-align:left}}img{{max-width:100%}}
-</style></head><body><h1>Model vs measurement</h1>
-<p>Actuator: {html.escape(describe(report["actuator"]))}; measurements: {html.escape(files)};
-model fidelity {report["fidelity"].upper()}; channels {", ".join(chans)}.</p><p>{summary}</p>
-<p>Rotor-angle orders: the actuator's {html.escape(orders)}; the residual's strongest
-{html.escape(", ".join(map(str, report["orders"].get("residual", []))) or "–")} (analysed up to
-{report["orders"].get("max_order", "–")}).</p>
-<h2>Add it and watch the error fall</h2>{ba}{img("before_after.png")}{retrain}
-<h2>Compare</h2><p>Calibrated model (configured effects) against the measurement.</p>{compare}{img("overlay.png")}
-<h2>Where it fails</h2><h3>Worst windows</h3>{worst}<h3>Residual maps</h3>{img("residual_maps.png")}
-<h3>Harmonic content (rotor angle)</h3>{harm}{img("harmonics.png")}<h3>Residual spectrum</h3>{img("spectrum.png")}
-<h3>Residual tests</h3>{tests}{img("correlations.png")}
-<h2>Which effect is missing</h2><p>Score test per library effect; the top candidates refitted. Significant:
-p below {report["significance_level"]:.3g} (Bonferroni), explains at least {100 * report["min_gain"]:g} % of the
-residual sum of squares, and (refitted) lowers the BIC.</p>{cand}{img("candidates.png")}
-{closure}<h2>Calibrated parameters (configured model)</h2>{fitted}
-<p style="color:#666">Timing [s]: {html.escape(timing)}</p></body></html>
-"""
 
 
 def write_report(res: WorkbenchResult, out_dir: str | os.PathLike, plot: bool = True) -> dict[str, Path]:
