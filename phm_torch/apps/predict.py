@@ -9,7 +9,10 @@ Each record holds:
 * ``health_score`` (> 0 healthy; the pipeline's verdict score, from the verdict classifier of FDI
   estimates when the bundle has one), ``healthy`` and ``p_faulty``, the probability that the actuator is faulty
   given that score, calibrated on held-out records by phm-evaluate (``null`` out of distribution);
-* ``rul_hours`` {p5, p50, p95} (``null`` out of distribution: never a confident RUL from garbage);
+* ``rul_hours`` {p5, p50, p95} (``null`` out of distribution: never a confident RUL from garbage); a bound
+  beyond the pipeline's horizon is ``null`` with ``rul_censored`` true, never the horizon written as a number;
+* ``k_not_identified``: the components the pipeline's test command does not identify (R^2 below 0.25 on
+  phm-evaluate's held-out records): their ``k_hat`` is mostly the training prior, not a measurement;
 * ``out_of_distribution`` and the gappy ``residual`` [A];
 * ``noise``, the estimated relative measurement noise (noise std over the record's RMS current, before any
   baseline), and ``noise_above_calibration``: more than twice the noise of the records P(faulty) and the

@@ -23,6 +23,7 @@ from omegaconf import DictConfig
 
 from .. import provenance
 from ..data.store import DatasetStore
+from ..faults import FAULT_NAMES
 from ..params import CONF_DIR
 from ..report.figures import err_alpha_vs_modes, fdi_per_parameter, hidden_neuron_study, placement
 from ..report.paper import build_report
@@ -159,11 +160,68 @@ def _latency(model_path: Path, signals: torch.Tensor, repeats: int) -> dict[str,
             "online_batched_signals_per_s": throughput}
 
 
+def pretrained_study(cfg: DictConfig, run_dir: Path, metrics: dict[str, Any]) -> dict[str, Any] | None:
+    """The shipped pipeline ``cfg.report.pretrained`` run by phm-predict on ``cfg.report.pretrained_records`` and
+    on the cases stage's records (when they have the pipeline's test length), for the report's section
+    (:mod:`phm_torch.report.pretrained` documents the dict). Not run (``skipped`` says why) for a run of
+    another actuator or command than the pipeline's: its figures would be outside its domain."""
+    from ..online.export import read_metadata
+    from .predict import predict
+
+    if cfg.report.get("pretrained") is None:
+        return None
+    pipeline = _shipped(str(cfg.report.pretrained))
+    study: dict[str, Any] = {"pipeline": str(cfg.report.pretrained), "skipped": None, "notes": [], "records": []}
+    if not pipeline.is_file():
+        return {**study, "skipped": f"report.pretrained: no file {str(pipeline)!r}"}
+    recorded = read_metadata(pipeline).get("provenance") or {}
+    study.update(actuator=provenance.describe(recorded.get("actuator")),
+                 command=provenance.describe(recorded.get("command")))
+    requested = common.requested_provenance(cfg)
+    for key in SHARED_GROUPS:
+        if (recorded.get(key) or {}).get("sha256") != (requested[key] or {}).get("sha256"):
+            return {**study, "skipped": f"it is for the {key} {study[key]}, this run's is "
+                                        f"{provenance.describe(requested[key])}"}
+    files: list[tuple[Path, str, dict[str, float] | None]] = []
+    for item in common.plain(cfg.report.get("pretrained_records")) or []:
+        path = _shipped(str(item))
+        sidecar = json.loads(path.with_suffix(".json").read_text()) if path.with_suffix(".json").is_file() else {}
+        hidden = "; ".join(f"hidden {name} " + ", ".join(f"{k} {v:g}" for k, v in values.items())
+                           for name, values in (sidecar.get("hidden_effect") or {}).items())
+        files.append((path, f"bundled example {item}" + (f" ({hidden})" if hidden else ""), None))
+    cases = metrics.get("cases") or {}
+    command = (recorded.get("command") or {}).get("params") or {}
+    if cases and cases.get("duration") == command.get("duration"):
+        nominal = (cases.get("nominal") or {}).get("faults") or []
+        for name, case in {"nominal": cases.get("nominal") or {}, **(cases.get("cases") or {})}.items():
+            faults = case.get("faults") or []
+            true = {FAULT_NAMES[i]: v for i, v in enumerate(faults) if i >= len(nominal) or v != nominal[i]}
+            files.append((run_dir / "cases" / str(case.get("csv")), (f"virtual bench ({cases.get('fidelity')}, "
+                          f"noise-free): {name}"), true))
+    elif cases:
+        study["notes"].append(f"The virtual bench's records are left out: they last {cases.get('duration')} s, the "
+                              f"pipeline's test record {command.get('duration')} s.")
+    files = [f for f in files if f[0].is_file()]
+    if not files:
+        return {**study, "skipped": "no record to run it on"}
+    _, objects = predict(compose_stage("predict", [f"pipeline={pipeline}",
+                                                   f"measurements={json.dumps([str(f[0]) for f in files])}"]))
+    study["records"] = [{"name": path.name, "source": source, "true_k": true, "prediction": pred}
+                        for (path, source, true), pred in zip(files, objects["records"])]
+    return study
+
+
+def _shipped(path: str) -> Path:
+    """``path`` as given when it exists, else the file of that name shipped with the repository."""
+    shipped = CONF_DIR.parent / path
+    return Path(path) if Path(path).exists() or not shipped.exists() else shipped
+
+
 def _studies(cfg: DictConfig, run_dir: Path, data_dir: Path, train_dir: Path, eval_dir: Path,
              metrics: dict[str, Any]) -> dict[str, Any]:
     fig_dir = run_dir / "report"
     fig_dir.mkdir(parents=True, exist_ok=True)
-    studies: dict[str, Any] = {}
+    studies: dict[str, Any] = {"pretrained": pretrained_study(cfg, run_dir, metrics)}
     bundle_path = train_dir / "surrogates.pt"
     if bundle_path.is_file() and (data_dir / "manifest.json").is_file():
         bundle = SurrogateBundle.load(bundle_path)
@@ -229,6 +287,7 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     previous = run_dir / "metrics.json"
     metrics: dict[str, Any] = json.loads(previous.read_text()) if previous.is_file() else {}
     timings: dict[str, float] = dict(metrics.get("wall_s") or {})
+    metrics["wall_s"] = timings     # the stages run so far, for the report's banner
     objects: dict[str, Any] = {}
     for i, stage in enumerate(stages, 1):
         log.info("[phm-run] stage %d/%d: %s", i, len(stages), stage)
@@ -238,7 +297,7 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             studies = _studies(cfg, run_dir, data_dir, train_dir, eval_dir, metrics)
             metrics["report"] = {k: v for k, v in studies.items() if k in ("latency", "healthy_fraction")}
             metrics["report"]["hidden_neurons"] = studies.get("hidden", {}).get("rows")
-            objects["report"] = build_report(run_dir, metrics, studies)
+            objects["report"] = build_report(run_dir, metrics, studies, repo=CONF_DIR.parent)
         else:
             app, overrides = plan[stage]
             if stage == "track" and not (data_dir / "life" / "index.csv").is_file():

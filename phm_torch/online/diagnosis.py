@@ -8,11 +8,13 @@ take the same path. The record's fields are described in :mod:`phm_torch.apps.pr
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
 
 from ..faults import FAULT_NAMES
+from ..surrogates.metrics import IDENTIFIED_R2
 from .bench_check import BenchCheck
 from .corruptions import Record
 from .input_contract import InputContract
@@ -22,6 +24,24 @@ from .loaded import as_loaded
 # heavy-fault records (ringing current) reaches 2.5 %: 1.3-1.5 % of the paper store's records read above this,
 # 0.4-0.5 % above 2 %.
 NOISE_FLOOR = 0.005
+
+
+QUANTILES = ("p5", "p50", "p95")
+
+
+def censor(values: Sequence[float | None], horizon: float) -> tuple[dict[str, float | None], bool]:
+    """{p5, p50, p95} with each bound at or beyond ``horizon`` (or NaN / None) as None, and whether any was: a
+    bound past the horizon is unknown, never the horizon written as a number."""
+    out = {q: (None if v is None or math.isnan(v) or v >= horizon else float(v)) for q, v in zip(QUANTILES, values)}
+    return out, any(v is None for v in out.values())
+
+
+def not_identified(metadata: Mapping[str, Any]) -> list[str]:
+    """Fault names whose estimate the pipeline's test command does not identify (R^2 below
+    :data:`~phm_torch.surrogates.metrics.IDENTIFIED_R2` on phm-evaluate's held-out records: their k_hat is mostly
+    the training prior); [] for a pipeline exported without that measurement."""
+    r2 = metadata.get("identifiability") or {}
+    return [name for name in FAULT_NAMES if name in r2 and not (r2[name] is not None and r2[name] >= IDENTIFIED_R2)]
 
 
 def diagnose(model: Any, record: Record, contract: InputContract,
@@ -53,13 +73,16 @@ def diagnose(model: Any, record: Record, contract: InputContract,
     out = bool(checks.reasons)
     trusted_bounds = bounds is not None and not out and bool(torch.isfinite(bounds).all())
     r = rul[0].tolist()
+    censored = out or any(math.isnan(v) for v in r)
+    rul_hours, rul_censored = (None, False) if censored else censor(r, model.horizon_hours)
     command = checks.command
     return {
         "k_hat": dict(zip(FAULT_NAMES, k_hat[0].tolist())),
         "k_interval": dict(zip(FAULT_NAMES, bounds.tolist())) if trusted_bounds else None,
         "health_score": float(score[0]), "healthy": bool(score[0] > 0),
         "p_faulty": None if out or math.isnan(p_faulty) else p_faulty,
-        "rul_hours": None if out or any(math.isnan(v) for v in r) else dict(zip(("p5", "p50", "p95"), r)),
+        "rul_hours": rul_hours, "rul_censored": rul_censored,
+        "k_not_identified": not_identified(model.metadata),
         "out_of_distribution": out, "ood_reasons": checks.reasons, "checks_skipped": checks.skipped,
         "residual": float(resid[0]),
         "command_check": None if command is None else {"nrmse": command.nrmse, "best_lag_s": command.best_lag_s,

@@ -53,7 +53,7 @@ def pipeline_constants(pipeline: OnlinePipeline) -> dict[str, Any]:
     noise = float(pipeline.calibration_noise)
     return {"dtype": str(pipeline.times.dtype).removeprefix("torch."), "n_full": pipeline.n_full,
             "n_points": pipeline.n_points, "indices": [int(i) for i in pipeline.gappy.indices.tolist()],
-            "sample_rate": pipeline.sample_rate,
+            "sample_rate": pipeline.sample_rate, "horizon_hours": float(pipeline.times[-1]),
             "interval_level": pipeline.interval_level, "calibration_noise": None if math.isnan(noise) else noise,
             "calibrated": bool(torch.isfinite(pipeline.verdict_scale)),
             "nominal": _finite_list(pipeline.nominal), "interval_mask": _finite_list(pipeline.interval_mask),

@@ -62,6 +62,7 @@ class LoadedPipeline(abc.ABC):
     dtype: torch.dtype
     n_full: int
     sample_rate: float
+    horizon_hours: float        # the RUL horizon [h]: a bound at it means "beyond" (inf where a file lacks it)
 
     @abc.abstractmethod
     def run(self, x: torch.Tensor, bench_nominal: torch.Tensor | None = None) -> StepResult:
@@ -97,6 +98,7 @@ class TorchScriptPipeline(LoadedPipeline):
     def __init__(self, module: Any, metadata: dict[str, Any] | None = None):
         self.module, self.metadata = module, dict(metadata or {})
         self.dtype = module.times.dtype
+        self.horizon_hours = float(module.times[-1])
 
     def __getattr__(self, name: str) -> Any:
         if name == "module":      # not set yet (unpickling, copy): no recursion
@@ -148,6 +150,7 @@ class ProgramPipeline(LoadedPipeline):
         self.dtype = getattr(torch, const["dtype"])
         self.n_full, self.n_points = int(const["n_full"]), int(const["n_points"])
         self.sample_rate, self.interval_level = float(const["sample_rate"]), float(const["interval_level"])
+        self.horizon_hours = float(const.get("horizon_hours") or math.inf)      # files before it: never censored
         noise = const["calibration_noise"]
         self.calibration_noise = torch.tensor(math.nan if noise is None else noise, dtype=self.dtype)
         for name in ("nominal", "interval_mask", "interval_noise", "nominal_record"):

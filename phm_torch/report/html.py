@@ -76,9 +76,13 @@ class HtmlReport:
         """A small grey paragraph: what a table leaves out and why, units, definitions."""
         self.parts.append(f'<p class="note">{esc(text)}</p>')
 
-    def banner(self, lines: Sequence[str]) -> None:
-        """A highlighted box, one paragraph per line (the run's scale, where the other figures are)."""
-        self.parts.append('<div class="banner">' + "".join(f"<p>{esc(x)}</p>" for x in lines) + "</div>")
+    def banner(self, lines: Sequence[str], links: Sequence[tuple[str, str]] = ()) -> None:
+        """A highlighted box, one paragraph per line (the run's scale, where the other figures are), then the
+        ``links`` (text, URL) on a line of their own."""
+        body = "".join(f"<p>{esc(x)}</p>" for x in lines)
+        if links:
+            body += "<p>Open: " + ", ".join(f'<a href="{esc(url)}">{esc(text)}</a>' for text, url in links) + "</p>"
+        self.parts.append(f'<div class="banner">{body}</div>')
 
     def markup(self, fragment: str) -> None:
         """A fragment of HTML built by the caller (values inside it escaped with :func:`esc`)."""

@@ -10,7 +10,6 @@ as an uninterrupted run, so both give the same numbers.
 from __future__ import annotations
 
 import logging
-import math
 import os
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -18,6 +17,7 @@ from typing import Any
 import torch
 
 from ..faults import FAULT_NAMES
+from ..online.diagnosis import QUANTILES, censor
 from .index import Inspection
 from .inspection import measurement
 from .measurement import interval_scale
@@ -27,13 +27,6 @@ from .state import fingerprint, load_state, save_state
 log = logging.getLogger(__name__)
 
 Diagnose = Callable[[Sequence[Inspection]], list[dict[str, Any]]]
-QUANTILES = ("p5", "p50", "p95")
-
-
-def censor(values: Sequence[float | None], horizon: float) -> tuple[dict[str, float | None], bool]:
-    """{p5, p50, p95} with each bound at or beyond ``horizon`` (or NaN / None) as None, and whether any was."""
-    out = {q: (None if v is None or math.isnan(v) or v >= horizon else float(v)) for q, v in zip(QUANTILES, values)}
-    return out, any(v is None for v in out.values())
 
 
 def _healthy(diagnosis: Mapping[str, Any], rul: Mapping[str, float | None] | None, fused: bool,

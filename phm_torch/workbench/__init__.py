@@ -5,7 +5,8 @@ explains the residual. Entry point: :class:`Workbench` (``run`` does the whole l
 
 from .calibrate import Calibration, FitSettings
 from .candidates import Candidate, ScoreSettings
-from .closure import ClosureNet, ClosureSettings, NeuralClosure
+from .closure import ClosureSettings
+from .closure_net import ClosureNet, NeuralClosure
 from .data import Record, load_records, record_from_measurement
 from .diagnostics import DiagnosticSettings
 from .loop import Workbench, WorkbenchResult, WorkbenchSettings

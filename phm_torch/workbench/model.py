@@ -18,6 +18,7 @@ import torch
 from ..effects import EFFECTS, Effect
 from ..params import ActuatorParams
 from ..simulator import EMASimulator
+from .closure_net import NeuralClosure
 from .data import Record
 from .parameters import ParameterSpace, effect_defaults
 
@@ -124,8 +125,6 @@ class Evaluator:
             reps = len(group)
             eff_objs: list[Effect] = [EFFECTS[n](**{k: v.repeat(reps) for k, v in effects[n].items()}) for n in names]
             if closure_net is not None:
-                from .closure import NeuralClosure
-
                 eff_objs.append(NeuralClosure(closure_net, torch.cat(closures).repeat(reps, 1)))
             sim = EMASimulator(self.params, self.fidelity, effects=eff_objs, device=self.device)
             cmd = torch.cat([self.records[i].command.to(self.device).expand(total, -1) for i in group])
