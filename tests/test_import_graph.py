@@ -31,7 +31,8 @@ def module_files(root: Path = ROOT, package: str = PACKAGE) -> dict[str, Path]:
 def _is_type_checking(node: ast.If) -> bool:
     test = node.test
     return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
-        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
 
 
 def _imports(tree: ast.AST) -> list[ast.Import | ast.ImportFrom]:
@@ -44,7 +45,7 @@ def _imports(tree: ast.AST) -> list[ast.Import | ast.ImportFrom]:
             out.append(node)
         children = list(ast.iter_child_nodes(node))
         if isinstance(node, ast.If) and _is_type_checking(node):
-            children = node.orelse            # the body never runs
+            children = node.orelse  # the body never runs
         stack.extend(children)
     return out
 
@@ -82,7 +83,7 @@ def import_graph(modules: dict[str, Path]) -> dict[str, set[str]]:
                 continue
             if node.level:
                 base = package.split(".")
-                base = base[:len(base) - (node.level - 1)]
+                base = base[: len(base) - (node.level - 1)]
                 source = ".".join([*base, node.module] if node.module else base)
             else:
                 source = node.module or ""
@@ -114,7 +115,7 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     components: list[list[str]] = []
     counter = 0
 
-    def visit(v: str) -> None:   # Tarjan; the package's import depth is far below the recursion limit
+    def visit(v: str) -> None:  # Tarjan; the package's import depth is far below the recursion limit
         nonlocal counter
         index[v] = low[v] = counter
         counter += 1
@@ -179,12 +180,14 @@ def test_the_walker_sees_lazy_relative_and_package_imports(tmp_path):
     (pkg / "sub").mkdir(parents=True)
     (pkg / "__init__.py").write_text("")
     (pkg / "sub" / "__init__.py").write_text("from .a import f\n")
-    (pkg / "sub" / "a.py").write_text("from typing import TYPE_CHECKING\nfrom . import b\n"
-                                      "if TYPE_CHECKING:\n    from ..c import C\ndef f():\n    return b\n")
+    (pkg / "sub" / "a.py").write_text(
+        "from typing import TYPE_CHECKING\nfrom . import b\n"
+        "if TYPE_CHECKING:\n    from ..c import C\ndef f():\n    return b\n"
+    )
     (pkg / "sub" / "b.py").write_text("def g():\n    from .a import f\n    return f\n")
     (pkg / "c.py").write_text("from .sub import f\n")
     graph = import_graph(module_files(pkg))
-    assert graph[f"{PACKAGE}.sub.a"] == {f"{PACKAGE}.sub.b"}           # TYPE_CHECKING left out
+    assert graph[f"{PACKAGE}.sub.a"] == {f"{PACKAGE}.sub.b"}  # TYPE_CHECKING left out
     assert graph[f"{PACKAGE}.c"] == {f"{PACKAGE}.sub"}
     assert cycles(graph) == [[f"{PACKAGE}.sub.a", f"{PACKAGE}.sub.b", f"{PACKAGE}.sub.a"]]
     (pkg / "sub" / "b.py").write_text("def g():\n    return 1\n")

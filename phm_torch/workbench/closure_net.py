@@ -32,8 +32,17 @@ class ClosureNet(nn.Module):
         seed: seeds the hidden layer.
     """
 
-    def __init__(self, harmonics: Sequence[int], hidden: int, speed_scale: float, current_scale: float,
-                 angle_scale: float, equation: str = "torque", output_scale: float = 1e-3, seed: int = 0):
+    def __init__(
+        self,
+        harmonics: Sequence[int],
+        hidden: int,
+        speed_scale: float,
+        current_scale: float,
+        angle_scale: float,
+        equation: str = "torque",
+        output_scale: float = 1e-3,
+        seed: int = 0,
+    ):
         super().__init__()
         if equation not in EQUATIONS:
             raise ValueError(f"closure.equation must be one of {list(EQUATIONS)}, got {equation!r}")
@@ -41,8 +50,12 @@ class ClosureNet(nn.Module):
             raise ValueError(f"closure.harmonics must be positive integers, got {list(harmonics)}")
         if hidden < 0:
             raise ValueError(f"closure.hidden must be >= 0, got {hidden}")
-        for name, v in (("speed_scale", speed_scale), ("current_scale", current_scale),
-                        ("angle_scale", angle_scale), ("output_scale", output_scale)):
+        for name, v in (
+            ("speed_scale", speed_scale),
+            ("current_scale", current_scale),
+            ("angle_scale", angle_scale),
+            ("output_scale", output_scale),
+        ):
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"closure.{name} must be > 0, got {v!r}")
         self.harmonics = [int(h) for h in harmonics]
@@ -68,8 +81,9 @@ class ClosureNet(nn.Module):
         out.update({"motor speed": [d - 3], "current": [d - 2], "surface angle": [d - 1]})
         return out
 
-    def features(self, theta_m: torch.Tensor, omega_m: torch.Tensor, current: torch.Tensor,
-                 theta_u: torch.Tensor) -> torch.Tensor:
+    def features(
+        self, theta_m: torch.Tensor, omega_m: torch.Tensor, current: torch.Tensor, theta_u: torch.Tensor
+    ) -> torch.Tensor:
         """(B,) states -> (B, d) features."""
         cols = []
         for h in self.harmonics:
@@ -80,12 +94,12 @@ class ClosureNet(nn.Module):
 
     def forward(self, feats: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
         d = self.n_features
-        out = weights[..., 0] + (feats * weights[..., 1:1 + d]).sum(-1)
+        out = weights[..., 0] + (feats * weights[..., 1 : 1 + d]).sum(-1)
         if self.hidden:
             # broadcast multiply-sum, not a matmul: a BLAS call per substep on (B, d) x (d, H) costs ~100x
             # more when its threads compete for the cores (measured 1.6 ms vs 30 us on a loaded 2-core host)
             pre = (feats.unsqueeze(-2) * self.w1).sum(-1) + self.b1
-            out = out + (torch.tanh(pre) * weights[..., 1 + d:]).sum(-1)
+            out = out + (torch.tanh(pre) * weights[..., 1 + d :]).sum(-1)
         return out
 
 
