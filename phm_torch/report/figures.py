@@ -22,7 +22,8 @@ def err_alpha_vs_modes(bundle, current: torch.Tensor, path: Path, max_modes: int
     """Gappy-POD coefficient error (median and IQR over signals) against retained modes, the bundle's points."""
     pod = bundle.pod
     limit = min(max_modes or pod.n_modes, bundle.gappy.n_points, pod.modes_.shape[1])
-    counts = sorted({m for m in (1, 2, 3, 5, 8, 10, 12, 15, 18, 22, 26, 30) if m <= limit} | {limit})
+    # from 2 modes: err_alpha divides by the range of the coefficients over the modes, zero for one mode
+    counts = sorted({m for m in (2, 3, 5, 8, 10, 12, 15, 18, 22, 26, 30) if m <= limit} | {limit})
     x = current.to(pod.modes_.dtype)
     rows = []
     for m in counts:
