@@ -21,8 +21,8 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from phm_torch.apps import common
 from phm_torch.data import DatasetStore
+from phm_torch.data.store import recorded_actuator
 from phm_torch.io.atomic import atomic_open
 from phm_torch.online import OnlinePipeline
 from phm_torch.online.consistency import calibrate_consistency
@@ -79,7 +79,7 @@ def main() -> None:
     if bundle.forward_model is None:
         raise ValueError(f"--bundle {args.bundle}: no forward surrogate (scripts/fit_forward_check.py adds one)")
     with DatasetStore(args.data_dir) as store:
-        nominal = list(common.actuator(OmegaConf.create(store.metadata["config"])).nominal_faults)
+        nominal = list(recorded_actuator(store.metadata).nominal_faults)
     damage = instantiate(OmegaConf.load("conf/damage/coupled.yaml"), nominal=nominal)
     make = {"damage": damage, "deltas": torch.zeros(3), "direction": torch.ones(8)}
     pipe = OnlinePipeline.from_bundle(bundle, **make).eval()

@@ -27,12 +27,12 @@ from typing import Self
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
-from phm_torch.apps import common
 from phm_torch.apps.generate import generate
 from phm_torch.data.generation import make_plan
 from phm_torch.io.atomic import atomic_open
-from phm_torch.params import CONF_DIR
+from phm_torch.params import CONF_DIR, ActuatorParams
 from phm_torch.simulator import EMASimulator
 
 
@@ -58,8 +58,8 @@ def main() -> None:
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
         cfg = compose("generate", ["experiment=paper"])
-    params = common.actuator(cfg)
-    command = common.command(cfg.command)
+    params = ActuatorParams.from_mapping(OmegaConf.to_container(cfg.actuator, resolve=True))
+    command = instantiate(cfg.command)
     spec = instantiate(cfg.dataset)
     assessment = instantiate(cfg.assessment, _partial_=True)(params=params)
     plan = make_plan(spec, params.nominal_faults, int(cfg.seed))

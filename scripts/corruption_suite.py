@@ -25,9 +25,9 @@ from typing import Any
 
 import numpy as np
 import torch
+from hydra.utils import instantiate
 
 from phm_torch import provenance
-from phm_torch.apps import common
 from phm_torch.data.sampling import ImportanceSampler
 from phm_torch.faults import FAULT_NAMES
 from phm_torch.io.atomic import atomic_open
@@ -88,7 +88,7 @@ def pipeline_conditions(path: Path) -> tuple[ActuatorParams, dict[str, Any], Any
     if not prov.get("actuator") or not prov.get("command"):
         raise ValueError(f"{path}: the pipeline records no actuator and command; the suite needs both")
     node = dict(prov["command"]["params"])
-    return ActuatorParams.from_mapping(prov["actuator"]["values"]), node, common.command(node)
+    return ActuatorParams.from_mapping(prov["actuator"]["values"]), node, instantiate(node)
 
 
 def _truth(model: Any, k: torch.Tensor) -> list[bool]:
@@ -130,9 +130,9 @@ def suite_records(model: Any, path: Path, cache: Path = CACHE, moves: tuple[dict
             if kind == "other_actuator":
                 p = params.replace(**{name: getattr(params, name) * (1.0 + s) for name in MOTOR})
             elif kind == "command_amplitude":
-                cmd = common.command({**node, "amplitude": node["amplitude"] * (1.0 + s)})
+                cmd = instantiate({**node, "amplitude": node["amplitude"] * (1.0 + s)})
             else:
-                cmd = common.command({**node, "f_end": node["f_end"] * (1.0 + s)})
+                cmd = instantiate({**node, "f_end": node["f_end"] * (1.0 + s)})
             changed[kind][s] = _cases(_simulate(p, pair, cmd, cache, kind), model, SUITE_NOISE, rng)
     return base, changed
 

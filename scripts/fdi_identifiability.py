@@ -22,10 +22,11 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig
+from hydra.utils import instantiate
 
-from phm_torch.apps import common
 from phm_torch.data import DatasetStore
+from phm_torch.data.store import recorded_actuator
+from phm_torch.io.atomic import write_json
 from phm_torch.simulator import EMASimulator
 from phm_torch.surrogates.identifiability import signal_sensitivity
 from phm_torch.surrogates.metrics import err_k, fault_count
@@ -45,16 +46,16 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     with DatasetStore(args.data_dir) as store:
-        cfg = DictConfig((store.metadata or {}).get("config") or {})
+        cfg = (store.metadata or {}).get("config") or {}
         if "actuator" not in cfg or "command" not in cfg or "dataset" not in cfg:
             raise SystemExit(f"fdi_identifiability: error: the store {args.data_dir!r} does not record the "
                              f"actuator, command and dataset it was simulated with")
         k = torch.as_tensor(np.asarray(store.split(args.split).K), dtype=torch.float64)
-    params = common.actuator(cfg)
-    command = common.command(cfg.command)
+    params = recorded_actuator(store.metadata)
+    command = instantiate(cfg["command"])
     duration = float(command.duration)
-    spec = cfg.dataset
-    sim = EMASimulator(params, spec.get("fidelity", "hf"), effects=common.plain(spec.get("effects")) or None,
+    spec = cfg["dataset"]
+    sim = EMASimulator(params, spec.get("fidelity", "hf"), effects=spec.get("effects") or None,
                        substeps=spec.get("substeps"))
     nominal = torch.tensor(params.nominal_faults, dtype=torch.float64)
     count = fault_count(k, nominal)
@@ -91,7 +92,7 @@ def main() -> None:
               f"{row['linearity_median']:.1f}" + (f"; err_k {row['err_k']:.4f}" if k_hat is not None else ""),
               flush=True)
     out["elapsed_s"] = time.perf_counter() - t0
-    common.write_json(Path(args.out), out)
+    write_json(Path(args.out), out)
     print(json.dumps({"out": args.out, "elapsed_s": round(out["elapsed_s"], 1)}))
 
 

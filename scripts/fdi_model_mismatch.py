@@ -27,11 +27,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from omegaconf import DictConfig
+from hydra.utils import instantiate
 
-from phm_torch.apps import common
 from phm_torch.data import DatasetStore
+from phm_torch.data.store import recorded_actuator
 from phm_torch.effects import EFFECTS
+from phm_torch.io.atomic import write_json
 from phm_torch.simulator import EMASimulator
 from phm_torch.surrogates.bundle import load_named_bundles
 from phm_torch.surrogates.model_mismatch import mismatch_metrics
@@ -59,17 +60,17 @@ def main() -> None:
     with DatasetStore(args.data_dir) as store:
         for bundle in bundles.values():
             bundle.check_store(store.provenance, f"store {args.data_dir}")
-        cfg = DictConfig((store.metadata or {}).get("config") or {})
+        cfg = (store.metadata or {}).get("config") or {}
         if "actuator" not in cfg or "command" not in cfg or "dataset" not in cfg:
             raise SystemExit(f"fdi_model_mismatch: error: the store {args.data_dir!r} does not record the "
                              f"actuator, command and dataset it was simulated with")
         split = store.split(args.split)
         k = torch.as_tensor(np.asarray(split.K), dtype=torch.float64)[: args.limit]
         healthy = torch.as_tensor(np.asarray(split.healthy)).bool()[: args.limit]
-    params = common.actuator(cfg)
-    command = common.command(cfg.command)
-    spec = cfg.dataset
-    own = common.plain(spec.get("effects")) or {}
+    params = recorded_actuator(store.metadata)
+    command = instantiate(cfg["command"])
+    spec = cfg["dataset"]
+    own = spec.get("effects") or {}
     effects = [e for e in (sorted(EFFECTS) if requested is None else requested) if e not in own]
 
     bad = [n for n in args.substeps if n < 1]
@@ -110,7 +111,7 @@ def main() -> None:
             f"OOD {m['raw']['ood_rate']:.3f}"
             for b, m in row.items()), flush=True)
     out["elapsed_s"] = time.perf_counter() - t0
-    common.write_json(Path(args.out), out)
+    write_json(Path(args.out), out)
     print(json.dumps({"out": args.out, "elapsed_s": round(out["elapsed_s"], 1)}))
 
 

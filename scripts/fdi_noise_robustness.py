@@ -21,10 +21,10 @@ import platform
 import time
 
 import torch
-from omegaconf import DictConfig
 
-from phm_torch.apps import common
 from phm_torch.data import DatasetStore
+from phm_torch.data.store import recorded_actuator
+from phm_torch.io.atomic import write_json
 from phm_torch.surrogates import SurrogateBundle, add_noise, err_k, fdi_mae, noise_level, rms
 from phm_torch.surrogates.bundle import load_named_bundles
 from phm_torch.surrogates.metrics import ECC_PHASE, err_k_by_fault_count
@@ -62,9 +62,9 @@ def main() -> None:
     with DatasetStore(args.data_dir) as store:
         for bundle in bundles.values():
             bundle.check_store(store.provenance, f"store {args.data_dir}")
-        store_cfg = store.metadata.get("config") or {}
-        nominal = torch.tensor(common.actuator(DictConfig(store_cfg)).nominal_faults if "actuator" in store_cfg
-                               else [0.0] * 6 + [0.5, 0.5], dtype=torch.float64)
+        params = recorded_actuator(store.metadata)
+        nominal = torch.tensor(params.nominal_faults if params is not None else [0.0] * 6 + [0.5, 0.5],
+                               dtype=torch.float64)
         for split in args.splits:
             view = store.split(split)
             k = torch.as_tensor(view.K[()], dtype=torch.float64)
@@ -82,7 +82,7 @@ def main() -> None:
     report = {"data_dir": args.data_dir, "bundles": dict(zip(bundles, args.bundle)),
               "levels": args.levels, "results": results, "wall_s": round(time.perf_counter() - t0, 1),
               "machine": {"platform": platform.platform(), "threads": args.threads}}
-    common.write_json(args.out, report)
+    write_json(args.out, report)
 
 
 if __name__ == "__main__":

@@ -19,10 +19,9 @@ import time
 
 import numpy as np
 import torch
-from omegaconf import DictConfig
 
-from phm_torch.apps import common
 from phm_torch.data import DatasetStore
+from phm_torch.data.store import recorded_actuator
 from phm_torch.surrogates import SurrogateBundle
 from phm_torch.surrogates.forward import fit_forward_check
 
@@ -45,10 +44,10 @@ def main() -> None:
         view = store.split(args.split)      # a ValueError naming the store's splits if it has no such split
         k = torch.as_tensor(np.asarray(view.K[()]), dtype=torch.float32)
         current = torch.as_tensor(np.asarray(view.current[()]), dtype=bundle.pod.mean_.dtype)
-        store_cfg = store.metadata.get("config") or {}
+        params = recorded_actuator(store.metadata)
     if len(k) < 10:
         raise ValueError(f"split {args.split!r} of {args.data_dir!r} has {len(k)} records, at least 10 needed")
-    nominal = torch.tensor(common.actuator(DictConfig(store_cfg)).nominal_faults) if "actuator" in store_cfg else None
+    nominal = torch.tensor(params.nominal_faults) if params is not None else None
     t0 = time.perf_counter()
     bundle.forward_model = fit_forward_check(bundle.pod, bundle.gappy, bundle.network, k, current, nominal, args.seed,
                                              n_hidden=args.n_hidden, max_epochs=args.max_epochs)

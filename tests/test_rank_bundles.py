@@ -1,23 +1,17 @@
-"""scripts/rank_bundles.py: err_k, its bootstrap interval and paired differences from per-signal errors; the
-verdict's confusion and McNemar test."""
+"""phm_torch.surrogates.compare (scripts/rank_bundles.py's statistics): err_k, its bootstrap interval and paired
+differences from per-signal errors; the verdict's confusion and McNemar test."""
 
 from __future__ import annotations
-
-import importlib.util
-from pathlib import Path
 
 import pytest
 import torch
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "rank_bundles.py"
+from phm_torch.surrogates import compare
 
 
 @pytest.fixture(scope="module")
 def script():
-    spec = importlib.util.spec_from_file_location("rank_bundles", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return compare
 
 
 @pytest.fixture(scope="module")

@@ -172,19 +172,12 @@ def test_a_measured_rul_stops_on_the_verdict_and_agrees_with_it():
     assert bool((rul[score > 0, 1] > 0).all())
 
 
-def test_fit_verdict_classifier_script_adds_one_to_a_trained_bundle(tmp_path, monkeypatch, capsys):
-    import importlib.util
-    import json
-    from pathlib import Path
-
+def test_fit_verdict_classifier_script_adds_one_to_a_trained_bundle(tmp_path):
     from surrogate_data import write_store
 
     from phm_torch.surrogates.data import load_store
+    from phm_torch.surrogates.verdict_refit import read_samples, refit_verdict_classifier
 
-    spec = importlib.util.spec_from_file_location(
-        "fit_verdict_classifier", Path(__file__).resolve().parents[1] / "scripts" / "fit_verdict_classifier.py")
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
     store = write_store(tmp_path / "store", {"train": 300, "val": 60}, noise=0.01)
     data, _, _ = load_store(str(store), {"train": "train", "val": "val"}, {})
     train = data["train"]
@@ -192,19 +185,14 @@ def test_fit_verdict_classifier_script_adds_one_to_a_trained_bundle(tmp_path, mo
     bundle = SurrogateBundle(pod, torch.linspace(0, pod.mean_.shape[0] - 1, 12).round().long(), FDIMLP(6, 5),
                              PolynomialSVM(degree=2).fit(train.k, train.healthy), 20000.0)
     bundle.save(tmp_path / "in.pt")
-    samples, scale, healthy = script.read_samples(bundle, str(store), "train")
+    samples, scale, healthy = read_samples(bundle, str(store), "train")
     assert samples.shape == (300, 12) and torch.equal(samples, bundle.compress(train.current))
     assert torch.equal(healthy, train.healthy.bool()) and scale.shape == (300,)
-    monkeypatch.setattr("sys.argv", ["fit_verdict_classifier.py", "--bundle", str(tmp_path / "in.pt"),
-                                     "--data-dir", str(store), "--out", str(tmp_path / "out.pt")])
-    script.main()
-    report = json.loads(capsys.readouterr().out)
+    report = refit_verdict_classifier(str(tmp_path / "in.pt"), str(store), str(tmp_path / "out.pt"))
     out = SurrogateBundle.load(tmp_path / "out.pt")
     assert isinstance(out.verdict_classifier, PolynomialSVM) and report["n"] == 300
     assert set(report["val"]) == {"health_classifier", "verdict"}
     kv = torch.rand(50, 8, dtype=torch.float64)
     assert torch.equal(out.health_score(kv), bundle.health_score(kv))          # the health classifier is kept
-    monkeypatch.setattr("sys.argv", ["fit_verdict_classifier.py", "--bundle", str(tmp_path / "in.pt"),
-                                     "--data-dir", str(store), "--out", str(tmp_path / "x.pt"), "--split", "test"])
     with pytest.raises(ValueError, match="split 'test' is not in the store"):
-        script.main()
+        refit_verdict_classifier(str(tmp_path / "in.pt"), str(store), str(tmp_path / "x.pt"), split="test")

@@ -7,7 +7,6 @@ one clear line (see :func:`report_errors`).
 from __future__ import annotations
 
 import functools
-import json
 import math
 import os
 import sys
@@ -25,7 +24,7 @@ from omegaconf.errors import OmegaConfBaseException
 from .. import provenance
 from ..effects import Effect, build_effects
 from ..faults import FAULT_NAMES, N_FAULTS, as_fault_tensor
-from ..io.atomic import atomic_open
+from ..io.atomic import write_json  # noqa: F401  (common.write_json: the apps write their JSON with it)
 from ..params import CONF_DIR, ActuatorParams
 from ..simulator import MOTORS
 
@@ -280,14 +279,6 @@ def nrmse(x: torch.Tensor, ref: torch.Tensor) -> float | None:
     if span <= 0:
         return None
     return float((x - ref).pow(2).mean().sqrt()) / span
-
-
-def write_json(path: Path, data: Any) -> Path:
-    """Write JSON atomically."""
-    with atomic_open(path, "w") as fh:
-        json.dump(data, fh, indent=2)
-        fh.write("\n")
-    return path
 
 
 def hydra_output_dir() -> Path | None:

@@ -39,6 +39,7 @@ import h5py
 import numpy as np
 
 from ..io.atomic import atomic_open
+from ..params import ActuatorParams
 from ..provenance import from_config
 
 ARRAYS = ("K", "current", "position", "healthy", "margins")
@@ -171,6 +172,20 @@ def metadata_provenance(metadata: Mapping[str, Any]) -> dict[str, Any]:
     if recorded is not None:
         return dict(recorded)
     return from_config(metadata.get("config") or {})
+
+
+def recorded_actuator(metadata: Mapping[str, Any]) -> ActuatorParams | None:
+    """The actuator a store's records were simulated for (the ``actuator`` node of the generation config its
+    ``metadata`` keeps); ``None`` when the config records none (a store written by other tools)."""
+    config = metadata.get("config") or {}
+    if "actuator" not in config:
+        return None
+    try:
+        return ActuatorParams.from_mapping(config["actuator"])
+    except (ValueError, TypeError) as e:
+        if str(e).startswith("actuator"):
+            raise
+        raise ValueError(f"actuator: {e}") from None
 
 
 class DatasetStore:
