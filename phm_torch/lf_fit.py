@@ -10,7 +10,7 @@ Procedure (``phm-fit-lf``, :func:`run_fit`):
 3. :func:`fit_shape`: the coefficients (a_k, a_R, a_L, commutation width) that minimise
    sum over design vectors and channels of NRMSE^2 (LF - HF, RMS over the record divided by the HF
    range of that vector and channel), with the project's bounded Levenberg-Marquardt
-   (:func:`~phm_torch.fitting.batched_levenberg_marquardt`, one LF call per Jacobian), inside physical
+   (:func:`~phm_torch.fitting.fit`, one LF call per Jacobian), inside physical
    bounds (:data:`PHYSICAL_BOUNDS`), starting from the physical values.
 4. :func:`discrepancy` on both held-out sets with the physical values (``LFShape()``: 1, 1, 2, 0) and the
    fitted ones, and :func:`decide`.
@@ -36,7 +36,7 @@ from scipy.stats import qmc
 
 from .data.sampling import ImportanceSampler
 from .faults import N_FAULTS
-from .fitting import batched_levenberg_marquardt
+from .fitting import Problem, fit, from_residuals
 from .params import ActuatorParams, LFShape
 from .simulator import EMASimulator
 
@@ -184,7 +184,7 @@ def as_vector(shape: LFShape) -> torch.Tensor:
 @dataclass
 class ShapeFit:
     """Outcome of :func:`fit_shape`: ``shape`` (fitted coefficients), ``std`` (Gauss-Newton standard
-    deviation per coefficient; meaningless where ringing vectors make the cost jitter), ``cost_history`` (0.5 sum NRMSE^2 per iteration), ``iterations``,
+    deviation per coefficient; meaningless where ringing vectors make the cost jitter), ``cost_history`` (0.5 sum NRMSE^2 before each iteration), ``iterations``,
     ``converged``, ``at_bound`` (coefficients that ended on a bound), ``excluded`` (design rows left out
     of the fit as outliers, set by :func:`fit_and_validate`)."""
 
@@ -218,12 +218,16 @@ def fit_shape(params: ActuatorParams, faults: torch.Tensor, reference: torch.Ten
     lo = torch.tensor([bounds[c][0] for c in COEFFICIENTS], dtype=torch.float64)
     hi = torch.tensor([bounds[c][1] for c in COEFFICIENTS], dtype=torch.float64)
     x0 = torch.minimum(torch.maximum(as_vector(start or LFShape()), lo), hi)
-    res = batched_levenberg_marquardt(residuals, x0, lo, hi, step=fd_step, max_iter=max_iter)
-    std = res.covariance().diagonal().clamp(min=0).sqrt()
+    # Each row is a batch of B long LF records, so the solver spends the fewest rows: trials alone, then the
+    # Jacobian at the accepted point; it stops on the relative gain or on a damping no step survives.
+    res = fit(from_residuals(residuals), [Problem(x0, lo, hi, torch.full_like(x0, fd_step))], max_iter,
+              lambdas=(0.1, 1.0, 10.0, 100.0), damping=1e-3, tol_abs=0.0, tol_rel=1e-6, trial_jacobians=False,
+              predicted_stop=False, max_failures=None, max_damping=1e8)[0]
+    std = res.std()
     span_x = hi - lo
     at_bound = [c for i, c in enumerate(COEFFICIENTS) if min(res.x[i] - lo[i], hi[i] - res.x[i]) < 1e-6 * span_x[i]]
     return ShapeFit(LFShape(**{c: float(v) for c, v in zip(COEFFICIENTS, res.x)}),
-                    {c: float(s) for c, s in zip(COEFFICIENTS, std)}, list(res.history), res.iterations,
+                    {c: float(s) for c, s in zip(COEFFICIENTS, std)}, res.history[:-1], res.iterations,
                     res.converged, at_bound)
 
 

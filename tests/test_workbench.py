@@ -20,6 +20,7 @@ import pytest
 import torch
 
 from phm_torch.command import Chirp
+from phm_torch.fitting import Problem, fit
 from phm_torch.io import Measurement, read_measurement, write_measurement
 from phm_torch.params import load_actuator
 from phm_torch.workbench import (
@@ -41,7 +42,6 @@ from phm_torch.workbench.diagnostics import (
     whiteness,
     worst_windows,
 )
-from phm_torch.workbench.lm import Problem, fit
 
 P = load_actuator()
 REPO = Path(__file__).resolve().parent.parent

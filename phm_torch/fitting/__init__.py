@@ -1,5 +1,5 @@
 """Parameter fitting shared by the LF shape-function fit and the workbench."""
 
-from .levenberg_marquardt import LMResult, batched_levenberg_marquardt
+from .levenberg_marquardt import Evaluate, FitResult, Problem, fit, from_residuals
 
-__all__ = ["LMResult", "batched_levenberg_marquardt"]
+__all__ = ["Evaluate", "FitResult", "Problem", "fit", "from_residuals"]

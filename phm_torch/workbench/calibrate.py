@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .lm import FitResult, Problem, fit
+from ..fitting import FitResult, Problem, fit
 from .model import Evaluator
 from .parameters import ParameterSpace
 
