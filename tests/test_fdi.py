@@ -14,8 +14,8 @@ from phm_torch.surrogates import (
     FDIMLP,
     POD,
     GappyPOD,
-    LevenbergMarquardt,
     SignalAugment,
+    TrainLM,
     add_noise,
     err_alpha,
     err_k,
@@ -120,7 +120,7 @@ def test_lm_normal_equations_match_autograd_jacobian(n_layers):
     net = FDIMLP(3, 4, n_layers=n_layers).double()
     x, y = torch.randn(5, 3, dtype=torch.float64), torch.rand(5, 8, dtype=torch.float64)
     w = torch.rand(5, 8, dtype=torch.float64)
-    lm = LevenbergMarquardt(net, forward_name="preactivation", chunk=2)
+    lm = TrainLM(net, forward_name="preactivation", chunk=2)
     lm._buffers = {k: v for k, v in net.named_buffers()}
     flat = lm._flat()
     jtj, jte, perf = lm._normal_equations(flat, x, y, w)
@@ -140,7 +140,7 @@ def test_lm_fits_a_teacher_network_quickly():
     xv, yv = teacher_data(100, 1)
     torch.manual_seed(0)
     net = FDIMLP(6, 12).set_normalization(x)
-    lm = LevenbergMarquardt(net, forward_name="preactivation")
+    lm = TrainLM(net, forward_name="preactivation")
     history = lm.fit(x, y, epochs=40, x_val=xv, y_val=yv)
     perfs = [h["perf"] for h in history]
     assert all(b <= a for a, b in itertools.pairwise(perfs))      # LM only takes descending steps

@@ -14,8 +14,8 @@ import torch
 from ..plotting import save_figure
 from ..surrogates.fdi_mlp import FDIMLP
 from ..surrogates.gappy_pod import GappyPOD
-from ..surrogates.levenberg_marquardt import LevenbergMarquardt
 from ..surrogates.metrics import err_alpha, err_k
+from ..surrogates.trainlm import TrainLM
 
 
 def err_alpha_vs_modes(bundle, current: torch.Tensor, path: Path, max_modes: int | None = None) -> dict:
@@ -76,7 +76,7 @@ def hidden_neuron_study(bundle, train_current: torch.Tensor, train_k: torch.Tens
         torch.manual_seed(seed)
         net = FDIMLP(a_tr.shape[1], h).to(dtype).set_normalization(a_tr)
         t0 = time.perf_counter()
-        LevenbergMarquardt(net, forward_name="preactivation").fit(a_tr, train_k.to(dtype), epochs=epochs)
+        TrainLM(net, forward_name="preactivation").fit(a_tr, train_k.to(dtype), epochs=epochs)
         t_train = time.perf_counter() - t0
         with torch.no_grad():
             one = a_va[:1]

@@ -11,10 +11,10 @@ from .classifiers import CLASSIFIERS, RBFSVM, HealthClassifier, PolynomialSVM, b
 from .fdi_ensemble import FDIEnsemble, build_fdi_network
 from .fdi_mlp import FDIMLP
 from .gappy_pod import GappyPOD
-from .levenberg_marquardt import LevenbergMarquardt
 from .metrics import confusion, err_alpha, err_k, err_k_interval, err_k_per_signal, err_k_weights, fdi_mae
 from .pod import POD
 from .selectors import SELECTORS, Selector, build_selector
+from .trainlm import TrainLM
 
 __all__ = [
            "CLASSIFIERS",
@@ -25,11 +25,11 @@ __all__ = [
            "FDIEnsemble",
            "GappyPOD",
            "HealthClassifier",
-           "LevenbergMarquardt",
            "PolynomialSVM",
            "Selector",
            "SignalAugment",
            "SurrogateBundle",
+           "TrainLM",
            "add_noise",
            "build_classifier",
            "build_fdi_network",

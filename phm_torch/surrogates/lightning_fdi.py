@@ -2,7 +2,7 @@
 
 * ``optimizer="adam"``: mini-batch Adam (optional cosine decay) on the weighted MSE of the network's
   pre-saturation output.
-* ``optimizer="lm"``: the paper's Levenberg-Marquardt (``levenberg_marquardt.py``); every training
+* ``optimizer="lm"``: the paper's Levenberg-Marquardt (``trainlm.py``); every training
   step is one LM epoch on the whole training set, so the dataloader must yield it as one batch (single
   device). Lightning's EarlyStopping on ``val_err_k`` plays trainlm's ``max_fail``.
 * End to end (``gappy`` given): batches carry the selected samples (B, n_w) [A] and the signals' RMS
@@ -23,8 +23,8 @@ import torch
 from .augment import SignalAugment
 from .fdi_mlp import FDIMLP
 from .gappy_pod import GappyPOD
-from .levenberg_marquardt import LevenbergMarquardt
 from .metrics import err_k_weights
+from .trainlm import TrainLM
 
 OPTIMIZERS = ("adam", "lm")
 NOISE_INPUT_NEEDS = ("model.network.noise_input=true needs noisy training records: model.end_to_end=true with "
@@ -40,7 +40,7 @@ class FDIModule(L.LightningModule):
         optimizer: ``adam`` or ``lm``.
         lr, weight_decay, cosine: Adam settings (cosine: decay the rate to 0 over max_epochs).
         loss_weighting: ``uniform`` or ``err_k``.
-        lm: keyword arguments of :class:`LevenbergMarquardt` (mu, mu_dec, mu_inc, mu_max, min_grad, chunk).
+        lm: keyword arguments of :class:`TrainLM` (mu, mu_dec, mu_inc, mu_max, min_grad, chunk).
         gappy: the gappy layer for end-to-end training (None: batches carry coefficients).
         augment: corruption of the training samples (end to end only).
     """
@@ -75,7 +75,7 @@ class FDIModule(L.LightningModule):
                                    "n_points": gappy.n_points if gappy is not None else None})
         if optimizer == "lm":
             self.automatic_optimization = False
-            self.lm = LevenbergMarquardt(network, forward_name="preactivation", **(lm or {}))
+            self.lm = TrainLM(network, forward_name="preactivation", **(lm or {}))
 
     def _weights(self, k: torch.Tensor) -> torch.Tensor:
         return err_k_weights(k) if self.loss_weighting == "err_k" else torch.ones_like(k)

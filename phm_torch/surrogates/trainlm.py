@@ -1,5 +1,8 @@
 """Levenberg-Marquardt training of a small network's weights (MATLAB ``trainlm``).
 
+Not the parameter fit of the simulators (:mod:`phm_torch.fitting`, bounded, finite-difference Jacobians):
+here the Jacobian is exact (autograd) and the unknowns are the unbounded weights of a network.
+
 The performance is the (weighted) mean squared error of the network outputs, perf = mean(w * e^2) over
 all N x n_out entries. Each epoch builds the Jacobian J of the weighted residuals sqrt(w) * e with
 respect to every weight and bias (``torch.func``: ``vmap`` of ``jacrev`` over the samples, in chunks),
@@ -35,7 +38,7 @@ class LMStep:
     stop: bool
 
 
-class LevenbergMarquardt:
+class TrainLM:
     """LM optimiser for ``model``'s parameters, minimising mean(w * (f(x) - y)^2).
 
     Args:
