@@ -9,9 +9,16 @@ import torch
 
 
 def nrmse(signal: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
-    """RMS of (signal - reference) over the last axis, divided by the reference's range; (...,) fraction."""
+    """RMS of (signal - reference) over the last axis, divided by the reference's range (max - min); (...,)
+    fraction.
+
+    A constant reference (range 0) gives no scale to divide by, so its NRMSE is undefined and is NaN,
+    whatever the signal: not RMS / tiny (an absurd figure) nor 0 / tiny (a perfect match that means
+    nothing). Reports write it as null.
+    """
     rng = reference.amax(-1) - reference.amin(-1)
-    return (signal - reference).pow(2).mean(-1).sqrt() / rng.clamp(min=torch.finfo(reference.dtype).tiny)
+    rms = (signal - reference).pow(2).mean(-1).sqrt()
+    return torch.where(rng > 0, rms / rng, torch.nan)
 
 
 def sine_fit(time: np.ndarray, signal: np.ndarray, phase: np.ndarray) -> tuple[float, float]:

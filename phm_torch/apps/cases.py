@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import re
 import time
 from collections.abc import Mapping
@@ -34,6 +35,8 @@ from omegaconf import DictConfig
 
 from ..faults import N_FAULTS
 from ..io import write_measurement
+from ..metrics import nrmse
+from ..sensor_noise import add_sensor_noise
 from ..simulator import EMASimulator
 from . import common
 from .simulate import CSV_COLUMNS
@@ -109,7 +112,7 @@ def run_cases(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     wall = time.perf_counter() - t0
     log.info("simulated %d actuators (%s, %.3g s) in %.1f s", len(names), fid, duration, wall)
 
-    noisy = common.add_noise(signals.channels, std, seed)
+    noisy = add_sensor_noise(signals.channels, std, seed)
     columns = [c for c in CSV_COLUMNS if c in noisy]
     stats = common.signal_metrics(signals.channels)
     clean = signals.channels
@@ -119,8 +122,9 @@ def run_cases(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                                      columns=columns)
         entry: dict[str, Any] = {"faults": faults[i]}
         if i > 0:
-            entry["nrmse_current"] = common.nrmse(clean["current"][i], clean["current"][0])
-            entry["nrmse_position"] = common.nrmse(clean["position"][i], clean["position"][0])
+            for c in ("current", "position"):
+                value = float(nrmse(clean[c][i], clean[c][0]))
+                entry[f"nrmse_{c}"] = None if math.isnan(value) else value  # constant nominal: null
         entry.update({key: values[i] for key, values in stats.items()})
         entry["csv"] = csv_path.name
         if i > 0 and cfg.get("plot", True):

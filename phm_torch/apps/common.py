@@ -248,22 +248,6 @@ def noise(cfg: DictConfig) -> dict[str, float]:
             "position": number(node.get("position", 0.0), "noise.position", 0.0)}
 
 
-def add_noise(channels: Mapping[str, torch.Tensor], std: Mapping[str, float], seed: int) -> dict[str, torch.Tensor]:
-    """Copy of ``channels`` with Gaussian noise on ``current`` then ``position`` (torch.Generator(seed)).
-
-    Both draws are always made, in that order, so each channel's noise depends only on the seed and the
-    shape, not on the other channel's setting.
-    """
-    out = dict(channels)
-    ref = channels["current"]
-    gen = torch.Generator(device=ref.device).manual_seed(seed)
-    for name in ("current", "position"):
-        x = channels[name]
-        draw = torch.randn(x.shape, generator=gen, dtype=x.dtype, device=x.device)
-        out[name] = x + std.get(name, 0.0) * draw
-    return out
-
-
 def signal_metrics(channels: Mapping[str, torch.Tensor]) -> dict[str, list[float]]:
     """Per-run tracking error RMS/max [rad], peak current [A] and peak motor speed [rad/s] of (B, n) channels."""
     err = channels["command"] - channels["position"]
@@ -271,14 +255,6 @@ def signal_metrics(channels: Mapping[str, torch.Tensor]) -> dict[str, list[float
             "tracking_error_max": err.abs().amax(-1).tolist(),
             "peak_current": channels["current"].abs().amax(-1).tolist(),
             "peak_speed": channels["speed"].abs().amax(-1).tolist()}
-
-
-def nrmse(x: torch.Tensor, ref: torch.Tensor) -> float | None:
-    """RMS of x - ref divided by the range of ref (a fraction); ``None`` when ref is constant."""
-    span = float(ref.max() - ref.min())
-    if span <= 0:
-        return None
-    return float((x - ref).pow(2).mean().sqrt()) / span
 
 
 def hydra_output_dir() -> Path | None:

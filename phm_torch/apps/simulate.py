@@ -23,6 +23,7 @@ import hydra
 from omegaconf import DictConfig
 
 from ..io import write_measurement
+from ..sensor_noise import add_sensor_noise
 from ..simulator import EMASimulator
 from . import common
 
@@ -66,7 +67,7 @@ def simulate_to_csv(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     signals = sim.run(faults, command, duration)
     wall = time.perf_counter() - t0
 
-    channels = common.add_noise(signals.channels, std, seed)
+    channels = add_sensor_noise(signals.channels, std, seed)
     columns = [c for c in CSV_COLUMNS if c in channels]
     write_measurement(csv_path, {"time": signals.time, **channels}, index=0, columns=columns)
     plot_path = None

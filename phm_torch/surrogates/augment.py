@@ -58,7 +58,7 @@ def noise_level(x: torch.Tensor, window: int = 0) -> torch.Tensor:
 def add_noise(samples: torch.Tensor, scale: torch.Tensor, relative_std: float | torch.Tensor,
               generator: torch.Generator | None = None) -> torch.Tensor:
     """samples (B, n_w) + Gaussian noise of std ``relative_std * scale``; scale (B,) [A] (e.g. the RMS current),
-    relative_std a float or (B,)."""
+    relative_std a float or (B,). (Absolute sensor noise on simulated channels: :mod:`phm_torch.sensor_noise`.)"""
     std = torch.as_tensor(relative_std, dtype=samples.dtype, device=samples.device) * scale   # (B,)
     noise = torch.randn(samples.shape, generator=generator, dtype=samples.dtype, device=samples.device)
     return samples + noise * std.unsqueeze(-1)

@@ -15,6 +15,7 @@ import torch
 from ..effects import EFFECTS
 from ..io import Measurement
 from ..params import ActuatorParams
+from ..sensor_noise import add_sensor_noise
 from ..simulator import EMASimulator
 from .parameters import effect_defaults
 
@@ -67,11 +68,8 @@ def synthesize(params: ActuatorParams, cases: Sequence[Case], command: torch.Ten
         sig = sim.run(faults, command, duration, scales=scales, channels=list(CSV_CHANNELS))
     out = []
     for i, c in enumerate(cases):
-        gen = torch.Generator().manual_seed(int(c.seed))
-        chans = {k: sig[k][i].clone() for k in (*CSV_CHANNELS, "command")}
-        for k in ("current", "position"):
-            chans[k] = chans[k] + float(c.noise.get(k, 0.0)) * torch.randn(chans[k].shape, generator=gen,
-                                                                           dtype=torch.float64)
+        clean = {k: sig[k][i].clone() for k in (*CSV_CHANNELS, "command")}
+        chans = add_sensor_noise(clean, {k: float(v) for k, v in c.noise.items()}, int(c.seed))
         np_ = {k: v.numpy() for k, v in chans.items()}
         out.append(Measurement(sig.time.numpy().copy(), np_["command"], np_["position"], np_["current"],
                                {k: np_[k] for k in ("speed", "motor_angle")}, float(params.sample_rate)))
