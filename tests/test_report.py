@@ -192,6 +192,8 @@ def test_the_banner_says_paper_scale_for_a_paper_scale_run(run_dir):
     ).group(1)
     assert "10,000 training signals" in banner and "paper&#x27;s data scale" in banner
     assert "demo scale" not in banner
+    unknown = re.search(r'<div class="banner">(.*?)</div>', build_report(run_dir, {}, {}).read_text()).group(1)
+    assert "scale is not recorded" in unknown and "wall time was not recorded" in unknown
 
 
 def test_the_pretrained_section_shows_verdicts_k_hat_and_rul(run_dir):

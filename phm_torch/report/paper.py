@@ -99,12 +99,14 @@ def _banner(r: HtmlReport, metrics: dict[str, Any], repo: Path | None) -> None:
             + ", ".join(f"{k} {_duration(v)}" for k, v in s["wall_s"].items()) + ")") if s["total_s"] else \
         "its wall time was not recorded"
     lines = [f"Scale of this run: {size}; {wall}."]
-    if n is not None and n >= PAPER_N_TRAIN:
+    if n is None:
+        lines.append("This run's scale is not recorded (no generate or train metrics in metrics.json).")
+    elif n >= PAPER_N_TRAIN:
         lines.append("This run is at the paper's data scale (phm-run experiment=paper: 10,000 training signals).")
     else:
-        lines.append("This is the demo scale: the default phm-run is sized to finish in minutes on a 2-core CPU "
-                     "(600 training signals), so the figures below show that every stage runs end to end; they are "
-                     f"not what the method reaches (the paper trains on {PAPER_N_TRAIN:,} signals).")
+        lines.append(f"This run is below the paper's data scale (it trains on {PAPER_N_TRAIN:,} signals): the default "
+                     "phm-run is the demo scale, sized to finish in minutes on a 2-core CPU. Its figures below show "
+                     "that every stage runs end to end, not what the method reaches.")
     lines.append("Paper-scale figures (phm-run experiment=paper) and those of the pretrained pipeline (80,000 "
                  "training signals): README.md, section 'Results against the seed paper', and pretrained/README.md. "
                  "The section 'Pretrained pipeline on the bundled records' below runs that shipped pipeline here.")
