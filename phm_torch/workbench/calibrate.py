@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from ..fitting import FitResult, Problem, fit
+from . import checks
 from .model import Evaluator
 from .parameters import ParameterSpace
 
@@ -27,7 +28,15 @@ MIN_RELATIVE_NOISE = 1e-6  # sigma floor as a fraction of the channel range (noi
 
 @dataclass(frozen=True)
 class FitSettings:
-    """Levenberg-Marquardt settings: iterations, damping multipliers tried per iteration, stop tolerances."""
+    """Levenberg-Marquardt settings (one batched simulator call per iteration).
+
+    Attributes:
+        max_iter: iterations.
+        lambdas: damping multipliers tried per iteration, each trial with its Jacobian.
+        damping: initial Marquardt lambda.
+        tol_abs, tol_rel: stop when an accepted step gains less than tol_abs + tol_rel * cost (cost = chi^2 / 2
+            of the noise-normalised residual).
+    """
 
     max_iter: int = 8
     lambdas: tuple[float, ...] = (0.1, 1.0, 10.0)
@@ -36,13 +45,13 @@ class FitSettings:
     tol_rel: float = 1e-4
 
     def __post_init__(self) -> None:
-        if self.max_iter < 1:
-            raise ValueError(f"max_iter must be >= 1, got {self.max_iter}")
-        if not self.lambdas or any(not (math.isfinite(v) and v > 0) for v in self.lambdas):
-            raise ValueError(f"lambdas must be positive numbers, got {list(self.lambdas)}")
-        if not (self.damping > 0 and self.tol_abs >= 0 and self.tol_rel >= 0):
-            raise ValueError(f"damping > 0, tol_abs >= 0, tol_rel >= 0 required, got {self.damping}, "
-                             f"{self.tol_abs}, {self.tol_rel}")
+        values = {"max_iter": checks.integer(self.max_iter, "max_iter", 1),
+                  "lambdas": checks.numbers(self.lambdas, "lambdas", 0.0, True),
+                  "damping": checks.number(self.damping, "damping", 0.0, True),
+                  "tol_abs": checks.number(self.tol_abs, "tol_abs", 0.0),
+                  "tol_rel": checks.number(self.tol_rel, "tol_rel", 0.0)}
+        for key, value in values.items():
+            object.__setattr__(self, key, value)
 
 
 @dataclass

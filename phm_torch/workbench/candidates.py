@@ -31,6 +31,7 @@ import torch
 from scipy import special, stats
 
 from ..effects import EFFECTS
+from . import checks
 from .calibrate import Calibration
 from .model import Evaluator
 from .parameters import effect_defaults
@@ -65,24 +66,31 @@ class ScoreSettings:
     data_orders: int = 3
 
     def __post_init__(self) -> None:
-        if not (0 < self.step <= 10):
+        step = checks.number(self.step, "score.step")
+        if not (0 < step <= 10):
             raise ValueError(f"score.step must be in (0, 10] (fraction of the parameter scale), got {self.step!r}")
-        if self.hac_lags < 0:
-            raise ValueError(f"score.hac_lags must be >= 0, got {self.hac_lags!r}")
-        if not 0 < self.alpha < 1:
+        alpha = checks.number(self.alpha, "score.alpha")
+        if not 0 < alpha < 1:
             raise ValueError(f"score.alpha must be in (0, 1), got {self.alpha!r}")
-        if self.data_orders < 0:
-            raise ValueError(f"score.data_orders must be >= 0, got {self.data_orders!r}")
-        if not 0 <= self.min_gain < 1:
-            raise ValueError(f"score.min_gain must be in [0, 1), got {self.min_gain!r}")
-        for name, g in self.grid.items():
+        grid = {}
+        for name, g in checks.mapping(self.grid, "score.grid").items():
             if name not in EFFECTS:
                 raise ValueError(f"score.grid: unknown effect {name!r}; available: {sorted(EFFECTS)}")
-            for key, vals in g.items():
+            grid[name] = {}
+            for key, vals in checks.mapping(g, f"score.grid.{name}").items():
                 if key not in EFFECTS[name].PARAMS or key in EFFECTS[name].STRENGTH:
                     raise ValueError(f"score.grid.{name}.{key}: not a shape parameter of {name}")
                 if not vals:
                     raise ValueError(f"score.grid.{name}.{key}: empty list of values")
+                grid[name][key] = checks.numbers(vals, f"score.grid.{name}.{key}")
+        values = {"step": step, "alpha": alpha, "grid": grid,
+                  "hac_lags": checks.integer(self.hac_lags, "score.hac_lags", 0),
+                  "alias_ratio": checks.number(self.alias_ratio, "score.alias_ratio", 0.0),
+                  "rank_tol": checks.number(self.rank_tol, "score.rank_tol", 0.0),
+                  "min_gain": checks.number(self.min_gain, "score.min_gain", 0.0, maximum=1.0),
+                  "data_orders": checks.integer(self.data_orders, "score.data_orders", 0)}
+        for key, value in values.items():
+            object.__setattr__(self, key, value)
 
 
 @dataclass

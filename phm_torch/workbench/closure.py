@@ -27,6 +27,7 @@ import torch
 
 from ..effects import EFFECTS
 from ..simulator import EMASimulator
+from . import checks
 from .calibrate import Calibration, FitSettings, fit_models
 from .closure_net import EQUATIONS, ClosureNet, NeuralClosure
 from .model import threads
@@ -73,7 +74,12 @@ class ClosureSettings:
     its ridge prior weight, finite-difference step and fit settings.
 
     ``harmonics``: rotor-angle orders fed to the network; ``None`` (default) derives them from the actuator
-    (:func:`~.orders.closure_orders`) plus the residual's ``data_orders`` strongest orders."""
+    (:func:`~.orders.closure_orders`: 1, 2, p, 2p, the cogging order and its double, 6p, the pinion's teeth)
+    plus the residual's ``data_orders`` strongest orders. ``equation``: ``torque`` (motor shaft) or
+    ``voltage`` (driven pair). ``hidden``: random tanh units (the output weights are fitted through the
+    simulator); ``output_scale``: [N m] (torque) or [V] (voltage) per unit weight; ``ridge``: prior weight on
+    the output weights; ``fit``: its Gauss-Newton iterations (the calibrated model frozen; one simulator call
+    each)."""
 
     enabled: str = "auto"
     equation: str = "torque"
@@ -92,11 +98,22 @@ class ClosureSettings:
             raise ValueError(f"closure.enabled must be auto, always or never, got {self.enabled!r}")
         if self.equation not in EQUATIONS:
             raise ValueError(f"closure.equation must be one of {list(EQUATIONS)}, got {self.equation!r}")
-        if self.data_orders < 0:
-            raise ValueError(f"closure.data_orders must be >= 0, got {self.data_orders!r}")
-        if not (self.ridge >= 0 and self.fd_step > 0 and self.ratio > 0):
-            raise ValueError(f"closure.ridge >= 0, fd_step > 0, ratio > 0 required, got {self.ridge}, "
-                             f"{self.fd_step}, {self.ratio}")
+        if not isinstance(self.fit, FitSettings):
+            raise ValueError(f"closure.fit must be FitSettings, got {self.fit!r}")
+        values = {"data_orders": checks.integer(self.data_orders, "closure.data_orders", 0),
+                  "hidden": checks.integer(self.hidden, "closure.hidden", 0),
+                  "output_scale": checks.number(self.output_scale, "closure.output_scale", 0.0, True),
+                  "ridge": checks.number(self.ridge, "closure.ridge", 0.0),
+                  "fd_step": checks.number(self.fd_step, "closure.fd_step", 0.0, True),
+                  "ratio": checks.number(self.ratio, "closure.ratio", 0.0, True),
+                  "seed": checks.integer(self.seed, "closure.seed", 0)}
+        if self.harmonics is not None:   # None: from the actuator's orders and the residual's
+            if isinstance(self.harmonics, (str, bytes)) or not hasattr(self.harmonics, "__iter__"):
+                raise ValueError(f"closure.harmonics must be null or a list of orders, got {self.harmonics!r}")
+            values["harmonics"] = tuple(checks.integer(h, f"closure.harmonics[{i}]", 1)
+                                        for i, h in enumerate(self.harmonics))
+        for key, value in values.items():
+            object.__setattr__(self, key, value)
 
 
 @dataclass

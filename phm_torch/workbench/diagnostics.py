@@ -18,6 +18,8 @@ import numpy as np
 from scipy import stats
 from scipy.signal import welch
 
+from . import checks
+
 PerRecord = Sequence[Mapping[str, np.ndarray]]
 
 
@@ -41,13 +43,13 @@ class DiagnosticSettings:
         for name in ("worst", "bins", "max_harmonic", "max_lag", "whiteness_lags"):
             if getattr(self, name) is None and name == "max_harmonic":
                 continue
-            if int(getattr(self, name)) < 1:
-                raise ValueError(f"diagnostics.{name} must be >= 1, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, checks.integer(getattr(self, name), f"diagnostics.{name}", 1))
         for name in ("window", "reversal_window"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"diagnostics.{name} must be > 0 [s], got {getattr(self, name)!r}")
-        if not 0 < self.alpha < 1:
+            object.__setattr__(self, name, checks.number(getattr(self, name), f"diagnostics.{name}", 0.0, True))
+        alpha = checks.number(self.alpha, "diagnostics.alpha")
+        if not 0 < alpha < 1:
             raise ValueError(f"diagnostics.alpha must be in (0, 1), got {self.alpha!r}")
+        object.__setattr__(self, "alpha", alpha)
 
 
 def pooled(values: Sequence[float], weights: Sequence[float]) -> float:

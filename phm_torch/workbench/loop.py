@@ -22,13 +22,12 @@ import torch
 from ..effects import EFFECTS
 from ..params import ActuatorParams
 from ..plant import build_plant
-from .calibrate import Calibration, FitSettings, estimate_sigma, fit_models
+from .calibrate import Calibration, estimate_sigma, fit_models
 from .candidates import Candidate, ScoreSettings, score_tests
-from .closure import ClosureResult, ClosureSettings, fit_closure
+from .closure import ClosureResult, fit_closure
 from .data import Record, load_records
 from .diagnostics import (
     Coordinates,
-    DiagnosticSettings,
     cross_correlation,
     error_metrics,
     harmonics,
@@ -42,41 +41,12 @@ from .model import Evaluator
 from .noise import HighBandNoise
 from .orders import NAMED_ORDERS, actuator_orders, closure_orders, max_order, residual_orders
 from .parameters import ParameterSpace, build_space
+from .settings import WorkbenchSettings
 
 log = logging.getLogger(__name__)
 
 DEFAULT_FREE = ("motor_inertia", "dry_friction", "k8")
 DEFAULT_GROUPS = {"dry_friction": ("coulomb_friction", "static_friction")}
-
-
-@dataclass(frozen=True)
-class WorkbenchSettings:
-    """Every tunable of the loop (see ``conf/workbench.yaml`` for the meaning of each)."""
-
-    calibration: FitSettings = field(default_factory=FitSettings)
-    refit: FitSettings = field(default_factory=lambda: FitSettings(max_iter=6))
-    score: ScoreSettings = field(default_factory=ScoreSettings)
-    diagnostics: DiagnosticSettings = field(default_factory=DiagnosticSettings)
-    closure: ClosureSettings = field(default_factory=ClosureSettings)
-    refit_top: int = 3
-    rounds: int = 2
-    refit_free: Mapping[str, Sequence[str]] = field(default_factory=dict)
-    library: Sequence[str] | None = None
-    before_after: bool = True
-    fd_step: float = 1e-2
-
-    def __post_init__(self) -> None:
-        if self.refit_top < 0 or self.rounds < 0:
-            raise ValueError(f"refit_top and rounds must be >= 0, got {self.refit_top}, {self.rounds}")
-        for name, keys in self.refit_free.items():
-            if name not in EFFECTS:
-                raise ValueError(f"refit_free: unknown effect {name!r}; available: {sorted(EFFECTS)}")
-            bad = [k for k in keys if k not in EFFECTS[name].PARAMS]
-            if bad:
-                raise ValueError(f"refit_free.{name}: unknown parameter(s) {bad}; known: {sorted(EFFECTS[name].PARAMS)}")
-        bad = [n for n in (self.library or []) if n not in EFFECTS]
-        if bad:
-            raise ValueError(f"library: unknown effect(s) {bad}; available: {sorted(EFFECTS)}")
 
 
 @dataclass
@@ -125,16 +95,17 @@ class Workbench:
         params: the datasheet.  fidelity: model fidelity (``lf`` by default: ~10x faster than ``hf``).
         effects: the model's effects {name: {param: value}}.
         free: free parameters (see :func:`~phm_torch.workbench.parameters.build_space`).
-        groups: named groups of datasheet fields sharing a multiplier.
+        groups: named groups of datasheet fields sharing a multiplier (``None``: :data:`DEFAULT_GROUPS`).
         faults: base fault vector (default nominal).  channels: compared channels.
         settings: the loop's tunables.  noise: noise-floor estimator (strategy; default high-band PSD).
         scale_bounds: bounds of the datasheet multipliers.  device: simulation device.
-        threads: intra-op threads while simulating (1: fastest for these small batched tensors).
+        threads: intra-op threads while simulating (1: fastest for these small batched tensors; 2 threads
+            measured up to 18x slower on a shared 2-core host); ``None``: torch's setting.
         actuator: the actuator's config name, for the report's provenance record.
     """
 
     def __init__(self, params: ActuatorParams, fidelity: str = "lf", effects: Mapping[str, Mapping | None] | None = None,
-                 free: Sequence[str] = DEFAULT_FREE, groups: Mapping[str, Sequence[str]] | None = None,
+                 free: Sequence[str] = DEFAULT_FREE, groups: Mapping[str, Sequence[str]] | None = DEFAULT_GROUPS,
                  faults: Sequence[float] | None = None, channels: Sequence[str] = ("position", "current"),
                  settings: WorkbenchSettings | None = None, noise: Callable[[np.ndarray, float], float] | None = None,
                  scale_bounds: tuple[float, float] = (0.2, 5.0), device: str | torch.device = "cpu",

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import welch
 
+from . import checks
+
 
 @dataclass(frozen=True)
 class HighBandNoise:
@@ -28,11 +30,12 @@ class HighBandNoise:
     segment: int = 256
 
     def __post_init__(self) -> None:
-        lo, hi = self.band
-        if not 0.0 <= lo < hi <= 0.5:
-            raise ValueError(f"noise.band must satisfy 0 <= low < high <= 0.5 (fractions of f_s), got {self.band}")
-        if self.segment < 16:
-            raise ValueError(f"noise.segment must be >= 16 samples, got {self.segment}")
+        band = checks.numbers(self.band, "noise.band")
+        if len(band) != 2 or not 0.0 <= band[0] < band[1] <= 0.5:
+            raise ValueError(f"noise.band must be [low, high] with 0 <= low < high <= 0.5 (fractions of f_s), "
+                             f"got {list(band)}")
+        object.__setattr__(self, "band", band)
+        object.__setattr__(self, "segment", checks.integer(self.segment, "noise.segment", 16))
 
     def __call__(self, x: np.ndarray, sample_rate: float) -> float:
         """Standard deviation [unit of x] of the white noise in ``x`` (n,), sampled at ``sample_rate`` [Hz]."""
