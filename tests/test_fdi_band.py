@@ -130,3 +130,26 @@ def test_a_verdict_that_cannot_cover_hands_the_upper_bound_to_the_health_classif
     torch.testing.assert_close(scripted(records)[2], blind(records)[2])
     with pytest.raises(ValueError, match="fdi_health_stop"):
         blind.set_health_stop([1])
+
+
+def test_an_unidentified_component_starts_the_upper_bound_at_nominal(pipeline):  # noqa: F811
+    measured, records, k = case(pipeline, 60, seed=5)
+    with torch.no_grad():
+        k_hat = measured(records)[0]
+        before = measured.rul(k_hat, True)
+        measured.set_unidentified([5, 6])       # eccentricity (grows) and its phase (does not: left alone)
+        after = measured.rul(k_hat, True)
+        assert measured.unknown_shift[2].tolist() == [0, 0, 0, 0, 0, -1.0, 0, 0]
+        assert measured.unknown_shift[:2].abs().sum() == 0
+        start = k_hat.clone()
+        start[:, 5] = measured.nominal[5]
+        expected = measured.propagations(start, measured.fdi_deltas, measured.fdi_direction, True)[:, 2]
+        torch.testing.assert_close(measured.propagations(k_hat, measured.fdi_deltas, measured.fdi_direction, True)[:, 2],
+                                   expected)
+        torch.testing.assert_close(after[:, 1], before[:, 1])          # the median keeps k_hat's own start
+        assert bool((after[:, 2] >= before[:, 2] - 1e-6).all())         # less damage: never a shorter upper bound
+        torch.testing.assert_close(measured.rul(k), measured.rul(k, False))   # a known k is not touched
+        measured.set_unidentified(None)
+        torch.testing.assert_close(measured.rul(k_hat, True), before)
+    with pytest.raises(ValueError, match="unidentified"):
+        measured.set_unidentified([8])

@@ -259,6 +259,11 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         pipelines[variant] = OnlinePipeline.from_bundle(bundle, damage, pipe_deltas, det.direction, min_present,
                                                         rate_scales=scales).eval()
     pipeline = pipelines[det.variant]
+    with torch.no_grad():      # k_hat does not depend on the band: what the command identifies, first
+        band_k_hat, _, _, band_ood, _ = pipeline(band_signals.to(pipeline.times.dtype))
+    identifiability = _identifiability(band_k_hat, band_k, band_ood)
+    unidentified = [FAULT_NAMES.index(name) for name, r2 in identifiability.items() if not r2 >= IDENTIFIED_R2]
+    pipeline.set_unidentified(unidentified)
     band = _fdi_band(cfg, pipeline, band_signals, band_k)
     if band is not None:
         pipeline.fdi_deltas.copy_(band.deltas.to(pipeline.fdi_deltas))
@@ -267,7 +272,6 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     with torch.no_grad():
         band_k_hat, band_score, _, band_ood, _ = pipeline(band_signals.to(pipeline.times.dtype))
     verdict = _verdict(prior, band_score, band_ood, band_healthy)
-    identifiability = _identifiability(band_k_hat, band_k, band_ood)
     if verdict is not None:
         pipeline.verdict_scale.fill_(verdict[0])
         pipeline.verdict_offset.fill_(verdict[1])
@@ -338,6 +342,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                        "rate_scales": pipeline.rate_scales.tolist(), "initial_state_deltas": deltas.tolist(),
                        "fdi_deltas": pipeline.fdi_deltas.tolist(), "fdi_direction": pipeline.fdi_direction.tolist(),
                        "fdi_health_stop": pipeline.health_stop_index.tolist(), "identifiability": identifiability,
+                       "fdi_unidentified": unidentified,
                        "verdict": list(verdict[:2]) if verdict else None,
                        "verdict_prior_faulty": verdict[2] if verdict else None,
                        "fdi_interval": {"half_widths": pipeline.k_half_widths.tolist(), "noise_levels": noise_levels,

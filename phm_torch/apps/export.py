@@ -111,7 +111,8 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                                           verdict=_verdict(cal, cal_path), **_fdi_interval(cal, cal_path),
                                           calibration_noise=_calibration_noise(cal, cal_path),
                                           consistency=cal.get("consistency"), residual_limits=cal.get("gappy_residual"),
-                                          fdi_health_stop=cal.get("fdi_health_stop"))
+                                          fdi_health_stop=cal.get("fdi_health_stop"),
+                                          unidentified=cal.get("fdi_unidentified"))
     if pipeline.has_consistency and cal.get("consistency") is None:
         log.warning("calibration %s has no consistency thresholds (phm-evaluate writes them for a bundle with a "
                     "forward surrogate): the consistency check never flags", cal_path)

@@ -12,9 +12,7 @@ zero RUL (6 % of the paper store's val records with the pretrained pipeline; doc
 record g calls faulty gets zero at 5 and 50 % (its median propagation starts a small δ_50 away from k_hat).
 Without a verdict classifier g is f.
 
-The damage ODE is linear, so its solution on the RUL grid is k(t) = k0 + A(t) (k_hat - k0 + delta u)
-with A(t) = expm(F t): the propagators are computed once at build time (and checked against the
-torchdiffeq integration in the tests), leaving a batched matrix product and one classifier call online.
+The RUL propagations and their event search live in :mod:`phm_torch.online.rul_propagation` (a mixin).
 """
 
 from __future__ import annotations
@@ -31,12 +29,12 @@ from ..surrogates.metrics import ECC_PHASE
 from .consistency import ConsistencyCheck
 from .fdi_interval import DEFAULT_CLASSES, DEFAULT_LEVEL
 from .noise_threshold import NoiseScaledThreshold
+from .rul_propagation import RULPropagation
 
-SCORE_BLOCK = 4096    # rows per classifier call in the RUL search
 NOISE_WINDOW, NOISE_ROWS = 1024, 64     # the noise estimate of a noise-aware FDI: samples, rows per block
 
 
-class OnlinePipeline(nn.Module):
+class OnlinePipeline(nn.Module, RULPropagation):
     """Online PHM step.
 
     Args:
@@ -82,6 +80,7 @@ class OnlinePipeline(nn.Module):
             (:mod:`phm_torch.online.noise_threshold`); None: ``residual_threshold`` at every noise.
         fdi_health_stop: quantiles (0: 5 %, 2: 95 %) of a measured k_hat's band stopped by the health classifier
             (:meth:`set_health_stop`); None: every one by the verdict classifier.
+        unidentified: indices of the components the test command does not identify (:meth:`set_unidentified`).
     """
 
     __constants__ = ("noise_aware", "has_consistency")     # TorchScript compiles only the FDI call that applies
@@ -96,7 +95,7 @@ class OnlinePipeline(nn.Module):
                  calibration_noise: float | None = None, interval_noise: torch.Tensor | None = None,
                  verdict_classifier: nn.Module | None = None, consistency: nn.Module | None = None,
                  residual_limits: tuple[Sequence[float], Sequence[float]] | None = None,
-                 fdi_health_stop: Sequence[int] | None = None):
+                 fdi_health_stop: Sequence[int] | None = None, unidentified: Sequence[int] | None = None):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
@@ -110,20 +109,8 @@ class OnlinePipeline(nn.Module):
         self.full_check = full_check if full_check is not None else nn.Identity()
         self.has_consistency = consistency is not None
         self.consistency_check = consistency if consistency is not None else nn.Identity()
-        t = damage.grid
-        a, _ = damage.transitions(t)
         dtype = gappy.modes_hat.dtype
-        self.register_buffer("times", t.to(dtype))
-        self.register_buffer("propagators", a.to(dtype))                     # (T, 8, 8)
-        self.register_buffer("nominal", damage.nominal.to(dtype))
-        self.register_buffer("deltas", torch.as_tensor(deltas, dtype=dtype).reshape(3))
-        self.register_buffer("direction", torch.as_tensor(direction, dtype=dtype).reshape(8))
-        self.register_buffer("rate_scales", torch.ones(3, dtype=dtype) if rate_scales is None
-                             else torch.as_tensor(rate_scales, dtype=dtype).reshape(3))
-        self.register_buffer("fdi_deltas", torch.zeros(3, dtype=dtype) if fdi_deltas is None
-                             else torch.as_tensor(fdi_deltas, dtype=dtype).reshape(3))
-        self.register_buffer("fdi_direction", torch.zeros(8, dtype=dtype) if fdi_direction is None
-                             else torch.as_tensor(fdi_direction, dtype=dtype).reshape(8))
+        self._init_rul(damage, deltas, direction, rate_scales, fdi_deltas, fdi_direction, coarse, dtype)
         scale, offset = (float("nan"), float("nan")) if verdict is None else (float(verdict[0]), float(verdict[1]))
         self.register_buffer("verdict_scale", torch.tensor(scale, dtype=dtype))
         self.register_buffer("verdict_offset", torch.tensor(offset, dtype=dtype))
@@ -159,31 +146,9 @@ class OnlinePipeline(nn.Module):
         # any count solvable and its residual (shrinkage included) is informative from one sample
         floor = 1 if bool(getattr(gappy, "bayesian", False)) else self.n_modes + 1
         self.min_count = max(floor, round(min_present * self.n_points))
-        self.coarse = int(coarse)
-        self.score_block = SCORE_BLOCK
         self.noise_window, self.noise_rows = NOISE_WINDOW, NOISE_ROWS
-        if self.coarse < 1:
-            raise ValueError(f"online.coarse must be >= 1, got {coarse}")
-        self.bisections = max(0, (self.coarse - 1).bit_length())   # down to one grid step
-        n_t = int(t.shape[0])
-        coarse_index = list(range(0, n_t, self.coarse))
-        coarse_index += [] if coarse_index[-1] == n_t - 1 else [n_t - 1]
-        self.register_buffer("coarse_index", torch.tensor(coarse_index, dtype=torch.long))
-        self.mixed_stop = False
-        self.register_buffer("health_stop_index", torch.zeros(0, dtype=torch.long))
         self.set_health_stop(fdi_health_stop)
-
-    def set_health_stop(self, quantiles: Sequence[int] | None) -> None:
-        """Stop the propagations of a *measured* k_hat at these quantiles (0: 5 %, 2: 95 %) by the health
-        classifier f instead of the verdict classifier g. The FDI band's shifted starts are hypotheses about
-        the true k; where g cannot cover them (it calls even the nominal vector faulty: an FDI that never
-        returns a component it cannot identify teaches g nothing about its true value),
-        :func:`~phm_torch.online.fdi_band.calibrate_fdi_band` switches that quantile to f."""
-        q = sorted({int(v) for v in (quantiles or [])})
-        if any(v not in (0, 2) for v in q):
-            raise ValueError(f"online.fdi_health_stop: quantiles must be among 0 (5 %) and 2 (95 %), got {q}")
-        self.health_stop_index = torch.tensor(q, dtype=torch.long, device=self.times.device)
-        self.mixed_stop = len(q) > 0
+        self.set_unidentified(unidentified)
 
     @classmethod
     def from_bundle(cls, bundle: nn.Module, damage: DamageModel, deltas: torch.Tensor, direction: torch.Tensor,
@@ -193,7 +158,8 @@ class OnlinePipeline(nn.Module):
                     interval_level: float = DEFAULT_LEVEL, calibration_noise: float | None = None,
                     interval_noise: torch.Tensor | None = None,
                     consistency: dict | None = None, residual_limits: dict | None = None,
-                    fdi_health_stop: Sequence[int] | None = None) -> OnlinePipeline:
+                    fdi_health_stop: Sequence[int] | None = None,
+                    unidentified: Sequence[int] | None = None) -> OnlinePipeline:
         """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifiers, OOD threshold, and its
         forward surrogate when it has one: the consistency check, thresholds from ``consistency``, the
         ``{"thresholds", "noise_levels"}`` of :func:`~phm_torch.online.consistency.calibrate_consistency`;
@@ -212,7 +178,7 @@ class OnlinePipeline(nn.Module):
                                            for key in ("thresholds", "noise_levels")]),
                    residual_limits=None if residual_limits is None else (residual_limits["thresholds"],
                                                                          residual_limits["noise_levels"]),
-                   fdi_health_stop=fdi_health_stop)
+                   fdi_health_stop=fdi_health_stop, unidentified=unidentified)
 
     @torch.jit.export
     def noise_level(self, x: torch.Tensor) -> torch.Tensor:
@@ -294,101 +260,6 @@ class OnlinePipeline(nn.Module):
         if x.dim() != 2 or x.shape[1] != self.n_full or bench_nominal.shape != self.nominal_record.shape:
             raise ValueError("rebase: x must be (B, n_full) and bench_nominal (n_full,)")
         return x.to(self.nominal_record.dtype) - (bench_nominal.to(self.nominal_record.dtype) - self.nominal_record)
-
-    def _score_rows(self, k: torch.Tensor, measured: bool, blocked: bool = True) -> torch.Tensor:
-        """Score minus threshold (N,) of fault vectors k (N, 8): the verdict classifier's for ``measured``
-        (trajectories of an FDI estimate), the health classifier's otherwise. ``blocked``: in blocks of
-        ``SCORE_BLOCK`` rows: a batch's trajectories are ~50 rows per record, and a block's hidden activations
-        stay in cache (the classifier ran twice as fast so on 200,000 rows, bandwidth-bound otherwise). Blocks
-        give the same scores (every row is scored on its own); a traced step scores all rows at once, since a
-        data-dependent number of blocks cannot be traced."""
-        if not blocked or k.shape[0] <= self.score_block:
-            return self._classify(k, measured)
-        return torch.cat([self._classify(block, measured) for block in k.split(self.score_block)])
-
-    def _classify(self, k: torch.Tensor, measured: bool) -> torch.Tensor:
-        """One block of :meth:`_score_rows` (TorchScript calls each submodule by name)."""
-        if measured:
-            return self.verdict_classifier(k) - self.verdict_classifier.threshold
-        return self.classifier(k) - self.classifier.threshold
-
-    def _stop_scores(self, k: torch.Tensor, measured: bool, blocked: bool) -> torch.Tensor:
-        """Stopping score (M, 3) of the three propagations' states k (M, 3, 8): the verdict classifier's for
-        ``measured`` except at the quantiles :meth:`set_health_stop` names, the health classifier's otherwise."""
-        m = k.shape[0]
-        score = self._score_rows(k.reshape(-1, 8).clamp(0.0, 1.0), measured, blocked).reshape(m, 3)
-        if measured and self.mixed_stop:
-            cols = self.health_stop_index
-            rows = k.index_select(1, cols).reshape(-1, 8).clamp(0.0, 1.0)
-            score = score.index_copy(1, cols, self._score_rows(rows, False, blocked).reshape(m, cols.shape[0]))
-        return score
-
-    def rul(self, k: torch.Tensor, measured: bool = False, blocked: bool = True) -> torch.Tensor:
-        """Deterministic RUL 5/50/95 % [h] (B, 3) from fault vectors (B, 8); 0 if already faulty,
-        the horizon if still healthy there.
-
-        ``measured``: k is an FDI estimate, so its error band (``fdi_deltas`` x ``fdi_direction``) joins the
-        physics band and the verdict classifier stops the propagations (the health classifier at the
-        quantiles of :meth:`set_health_stop`); False for a known k (the health classifier stops them). The
-        bounds are the shortest / the longest of the three propagations
-        (:func:`phm_torch.prognostics.rul.ordered_bounds`). ``blocked`` as :meth:`_score_rows`.
-        """
-        fdi = self.fdi_deltas if measured else torch.zeros_like(self.fdi_deltas)
-        rul = self.propagations(k, fdi, self.fdi_direction, measured, blocked)
-        return torch.stack([rul.amin(-1), rul[:, 1], rul.amax(-1)], dim=-1)
-
-    def propagations(self, k: torch.Tensor, fdi_deltas: torch.Tensor, fdi_direction: torch.Tensor,
-                     measured: bool = False, blocked: bool = True) -> torch.Tensor:
-        """RUL [h] (B, 3) of the three propagations q, unordered: from k (B, 8) with its damage moved by
-        ``deltas[q] direction + fdi_deltas[q] fdi_direction`` (fdi_deltas (3,), fdi_direction (8,)), on a
-        wear clock sped up by ``rate_scales[q]``
-        (exact for the linear damage ODE: RUL / s), capped at the horizon; ``measured`` as :meth:`rul`."""
-        shift = self.deltas.view(3, 1) * self.direction + fdi_deltas.view(3, 1) * fdi_direction
-        rul = self.rul_shifted(k, shift, measured, blocked) / self.rate_scales
-        return torch.minimum(rul, self.times[-1])     # a tensor bound: the traced step reads no Python float
-
-    def rul_shifted(self, k: torch.Tensor, shift: torch.Tensor, measured: bool = False,
-                    blocked: bool = True) -> torch.Tensor:
-        """RUL [h] (B, 3) of three noise-free propagations from k (B, 8) with its damage |k - k_nom| moved by
-        shift (3, 8), unordered, stopped as :meth:`rul` says for ``measured``.
-
-        The score is evaluated on a coarse grid (``coarse_index``: every ``coarse`` grid steps and the last),
-        the first faulty coarse interval is bisected down to one grid step, and the crossing is interpolated
-        linearly in that step. Straight-line tensor code (a fixed number of bisections), so that
-        :class:`~phm_torch.online.step.OnlineStep` traces this very search.
-        """
-        b = k.shape[0]
-        dev = k - self.nominal
-        # the damage |dk| moves by the shift, away from nominal for the two-sided k8, never past nominal
-        # (DeterministicRUL.disturbed)
-        side = torch.where(dev >= 0, torch.ones_like(dev), -torch.ones_like(dev)).unsqueeze(1)
-        magnitude = dev.abs().unsqueeze(1) + shift.to(dev.dtype).unsqueeze(0)
-        dk = side * magnitude.clamp(min=0.0)                                                    # (B, 3, 8)
-        coarse = self.coarse_index
-        traj = self.nominal + torch.einsum("tij,bqj->tbqi", self.propagators[coarse], dk)      # (Tc, B, 3, 8)
-        n_c = traj.shape[0]
-        score = self._stop_scores(traj.reshape(-1, 3, 8), measured, blocked).reshape(n_c, b, 3)
-        faulty = score <= 0
-        any_faulty = faulty.any(0)
-        first = torch.argmax(faulty.to(torch.int64), dim=0)                                     # (B, 3)
-        hi = coarse[first]                                           # faulty grid index
-        prev = (first - 1).clamp(min=0)
-        lo = coarse[prev]                                            # healthy grid index (or 0)
-        s1 = score.gather(0, first.unsqueeze(0)).squeeze(0)          # scores at lo and hi, kept up to date
-        s0 = score.gather(0, prev.unsqueeze(0)).squeeze(0)
-        for _ in range(self.bisections):
-            mid = torch.div(lo + hi, 2, rounding_mode="floor")
-            states = self.nominal + (self.propagators[mid] @ dk.unsqueeze(-1)).squeeze(-1)      # (B, 3, 8)
-            s_mid = self._stop_scores(states, measured, blocked)
-            inner = mid > lo
-            bad = (s_mid <= 0) & inner
-            good = (s_mid > 0) & inner
-            hi, s1 = torch.where(bad, mid, hi), torch.where(bad, s_mid, s1)
-            lo, s0 = torch.where(good, mid, lo), torch.where(good, s_mid, s0)
-        t0, t1 = self.times[lo], self.times[hi]
-        frac = (s0 / (s0 - s1).clamp(min=1e-12)).clamp(0.0, 1.0)                             # linear zero
-        crossing = torch.where(first > 0, t0 + frac * (t1 - t0), torch.zeros_like(t0))
-        return torch.where(any_faulty, crossing, self.times[-1].expand_as(crossing))
 
     def forward(self, x: torch.Tensor, noise: torch.Tensor | None = None
                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
