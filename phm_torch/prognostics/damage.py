@@ -19,7 +19,8 @@ from collections.abc import Sequence
 import torch
 from torchdiffeq import odeint
 
-N_FAULTS = 8
+from ..faults import N_FAULTS
+
 PHASE_INDEX = 6  # k7 is a phase, never a damage
 
 

@@ -14,8 +14,8 @@ import numpy as np
 import torch
 
 from ..data.store import DatasetStore
+from ..faults import N_FAULTS
 
-N_FAULTS = 8
 READ_ROWS = 512  # rows per HDF5 read
 
 

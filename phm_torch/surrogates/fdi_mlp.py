@@ -27,7 +27,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-N_FAULTS = 8
+from ..faults import N_FAULTS
+
 SCALINGS = ("minmax", "robust")
 
 

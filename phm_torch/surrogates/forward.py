@@ -28,9 +28,8 @@ from typing import Any
 import torch
 from torch import nn
 
+from ..faults import N_FAULTS
 from .metrics import ECC_AMPLITUDE, ECC_PHASE
-
-N_FAULTS = 8
 
 
 def _positive_int(value: Any, name: str) -> int:

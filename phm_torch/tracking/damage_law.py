@@ -24,9 +24,10 @@ from typing import Any
 
 import torch
 
+from ..faults import N_FAULTS
+
 log = logging.getLogger(__name__)
 
-N_FAULTS = 8
 TAYLOR_NORM = 1.0 / 64   # ||r F|| of the short Taylor step: 7 terms reach 1e-16 of the vector
 TAYLOR_TERMS = 7
 TABLE_MAX = 1 << 15      # entries of the expm(j h F) table (beyond it: more short sub-steps)

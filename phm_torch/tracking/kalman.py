@@ -21,7 +21,8 @@ import math
 
 import torch
 
-from .damage_law import N_FAULTS, DamageLaw
+from ..faults import N_FAULTS
+from .damage_law import DamageLaw
 
 BOUND = 1e-9                 # an estimate within this of 0 or 1 sits at the clamp
 LOG_2PI = math.log(2.0 * math.pi)

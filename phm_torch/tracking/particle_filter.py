@@ -36,8 +36,9 @@ from dataclasses import dataclass
 
 import torch
 
+from ..faults import N_FAULTS
 from . import kalman
-from .damage_law import N_FAULTS, DamageLaw
+from .damage_law import DamageLaw
 from .particle_rul import HUGE, ParticleRUL, weighted_quantiles
 from .resampling import liu_west, systematic_indices
 

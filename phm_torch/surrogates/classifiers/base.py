@@ -21,7 +21,8 @@ from typing import Any, ClassVar
 import torch
 from torch import nn
 
-N_FAULTS = 8
+from ...faults import N_FAULTS
+
 WARPS = ("none", "sqrt")
 WARP_EPS = 1e-4     # sqrt warp offset: sqrt(1e-4) = 0.01, small against the typical sqrt(k) ~ 0.2
 

@@ -26,7 +26,8 @@ from typing import Any
 import torch
 import torch.nn.functional as F
 
-from .base import N_FAULTS, HealthClassifier, check_training_set, check_warp, warp_inputs
+from ...faults import N_FAULTS
+from .base import HealthClassifier, check_training_set, check_warp, warp_inputs
 from .training import sample_weights
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}

@@ -13,7 +13,8 @@ from typing import Any
 
 import torch
 
-from .base import N_FAULTS, FeatureMapSVM, check_training_set, check_warp, warp_inputs
+from ...faults import N_FAULTS
+from .base import FeatureMapSVM, check_training_set, check_warp, warp_inputs
 from .training import sample_weights
 
 
