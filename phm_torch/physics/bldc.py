@@ -14,14 +14,10 @@ more than the arithmetic itself on CPU.
 
 from __future__ import annotations
 
-import math
-
 import torch
 
-from .commutation import PHASE_OFFSETS, hall_sector, phase_shapes
+from .commutation import eccentricity_factors, hall_sector, phase_shapes
 
-_COS = tuple(math.cos(a) for a in PHASE_OFFSETS)
-_SIN = tuple(math.sin(a) for a in PHASE_OFFSETS)
 # Sectors (see commutation.SECTOR_TABLE) in which phase x is high, low or off.
 _HIGH = ((0, 1), (2, 3), (4, 5))
 _LOW = ((3, 4), (0, 5), (1, 2))
@@ -40,14 +36,9 @@ def phase_roles(theta_e: torch.Tensor) -> tuple[list[torch.Tensor], list[torch.T
 
 def emf_shape_constants(theta_m: torch.Tensor, plant, emf_scale) -> list[torch.Tensor]:
     """k_e,x(theta_m) * trapezoid_x(theta_e) for x = a, b, c; each (B,) [V s/rad]."""
-    arg = theta_m - plant.ecc_phase
-    c, s = torch.cos(arg), torch.sin(arg)
+    ecc = eccentricity_factors(theta_m, plant.eccentricity, plant.ecc_phase)
     shapes = phase_shapes(plant.pole_pairs_f * theta_m)
-    out = []
-    for x in range(3):
-        ecc = 1.0 + plant.eccentricity * (c * _COS[x] + s * _SIN[x])  # cos(theta_m - phi - alpha_x)
-        out.append(plant.emf[:, x] * ecc * shapes[:, x] * emf_scale)
-    return out
+    return [plant.emf[:, x] * ecc[x] * shapes[:, x] * emf_scale for x in range(3)]
 
 
 class BLDCMotor:

@@ -12,6 +12,8 @@ import math
 import torch
 
 PHASE_OFFSETS = (0.0, 2.0 * math.pi / 3.0, 4.0 * math.pi / 3.0)  # alpha_x for x = a, b, c [rad]
+_COS = tuple(math.cos(a) for a in PHASE_OFFSETS)
+_SIN = tuple(math.sin(a) for a in PHASE_OFFSETS)
 
 # Sector s covers theta_e in [30° + 60° s, 90° + 60° s); columns: (high, low, off) phase indices.
 SECTOR_TABLE = ((0, 1, 2), (0, 2, 1), (1, 2, 0), (1, 0, 2), (2, 0, 1), (2, 1, 0))
@@ -45,17 +47,18 @@ def hall_sector(theta_e: torch.Tensor) -> torch.Tensor:
     return torch.floor(torch.remainder(theta_e - math.pi / 6, 2.0 * math.pi) / (math.pi / 3)).long().clamp(0, 5)
 
 
-def sector_masks(sector: torch.Tensor, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """One-hot (B, 3) masks of the high, low and off phase for each sample's sector."""
-    table = torch.tensor(SECTOR_TABLE, device=sector.device)[sector]  # (B, 3)
-    eye = torch.eye(3, dtype=dtype, device=sector.device)
-    return eye[table[:, 0]], eye[table[:, 1]], eye[table[:, 2]]
+def eccentricity_factors(theta_m: torch.Tensor, eccentricity: torch.Tensor, phase: torch.Tensor) -> list[torch.Tensor]:
+    """EMF-constant modulation of an eccentric rotor, 1 + eps cos(theta_m - phi - alpha_x), for x = a, b, c.
 
+    An eccentric rotor modulates each phase's EMF constant once per mechanical revolution:
+    k_e,x(theta_m) = k_e,x (1 + eps cos(theta_m - phi - alpha_x)) (ema_reference.md §2). Both motors use
+    it (HF per phase, LF inside k_eq).
 
-def emf_constants(theta_m: torch.Tensor, plant) -> torch.Tensor:
-    """Per-phase EMF constants with eccentricity modulation, (B,) -> (B, 3) [V s/rad].
-
-    k_e,x(theta_m) = k_e,x * (1 + eps * cos(theta_m - phi - alpha_x)) (ema_reference.md §2).
+    Args:
+        theta_m: motor angle (B,) [rad].  eccentricity: eps (B,) [-].  phase: phi (B,) [rad].
+    Returns:
+        Three (B,) tensors (phases kept apart: reductions over a trailing 3 are slow on CPU).
     """
-    arg = (theta_m - plant.ecc_phase).unsqueeze(-1) - theta_m.new_tensor(PHASE_OFFSETS)
-    return plant.emf * (1.0 + plant.eccentricity.unsqueeze(-1) * torch.cos(arg))
+    arg = theta_m - phase
+    c, s = torch.cos(arg), torch.sin(arg)
+    return [1.0 + eccentricity * (c * _COS[x] + s * _SIN[x]) for x in range(3)]

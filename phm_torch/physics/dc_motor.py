@@ -20,10 +20,7 @@ import math
 
 import torch
 
-from .commutation import PHASE_OFFSETS
-
-_COS = tuple(math.cos(a) for a in PHASE_OFFSETS)
-_SIN = tuple(math.sin(a) for a in PHASE_OFFSETS)
+from .commutation import PHASE_OFFSETS, eccentricity_factors
 
 
 def conduction_weights(theta_e: torch.Tensor, width: torch.Tensor) -> torch.Tensor:
@@ -61,13 +58,11 @@ class DCMotor:
     def equivalent(self, theta_m: torch.Tensor, plant) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """(k_eq [V s/rad], R_eq [ohm], L_eq [H]) at motor angle theta_m, each (B,)."""
         w = conduction_weights(plant.pole_pairs_f * theta_m, plant.lf_commutation_width).unbind(-1)
-        arg = theta_m - plant.ecc_phase
-        c, sn = torch.cos(arg), torch.sin(arg)
+        ecc = eccentricity_factors(theta_m, plant.eccentricity, plant.ecc_phase)
         k_eq = r_eq = l_eq = 0.0
         for x in range(3):  # phases unrolled: reductions over a trailing 3 are slow on CPU
             s = plant.short[:, x]
-            ecc = 1.0 + plant.eccentricity * (c * _COS[x] + sn * _SIN[x])  # cos(theta_m - phi - alpha_x)
-            k_eq = k_eq + w[x] * (1.0 - plant.lf_emf_short_gain * s) * ecc
+            k_eq = k_eq + w[x] * (1.0 - plant.lf_emf_short_gain * s) * ecc[x]
             r_eq = r_eq + w[x] * (1.0 - plant.lf_resistance_short_gain * s)
             l_eq = l_eq + w[x] * (1.0 - s) ** plant.lf_inductance_short_exponent
         return (k_eq * plant.back_emf_constant, r_eq * plant.phase_resistance, l_eq * plant.phase_inductance)
