@@ -35,7 +35,7 @@ from ..data import calibration, life_files
 from ..data import generation as gen
 from ..data import life as life_split
 from ..data.labels import LabelComputer, make_label_plan
-from ..data.store import DatasetStore, read_json
+from ..data.store import read_json
 from ..params import CONF_DIR
 from . import common
 
@@ -216,11 +216,6 @@ def _life(cfg: DictConfig, spec: gen.DatasetSpec, params: Any, command: Any, dur
               "assessment": common.plain(cfg.assessment), "package_version": __version__}
     return life_files.generate_life(data_dir / life_files.LIFE_DIR, generator, key_data, header,
                                     bool(cfg.get("overwrite", False)), bool(cfg.get("progress", True)))
-
-
-def open_store(data_dir: str | Path, verify: bool = False) -> DatasetStore:
-    """Open a finished store for reading (lazy)."""
-    return DatasetStore(data_dir, verify=verify)
 
 
 @hydra.main(config_path=common.CONFIG_PATH, config_name="generate", version_base="1.3")

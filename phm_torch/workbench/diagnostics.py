@@ -218,18 +218,6 @@ def profiles(values: PerRecord, coords: Sequence[Coordinates], settings: Diagnos
     return out
 
 
-def profile_vector(prof: dict, name: str) -> tuple[np.ndarray, np.ndarray]:
-    """Concatenated bin means and counts of one map over channels and branches (for correlations)."""
-    means, counts = [], []
-    for key, val in prof[name].items():
-        if key in ("x", "unit"):
-            continue
-        for leaf in (val.values() if "mean" not in val else [val]):
-            means.append(np.asarray(leaf["mean"], dtype=np.float64))
-            counts.append(np.asarray(leaf["count"], dtype=np.float64))
-    return np.concatenate(means), np.concatenate(counts)
-
-
 def harmonics(values: PerRecord, coords: Sequence[Coordinates], max_order: int) -> dict[str, np.ndarray]:
     """Amplitude of each mechanical harmonic 1..max_order of the rotor angle in each channel, (max_order,).
 
