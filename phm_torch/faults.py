@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import torch
@@ -48,22 +49,25 @@ def as_fault_tensor(k: torch.Tensor | Sequence[float] | Sequence[Sequence[float]
     return t
 
 
-def apply_faults(plant: Plant, k: torch.Tensor, short_circuit_max: float) -> None:
-    """Apply a validated (B, 8) fault tensor to a plant in place (ema_reference.md §2).
+def apply_faults(plant: Plant, k: torch.Tensor, short_circuit_max: float) -> Plant:
+    """A new plant with a validated (B, 8) fault tensor applied (ema_reference.md §2); ``plant`` is unchanged.
 
-    Sets the per-phase tensors ``resistance``, ``inductance``, ``emf`` (B, 3) and ``short`` (B, 3), the
-    eccentricity ``eccentricity`` and ``ecc_phase`` (B,), and scales ``coulomb_friction``,
-    ``static_friction``, ``backlash`` and ``position_gain`` (B,).
+    Derives the per-phase tensors ``resistance``, ``inductance``, ``emf`` and ``short`` (B, 3) and the
+    eccentricity ``eccentricity`` and ``ecc_phase`` (B,) from the plant's (B,) values, and scales
+    ``coulomb_friction``, ``static_friction``, ``backlash`` and ``position_gain`` (B,).
     """
     s = k[:, 2:5].clamp(max=short_circuit_max)  # numerical guard documented in the datasheet
     friction_scale = 1.0 + 2.0 * k[:, 0]
-    plant.coulomb_friction = plant.coulomb_friction * friction_scale
-    plant.static_friction = plant.static_friction * friction_scale
-    plant.backlash = plant.backlash * (1.0 + 99.0 * k[:, 1])
-    plant.short = s
-    plant.resistance = plant.phase_resistance.unsqueeze(-1) * (1.0 - s)
-    plant.inductance = plant.phase_inductance.unsqueeze(-1) * (1.0 - s) ** 2
-    plant.emf = plant.back_emf_constant.unsqueeze(-1) * (1.0 - s)
-    plant.eccentricity = 0.5 * k[:, 5]
-    plant.ecc_phase = -math.pi + 2.0 * math.pi * k[:, 6]
-    plant.position_gain = plant.position_gain * (0.5 + k[:, 7])
+    return replace(
+        plant,
+        coulomb_friction=plant.coulomb_friction * friction_scale,
+        static_friction=plant.static_friction * friction_scale,
+        backlash=plant.backlash * (1.0 + 99.0 * k[:, 1]),
+        short=s,
+        resistance=plant.phase_resistance.unsqueeze(-1) * (1.0 - s),
+        inductance=plant.phase_inductance.unsqueeze(-1) * (1.0 - s) ** 2,
+        emf=plant.back_emf_constant.unsqueeze(-1) * (1.0 - s),
+        eccentricity=0.5 * k[:, 5],
+        ecc_phase=-math.pi + 2.0 * math.pi * k[:, 6],
+        position_gain=plant.position_gain * (0.5 + k[:, 7]),
+    )

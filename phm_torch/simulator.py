@@ -93,9 +93,9 @@ class EMASimulator:
         self.params = params
         self.fidelity = fidelity
         self.motor = MOTORS[fidelity](substeps or DEFAULT_SUBSTEPS[fidelity])
-        self.effects = build_effects(effects) if effects is None or isinstance(effects, Mapping) else list(effects)
-        for eff in self.effects:  # keep grads: .to() is differentiable
-            eff.values = {k: v.to(dtype=dtype, device=device) for k, v in eff.values.items()}
+        # copies on the simulation dtype/device (grads kept): the caller's effects are left as given
+        given = build_effects(effects) if effects is None or isinstance(effects, Mapping) else effects
+        self.effects = [eff.to(dtype, device) for eff in given]
         self.dtype, self.device = dtype, torch.device(device)
         self.period = params.control_period
         self.h = self.period / self.motor.substeps
@@ -123,7 +123,10 @@ class EMASimulator:
         k = as_fault_tensor(faults, self.dtype, self.device)
         plant = build_plant(self.params, k, scales)
         for eff in self.effects:
-            eff.modify_plant(plant)
+            plant = eff.modify_plant(plant)
+            if not isinstance(plant, Plant):
+                raise TypeError(f"effects.{eff.name}.modify_plant must return the new Plant "
+                                f"(dataclasses.replace(plant, ...)), got {type(plant).__name__}")
         b = k.shape[0]
         z = torch.zeros(b, dtype=self.dtype, device=self.device)
         acc = {key: z.clone() for key in ("input", "copper", "friction", "viscous", "damping", "end_stop",

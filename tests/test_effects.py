@@ -246,7 +246,7 @@ def test_modify_plant_static_effects():
                              "position_sensor_lag": {"time_constant": 5e-4}})
     plant = build_plant(P, k)
     for e in effects:
-        e.modify_plant(plant)
+        plant = e.modify_plant(plant)
     r, m = 1 + 3.93e-3 * dt, 1 - 1.2e-3 * dt
     assert torch.allclose(plant.phase_resistance, base.phase_resistance * r)
     assert torch.allclose(plant.resistance, base.resistance * r[:, None])       # per-phase, shorted phase kept

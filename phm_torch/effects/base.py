@@ -8,12 +8,16 @@ that is what lets the workbench run a score test at zero for effects not in the 
 
 from __future__ import annotations
 
+import copy
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import torch
+
+if TYPE_CHECKING:
+    from ..plant import Plant
 
 
 @dataclass(frozen=True)
@@ -88,9 +92,19 @@ class Effect:
         vals = ", ".join(f"{k}={v.detach().cpu().tolist()}" for k, v in self.values.items())
         return f"{type(self).__name__}({vals})"
 
+    def to(self, dtype: torch.dtype, device: str | torch.device) -> Effect:
+        """A copy whose values are on ``dtype``/``device`` (``.to`` keeps their grads); ``self`` is unchanged."""
+        out = copy.copy(self)
+        out.values = {k: v.to(dtype=dtype, device=device) for k, v in self.values.items()}
+        return out
+
     # ---- hooks ---------------------------------------------------------------------------------
-    def modify_plant(self, plant: Any) -> None:
-        """Change static per-sample parameters in place (run once, after the faults)."""
+    def modify_plant(self, plant: Plant) -> Plant:
+        """The plant with static per-sample parameters changed (run once, after the faults).
+
+        Return a new plant (``dataclasses.replace(plant, field=...)``); the plant is frozen.
+        """
+        return plant
 
     def motor_torque(self, ctx: EffectContext) -> torch.Tensor | float:
         """Extra torque on the motor shaft [N m], positive in the direction of positive motion."""

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from dataclasses import replace
+from typing import TYPE_CHECKING, ClassVar
 
 from .base import Effect, EffectParam, register_effect
+
+if TYPE_CHECKING:
+    from ..plant import Plant
 
 
 @register_effect
@@ -18,5 +22,5 @@ class PositionSensorLag(Effect):
     STRENGTH = ("time_constant",)
     explains = "measured position lagging the surface by tau d(theta_u)/dt; more phase lag and resonance at high frequency"
 
-    def modify_plant(self, plant) -> None:
-        plant.lvdt_time_constant = plant.lvdt_time_constant + self.values["time_constant"]
+    def modify_plant(self, plant: Plant) -> Plant:
+        return replace(plant, lvdt_time_constant=plant.lvdt_time_constant + self.values["time_constant"])

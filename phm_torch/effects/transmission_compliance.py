@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from dataclasses import replace
+from typing import TYPE_CHECKING, ClassVar
 
 from .base import Effect, EffectParam, register_effect
+
+if TYPE_CHECKING:
+    from ..plant import Plant
 
 
 @register_effect
@@ -19,6 +23,6 @@ class TransmissionCompliance(Effect):
     explains = ("larger gear-to-surface deflection under load and a lower output-stage resonance: "
                 "position error growing with the chirp frequency")
 
-    def modify_plant(self, plant) -> None:
+    def modify_plant(self, plant: Plant) -> Plant:
         k = plant.output_stiffness
-        plant.output_stiffness = k / (1.0 + k * self.values["compliance"])
+        return replace(plant, output_stiffness=k / (1.0 + k * self.values["compliance"]))

@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from dataclasses import replace
+from typing import TYPE_CHECKING, ClassVar
 
 import torch
 
 from .base import Effect, EffectParam, register_effect
+
+if TYPE_CHECKING:
+    from ..plant import Plant
 
 
 def _per_phase(factor: torch.Tensor) -> torch.Tensor:
@@ -27,11 +31,10 @@ class WindingTemperature(Effect):
     STRENGTH = ("temperature_rise",)
     explains = "current and current-loop voltage scale with load: higher copper losses, lower torque per ampere"
 
-    def modify_plant(self, plant) -> None:
+    def modify_plant(self, plant: Plant) -> Plant:
         dt = self.values["temperature_rise"]
         r = 1.0 + self.values["alpha_copper"] * dt
         k = 1.0 + self.values["alpha_magnet"] * dt
-        plant.phase_resistance = plant.phase_resistance * r
-        plant.back_emf_constant = plant.back_emf_constant * k
-        plant.resistance = plant.resistance * _per_phase(r)
-        plant.emf = plant.emf * _per_phase(k)
+        return replace(plant, phase_resistance=plant.phase_resistance * r,
+                       back_emf_constant=plant.back_emf_constant * k,
+                       resistance=plant.resistance * _per_phase(r), emf=plant.emf * _per_phase(k))
