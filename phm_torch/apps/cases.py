@@ -127,7 +127,7 @@ def run_cases(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                 entry[f"nrmse_{c}"] = None if math.isnan(value) else value  # constant nominal: null
         entry.update({key: values[i] for key, values in stats.items()})
         entry["csv"] = csv_path.name
-        if i > 0 and cfg.get("plot", True):
+        if i > 0 and cfg.plot:
             from ..plotting import plot_signals  # matplotlib only when plotting
 
             runs = {"nominal": {c: noisy[c][0] for c in ("command", "position", "current")},

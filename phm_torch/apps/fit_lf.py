@@ -133,7 +133,7 @@ def fit_lf(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
               "settings": dataclasses.asdict(settings), "duration": duration, "wall_time_s": round(wall, 1),
               "nrmse": result.summary, "per_vector": result.per_vector, "actuator_yaml": str(yaml_path)}
     common.write_json(report_path, report)
-    if cfg.get("plot", True):
+    if cfg.plot:
         plot_report(result, plot_path, f"{records['actuator']['name']} on {records['command']['name']}: "
                                        f"kept {result.decision.keep}")
     else:

@@ -86,7 +86,7 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     command = common.command(cfg.command)
     duration = common.number(getattr(command, "duration", None), "command.duration", 0.0, strict=True)
     spec: gen.DatasetSpec = common.build(cfg.dataset, "dataset")
-    dev = common.device(cfg.get("device", "cpu"))
+    dev = common.device(cfg.device)
     assessment: AssessmentFunction = common.build(cfg.assessment, "assessment", params=params, device=dev)
     seed = common.integer(cfg.seed, "seed", 0)
     prov = common.requested_provenance(cfg)   # which actuator and command this store belongs to
@@ -94,7 +94,7 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     index = common.integer(cfg.shard.index, "shard.index", 0)
     if index >= count:
         raise ValueError(f"shard.index must be in [0, shard.count - 1] = [0, {count - 1}], got {index}")
-    stage = cfg.get("stage", "all")
+    stage = cfg.stage
     if stage not in STAGES:
         raise ValueError(f"stage must be one of {list(STAGES)}, got {stage!r}")
     common.set_threads(cfg)
@@ -109,7 +109,7 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         return {"data_dir": str(data_dir), "stage": stage, "life": life}, {"data_dir": data_dir}
 
     fp, data_cfg = fingerprint(cfg)
-    gen.prepare_store(data_dir, fp, data_cfg, bool(cfg.get("overwrite", False)))
+    gen.prepare_store(data_dir, fp, data_cfg, bool(cfg.overwrite))
     # the importance sampler calibrated to dataset.healthy_fraction (a pilot, cached in data_dir)
     sampling, pilot_s = calibration.load_or_calibrate(
         data_dir, fp, lambda: calibration.calibrate_spec(spec, params.nominal_faults, assessment, seed))
@@ -132,7 +132,7 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                     computer = gen.ChunkComputer(params, command, duration, spec, assessment, dev)
                 return computer(k, effect_values)
 
-            repair, progress = bool(cfg.get("repair", False)), bool(cfg.get("progress", True))
+            repair, progress = bool(cfg.repair), bool(cfg.progress)
             counts = gen.compute_chunks(data_dir, plan, fp, compute, index, count, repair, progress)
             if label_plan is not None:
                 labeller = LabelComputer(assessment, params.nominal_faults, label_plan.chunk_size)
@@ -215,7 +215,7 @@ def _life(cfg: DictConfig, spec: gen.DatasetSpec, params: Any, command: Any, dur
               "every_hours": float(life.every), "life": settings, "seed": seed, "signal": signal,
               "assessment": common.plain(cfg.assessment), "package_version": __version__}
     return life_files.generate_life(data_dir / life_files.LIFE_DIR, generator, key_data, header,
-                                    bool(cfg.get("overwrite", False)), bool(cfg.get("progress", True)))
+                                    bool(cfg.overwrite), bool(cfg.progress))
 
 
 @hydra.main(config_path=common.CONFIG_PATH, config_name="generate", version_base="1.3")

@@ -71,7 +71,7 @@ def simulate_to_csv(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     columns = [c for c in CSV_COLUMNS if c in channels]
     write_measurement(csv_path, {"time": signals.time, **channels}, index=0, columns=columns)
     plot_path = None
-    if cfg.get("plot", True):
+    if cfg.plot:
         from ..plotting import plot_signals  # matplotlib only when plotting
 
         plot_path = plot_signals(signals.time, {"simulation": {k: channels[k][0] for k in
