@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
+import importlib
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -58,6 +61,25 @@ def time_grid(duration: float, sample_rate: float, dtype: torch.dtype = torch.fl
     return torch.arange(n + 1, dtype=dtype, device=device) / sample_rate
 
 
+COMMANDS = {"chirp": Chirp, "sine": Sine}   # command kinds: conf/command/<name>.yaml composes in the defaults of one
+
+
+def with_defaults(node: Mapping[str, Any]) -> dict[str, Any]:
+    """A command config node as the apps compose it: the parameters a YAML leaves to its class's defaults filled
+    in (``conf/command/chirp.yaml`` sets none) and Hydra's ``defaults`` list dropped."""
+    out = {k: v for k, v in node.items() if k != "defaults"}
+    module, _, name = str(out.get("_target_", "")).rpartition(".")
+    try:
+        cls = getattr(importlib.import_module(module), name) if module else None
+    except (ImportError, AttributeError):
+        raise ValueError(f"command: unknown _target_ {out.get('_target_')!r}") from None
+    if dataclasses.is_dataclass(cls):
+        for f in dataclasses.fields(cls):
+            if f.init and f.name not in out and f.default is not dataclasses.MISSING:
+                out[f.name] = f.default
+    return out
+
+
 def load_command_node(name: str) -> tuple[str, dict[str, Any]]:
     """(name, config node) of ``conf/command/<name>.yaml`` or of a YAML path (the name is then the path).
 
@@ -72,4 +94,4 @@ def load_command_node(name: str) -> tuple[str, dict[str, Any]]:
     node = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
     if not isinstance(node, dict) or "_target_" not in node:
         raise ValueError(f"command: {str(path)!r} is not a command config (a mapping with a _target_)")
-    return (name if path.parent == CONF_DIR / "command" else str(path)), node
+    return (name if path.parent == CONF_DIR / "command" else str(path)), with_defaults(node)

@@ -152,15 +152,16 @@ def known_name(key: str, sha256: str) -> str | None:
     """The shipped config (``conf/<key>/<name>.yaml``) whose values hash to ``sha256``, or ``None``."""
     from omegaconf import OmegaConf
 
+    from .command import with_defaults
     from .params import CONF_DIR
 
     for path in sorted((CONF_DIR / key).glob("*.yaml")):
         data = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
         if not isinstance(data, dict):
             continue
-        try:
+        try:   # a command file as composed: its class's defaults filled in
             record = (actuator_record(path.stem, ActuatorParams.from_mapping(data)) if key == "actuator"
-                      else command_record(path.stem, data))
+                      else command_record(path.stem, with_defaults(data)))
         except (ValueError, TypeError):
             continue
         if record["sha256"] == sha256:

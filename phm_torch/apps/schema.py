@@ -8,13 +8,14 @@ value is still in the composed config: overridable on the command line without `
 printed by ``--cfg job`` and kept in the run's ``.hydra/config.yaml``.
 
 The tree is registered when the app's module is imported: compose such a config after importing its app
-(``import phm_torch.apps.workbench``), as ``phm-run`` and the tests do.
+(``import phm_torch.apps.workbench``), as ``phm-run`` and the tests do. The test commands' defaults, which
+every app's ``command`` group uses, are registered by ``phm_torch.apps`` itself (:func:`register_commands`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import fields, is_dataclass
+from dataclasses import MISSING, fields, is_dataclass
 from typing import Any
 
 from hydra.core.config_store import ConfigStore
@@ -45,6 +46,29 @@ def plain(value: Any) -> Any:
     return value
 
 
+def class_defaults(cls: type) -> dict[str, Any]:
+    """The config node of a dataclass's defaults: ``_target_`` and the init fields that have a default (the ones
+    without stay the YAML's to set)."""
+    if not is_dataclass(cls) or not isinstance(cls, type):
+        raise ValueError(f"class_defaults: a dataclass is required, got {cls!r}")
+    out: dict[str, Any] = {"_target_": f"{cls.__module__}.{cls.__qualname__}"}
+    for f in fields(cls):
+        if f.init and f.default is not MISSING:
+            out[f.name] = plain(f.default)
+        elif f.init and f.default_factory is not MISSING:
+            out[f.name] = plain(f.default_factory())
+    return out
+
+
+def register_commands() -> None:
+    """``/schema/command/<kind>``: each command class's defaults (``conf/command/*.yaml`` compose theirs in)."""
+    from ..command import COMMANDS
+
+    for kind, cls in COMMANDS.items():
+        register(f"command/{kind}", class_defaults(cls))
+
+
 def register(name: str, tree: Mapping[str, Any]) -> None:
     """Store ``tree`` as ``/schema/<name>`` (what a YAML's ``- /schema/<name>@_here_`` composes in)."""
-    ConfigStore.instance().store(group=GROUP, name=name, node=dict(tree))
+    group, _, leaf = f"{GROUP}/{name}".rpartition("/")
+    ConfigStore.instance().store(group=group, name=leaf, node=dict(tree))
