@@ -269,8 +269,9 @@ def tr_mean(data_dir: Path) -> np.ndarray:
 
 
 def test_launcher_configs_name_their_plugins():
-    plugins = {"local": "joblib", "slurm": "submitit_slurm", "ray": "ray"}
+    plugins = {"local": "joblib", "slurm": "submitit_slurm", "ray_cluster": "ray"}
     for name, plugin in plugins.items():
+        assert name != plugin   # a file named as its plugin's config shadows it and includes itself (recursion)
         cfg = yaml.safe_load((CONF_DIR / "hydra" / "launcher" / f"{name}.yaml").read_text())
         assert cfg["defaults"] == [plugin]
 

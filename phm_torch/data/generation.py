@@ -18,10 +18,10 @@ import hashlib
 import json
 import logging
 import math
-import os
 import shutil
 import sys
 import time
+import uuid
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -165,7 +165,8 @@ def check_writable(data_dir: Path) -> None:
     """Create ``data_dir`` and check that files can be created in it (ValueError naming it otherwise)."""
     try:
         data_dir.mkdir(parents=True, exist_ok=True)
-        probe = data_dir / f".write_test.{os.getpid()}"
+        # unique across the nodes of a cluster sharing data_dir (a pid alone repeats from node to node)
+        probe = data_dir / f".write_test.{uuid.uuid4().hex}"
         probe.write_bytes(b"")
         probe.unlink()
     except OSError as e:
