@@ -173,3 +173,11 @@ class KeepBest(L.Callback):
     def restore(self, module: FDIModule) -> None:
         if self.state is not None:
             module.network.load_state_dict(self.state)
+
+    # In Lightning's checkpoints: a run resumed from one still returns the best epoch before the interruption.
+    def state_dict(self) -> dict[str, Any]:
+        return {"best": self.best, "best_epoch": self.best_epoch, "state": self.state}
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self.best, self.best_epoch = float(state_dict["best"]), int(state_dict["best_epoch"])
+        self.state = state_dict["state"]
