@@ -45,17 +45,20 @@ SETTINGS_NODES = {"calibration": FitSettings, "refit": RefitSettings, "score": S
                   "closure": ClosureSettings, "diagnostics": DiagnosticSettings, "noise": HighBandNoise}
 LOOP_KEYS = ("library", "before_after", "fd_step")   # WorkbenchSettings' own fields
 MODEL_KEYS = ("fidelity", "effects", "free", "groups", "faults", "channels", "scale_bounds", "device", "threads")
+CALL_KEYS = {"resample": Workbench.load, "plot": write_report}   # keyword arguments of the calls the app makes
 
 
 def code_defaults() -> dict[str, Any]:
     """Every workbench setting at its code default, as the config tree ``conf/workbench.yaml`` composes in
     (``/schema/workbench``): one node per settings dataclass (:data:`SETTINGS_NODES`), the loop's own fields
-    (:class:`WorkbenchSettings`) and the model's (the :class:`Workbench` constructor's defaults)."""
+    (:class:`WorkbenchSettings`), the model's (the :class:`Workbench` constructor's defaults) and those of
+    the calls (:data:`CALL_KEYS`)."""
     loop = WorkbenchSettings()
     model = inspect.signature(Workbench).parameters
     return {**{key: schema.node(cls()) for key, cls in SETTINGS_NODES.items()},
             **{key: schema.plain(getattr(loop, key)) for key in LOOP_KEYS},
-            **{key: schema.plain(model[key].default) for key in MODEL_KEYS}}
+            **{key: schema.plain(model[key].default) for key in MODEL_KEYS},
+            **{key: inspect.signature(call).parameters[key].default for key, call in CALL_KEYS.items()}}
 
 
 schema.register("workbench", code_defaults())
@@ -65,7 +68,7 @@ def settings_from_config(cfg: DictConfig) -> tuple[WorkbenchSettings, HighBandNo
     """The loop's settings from the composed config (or ``conf/workbench.yaml`` as loaded: the code defaults
     fill what it does not set); each node is instantiated, every error names the config field."""
     given = {key: cfg[key] for key in (*SETTINGS_NODES, *LOOP_KEYS) if key in cfg}
-    tree = OmegaConf.merge({key: v for key, v in code_defaults().items() if key not in MODEL_KEYS}, given)
+    tree = OmegaConf.merge({key: code_defaults()[key] for key in (*SETTINGS_NODES, *LOOP_KEYS)}, given)
     nodes = {key: common.build(tree[key], key) for key in SETTINGS_NODES}
     settings = WorkbenchSettings.of(nodes["refit"], calibration=nodes["calibration"], score=nodes["score"],
                                     closure=nodes["closure"], diagnostics=nodes["diagnostics"],

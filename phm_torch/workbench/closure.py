@@ -17,6 +17,7 @@ normalised to shares. The dominant groups are the lead for writing the missing e
 
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -34,6 +35,7 @@ from .model import threads
 from .parameters import FreeParameter, ParameterSpace
 
 log = logging.getLogger(__name__)
+_NET = inspect.signature(ClosureNet).parameters   # equation, output_scale, seed: the network's own defaults
 
 
 @dataclass
@@ -82,15 +84,15 @@ class ClosureSettings:
     each)."""
 
     enabled: str = "auto"
-    equation: str = "torque"
+    equation: str = _NET["equation"].default
     harmonics: tuple[int, ...] | None = None
     data_orders: int = 3
     hidden: int = 8
-    output_scale: float = 1e-3
+    output_scale: float = _NET["output_scale"].default
     ridge: float = 1.0
     fd_step: float = 0.05
     ratio: float = 1.5
-    seed: int = 0
+    seed: int = _NET["seed"].default
     fit: FitSettings = field(default_factory=lambda: FitSettings(max_iter=4, lambdas=(1.0,)))
 
     def __post_init__(self) -> None:
