@@ -8,6 +8,7 @@ candidates) are fitted together, one shared simulator call per Levenberg-Marquar
 
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 from collections.abc import Callable, Sequence
@@ -24,11 +25,13 @@ from .parameters import ParameterSpace
 
 log = logging.getLogger(__name__)
 MIN_RELATIVE_NOISE = 1e-6  # sigma floor as a fraction of the channel range (noise-free data)
+_LM = inspect.signature(fit).parameters   # FitSettings' defaults: the solver's own (phm_torch.fitting.fit)
 
 
 @dataclass(frozen=True)
 class FitSettings:
-    """Levenberg-Marquardt settings (one batched simulator call per iteration).
+    """Levenberg-Marquardt settings (one batched simulator call per iteration); the defaults are
+    :func:`phm_torch.fitting.fit`'s.
 
     Attributes:
         max_iter: iterations.
@@ -38,11 +41,11 @@ class FitSettings:
             of the noise-normalised residual).
     """
 
-    max_iter: int = 8
-    lambdas: tuple[float, ...] = (0.1, 1.0, 10.0)
-    damping: float = 1e-2
-    tol_abs: float = 0.5
-    tol_rel: float = 1e-4
+    max_iter: int = _LM["max_iter"].default
+    lambdas: tuple[float, ...] = _LM["lambdas"].default
+    damping: float = _LM["damping"].default
+    tol_abs: float = _LM["tol_abs"].default
+    tol_rel: float = _LM["tol_rel"].default
 
     def __post_init__(self) -> None:
         values = {"max_iter": checks.integer(self.max_iter, "max_iter", 1),
