@@ -26,7 +26,7 @@ from ..online.input_contract import InputContract
 from ..online.loaded import TorchScriptPipeline, load_pipeline
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
 from ..tracking.inspection import inspect_record
-from . import common
+from . import common, schema
 from .predict import _pipeline_command, _read, _record  # phm-predict's record path, reused as is
 
 log = logging.getLogger(__name__)
@@ -40,11 +40,17 @@ def _sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
+# TrackerSettings' fields set at the top level of conf/track.yaml; their defaults are composed in from the
+# dataclass (/schema/track), so the YAML does not restate them
+TRACKER_KEYS = ("n_particles", "rul_particles", "seed", "measurement_dof", "resample_ess", "verdict")
+schema.register("track", {key: schema.plain(getattr(TrackerSettings(), key)) for key in TRACKER_KEYS})
+
+
 def _settings(cfg: DictConfig) -> TrackerSettings:
-    dof = cfg.measurement_dof
-    return TrackerSettings(n_particles=cfg.n_particles, rul_particles=cfg.rul_particles, seed=cfg.seed,
-                           measurement_dof=math.inf if dof in (math.inf, ".inf", "inf") else dof,
-                           resample_ess=cfg.resample_ess, verdict=cfg.verdict)
+    values = {key: cfg[key] for key in TRACKER_KEYS}
+    if values["measurement_dof"] in (".inf", "inf"):   # the command line's spelling of infinity
+        values["measurement_dof"] = math.inf
+    return TrackerSettings(**values)
 
 
 def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
