@@ -98,17 +98,31 @@ def reference(tmp_path_factory, compose) -> dict:
     return _manifest(data_dir)
 
 
-def test_ray_cluster_config():
-    _ray()
+def _launcher_config(app: str, overrides: list[str]):
+    """The composed config of ``app`` with its ``hydra`` node (the launcher's settings)."""
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = hydra_compose("generate", ["hydra/launcher=ray_cluster"], return_hydra_config=True)
+        return hydra_compose(app, overrides, return_hydra_config=True)
+
+
+def test_ray_cluster_config():
+    _ray()
+    cfg = _launcher_config("generate", ["hydra/launcher=ray_cluster"])
     launcher = cfg.hydra.launcher
     assert launcher._target_ == "hydra_plugins.hydra_ray_launcher.ray_launcher.RayLauncher"
     # local: a new instance even where a cluster runs; no object-store size, which ray.init refuses
     # when it joins a cluster (the plugin's default sets one)
     assert launcher.ray.init.address == "local" and launcher.ray.init.object_store_memory is None
     assert launcher.ray.remote.num_cpus == cfg.threads == 1  # a shard reserves the cores its threads use
+
+
+def test_slurm_config():
+    """The SLURM recipe composes (it is not run here: no SLURM cluster); the partition is the user's."""
+    pytest.importorskip("hydra_plugins.hydra_submitit_launcher", reason=SCALEOUT)
+    cfg = _launcher_config("generate", ["hydra/launcher=slurm", "hydra.launcher.partition=cpu", "threads=4"])
+    launcher = cfg.hydra.launcher
+    assert launcher._target_ == "hydra_plugins.hydra_submitit_launcher.submitit_launcher.SlurmLauncher"
+    assert launcher.partition == "cpu" and launcher.cpus_per_task == cfg.threads == 4
 
 
 @pytest.mark.slow
