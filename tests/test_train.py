@@ -12,7 +12,8 @@ import pytest
 import torch
 from surrogate_data import faults, health, signals, write_store
 
-from phm_torch.apps.train import _classifier_set, _monitor_rows, train_surrogates
+from phm_torch.apps.train import settings_from_config, train_surrogates
+from phm_torch.pipelines.train import classifier_set, monitor_rows
 from phm_torch.surrogates import POD, GappyPOD, SurrogateBundle
 from phm_torch.surrogates.data import load_store
 from phm_torch.surrogates.full_signal_check import FullSignalCheck
@@ -67,15 +68,15 @@ def test_metrics_json(lm_run):
 
 
 def test_monitor_rows_are_a_disjoint_seeded_split():
-    fit, monitor = _monitor_rows(1000, 0.05, seed=3)
+    fit, monitor = monitor_rows(1000, 0.05, seed=3)
     assert len(monitor) == 50 and len(fit) == 950
     assert torch.equal(torch.cat([fit, monitor]).sort().values, torch.arange(1000))
-    assert torch.equal(_monitor_rows(1000, 0.05, seed=3)[1], monitor)
-    assert not torch.equal(_monitor_rows(1000, 0.05, seed=4)[1], monitor)
-    everything, none = _monitor_rows(10, 0.0, seed=0)
+    assert torch.equal(monitor_rows(1000, 0.05, seed=3)[1], monitor)
+    assert not torch.equal(monitor_rows(1000, 0.05, seed=4)[1], monitor)
+    everything, none = monitor_rows(10, 0.0, seed=0)
     assert none is None and torch.equal(everything, torch.arange(10))
     with pytest.raises(ValueError, match="leaves 1 of 2 training signals"):
-        _monitor_rows(2, 0.4, seed=0)
+        monitor_rows(2, 0.4, seed=0)
 
 
 def test_bundle_round_trip(lm_run, store):
@@ -280,14 +281,14 @@ def test_classifier_also_learns_from_the_labels_split(compose, tmp_path):
     """The assessment-only labels split joins the classifier's training set (and only when asked)."""
     data_dir = write_store(tmp_path / "s", {"train": 40, "val": 10, "labels": 300})
     train = SimpleNamespace(k=faults(40, 0).float(), healthy=health(faults(40, 0)))
-    k, h = _classifier_set(compose("train", [f"data_dir={data_dir}"]), train)
+    k, h = classifier_set(settings_from_config(compose("train", [f"data_dir={data_dir}"])), train)
     assert k.shape == (340, 8) and h.shape == (340,) and k.dtype == torch.float64
     assert torch.equal(h[:40], train.healthy)
     assert torch.equal(h[40:], health(faults(300, 34)))            # write_store's seed for the 3rd split
-    k_only, _ = _classifier_set(compose("train", [f"data_dir={data_dir}", "classifier_labels=false"]), train)
+    k_only, _ = classifier_set(settings_from_config(compose("train", [f"data_dir={data_dir}", "classifier_labels=false"])), train)
     assert k_only.shape == (40, 8)
     plain = write_store(tmp_path / "p", {"train": 40, "val": 10})  # a store without labels: train only
-    assert _classifier_set(compose("train", [f"data_dir={plain}"]), train)[0].shape == (40, 8)
+    assert classifier_set(settings_from_config(compose("train", [f"data_dir={plain}"])), train)[0].shape == (40, 8)
 
 
 def test_bayesian_gappy_estimator_round_trips_through_the_bundle(store, compose, tmp_path):

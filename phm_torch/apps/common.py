@@ -22,6 +22,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from .. import provenance
+from ..checks import build, device, integer, number  # noqa: F401  (the apps call them as common.*)
 from ..effects import Effect, build_effects
 from ..faults import FAULT_NAMES, N_FAULTS, as_fault_tensor
 from ..io.atomic import write_json  # noqa: F401  (common.write_json: the apps write their JSON with it)
@@ -39,27 +40,6 @@ def plain(node: Any) -> Any:
     if isinstance(node, (DictConfig, ListConfig)):
         return OmegaConf.to_container(node, resolve=True)
     return node
-
-
-def number(value: Any, name: str, minimum: float | None = None, strict: bool = False) -> float:
-    """A finite float from a config value, optionally bounded below (``strict``: > minimum)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise ValueError(f"{name} must be a number, got {value!r}")
-    value = float(value)
-    if not math.isfinite(value):
-        raise ValueError(f"{name} must be finite, got {value!r}")
-    if minimum is not None and (value <= minimum if strict else value < minimum):
-        raise ValueError(f"{name} must be {'>' if strict else '>='} {minimum:g}, got {value!r}")
-    return value
-
-
-def integer(value: Any, name: str, minimum: int | None = None) -> int:
-    """An int from a config value (no bools, no fractional floats)."""
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise ValueError(f"{name} must be an integer, got {value!r}")
-    if minimum is not None and value < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {value!r}")
-    return int(value)
 
 
 def fault_vector(value: Any, name: str = "faults") -> list[float]:
@@ -172,16 +152,6 @@ def set_threads(cfg: DictConfig) -> None:
         torch.set_num_threads(integer(threads, "threads", 1))
 
 
-def device(value: Any) -> torch.device:
-    try:
-        dev = torch.device(str(value))
-    except RuntimeError as e:
-        raise ValueError(f"device: invalid device {value!r} ({e})") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise ValueError(f"device={value!r} but CUDA is not available on this machine; use device=cpu")
-    return dev
-
-
 def effects(value: Any) -> list[Effect]:
     """Instantiate the ``effects`` mapping (``{name: {param: value}}``); unknown names are errors."""
     spec = plain(value) or {}
@@ -192,17 +162,6 @@ def effects(value: Any) -> list[Effect]:
             raise ValueError(f"effects.{key} must be a mapping of parameters (e.g. +effects.{key}={{}}), "
                              f"got {params!r}")
     return build_effects(spec)
-
-
-def build(node: Any, name: str, **kwargs: Any) -> Any:
-    """Instantiate a config node (its ``_target_``), passing ``kwargs`` (objects, not config) to the
-    constructor; a constructor error is reported as a ValueError starting with ``name``."""
-    try:
-        return instantiate(node, _partial_=True)(**kwargs)
-    except (InstantiationException, TypeError, ValueError) as e:
-        cause = e.__cause__ if isinstance(e, InstantiationException) and e.__cause__ is not None else e
-        msg = str(cause)
-        raise ValueError(msg if msg.startswith(name) else f"{name}: {msg}") from None
 
 
 def command(node: Any) -> Callable[[torch.Tensor], torch.Tensor]:

@@ -1,0 +1,126 @@
+"""The training pipeline's classifiers: the health classifier on k (refined on its boundary with the store's
+own assessment, calibrated to a missed-fault rate) and the verdict classifier on the FDI estimates."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+from ...checks import build, device
+from ...data.labels import LabelComputer, label_chunk_rows
+from ...data.sampling import ImportanceSampler
+from ...data.spec import DatasetSpec
+from ...data.store import LABELS, read_labelled, recorded_actuator
+from ...surrogates import rms
+from ...surrogates.classifiers.base import HealthClassifier
+from ...surrogates.classifiers.refinement import refine_classifier
+from ...surrogates.verdict_classifier import fit_verdict_classifier
+from .data import Reduction, StoreData
+from .settings import TrainSettings
+
+REFINE_STREAM = 0x5EF1  # seed-sequence key of the classifier refinement's candidates
+Sampler = Callable[[int, int], Any]
+Assessor = Callable[[Any], Any]
+
+
+def classifier_set(settings: TrainSettings, train: Any) -> tuple[torch.Tensor, torch.Tensor]:
+    """The health classifier's training set: the train split's (k (N, 8) float64, healthy (N,)) and, with
+    ``settings.classifier_labels``, the store's assessment-only ``labels`` split (if it has one)."""
+    k, healthy = train.k.to(torch.float64), train.healthy
+    if not settings.classifier_labels:
+        return k, healthy
+    k_extra, h_extra = read_labelled(settings.data_dir, splits=(LABELS,), optional=(LABELS,))
+    return (torch.cat([k, torch.from_numpy(k_extra)]), torch.cat([healthy, torch.from_numpy(h_extra)]))
+
+
+def store_labeller(settings: TrainSettings, metadata: dict[str, Any]) -> tuple[Sampler | None, Assessor | None]:
+    """The classifier refinement's candidate sampler and labeller phi_a, both rebuilt from the config the store
+    records (its actuator, assessment and importance sampler), so that the new labels are the store's own kind;
+    ``(None, None)`` without refinement rounds."""
+    rounds = settings.refine.rounds
+    if rounds == 0:
+        return None, None
+    config = metadata.get("config") or {}
+    if "actuator" not in config or "assessment" not in config or "dataset" not in config:
+        raise ValueError(
+            f"classifier_refine.rounds={rounds}: the store {settings.data_dir!r} does not record "
+            f"the actuator, assessment and dataset config its labels were made with; set "
+            f"classifier_refine.rounds=0"
+        )
+    params = recorded_actuator(metadata)
+    dataset = config["dataset"]
+    # candidates drawn as the store's training vectors were: with its calibrated distance exponent
+    exponent = float((metadata.get("sampling") or {}).get("distance_exponent", 1.0))
+    sampler = ImportanceSampler(
+        tuple(params.nominal_faults), tuple(dataset.get("uniform", [])), 1.0, distance_exponent=exponent
+    )
+    assessment = build(config["assessment"], "assessment", params=params, device=device(settings.refine_device))
+    chunk = int(dataset.get("label_chunk_size", DatasetSpec.label_chunk_size))
+    seed = settings.seed
+
+    def sample(n: int, r: int) -> Any:
+        return sampler.sample(n, np.random.SeedSequence([seed, REFINE_STREAM, r]))
+
+    def assess(k: Any) -> Any:  # equal batches, as phm-generate's labels split (one compiled shape)
+        rows = label_chunk_rows(len(k), chunk)
+        labeller = LabelComputer(assessment, params.nominal_faults, rows)
+        return np.concatenate([labeller(k[i : i + rows])["healthy"] for i in range(0, len(k), rows)]).astype(bool)
+
+    return sample, assess
+
+
+def fit_classifiers(
+    settings: TrainSettings,
+    classifier: HealthClassifier,
+    make_classifier: Callable[[], HealthClassifier],
+    data: StoreData,
+    red: Reduction,
+    network: Any,
+    labeller: tuple[Sampler | None, Assessor | None],
+    timing: dict[str, float],
+) -> tuple[int, dict[str, Any], HealthClassifier | None]:
+    """Fit the health classifier on k (refined on its boundary with the store's assessment, calibrated to
+    ``max_missed_fault_rate``) and, with ``settings.verdict_classifier``, a fresh one on the FDI estimates of the
+    training records with ``eval.noise`` (the verdict on a measured actuator).
+
+    Returns:
+        the number of vectors the health classifier was fitted on, the refinement's report, the verdict
+        classifier (None without one).
+    """
+    train, seed, max_missed = data.train, settings.seed, settings.max_missed_fault_rate
+    t0 = time.perf_counter()
+    k_cls, healthy_cls = classifier_set(settings, train)
+    k_all, _, refine_info = refine_classifier(
+        classifier,
+        k_cls,
+        healthy_cls,
+        *labeller,
+        settings.refine,
+        seed,
+        settings.out_dir / "classifier_labels",
+        {"data": data.info["manifest"].get("fingerprint")},
+    )
+    if max_missed is not None:  # on the importance-sampled set: the refined one crowds the boundary
+        classifier.calibrate(k_cls, healthy_cls, max_missed)
+    timing["classifier_fit_s"] = time.perf_counter() - t0 - refine_info["assess_s"]
+    timing["classifier_refine_assess_s"] = refine_info["assess_s"]
+    verdict = None
+    if settings.verdict_classifier:  # judges estimates: fitted on the training records' own, with eval.noise
+        t0 = time.perf_counter()
+        gappy = red.gappy
+        verdict = fit_verdict_classifier(
+            make_classifier(),
+            lambda s, level: network(gappy(s)[0], level),
+            red.samples_tr,
+            rms(train.current),
+            train.healthy,
+            settings.eval.noise,
+            seed + 11,
+            max_missed,
+        )
+        timing["verdict_classifier_fit_s"] = time.perf_counter() - t0
+    return len(k_all), refine_info, verdict
