@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from .generation import seed_streams
+from .labels import LabelComputer
 from .sampling import ImportanceSampler
 from .store import read_json, write_json
 
@@ -168,8 +170,6 @@ def calibrate_spec(spec: Any, nominal: Any, assessment: Any, seed: int) -> dict[
     """The calibration of a ``DatasetSpec``: the paper's record when ``spec.healthy_fraction`` is null, else
     a pilot of ``spec.pilot_size`` vectors from the ``pilot`` seed stream, assessed in batches of
     ``spec.chunk_size`` (the assessment batch of the signal chunks: a compiled sweep compiles once)."""
-    from .generation import seed_streams  # generation -> store; imported here to keep this module light
-    from .labels import LabelComputer
 
     sampler = ImportanceSampler(tuple(nominal), spec.uniform, 1.0)
     if spec.healthy_fraction is None:
