@@ -192,19 +192,22 @@ def simulation_settings(cfg: DictConfig) -> SimulationSettings:
     params = actuator(cfg)
     fid = fidelity(cfg.fidelity)
     cmd = command(cfg.command)
-    dur = number(cfg.get("duration", getattr(cmd, "duration", None)), "duration", 0.0, strict=True)
+    dur = number(cfg.duration, "duration", 0.0, strict=True)   # the YAML's default: ${command.duration}
     return SimulationSettings(params, fid, cmd, dur, integer(cfg.seed, "seed", 0), noise(cfg),
-                              effects(cfg.get("effects")), device(cfg.get("device", "cpu")))
+                              effects(cfg.effects), device(cfg.device))
 
 
 def noise(cfg: DictConfig) -> dict[str, float]:
     """Noise standard deviations by channel, validated (>= 0)."""
-    node = plain(cfg.get("noise")) or {}
-    unknown = sorted(set(node) - {"current", "position"})
+    node = plain(cfg.noise) or {}
+    channels = ("current", "position")
+    unknown = sorted(set(node) - set(channels))
     if unknown:
-        raise ValueError(f"noise: unknown channel(s) {unknown}; known: ['current', 'position']")
-    return {"current": number(node.get("current", 0.0), "noise.current", 0.0),
-            "position": number(node.get("position", 0.0), "noise.position", 0.0)}
+        raise ValueError(f"noise: unknown channel(s) {unknown}; known: {list(channels)}")
+    missing = [ch for ch in channels if ch not in node]
+    if missing:
+        raise ValueError(f"noise: no standard deviation for {missing} (0.0: no noise)")
+    return {ch: number(node[ch], f"noise.{ch}", 0.0) for ch in channels}
 
 
 def signal_metrics(channels: Mapping[str, torch.Tensor]) -> dict[str, list[float]]:
