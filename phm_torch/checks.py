@@ -1,13 +1,14 @@
 """Config values into typed values and objects, each error a ``ValueError`` naming the field and the value.
 
-The apps validate what they read from a composed config with these, and the settings dataclasses of
-:mod:`phm_torch.pipelines` call them in ``__post_init__``, so a value is checked the same way whether it comes
+The apps validate what they read from a composed config with these, and the settings dataclasses (of
+:mod:`phm_torch.pipelines`, :mod:`phm_torch.workbench`) call them in ``__post_init__``, so a value is checked the same way whether it comes
 from a YAML file, the command line or Python.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import torch
@@ -34,6 +35,42 @@ def integer(value: Any, name: str, minimum: int | None = None) -> int:
     if minimum is not None and value < minimum:
         raise ValueError(f"{name} must be >= {minimum}, got {value!r}")
     return int(value)
+
+
+def numbers(value: Any, name: str, minimum: float | None = None, strict: bool = False) -> tuple[float, ...]:
+    """A non-empty sequence of numbers (each checked as :func:`number`) as a tuple."""
+    if isinstance(value, (str, bytes, Mapping)) or not hasattr(value, "__len__") or not len(value):
+        raise ValueError(f"{name} must be a non-empty list of numbers, got {value!r}")
+    return tuple(number(v, f"{name}[{i}]", minimum, strict) for i, v in enumerate(value))
+
+
+def names(value: Any, name: str) -> tuple[str, ...]:
+    """A sequence of non-empty strings (one string is a list of one) as a tuple."""
+    if isinstance(value, str):
+        value = [value]
+    if (
+        isinstance(value, (bytes, Mapping))
+        or not hasattr(value, "__iter__")
+        or not all(isinstance(v, str) and v for v in value)
+    ):
+        raise ValueError(f"{name} must be a list of names, got {value!r}")
+    return tuple(value)
+
+
+def mapping(value: Any, name: str) -> dict:
+    """A mapping as a dict (``None``: empty)."""
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise ValueError(f"{name} must be a mapping, got {value!r}")
+    return dict(value)
+
+
+def flag(value: Any, name: str) -> bool:
+    """A bool (no 0/1, no string)."""
+    if not isinstance(value, bool):
+        raise ValueError(f"{name} must be true or false, got {value!r}")
+    return value
 
 
 def device(value: Any) -> torch.device:

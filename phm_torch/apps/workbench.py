@@ -23,6 +23,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
+from .. import checks
 from ..online.command_check import check_command
 from ..workbench import (
     ClosureSettings,
@@ -33,7 +34,6 @@ from ..workbench import (
     ScoreSettings,
     Workbench,
     WorkbenchSettings,
-    checks,
     write_report,
 )
 from . import common, schema

@@ -18,8 +18,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from .. import checks
 from ..fitting import FitResult, Problem, fit
-from . import checks
 from .model import Evaluator
 from .parameters import ParameterSpace
 

@@ -30,8 +30,8 @@ import numpy as np
 import torch
 from scipy import special, stats
 
+from .. import checks
 from ..effects import EFFECTS
-from . import checks
 from .calibrate import Calibration
 from .model import Evaluator
 from .parameters import effect_defaults
@@ -87,8 +87,10 @@ class ScoreSettings:
                   "hac_lags": checks.integer(self.hac_lags, "score.hac_lags", 0),
                   "alias_ratio": checks.number(self.alias_ratio, "score.alias_ratio", 0.0),
                   "rank_tol": checks.number(self.rank_tol, "score.rank_tol", 0.0),
-                  "min_gain": checks.number(self.min_gain, "score.min_gain", 0.0, maximum=1.0),
+                  "min_gain": checks.number(self.min_gain, "score.min_gain", 0.0),
                   "data_orders": checks.integer(self.data_orders, "score.data_orders", 0)}
+        if not values["min_gain"] < 1:
+            raise ValueError(f"score.min_gain must be in [0, 1), got {self.min_gain!r}")
         for key, value in values.items():
             object.__setattr__(self, key, value)
 

@@ -26,9 +26,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
+from .. import checks
 from ..effects import EFFECTS
 from ..simulator import EMASimulator
-from . import checks
 from .calibrate import Calibration, FitSettings, fit_models
 from .closure_net import EQUATIONS, ClosureNet, NeuralClosure
 from .model import threads

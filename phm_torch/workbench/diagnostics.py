@@ -18,7 +18,7 @@ import numpy as np
 from scipy import stats
 from scipy.signal import welch
 
-from . import checks
+from .. import checks
 
 PerRecord = Sequence[Mapping[str, np.ndarray]]
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.signal import welch
 
-from . import checks
+from .. import checks
 
 
 @dataclass(frozen=True)

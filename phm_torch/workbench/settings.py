@@ -10,8 +10,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from .. import checks
 from ..effects import EFFECTS
-from . import checks
 from .calibrate import FitSettings
 from .candidates import ScoreSettings
 from .closure import ClosureSettings
