@@ -1,8 +1,9 @@
 """The EMA simulator: one init/step interface shared by every fidelity.
 
-The fidelity is only the motor model (``BLDCMotor`` = HF test bench, ``DCMotor`` = LF); control,
-mechanics, sensors, faults and effects are the same code. ``step`` advances one PWM/control period in
-``motor.substeps`` substeps and returns the acquisition samples that fall inside it.
+The fidelity is only the motor model (``BLDCMotor`` = HF test bench, ``DCMotor`` = LF), reached through the
+``physics.motor.Motor`` protocol; control, mechanics, sensors, faults, effects and the energy balance
+(``physics.energy``) are the same code. ``step`` advances one PWM/control period in ``motor.substeps``
+substeps and returns the acquisition samples that fall inside it.
 """
 
 from __future__ import annotations
@@ -16,16 +17,15 @@ from .command import time_grid
 from .effects import Effect, EffectContext, build_effects
 from .faults import as_fault_tensor
 from .params import ActuatorParams
-from .physics.bldc import BLDCMotor
+from .physics import energy as energy_balance
 from .physics.controller import ControlState, controller_step
-from .physics.dc_motor import DCMotor
 from .physics.mechanics import MechState, mechanics_step
+from .physics.motor import MOTORS
 from .physics.sensors import ButterworthFilter, lvdt_step
 from .plant import Plant, build_plant
 
-MOTORS: dict[str, Callable[..., object]] = {"hf": BLDCMotor, "lf": DCMotor}
-DEFAULT_SUBSTEPS = {"hf": 10, "lf": 2}
-COMPILE_UNIT = {"hf": "substep", "lf": "period"}
+# Channels every fidelity records; a motor adds its own (``Motor.channels``).
+SHARED_CHANNELS = ("position", "current", "speed", "motor_angle", "user_angle")
 # Every simulator shares the code of ``_substep``/``step``, and dynamo guards each compiled graph on the
 # instance (fidelity, effects): past its default recompile limit of 8, a process that builds more compiled
 # simulators (one per effect set, e.g. scripts/fdi_model_mismatch.py) would silently run the rest eager.
@@ -76,9 +76,10 @@ class EMASimulator:
 
     Args:
         params: actuator datasheet.
-        fidelity: ``"hf"`` or ``"lf"`` (or pass ``motor`` directly).
+        fidelity: a motor model of ``physics.motor.MOTORS``: ``"hf"`` or ``"lf"``.
         effects: list of effects or a ``{name: {param: value}}`` mapping.
-        substeps: substeps per PWM period (default 10 for HF -> 10 us, 2 for LF -> 50 us).
+        substeps: substeps per PWM period (default the motor's ``default_substeps``: 10 for HF -> 10 us,
+            2 for LF -> 50 us).
         dtype, device: tensor placement; float64 by default (the backlash is ~1e-3 of the stroke).
         compile: fuse with ``torch.compile`` (same equations, equal to eager within 1e-9): each HF
             substep, or each whole LF period; several times faster for large batches after a one-off
@@ -92,7 +93,8 @@ class EMASimulator:
             raise ValueError(f"fidelity must be one of {sorted(MOTORS)}, got {fidelity!r}")
         self.params = params
         self.fidelity = fidelity
-        self.motor = MOTORS[fidelity](substeps or DEFAULT_SUBSTEPS[fidelity])
+        motor = MOTORS[fidelity]
+        self.motor = motor(substeps or motor.default_substeps)
         # copies on the simulation dtype/device (grads kept): the caller's effects are left as given
         given = build_effects(effects) if effects is None or isinstance(effects, Mapping) else effects
         self.effects = [eff.to(dtype, device) for eff in given]
@@ -107,11 +109,8 @@ class EMASimulator:
         self.filter = ButterworthFilter(params.filter_cutoff, self.h, dtype, self.device)
         self._offsets = [torch.tensor(j * self.h, dtype=dtype, device=self.device) for j in range(self.motor.substeps)]
         self.compiled = compile
-        # What one compiled graph covers: a whole period (controller + substeps) removes the per-call
-        # overhead that dominates the LF model's few operations per substep; for HF, ten unrolled
-        # substeps compile for minutes and run no faster than one compiled substep called ten times.
-        unit = COMPILE_UNIT[fidelity]
-        whole_period = compile and unit == "period"
+        # What one compiled graph covers (a whole period or one substep) is the motor's to say.
+        whole_period = compile and self.motor.compile_whole_period
         if compile:
             torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, RECOMPILE_LIMIT)
         self._substep_fn = torch.compile(self._substep, dynamic=False) if compile and not whole_period else self._substep
@@ -129,15 +128,10 @@ class EMASimulator:
                                 f"(dataclasses.replace(plant, ...)), got {type(plant).__name__}")
         b = k.shape[0]
         z = torch.zeros(b, dtype=self.dtype, device=self.device)
-        acc = {key: z.clone() for key in ("input", "copper", "friction", "viscous", "damping", "end_stop",
-                                          "load", "effect_work", "numerical")} if energy else None
+        acc = energy_balance.empty_accounts(b, self.dtype, self.device) if energy else None
         return SimState(plant, MechState.zeros(b, self.dtype, self.device), ControlState.zeros(b, self.dtype, self.device),
                         self.motor.init_state(plant), z.clone(), (z.clone(), z.clone()),
                         z.clone(), torch.zeros((), dtype=self.dtype, device=self.device), acc)
-
-    def _ctx(self, state: SimState, t: float, current: torch.Tensor) -> EffectContext:
-        m = state.mech
-        return EffectContext(t, m.theta_m, m.omega_m, m.theta_u, m.omega_u, current, state.plant)
 
     def step(self, state: SimState, command: torch.Tensor) -> tuple[SimState, list[dict[str, torch.Tensor]]]:
         """Advance one control period.
@@ -186,57 +180,16 @@ class EMASimulator:
         mech_new, torques = mechanics_step(mech, torque + eff_motor, load, plant.coulomb_friction + eff_fric,
                                            plant.static_friction + eff_break, plant, self.h)
         if energy is not None:
-            self._account(energy, extra, elec, elec_new, mech, mech_new, torques, eff_motor, load, plant)
+            energy_balance.accumulate(energy, self.motor, self.h, extra["power_in"], elec, elec_new, mech, mech_new,
+                                      torques, eff_motor, load, plant)
         # Mid-step user angle: the exact lag of a linearly varying input to second order in h.
         lvdt = lvdt_step(lvdt, 0.5 * (mech.theta_u + mech_new.theta_u), plant.lvdt_time_constant, self.h)
         return mech_new, elec_new, lvdt, filt, env_new
 
     def _sample(self, mech: MechState, elec: torch.Tensor, lvdt: torch.Tensor, filt: tuple[torch.Tensor, ...]
                 ) -> dict[str, torch.Tensor]:
-        out = {"position": lvdt, "current": filt[0], "speed": mech.omega_m,
-               "motor_angle": mech.theta_m, "user_angle": mech.theta_u}
-        if elec.ndim == 2:
-            out.update(ia=elec[:, 0], ib=elec[:, 1], ic=elec[:, 2])
-        return out
-
-    def stored_energy(self, state: SimState) -> torch.Tensor:
-        """Kinetic + magnetic + elastic energy [J] (B,) of a state (zero at rest)."""
-        m, pl = state.mech, state.plant
-        kinetic = 0.5 * pl.motor_inertia * m.omega_m ** 2 + 0.5 * pl.user_inertia * m.omega_u ** 2
-        if state.elec.ndim == 2:
-            magnetic = 0.5 * (pl.inductance * state.elec ** 2).sum(-1)
-        else:
-            magnetic = 0.5 * self.motor.equivalent(m.theta_m, pl)[2] * state.elec ** 2
-        delta = m.theta_m / pl.gear_ratio - m.theta_u
-        twist = (delta.abs() - 0.5 * pl.backlash).clamp(min=0.0)
-        over = (m.theta_u.abs() - pl.end_stop_angle).clamp(min=0.0)
-        elastic = 0.5 * pl.output_stiffness * twist ** 2 + 0.5 * pl.end_stop_stiffness * over ** 2
-        return kinetic + magnetic + elastic
-
-    def _account(self, acc, extra, elec_old, elec, old: MechState, new: MechState, torques, eff_motor, load, plant) -> None:
-        """Accumulate energies [J] over a substep for the power-balance check."""
-        h, n = self.h, plant.gear_ratio
-        if elec.ndim == 2:
-            r, ind = plant.resistance, plant.inductance
-        else:
-            _, r, ind = self.motor.equivalent(old.theta_m, plant)
-        i2 = (0.5 * (elec + elec_old)) ** 2  # the trapezoidal rule's mid-step current
-        # Inductance changing with rotor angle (LF shape functions) exchanges energy not otherwise
-        # accounted: 0.5 (L_new - L_old) i^2; it is zero for the HF phases.
-        if elec.ndim == 1:
-            acc["numerical"] += 0.5 * (self.motor.equivalent(new.theta_m, plant)[2] - ind) * elec * elec
-        acc["input"] += h * extra["power_in"]
-        acc["copper"] += h * (r * i2).sum(-1) if elec.ndim == 2 else h * r * i2
-        acc["friction"] += h * torques["friction"] * new.omega_m
-        acc["viscous"] += h * plant.motor_viscous * old.omega_m * new.omega_m
-        rate_new = new.omega_m / n - new.omega_u
-        contact = torques["transmission"] != 0
-        acc["damping"] += h * torch.where(contact, plant.output_damping * (old.omega_m / n - old.omega_u) * rate_new,
-                                          torch.zeros_like(rate_new))
-        acc["damping"] += h * plant.user_damping * old.omega_u * new.omega_u
-        acc["end_stop"] += h * torques["end_stop"] * new.omega_u
-        acc["load"] += h * load * new.omega_u
-        acc["effect_work"] += h * eff_motor * new.omega_m if torch.is_tensor(eff_motor) else 0.0
+        return {"position": lvdt, "current": filt[0], "speed": mech.omega_m, "motor_angle": mech.theta_m,
+                "user_angle": mech.theta_u, **self.motor.sample(elec)}
 
     # ---- whole runs --------------------------------------------------------------------------
     def run(self, faults, command: Callable[[torch.Tensor], torch.Tensor] | torch.Tensor, duration: float,
@@ -273,8 +226,7 @@ class EMASimulator:
             cmd_ctrl = _interp(t_ctrl, grid, cmd_grid)
         state = self.init(faults, scales, energy)
         b, n = state.plant.batch, grid.numel()
-        available = ("position", "current", "speed", "motor_angle", "user_angle") + (
-            ("ia", "ib", "ic") if self.fidelity == "hf" else ())
+        available = SHARED_CHANNELS + self.motor.channels
         keep = list(channels) if channels is not None else list(available)
         unknown = sorted(set(keep) - set(available) - {"command"})
         if unknown:
@@ -302,7 +254,7 @@ class EMASimulator:
                 store(smp)
         store(self._sample(state.mech, state.elec, state.lvdt, state.filt))
         if state.energy is not None:
-            state.energy["stored"] = self.stored_energy(state)
+            state.energy["stored"] = energy_balance.stored_energy(self.motor, state.plant, state.mech, state.elec)
         if bufs is None:
             out = {c: torch.stack([r[c] for r in records], dim=-1).to(dtype) for c in keep}
         else:

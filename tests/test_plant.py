@@ -46,9 +46,9 @@ def test_apply_faults_returns_a_new_plant_with_the_fault_mapping():
     before = snapshot(nominal)
     plant = apply_faults(nominal, k, P.short_circuit_max)
     assert plant is not nominal and unchanged(nominal, before)
-    assert plant.coulomb_friction.item() == pytest.approx(2.0 * P.coulomb_friction)       # 1 + 2 k1
+    assert plant.coulomb_friction.item() == pytest.approx(2.0 * P.coulomb_friction)  # 1 + 2 k1
     assert plant.backlash.item() == pytest.approx(P.backlash * (1 + 99 * 0.2))
-    s = torch.tensor([0.4, 0.0, P.short_circuit_max], dtype=torch.float64)                # k5 clamped
+    s = torch.tensor([0.4, 0.0, P.short_circuit_max], dtype=torch.float64)  # k5 clamped
     assert torch.allclose(plant.short[0], s)
     assert torch.allclose(plant.resistance[0], P.phase_resistance * (1 - s))
     assert torch.allclose(plant.inductance[0], P.phase_inductance * (1 - s) ** 2)
@@ -73,8 +73,9 @@ def test_static_effects_leave_the_given_plant_unchanged():
 
 
 def test_simulator_copies_the_callers_effects():
-    effects = build_effects({"viscous_friction": {"coefficient": torch.tensor(2e-4, dtype=torch.float32)},
-                             "winding_temperature": {}})
+    effects = build_effects(
+        {"viscous_friction": {"coefficient": torch.tensor(2e-4, dtype=torch.float32)}, "winding_temperature": {}}
+    )
     given = [e.values for e in effects]
     dtypes = [{k: v.dtype for k, v in e.values.items()} for e in effects]
     sim = EMASimulator(P, "lf", effects=effects)
@@ -82,10 +83,18 @@ def test_simulator_copies_the_callers_effects():
         assert e.values is values and {k: v.dtype for k, v in e.values.items()} == dt  # left as given
     assert all(v.dtype == torch.float64 for e in sim.effects for v in e.values.values())
     k = torch.tensor([P.nominal_faults], dtype=torch.float64)
-    same = EMASimulator(P, "lf", effects={"viscous_friction": {"coefficient": float(torch.tensor(2e-4, dtype=torch.float32))},
-                                          "winding_temperature": {}})
-    assert torch.equal(sim.run(k, lambda t: 0.01 * torch.sin(200 * t), 0.002)["current"],
-                       same.run(k, lambda t: 0.01 * torch.sin(200 * t), 0.002)["current"])
+    same = EMASimulator(
+        P,
+        "lf",
+        effects={
+            "viscous_friction": {"coefficient": float(torch.tensor(2e-4, dtype=torch.float32))},
+            "winding_temperature": {},
+        },
+    )
+    assert torch.equal(
+        sim.run(k, lambda t: 0.01 * torch.sin(200 * t), 0.002)["current"],
+        same.run(k, lambda t: 0.01 * torch.sin(200 * t), 0.002)["current"],
+    )
 
 
 def test_an_effect_that_mutates_instead_of_returning_is_named():

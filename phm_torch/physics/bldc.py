@@ -42,11 +42,15 @@ def emf_shape_constants(theta_m: torch.Tensor, plant, emf_scale) -> list[torch.T
 
 
 class BLDCMotor:
-    """PWM inverter and trapezoidal BLDC motor; state = phase currents (B, 3) [A]."""
+    """PWM inverter and trapezoidal BLDC motor; state = phase currents (B, 3) [A] (see ``motor.Motor``)."""
 
     fidelity = "hf"
+    default_substeps = 10  # 10 us at 10 kHz: resolves the PWM ripple
+    # Ten unrolled substeps compile for minutes and run no faster than one compiled substep called ten times.
+    compile_whole_period = False
+    channels = ("ia", "ib", "ic")  # unfiltered phase currents [A]
 
-    def __init__(self, substeps: int = 10):
+    def __init__(self, substeps: int = default_substeps):
         if substeps < 2:
             raise ValueError(f"hf.substeps must be >= 2 to resolve the PWM ripple, got {substeps}")
         self.substeps = substeps
@@ -59,6 +63,21 @@ class BLDCMotor:
         high, low = phase_roles(plant.pole_pairs_f * theta_m)
         i = currents.unbind(-1)
         return 0.5 * sum((high[x] - low[x]) * i[x] for x in range(3))
+
+    def sample(self, currents: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The phase currents ``ia``, ``ib``, ``ic`` [A], each (B,)."""
+        return {"ia": currents[:, 0], "ib": currents[:, 1], "ic": currents[:, 2]}
+
+    def magnetic_energy(self, currents: torch.Tensor, theta_m: torch.Tensor, plant) -> torch.Tensor:
+        """sum_x L_x i_x^2 / 2 [J] (B,)."""
+        return 0.5 * (plant.inductance * currents ** 2).sum(-1)
+
+    def electrical_energy(self, old: torch.Tensor, new: torch.Tensor, theta_old: torch.Tensor,
+                          theta_new: torch.Tensor, plant, h: float) -> dict[str, torch.Tensor]:
+        """Copper loss sum_x R_x i_x^2 h [J] (B,) at the trapezoidal rule's mid-step currents; the phase
+        inductances do not depend on the rotor angle, so the windings exchange nothing else."""
+        i2 = (0.5 * (new + old)) ** 2
+        return {"copper": h * (plant.resistance * i2).sum(-1)}
 
     def step(self, currents: torch.Tensor, duty: torch.Tensor, t_in_period: torch.Tensor, theta_m: torch.Tensor,
              omega_m: torch.Tensor, emf_scale, plant, h: float, period: float

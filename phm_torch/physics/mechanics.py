@@ -29,31 +29,46 @@ class MechState:
         return cls(*(torch.zeros(batch, dtype=dtype, device=device) for _ in range(4)))
 
 
+def backlash_deflection(state: MechState, plant) -> torch.Tensor:
+    """Deflection of the output-stage spring past the play [rad] (B,), signed.
+
+    Gear deflection delta = theta_m / N - theta_u; the play is ``plant.backlash`` (total, user side), so the
+    spring is compressed by delta - b/2 in forward contact, delta + b/2 in reverse contact, and not at all
+    inside the play.
+    """
+    delta = state.theta_m / plant.gear_ratio - state.theta_u
+    half = 0.5 * plant.backlash
+    zero = torch.zeros_like(delta)
+    return torch.where(delta > half, delta - half, torch.where(delta < -half, delta + half, zero))
+
+
 def transmission_torque(state: MechState, plant) -> torch.Tensor:
     """Torque the output stage transmits to the user [N m] (B,), through the backlash dead zone.
 
-    Deflection delta = theta_m / N - theta_u; the play is ``plant.backlash`` (total, user side). In
-    contact the spring-damper acts; the damper may not pull the teeth together (torque clipped).
+    In contact the spring-damper acts; the damper may not pull the teeth together (torque clipped).
     """
-    n = plant.gear_ratio
-    delta = state.theta_m / n - state.theta_u
-    rate = state.omega_m / n - state.omega_u
-    half = 0.5 * plant.backlash
-    push = plant.output_stiffness * (delta - half) + plant.output_damping * rate
-    pull = plant.output_stiffness * (delta + half) + plant.output_damping * rate
-    zero = torch.zeros_like(delta)
-    return torch.where(delta > half, push.clamp(min=0.0), torch.where(delta < -half, pull.clamp(max=0.0), zero))
+    x = backlash_deflection(state, plant)
+    rate = state.omega_m / plant.gear_ratio - state.omega_u
+    torque = plant.output_stiffness * x + plant.output_damping * rate
+    zero = torch.zeros_like(x)
+    return torch.where(x > 0, torque.clamp(min=0.0), torch.where(x < 0, torque.clamp(max=0.0), zero))
+
+
+def end_stop_penetration(state: MechState, plant) -> torch.Tensor:
+    """How far the user angle is past an end stop [rad] (B,), signed: theta_u - theta_stop beyond the upper
+    stop, theta_u + theta_stop beyond the lower one, 0 between them."""
+    over = state.theta_u - plant.end_stop_angle
+    under = state.theta_u + plant.end_stop_angle
+    zero = torch.zeros_like(over)
+    return torch.where(over > 0, over, torch.where(under < 0, under, zero))
 
 
 def end_stop_torque(state: MechState, plant) -> torch.Tensor:
-    """Reaction of the end stops on the user side [N m] (B,), opposing penetration."""
-    over = state.theta_u - plant.end_stop_angle
-    under = state.theta_u + plant.end_stop_angle
-    k, c = plant.end_stop_stiffness, plant.end_stop_damping
-    hi = (k * over + c * state.omega_u).clamp(min=0.0)
-    lo = (k * under + c * state.omega_u).clamp(max=0.0)
-    zero = torch.zeros_like(over)
-    return torch.where(over > 0, hi, torch.where(under < 0, lo, zero))
+    """Reaction of the end stops on the user side [N m] (B,), opposing penetration (the damper may not pull)."""
+    x = end_stop_penetration(state, plant)
+    force = plant.end_stop_stiffness * x + plant.end_stop_damping * state.omega_u
+    zero = torch.zeros_like(x)
+    return torch.where(x > 0, force.clamp(min=0.0), torch.where(x < 0, force.clamp(max=0.0), zero))
 
 
 def mechanics_step(state: MechState, motor_torque: torch.Tensor, load_torque: torch.Tensor,
