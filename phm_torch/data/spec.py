@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from ..effects import build_effects
+from ..physics.motor import MOTORS
 from . import randomization
 from .life import LifeSpec
 
@@ -90,8 +91,8 @@ class DatasetSpec:
                 raise ValueError(f"dataset.{name} must be an integer >= {low}, got {v!r}")
         if not (isinstance(self.rul_radius, (int, float)) and 0 < self.rul_radius <= 1):
             raise ValueError(f"dataset.rul_radius must be in (0, 1], got {self.rul_radius!r}")
-        if self.fidelity not in ("hf", "lf"):
-            raise ValueError(f"dataset.fidelity must be 'hf' or 'lf', got {self.fidelity!r}")
+        if self.fidelity not in MOTORS:
+            raise ValueError(f"dataset.fidelity must be one of {sorted(MOTORS)}, got {self.fidelity!r}")
         if self.substeps is not None and (not isinstance(self.substeps, int) or self.substeps < 1):
             raise ValueError(f"dataset.substeps must be null or an integer >= 1, got {self.substeps!r}")
         h, tol = self.healthy_fraction, self.healthy_fraction_tolerance

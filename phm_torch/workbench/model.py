@@ -17,12 +17,12 @@ import torch
 
 from ..effects import EFFECTS, Effect
 from ..params import ActuatorParams
-from ..simulator import EMASimulator
+from ..simulator import MOTORS, SHARED_CHANNELS, EMASimulator
 from .closure_net import NeuralClosure
 from .data import Record
 from .parameters import ParameterSpace, effect_defaults
 
-STATE_CHANNELS = ("position", "current", "speed", "motor_angle", "user_angle")
+STATE_CHANNELS = SHARED_CHANNELS  # every fidelity records them
 
 
 @contextmanager
@@ -71,9 +71,15 @@ class Evaluator:
         self.params, self.fidelity, self.records = params, fidelity, list(records)
         self.channels = tuple(channels)
         self.device = torch.device(device)
-        hf_only = [c for c in self.channels if c in ("ia", "ib", "ic")]
-        if hf_only and fidelity != "hf":
-            raise ValueError(f"channels {hf_only} exist only in the HF model; use fidelity=hf or drop them")
+        if fidelity not in MOTORS:
+            raise ValueError(f"fidelity must be one of {sorted(MOTORS)}, got {fidelity!r}")
+        # a motor's own channels (the HF phase currents) exist in that fidelity only
+        theirs = [c for c in self.channels if c not in SHARED_CHANNELS and c not in MOTORS[fidelity].channels
+                  and any(c in m.channels for m in MOTORS.values())]
+        if theirs:
+            owners = sorted(f for f, m in MOTORS.items() if set(theirs) & set(m.channels))
+            raise ValueError(f"channels {theirs} exist only in the {'/'.join(f.upper() for f in owners)} model; "
+                             f"use fidelity={owners[0]} or drop them")
         self.sim_channels = tuple(dict.fromkeys((*STATE_CHANNELS, *self.channels)))
         groups: dict[int, list[int]] = {}
         for i, rec in enumerate(self.records):
