@@ -52,8 +52,9 @@ class Sine:
         return self.offset + self.amplitude * torch.sin(2.0 * math.pi * self.frequency * t)
 
 
-def time_grid(duration: float, sample_rate: float, dtype: torch.dtype = torch.float64,
-              device: str | torch.device = "cpu") -> torch.Tensor:
+def time_grid(
+    duration: float, sample_rate: float, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu"
+) -> torch.Tensor:
     """Uniform acquisition grid [s]: round(duration * f_s) + 1 samples, both ends included."""
     n = round(duration * sample_rate)
     if n < 2:
@@ -61,7 +62,7 @@ def time_grid(duration: float, sample_rate: float, dtype: torch.dtype = torch.fl
     return torch.arange(n + 1, dtype=dtype, device=device) / sample_rate
 
 
-COMMANDS = {"chirp": Chirp, "sine": Sine}   # command kinds: conf/command/<name>.yaml composes in the defaults of one
+COMMANDS = {"chirp": Chirp, "sine": Sine}  # command kinds: conf/command/<name>.yaml composes in the defaults of one
 
 
 def with_defaults(node: Mapping[str, Any]) -> dict[str, Any]:

@@ -15,13 +15,24 @@ import torch
 if TYPE_CHECKING:
     from .plant import Plant
 
-FAULT_NAMES = ("dry_friction", "backlash", "short_a", "short_b", "short_c",
-               "eccentricity", "eccentricity_phase", "gain_drift")
+FAULT_NAMES = (
+    "dry_friction",
+    "backlash",
+    "short_a",
+    "short_b",
+    "short_c",
+    "eccentricity",
+    "eccentricity_phase",
+    "gain_drift",
+)
 N_FAULTS = len(FAULT_NAMES)
 
 
-def as_fault_tensor(k: torch.Tensor | Sequence[float] | Sequence[Sequence[float]],
-                    dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu") -> torch.Tensor:
+def as_fault_tensor(
+    k: torch.Tensor | Sequence[float] | Sequence[Sequence[float]],
+    dtype: torch.dtype = torch.float64,
+    device: str | torch.device = "cpu",
+) -> torch.Tensor:
     """Validate fault vectors and return them as a (B, 8) tensor.
 
     Args:

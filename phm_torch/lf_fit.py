@@ -50,8 +50,11 @@ JITTER = 1e-3  # a change of every coefficient that no fit resolves (see ``fit_a
 # a few PWM periods, a small fraction of a 60-degree sector at the speeds of a position test, so a
 # blend wider than 0.25 rad (electrical) fits the commutation ripple, not the commutation.
 PHYSICAL_BOUNDS: dict[str, tuple[float, float]] = {
-    "emf_short_gain": (0.5, 1.5), "resistance_short_gain": (0.5, 1.5),
-    "inductance_short_exponent": (1.0, 3.0), "commutation_width": (0.0, 0.25)}
+    "emf_short_gain": (0.5, 1.5),
+    "resistance_short_gain": (0.5, 1.5),
+    "inductance_short_exponent": (1.0, 3.0),
+    "commutation_width": (0.0, 0.25),
+}
 
 
 @dataclass(frozen=True)
@@ -145,14 +148,23 @@ def fault_sets(params: ActuatorParams, settings: LFFitSettings) -> dict[str, tor
     if settings.n_design - 1 - n_imp > 0:
         parts.append(uniform_faults(settings.n_design - 1 - n_imp, s_uni))
     design = np.concatenate(parts)
-    sets = {"design": design, "importance": sampler.sample(settings.n_importance, s_held_imp),
-            "uniform": uniform_faults(settings.n_uniform, s_held_uni)}
+    sets = {
+        "design": design,
+        "importance": sampler.sample(settings.n_importance, s_held_imp),
+        "uniform": uniform_faults(settings.n_uniform, s_held_uni),
+    }
     return {k: torch.as_tensor(v, dtype=torch.float64) for k, v in sets.items()}
 
 
 # ---- simulation and discrepancy ------------------------------------------------------------------
-def simulate(params: ActuatorParams, fidelity: str, faults: torch.Tensor, command, duration: float,
-             shapes: torch.Tensor | None = None) -> torch.Tensor:
+def simulate(
+    params: ActuatorParams,
+    fidelity: str,
+    faults: torch.Tensor,
+    command,
+    duration: float,
+    shapes: torch.Tensor | None = None,
+) -> torch.Tensor:
     """Channels ``CHANNELS`` of a batched run, (B, 2, T): envelope current [A] and position [rad].
 
     ``shapes`` (B, 4): LF shape coefficients per vector, in ``COEFFICIENTS`` order (LF only; default the
@@ -172,8 +184,10 @@ def discrepancy(model: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
 
 def summarize(d: torch.Tensor) -> dict[str, dict[str, float]]:
     """{channel: {median, mean, max}} of per-vector NRMSE (B, 2), fractions."""
-    return {c: {"median": float(d[:, i].median()), "mean": float(d[:, i].mean()), "max": float(d[:, i].max())}
-            for i, c in enumerate(CHANNELS)}
+    return {
+        c: {"median": float(d[:, i].median()), "mean": float(d[:, i].mean()), "max": float(d[:, i].max())}
+        for i, c in enumerate(CHANNELS)
+    }
 
 
 def as_vector(shape: LFShape) -> torch.Tensor:
@@ -197,9 +211,17 @@ class ShapeFit:
     excluded: list[int] = field(default_factory=list)
 
 
-def fit_shape(params: ActuatorParams, faults: torch.Tensor, reference: torch.Tensor, command, duration: float,
-              bounds: Mapping[str, Sequence[float]] | None = None, max_iter: int = 8, fd_step: float = 0.02,
-              start: LFShape | None = None) -> ShapeFit:
+def fit_shape(
+    params: ActuatorParams,
+    faults: torch.Tensor,
+    reference: torch.Tensor,
+    command,
+    duration: float,
+    bounds: Mapping[str, Sequence[float]] | None = None,
+    max_iter: int = 8,
+    fd_step: float = 0.02,
+    start: LFShape | None = None,
+) -> ShapeFit:
     """Fit the LF shape coefficients so that LF reproduces ``reference`` (B, 2, T) of ``faults`` (B, 8).
 
     Residual: (LF - reference) / range(reference) / sqrt(T) per vector and channel, so the cost is
@@ -220,15 +242,30 @@ def fit_shape(params: ActuatorParams, faults: torch.Tensor, reference: torch.Ten
     x0 = torch.minimum(torch.maximum(as_vector(start or LFShape()), lo), hi)
     # Each row is a batch of B long LF records, so the solver spends the fewest rows: trials alone, then the
     # Jacobian at the accepted point; it stops on the relative gain or on a damping no step survives.
-    res = fit(from_residuals(residuals), [Problem(x0, lo, hi, torch.full_like(x0, fd_step))], max_iter,
-              lambdas=(0.1, 1.0, 10.0, 100.0), damping=1e-3, tol_abs=0.0, tol_rel=1e-6, trial_jacobians=False,
-              predicted_stop=False, max_failures=None, max_damping=1e8)[0]
+    res = fit(
+        from_residuals(residuals),
+        [Problem(x0, lo, hi, torch.full_like(x0, fd_step))],
+        max_iter,
+        lambdas=(0.1, 1.0, 10.0, 100.0),
+        damping=1e-3,
+        tol_abs=0.0,
+        tol_rel=1e-6,
+        trial_jacobians=False,
+        predicted_stop=False,
+        max_failures=None,
+        max_damping=1e8,
+    )[0]
     std = res.std()
     span_x = hi - lo
     at_bound = [c for i, c in enumerate(COEFFICIENTS) if min(res.x[i] - lo[i], hi[i] - res.x[i]) < 1e-6 * span_x[i]]
-    return ShapeFit(LFShape(**{c: float(v) for c, v in zip(COEFFICIENTS, res.x)}),
-                    {c: float(s) for c, s in zip(COEFFICIENTS, std)}, res.history[:-1], res.iterations,
-                    res.converged, at_bound)
+    return ShapeFit(
+        LFShape(**{c: float(v) for c, v in zip(COEFFICIENTS, res.x)}),
+        {c: float(s) for c, s in zip(COEFFICIENTS, std)},
+        res.history[:-1],
+        res.iterations,
+        res.converged,
+        at_bound,
+    )
 
 
 # ---- decision ------------------------------------------------------------------------------------
@@ -244,8 +281,12 @@ class Decision:
         return self.keep == "fitted"
 
 
-def decide(before: Mapping[str, Mapping[str, Mapping[str, float]]], after: Mapping[str, Mapping[str, Mapping[str, float]]],
-           min_gain: float = 0.02, max_worsening: float = 0.0) -> Decision:
+def decide(
+    before: Mapping[str, Mapping[str, Mapping[str, float]]],
+    after: Mapping[str, Mapping[str, Mapping[str, float]]],
+    min_gain: float = 0.02,
+    max_worsening: float = 0.0,
+) -> Decision:
     """Apply the decision rule (module docstring) to held-out summaries ``{set: {channel: {median, max}}}``
     with the physical values (``before``) and the fitted ones (``after``)."""
     reasons, ok = [], True
@@ -260,13 +301,24 @@ def decide(before: Mapping[str, Mapping[str, Mapping[str, float]]], after: Mappi
         gain = 1.0 - a / b if b > 0 else 0.0
         if gain < min_gain:
             ok = False
-            reasons.append(f"{name} median current NRMSE falls by {100 * gain:.1f} % "
-                           f"({100 * b:.2f} -> {100 * a:.2f} %), less than the {100 * min_gain:g} % required")
+            reasons.append(
+                f"{name} median current NRMSE falls by {100 * gain:.1f} % "
+                f"({100 * b:.2f} -> {100 * a:.2f} %), less than the {100 * min_gain:g} % required"
+            )
     if ok:
-        gains = ", ".join(f"{n} {100 * before[n]['current']['median']:.2f} -> {100 * after[n]['current']['median']:.2f} %"
-                          for n in before)
-        return Decision("fitted", [(f"held-out median current NRMSE improves on every set ({gains}) and no "
-                                   f"held-out median or max worsens by more than {100 * max_worsening:g} %")])
+        gains = ", ".join(
+            f"{n} {100 * before[n]['current']['median']:.2f} -> {100 * after[n]['current']['median']:.2f} %"
+            for n in before
+        )
+        return Decision(
+            "fitted",
+            [
+                (
+                    f"held-out median current NRMSE improves on every set ({gains}) and no "
+                    f"held-out median or max worsens by more than {100 * max_worsening:g} %"
+                )
+            ],
+        )
     return Decision("physical", reasons)
 
 
@@ -291,8 +343,14 @@ class LFFitResult:
     per_vector: dict
 
 
-def fit_and_validate(params: ActuatorParams, command, duration: float, sets: Mapping[str, torch.Tensor],
-                     references: Mapping[str, torch.Tensor], settings: LFFitSettings) -> LFFitResult:
+def fit_and_validate(
+    params: ActuatorParams,
+    command,
+    duration: float,
+    sets: Mapping[str, torch.Tensor],
+    references: Mapping[str, torch.Tensor],
+    settings: LFFitSettings,
+) -> LFFitResult:
     """Fit on ``sets["design"]`` against ``references["design"]``, validate on the held-out sets, decide.
 
     ``references[name]`` (n, 2, T) are the target signals of ``sets[name]`` (the HF runs; tests may pass
@@ -305,8 +363,17 @@ def fit_and_validate(params: ActuatorParams, command, duration: float, sets: Map
         shapes = as_vector(physical).expand(design.shape[0], -1)
         d = discrepancy(simulate(params, "lf", design, command, duration, shapes), reference)[:, 0]
         inliers = torch.nonzero(d <= settings.outlier_factor * d.median()).flatten()
-    fit = fit_shape(params, design[inliers], reference[inliers], command, duration, settings.bounds,
-                    settings.max_iter, settings.fd_step, start=physical)
+    fit = fit_shape(
+        params,
+        design[inliers],
+        reference[inliers],
+        command,
+        duration,
+        settings.bounds,
+        settings.max_iter,
+        settings.fd_step,
+        start=physical,
+    )
     fit.excluded = sorted(set(range(design.shape[0])) - set(inliers.tolist()))
     names = list(sets)
     # "jitter": the physical values moved by JITTER, far below what a fit resolves; how much the held-out
@@ -326,8 +393,12 @@ def fit_and_validate(params: ActuatorParams, command, duration: float, sets: Map
             summary[n][label] = summarize(d)
             per_vector[n][label] = d.tolist()
     held = [n for n in names if n != "design"]
-    decision = decide({n: summary[n]["physical"] for n in held}, {n: summary[n]["fitted"] for n in held},
-                      settings.min_gain, settings.max_worsening)
+    decision = decide(
+        {n: summary[n]["physical"] for n in held},
+        {n: summary[n]["fitted"] for n in held},
+        settings.min_gain,
+        settings.max_worsening,
+    )
     return LFFitResult(fit.shape if decision.accepted else physical, fit, decision, summary, per_vector)
 
 
@@ -338,8 +409,10 @@ def run_fit(params: ActuatorParams, command, settings: LFFitSettings) -> LFFitRe
         raise ValueError("fit.duration is required when the command has no duration")
     periods = duration * params.pwm_frequency
     if round(periods) < 1 or abs(periods - round(periods)) > 1e-6:
-        raise ValueError(f"fit.duration must be a positive whole number of control periods "
-                         f"(1/{params.pwm_frequency:g} s), got {duration!r}")
+        raise ValueError(
+            f"fit.duration must be a positive whole number of control periods "
+            f"(1/{params.pwm_frequency:g} s), got {duration!r}"
+        )
     sets = fault_sets(params, settings)
     names = list(sets)
     hf = simulate(params, "hf", torch.cat([sets[n] for n in names]), command, duration)

@@ -28,8 +28,9 @@ def sine_fit(time: np.ndarray, signal: np.ndarray, phase: np.ndarray) -> tuple[f
     return math.hypot(a, b), math.atan2(b, a)
 
 
-def chirp_last_cycle(time: torch.Tensor, command: torch.Tensor, position: torch.Tensor, f_end: float,
-                     duration: float) -> tuple[float, float]:
+def chirp_last_cycle(
+    time: torch.Tensor, command: torch.Tensor, position: torch.Tensor, f_end: float, duration: float
+) -> tuple[float, float]:
     """Amplitude ratio and lag [deg] of position vs a linear 0 -> f_end chirp over its last cycle."""
     t = time.detach().cpu().numpy()
     mask = t >= duration - 1.0 / f_end

@@ -18,9 +18,18 @@ from omegaconf import OmegaConf
 CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
 
 # Fields that may be zero (all others must be strictly positive).
-_NON_NEGATIVE = {"motor_viscous", "coulomb_friction", "static_friction", "backlash", "user_damping",
-                 "output_damping", "end_stop_damping", "speed_integral_gain", "current_integral_gain",
-                 "lvdt_time_constant"}
+_NON_NEGATIVE = {
+    "motor_viscous",
+    "coulomb_friction",
+    "static_friction",
+    "backlash",
+    "user_damping",
+    "output_damping",
+    "end_stop_damping",
+    "speed_integral_gain",
+    "current_integral_gain",
+    "lvdt_time_constant",
+}
 _INTEGER = {"pole_pairs", "stator_slots"}
 
 
@@ -107,12 +116,19 @@ class ActuatorParams:
         if not 0 < self.short_circuit_max < 1:
             raise ValueError(f"actuator.short_circuit_max must be in (0, 1), got {self.short_circuit_max}")
         if self.static_friction < self.coulomb_friction:
-            raise ValueError(f"actuator.static_friction ({self.static_friction}) must be >= "
-                             f"coulomb_friction ({self.coulomb_friction})")
-        if self.sample_rate % 1 or (2 * self.pwm_frequency) % self.sample_rate and \
-                self.sample_rate % self.pwm_frequency:
-            raise ValueError(f"actuator.sample_rate ({self.sample_rate}) must be a multiple or divisor "
-                             f"of pwm_frequency ({self.pwm_frequency})")
+            raise ValueError(
+                f"actuator.static_friction ({self.static_friction}) must be >= "
+                f"coulomb_friction ({self.coulomb_friction})"
+            )
+        if (
+            self.sample_rate % 1
+            or (2 * self.pwm_frequency) % self.sample_rate
+            and self.sample_rate % self.pwm_frequency
+        ):
+            raise ValueError(
+                f"actuator.sample_rate ({self.sample_rate}) must be a multiple or divisor "
+                f"of pwm_frequency ({self.pwm_frequency})"
+            )
 
     @property
     def control_period(self) -> float:
@@ -132,8 +148,11 @@ class ActuatorParams:
         unknown = sorted(set(data) - known)
         if unknown:
             raise ValueError(f"actuator: unknown parameter(s) {unknown}; known: {sorted(known)}")
-        missing = sorted(f.name for f in fields(cls) if f.name not in data and f.default is dataclasses.MISSING
-                         and f.default_factory is dataclasses.MISSING)
+        missing = sorted(
+            f.name
+            for f in fields(cls)
+            if f.name not in data and f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING
+        )
         if missing:
             raise ValueError(f"actuator: missing parameter(s) {missing}")
         shape = data.pop("lf_shape", None) or {}

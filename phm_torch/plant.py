@@ -18,8 +18,17 @@ from .faults import apply_faults, as_fault_tensor
 from .params import ActuatorParams, LFShape
 
 # Fields that define the discretisation or the topology; they are not per-sample tensors.
-STRUCTURAL = ("pole_pairs", "stator_slots", "pwm_frequency", "sample_rate", "filter_cutoff",
-              "short_circuit_max", "nominal_faults", "lf_shape", "pinion_teeth")
+STRUCTURAL = (
+    "pole_pairs",
+    "stator_slots",
+    "pwm_frequency",
+    "sample_rate",
+    "filter_cutoff",
+    "short_circuit_max",
+    "nominal_faults",
+    "lf_shape",
+    "pinion_teeth",
+)
 TENSOR_FIELDS = tuple(f.name for f in fields(ActuatorParams) if f.name not in STRUCTURAL)
 LF_FIELDS = tuple(f"lf_{f.name}" for f in fields(LFShape))
 
@@ -90,10 +99,14 @@ class Plant:
         values = {name: full(getattr(params, name)) for name in TENSOR_FIELDS}
         values.update({f"lf_{f.name}": full(getattr(params.lf_shape, f.name)) for f in fields(LFShape)})
         zero3 = torch.zeros(batch, 3, dtype=dtype, device=device)
-        values.update(short=zero3, resistance=values["phase_resistance"].unsqueeze(-1) + zero3,
-                      inductance=values["phase_inductance"].unsqueeze(-1) + zero3,
-                      emf=values["back_emf_constant"].unsqueeze(-1) + zero3,
-                      eccentricity=full(0.0), ecc_phase=full(0.0))
+        values.update(
+            short=zero3,
+            resistance=values["phase_resistance"].unsqueeze(-1) + zero3,
+            inductance=values["phase_inductance"].unsqueeze(-1) + zero3,
+            emf=values["back_emf_constant"].unsqueeze(-1) + zero3,
+            eccentricity=full(0.0),
+            ecc_phase=full(0.0),
+        )
         return cls(params=params, **values)
 
     @property
@@ -111,8 +124,9 @@ class Plant:
         return {f.name: getattr(self, f.name) for f in fields(self) if f.name != "params"}
 
 
-def build_plant(params: ActuatorParams, faults: torch.Tensor, scales: Mapping[str, torch.Tensor] | None = None
-                ) -> Plant:
+def build_plant(
+    params: ActuatorParams, faults: torch.Tensor, scales: Mapping[str, torch.Tensor] | None = None
+) -> Plant:
     """Nominal parameters, times optional ``scales`` (calibration), then the faults.
 
     ``scales`` may also name the LF shape coefficients as ``lf_<coefficient>`` (values replace, not
@@ -124,8 +138,11 @@ def build_plant(params: ActuatorParams, faults: torch.Tensor, scales: Mapping[st
         scales: optional {field: scalar or (B,) tensor} multipliers on nominal values, e.g. the free
             parameters of a calibration; they may require grad.
     """
-    k = as_fault_tensor(faults, dtype=faults.dtype if torch.is_tensor(faults) else torch.float64,
-                        device=faults.device if torch.is_tensor(faults) else "cpu")
+    k = as_fault_tensor(
+        faults,
+        dtype=faults.dtype if torch.is_tensor(faults) else torch.float64,
+        device=faults.device if torch.is_tensor(faults) else "cpu",
+    )
     plant = Plant.nominal(params, k.shape[0], k.dtype, k.device)
     changes: dict[str, torch.Tensor] = {}
     for name, scale in (scales or {}).items():

@@ -18,9 +18,17 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-_LABELS = {"position": "position [mrad]", "current": "current [A]", "tracking_error": "tracking error [mrad]",
-           "speed": "motor speed [rad/s]", "motor_angle": "motor angle [rad]", "user_angle": "user angle [mrad]",
-           "ia": "i_a [A]", "ib": "i_b [A]", "ic": "i_c [A]"}
+_LABELS = {
+    "position": "position [mrad]",
+    "current": "current [A]",
+    "tracking_error": "tracking error [mrad]",
+    "speed": "motor speed [rad/s]",
+    "motor_angle": "motor angle [rad]",
+    "user_angle": "user angle [mrad]",
+    "ia": "i_a [A]",
+    "ib": "i_b [A]",
+    "ic": "i_c [A]",
+}
 _SCALE = {"command": 1e3, "position": 1e3, "tracking_error": 1e3, "user_angle": 1e3}
 
 
@@ -40,9 +48,15 @@ def _np(value: Any) -> np.ndarray:
     return np.asarray(value, dtype=np.float64).reshape(-1)
 
 
-def plot_signals(time: Any, channels_by_run: Mapping[str, Mapping[str, Any]], path: str | os.PathLike,
-                 extra_channels: Sequence[str] = (), tracking_error: bool = True, title: str | None = None,
-                 styles: Mapping[str, Mapping[str, Any]] | None = None) -> Path:
+def plot_signals(
+    time: Any,
+    channels_by_run: Mapping[str, Mapping[str, Any]],
+    path: str | os.PathLike,
+    extra_channels: Sequence[str] = (),
+    tracking_error: bool = True,
+    title: str | None = None,
+    styles: Mapping[str, Mapping[str, Any]] | None = None,
+) -> Path:
     """Overlay several runs into one PNG.
 
     Args:
@@ -76,19 +90,20 @@ def plot_signals(time: Any, channels_by_run: Mapping[str, Mapping[str, Any]], pa
         data = {name: _np(v) for name, v in chans.items()}
         for name, v in data.items():
             if v.shape != t.shape:
-                raise ValueError(f"plot_signals: run {label!r} channel {name!r} has {v.size} samples, "
-                                 f"its time axis {t.size}")
+                raise ValueError(
+                    f"plot_signals: run {label!r} channel {name!r} has {v.size} samples, its time axis {t.size}"
+                )
         if "command" in data and "position" in data:
             data["tracking_error"] = data["command"] - data["position"]
         for ax, panel in zip(axes, panels, strict=True):
             if panel in data:
                 ax.plot(t, data[panel] * _SCALE.get(panel, 1.0), label=label, **style)
         # draw each distinct command once, in black, behind the positions
-        if "command" in data and not any(c.shape == data["command"].shape and np.allclose(c, data["command"])
-                                         for c in command_drawn):
+        if "command" in data and not any(
+            c.shape == data["command"].shape and np.allclose(c, data["command"]) for c in command_drawn
+        ):
             cmd_label = "command" if not command_drawn else f"command ({label})"
-            axes[0].plot(t, data["command"] * 1e3, color="k", linestyle="--", linewidth=0.8, label=cmd_label,
-                         zorder=0)
+            axes[0].plot(t, data["command"] * 1e3, color="k", linestyle="--", linewidth=0.8, label=cmd_label, zorder=0)
             command_drawn.append(data["command"])
     for ax, panel in zip(axes, panels, strict=True):
         ax.set_ylabel(_LABELS.get(panel, panel))

@@ -92,17 +92,23 @@ def describe(record: Mapping[str, Any] | None) -> str:
 def validate(record: Any, key: str, where: str) -> dict[str, Any]:
     """Check that ``record`` is a well-formed actuator or command record and that its hash matches its values."""
     field = "values" if key == "actuator" else "params"
-    if not isinstance(record, Mapping) or not isinstance(record.get(field), Mapping) \
-            or not isinstance(record.get("name"), str) or not isinstance(record.get("sha256"), str):
+    if (
+        not isinstance(record, Mapping)
+        or not isinstance(record.get(field), Mapping)
+        or not isinstance(record.get("name"), str)
+        or not isinstance(record.get("sha256"), str)
+    ):
         raise ValueError(f"{where}: {key} provenance must be {{name, sha256, {field}}}, got {record!r}")
     if digest(record[field]) != record["sha256"]:
-        raise ValueError(f"{where}: {key} provenance {describe(record)} does not match its own {field} "
-                         f"(edited by hand?)")
+        raise ValueError(
+            f"{where}: {key} provenance {describe(record)} does not match its own {field} (edited by hand?)"
+        )
     return dict(record)
 
 
-def reconcile(recorded: Mapping[str, Any] | None, requested: Mapping[str, Any] | None, explicit: bool, key: str,
-              where: str) -> dict[str, Any] | None:
+def reconcile(
+    recorded: Mapping[str, Any] | None, requested: Mapping[str, Any] | None, explicit: bool, key: str, where: str
+) -> dict[str, Any] | None:
     """The record an app must use, given what an artefact ``recorded`` and what the app's config ``requested``.
 
     Args:
@@ -120,8 +126,9 @@ def reconcile(recorded: Mapping[str, Any] | None, requested: Mapping[str, Any] |
     """
     if recorded is None:
         if requested is not None:
-            log.warning("%s records no %s (written before provenance existed): assuming %s", where, key,
-                        describe(requested))
+            log.warning(
+                "%s records no %s (written before provenance existed): assuming %s", where, key, describe(requested)
+            )
         return None if requested is None else dict(requested)
     recorded = validate(recorded, key, where)
     if requested is None:
@@ -130,12 +137,18 @@ def reconcile(recorded: Mapping[str, Any] | None, requested: Mapping[str, Any] |
     if requested["sha256"] == recorded["sha256"]:
         return recorded
     if explicit:
-        raise ValueError(f"{key}={requested['name']} ({describe(requested)}) differs from the {key} {where} "
-                         f"was made for: {describe(recorded)}")
-    log.warning("%s was made for %s %s; adopting it instead of the default %s", where, key, describe(recorded),
-                describe(requested))
-    print(f"note: {where} was made for {key} {describe(recorded)}; using it (pass {key}=... to choose)",
-          flush=True)
+        raise ValueError(
+            f"{key}={requested['name']} ({describe(requested)}) differs from the {key} {where} "
+            f"was made for: {describe(recorded)}"
+        )
+    log.warning(
+        "%s was made for %s %s; adopting it instead of the default %s",
+        where,
+        key,
+        describe(recorded),
+        describe(requested),
+    )
+    print(f"note: {where} was made for {key} {describe(recorded)}; using it (pass {key}=... to choose)", flush=True)
     return recorded
 
 
@@ -159,9 +172,12 @@ def known_name(key: str, sha256: str) -> str | None:
         data = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
         if not isinstance(data, dict):
             continue
-        try:   # a command file as composed: its class's defaults filled in
-            record = (actuator_record(path.stem, ActuatorParams.from_mapping(data)) if key == "actuator"
-                      else command_record(path.stem, with_defaults(data)))
+        try:  # a command file as composed: its class's defaults filled in
+            record = (
+                actuator_record(path.stem, ActuatorParams.from_mapping(data))
+                if key == "actuator"
+                else command_record(path.stem, with_defaults(data))
+            )
         except (ValueError, TypeError):
             continue
         if record["sha256"] == sha256:
@@ -180,8 +196,11 @@ def from_config(config: Mapping[str, Any], names: Mapping[str, str | None] | Non
         if node is None:
             out[key] = None
             continue
-        record = (actuator_record("custom", ActuatorParams.from_mapping(node)) if key == "actuator"
-                  else command_record("custom", node))
+        record = (
+            actuator_record("custom", ActuatorParams.from_mapping(node))
+            if key == "actuator"
+            else command_record("custom", node)
+        )
         record["name"] = names.get(key) or known_name(key, record["sha256"]) or "custom"
         out[key] = record
     return out

@@ -39,11 +39,11 @@ class SimState:
     plant: Plant
     mech: MechState
     ctrl: ControlState
-    elec: torch.Tensor          # motor-model state: phase currents (B, 3) [A] or DC current (B,) [A]
-    lvdt: torch.Tensor          # LVDT reading (B,) [rad]
+    elec: torch.Tensor  # motor-model state: phase currents (B, 3) [A] or DC current (B,) [A]
+    lvdt: torch.Tensor  # LVDT reading (B,) [rad]
     filt: tuple[torch.Tensor, torch.Tensor]  # Butterworth state (y [A], dy/dt [A/s]), each (B,)
-    envelope: torch.Tensor      # unfiltered envelope at the last substep end (B,) [A]
-    time: torch.Tensor | None = None   # 0-d, start of the next period [s]
+    envelope: torch.Tensor  # unfiltered envelope at the last substep end (B,) [A]
+    time: torch.Tensor | None = None  # 0-d, start of the next period [s]
     energy: dict[str, torch.Tensor] | None = None
 
 
@@ -86,9 +86,16 @@ class EMASimulator:
             compilation (~15-50 s) per batch size.
     """
 
-    def __init__(self, params: ActuatorParams, fidelity: str = "hf", effects: Iterable[Effect] |
-                 Mapping[str, Mapping] | None = None, substeps: int | None = None,
-                 dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu", compile: bool = False):
+    def __init__(
+        self,
+        params: ActuatorParams,
+        fidelity: str = "hf",
+        effects: Iterable[Effect] | Mapping[str, Mapping] | None = None,
+        substeps: int | None = None,
+        dtype: torch.dtype = torch.float64,
+        device: str | torch.device = "cpu",
+        compile: bool = False,
+    ):
         if fidelity not in MOTORS:
             raise ValueError(f"fidelity must be one of {sorted(MOTORS)}, got {fidelity!r}")
         self.params = params
@@ -103,8 +110,10 @@ class EMASimulator:
         self.h = self.period / self.motor.substeps
         per_sample = self.motor.substeps * params.pwm_frequency / params.sample_rate
         if abs(per_sample - round(per_sample)) > 1e-9 or round(per_sample) < 1:
-            raise ValueError(f"{fidelity}.substeps={self.motor.substeps}: the acquisition period "
-                             f"1/{params.sample_rate} s must be a whole number of substeps of {self.h:.3g} s")
+            raise ValueError(
+                f"{fidelity}.substeps={self.motor.substeps}: the acquisition period "
+                f"1/{params.sample_rate} s must be a whole number of substeps of {self.h:.3g} s"
+            )
         self.substeps_per_sample = round(per_sample)
         self.filter = ButterworthFilter(params.filter_cutoff, self.h, dtype, self.device)
         self._offsets = [torch.tensor(j * self.h, dtype=dtype, device=self.device) for j in range(self.motor.substeps)]
@@ -113,7 +122,9 @@ class EMASimulator:
         whole_period = compile and self.motor.compile_whole_period
         if compile:
             torch._dynamo.config.recompile_limit = max(torch._dynamo.config.recompile_limit, RECOMPILE_LIMIT)
-        self._substep_fn = torch.compile(self._substep, dynamic=False) if compile and not whole_period else self._substep
+        self._substep_fn = (
+            torch.compile(self._substep, dynamic=False) if compile and not whole_period else self._substep
+        )
         self._step_fn = torch.compile(self.step, dynamic=False) if whole_period else self.step
 
     # ---- init / step -------------------------------------------------------------------------
@@ -124,14 +135,24 @@ class EMASimulator:
         for eff in self.effects:
             plant = eff.modify_plant(plant)
             if not isinstance(plant, Plant):
-                raise TypeError(f"effects.{eff.name}.modify_plant must return the new Plant "
-                                f"(dataclasses.replace(plant, ...)), got {type(plant).__name__}")
+                raise TypeError(
+                    f"effects.{eff.name}.modify_plant must return the new Plant "
+                    f"(dataclasses.replace(plant, ...)), got {type(plant).__name__}"
+                )
         b = k.shape[0]
         z = torch.zeros(b, dtype=self.dtype, device=self.device)
         acc = energy_balance.empty_accounts(b, self.dtype, self.device) if energy else None
-        return SimState(plant, MechState.zeros(b, self.dtype, self.device), ControlState.zeros(b, self.dtype, self.device),
-                        self.motor.init_state(plant), z.clone(), (z.clone(), z.clone()),
-                        z.clone(), torch.zeros((), dtype=self.dtype, device=self.device), acc)
+        return SimState(
+            plant,
+            MechState.zeros(b, self.dtype, self.device),
+            ControlState.zeros(b, self.dtype, self.device),
+            self.motor.init_state(plant),
+            z.clone(),
+            (z.clone(), z.clone()),
+            z.clone(),
+            torch.zeros((), dtype=self.dtype, device=self.device),
+            acc,
+        )
 
     def step(self, state: SimState, command: torch.Tensor) -> tuple[SimState, list[dict[str, torch.Tensor]]]:
         """Advance one control period.
@@ -152,19 +173,37 @@ class EMASimulator:
         for j in range(self.motor.substeps):
             if j % self.substeps_per_sample == 0:
                 samples.append(self._sample(mech, elec, lvdt, filt))
-            mech, elec, lvdt, filt, env = self._substep_fn(plant, mech, elec, lvdt, filt, env, duty,
-                                                           self._offsets[j], t_start + self._offsets[j], state.energy)
+            mech, elec, lvdt, filt, env = self._substep_fn(
+                plant, mech, elec, lvdt, filt, env, duty, self._offsets[j], t_start + self._offsets[j], state.energy
+            )
         return SimState(plant, mech, ctrl, elec, lvdt, filt, env, t_start + self.period, state.energy), samples
 
-    def _substep(self, plant: Plant, mech: MechState, elec: torch.Tensor, lvdt: torch.Tensor, filt: tuple,
-                 env: torch.Tensor, duty: torch.Tensor, offset: torch.Tensor, time: torch.Tensor,
-                 energy: dict[str, torch.Tensor] | None):
+    def _substep(
+        self,
+        plant: Plant,
+        mech: MechState,
+        elec: torch.Tensor,
+        lvdt: torch.Tensor,
+        filt: tuple,
+        env: torch.Tensor,
+        duty: torch.Tensor,
+        offset: torch.Tensor,
+        time: torch.Tensor,
+        energy: dict[str, torch.Tensor] | None,
+    ):
         """One substep of motor, effects, mechanics and sensors (the unit that ``compile`` fuses)."""
         eff_motor = eff_fric = eff_break = eff_load = 0.0
         emf_scale, d = 1.0, duty
         if self.effects:
-            ctx = EffectContext(time, mech.theta_m, mech.omega_m, mech.theta_u, mech.omega_u,
-                                self.motor.feedback_current(elec, mech.theta_m, plant), plant)
+            ctx = EffectContext(
+                time,
+                mech.theta_m,
+                mech.omega_m,
+                mech.theta_u,
+                mech.omega_u,
+                self.motor.feedback_current(elec, mech.theta_m, plant),
+                plant,
+            )
             for eff in self.effects:
                 emf_scale = emf_scale * eff.emf_scale(ctx)
                 d = d + eff.voltage_error(ctx) / plant.supply_voltage
@@ -173,28 +212,62 @@ class EMASimulator:
                 eff_break = eff_break + eff.breakaway_torque(ctx)
                 eff_load = eff_load + eff.load_torque(ctx)
             d = d.clamp(-1.0, 1.0)
-        elec_new, torque, env_new, extra = self.motor.step(elec, d, offset, mech.theta_m, mech.omega_m,
-                                                           emf_scale, plant, self.h, self.period)
+        elec_new, torque, env_new, extra = self.motor.step(
+            elec, d, offset, mech.theta_m, mech.omega_m, emf_scale, plant, self.h, self.period
+        )
         filt = self.filter.step(filt, 0.5 * (env + env_new))
         load = torch.zeros_like(torque) + eff_load
-        mech_new, torques = mechanics_step(mech, torque + eff_motor, load, plant.coulomb_friction + eff_fric,
-                                           plant.static_friction + eff_break, plant, self.h)
+        mech_new, torques = mechanics_step(
+            mech,
+            torque + eff_motor,
+            load,
+            plant.coulomb_friction + eff_fric,
+            plant.static_friction + eff_break,
+            plant,
+            self.h,
+        )
         if energy is not None:
-            energy_balance.accumulate(energy, self.motor, self.h, extra["power_in"], elec, elec_new, mech, mech_new,
-                                      torques, eff_motor, load, plant)
+            energy_balance.accumulate(
+                energy,
+                self.motor,
+                self.h,
+                extra["power_in"],
+                elec,
+                elec_new,
+                mech,
+                mech_new,
+                torques,
+                eff_motor,
+                load,
+                plant,
+            )
         # Mid-step user angle: the exact lag of a linearly varying input to second order in h.
         lvdt = lvdt_step(lvdt, 0.5 * (mech.theta_u + mech_new.theta_u), plant.lvdt_time_constant, self.h)
         return mech_new, elec_new, lvdt, filt, env_new
 
-    def _sample(self, mech: MechState, elec: torch.Tensor, lvdt: torch.Tensor, filt: tuple[torch.Tensor, ...]
-                ) -> dict[str, torch.Tensor]:
-        return {"position": lvdt, "current": filt[0], "speed": mech.omega_m, "motor_angle": mech.theta_m,
-                "user_angle": mech.theta_u, **self.motor.sample(elec)}
+    def _sample(
+        self, mech: MechState, elec: torch.Tensor, lvdt: torch.Tensor, filt: tuple[torch.Tensor, ...]
+    ) -> dict[str, torch.Tensor]:
+        return {
+            "position": lvdt,
+            "current": filt[0],
+            "speed": mech.omega_m,
+            "motor_angle": mech.theta_m,
+            "user_angle": mech.theta_u,
+            **self.motor.sample(elec),
+        }
 
     # ---- whole runs --------------------------------------------------------------------------
-    def run(self, faults, command: Callable[[torch.Tensor], torch.Tensor] | torch.Tensor, duration: float,
-            scales: Mapping[str, torch.Tensor] | None = None, energy: bool = False,
-            channels: Sequence[str] | None = None, out_dtype: torch.dtype | None = None) -> Signals:
+    def run(
+        self,
+        faults,
+        command: Callable[[torch.Tensor], torch.Tensor] | torch.Tensor,
+        duration: float,
+        scales: Mapping[str, torch.Tensor] | None = None,
+        energy: bool = False,
+        channels: Sequence[str] | None = None,
+        out_dtype: torch.dtype | None = None,
+    ) -> Signals:
         """Simulate ``duration`` seconds from rest.
 
         Args:
@@ -210,8 +283,10 @@ class EMASimulator:
         p = self.params
         n_periods = round(duration * p.pwm_frequency)
         if n_periods < 1 or abs(duration * p.pwm_frequency - n_periods) > 1e-6:
-            raise ValueError(f"duration must be a positive whole number of control periods "
-                             f"(1/{p.pwm_frequency:g} s), got {duration!r}")
+            raise ValueError(
+                f"duration must be a positive whole number of control periods "
+                f"(1/{p.pwm_frequency:g} s), got {duration!r}"
+            )
         grid = time_grid(duration, p.sample_rate, self.dtype, self.device)
         t_ctrl = torch.arange(n_periods, dtype=self.dtype, device=self.device) * self.period
         if callable(command):
@@ -219,8 +294,10 @@ class EMASimulator:
         else:
             cmd_grid = torch.as_tensor(command, dtype=self.dtype, device=self.device)
             if cmd_grid.shape[-1] != grid.numel():
-                raise ValueError(f"command has {cmd_grid.shape[-1]} samples, the grid of {duration} s at "
-                                 f"{p.sample_rate} Hz has {grid.numel()}")
+                raise ValueError(
+                    f"command has {cmd_grid.shape[-1]} samples, the grid of {duration} s at "
+                    f"{p.sample_rate} Hz has {grid.numel()}"
+                )
             if not torch.isfinite(cmd_grid).all():
                 raise ValueError("command contains NaN or inf")
             cmd_ctrl = _interp(t_ctrl, grid, cmd_grid)
@@ -261,8 +338,14 @@ class EMASimulator:
             out = bufs
         out["command"] = cmd_grid.to(dtype).expand(b, -1)  # (n,) or (B, n) -> (B, n)
         k_t = as_fault_tensor(faults, self.dtype, self.device)
-        return Signals(grid, out, k_t, self.fidelity, state.energy,
-                       {"substeps": self.motor.substeps, "effects": [repr(e) for e in self.effects]})
+        return Signals(
+            grid,
+            out,
+            k_t,
+            self.fidelity,
+            state.energy,
+            {"substeps": self.motor.substeps, "effects": [repr(e) for e in self.effects]},
+        )
 
     def iter_chunks(self, faults, command, duration: float, chunk_size: int, **kwargs) -> Iterator[Signals]:
         """Simulate a large batch ``chunk_size`` samples at a time, yielding each chunk's signals.
@@ -273,7 +356,7 @@ class EMASimulator:
             raise ValueError(f"chunk_size must be >= 1, got {chunk_size}")
         k = as_fault_tensor(faults, self.dtype, self.device)
         for start in range(0, k.shape[0], chunk_size):
-            yield self.run(k[start:start + chunk_size], command, duration, **kwargs)
+            yield self.run(k[start : start + chunk_size], command, duration, **kwargs)
 
 
 def _interp(x: torch.Tensor, xp: torch.Tensor, fp: torch.Tensor) -> torch.Tensor:
@@ -284,8 +367,15 @@ def _interp(x: torch.Tensor, xp: torch.Tensor, fp: torch.Tensor) -> torch.Tensor
     return fp[..., i0] * (1 - w) + fp[..., i0 + 1] * w
 
 
-def simulate(params: ActuatorParams, faults, command, duration: float | None = None, fidelity: str = "hf",
-             effects: Iterable[Effect] | Mapping[str, Mapping] | None = None, **kwargs) -> Signals:
+def simulate(
+    params: ActuatorParams,
+    faults,
+    command,
+    duration: float | None = None,
+    fidelity: str = "hf",
+    effects: Iterable[Effect] | Mapping[str, Mapping] | None = None,
+    **kwargs,
+) -> Signals:
     """Convenience wrapper: ``EMASimulator(params, fidelity, effects, **kwargs).run(faults, command, duration)``."""
     duration = duration if duration is not None else getattr(command, "duration", None)
     if duration is None:

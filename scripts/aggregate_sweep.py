@@ -36,9 +36,23 @@ import torch
 from phm_torch.faults import FAULT_NAMES
 from phm_torch.io.atomic import atomic_open
 
-COLUMNS = ("n_modes", "n_points", "n_hidden", "selector", "model", "err_alpha_median", "err_alpha_iqr",
-           "gappy_condition_number", "err_k", "err_k_noise", "err_k_missing", "classifier_accuracy",
-           "missed_fault_rate", "false_alarm_rate", "fdi_latency_us_p50")
+COLUMNS = (
+    "n_modes",
+    "n_points",
+    "n_hidden",
+    "selector",
+    "model",
+    "err_alpha_median",
+    "err_alpha_iqr",
+    "gappy_condition_number",
+    "err_k",
+    "err_k_noise",
+    "err_k_missing",
+    "classifier_accuracy",
+    "missed_fault_rate",
+    "false_alarm_rate",
+    "fdi_latency_us_p50",
+)
 
 
 def load_runs(sweep: Path) -> list[dict[str, Any]]:
@@ -67,8 +81,12 @@ def fig_modes(runs: list[dict[str, Any]], out: Path) -> str:
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.fill_between(x, lo, hi, alpha=0.3, label="interquartile range")
     ax.plot(x, med, "x-", label="median")
-    ax.set(xlabel="retained POD modes $n_m$", ylabel="$err_\\alpha$ [%]", yscale="log",
-           title=f"Gappy POD coefficient error ({rs[0]['n_points']} points)")
+    ax.set(
+        xlabel="retained POD modes $n_m$",
+        ylabel="$err_\\alpha$ [%]",
+        yscale="log",
+        title=f"Gappy POD coefficient error ({rs[0]['n_points']} points)",
+    )
     ax.legend()
     fig.tight_layout()
     fig.savefig(out / "err_alpha_vs_modes.png", dpi=120)
@@ -142,13 +160,18 @@ def markdown(runs: list[dict[str, Any]], chosen: dict[str, Any]) -> str:
     lines = ["| job | " + " | ".join(COLUMNS) + " |", "|---" * (len(COLUMNS) + 1) + "|"]
     lines += ["| " + r["job"] + " | " + " | ".join(fmt(r.get(c)) for c in COLUMNS) + " |" for r in runs]
     c = chosen["classifier_confusion"]
-    lines += ["", f"Classifier confusion, run {chosen['job']} ({c['n_healthy']} healthy, {c['n_faulty']} faulty):", "",
-              "| | count | rate |", "|---|---|---|",
-              f"| healthy recognised | {c['healthy_correct']} | {c['healthy_correct'] / max(c['n_healthy'], 1):.4f} |",
-              f"| faulty recognised | {c['faulty_correct']} | {c['faulty_correct'] / max(c['n_faulty'], 1):.4f} |",
-              f"| missed faults (faulty -> healthy) | {c['missed_faults']} | {c['missed_fault_rate']:.4f} |",
-              f"| false alarms (healthy -> faulty) | {c['false_alarms']} | {c['false_alarm_rate']:.4f} |",
-              f"| total correct | {c['healthy_correct'] + c['faulty_correct']} | {c['accuracy']:.4f} |"]
+    lines += [
+        "",
+        f"Classifier confusion, run {chosen['job']} ({c['n_healthy']} healthy, {c['n_faulty']} faulty):",
+        "",
+        "| | count | rate |",
+        "|---|---|---|",
+        f"| healthy recognised | {c['healthy_correct']} | {c['healthy_correct'] / max(c['n_healthy'], 1):.4f} |",
+        f"| faulty recognised | {c['faulty_correct']} | {c['faulty_correct'] / max(c['n_faulty'], 1):.4f} |",
+        f"| missed faults (faulty -> healthy) | {c['missed_faults']} | {c['missed_fault_rate']:.4f} |",
+        f"| false alarms (healthy -> faulty) | {c['false_alarms']} | {c['false_alarm_rate']:.4f} |",
+        f"| total correct | {c['healthy_correct'] + c['faulty_correct']} | {c['accuracy']:.4f} |",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -164,12 +187,23 @@ def main() -> None:
     chosen = next((r for r in runs if r["job"] == args.run), None) if args.run else min(runs, key=lambda r: r["err_k"])
     if chosen is None:
         raise SystemExit(f"aggregate_sweep: no job {args.run!r} in {args.sweep}")
-    figures = {"err_alpha_vs_modes": fig_modes(runs, out), "fdi_vs_hidden": fig_hidden(runs, out),
-               "placement": fig_placement(runs, out), "fdi_error_per_parameter": fig_per_parameter(chosen, out)}
-    rows = [{"job": r["job"], **{c: r.get(c) for c in COLUMNS}, "fdi_mae": r.get("fdi_mae"),
-             "timing": r.get("timing")} for r in runs]
-    summary = {"sweep": str(args.sweep), "figures": figures, "runs": rows, "chosen_run": chosen["job"],
-               "classifier_confusion": chosen["classifier_confusion"]}
+    figures = {
+        "err_alpha_vs_modes": fig_modes(runs, out),
+        "fdi_vs_hidden": fig_hidden(runs, out),
+        "placement": fig_placement(runs, out),
+        "fdi_error_per_parameter": fig_per_parameter(chosen, out),
+    }
+    rows = [
+        {"job": r["job"], **{c: r.get(c) for c in COLUMNS}, "fdi_mae": r.get("fdi_mae"), "timing": r.get("timing")}
+        for r in runs
+    ]
+    summary = {
+        "sweep": str(args.sweep),
+        "figures": figures,
+        "runs": rows,
+        "chosen_run": chosen["job"],
+        "classifier_confusion": chosen["classifier_confusion"],
+    }
     with atomic_open(out / "summary.json", "w") as fh:
         json.dump(summary, fh, indent=2)
         fh.write("\n")

@@ -52,11 +52,14 @@ def main() -> None:
         wall = time.perf_counter() - t0
         labels[name] = res.healthy.numpy()
         m = res.margins.stacked().numpy()
-        out[name] = {"frequencies": list(af.sweep.frequencies), "amplitude": af.sweep.amplitude,
-                     "healthy_fraction": round(float(labels[name].mean()), 4),
-                     "unmeasurable": unmeasurable_counts(m),
-                     "nominal_margins": {a: round(float(v[0]), 3) for a, v in af.nominal.as_dict().items()},
-                     "ms_per_vector": round(1000 * wall / args.n, 2)}
+        out[name] = {
+            "frequencies": list(af.sweep.frequencies),
+            "amplitude": af.sweep.amplitude,
+            "healthy_fraction": round(float(labels[name].mean()), 4),
+            "unmeasurable": unmeasurable_counts(m),
+            "nominal_margins": {a: round(float(v[0]), 3) for a, v in af.nominal.as_dict().items()},
+            "ms_per_vector": round(1000 * wall / args.n, 2),
+        }
     agree = labels["hand"] == labels["auto"]
     out["label_agreement"] = round(float(agree.mean()), 4)
     out["hand_healthy_auto_faulty"] = int((labels["hand"] & ~labels["auto"]).sum())

@@ -38,8 +38,13 @@ def read(data_dir: str, split: str) -> torch.Tensor:
 
 def corruptions(x: torch.Tensor, sample_rate: float) -> dict[str, torch.Tensor]:
     lag = round(0.010 * sample_rate)
-    return {"shift_10ms": torch.cat([x[:, :1].expand(-1, lag), x[:, :-lag]], 1), "sign_flip": -x,
-            "time_reversal": x.flip(1), "gain_2x": 2.0 * x, "offset_0.2A": x + 0.2}
+    return {
+        "shift_10ms": torch.cat([x[:, :1].expand(-1, lag), x[:, :-lag]], 1),
+        "sign_flip": -x,
+        "time_reversal": x.flip(1),
+        "gain_2x": 2.0 * x,
+        "offset_0.2A": x + 0.2,
+    }
 
 
 @torch.no_grad()
@@ -47,10 +52,18 @@ def flags(with_check: OnlinePipeline, without: OnlinePipeline, x: torch.Tensor) 
     ood = with_check(x)[3]
     before = without(x)[3]
     n = max(1, int((~before).sum()))
-    return {"ood_before": float(before.double().mean()), "ood_with_check": float(ood.double().mean()),
-            "caught_of_missed": float((ood & ~before).sum()) / n,
-            "selected_samples_caught_of_missed": float(((with_check.consistency(
-                x.index_select(1, with_check.gappy.indices), with_check.noise_level(x)) > 1) & ~before).sum()) / n}
+    return {
+        "ood_before": float(before.double().mean()),
+        "ood_with_check": float(ood.double().mean()),
+        "caught_of_missed": float((ood & ~before).sum()) / n,
+        "selected_samples_caught_of_missed": float(
+            (
+                (with_check.consistency(x.index_select(1, with_check.gappy.indices), with_check.noise_level(x)) > 1)
+                & ~before
+            ).sum()
+        )
+        / n,
+    }
 
 
 @torch.no_grad()
@@ -87,23 +100,36 @@ def main() -> None:
     plain = OnlinePipeline.from_bundle(bundle, **make).eval()
     bundle.forward_model = fwd
     x = read(args.data_dir, args.split)
-    cal, test = x[:args.calibrate], x[args.calibrate:]
-    report = {"bundle": args.bundle, "data_dir": args.data_dir, "n_calibrate": len(cal), "n_test": len(test),
-              "calibration": calibrate_consistency(pipe, cal, list(LEVELS), 0, args.quantile), "clean": {}}
+    cal, test = x[: args.calibrate], x[args.calibrate :]
+    report = {
+        "bundle": args.bundle,
+        "data_dir": args.data_dir,
+        "n_calibrate": len(cal),
+        "n_test": len(test),
+        "calibration": calibrate_consistency(pipe, cal, list(LEVELS), 0, args.quantile),
+        "clean": {},
+    }
     g = torch.Generator().manual_seed(1)
     for level in (0.0, 0.01, 0.02, 0.03, 0.1):
         noisy = add_noise(test, rms(test), level, g) if level else test
         report["clean"][f"{level:g}"] = flags(pipe, plain, noisy)
     base = add_noise(test, rms(test), args.noise, g)
-    report["corruptions"] = {name: flags(pipe, plain, c) for name, c in corruptions(base, float(bundle.sample_rate)).items()}
+    report["corruptions"] = {
+        name: flags(pipe, plain, c) for name, c in corruptions(base, float(bundle.sample_rate)).items()
+    }
     if args.other_store:
         other = read(args.other_store, "val")
         report["corruptions"]["other_actuator"] = flags(pipe, plain, add_noise(other, rms(other), args.noise, g))
     batch = base[:256]
-    report["cost_us_per_record"] = {"with_check": cost_us(pipe, batch), "without": cost_us(plain, batch),
-                                    "batch": len(batch), "threads": 1}
-    report["cost_us_per_record"]["check"] = report["cost_us_per_record"]["with_check"] - \
-        report["cost_us_per_record"]["without"]
+    report["cost_us_per_record"] = {
+        "with_check": cost_us(pipe, batch),
+        "without": cost_us(plain, batch),
+        "batch": len(batch),
+        "threads": 1,
+    }
+    report["cost_us_per_record"]["check"] = (
+        report["cost_us_per_record"]["with_check"] - report["cost_us_per_record"]["without"]
+    )
     with atomic_open(args.out, "w") as fh:
         json.dump(report, fh, indent=2)
     print(json.dumps(report, indent=2))

@@ -64,13 +64,23 @@ def main() -> None:
     assessment = instantiate(cfg.assessment, _partial_=True)(params=params)
     plan = make_plan(spec, params.nominal_faults, int(cfg.seed))
     cs = spec.chunk_size
-    train = plan.K[plan.offsets["train"][0]:plan.offsets["train"][1]]
-    out: dict = {"machine": {"cpus": os.cpu_count(), "torch_threads": torch.get_num_threads(),
-                             "platform": platform.platform(), "torch": torch.__version__,
-                             "load_avg_start": os.getloadavg()},
-                 "config": {"chunk_size": cs, "rows": plan.n_rows, "chunks": plan.n_chunks,
-                            "test_frequencies": len(assessment.sweep.frequencies),
-                            "periods_per_vector": assessment.response.periods_per_vector}}
+    train = plan.K[plan.offsets["train"][0] : plan.offsets["train"][1]]
+    out: dict = {
+        "machine": {
+            "cpus": os.cpu_count(),
+            "torch_threads": torch.get_num_threads(),
+            "platform": platform.platform(),
+            "torch": torch.__version__,
+            "load_avg_start": os.getloadavg(),
+        },
+        "config": {
+            "chunk_size": cs,
+            "rows": plan.n_rows,
+            "chunks": plan.n_chunks,
+            "test_frequencies": len(assessment.sweep.frequencies),
+            "periods_per_vector": assessment.response.periods_per_vector,
+        },
+    }
 
     # assessment
     _ = assessment.nominal_bandwidth_hz
@@ -79,13 +89,17 @@ def main() -> None:
     healthy, wall, cpu = 0, 0.0, 0.0
     for b in range(1, args.batches + 1):
         with Clock() as c:
-            res = assessment(torch.as_tensor(train[b * cs:(b + 1) * cs]))
+            res = assessment(torch.as_tensor(train[b * cs : (b + 1) * cs]))
         healthy += int(res.healthy.sum())
         wall, cpu = wall + c.wall, cpu + c.cpu
     n = args.batches * cs
-    out["assessment"] = {"vectors": n, "warmup_compile_wall_s": round(warm.wall, 2),
-                         "ms_per_vector_wall": round(1000 * wall / n, 3), "ms_per_vector_cpu": round(1000 * cpu / n, 3),
-                         "healthy_fraction": round(healthy / n, 4)}
+    out["assessment"] = {
+        "vectors": n,
+        "warmup_compile_wall_s": round(warm.wall, 2),
+        "ms_per_vector_wall": round(1000 * wall / n, 3),
+        "ms_per_vector_cpu": round(1000 * cpu / n, 3),
+        "healthy_fraction": round(healthy / n, 4),
+    }
     print(json.dumps(out["assessment"]), flush=True)
 
     # HF signals
@@ -96,17 +110,26 @@ def main() -> None:
         with Clock() as c, torch.no_grad():
             sim.run(k, command, command.duration, channels=["current", "position"], out_dtype=torch.float32)
         timings.append(c)
-    out["signals"] = {"batch": cs, "warmup_compile_wall_s": round(timings[0].wall, 2),
-                      "signals_per_s_wall": round(cs / timings[1].wall, 2),
-                      "signals_per_s_cpu": round(cs / timings[1].cpu, 2)}
+    out["signals"] = {
+        "batch": cs,
+        "warmup_compile_wall_s": round(timings[0].wall, 2),
+        "signals_per_s_wall": round(cs / timings[1].wall, 2),
+        "signals_per_s_cpu": round(cs / timings[1].cpu, 2),
+    }
     print(json.dumps(out["signals"]), flush=True)
 
     per_chunk_wall = cs / out["signals"]["signals_per_s_wall"] + cs * out["assessment"]["ms_per_vector_wall"] / 1000
-    compile_wall = out["signals"]["warmup_compile_wall_s"] - cs / out["signals"]["signals_per_s_wall"] + \
-        out["assessment"]["warmup_compile_wall_s"] - cs * out["assessment"]["ms_per_vector_wall"] / 1000
-    out["paper_extrapolated"] = {"note": "extrapolated from the batches above: compilations + chunks x "
-                                         "(signals + assessment); merge and I/O not included",
-                                 "wall_s": round(compile_wall + plan.n_chunks * per_chunk_wall, 1)}
+    compile_wall = (
+        out["signals"]["warmup_compile_wall_s"]
+        - cs / out["signals"]["signals_per_s_wall"]
+        + out["assessment"]["warmup_compile_wall_s"]
+        - cs * out["assessment"]["ms_per_vector_wall"] / 1000
+    )
+    out["paper_extrapolated"] = {
+        "note": "extrapolated from the batches above: compilations + chunks x "
+        "(signals + assessment); merge and I/O not included",
+        "wall_s": round(compile_wall + plan.n_chunks * per_chunk_wall, 1),
+    }
 
     if args.full:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):

@@ -74,12 +74,12 @@ def main() -> None:
     first = next(iter(models.values()))
     signals = _records(first, args.data_dir)
     one = signals[:1]
-    indices = first.gappy.indices if first.format == "torchscript" else first.indices   # the selected samples
+    indices = first.gappy.indices if first.format == "torchscript" else first.indices  # the selected samples
     samples = one.index_select(1, indices)
     batches = {n: signals[torch.arange(n) % signals.shape[0]].contiguous() for n in (256, 4096)}
     times: dict[str, dict[str, list[float]]] = {fmt: {} for fmt in models}
     with torch.no_grad():
-        for _ in range(args.rounds):          # round-robin: a slow spell of the shared machine hits every format
+        for _ in range(args.rounds):  # round-robin: a slow spell of the shared machine hits every format
             for fmt, model in models.items():
                 t = times[fmt]
                 t.setdefault("step_full", []).extend(call_times_us(lambda m=model: m.run(one), args.repeats))
@@ -100,10 +100,16 @@ def main() -> None:
                     t.setdefault(f"records_per_s_{n}", []).append(n / (time.perf_counter() - t0))
     for fmt, t in times.items():
         for key, values in t.items():
-            report[fmt][key] = statistics.median(values) if key.startswith("records") else \
-                percentiles_us(sorted(values))
-    report["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(), "threads": 1,
-                         "torch": torch.__version__, "note": "shared machine: medians over alternating rounds"}
+            report[fmt][key] = (
+                statistics.median(values) if key.startswith("records") else percentiles_us(sorted(values))
+            )
+    report["machine"] = {
+        "platform": platform.platform(),
+        "cpus": os.cpu_count(),
+        "threads": 1,
+        "torch": torch.__version__,
+        "note": "shared machine: medians over alternating rounds",
+    }
     report["targets"] = TARGETS
     out = Path(args.out)
     with atomic_open(out, "w") as fh:

@@ -38,7 +38,7 @@ def one(fidelity: str, batch: int, chunk: int, compile: bool, repeats: int, dura
     cmd = Chirp(duration=duration)
     kw = {"channels": ["current", "position"], "out_dtype": torch.float32}
     t0 = time.perf_counter()
-    for _ in sim.iter_chunks(k[:min(chunk, batch)], cmd, 0.002, chunk, **kw):
+    for _ in sim.iter_chunks(k[: min(chunk, batch)], cmd, 0.002, chunk, **kw):
         pass
     warmup = time.perf_counter() - t0
     times = []
@@ -49,10 +49,20 @@ def one(fidelity: str, batch: int, chunk: int, compile: bool, repeats: int, dura
             n += s["current"].shape[0]
         times.append(time.perf_counter() - t0)
     med = statistics.median(times)
-    return {"fidelity": fidelity, "batch": batch, "chunk": chunk, "compile": compile, "threads": threads,
-            "duration_s": duration, "repeats": repeats, "wall_s": times, "median_wall_s": med,
-            "signals_per_s": batch / med, "warmup_s": warmup,
-            "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}
+    return {
+        "fidelity": fidelity,
+        "batch": batch,
+        "chunk": chunk,
+        "compile": compile,
+        "threads": threads,
+        "duration_s": duration,
+        "repeats": repeats,
+        "wall_s": times,
+        "median_wall_s": med,
+        "signals_per_s": batch / med,
+        "warmup_s": warmup,
+        "peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6,
+    }
 
 
 def main() -> None:
@@ -70,23 +80,54 @@ def main() -> None:
     if args.quick:
         plan = [("lf", 16, 16, 0, 1), ("hf", 16, 16, 0, 1)]
     else:
-        plan = [("lf", 1, 1, 0, 3), ("lf", 256, 256, 0, 3), ("lf", 2048, 2048, 1, 3), ("lf", 16384, 4096, 1, 1),
-                ("hf", 1, 1, 0, 1), ("hf", 256, 256, 1, 1), ("hf", 2048, 2048, 1, 3), ("hf", 8192, 4096, 1, 1)]
+        plan = [
+            ("lf", 1, 1, 0, 3),
+            ("lf", 256, 256, 0, 3),
+            ("lf", 2048, 2048, 1, 3),
+            ("lf", 16384, 4096, 1, 1),
+            ("hf", 1, 1, 0, 1),
+            ("hf", 256, 256, 1, 1),
+            ("hf", 2048, 2048, 1, 3),
+            ("hf", 8192, 4096, 1, 1),
+        ]
     results = []
     for fid, batch, chunk, comp, reps in plan:
-        cmd = [sys.executable, __file__, "--child", fid, str(batch), str(chunk), str(comp), "0.5",
-               "--repeats", str(min(reps, args.repeats)), "--threads", str(args.threads)]
+        cmd = [
+            sys.executable,
+            __file__,
+            "--child",
+            fid,
+            str(batch),
+            str(chunk),
+            str(comp),
+            "0.5",
+            "--repeats",
+            str(min(reps, args.repeats)),
+            "--threads",
+            str(args.threads),
+        ]
         out = subprocess.run(cmd, capture_output=True, text=True, check=True, env=os.environ.copy())
         res = json.loads(out.stdout.strip().splitlines()[-1])
-        print(f"{fid} B={batch:6d} chunk={chunk:5d} compile={comp}: {res['signals_per_s']:8.1f} signals/s, "
-              f"peak {res['peak_rss_gb']:.2f} GB", flush=True)
+        print(
+            f"{fid} B={batch:6d} chunk={chunk:5d} compile={comp}: {res['signals_per_s']:8.1f} signals/s, "
+            f"peak {res['peak_rss_gb']:.2f} GB",
+            flush=True,
+        )
         results.append(res)
     best = {f: max(r["signals_per_s"] for r in results if r["fidelity"] == f) for f in ("hf", "lf")}
-    report = {"machine": {"platform": platform.platform(), "processor": platform.processor(),
-                          "cpus": os.cpu_count(), "python": platform.python_version()},
-              "results": results, "best_signals_per_s": best, "lf_over_hf": best["lf"] / best["hf"],
-              "peak_rss_gb_max": max(r["peak_rss_gb"] for r in results),
-              "targets": {"hf_signals_per_s": 30, "lf_over_hf": 10, "peak_rss_gb": 4}}
+    report = {
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor(),
+            "cpus": os.cpu_count(),
+            "python": platform.python_version(),
+        },
+        "results": results,
+        "best_signals_per_s": best,
+        "lf_over_hf": best["lf"] / best["hf"],
+        "peak_rss_gb_max": max(r["peak_rss_gb"] for r in results),
+        "targets": {"hf_signals_per_s": 30, "lf_over_hf": 10, "peak_rss_gb": 4},
+    }
     path = Path(args.out)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")

@@ -51,8 +51,12 @@ def bench_classifiers(train: Any, val: Any, c: float, repeats: int) -> dict[str,
         with torch.inference_mode():
             lat = latency_us(lambda clf=clf: clf(val.k[:1]), repeats)
             _, batch_s = timed(lambda clf=clf: clf(val.k))
-        out[name] = {"fit_s": fit_s, "latency_us_p50": lat, "batch_us_per_vector": batch_s / len(val) * 1e6,
-                     **{k: conf[k] for k in ("accuracy", "missed_fault_rate", "false_alarm_rate")}}
+        out[name] = {
+            "fit_s": fit_s,
+            "latency_us_p50": lat,
+            "batch_us_per_vector": batch_s / len(val) * 1e6,
+            **{k: conf[k] for k in ("accuracy", "missed_fault_rate", "false_alarm_rate")},
+        }
     try:
         from sklearn.svm import SVC
     except ModuleNotFoundError:
@@ -65,8 +69,12 @@ def bench_classifiers(train: Any, val: Any, c: float, repeats: int) -> dict[str,
     pred = torch.from_numpy(svc.predict(xv)).bool()
     conf = confusion(pred, val.healthy)
     lat = latency_us(lambda: svc.decision_function(xv[:1]), max(repeats // 4, 50))
-    out["sklearn_svc"] = {"fit_s": fit_s, "latency_us_p50": lat, "n_support": int(svc.n_support_.sum()),
-                          **{k: conf[k] for k in ("accuracy", "missed_fault_rate", "false_alarm_rate")}}
+    out["sklearn_svc"] = {
+        "fit_s": fit_s,
+        "latency_us_p50": lat,
+        "n_support": int(svc.n_support_.sum()),
+        **{k: conf[k] for k in ("accuracy", "missed_fault_rate", "false_alarm_rate")},
+    }
     return out
 
 
@@ -82,13 +90,17 @@ def bench_fdi(bundle_path: Path, val: Any, repeats: int) -> dict[str, Any]:
     try:
         with torch.inference_mode():
             scripted = torch.jit.script(bundle)
-            res = {"bundle": str(bundle_path), "n_modes": bundle.pod.n_modes, "n_points": bundle.gappy.n_points,
-                   "n_hidden": bundle.network.n_hidden,
-                   "fdi_latency_us_p50": latency_us(lambda: bundle.fdi(one), repeats),
-                   "fdi_torchscript_latency_us_p50": latency_us(lambda: scripted(one), repeats),
-                   "fdi_missing3_latency_us_p50": latency_us(lambda: bundle.fdi(holed), repeats),
-                   "gappy_latency_us_p50": latency_us(lambda: bundle.coefficients(one), repeats),
-                   "health_score_latency_us_p50": latency_us(lambda: bundle.health_score(k), repeats)}
+            res = {
+                "bundle": str(bundle_path),
+                "n_modes": bundle.pod.n_modes,
+                "n_points": bundle.gappy.n_points,
+                "n_hidden": bundle.network.n_hidden,
+                "fdi_latency_us_p50": latency_us(lambda: bundle.fdi(one), repeats),
+                "fdi_torchscript_latency_us_p50": latency_us(lambda: scripted(one), repeats),
+                "fdi_missing3_latency_us_p50": latency_us(lambda: bundle.fdi(holed), repeats),
+                "gappy_latency_us_p50": latency_us(lambda: bundle.coefficients(one), repeats),
+                "health_score_latency_us_p50": latency_us(lambda: bundle.health_score(k), repeats),
+            }
             _, batch_s = timed(lambda: bundle.fdi(samples))
             res["fdi_batch_us_per_signal"] = batch_s / samples.shape[0] * 1e6
     finally:
@@ -116,9 +128,14 @@ def bench_selectors(train: Any, val: Any, grid: torch.Tensor, n_modes: int, n_po
         gappy = GappyPOD(pod.modes_, pod.mean_, sel.indices_)
         clean = quartiles(err_alpha(gappy(gappy.select(val.current))[0], alpha_full))
         noisy = quartiles(err_alpha(gappy(gappy.select(noisy_val))[0], alpha_full))
-        out[name] = {"fit_s": fit_s, "condition_number": gappy.condition_number(),
-                     "err_alpha_median": clean["median"], "err_alpha_iqr": clean["iqr"],
-                     "err_alpha_median_noise": noisy["median"], "err_alpha_iqr_noise": noisy["iqr"]}
+        out[name] = {
+            "fit_s": fit_s,
+            "condition_number": gappy.condition_number(),
+            "err_alpha_median": clean["median"],
+            "err_alpha_iqr": clean["iqr"],
+            "err_alpha_median_noise": noisy["median"],
+            "err_alpha_iqr_noise": noisy["iqr"],
+        }
     return out
 
 
@@ -135,9 +152,16 @@ def main() -> None:
     args = ap.parse_args()
     data, grid, info = load_store(args.data_dir, {"train": "train", "val": "val"})
     train, val = data["train"], data["val"]
-    report: dict[str, Any] = {"data_dir": args.data_dir, "data_fingerprint": info["manifest"].get("fingerprint"),
-                              "machine": {"platform": platform.platform(), "processor": platform.processor(),
-                                          "torch": torch.__version__, "threads": torch.get_num_threads()}}
+    report: dict[str, Any] = {
+        "data_dir": args.data_dir,
+        "data_fingerprint": info["manifest"].get("fingerprint"),
+        "machine": {
+            "platform": platform.platform(),
+            "processor": platform.processor(),
+            "torch": torch.__version__,
+            "threads": torch.get_num_threads(),
+        },
+    }
     if "classifier" not in args.skip:
         report["classifier"] = bench_classifiers(train, val, args.C, args.repeats)
     if "fdi_latency" not in args.skip and args.bundle:

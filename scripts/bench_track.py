@@ -66,7 +66,7 @@ def wearing_fleet(model, law, n_actuators: int, n_inspections: int, seed: int = 
         with torch.no_grad():
             faulty = model.classifier(k_hat.to(model.times.dtype)) <= model.classifier.threshold
         for a in range(n_actuators):
-            out[a].append((k_hat[a:a + 1], scale[a:a + 1], faulty[a:a + 1]))
+            out[a].append((k_hat[a : a + 1], scale[a : a + 1], faulty[a : a + 1]))
     return out
 
 
@@ -83,9 +83,16 @@ def main() -> None:
     metadata = read_metadata(PIPELINE)
     damage = yaml.safe_load((CONF_DIR / "damage" / "coupled.yaml").read_text())
     settings = TrackerSettings()
-    out: dict = {"pipeline": str(PIPELINE.relative_to(ROOT)), "threads": args.threads, "settings": vars(settings),
-                 "machine": {"cpus": os.cpu_count(), "note": "shared host: other jobs run beside the benchmark",
-                             "load_average_start": os.getloadavg()}}
+    out: dict = {
+        "pipeline": str(PIPELINE.relative_to(ROOT)),
+        "threads": args.threads,
+        "settings": vars(settings),
+        "machine": {
+            "cpus": os.cpu_count(),
+            "note": "shared host: other jobs run beside the benchmark",
+            "load_average_start": os.getloadavg(),
+        },
+    }
 
     # one inspection update of one actuator (predict + fuse + RUL) along a wearing life, after its first
     tracker, _ = build_tracker(model, metadata, damage, settings, str(PIPELINE))
@@ -99,16 +106,26 @@ def main() -> None:
             if i:
                 times.append(time.perf_counter() - t0)
     times.sort()
-    out["single_update_ms"] = {"p50": 1e3 * statistics.median(times), "p90": 1e3 * times[int(0.9 * len(times))],
-                               "updates": len(times)}
+    out["single_update_ms"] = {
+        "p50": 1e3 * statistics.median(times),
+        "p90": 1e3 * times[int(0.9 * len(times))],
+        "updates": len(times),
+    }
 
     # CSV reading (the project's reader, one 10001-sample record)
     pool = records(model, args.pool)
     csv = ROOT / "scripts" / ".bench_track_record.csv"
     n = pool.shape[1]
     zeros = torch.zeros(n, dtype=torch.float64)
-    write_measurement(csv, {"time": torch.arange(n, dtype=torch.float64) / float(model.sample_rate),
-                            "command": zeros, "position": zeros, "current": pool[0].double()})
+    write_measurement(
+        csv,
+        {
+            "time": torch.arange(n, dtype=torch.float64) / float(model.sample_rate),
+            "command": zeros,
+            "position": zeros,
+            "current": pool[0].double(),
+        },
+    )
     reads = []
     for _ in range(10):
         t0 = time.perf_counter()
@@ -122,8 +139,12 @@ def main() -> None:
 
     # the fleet: pipeline (batched, records in memory) then the filter
     contract = InputContract.of(model, metadata, None)
-    index = {f"A{a:04d}": [Inspection(f"A{a:04d}", 200.0 * i, f"r{i}", Path("."), "", i + 2)
-                           for i in range(args.inspections)] for a in range(args.actuators)}
+    index = {
+        f"A{a:04d}": [
+            Inspection(f"A{a:04d}", 200.0 * i, f"r{i}", Path("."), "", i + 2) for i in range(args.inspections)
+        ]
+        for a in range(args.actuators)
+    }
     runs = []
     for rep in range(args.repeats):
         t0 = time.perf_counter()
@@ -140,9 +161,14 @@ def main() -> None:
         for j, (a, r) in enumerate((a, r) for a, rows in index.items() for r in rows):
             k_hat, scale, faulty = life[int(a[1:])][r.line - 2]
             lo, hi = (k_hat - 1.645 * scale).clamp(0, 1)[0].tolist(), (k_hat + 1.645 * scale).clamp(0, 1)[0].tolist()
-            fed[(a, r.line)] = {**diagnoses[j], "k_hat": dict(zip(FAULT_NAMES, k_hat[0].tolist())),
-                                "k_interval": {n: [x, y] for n, x, y in zip(FAULT_NAMES, lo, hi)},
-                                "healthy": not bool(faulty[0]), "out_of_distribution": False, "ood_reasons": []}
+            fed[(a, r.line)] = {
+                **diagnoses[j],
+                "k_hat": dict(zip(FAULT_NAMES, k_hat[0].tolist())),
+                "k_interval": {n: [x, y] for n, x, y in zip(FAULT_NAMES, lo, hi)},
+                "healthy": not bool(faulty[0]),
+                "out_of_distribution": False,
+                "ood_reasons": [],
+            }
 
         def diagnose(rows, fed=fed):
             return [fed[(r.actuator, r.line)] for r in rows]
@@ -152,10 +178,14 @@ def main() -> None:
         t_filter = time.perf_counter() - t1
         runs.append({"pipeline_s": t_pipe, "filter_s": t_filter, "total_s": t_pipe + t_filter})
         print(json.dumps(runs[-1]), flush=True)
-    out["fleet"] = {"actuators": args.actuators, "inspections": args.inspections, "runs": runs,
-                    "median_total_s": statistics.median(r["total_s"] for r in runs),
-                    "median_pipeline_s": statistics.median(r["pipeline_s"] for r in runs),
-                    "median_filter_s": statistics.median(r["filter_s"] for r in runs)}
+    out["fleet"] = {
+        "actuators": args.actuators,
+        "inspections": args.inspections,
+        "runs": runs,
+        "median_total_s": statistics.median(r["total_s"] for r in runs),
+        "median_pipeline_s": statistics.median(r["pipeline_s"] for r in runs),
+        "median_filter_s": statistics.median(r["filter_s"] for r in runs),
+    }
     out["machine"]["load_average_end"] = os.getloadavg()
     (ROOT / "scripts" / "bench_track.json").write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps(out, indent=2))

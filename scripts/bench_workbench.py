@@ -72,14 +72,24 @@ from phm_torch.workbench.orders import actuator_orders, max_order
 
 # winding_temperature is left out: with back_emf/inertia/friction multipliers free it is aliased with them
 # (reported as "not testable"), so it cannot be a hit by construction.
-POOL = ("cogging_torque", "stribeck_friction", "aero_hinge_load", "inverter_dead_time", "position_sensor_lag",
-        "transmission_compliance", "torque_constant_saturation", "viscous_friction", "torque_ripple")
+POOL = (
+    "cogging_torque",
+    "stribeck_friction",
+    "aero_hinge_load",
+    "inverter_dead_time",
+    "position_sensor_lag",
+    "transmission_compliance",
+    "torque_constant_saturation",
+    "viscous_friction",
+    "torque_ripple",
+)
 CHANNELS = ("position", "current")
 SNR_RANGE = (0.2, 5.0)  # signature RMS / noise std; why: module docstring
 
 
-def random_case(rng: random.Random, params, control: bool, seed: int, strength: tuple[float, float]
-                ) -> tuple[Case, dict]:
+def random_case(
+    rng: random.Random, params, control: bool, seed: int, strength: tuple[float, float]
+) -> tuple[Case, dict]:
     faults = list(params.nominal_faults)
     faults[7] = rng.uniform(0.4, 0.6)
     fric = rng.uniform(0.8, 1.3)
@@ -101,13 +111,13 @@ def random_case(rng: random.Random, params, control: bool, seed: int, strength: 
             vals["order"] = float(rng.choice([h for h in range(8, max_order(params) - 3) if abs(h - cog) >= 4]))
             vals["phase"] = rng.uniform(0.0, 2 * math.pi)
         effects[name] = vals
-    info = {"effect": name, "values": effects.get(name, {}), "noise": noise, "k8": faults[7],
-            "scales": scales}
+    info = {"effect": name, "values": effects.get(name, {}), "noise": noise, "k8": faults[7], "scales": scales}
     return Case(effects, noise, faults, scales, seed), info
 
 
-def snr_cases(params, built: list[tuple[Case, dict]], snr: tuple[float, float], seed: int, command, duration: float,
-              fidelity: str) -> list[tuple[Case, dict]]:
+def snr_cases(
+    params, built: list[tuple[Case, dict]], snr: tuple[float, float], seed: int, command, duration: float, fidelity: str
+) -> list[tuple[Case, dict]]:
     """Rescale the hidden strengths of ``built`` to signature SNRs drawn log-uniform in ``snr``.
 
     The drawn strengths are the probe; each case's SNR comes from its own stream (``seed``, case index) so
@@ -117,15 +127,24 @@ def snr_cases(params, built: list[tuple[Case, dict]], snr: tuple[float, float], 
     if not 0 < snr[0] <= snr[1]:
         raise ValueError(f"--snr must satisfy 0 < LOW <= HIGH, got {list(snr)}")
     lo, hi = math.log(snr[0]), math.log(snr[1])
-    targets = [math.exp(random.Random(f"snr:{seed}:{i}").uniform(lo, hi)) if info["effect"] else None
-               for i, (_, info) in enumerate(built)]
+    targets = [
+        math.exp(random.Random(f"snr:{seed}:{i}").uniform(lo, hi)) if info["effect"] else None
+        for i, (_, info) in enumerate(built)
+    ]
     cases, details = scale_to_snr(params, [c for c, _ in built], targets, command, duration, fidelity)
     out = []
     for (_, info), case, target, d in zip(built, cases, targets, details, strict=True):
         info = dict(info)
         if info["effect"] is not None:
-            info["strength"] = {"mode": "snr", "snr_target": target, "snr": d["snr"], "probe_values": info["values"],
-                                "probe_snr": d["probe_snr"], "factor": d["factor"], "corrected": d["corrected"]}
+            info["strength"] = {
+                "mode": "snr",
+                "snr_target": target,
+                "snr": d["snr"],
+                "probe_values": info["values"],
+                "probe_snr": d["probe_snr"],
+                "factor": d["factor"],
+                "corrected": d["corrected"],
+            }
             info["values"] = dict(case.effects[info["effect"]])
         out.append((case, info))
     return out
@@ -156,8 +175,14 @@ def run_case(params, m, info: dict, rounds: int, actuator: str = "ema_reference"
     ranking = [c.effect for c in res.candidates]
     significant = [c.effect for c in res.candidates if c.significant]
     orders = {c.effect: c.start.get("order") for c in res.candidates if "order" in c.start}
-    out = {**info, "ranking": ranking[:3], "significant": significant, "added": res.added, "orders": orders,
-           "timing": {k: round(v, 2) for k, v in res.timing.items()}}
+    out = {
+        **info,
+        "ranking": ranking[:3],
+        "significant": significant,
+        "added": res.added,
+        "orders": orders,
+        "timing": {k: round(v, 2) for k, v in res.timing.items()},
+    }
     model = res.metrics["model"]
     out["nrmse_over_floor_before"] = model["nrmse"]["total"] / model["noise_floor"]["total"]
     out["log10_p"] = {c.effect: round(c.log10_p, 1) for c in res.candidates[:3]}
@@ -181,36 +206,72 @@ def main() -> None:
     ap.add_argument("--controls", type=float, default=0.25, help="fraction of controls (nothing hidden)")
     ap.add_argument("--duration", type=float, default=0.25, help="[s] records of the hit-rate cases")
     ap.add_argument("--rounds", type=int, default=2)
-    ap.add_argument("--strength", type=float, nargs=2, default=(0.25, 2.0), metavar=("LOW", "HIGH"),
-                    help="hidden strength range, multiples of the effect's default (log-uniform)")
-    ap.add_argument("--strength-mode", choices=("snr", "default"), default="snr",
-                    help="snr: hidden strength set to a drawn signature SNR (--snr); default: --strength multiples")
-    ap.add_argument("--snr", type=float, nargs=2, default=SNR_RANGE, metavar=("LOW", "HIGH"),
-                    help="signature SNR range (RMS change / noise std, log-uniform) of --strength-mode snr")
+    ap.add_argument(
+        "--strength",
+        type=float,
+        nargs=2,
+        default=(0.25, 2.0),
+        metavar=("LOW", "HIGH"),
+        help="hidden strength range, multiples of the effect's default (log-uniform)",
+    )
+    ap.add_argument(
+        "--strength-mode",
+        choices=("snr", "default"),
+        default="snr",
+        help="snr: hidden strength set to a drawn signature SNR (--snr); default: --strength multiples",
+    )
+    ap.add_argument(
+        "--snr",
+        type=float,
+        nargs=2,
+        default=SNR_RANGE,
+        metavar=("LOW", "HIGH"),
+        help="signature SNR range (RMS change / noise std, log-uniform) of --strength-mode snr",
+    )
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--data-fidelity", choices=("lf", "hf"), default="lf",
-                    help="model that simulates the hit-rate measurements (the workbench's model stays LF)")
+    ap.add_argument(
+        "--data-fidelity",
+        choices=("lf", "hf"),
+        default="lf",
+        help="model that simulates the hit-rate measurements (the workbench's model stays LF)",
+    )
     ap.add_argument("--skip-timing", action="store_true", help="skip the 0.5 s loop-time case")
-    ap.add_argument("--actuator", default="ema_reference",
-                    help="conf/actuator/<name>.yaml or a path to an actuator YAML")
+    ap.add_argument(
+        "--actuator", default="ema_reference", help="conf/actuator/<name>.yaml or a path to an actuator YAML"
+    )
     ap.add_argument("--command", default="chirp", help="conf/command/<name>.yaml or a path to a command YAML")
     ap.add_argument("--out", default="results/bench_workbench.json")
     args = ap.parse_args()
     torch.set_num_threads(max(1, torch.get_num_threads()))
     params = load_actuator(args.actuator)
     cmd_name, cmd_node = command_node(args.command)
-    report: dict = {"machine": {"cpus": torch.get_num_threads(), "platform": platform.platform(),
-                                "torch": torch.__version__}, "args": vars(args),
-                    "actuator": actuator_record(args.actuator, params),
-                    "command": command_record(cmd_name, {**cmd_node, "duration": args.duration})}
+    report: dict = {
+        "machine": {"cpus": torch.get_num_threads(), "platform": platform.platform(), "torch": torch.__version__},
+        "args": vars(args),
+        "actuator": actuator_record(args.actuator, params),
+        "command": command_record(cmd_name, {**cmd_node, "duration": args.duration}),
+    }
     if not args.skip_timing:
-        m = synthesize(params, [Case({"cogging_torque": {"amplitude": 4e-3, "phase": 0.7}}, seed=99)],
-                       make_command(cmd_node, 0.5), 0.5)[0]
+        m = synthesize(
+            params,
+            [Case({"cogging_torque": {"amplitude": 4e-3, "phase": 0.7}}, seed=99)],
+            make_command(cmd_node, 0.5),
+            0.5,
+        )[0]
         t0 = time.perf_counter()
-        case = run_case(params, m, {"effect": "cogging_torque", "values": {}, "noise": {}, "k8": 0.5, "scales": {}}, 2,
-                        args.actuator)
-        report["loop_time"] = {"record_s": 0.5, "hit": case["hit"], **case["timing"],
-                               "wall_with_report_s": round(time.perf_counter() - t0, 2)}
+        case = run_case(
+            params,
+            m,
+            {"effect": "cogging_torque", "values": {}, "noise": {}, "k8": 0.5, "scales": {}},
+            2,
+            args.actuator,
+        )
+        report["loop_time"] = {
+            "record_s": 0.5,
+            "hit": case["hit"],
+            **case["timing"],
+            "wall_with_report_s": round(time.perf_counter() - t0, 2),
+        }
         print("loop time:", json.dumps(report["loop_time"]), flush=True)
     rng = random.Random(args.seed)
     n_controls = round(args.controls * args.cases)
@@ -222,21 +283,37 @@ def main() -> None:
     built = [random_case(rng, params, control, 1000 + i, strength) for i, control in enumerate(kinds)]
     command = make_command(cmd_node, args.duration)
     if args.strength_mode == "snr":
-        built = snr_cases(params, built, (float(args.snr[0]), float(args.snr[1])), args.seed, command,
-                          args.duration, args.data_fidelity)
+        built = snr_cases(
+            params,
+            built,
+            (float(args.snr[0]), float(args.snr[1])),
+            args.seed,
+            command,
+            args.duration,
+            args.data_fidelity,
+        )
     else:  # record the signature SNR the absolute strengths give on this actuator
         snrs = signature_snr(params, [c for c, _ in built], command, args.duration, args.data_fidelity)
-        built = [(c, {**info, "strength": {"mode": "default", "snr": s}} if info["effect"] else info)
-                 for (c, info), s in zip(built, snrs, strict=True)]
+        built = [
+            (c, {**info, "strength": {"mode": "default", "snr": s}} if info["effect"] else info)
+            for (c, info), s in zip(built, snrs, strict=True)
+        ]
     ms = synthesize(params, [c for c, _ in built], command, args.duration, fidelity=args.data_fidelity)
     cases = []
     for i, ((_, info), m) in enumerate(zip(built, ms, strict=True)):
         out = run_case(params, m, info, args.rounds, args.actuator)
         cases.append(out)
         snr = out.get("strength", {}).get("snr")
-        print(f"[{i + 1}/{len(built)}]", json.dumps({**{k: out.get(k) for k in ("effect", "ranking", "significant", "hit",
-                                                                                    "nrmse_over_floor_after")},
-                                                      "snr": snr}), flush=True)
+        print(
+            f"[{i + 1}/{len(built)}]",
+            json.dumps(
+                {
+                    **{k: out.get(k) for k in ("effect", "ranking", "significant", "hit", "nrmse_over_floor_after")},
+                    "snr": snr,
+                }
+            ),
+            flush=True,
+        )
     hits = [c for c in cases if c["effect"] is not None]
     ctrl = [c for c in cases if c["effect"] is None]
     per_effect: dict[str, list[bool]] = {}
@@ -244,7 +321,8 @@ def main() -> None:
         per_effect.setdefault(c["effect"], []).append(c["hit"])
     report["cases"] = cases
     report["summary"] = {
-        "effects": len(hits), "controls": len(ctrl),
+        "effects": len(hits),
+        "controls": len(ctrl),
         "hit_rate": sum(c["hit"] for c in hits) / max(len(hits), 1),
         "top3_rate": sum(c["top3"] for c in hits) / max(len(hits), 1),
         "at_floor_rate": sum(c["at_floor"] for c in hits) / max(len(hits), 1),

@@ -43,29 +43,45 @@ def _fmt(v: float, spec: str = ".1f") -> str:
 
 def summary(report: dict) -> str:
     lin, table = report["linear"]["nominal"], report["single_faults"]
-    lines = [f"actuator {report['actuator']['name']}, command {report['command']['name']}",
-             (f"linear loop: crossover {lin['crossover_hz']:.2f} Hz, PM {lin['phase_margin_deg']:.1f} deg, "
-              f"GM {lin['gain_margin_db']:.2f} dB (phase crossover {lin['phase_crossover_hz']:.1f} Hz), "
-              f"-3 dB bandwidth {lin['bandwidth_hz']:.1f} Hz"),
-             (f"LF sweep {report['sweep']['frequencies'][0]:g}..{report['sweep']['frequencies'][-1]:g} Hz at "
-              f"{report['sweep']['amplitude']:.3g} rad; step {report['step']['amplitude']:.3g} rad, "
-              f"{report['step']['duration']:g} s"),
-             (f"{'case':<12}{'fc Hz':>8}{'PM deg':>8}{'f180 Hz':>9}{'GM dB':>8}{'BW Hz':>8}"
-              f"{'LF step':>9}{'HF step':>9}{'I nrmse':>9}{'pos nrmse':>10}  stable")]
+    lines = [
+        f"actuator {report['actuator']['name']}, command {report['command']['name']}",
+        (
+            f"linear loop: crossover {lin['crossover_hz']:.2f} Hz, PM {lin['phase_margin_deg']:.1f} deg, "
+            f"GM {lin['gain_margin_db']:.2f} dB (phase crossover {lin['phase_crossover_hz']:.1f} Hz), "
+            f"-3 dB bandwidth {lin['bandwidth_hz']:.1f} Hz"
+        ),
+        (
+            f"LF sweep {report['sweep']['frequencies'][0]:g}..{report['sweep']['frequencies'][-1]:g} Hz at "
+            f"{report['sweep']['amplitude']:.3g} rad; step {report['step']['amplitude']:.3g} rad, "
+            f"{report['step']['duration']:g} s"
+        ),
+        (
+            f"{'case':<12}{'fc Hz':>8}{'PM deg':>8}{'f180 Hz':>9}{'GM dB':>8}{'BW Hz':>8}"
+            f"{'LF step':>9}{'HF step':>9}{'I nrmse':>9}{'pos nrmse':>10}  stable"
+        ),
+    ]
     for name, row in table.items():
         agr = report["agreement"].get(name, {})
         hf = {True: "ok", False: "FAIL", None: "-"}[row.get("hf_step_stable")]
-        lines.append(f"{name:<12}{_fmt(row['crossover_hz']):>8}{_fmt(row['phase_margin_deg']):>8}"
-                     f"{_fmt(row['phase_crossover_hz']):>9}{_fmt(row['gain_margin_db'], '.2f'):>8}"
-                     f"{_fmt(row['bandwidth_hz']):>8}{'ok' if row['lf_step_stable'] else 'FAIL':>9}{hf:>9}"
-                     f"{_fmt(agr.get('current_nrmse', math.nan) * 100, '.2f') + '%' if agr else '-':>9}"
-                     f"{_fmt(agr.get('position_nrmse', math.nan) * 100, '.3f') + '%' if agr else '-':>10}"
-                     f"  {'yes' if row['stable'] else 'NO'}"
-                     + ("  (play > sweep amplitude: margins not meaningful, judged in time)"
-                        if not row["frequency_response_valid"] else ""))
+        lines.append(
+            f"{name:<12}{_fmt(row['crossover_hz']):>8}{_fmt(row['phase_margin_deg']):>8}"
+            f"{_fmt(row['phase_crossover_hz']):>9}{_fmt(row['gain_margin_db'], '.2f'):>8}"
+            f"{_fmt(row['bandwidth_hz']):>8}{'ok' if row['lf_step_stable'] else 'FAIL':>9}{hf:>9}"
+            f"{_fmt(agr.get('current_nrmse', math.nan) * 100, '.2f') + '%' if agr else '-':>9}"
+            f"{_fmt(agr.get('position_nrmse', math.nan) * 100, '.3f') + '%' if agr else '-':>10}"
+            f"  {'yes' if row['stable'] else 'NO'}"
+            + (
+                "  (play > sweep amplitude: margins not meaningful, judged in time)"
+                if not row["frequency_response_valid"]
+                else ""
+            )
+        )
     v = report["verdict"]
-    lines.append("verdict: " + ", ".join(f"{k} {'ok' if ok else 'FAIL'}" for k, ok in v.items() if k != "pass")
-                 + f" -> {'PASS' if v['pass'] else 'FAIL'}  ({report['elapsed_s']} s)")
+    lines.append(
+        "verdict: "
+        + ", ".join(f"{k} {'ok' if ok else 'FAIL'}" for k, ok in v.items() if k != "pass")
+        + f" -> {'PASS' if v['pass'] else 'FAIL'}  ({report['elapsed_s']} s)"
+    )
     return "\n".join(lines)
 
 
@@ -89,10 +105,15 @@ def main(argv: list[str] | None = None) -> int:
     cmd_name, node, command = load_command(args.command)
     act_name = Path(args.actuator).stem
     hf_cases = [] if args.no_hf else args.hf_cases
-    check = ActuatorCheck(params, command, args.frequencies, args.sweep_amplitude, hf_cases=hf_cases,
-                          log=lambda msg: print(msg, file=sys.stderr, flush=True))
-    report = {"actuator": actuator_record(act_name, params), "command": command_record(cmd_name, node),
-              **check.run()}
+    check = ActuatorCheck(
+        params,
+        command,
+        args.frequencies,
+        args.sweep_amplitude,
+        hf_cases=hf_cases,
+        log=lambda msg: print(msg, file=sys.stderr, flush=True),
+    )
+    report = {"actuator": actuator_record(act_name, params), "command": command_record(cmd_name, node), **check.run()}
     out = Path(args.out or f"results/check_{act_name}_{cmd_name}.json")
     with atomic_open(out) as fh:
         json.dump(report, fh, indent=2)

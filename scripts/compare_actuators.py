@@ -83,7 +83,7 @@ def figures(run: Path, lf: Path | None, bench: Path | None) -> dict[str, float |
         else:
             value = sources[where].get(key)
             out[name] = float(value) if isinstance(value, (int, float)) else None
-    out["actuator"] = sources["train"].get("actuator")   # type: ignore[assignment]
+    out["actuator"] = sources["train"].get("actuator")  # type: ignore[assignment]
     return out
 
 
@@ -137,8 +137,16 @@ def main() -> None:
     print(markdown(table, verdicts))
     if args.out:
         with atomic_open(args.out, "w") as fh:
-            json.dump({"factor": args.factor, "figures": table, "verdicts": verdicts,
-                       "runs": {k: str(v) for k, v in runs.items()}}, fh, indent=2)
+            json.dump(
+                {
+                    "factor": args.factor,
+                    "figures": table,
+                    "verdicts": verdicts,
+                    "runs": {k: str(v) for k, v in runs.items()},
+                },
+                fh,
+                indent=2,
+            )
 
 
 if __name__ == "__main__":

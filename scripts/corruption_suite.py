@@ -41,16 +41,15 @@ from phm_torch.simulator import EMASimulator
 PIPELINE = CONF_DIR.parent / "pretrained" / "online_surrogates_best.pt"
 CACHE = Path("/tmp/phm_corruption_records")
 DAMAGE = [i for i, name in enumerate(FAULT_NAMES) if name != "eccentricity_phase"]
-CLEAN_NOISE = (0.0, 0.01, 0.02, 0.03)   # relative current noise of the clean records (issue 24: <= 1 % flagged)
-TOLERANCE = 0.02          # an interval missed by less than this still counts as right (90 % intervals)
-SUITE_NOISE = 0.01        # relative current noise of the suite's records (the calibration's)
+CLEAN_NOISE = (0.0, 0.01, 0.02, 0.03)  # relative current noise of the clean records (issue 24: <= 1 % flagged)
+TOLERANCE = 0.02  # an interval missed by less than this still counts as right (90 % intervals)
+SUITE_NOISE = 0.01  # relative current noise of the suite's records (the calibration's)
 # the suite's fault vectors as moves from nominal: nominal, dry friction x1.6, 40 % of phase A shorted
 # (healthy), backlash x20 with gain drift
 MOVES = ({}, {0: 0.3}, {2: 0.4}, {1: 0.2, 7: 0.2})
 MOTOR = ("back_emf_constant", "phase_resistance", "phase_inductance", "motor_inertia")
-SIMULATED = {   # kinds simulated under changed conditions: severities, unit, description
-    "other_actuator": ((0.1, 0.3, 0.6), "motor values x (1 + s)",
-                       f"another motor: {', '.join(MOTOR)} scaled"),
+SIMULATED = {  # kinds simulated under changed conditions: severities, unit, description
+    "other_actuator": ((0.1, 0.3, 0.6), "motor values x (1 + s)", f"another motor: {', '.join(MOTOR)} scaled"),
     "command_amplitude": ((0.2, 0.5, 1.0), "amplitude x (1 + s)", "the test run at another amplitude"),
     "command_frequency": ((0.2, 0.5, 1.0), "end frequency x (1 + s)", "the test run at another chirp rate"),
 }
@@ -67,15 +66,23 @@ class Case:
 
 def _simulate(params: ActuatorParams, k: torch.Tensor, command: Any, cache: Path, tag: str) -> dict[str, torch.Tensor]:
     """HF records (time, command, position, current) of fault vectors k (B, 8); cached by their inputs."""
-    key = hashlib.sha256(json.dumps([provenance.actuator_values(params), k.tolist(), repr(command), tag],
-                                    sort_keys=True, default=str).encode()).hexdigest()[:16]
+    key = hashlib.sha256(
+        json.dumps(
+            [provenance.actuator_values(params), k.tolist(), repr(command), tag], sort_keys=True, default=str
+        ).encode()
+    ).hexdigest()[:16]
     path = cache / f"{tag}_{key}.pt"
     if path.is_file():
         return torch.load(path, weights_only=True)
     duration = float(command.duration)
     sig = EMASimulator(params, "hf").run(k, command, duration, channels=["current", "position"])
-    out = {"time": sig.time, "command": command(sig.time).expand(k.shape[0], -1).clone(),
-           "position": sig["position"], "current": sig["current"], "k": k}
+    out = {
+        "time": sig.time,
+        "command": command(sig.time).expand(k.shape[0], -1).clone(),
+        "position": sig["position"],
+        "current": sig["current"],
+        "k": k,
+    }
     cache.mkdir(parents=True, exist_ok=True)
     with atomic_open(path, "wb") as fh:
         torch.save(out, fh)
@@ -107,8 +114,9 @@ def _cases(sim: dict[str, torch.Tensor], model: Any, noise: float, rng: np.rando
     return cases
 
 
-def suite_records(model: Any, path: Path, cache: Path = CACHE, moves: tuple[dict[int, float], ...] = MOVES,
-                  simulated: bool = True) -> tuple[list[Case], dict[str, dict[float, list[Case]]]]:
+def suite_records(
+    model: Any, path: Path, cache: Path = CACHE, moves: tuple[dict[int, float], ...] = MOVES, simulated: bool = True
+) -> tuple[list[Case], dict[str, dict[float, list[Case]]]]:
     """The suite's records of the pipeline's actuator on its command, and those simulated under changed
     conditions per kind and severity (nominal and the first fault of ``moves``)."""
     params, node, command = pipeline_conditions(path)
@@ -149,8 +157,9 @@ def clean_records(model: Any, path: Path, n: int = 125, cache: Path = CACHE, see
     return [c for level in CLEAN_NOISE for _ in range(2) for c in _cases(sim, model, level, rng)]
 
 
-def judge(model: Any, case: Case, record: Record, contract: InputContract, current_only: bool = False
-          ) -> dict[str, Any]:
+def judge(
+    model: Any, case: Case, record: Record, contract: InputContract, current_only: bool = False
+) -> dict[str, Any]:
     """The diagnosis of a (corrupted) record on phm-predict's path, and whether it is flagged or still right."""
     if current_only:
         record = Record(record.time, None, None, record.current)
@@ -168,8 +177,14 @@ def judgement(out: dict[str, Any], k: torch.Tensor, healthy: bool) -> dict[str, 
         bounds = torch.tensor([out["k_interval"][name] for name in FAULT_NAMES], dtype=torch.float64)
         inside = bool(((truth >= bounds[:, 0] - TOLERANCE) & (truth <= bounds[:, 1] + TOLERANCE))[DAMAGE].all())
     k_hat = torch.tensor([out["k_hat"][name] for name in FAULT_NAMES], dtype=torch.float64)
-    return {"flagged": out["out_of_distribution"], "reasons": out["ood_reasons"], "right": bool(verdict_right and inside),
-            "verdict_right": verdict_right, "inside": inside, "err_k": float((k_hat - truth).abs()[DAMAGE].mean())}
+    return {
+        "flagged": out["out_of_distribution"],
+        "reasons": out["ood_reasons"],
+        "right": bool(verdict_right and inside),
+        "verdict_right": verdict_right,
+        "inside": inside,
+        "err_k": float((k_hat - truth).abs()[DAMAGE].mean()),
+    }
 
 
 def contract_of(model: Any, path: Path) -> InputContract:
@@ -187,15 +202,27 @@ def _summary(severities: tuple[float, ...], results: dict[float, list[dict[str, 
         else:
             break
     wrong = [s for s in severities if any(not r["flagged"] and not r["right"] for r in results[s])]
-    per = {str(s): {"cases": len(results[s]), "flagged": sum(r["flagged"] for r in results[s]),
-                    "unflagged_right": sum(not r["flagged"] and r["right"] for r in results[s]),
-                    "unflagged_wrong": sum(not r["flagged"] and not r["right"] for r in results[s]),
-                    "reasons": sorted({x for r in results[s] for x in r["reasons"]})} for s in severities}
+    per = {
+        str(s): {
+            "cases": len(results[s]),
+            "flagged": sum(r["flagged"] for r in results[s]),
+            "unflagged_right": sum(not r["flagged"] and r["right"] for r in results[s]),
+            "unflagged_wrong": sum(not r["flagged"] and not r["right"] for r in results[s]),
+            "reasons": sorted({x for r in results[s] for x in r["reasons"]}),
+        }
+        for s in severities
+    }
     return {"flagged_from": flagged_from, "wrong_unflagged_at": wrong, "severities": per}
 
 
-def run_suite(model: Any, path: Path, cases: list[Case], changed: dict[str, dict[float, list[Case]]],
-              kinds: list[str] | None = None, seed: int = 0) -> dict[str, dict[str, Any]]:
+def run_suite(
+    model: Any,
+    path: Path,
+    cases: list[Case],
+    changed: dict[str, dict[float, list[Case]]],
+    kinds: list[str] | None = None,
+    seed: int = 0,
+) -> dict[str, dict[str, Any]]:
     """Every corruption kind (``kinds``: a subset) at its severities over ``cases``, and the simulated kinds of
     ``changed``; each case with its command and position columns (``full``) and as a current-only record."""
     contract = contract_of(model, path)
@@ -208,21 +235,34 @@ def run_suite(model: Any, path: Path, cases: list[Case], changed: dict[str, dict
             records = [(case, corrupt(kind, case.record, s, rng)) for case in cases]
             for mode, results in modes.items():
                 results[s] = [judge(model, c, r, contract, mode == "current_only") for c, r in records]
-        table[kind] = {"unit": spec.unit, "description": spec.description,
-                       **{mode: _summary(spec.severities, res) for mode, res in modes.items()}}
+        table[kind] = {
+            "unit": spec.unit,
+            "description": spec.description,
+            **{mode: _summary(spec.severities, res) for mode, res in modes.items()},
+        }
     for kind, by_severity in changed.items():
         severities, unit, description = SIMULATED[kind]
-        modes = {mode: {s: [judge(model, c, c.record, contract, mode == "current_only") for c in by_severity[s]]
-                        for s in severities} for mode in ("full", "current_only")}
-        table[kind] = {"unit": unit, "description": description, "simulated": True,
-                       **{mode: _summary(severities, res) for mode, res in modes.items()}}
+        modes = {
+            mode: {
+                s: [judge(model, c, c.record, contract, mode == "current_only") for c in by_severity[s]]
+                for s in severities
+            }
+            for mode in ("full", "current_only")
+        }
+        table[kind] = {
+            "unit": unit,
+            "description": description,
+            "simulated": True,
+            **{mode: _summary(severities, res) for mode, res in modes.items()},
+        }
     return table
 
 
 def blind_spots(table: dict[str, dict[str, Any]]) -> dict[str, list[str]]:
     """The kinds with an unflagged wrong answer at some severity, per mode."""
-    return {mode: sorted(k for k, v in table.items() if v[mode]["wrong_unflagged_at"])
-            for mode in ("full", "current_only")}
+    return {
+        mode: sorted(k for k, v in table.items() if v[mode]["wrong_unflagged_at"]) for mode in ("full", "current_only")
+    }
 
 
 def false_rejections(model: Any, path: Path, cases: list[Case]) -> dict[str, Any]:
@@ -234,14 +274,22 @@ def false_rejections(model: Any, path: Path, cases: list[Case]) -> dict[str, Any
         for x in r["reasons"]:
             reasons[x] = reasons.get(x, 0) + 1
     flagged = sum(r["flagged"] for r in results)
-    per_level = len(results) // len(CLEAN_NOISE)       # clean_records orders the records by noise level
-    by_noise = {str(level): sum(r["flagged"] for r in results[i * per_level:(i + 1) * per_level]) / per_level
-                for i, level in enumerate(CLEAN_NOISE)}
+    per_level = len(results) // len(CLEAN_NOISE)  # clean_records orders the records by noise level
+    by_noise = {
+        str(level): sum(r["flagged"] for r in results[i * per_level : (i + 1) * per_level]) / per_level
+        for i, level in enumerate(CLEAN_NOISE)
+    }
     new = sum(any(x not in PIPELINE_CHECKS and x != "pipeline" for x in r["reasons"]) for r in results)
-    return {"records": len(results), "flagged": flagged, "rate": flagged / len(results), "rate_by_noise": by_noise,
-            "reasons": reasons,
-            "flagged_by_new_checks": new, "rate_new_checks": new / len(results),
-            "unflagged_wrong": sum(not r["flagged"] and not r["right"] for r in results)}
+    return {
+        "records": len(results),
+        "flagged": flagged,
+        "rate": flagged / len(results),
+        "rate_by_noise": by_noise,
+        "reasons": reasons,
+        "flagged_by_new_checks": new,
+        "rate_new_checks": new / len(results),
+        "unflagged_wrong": sum(not r["flagged"] and not r["right"] for r in results),
+    }
 
 
 def check_cost(model: Any, path: Path, cases: list[Case], repeats: int = 3) -> dict[str, float]:
@@ -279,21 +327,39 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     t_sim = time.perf_counter() - t0
     table = run_suite(model, args.pipeline, cases, changed)
     prov = read_metadata(args.pipeline)["provenance"]
-    report = {"actuator": prov["actuator"], "command": prov["command"], "pipeline": str(args.pipeline),
-              "suite_records": {"fault_vectors": [c.k.tolist() for c in cases], "healthy": [c.healthy for c in cases],
-                                "noise": SUITE_NOISE, "tolerance": TOLERANCE},
-              "uncorrupted": [judge(model, c, c.record, contract_of(model, args.pipeline)) for c in cases],
-              "corruptions": table, "blind_spots": blind_spots(table),
-              "false_rejection": false_rejections(model, args.pipeline, clean),
-              "cost_us_per_record": check_cost(model, args.pipeline, clean[:64]),
-              "wall_s": {"simulation_or_cache": round(t_sim, 1), "total": round(time.perf_counter() - t0, 1)}}
+    report = {
+        "actuator": prov["actuator"],
+        "command": prov["command"],
+        "pipeline": str(args.pipeline),
+        "suite_records": {
+            "fault_vectors": [c.k.tolist() for c in cases],
+            "healthy": [c.healthy for c in cases],
+            "noise": SUITE_NOISE,
+            "tolerance": TOLERANCE,
+        },
+        "uncorrupted": [judge(model, c, c.record, contract_of(model, args.pipeline)) for c in cases],
+        "corruptions": table,
+        "blind_spots": blind_spots(table),
+        "false_rejection": false_rejections(model, args.pipeline, clean),
+        "cost_us_per_record": check_cost(model, args.pipeline, clean[:64]),
+        "wall_s": {"simulation_or_cache": round(t_sim, 1), "total": round(time.perf_counter() - t0, 1)},
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_open(args.out, "w") as fh:
         json.dump(report, fh, indent=1)
-    print(json.dumps({"blind_spots": report["blind_spots"], "false_rejection": report["false_rejection"],
-                      "cost_us_per_record": report["cost_us_per_record"],
-                      "flagged_from": {k: [v["full"]["flagged_from"], v["current_only"]["flagged_from"]]
-                                       for k, v in table.items()}}, indent=1))
+    print(
+        json.dumps(
+            {
+                "blind_spots": report["blind_spots"],
+                "false_rejection": report["false_rejection"],
+                "cost_us_per_record": report["cost_us_per_record"],
+                "flagged_from": {
+                    k: [v["full"]["flagged_from"], v["current_only"]["flagged_from"]] for k, v in table.items()
+                },
+            },
+            indent=1,
+        )
+    )
     return report
 
 

@@ -48,15 +48,18 @@ def main() -> None:
     with DatasetStore(args.data_dir) as store:
         cfg = (store.metadata or {}).get("config") or {}
         if "actuator" not in cfg or "command" not in cfg or "dataset" not in cfg:
-            raise SystemExit(f"fdi_identifiability: error: the store {args.data_dir!r} does not record the "
-                             f"actuator, command and dataset it was simulated with")
+            raise SystemExit(
+                f"fdi_identifiability: error: the store {args.data_dir!r} does not record the "
+                f"actuator, command and dataset it was simulated with"
+            )
         k = torch.as_tensor(np.asarray(store.split(args.split).K), dtype=torch.float64)
     params = recorded_actuator(store.metadata)
     command = instantiate(cfg["command"])
     duration = float(command.duration)
     spec = cfg["dataset"]
-    sim = EMASimulator(params, spec.get("fidelity", "hf"), effects=spec.get("effects") or None,
-                       substeps=spec.get("substeps"))
+    sim = EMASimulator(
+        params, spec.get("fidelity", "hf"), effects=spec.get("effects") or None, substeps=spec.get("substeps")
+    )
     nominal = torch.tensor(params.nominal_faults, dtype=torch.float64)
     count = fault_count(k, nominal)
 
@@ -67,11 +70,19 @@ def main() -> None:
     if args.predictions:
         pred = torch.load(args.predictions, weights_only=True)
         if not torch.allclose(pred["k"].double(), k, atol=1e-6):
-            raise SystemExit(f"fdi_identifiability: error: --predictions {args.predictions!r} is not on the "
-                             f"{args.split} split of {args.data_dir!r}")
+            raise SystemExit(
+                f"fdi_identifiability: error: --predictions {args.predictions!r} is not on the "
+                f"{args.split} split of {args.data_dir!r}"
+            )
         k_hat = pred["k_hat"].double()
-    out: dict = {"data_dir": str(args.data_dir), "split": args.split, "seed": args.seed,
-                 "machine": platform.platform(), "threads": args.threads, "groups": {}}
+    out: dict = {
+        "data_dir": str(args.data_dir),
+        "split": args.split,
+        "seed": args.seed,
+        "machine": platform.platform(),
+        "threads": args.threads,
+        "groups": {},
+    }
     t0 = time.perf_counter()
     for name, (lo, hi) in GROUPS.items():
         members = torch.nonzero((count >= lo) & (count <= hi)).flatten()
@@ -79,18 +90,24 @@ def main() -> None:
             continue
         chosen = members[: args.per_group]
         s = signal_sensitivity(simulate, k[chosen], seed=args.seed)
-        row = {"n_signals": len(members), "n_probed": len(chosen), "steps": s["steps"].tolist(),
-               "rms_change_median_A": s["rms_change"].median(0).values.tolist(),
-               "rms_change_p90_A": s["rms_change"].quantile(0.9, dim=0).tolist(),
-               "signal_rms_median_A": float(s["signal_rms"].median()),
-               "linearity_median": float(s["linearity"].median())}
+        row = {
+            "n_signals": len(members),
+            "n_probed": len(chosen),
+            "steps": s["steps"].tolist(),
+            "rms_change_median_A": s["rms_change"].median(0).values.tolist(),
+            "rms_change_p90_A": s["rms_change"].quantile(0.9, dim=0).tolist(),
+            "signal_rms_median_A": float(s["signal_rms"].median()),
+            "linearity_median": float(s["linearity"].median()),
+        }
         if k_hat is not None:
             row["err_k"] = err_k(k_hat[members], k[members])
         out["groups"][name] = row
-        print(f"{name:>3}: {len(chosen)} of {len(members)} probed; RMS change per step "
-              f"{', '.join(f'{v:.4f}' for v in row['rms_change_median_A'])} A; linearity "
-              f"{row['linearity_median']:.1f}" + (f"; err_k {row['err_k']:.4f}" if k_hat is not None else ""),
-              flush=True)
+        print(
+            f"{name:>3}: {len(chosen)} of {len(members)} probed; RMS change per step "
+            f"{', '.join(f'{v:.4f}' for v in row['rms_change_median_A'])} A; linearity "
+            f"{row['linearity_median']:.1f}" + (f"; err_k {row['err_k']:.4f}" if k_hat is not None else ""),
+            flush=True,
+        )
     out["elapsed_s"] = time.perf_counter() - t0
     write_json(Path(args.out), out)
     print(json.dumps({"out": args.out, "elapsed_s": round(out["elapsed_s"], 1)}))

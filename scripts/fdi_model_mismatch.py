@@ -44,8 +44,13 @@ def main() -> None:
     ap.add_argument("--bundle", action="append", required=True, help="[name=]path of a SurrogateBundle")
     ap.add_argument("--split", default="val")
     ap.add_argument("--effects", nargs="*", default=None, help="effect names (default: the whole library)")
-    ap.add_argument("--substeps", type=int, action="append", default=[],
-                    help="also the store's model with this many substeps per control period (repeatable)")
+    ap.add_argument(
+        "--substeps",
+        type=int,
+        action="append",
+        default=[],
+        help="also the store's model with this many substeps per control period (repeatable)",
+    )
     ap.add_argument("--limit", type=int, default=None, help="the first N vectors of the split")
     ap.add_argument("--compile", action=argparse.BooleanOptionalAction, default=True)
     ap.add_argument("--threads", type=int, default=2)
@@ -62,8 +67,10 @@ def main() -> None:
             bundle.check_store(store.provenance, f"store {args.data_dir}")
         cfg = (store.metadata or {}).get("config") or {}
         if "actuator" not in cfg or "command" not in cfg or "dataset" not in cfg:
-            raise SystemExit(f"fdi_model_mismatch: error: the store {args.data_dir!r} does not record the "
-                             f"actuator, command and dataset it was simulated with")
+            raise SystemExit(
+                f"fdi_model_mismatch: error: the store {args.data_dir!r} does not record the "
+                f"actuator, command and dataset it was simulated with"
+            )
         split = store.split(args.split)
         k = torch.as_tensor(np.asarray(split.K), dtype=torch.float64)[: args.limit]
         healthy = torch.as_tensor(np.asarray(split.healthy)).bool()[: args.limit]
@@ -78,21 +85,32 @@ def main() -> None:
         raise SystemExit(f"fdi_model_mismatch: error: --substeps must be >= 1, got {bad}")
 
     def simulate(effect: dict, substeps: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        if args.compile:   # each effect set is another graph, used once: free the previous ones
+        if args.compile:  # each effect set is another graph, used once: free the previous ones
             torch.compiler.reset()
-        sim = EMASimulator(params, spec.get("fidelity", "hf"), effects=effect, substeps=substeps or spec.get("substeps"),
-                           compile=args.compile)
+        sim = EMASimulator(
+            params,
+            spec.get("fidelity", "hf"),
+            effects=effect,
+            substeps=substeps or spec.get("substeps"),
+            compile=args.compile,
+        )
         rows = torch.cat([k, torch.tensor([params.nominal_faults], dtype=k.dtype)])
         current = sim.run(rows, command, float(command.duration), channels=["current"])["current"]
         return current[:-1], current[-1]
 
-    out: dict = {"data_dir": str(args.data_dir), "split": args.split, "n_vectors": len(k), "store_effects": own,
-                 "bundles": dict(zip(bundles, args.bundle)),
-                 "machine": platform.platform(), "threads": args.threads, "conditions": {}}
+    out: dict = {
+        "data_dir": str(args.data_dir),
+        "split": args.split,
+        "n_vectors": len(k),
+        "store_effects": own,
+        "bundles": dict(zip(bundles, args.bundle)),
+        "machine": platform.platform(),
+        "threads": args.threads,
+        "conditions": {},
+    }
     t0 = time.perf_counter()
     reference, reference_nominal = simulate(own)
-    conditions = {"none": None, **{e: {**own, e: {}} for e in effects},
-                  **{f"substeps_{n}": n for n in args.substeps}}
+    conditions = {"none": None, **{e: {**own, e: {}} for e in effects}, **{f"substeps_{n}": n for n in args.substeps}}
     for name, condition in conditions.items():
         if condition is None:
             signals, nominal = reference, reference_nominal
@@ -101,15 +119,25 @@ def main() -> None:
         else:
             signals, nominal = simulate(condition)
         rebased = signals - (nominal - reference_nominal)
-        row = {b: {"raw": mismatch_metrics(bundle, k, healthy, reference, signals),
-                   "rebased": mismatch_metrics(bundle, k, healthy, reference, rebased)} for b, bundle in bundles.items()}
+        row = {
+            b: {
+                "raw": mismatch_metrics(bundle, k, healthy, reference, signals),
+                "rebased": mismatch_metrics(bundle, k, healthy, reference, rebased),
+            }
+            for b, bundle in bundles.items()
+        }
         out["conditions"][name] = row
-        print(f"{name:>27}: NRMSE {next(iter(row.values()))['raw']['nrmse_median']:.4f}; " + "; ".join(
-            f"{b} err_k {m['raw']['err_k']:.4f} (rebased {m['rebased']['err_k']:.4f}), chain "
-            f"{m['raw']['chain_accuracy']:.3f} ({m['rebased']['chain_accuracy']:.3f}; missed "
-            f"{m['raw']['chain_missed_fault_rate']:.3f}, false alarms {m['raw']['chain_false_alarm_rate']:.3f}), "
-            f"OOD {m['raw']['ood_rate']:.3f}"
-            for b, m in row.items()), flush=True)
+        print(
+            f"{name:>27}: NRMSE {next(iter(row.values()))['raw']['nrmse_median']:.4f}; "
+            + "; ".join(
+                f"{b} err_k {m['raw']['err_k']:.4f} (rebased {m['rebased']['err_k']:.4f}), chain "
+                f"{m['raw']['chain_accuracy']:.3f} ({m['rebased']['chain_accuracy']:.3f}; missed "
+                f"{m['raw']['chain_missed_fault_rate']:.3f}, false alarms {m['raw']['chain_false_alarm_rate']:.3f}), "
+                f"OOD {m['raw']['ood_rate']:.3f}"
+                for b, m in row.items()
+            ),
+            flush=True,
+        )
     out["elapsed_s"] = time.perf_counter() - t0
     write_json(Path(args.out), out)
     print(json.dumps({"out": args.out, "elapsed_s": round(out["elapsed_s"], 1)}))

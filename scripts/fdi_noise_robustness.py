@@ -30,19 +30,24 @@ from phm_torch.surrogates.bundle import load_named_bundles
 from phm_torch.surrogates.metrics import ECC_PHASE, err_k_by_fault_count
 
 
-def level_metrics(bundle: SurrogateBundle, signals: torch.Tensor, k: torch.Tensor, healthy: torch.Tensor,
-                  nominal: torch.Tensor) -> dict[str, float]:
+def level_metrics(
+    bundle: SurrogateBundle, signals: torch.Tensor, k: torch.Tensor, healthy: torch.Tensor, nominal: torch.Tensor
+) -> dict[str, float]:
     """The bundle's FDI on full records ``signals`` (B, n_e) [A] of fault vectors k (B, 8)."""
     level = noise_level(signals)
     k_hat = bundle.estimate(signals, level)
     with torch.no_grad():
         verdict = bundle.verdict_healthy(k_hat)
     bias = (k_hat - k).mean(0)
-    bias[ECC_PHASE] = 0.0                                          # a phase: its sign means nothing
-    return {"err_k": err_k(k_hat, k), "err_k_no_large_fault": err_k_by_fault_count(k_hat, k, nominal)["0"]["err_k"],
-            "fdi_mae_max": max(fdi_mae(k_hat, k, weighted=True)), "bias_max": float(bias.abs().max()),
-            "chain_accuracy": float((verdict == healthy).double().mean()),
-            "noise_estimate_median": float(level.median())}
+    bias[ECC_PHASE] = 0.0  # a phase: its sign means nothing
+    return {
+        "err_k": err_k(k_hat, k),
+        "err_k_no_large_fault": err_k_by_fault_count(k_hat, k, nominal)["0"]["err_k"],
+        "fdi_mae_max": max(fdi_mae(k_hat, k, weighted=True)),
+        "bias_max": float(bias.abs().max()),
+        "chain_accuracy": float((verdict == healthy).double().mean()),
+        "noise_estimate_median": float(level.median()),
+    }
 
 
 def main() -> None:
@@ -63,8 +68,9 @@ def main() -> None:
         for bundle in bundles.values():
             bundle.check_store(store.provenance, f"store {args.data_dir}")
         params = recorded_actuator(store.metadata)
-        nominal = torch.tensor(params.nominal_faults if params is not None else [0.0] * 6 + [0.5, 0.5],
-                               dtype=torch.float64)
+        nominal = torch.tensor(
+            params.nominal_faults if params is not None else [0.0] * 6 + [0.5, 0.5], dtype=torch.float64
+        )
         for split in args.splits:
             view = store.split(split)
             k = torch.as_tensor(view.K[()], dtype=torch.float64)
@@ -74,14 +80,23 @@ def main() -> None:
                 gen = torch.Generator().manual_seed(args.seed + 100 * j)
                 signals = add_noise(clean, rms(clean), level, gen) if level > 0 else clean
                 for name, bundle in bundles.items():
-                    results[name].setdefault(split, {})[f"{level:g}"] = level_metrics(bundle, signals, k, healthy,
-                                                                                     nominal)
+                    results[name].setdefault(split, {})[f"{level:g}"] = level_metrics(
+                        bundle, signals, k, healthy, nominal
+                    )
                     row = results[name][split][f"{level:g}"]
-                    print(f"{name:>10} {split:>5} noise {level:5.3f}: err_k {100 * row['err_k']:.2f} %, bias "
-                          f"{100 * row['bias_max']:.2f} %, verdict {100 * row['chain_accuracy']:.1f} %", flush=True)
-    report = {"data_dir": args.data_dir, "bundles": dict(zip(bundles, args.bundle)),
-              "levels": args.levels, "results": results, "wall_s": round(time.perf_counter() - t0, 1),
-              "machine": {"platform": platform.platform(), "threads": args.threads}}
+                    print(
+                        f"{name:>10} {split:>5} noise {level:5.3f}: err_k {100 * row['err_k']:.2f} %, bias "
+                        f"{100 * row['bias_max']:.2f} %, verdict {100 * row['chain_accuracy']:.1f} %",
+                        flush=True,
+                    )
+    report = {
+        "data_dir": args.data_dir,
+        "bundles": dict(zip(bundles, args.bundle)),
+        "levels": args.levels,
+        "results": results,
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "machine": {"platform": platform.platform(), "threads": args.threads},
+    }
     write_json(args.out, report)
 
 

@@ -41,7 +41,7 @@ def main() -> None:
     bundle = SurrogateBundle.load(args.bundle)
     with DatasetStore(args.data_dir) as store:
         bundle.check_store(store.provenance, f"store {args.data_dir}")
-        view = store.split(args.split)      # a ValueError naming the store's splits if it has no such split
+        view = store.split(args.split)  # a ValueError naming the store's splits if it has no such split
         k = torch.as_tensor(np.asarray(view.K[()]), dtype=torch.float32)
         current = torch.as_tensor(np.asarray(view.current[()]), dtype=bundle.pod.mean_.dtype)
         params = recorded_actuator(store.metadata)
@@ -49,11 +49,31 @@ def main() -> None:
         raise ValueError(f"split {args.split!r} of {args.data_dir!r} has {len(k)} records, at least 10 needed")
     nominal = torch.tensor(params.nominal_faults) if params is not None else None
     t0 = time.perf_counter()
-    bundle.forward_model = fit_forward_check(bundle.pod, bundle.gappy, bundle.network, k, current, nominal, args.seed,
-                                             n_hidden=args.n_hidden, max_epochs=args.max_epochs)
+    bundle.forward_model = fit_forward_check(
+        bundle.pod,
+        bundle.gappy,
+        bundle.network,
+        k,
+        current,
+        nominal,
+        args.seed,
+        n_hidden=args.n_hidden,
+        max_epochs=args.max_epochs,
+    )
     bundle.save(args.out)
-    print(json.dumps({"bundle": args.bundle, "out": args.out, "split": args.split, "n": len(k),
-                      "fit_s": round(time.perf_counter() - t0, 1), **bundle.forward_model.summary()}, indent=2))
+    print(
+        json.dumps(
+            {
+                "bundle": args.bundle,
+                "out": args.out,
+                "split": args.split,
+                "n": len(k),
+                "fit_s": round(time.perf_counter() - t0, 1),
+                **bundle.forward_model.summary(),
+            },
+            indent=2,
+        )
+    )
 
 
 if __name__ == "__main__":

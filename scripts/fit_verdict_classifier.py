@@ -31,15 +31,27 @@ def main() -> None:
     ap.add_argument("--check-split", default="val", help="records the verdicts are reported on ('' : none)")
     ap.add_argument("--noise", type=float, default=0.01, help="relative current noise of the fitting records")
     ap.add_argument("--seed", type=int, default=11, help="seeds the noise draw")
-    ap.add_argument("--max-missed-fault-rate", type=float, default=None,
-                    help="raise the verdict threshold until at most this fraction of the fitting faults pass")
+    ap.add_argument(
+        "--max-missed-fault-rate",
+        type=float,
+        default=None,
+        help="raise the verdict threshold until at most this fraction of the fitting faults pass",
+    )
     ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     if not args.noise >= 0:
         raise ValueError(f"--noise must be >= 0, got {args.noise!r}")
     torch.set_num_threads(args.threads)
-    report = refit_verdict_classifier(args.bundle, args.data_dir, args.out, args.split, args.check_split,
-                                      args.noise, args.seed, args.max_missed_fault_rate)
+    report = refit_verdict_classifier(
+        args.bundle,
+        args.data_dir,
+        args.out,
+        args.split,
+        args.check_split,
+        args.noise,
+        args.seed,
+        args.max_missed_fault_rate,
+    )
     print(json.dumps(report, indent=2))
 
 

@@ -32,7 +32,9 @@ from phm_torch.surrogates.compare import ranking, squared_errors, verdict_table
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data-dir", required=True)
-    ap.add_argument("--bundle", action="append", required=True, help="[name=]path of a SurrogateBundle (first = reference)")
+    ap.add_argument(
+        "--bundle", action="append", required=True, help="[name=]path of a SurrogateBundle (first = reference)"
+    )
     ap.add_argument("--split", default="val")
     ap.add_argument("--noise", type=float, default=0.0, help="relative current noise added to the records")
     ap.add_argument("--seed", type=int, default=0)
@@ -45,19 +47,27 @@ def main() -> None:
     bundles = load_named_bundles(args.bundle)
     t0 = time.perf_counter()
     sq, counts, verdicts, healthy = squared_errors(bundles, args.data_dir, args.split, args.noise, args.seed)
-    report = {"data_dir": args.data_dir, "split": args.split, "noise": args.noise,
-              "bundles": dict(zip(bundles, args.bundle)),
-              "ranking": ranking(sq, counts, args.seed), "verdict": verdict_table(verdicts, healthy),
-              "wall_s": round(time.perf_counter() - t0, 1),
-              "machine": {"platform": platform.platform(), "threads": args.threads}}
+    report = {
+        "data_dir": args.data_dir,
+        "split": args.split,
+        "noise": args.noise,
+        "bundles": dict(zip(bundles, args.bundle)),
+        "ranking": ranking(sq, counts, args.seed),
+        "verdict": verdict_table(verdicts, healthy),
+        "wall_s": round(time.perf_counter() - t0, 1),
+        "machine": {"platform": platform.platform(), "threads": args.threads},
+    }
     for name in bundles:
         row = report["ranking"][name]
-        diff = next((f", {k} {v[1]:+.2f} [{v[0]:+.2f}, {v[2]:+.2f}] pp" for k, v in row.items()
-                     if k.startswith("minus_")), "")
+        diff = next(
+            (f", {k} {v[1]:+.2f} [{v[0]:+.2f}, {v[2]:+.2f}] pp" for k, v in row.items() if k.startswith("minus_")), ""
+        )
         v = report["verdict"][name]
         vs = f", McNemar p {v['mcnemar_p']:.3g}" if "mcnemar_p" in v else ""
-        print(f"{name:>12}: err_k {row['err_k_pct']:.2f} % [{row['ci95_pct'][0]:.2f}, {row['ci95_pct'][1]:.2f}]{diff}; "
-              f"verdict {100 * v['accuracy']:.2f} %, missed faults {100 * v['missed_fault_rate']:.2f} %{vs}")
+        print(
+            f"{name:>12}: err_k {row['err_k_pct']:.2f} % [{row['ci95_pct'][0]:.2f}, {row['ci95_pct'][1]:.2f}]{diff}; "
+            f"verdict {100 * v['accuracy']:.2f} %, missed faults {100 * v['missed_fault_rate']:.2f} %{vs}"
+        )
     write_json(args.out, report)
 
 

@@ -43,8 +43,8 @@ from phm_torch.online.diagnosis import diagnose
 from phm_torch.online.export import read_metadata
 from phm_torch.simulator import EMASimulator
 
-NOISE = 0.01          # relative current noise of the records (the calibration's)
-STRENGTH = 0.5        # each effect at this fraction of its default strength (--strength)
+NOISE = 0.01  # relative current noise of the records (the calibration's)
+STRENGTH = 0.5  # each effect at this fraction of its default strength (--strength)
 
 
 def scaled_strength(name: str, strength: float = STRENGTH) -> dict[str, float]:
@@ -53,19 +53,28 @@ def scaled_strength(name: str, strength: float = STRENGTH) -> dict[str, float]:
     return {p: spec.default * (strength if p in cls.STRENGTH else 1.0) for p, spec in cls.PARAMS.items()}
 
 
-def simulate(params: Any, k: torch.Tensor, command: Any, effects: dict[str, dict[str, float]], cache: Path
-             ) -> dict[str, torch.Tensor]:
+def simulate(
+    params: Any, k: torch.Tensor, command: Any, effects: dict[str, dict[str, float]], cache: Path
+) -> dict[str, torch.Tensor]:
     """HF records of k (B, 8) and of the nominal vector (the last row) with ``effects``; cached by their inputs."""
-    key = hashlib.sha256(json.dumps([provenance.actuator_values(params), k.tolist(), repr(command), effects],
-                                    sort_keys=True, default=str).encode()).hexdigest()[:16]
+    key = hashlib.sha256(
+        json.dumps(
+            [provenance.actuator_values(params), k.tolist(), repr(command), effects], sort_keys=True, default=str
+        ).encode()
+    ).hexdigest()[:16]
     path = cache / f"mismatch_{key}.pt"
     if path.is_file():
         return torch.load(path, weights_only=True)
     rows = torch.cat([k, torch.tensor([params.nominal_faults], dtype=k.dtype)])
-    sig = EMASimulator(params, "hf", effects=effects).run(rows, command, float(command.duration),
-                                                         channels=["current", "position"])
-    out = {"time": sig.time, "command": command(sig.time).expand(rows.shape[0], -1).clone(),
-           "position": sig["position"], "current": sig["current"]}
+    sig = EMASimulator(params, "hf", effects=effects).run(
+        rows, command, float(command.duration), channels=["current", "position"]
+    )
+    out = {
+        "time": sig.time,
+        "command": command(sig.time).expand(rows.shape[0], -1).clone(),
+        "position": sig["position"],
+        "current": sig["current"],
+    }
     cache.mkdir(parents=True, exist_ok=True)
     with atomic_open(path, "wb") as fh:
         torch.save(out, fh)
@@ -80,29 +89,43 @@ def _summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
     """Counts, err_k median, verdict error and wrong rates of records (None for an empty group)."""
     if not rows:
         return {"n": 0, "err_k_median": None, "verdict_error_rate": None, "wrong_rate": None}
-    return {"n": len(rows), "err_k_median": float(np.median([r["err_k"] for r in rows])),
-            "verdict_error_rate": float(np.mean([not r["verdict_right"] for r in rows])),
-            "wrong_rate": float(np.mean([not r["right"] for r in rows]))}
+    return {
+        "n": len(rows),
+        "err_k_median": float(np.median([r["err_k"] for r in rows])),
+        "verdict_error_rate": float(np.mean([not r["verdict_right"] for r in rows])),
+        "wrong_rate": float(np.mean([not r["right"] for r in rows])),
+    }
 
 
-def condition(model: Any, pipeline: Path, k: torch.Tensor, sim: dict[str, torch.Tensor], seed: int
-              ) -> dict[str, Any]:
+def condition(model: Any, pipeline: Path, k: torch.Tensor, sim: dict[str, torch.Tensor], seed: int) -> dict[str, Any]:
     """Diagnose the records of one model (raw and with its own noisy healthy record as baseline); summarise."""
     contract = contract_of(model, pipeline)
     healthy = _truth(model, k)
     rng = np.random.default_rng(seed)
     baseline = _noisy(sim["current"][-1], rng)
-    records = [Record(sim["time"], sim["command"][i], sim["position"][i], _noisy(sim["current"][i], rng))
-               for i in range(k.shape[0])]
+    records = [
+        Record(sim["time"], sim["command"][i], sim["position"][i], _noisy(sim["current"][i], rng))
+        for i in range(k.shape[0])
+    ]
     out: dict[str, Any] = {}
     bench = check_bench(model, baseline)
     for mode, bench_nominal in (("raw", None), ("baseline", baseline)):
-        rows = [judgement(diagnose(model, r, contract, bench_nominal, bench if bench_nominal is not None else None),
-                          k[i], healthy[i]) for i, r in enumerate(records)]
+        rows = [
+            judgement(
+                diagnose(model, r, contract, bench_nominal, bench if bench_nominal is not None else None),
+                k[i],
+                healthy[i],
+            )
+            for i, r in enumerate(records)
+        ]
         flagged = [r for r in rows if r["flagged"]]
-        out[mode] = {"flagged_rate": len(flagged) / len(rows), "all": _summary(rows), "flagged": _summary(flagged),
-                     "unflagged": _summary([r for r in rows if not r["flagged"]]),
-                     "reasons": sorted({x for r in rows for x in r["reasons"]})}
+        out[mode] = {
+            "flagged_rate": len(flagged) / len(rows),
+            "all": _summary(rows),
+            "flagged": _summary(flagged),
+            "unflagged": _summary([r for r in rows if not r["flagged"]]),
+            "reasons": sorted({x for r in rows for x in r["reasons"]}),
+        }
     out["bench_check"] = None if bench is None else bench.as_dict()
     return out
 
@@ -137,13 +160,24 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         sim = simulate(params, k, command, effects, args.cache)
         conditions[name] = {"effect": effects.get(name), **condition(model, args.pipeline, k, sim, args.seed)}
         raw, base = conditions[name]["raw"], conditions[name]["baseline"]
-        print(f"{name:>28}: flagged {raw['flagged_rate']:.2f} (baseline {base['flagged_rate']:.2f}); err_k "
-              f"flagged {raw['flagged']['err_k_median']} unflagged {raw['unflagged']['err_k_median']}; wrong "
-              f"flagged {raw['flagged']['wrong_rate']} unflagged {raw['unflagged']['wrong_rate']}", flush=True)
+        print(
+            f"{name:>28}: flagged {raw['flagged_rate']:.2f} (baseline {base['flagged_rate']:.2f}); err_k "
+            f"flagged {raw['flagged']['err_k_median']} unflagged {raw['unflagged']['err_k_median']}; wrong "
+            f"flagged {raw['flagged']['wrong_rate']} unflagged {raw['unflagged']['wrong_rate']}",
+            flush=True,
+        )
     meta = read_metadata(args.pipeline).get("provenance") or {}
-    report = {"pipeline": str(args.pipeline), "actuator": meta.get("actuator"), "command": meta.get("command"),
-              "n_vectors": args.n, "noise": NOISE, "strength": args.strength, "machine": platform.platform(),
-              "conditions": conditions, "wall_s": round(time.perf_counter() - t0, 1)}
+    report = {
+        "pipeline": str(args.pipeline),
+        "actuator": meta.get("actuator"),
+        "command": meta.get("command"),
+        "n_vectors": args.n,
+        "noise": NOISE,
+        "strength": args.strength,
+        "machine": platform.platform(),
+        "conditions": conditions,
+        "wall_s": round(time.perf_counter() - t0, 1),
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_open(args.out, "w") as fh:
         json.dump(report, fh, indent=1)

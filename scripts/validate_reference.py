@@ -19,12 +19,24 @@ from phm_torch.simulator import EMASimulator
 
 # ema_reference.md §6 (independent implementation): fault -> (current NRMSE, position NRMSE), fractions.
 REFERENCE_NRMSE = {
-    "k1": (0.108, 0.0024), "k2": (0.230, 0.0235), "k3": (0.197, 0.0036), "k4": (0.305, 0.0060),
-    "k5": (0.298, 0.0060), "k6": (0.069, 0.0012), "k7": (0.107, 0.0022), "k8=1": (0.064, 0.038),
+    "k1": (0.108, 0.0024),
+    "k2": (0.230, 0.0235),
+    "k3": (0.197, 0.0036),
+    "k4": (0.305, 0.0060),
+    "k5": (0.298, 0.0060),
+    "k6": (0.069, 0.0012),
+    "k7": (0.107, 0.0022),
+    "k8=1": (0.064, 0.038),
     "k8=0": (0.127, 0.090),
 }
-REFERENCE_NOMINAL = {"tracking_rms_mrad": 1.14, "tracking_max_mrad": 2.59, "amplitude_ratio": 0.93,
-                     "lag_deg": 30.0, "peak_current_A": 2.30, "peak_speed_rad_s": 80.0}
+REFERENCE_NOMINAL = {
+    "tracking_rms_mrad": 1.14,
+    "tracking_max_mrad": 2.59,
+    "amplitude_ratio": 0.93,
+    "lag_deg": 30.0,
+    "peak_current_A": 2.30,
+    "peak_speed_rad_s": 80.0,
+}
 
 
 def fault_cases(nominal: list[float]) -> dict[str, list[float]]:
@@ -56,19 +68,33 @@ def validate(fidelity: str = "hf", compile: bool = False) -> dict:
     names = list(cases)
     cur, pos = s["current"], s["position"]
     i0 = names.index("nominal")
-    err = (pos[i0] - s["command"][i0])
+    err = pos[i0] - s["command"][i0]
     ratio, lag = chirp_last_cycle(s.time, s["command"][i0], pos[i0], cmd.f_end, cmd.duration)
-    nominal = {"tracking_rms_mrad": err.pow(2).mean().sqrt().item() * 1e3,
-               "tracking_max_mrad": err.abs().max().item() * 1e3, "amplitude_ratio": ratio, "lag_deg": lag,
-               "peak_current_A": cur[i0].max().item(), "peak_speed_rad_s": s["speed"][i0].abs().max().item()}
+    nominal = {
+        "tracking_rms_mrad": err.pow(2).mean().sqrt().item() * 1e3,
+        "tracking_max_mrad": err.abs().max().item() * 1e3,
+        "amplitude_ratio": ratio,
+        "lag_deg": lag,
+        "peak_current_A": cur[i0].max().item(),
+        "peak_speed_rad_s": s["speed"][i0].abs().max().item(),
+    }
     faults = {}
     for name, ref in REFERENCE_NRMSE.items():
         j = names.index(name)
         base = names.index("k6") if name == "k7" else i0
-        faults[name] = {"current": nrmse(cur[j], cur[base]).item(), "position": nrmse(pos[j], pos[base]).item(),
-                        "reference_current": ref[0], "reference_position": ref[1]}
-    return {"fidelity": fidelity, "elapsed_s": elapsed, "nominal": nominal, "reference_nominal": REFERENCE_NOMINAL,
-            "faults": faults}
+        faults[name] = {
+            "current": nrmse(cur[j], cur[base]).item(),
+            "position": nrmse(pos[j], pos[base]).item(),
+            "reference_current": ref[0],
+            "reference_position": ref[1],
+        }
+    return {
+        "fidelity": fidelity,
+        "elapsed_s": elapsed,
+        "nominal": nominal,
+        "reference_nominal": REFERENCE_NOMINAL,
+        "faults": faults,
+    }
 
 
 def main() -> None:

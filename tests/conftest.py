@@ -24,6 +24,7 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         if item.get_closest_marker("torchscript") is not None:
             item.add_marker(pytest.mark.filterwarnings(TORCHSCRIPT_DEPRECATION))
 
+
 REPO_ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -51,9 +52,10 @@ def compose() -> Callable[..., DictConfig]:
     from phm_torch.apps.common import keep_choices
 
     def _compose(config_name: str, overrides: Sequence[str] = ()) -> DictConfig:
-        with _hydra_context():   # the actuator/command choices kept, as under the command line
-            return keep_choices(hydra_compose(config_name=config_name, overrides=list(overrides),
-                                              return_hydra_config=True))
+        with _hydra_context():  # the actuator/command choices kept, as under the command line
+            return keep_choices(
+                hydra_compose(config_name=config_name, overrides=list(overrides), return_hydra_config=True)
+            )
 
     return _compose
 
@@ -79,8 +81,14 @@ def spawn_cli() -> Callable[..., subprocess.Popen]:
 
     def _spawn(module: str, overrides: Sequence[str], cwd: Path) -> subprocess.Popen:
         run_dir = Path(cwd) / "hydra" / str(next(counter))
-        return subprocess.Popen(_cli_command(module, overrides, run_dir), cwd=cwd, env=_cli_env(),
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        return subprocess.Popen(
+            _cli_command(module, overrides, run_dir),
+            cwd=cwd,
+            env=_cli_env(),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
 
     return _spawn
 
@@ -90,7 +98,14 @@ def run_cli(tmp_path: Path) -> Callable[..., subprocess.CompletedProcess]:
     """run_cli(module, *overrides) runs a Hydra app to completion in a subprocess with cwd = tmp_path."""
 
     def _run(module: str, *overrides: str, timeout: float = 120) -> subprocess.CompletedProcess:
-        return subprocess.run(_cli_command(module, overrides, tmp_path / "hydra"), cwd=tmp_path, env=_cli_env(),
-                              capture_output=True, text=True, timeout=timeout, check=False)
+        return subprocess.run(
+            _cli_command(module, overrides, tmp_path / "hydra"),
+            cwd=tmp_path,
+            env=_cli_env(),
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            check=False,
+        )
 
     return _run

@@ -13,16 +13,18 @@ import torch
 
 from phm_torch.data.store import ARRAYS, DATASET_FILE, MANIFEST_FILE, split_digests, write_json
 
-N_E = 801            # samples per synthetic record (the real records have 10001)
-RATE = 20000.0       # [Hz]
-N_LATENT = 10        # rank of the synthetic signal family
+N_E = 801  # samples per synthetic record (the real records have 10001)
+RATE = 20000.0  # [Hz]
+N_LATENT = 10  # rank of the synthetic signal family
 
 
 def basis(n_e: int = N_E, rank: int = N_LATENT) -> torch.Tensor:
     """(n_e, rank) smooth, localized shapes (chirp-like bursts), float64, orthonormalized."""
     t = torch.linspace(0.0, 1.0, n_e, dtype=torch.float64)
-    cols = [torch.sin(2 * math.pi * (i + 1) * t * (1 + t)) * torch.exp(-((t - (i + 0.5) / rank) / 0.25) ** 2)
-            for i in range(rank)]
+    cols = [
+        torch.sin(2 * math.pi * (i + 1) * t * (1 + t)) * torch.exp(-(((t - (i + 0.5) / rank) / 0.25) ** 2))
+        for i in range(rank)
+    ]
     q, _ = torch.linalg.qr(torch.stack(cols, 1))
     return q
 
@@ -55,8 +57,14 @@ def health(k: torch.Tensor) -> torch.Tensor:
     return score > 0.25
 
 
-def write_store(data_dir: Path, sizes: dict[str, int], seed: int = 0, noise: float = 0.0,
-                drop: dict[str, str] | None = None, n_time: int = N_E) -> Path:
+def write_store(
+    data_dir: Path,
+    sizes: dict[str, int],
+    seed: int = 0,
+    noise: float = 0.0,
+    drop: dict[str, str] | None = None,
+    n_time: int = N_E,
+) -> Path:
     """Write a finished store with the given splits. For bad stores: ``drop`` = {split: array} leaves
     that array out; ``n_time`` != N_E gives a time grid inconsistent with the records. Returns data_dir."""
     data_dir = Path(data_dir)
@@ -69,14 +77,30 @@ def write_store(data_dir: Path, sizes: dict[str, int], seed: int = 0, noise: flo
         for i, (name, n) in enumerate(sizes.items()):
             k = faults(n, seed + 17 * i)
             y = signals(k, noise, seed + i).numpy()
-            arrays = {"K": k.numpy(), "current": y, "position": np.zeros_like(y),
-                      "healthy": health(k).numpy().astype(np.uint8), "margins": np.zeros((n, 5))}
+            arrays = {
+                "K": k.numpy(),
+                "current": y,
+                "position": np.zeros_like(y),
+                "healthy": health(k).numpy().astype(np.uint8),
+                "margins": np.zeros((n, 5)),
+            }
             g = f.create_group(name)
             for a in ARRAYS:
                 if (drop or {}).get(name) != a:
                     g.create_dataset(a, data=arrays[a])
-            splits[name] = {"count": n, "healthy": int(arrays["healthy"].sum()),
-                            "sha256": split_digests(g) if not drop else {}}
-    write_json(data_dir / MANIFEST_FILE, {"format": 1, "fingerprint": f"test-{seed}", "splits": splits,
-                                          "arrays": list(ARRAYS), "signal_samples": n_time})
+            splits[name] = {
+                "count": n,
+                "healthy": int(arrays["healthy"].sum()),
+                "sha256": split_digests(g) if not drop else {},
+            }
+    write_json(
+        data_dir / MANIFEST_FILE,
+        {
+            "format": 1,
+            "fingerprint": f"test-{seed}",
+            "splits": splits,
+            "arrays": list(ARRAYS),
+            "signal_samples": n_time,
+        },
+    )
     return data_dir

@@ -41,8 +41,17 @@ def command():
 
 def test_a_different_class_of_actuator(hvdc, params):
     # Another bus, motor, gearbox and size than the reference, not a copy with one value changed.
-    for field in ("supply_voltage", "pole_pairs", "stator_slots", "gear_ratio", "user_inertia", "output_stiffness",
-                  "motor_inertia", "back_emf_constant", "current_limit"):
+    for field in (
+        "supply_voltage",
+        "pole_pairs",
+        "stator_slots",
+        "gear_ratio",
+        "user_inertia",
+        "output_stiffness",
+        "motor_inertia",
+        "back_emf_constant",
+        "current_limit",
+    ):
         assert getattr(hvdc, field) != getattr(params, field), field
 
 
@@ -56,7 +65,7 @@ def test_electrical_sizing_is_consistent(hvdc):
     # control Nyquist rate / 4 and well above the speed loop.
     assert p.current_integral_gain / p.current_gain == pytest.approx(p.phase_resistance / p.phase_inductance, rel=0.01)
     w_current = p.current_gain / (2 * p.phase_inductance)
-    w_speed = 2 * p.back_emf_constant * p.speed_gain / (p.motor_inertia + p.user_inertia / p.gear_ratio ** 2)
+    w_speed = 2 * p.back_emf_constant * p.speed_gain / (p.motor_inertia + p.user_inertia / p.gear_ratio**2)
     assert w_current < 2 * math.pi * p.pwm_frequency / 4 / 4
     assert 4 < w_current / w_speed < 10
     # Dry friction is a small fraction (< 2 %) of the peak motor torque.
@@ -107,20 +116,24 @@ def test_every_single_fault_is_stable(hvdc, measured):
     cases = single_fault_cases(hvdc.nominal_faults)
     names = list(cases)
     for name in names:
-        if name == "k2":      # the play at k2 = 1 exceeds the sweep amplitude: judged in time below
+        if name == "k2":  # the play at k2 = 1 exceeds the sweep amplitude: judged in time below
             assert hvdc.backlash * 100 > amp
             continue
         assert m[name]["phase_margin_deg"] > 0, name
         assert not m[name]["gain_margin_db"] <= 0, name
     # LF step of the command's amplitude: bounded and not growing for every case (k2 hunts, boundedly).
     step = 5e-3
-    sig = EMASimulator(hvdc, "lf").run(torch.tensor(list(cases.values()), dtype=torch.float64),
-                                       lambda t: torch.full_like(t, step), 0.2, channels=["position"])
+    sig = EMASimulator(hvdc, "lf").run(
+        torch.tensor(list(cases.values()), dtype=torch.float64),
+        lambda t: torch.full_like(t, step),
+        0.2,
+        channels=["position"],
+    )
     sm = step_metrics(sig.time, sig["position"], step, REQ)
     assert sm["stable"].all(), [n for n, s in zip(names, sm["stable"]) if not s]
     settled = [n for n in names if n != "k2"]
-    assert all(abs(float(sm["final_error"][names.index(n)])) < 0.01 for n in settled)   # within 1 % of the step
-    assert float(sm["residual"][names.index("k2")]) < 2 * hvdc.backlash * 100 / step   # hunting <~ the play
+    assert all(abs(float(sm["final_error"][names.index(n)])) < 0.01 for n in settled)  # within 1 % of the step
+    assert float(sm["residual"][names.index("k2")]) < 2 * hvdc.backlash * 100 / step  # hunting <~ the play
 
 
 def test_step_metrics_tell_growth_from_hunting_and_decay():
@@ -128,10 +141,10 @@ def test_step_metrics_tell_growth_from_hunting_and_decay():
     osc = torch.sin(2 * math.pi * 20 * t)
     pos = 1.0 + torch.stack([0.5 * torch.exp(-8 * t) * osc, 0.1 * osc, 0.01 * torch.exp(3 * t) * osc])
     sm = step_metrics(t, pos, 1.0, REQ)
-    assert sm["stable"].tolist() == [1.0, 1.0, 0.0]          # decaying, bounded hunting, diverging
+    assert sm["stable"].tolist() == [1.0, 1.0, 0.0]  # decaying, bounded hunting, diverging
     assert float(sm["growth"][1]) == pytest.approx(1.0, abs=0.01)
     assert float(sm["growth"][2]) == pytest.approx(math.exp(3 * 0.25), rel=0.05)
-    big = step_metrics(t, pos[:1] * 10, 1.0, REQ)             # beyond max_excursion x the step: unbounded
+    big = step_metrics(t, pos[:1] * 10, 1.0, REQ)  # beyond max_excursion x the step: unbounded
     assert big["bounded"].tolist() == [0.0]
 
 
@@ -140,8 +153,10 @@ def test_hf_and_lf_agree_on_the_nominal_test_command(hvdc, command):
     # ~20 s unloaded, over a minute on the shared machine: 15,000 HF periods of 10 substeps.
     torch.set_num_threads(1)
     k = torch.tensor([hvdc.nominal_faults], dtype=torch.float64)
-    out = {f: EMASimulator(hvdc, f).run(k, command, command.duration, channels=["current", "position"])
-           for f in ("hf", "lf")}
+    out = {
+        f: EMASimulator(hvdc, f).run(k, command, command.duration, channels=["current", "position"])
+        for f in ("hf", "lf")
+    }
     # measured: current 2.3 %, position 0.007 % of the HF range (the reference actuator: 1.9 %, 0.01 %)
     assert float(nrmse(out["lf"]["current"], out["hf"]["current"])) < 0.035
     assert float(nrmse(out["lf"]["position"], out["hf"]["position"])) < 5e-4

@@ -45,7 +45,7 @@ def _assessment(params, node, **sweep_changes) -> AssessmentFunction:
 def test_linear_loop_matches_datasheet(params):
     # ema_reference.md §1: crossover ~28 Hz, PM ~74 deg, GM ~10 dB (linear sampled-data analysis).
     lp = linear_loop(params)
-    assert np.abs(np.linalg.eigvals(lp.closed.A)).max() < 1.0       # stable closed loop
+    assert np.abs(np.linalg.eigvals(lp.closed.A)).max() < 1.0  # stable closed loop
     m = _margins(FINE, *lp.response(FINE))
     assert m["crossover_hz"] == pytest.approx(28.0, abs=1.0)
     assert m["phase_margin_deg"] == pytest.approx(74.0, abs=2.0)
@@ -68,25 +68,26 @@ def test_margin_interpolation_on_the_shipped_grid(params, shipped):
 
 def test_margin_conventions():
     f = torch.tensor([1.0, 10.0, 100.0])
-    never = torch.tensor([[0.5 + 0j, 0.4 + 0j, 0.3 + 0j]])            # |L| < 1 everywhere, phase 0
-    t_high = torch.tensor([[1.0 + 0j, 0.9 + 0j, 0.8 + 0j]])           # |T| never below -3 dB
+    never = torch.tensor([[0.5 + 0j, 0.4 + 0j, 0.3 + 0j]])  # |L| < 1 everywhere, phase 0
+    t_high = torch.tensor([[1.0 + 0j, 0.9 + 0j, 0.8 + 0j]])  # |T| never below -3 dB
     m = margins(f, never, t_high)
     assert math.isnan(float(m.crossover_hz[0])) and math.isnan(float(m.gain_margin_db[0]))
     assert math.isinf(float(m.bandwidth_hz[0]))
-    t_low = torch.tensor([[0.5 + 0j, 0.4 + 0j, 0.3 + 0j]])            # already below at the first point
+    t_low = torch.tensor([[0.5 + 0j, 0.4 + 0j, 0.3 + 0j]])  # already below at the first point
     assert math.isnan(float(margins(f, never, t_low).bandwidth_hz[0]))
     ph = torch.tensor([-90.0, -170.0, -190.0]) * math.pi / 180
     loop = torch.polar(torch.tensor([2.0, 0.5, 0.25]), ph)[None]
     m = margins(f, loop, t_high)
-    assert float(m.crossover_hz[0]) == pytest.approx(10 ** (1 / 2), rel=1e-6)   # |L| dB falls 6 -> -6 over a decade
-    assert float(m.phase_crossover_hz[0]) == pytest.approx(10 ** 1.5, rel=1e-6)
+    assert float(m.crossover_hz[0]) == pytest.approx(10 ** (1 / 2), rel=1e-6)  # |L| dB falls 6 -> -6 over a decade
+    assert float(m.phase_crossover_hz[0]) == pytest.approx(10**1.5, rel=1e-6)
     assert float(m.gain_margin_db[0]) == pytest.approx(-20 * math.log10(math.sqrt(0.5 * 0.25)), abs=1e-5)
 
 
 def _linear_transmission(state, plant):
     n = plant.gear_ratio
-    return plant.output_stiffness * (state.theta_m / n - state.theta_u) + \
-        plant.output_damping * (state.omega_m / n - state.omega_u)
+    return plant.output_stiffness * (state.theta_m / n - state.theta_u) + plant.output_damping * (
+        state.omega_m / n - state.omega_u
+    )
 
 
 def test_measurement_recovers_the_linear_loop(params, monkeypatch):
@@ -100,8 +101,8 @@ def test_measurement_recovers_the_linear_loop(params, monkeypatch):
     l_ref, t_ref = linear_loop(params).response(fr.frequencies.numpy())
     gain_err = 20 * np.log10(np.abs(r.open_loop[0].numpy()) / np.abs(l_ref))
     phase_err = np.degrees(np.angle(r.open_loop[0].numpy() / l_ref))
-    assert np.abs(gain_err).max() < 0.3           # dB
-    assert np.abs(phase_err).max() < 2.5          # deg (semi-implicit mechanics at 100 us)
+    assert np.abs(gain_err).max() < 0.3  # dB
+    assert np.abs(phase_err).max() < 2.5  # deg (semi-implicit mechanics at 100 us)
     assert np.abs(r.closed_loop[0].numpy() - t_ref).max() < 0.04
 
 
@@ -124,28 +125,43 @@ def test_nominal_against_linear_analysis_and_labels(params, shipped):
     m = res.margins
     assert float(m.gain_margin_db[0]) >= 6.0 + 2.0 and float(m.phase_margin_deg[0]) >= 45.0 + 20.0
     assert float(m.gain_margin_db[1]) < 6.0
-    assert not float(m.bandwidth_hz[2]) >= 0.9 * af.nominal_bandwidth_hz   # nan: below -3 dB already at 12 Hz
+    assert not float(m.bandwidth_hz[2]) >= 0.9 * af.nominal_bandwidth_hz  # nan: below -3 dB already at 12 Hz
     assert af.vectors == 4 and af.wall_s > 0
 
 
-@pytest.mark.parametrize("change, field", [
-    ({"amplitude": 0.0}, "assessment.sweep.amplitude"),
-    ({"frequencies": (10.0, 5.0)}, "assessment.sweep.frequencies"),
-    ({"cycles": 2, "measure_cycles": 2}, "assessment.sweep.cycles"),
-    ({"group_size": 0}, "assessment.sweep.group_size"),
-])
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        ({"amplitude": 0.0}, "assessment.sweep.amplitude"),
+        ({"frequencies": (10.0, 5.0)}, "assessment.sweep.frequencies"),
+        ({"cycles": 2, "measure_cycles": 2}, "assessment.sweep.cycles"),
+        ({"group_size": 0}, "assessment.sweep.group_size"),
+    ],
+)
 def test_bad_sweep(change, field):
-    args = {"frequencies": (10.0, 20.0), "amplitude": 1e-4, "cycles": 4, "measure_cycles": 2,
-            "min_duration": 0.0, "substeps": 1, "group_size": 2, "compile": False, **change}
+    args = {
+        "frequencies": (10.0, 20.0),
+        "amplitude": 1e-4,
+        "cycles": 4,
+        "measure_cycles": 2,
+        "min_duration": 0.0,
+        "substeps": 1,
+        "group_size": 2,
+        "compile": False,
+        **change,
+    }
     with pytest.raises(ValueError, match=field):
         SineSweep(**args)
 
 
-@pytest.mark.parametrize("change, field", [
-    ({"bandwidth_fraction": 1.5}, "bandwidth_fraction"),
-    ({"phase_margin_deg": float("nan")}, "phase_margin_deg"),
-    ({"gain_margin_db": -1.0}, "gain_margin_db"),
-])
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        ({"bandwidth_fraction": 1.5}, "bandwidth_fraction"),
+        ({"phase_margin_deg": float("nan")}, "phase_margin_deg"),
+        ({"gain_margin_db": -1.0}, "gain_margin_db"),
+    ],
+)
 def test_bad_requirements(change, field):
     with pytest.raises(ValueError, match=f"assessment.requirements.{field}"):
         HealthRequirements(**{"phase_margin_deg": 45.0, "gain_margin_db": 6.0, "bandwidth_fraction": 0.9, **change})
@@ -164,8 +180,10 @@ def test_healthy_fraction_of_the_importance_sampled_set(params, shipped):
 
 # -- the sweep derived from the actuator (frequencies: auto, amplitude: auto) ----------------------------------
 
-@pytest.mark.parametrize("changes", [{}, {"gear_ratio": 400.0}, {"user_inertia": 0.8},
-                                     {"gear_ratio": 100.0, "supply_voltage": 56.0}])
+
+@pytest.mark.parametrize(
+    "changes", [{}, {"gear_ratio": 400.0}, {"user_inertia": 0.8}, {"gear_ratio": 100.0, "supply_voltage": 56.0}]
+)
 def test_derived_grid_brackets_the_loop(params, changes):
     # The grid spans the linear loop's crossover, phase crossover and -3 dB bandwidth with margin on both
     # sides, for the reference and for actuators whose crossovers move by ~2x.
@@ -176,8 +194,8 @@ def test_derived_grid_brackets_the_loop(params, changes):
     lo = min(m["crossover_hz"], m["phase_crossover_hz"], m["bandwidth_hz"])
     hi = max(m["crossover_hz"], m["phase_crossover_hz"], m["bandwidth_hz"])
     assert f[0] <= lo / 2.0 and f[-1] >= hi * 1.5
-    assert np.all(np.diff(np.log10(f)) <= 1 / 12 + 1e-3)          # 12 points per decade or denser
-    coarse = _margins(f, *linear_loop(p).response(f))               # and the coarse grid measures the loop
+    assert np.all(np.diff(np.log10(f)) <= 1 / 12 + 1e-3)  # 12 points per decade or denser
+    coarse = _margins(f, *linear_loop(p).response(f))  # and the coarse grid measures the loop
     assert coarse["crossover_hz"] == pytest.approx(m["crossover_hz"], rel=0.02)
     assert coarse["phase_crossover_hz"] == pytest.approx(m["phase_crossover_hz"], rel=0.02)
 
@@ -201,7 +219,9 @@ def test_derived_sweep_of_the_reference(params):
     # The reference actuator gets back the hand-tuned sweep: 12..160 Hz (14 points then, 15 now), and the
     # amplitude 4 x T_s / (2 k_e K_w K_pos) = 7.96e-5 rad (8e-5 then), friction the active bound.
     sweep = instantiate_sweep().resolve(params)
-    assert sweep.frequencies[0] == pytest.approx(12.0, rel=0.02) and sweep.frequencies[-1] == pytest.approx(160, rel=0.02)
+    assert sweep.frequencies[0] == pytest.approx(12.0, rel=0.02) and sweep.frequencies[-1] == pytest.approx(
+        160, rel=0.02
+    )
     assert len(sweep.frequencies) == 15
     expected = 4 * params.static_friction / (2 * params.back_emf_constant * params.speed_gain * params.position_gain)
     assert sweep.amplitude == pytest.approx(expected, rel=1e-3) and sweep.amplitude == pytest.approx(8e-5, rel=0.01)
@@ -228,26 +248,44 @@ def test_unmeasurable_counts():
     assert unmeasurable_counts(m) == {"phase_margin": 2, "gain_margin": 2, "bandwidth": 1}
     req = HealthRequirements(45.0, 6.0, 0.9)
     from phm_torch.assessment import Margins
+
     healthy = req.healthy(Margins(*torch.as_tensor(m).T), 70.0)
     assert healthy.tolist() == [True, False, False, False]
 
 
-@pytest.mark.parametrize("change, field", [
-    ({"frequencies": "sometimes"}, "assessment.sweep.frequencies"),
-    ({"amplitude": "big"}, "assessment.sweep.amplitude"),
-])
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        ({"frequencies": "sometimes"}, "assessment.sweep.frequencies"),
+        ({"amplitude": "big"}, "assessment.sweep.amplitude"),
+    ],
+)
 def test_bad_auto_sweep(change, field):
-    args = {"frequencies": "auto", "amplitude": "auto", "cycles": 4, "measure_cycles": 2, "min_duration": 0.0,
-            "substeps": 1, "group_size": 2, "compile": False, **change}
+    args = {
+        "frequencies": "auto",
+        "amplitude": "auto",
+        "cycles": 4,
+        "measure_cycles": 2,
+        "min_duration": 0.0,
+        "substeps": 1,
+        "group_size": 2,
+        "compile": False,
+        **change,
+    }
     with pytest.raises(ValueError, match=field):
         SineSweep(**args)
 
 
-@pytest.mark.parametrize("change, field", [
-    ({"low_margin": 1.0}, "low_margin"), ({"high_margin": float("nan")}, "high_margin"),
-    ({"points_per_decade": 1}, "points_per_decade"), ({"stroke_fraction": 0.0}, "stroke_fraction"),
-    ({"friction_factor": -1.0}, "friction_factor"),
-])
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        ({"low_margin": 1.0}, "low_margin"),
+        ({"high_margin": float("nan")}, "high_margin"),
+        ({"points_per_decade": 1}, "points_per_decade"),
+        ({"stroke_fraction": 0.0}, "stroke_fraction"),
+        ({"friction_factor": -1.0}, "friction_factor"),
+    ],
+)
 def test_bad_sweep_design(change, field):
     with pytest.raises(ValueError, match=f"assessment.sweep.design.{field}"):
         SweepDesign(**change)

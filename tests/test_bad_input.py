@@ -15,20 +15,24 @@ P = load_actuator()
 NOM = list(P.nominal_faults)
 
 
-@pytest.mark.parametrize("faults,match", [
-    ([1.2] + NOM[1:], r"faults\[0\]\[0\] \(dry_friction\) = 1\.2"),
-    (NOM[:7] + [-0.1], r"faults\[0\]\[7\] \(gain_drift\) = -0\.1"),
-    (NOM[:3] + [math.nan] + NOM[4:], r"faults\[0\]\[3\] \(short_b\) is not finite"),
-    (NOM[:7], r"shape \(8,\) or \(B, 8\), got \(1, 7\)"),
-    ([[NOM]], r"shape"),
-])
+@pytest.mark.parametrize(
+    "faults,match",
+    [
+        ([1.2] + NOM[1:], r"faults\[0\]\[0\] \(dry_friction\) = 1\.2"),
+        (NOM[:7] + [-0.1], r"faults\[0\]\[7\] \(gain_drift\) = -0\.1"),
+        (NOM[:3] + [math.nan] + NOM[4:], r"faults\[0\]\[3\] \(short_b\) is not finite"),
+        (NOM[:7], r"shape \(8,\) or \(B, 8\), got \(1, 7\)"),
+        ([[NOM]], r"shape"),
+    ],
+)
 def test_bad_fault_vectors(faults, match):
     with pytest.raises(ValueError, match=match):
         EMASimulator(P, "lf").run(torch.tensor(faults), Chirp(), 0.01)
 
 
-@pytest.mark.parametrize("field,value", [("phase_resistance", -0.7), ("motor_inertia", 0.0),
-                                         ("gear_ratio", math.nan), ("backlash", -1e-6)])
+@pytest.mark.parametrize(
+    "field,value", [("phase_resistance", -0.7), ("motor_inertia", 0.0), ("gear_ratio", math.nan), ("backlash", -1e-6)]
+)
 def test_non_positive_physical_parameter(field, value):
     with pytest.raises(ValueError, match=f"actuator.{field}"):
         load_actuator(**{field: value})

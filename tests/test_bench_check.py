@@ -13,7 +13,7 @@ from phm_torch.online.corruptions import Record
 from phm_torch.online.diagnosis import diagnose
 from phm_torch.online.input_contract import InputContract
 
-pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
 PIPELINE = Path(__file__).resolve().parents[1] / "pretrained" / "online_surrogates_best.pt"
 
@@ -27,7 +27,7 @@ def model():
 def test_the_training_models_own_healthy_record_passes_and_a_distorted_one_does_not(model):
     nominal = model.nominal_record.double()
     own = check_bench(model, nominal)
-    assert own.ok and own.healthy and own.max_deviation < 3.0          # nominal within its intervals
+    assert own.ok and own.healthy and own.max_deviation < 3.0  # nominal within its intervals
     assert set(own.as_dict()["deviation_half_widths"]) == set(own.as_dict()["k_hat"]) - {"eccentricity_phase"}
     # a bench whose current is 25 % larger at rest and in motion: a different motor, not a baseline offset
     other = check_bench(model, 1.25 * nominal)

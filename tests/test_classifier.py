@@ -9,7 +9,7 @@ from surrogate_data import faults, health
 from phm_torch.surrogates import CLASSIFIERS, PolynomialSVM, build_classifier, confusion
 from phm_torch.surrogates.classifiers.polynomial_svm import monomial_map
 
-pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
 
 @pytest.mark.parametrize("degree,gamma,coef0", [(3, 0.125, 1.0), (2, 0.7, 0.3), (4, 1.0, 0.0)])
@@ -57,7 +57,7 @@ def test_balanced_weights_reduce_missed_faults(split):
     k, h, kv, hv = split
     plain = confusion(PolynomialSVM(C=0.1).fit(k, h).predict(kv), hv)
     bal = confusion(PolynomialSVM(C=0.1, class_weight="balanced").fit(k, h).predict(kv), hv)
-    assert bal["false_alarm_rate"] <= plain["false_alarm_rate"]   # the healthy minority gets more weight
+    assert bal["false_alarm_rate"] <= plain["false_alarm_rate"]  # the healthy minority gets more weight
 
 
 def test_confusion_rates():

@@ -16,7 +16,7 @@ from phm_torch.surrogates.classifiers import CLASSIFIERS, RBFSVM, MLPClassifier,
 from phm_torch.surrogates.classifiers.base import WARP_EPS, warp_inputs
 from phm_torch.surrogates.classifiers.polynomial_svm import monomial_map
 
-pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
 SMALL = {"hidden": [32, 32], "epochs": 40, "batch_size": 128, "lr": 3e-3}
 
@@ -69,8 +69,9 @@ def test_sqrt_warp_linearises_a_sqrt_boundary():
     assert warped >= 0.98 and raw <= 0.95
     assert confusion(rbf.predict(kv), hv)["accuracy"] >= 0.97
     x = torch.tensor([[0.0, 0.25, 1.0, -1.0, 0, 0, 0, 0]], dtype=torch.float64)
-    torch.testing.assert_close(warp_inputs(x, "sqrt")[0, :4],
-                               torch.tensor([0.0, 0.25, 1.0, 0.0], dtype=torch.float64).add(WARP_EPS).sqrt())
+    torch.testing.assert_close(
+        warp_inputs(x, "sqrt")[0, :4], torch.tensor([0.0, 0.25, 1.0, 0.0], dtype=torch.float64).add(WARP_EPS).sqrt()
+    )
     assert warp_inputs(x, "none") is x
 
 
@@ -82,10 +83,15 @@ def test_mlp_fit_is_deterministic(split, mlp):
     assert not torch.equal(other.flat_weights, mlp.flat_weights)
 
 
-@pytest.mark.parametrize("make", [lambda: MLPClassifier(**{**SMALL, "dtype": "float64"}),
-                                  lambda: PolynomialSVM(C=100.0, warp="sqrt"),
-                                  lambda: RBFSVM(n_landmarks=100, C=100.0, warp="sqrt")],
-                         ids=["mlp", "poly_svm", "rbf_svm"])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda: MLPClassifier(**{**SMALL, "dtype": "float64"}),
+        lambda: PolynomialSVM(C=100.0, warp="sqrt"),
+        lambda: RBFSVM(n_landmarks=100, C=100.0, warp="sqrt"),
+    ],
+    ids=["mlp", "poly_svm", "rbf_svm"],
+)
 def test_sqrt_warped_score_is_differentiable_at_zero(make, split):
     k, h, kv, _ = split
     clf = make().fit(k, h)
@@ -102,7 +108,7 @@ def test_sqrt_warped_score_is_differentiable_at_zero(make, split):
 def test_mlp_dtypes(split, mlp):
     _, _, kv, _ = split
     assert mlp.flat_weights.dtype == torch.float32
-    torch.testing.assert_close(mlp(kv.float()), mlp(kv))                 # inputs are cast to float32
+    torch.testing.assert_close(mlp(kv.float()), mlp(kv))  # inputs are cast to float32
     double = MLPClassifier(**SMALL)
     double.load_state_dict(mlp.state_dict())
     double = double.double()
@@ -120,10 +126,19 @@ def test_mlp_scripts_alone_and_inside_the_online_pipeline(mlp, split):
     mean = 1.0 + 0.5 * torch.sin(9 * t)
     gappy = GappyPOD(modes, mean, torch.linspace(0, n_full - 1, 12).round().long())
     f = torch.diag(torch.tensor([5e-4] * 6 + [0.0, 3e-4], dtype=torch.float64))
-    damage = DamageModel(f.tolist(), [1e-6] * 6 + [0.0, 1e-6], 100.0, 20000.0, 50.0,
-                         list(load_actuator().nominal_faults))
-    pipe = OnlinePipeline(gappy, FDIMLP(n_modes, 6).double(), mlp, damage, torch.tensor([0.02, 0.0, -0.02]),
-                          torch.tensor([1.0] * 6 + [0.0, 1.0]), n_full, residual_threshold=0.05).eval()
+    damage = DamageModel(
+        f.tolist(), [1e-6] * 6 + [0.0, 1e-6], 100.0, 20000.0, 50.0, list(load_actuator().nominal_faults)
+    )
+    pipe = OnlinePipeline(
+        gappy,
+        FDIMLP(n_modes, 6).double(),
+        mlp,
+        damage,
+        torch.tensor([0.02, 0.0, -0.02]),
+        torch.tensor([1.0] * 6 + [0.0, 1.0]),
+        n_full,
+        residual_threshold=0.05,
+    ).eval()
     x = mean + torch.randn(5, n_modes, generator=torch.Generator().manual_seed(0), dtype=torch.float64) @ modes.T
     for a, b in zip(torch.jit.script(pipe)(x), pipe(x)):
         torch.testing.assert_close(a, b, equal_nan=True)
@@ -131,7 +146,7 @@ def test_mlp_scripts_alone_and_inside_the_online_pipeline(mlp, split):
 
 def test_mlp_round_trips_through_the_bundle(tmp_path, split):
     k, h, kv, _ = split
-    clf = MLPClassifier(epochs=2, seed=3).fit(k, h).calibrate(k, h, 0.01)      # default layout, moved threshold
+    clf = MLPClassifier(epochs=2, seed=3).fit(k, h).calibrate(k, h, 0.01)  # default layout, moved threshold
     snapshots = torch.randn(30, 50, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     pod = POD(3).fit(snapshots)
     bundle = SurrogateBundle(pod, torch.arange(0, 50, 10), FDIMLP(3, 5), clf, 20000.0)
@@ -140,7 +155,7 @@ def test_mlp_round_trips_through_the_bundle(tmp_path, split):
     assert torch.equal(back.health_score(kv), bundle.health_score(kv))
     assert torch.equal(back.is_healthy(kv), bundle.is_healthy(kv))
     assert float(back.classifier.threshold) == float(clf.threshold)
-    twin = build_classifier("mlp", **clf.get_params())                      # the registry path alone
+    twin = build_classifier("mlp", **clf.get_params())  # the registry path alone
     for name, value in clf.state_dict().items():
         setattr(twin, name, value)
     assert torch.equal(twin(kv), clf(kv))
@@ -157,10 +172,24 @@ def test_calibrate_trades_missed_faults_for_false_alarms(split):
     assert after["false_alarm_rate"] >= before["false_alarm_rate"]
 
 
-@pytest.mark.parametrize("field,value", [("hidden", []), ("hidden", [16, 0]), ("hidden", "128"), ("hidden", [True]),
-                                         ("warp", "log"), ("epochs", 0), ("batch_size", 1.5), ("lr", 0.0),
-                                         ("weight_decay", -1e-4), ("schedule", "step"), ("class_weight", "auto"),
-                                         ("seed", "zero"), ("dtype", "float16")])
+@pytest.mark.parametrize(
+    "field,value",
+    [
+        ("hidden", []),
+        ("hidden", [16, 0]),
+        ("hidden", "128"),
+        ("hidden", [True]),
+        ("warp", "log"),
+        ("epochs", 0),
+        ("batch_size", 1.5),
+        ("lr", 0.0),
+        ("weight_decay", -1e-4),
+        ("schedule", "step"),
+        ("class_weight", "auto"),
+        ("seed", "zero"),
+        ("dtype", "float16"),
+    ],
+)
 def test_mlp_bad_args_name_the_field(field, value):
     with pytest.raises(ValueError, match=f"classifier.{field}"):
         MLPClassifier(**{field: value})
@@ -180,8 +209,16 @@ def test_bad_warp_and_training_set():
 
 # Scores of PolynomialSVM(C=100) fitted on faults(1500, 0) ** 2, health(...) at faults(8, 1), computed with the
 # code before the warp was introduced.
-BEFORE_WARP = [8.92975394899765, -1.3344709662231473, -12.921276825829612, -4.542713950628663, -17.675366618923817,
-               10.879284512196353, 6.363403245376157, -9.818075583622875]
+BEFORE_WARP = [
+    8.92975394899765,
+    -1.3344709662231473,
+    -12.921276825829612,
+    -4.542713950628663,
+    -17.675366618923817,
+    10.879284512196353,
+    6.363403245376157,
+    -9.818075583622875,
+]
 
 
 def test_poly_svm_without_warp_is_unchanged():

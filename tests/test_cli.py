@@ -57,11 +57,11 @@ def test_cli_writes_csv_png_and_metrics(cli, clean):
     csv = cwd / "noisy_a.csv"
     assert csv.read_text().splitlines()[0].split(",") == LF_COLUMNS
     m = read_measurement(csv, expected_rate=20000.0)
-    assert len(m) == 1001                                   # 0.05 s at 20 kHz, both ends
+    assert len(m) == 1001  # 0.05 s at 20 kHz, both ends
     assert m.time[-1] == pytest.approx(0.05)
     assert (cwd / "noisy_a.png").stat().st_size > 10_000
-    metrics = json.loads(run.stdout[run.stdout.index("{"):])
-    err = clean["command"] - clean["position"]              # metrics describe the noise-free simulation
+    metrics = json.loads(run.stdout[run.stdout.index("{") :])
+    err = clean["command"] - clean["position"]  # metrics describe the noise-free simulation
     assert metrics["tracking_error_rms"] == pytest.approx(float(np.sqrt(np.mean(err**2))), rel=1e-9)
     assert metrics["peak_current"] == pytest.approx(float(np.abs(clean["current"]).max()), rel=1e-9)
     assert metrics["samples"] == 1001 and metrics["fidelity"] == "lf" and metrics["seed"] == 7
@@ -76,13 +76,18 @@ def test_cli_seed_reproducible_with_noise(cli, clean):
     for name in ("current", "position", "command", "speed"):
         np.testing.assert_array_equal(a[name], b[name])
     np.testing.assert_array_equal(a.command, clean["command"])
-    np.testing.assert_array_equal(a["speed"], clean["speed"])      # noise only on current and position
+    np.testing.assert_array_equal(a["speed"], clean["speed"])  # noise only on current and position
     assert np.std(a.current - clean["current"]) == pytest.approx(0.05, rel=0.15)
     assert np.std(a.position - clean["position"]) == pytest.approx(1e-5, rel=0.15)
 
 
-@pytest.mark.parametrize(("name", "field"), [("bad_fault", "faults[2] (k3, short_a) = 1.5 is outside [0, 1]"),
-                                             ("bad_effect", "effects: unknown effect 'no_such_effect'")])
+@pytest.mark.parametrize(
+    ("name", "field"),
+    [
+        ("bad_fault", "faults[2] (k3, short_a) = 1.5 is outside [0, 1]"),
+        ("bad_effect", "effects: unknown effect 'no_such_effect'"),
+    ],
+)
 def test_cli_bad_input_exits_nonzero_with_message(cli, name, field):
     cwd, runs = cli
     run = runs[name]
@@ -109,29 +114,33 @@ def test_effects_and_seed_change_output(compose, tmp_path):
     _, s1 = simulate_to_csv(compose("simulate", [*base, "seed=1", f"out={tmp_path / 'a.csv'}"]))
     _, s2 = simulate_to_csv(compose("simulate", [*base, "seed=2", f"out={tmp_path / 'b.csv'}"]))
     assert not np.array_equal(s1["channels"]["current"], s2["channels"]["current"])
-    np.testing.assert_array_equal(s1["signals"]["current"], s2["signals"]["current"])   # noise-free part
-    metrics, s3 = simulate_to_csv(compose("simulate", [*base, "seed=1", "+effects.stribeck_friction={}",
-                                                       f"out={tmp_path / 'c.csv'}"]))
+    np.testing.assert_array_equal(s1["signals"]["current"], s2["signals"]["current"])  # noise-free part
+    metrics, s3 = simulate_to_csv(
+        compose("simulate", [*base, "seed=1", "+effects.stribeck_friction={}", f"out={tmp_path / 'c.csv'}"])
+    )
     assert metrics["effects"] == ["stribeck_friction"]
     assert len(s3["signals"].meta["effects"]) == 1
 
 
-@pytest.mark.parametrize(("overrides", "message"), [
-    (["faults=[0,0,0]"], "faults must have 8 entries"),
-    (["faults=[nan,0,0,0,0,0,0.5,0.5]"], "faults[0] (k1, dry_friction) is not finite"),
-    (["faults=[0,0,0,0,0,0,0.5,-0.1]"], "faults[7] (k8, gain_drift) = -0.1 is outside [0, 1]"),
-    (["faults=[0,0,0,0,0,0,0.5,x]"], "faults[7] (k8, gain_drift) must be a number"),
-    (["noise.position=-1e-5"], "noise.position must be >= 0"),
-    (["noise.current=abc"], "noise.current must be a number"),
-    (["+effects.no_such_effect={}"], "effects: unknown effect 'no_such_effect'"),
-    (["+effects.stribeck_friction=3"], "effects.stribeck_friction must be a mapping"),
-    (["fidelity=mf"], "fidelity must be one of"),
-    (["seed=-1"], "seed must be >= 0"),
-    (["seed=1.5"], "seed must be an integer"),
-    (["command.amplitude=-1"], "command: command.amplitude must be > 0"),
-    (["out=result.txt"], "out must end in .csv"),
-    (["actuator.phase_resistance=-1"], "actuator.phase_resistance must be > 0"),
-])
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["faults=[0,0,0]"], "faults must have 8 entries"),
+        (["faults=[nan,0,0,0,0,0,0.5,0.5]"], "faults[0] (k1, dry_friction) is not finite"),
+        (["faults=[0,0,0,0,0,0,0.5,-0.1]"], "faults[7] (k8, gain_drift) = -0.1 is outside [0, 1]"),
+        (["faults=[0,0,0,0,0,0,0.5,x]"], "faults[7] (k8, gain_drift) must be a number"),
+        (["noise.position=-1e-5"], "noise.position must be >= 0"),
+        (["noise.current=abc"], "noise.current must be a number"),
+        (["+effects.no_such_effect={}"], "effects: unknown effect 'no_such_effect'"),
+        (["+effects.stribeck_friction=3"], "effects.stribeck_friction must be a mapping"),
+        (["fidelity=mf"], "fidelity must be one of"),
+        (["seed=-1"], "seed must be >= 0"),
+        (["seed=1.5"], "seed must be an integer"),
+        (["command.amplitude=-1"], "command: command.amplitude must be > 0"),
+        (["out=result.txt"], "out must end in .csv"),
+        (["actuator.phase_resistance=-1"], "actuator.phase_resistance must be > 0"),
+    ],
+)
 def test_bad_config_names_the_field(compose, tmp_path, overrides, message):
     out = [f"out={tmp_path / 'x.csv'}"] if not any(o.startswith("out=") for o in overrides) else []
     cfg = compose("simulate", ["fidelity=lf", "command.duration=0.01", *out, *overrides])
@@ -148,7 +157,7 @@ def test_run_job_tiny(compose, tmp_path):
     metrics, objects = run_cases(cfg)
     names = list(cfg.cases)
     assert objects["names"] == ["nominal", *names] and len(names) == 8
-    assert objects["signals"].channels["current"].shape == (9, 401)       # one batched call
+    assert objects["signals"].channels["current"].shape == (9, 401)  # one batched call
     saved = json.loads((out / "metrics.json").read_text())
     assert saved == json.loads(json.dumps(metrics))
     assert list(saved["cases"]) == names and "nominal_faults" not in saved
@@ -162,28 +171,49 @@ def test_run_job_tiny(compose, tmp_path):
 
 
 def test_run_job_custom_cases(compose, tmp_path):
-    cfg = compose("cases", ["fidelity=lf", "command.duration=0.01", f"out_dir={tmp_path}", "plot=false",
-                          "~cases", "+cases={heavy: {k1: 1.0, k2: 1.0}, full: [0,0,0,0.2,0,0,0.5,0.5]}"])
+    cfg = compose(
+        "cases",
+        [
+            "fidelity=lf",
+            "command.duration=0.01",
+            f"out_dir={tmp_path}",
+            "plot=false",
+            "~cases",
+            "+cases={heavy: {k1: 1.0, k2: 1.0}, full: [0,0,0,0.2,0,0,0.5,0.5]}",
+        ],
+    )
     metrics, _ = run_cases(cfg)
     assert list(metrics["cases"]) == ["heavy", "full"]
     assert metrics["cases"]["heavy"]["faults"] == [1.0, 1.0, 0, 0, 0, 0, 0.5, 0.5]
     assert metrics["cases"]["full"]["faults"][3] == 0.2
     assert metrics["cases"]["heavy"]["nrmse_current"] > 0
     assert not list(tmp_path.glob("*.png"))
-    cfg = compose("cases", ["fidelity=lf", "command.duration=0.01", f"out_dir={tmp_path / 'sub'}", "plot=false",
-                          "only=[k8_gain_drift,k2_backlash]", "+cases.extra={k1: 0.1}"])
+    cfg = compose(
+        "cases",
+        [
+            "fidelity=lf",
+            "command.duration=0.01",
+            f"out_dir={tmp_path / 'sub'}",
+            "plot=false",
+            "only=[k8_gain_drift,k2_backlash]",
+            "+cases.extra={k1: 0.1}",
+        ],
+    )
     metrics, _ = run_cases(cfg)
     assert list(metrics["cases"]) == ["k2_backlash", "k8_gain_drift"]
 
 
-@pytest.mark.parametrize(("cases", "message"), [
-    ({"nominal": {"k1": 0.5}}, "invalid case name 'nominal'"),
-    ({"a/b": {"k1": 0.5}}, "invalid case name 'a/b'"),
-    ({"c": {"k9": 0.5}}, "cases.c: unknown fault 'k9'"),
-    ({"c": {"k2": 1.5}}, "cases.c[1] (k2, backlash) = 1.5 is outside [0, 1]"),
-    ({"c": [0, 0]}, "cases.c must have 8 entries"),
-    ({"c": {}}, "cases.c must be a non-empty mapping"),
-])
+@pytest.mark.parametrize(
+    ("cases", "message"),
+    [
+        ({"nominal": {"k1": 0.5}}, "invalid case name 'nominal'"),
+        ({"a/b": {"k1": 0.5}}, "invalid case name 'a/b'"),
+        ({"c": {"k9": 0.5}}, "cases.c: unknown fault 'k9'"),
+        ({"c": {"k2": 1.5}}, "cases.c[1] (k2, backlash) = 1.5 is outside [0, 1]"),
+        ({"c": [0, 0]}, "cases.c must have 8 entries"),
+        ({"c": {}}, "cases.c must be a non-empty mapping"),
+    ],
+)
 def test_run_cases_validation(cases, message):
     with pytest.raises(ValueError) as info:
         parse_cases(cases, [0, 0, 0, 0, 0, 0, 0.5, 0.5])

@@ -19,7 +19,7 @@ from phm_torch.apps.predict import predict
 from phm_torch.online.corruptions import CORRUPTIONS, Record, corrupt
 from phm_torch.online.input_contract import PIPELINE_CHECKS, pipeline_reasons
 
-pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "corruption_suite.py"
@@ -29,11 +29,39 @@ PIPELINE = ROOT / "pretrained" / "online_surrogates_best.pt"
 # docs/prognostics.md has the severities). The FDI reads the current's size, timing and baseline: what the cheap checks cannot tell
 # from a fault. Both lists must change with the checks, never silently.
 BLIND_SPOTS = {
-    "full": ["clock_error", "coloured_noise", "current_gain", "current_lag", "current_offset", "current_reversal",
-             "decimate_hold", "drift", "dropout_burst", "hum", "spikes", "stuck", "trigger_offset", "zero_burst"],
-    "current_only": ["clock_error", "coloured_noise", "current_gain", "current_lag", "current_offset",
-                     "current_reversal", "decimate_hold", "drift", "dropout_burst", "hum", "spikes", "stuck",
-                     "time_reversal", "trigger_offset", "zero_burst"],
+    "full": [
+        "clock_error",
+        "coloured_noise",
+        "current_gain",
+        "current_lag",
+        "current_offset",
+        "current_reversal",
+        "decimate_hold",
+        "drift",
+        "dropout_burst",
+        "hum",
+        "spikes",
+        "stuck",
+        "trigger_offset",
+        "zero_burst",
+    ],
+    "current_only": [
+        "clock_error",
+        "coloured_noise",
+        "current_gain",
+        "current_lag",
+        "current_offset",
+        "current_reversal",
+        "decimate_hold",
+        "drift",
+        "dropout_burst",
+        "hum",
+        "spikes",
+        "stuck",
+        "time_reversal",
+        "trigger_offset",
+        "zero_burst",
+    ],
 }
 
 
@@ -50,7 +78,7 @@ def suite():
     cs = _suite()
     model = torch.jit.load(str(PIPELINE))
     cases, _ = cs.suite_records(model, PIPELINE, simulated=False)
-    return cs, model, cases[:2]           # nominal (healthy) and dry friction x1.6 (faulty)
+    return cs, model, cases[:2]  # nominal (healthy) and dry friction x1.6 (faulty)
 
 
 def test_registry_is_pure_and_large():
@@ -63,10 +91,13 @@ def test_registry_is_pure_and_large():
         assert list(spec.severities) == sorted(spec.severities), name
         a = corrupt(name, rec, spec.severities[-1], np.random.default_rng(3))
         b = corrupt(name, rec, spec.severities[-1], np.random.default_rng(3))
-        torch.testing.assert_close(a.current, b.current, equal_nan=True)        # a function of its inputs
-        assert a.current.shape == rec.current.shape and not torch.equal(a.current.nan_to_num(), before) or \
-            name.startswith(("position", "command")), name
-    torch.testing.assert_close(rec.current, before)                              # the input is untouched
+        torch.testing.assert_close(a.current, b.current, equal_nan=True)  # a function of its inputs
+        assert (
+            a.current.shape == rec.current.shape
+            and not torch.equal(a.current.nan_to_num(), before)
+            or name.startswith(("position", "command"))
+        ), name
+    torch.testing.assert_close(rec.current, before)  # the input is untouched
     with pytest.raises(ValueError, match="unknown kind 'nope'"):
         corrupt("nope", rec, 1.0, np.random.default_rng(0))
 
@@ -74,19 +105,24 @@ def test_registry_is_pure_and_large():
 def test_every_case_flagged_or_right_except_the_blind_spots(suite):
     cs, model, cases = suite
     clean = [cs.judge(model, c, c.record, cs.contract_of(model, PIPELINE)) for c in cases]
-    assert all(r["right"] and not r["flagged"] for r in clean), clean           # the uncorrupted records are right
+    assert all(r["right"] and not r["flagged"] for r in clean), clean  # the uncorrupted records are right
     table = cs.run_suite(model, PIPELINE, cases, {})
     assert cs.blind_spots(table) == BLIND_SPOTS
     full = {k: v["full"] for k, v in table.items()}
     # what the issue found confidently wrong, now flagged with its reason
-    assert full["current_sign"]["flagged_from"] == 1.0 and full["current_sign"]["severities"]["1.0"]["reasons"] == ["sign"]
-    assert full["time_reversal"]["flagged_from"] == 1.0 and "command" in full["time_reversal"]["severities"]["1.0"]["reasons"]
-    assert full["trigger_offset"]["flagged_from"] <= 0.005                                  # 5 ms and beyond
+    assert full["current_sign"]["flagged_from"] == 1.0 and full["current_sign"]["severities"]["1.0"]["reasons"] == [
+        "sign"
+    ]
+    assert (
+        full["time_reversal"]["flagged_from"] == 1.0
+        and "command" in full["time_reversal"]["severities"]["1.0"]["reasons"]
+    )
+    assert full["trigger_offset"]["flagged_from"] <= 0.005  # 5 ms and beyond
     assert full["white_noise"]["flagged_from"] <= 0.2 and "noise" in full["white_noise"]["severities"]["0.4"]["reasons"]
     assert full["position_sign"]["severities"]["1.0"]["reasons"] == ["tracking"]
     assert full["current_offset"]["severities"]["0.1"]["reasons"] == ["offset"]
     assert full["clipping"]["flagged_from"] <= 0.2 and "plateau" in full["clipping"]["severities"]["0.5"]["reasons"]
-    assert table["position_sign"]["current_only"]["flagged_from"] is None    # no position column: nothing to check
+    assert table["position_sign"]["current_only"]["flagged_from"] is None  # no position column: nothing to check
 
 
 def test_pipeline_reasons_explain_its_flag(suite):
@@ -99,7 +135,7 @@ def test_pipeline_reasons_explain_its_flag(suite):
     with torch.no_grad():
         ood = model(batch)[3]
     reasons = pipeline_reasons(model, batch)
-    assert [bool(r) for r in reasons] == ood.tolist()                # a reason exactly where the flag fired
+    assert [bool(r) for r in reasons] == ood.tolist()  # a reason exactly where the flag fired
     assert reasons[:2] == [[], []] and "plateau" in reasons[2] and "missing" in reasons[4]
     assert all(set(r) <= set(PIPELINE_CHECKS) for r in reasons)
 
@@ -116,7 +152,7 @@ def test_current_only_csv_skips_command_and_tracking(suite, compose, tmp_path):
     _, out = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements=[{path},{flipped}]"]))
     good, bad = out["records"]
     assert good["checks_skipped"] == ["command", "tracking"] and good["command_check"] is None
-    assert not good["out_of_distribution"] and not good["healthy"]               # the friction fault, found
+    assert not good["out_of_distribution"] and not good["healthy"]  # the friction fault, found
     assert bad["out_of_distribution"] and bad["ood_reasons"] == ["sign"] and bad["p_faulty"] is None
 
 
@@ -124,6 +160,7 @@ def test_a_dead_position_sensor_is_caught_on_a_healthy_answer_only():
     """A motor with every phase shorted does not move: its record tracks like a dead sensor (NRMSE ~0.35 on a
     sine), so only an answer the pipeline calls healthy is held to the healthy records' range."""
     from phm_torch.online.input_contract import InputContract, tracking_nrmse
+
     t = torch.arange(4001, dtype=torch.float64) / 20000.0
     cmd = 5e-3 * torch.sin(2 * np.pi * 10 * t)
     dead = Record(t, cmd, torch.zeros_like(cmd), torch.ones_like(cmd))
@@ -132,7 +169,7 @@ def test_a_dead_position_sensor_is_caught_on_a_healthy_answer_only():
     contract = InputContract(tracking_range=(0.08, 0.49), tracking_range_healthy=(0.03, 0.19))
     assert contract._tracking(dead, healthy=False)["ok"] and not contract._tracking(dead, healthy=True)["ok"]
     assert contract._tracking(good, healthy=True)["ok"] and contract._tracking(good, healthy=None)["ok"]
-    assert InputContract(tracking_range=(0.08, 0.49))._tracking(dead, healthy=True)["ok"]   # no healthy range
+    assert InputContract(tracking_range=(0.08, 0.49))._tracking(dead, healthy=True)["ok"]  # no healthy range
     # a reversed sensor reads NRMSE ~0.7, inside a wide faulty range, but anti-correlated with its command
     reversed_ = Record(t, cmd, -good.position, good.current)
     wide = InputContract(tracking_range=(0.03, 0.8))

@@ -31,11 +31,21 @@ from phm_torch.params import CONF_DIR
 from phm_torch.simulator import EMASimulator
 
 APP = "phm_torch.apps.generate"
-TINY = ("dataset.fidelity=lf", "command.duration=0.02", "dataset.n_train=10", "dataset.n_val=3",
-        "dataset.n_rul=2", "dataset.chunk_size=6", "assessment.sweep.frequencies=[15,30,60,90,130]",
-        "assessment.sweep.cycles=3", "assessment.sweep.group_size=5", "progress=false", "threads=1",
-        "+dataset.healthy_fraction=null",     # the paper's scaling: no calibration pilot
-        "dataset.n_labels=0")
+TINY = (
+    "dataset.fidelity=lf",
+    "command.duration=0.02",
+    "dataset.n_train=10",
+    "dataset.n_val=3",
+    "dataset.n_rul=2",
+    "dataset.chunk_size=6",
+    "assessment.sweep.frequencies=[15,30,60,90,130]",
+    "assessment.sweep.cycles=3",
+    "assessment.sweep.group_size=5",
+    "progress=false",
+    "threads=1",
+    "+dataset.healthy_fraction=null",  # the paper's scaling: no calibration pilot
+    "dataset.n_labels=0",
+)
 N_CHUNKS = 3  # 1 + 10 + 3 + 2 = 16 rows in chunks of 6
 # the same with 20 labels: at most 8 per chunk -> 3 chunks of 7 rows (the last padded with one k_0 row)
 LABELLED = (*TINY[:-1], "dataset.n_labels=20", "+dataset.label_chunk_size=8")
@@ -75,14 +85,21 @@ def killed_and_resumed(tmp_path_factory, spawn_cli):
     resumed = spawn_cli(APP, args, cwd)
     out, err = resumed.communicate(timeout=300)
     bad_out, bad_err = bad.communicate(timeout=120)
-    return (data_dir, subprocess.CompletedProcess(resumed.args, resumed.returncode, out, err),
-            subprocess.CompletedProcess(bad.args, bad.returncode, bad_out, bad_err))
+    return (
+        data_dir,
+        subprocess.CompletedProcess(resumed.args, resumed.returncode, out, err),
+        subprocess.CompletedProcess(bad.args, bad.returncode, bad_out, bad_err),
+    )
 
 
 def test_store_contents(reference):
     data_dir, metrics = reference
-    assert metrics["complete"] and metrics["chunks"] == {"total": N_CHUNKS, "computed": N_CHUNKS, "reused": 0,
-                                                         "repaired": 0}
+    assert metrics["complete"] and metrics["chunks"] == {
+        "total": N_CHUNKS,
+        "computed": N_CHUNKS,
+        "reused": 0,
+        "repaired": 0,
+    }
     m = _manifest(data_dir)
     assert {s: v["count"] for s, v in m["splits"].items()} == {"nominal": 1, "train": 10, "val": 3, "rul": 2}
     assert m["splits"]["nominal"]["healthy"] == 1
@@ -114,7 +131,7 @@ def test_shards_give_the_same_manifest(reference, compose, tmp_path):
     data_dir = tmp_path / "sharded"
     base = [*TINY, f"data_dir={data_dir}", "shard.count=2"]
     m0, _ = generate(compose("generate", [*base, "shard.index=1"]))
-    assert not m0["complete"] and m0["chunks"]["computed"] == 1         # chunk 1 only; 0 and 2 missing
+    assert not m0["complete"] and m0["chunks"]["computed"] == 1  # chunk 1 only; 0 and 2 missing
     m1, _ = generate(compose("generate", [*base, "shard.index=0"]))
     assert m1["complete"] and m1["chunks"]["computed"] == 2
     assert _manifest(data_dir) == _manifest(reference[0])
@@ -125,7 +142,7 @@ def test_sigkill_then_resume_gives_the_same_manifest(reference, killed_and_resum
     assert resumed.returncode == 0, resumed.stderr
     metrics = json.loads(resumed.stdout)
     assert metrics["chunks"]["reused"] >= 1 and metrics["complete"]
-    assert not list((data_dir / "chunks").glob("*.tmp"))               # the stale temp file was removed
+    assert not list((data_dir / "chunks").glob("*.tmp"))  # the stale temp file was removed
     assert _manifest(data_dir) == _manifest(reference[0])
 
 
@@ -159,26 +176,35 @@ def test_refuses_another_config_unless_overwrite(reference, compose, tmp_path):
     assert _manifest(data_dir)["splits"]["train"]["sha256"] != _manifest(reference[0])["splits"]["train"]["sha256"]
 
 
-@pytest.mark.parametrize("override, message", [
-    ("data_dir={file}/sub", "data_dir .* is not writable"),
-    ("shard.index=2", "shard.index must be in"),
-    ("stage=everything", "stage must be one of"),
-    ("assessment.sweep.amplitude=-1", "assessment.sweep.amplitude must be > 0"),
-    ("dataset.fidelity=xf", "dataset.fidelity must be"),
-    ("dataset.n_labels=-1", r"dataset.n_labels must be an integer >= 0, got -1"),
-    ("dataset.n_labels=2.5", r"dataset.n_labels must be an integer >= 0, got 2.5"),
-    ("+dataset.label_chunk_size=0", r"dataset.label_chunk_size must be an integer >= 1"),
-    ("+dataset.effects.nope={{}}", r"dataset.effects: unknown effect 'nope'"),
-    ("+dataset.effects.cogging_torque.amplitude=big", r"dataset.effects.cogging_torque.amplitude must be a number"),
-    ("+dataset.randomize.warp_drive.power=[0,1]", r"dataset.randomize: unknown effect 'warp_drive'"),
-    ("+dataset.randomize.cogging_torque.amp=[0,1]", r"dataset.randomize.cogging_torque.amp: unknown parameter"),
-    ("+dataset.randomize.cogging_torque.amplitude=[2,1]",
-     r"dataset.randomize.cogging_torque.amplitude must be \[low, high\] with low <= high, got \[2, 1\]"),
-    ("+dataset.randomize.cogging_torque.phase=[0,1]",
-     r"dataset.randomize.cogging_torque: the effect is off in the training model and none of its strength"),
-    ("+dataset.randomize.cogging_torque.amplitude=[-1,1]",
-     r"dataset.randomize.cogging_torque.amplitude: effects.cogging_torque.amplitude must be >= 0"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("data_dir={file}/sub", "data_dir .* is not writable"),
+        ("shard.index=2", "shard.index must be in"),
+        ("stage=everything", "stage must be one of"),
+        ("assessment.sweep.amplitude=-1", "assessment.sweep.amplitude must be > 0"),
+        ("dataset.fidelity=xf", "dataset.fidelity must be"),
+        ("dataset.n_labels=-1", r"dataset.n_labels must be an integer >= 0, got -1"),
+        ("dataset.n_labels=2.5", r"dataset.n_labels must be an integer >= 0, got 2.5"),
+        ("+dataset.label_chunk_size=0", r"dataset.label_chunk_size must be an integer >= 1"),
+        ("+dataset.effects.nope={{}}", r"dataset.effects: unknown effect 'nope'"),
+        ("+dataset.effects.cogging_torque.amplitude=big", r"dataset.effects.cogging_torque.amplitude must be a number"),
+        ("+dataset.randomize.warp_drive.power=[0,1]", r"dataset.randomize: unknown effect 'warp_drive'"),
+        ("+dataset.randomize.cogging_torque.amp=[0,1]", r"dataset.randomize.cogging_torque.amp: unknown parameter"),
+        (
+            "+dataset.randomize.cogging_torque.amplitude=[2,1]",
+            r"dataset.randomize.cogging_torque.amplitude must be \[low, high\] with low <= high, got \[2, 1\]",
+        ),
+        (
+            "+dataset.randomize.cogging_torque.phase=[0,1]",
+            r"dataset.randomize.cogging_torque: the effect is off in the training model and none of its strength",
+        ),
+        (
+            "+dataset.randomize.cogging_torque.amplitude=[-1,1]",
+            r"dataset.randomize.cogging_torque.amplitude: effects.cogging_torque.amplitude must be >= 0",
+        ),
+    ],
+)
 def test_bad_generation_input(compose, tmp_path, override, message):
     (tmp_path / "file").write_text("x")
     args = [*TINY, f"data_dir={tmp_path / 'd'}", "shard.count=2", override.format(file=tmp_path / "file")]
@@ -189,7 +215,7 @@ def test_bad_generation_input(compose, tmp_path, override, message):
 def test_effects_enter_the_signals_not_the_labels(reference, compose, tmp_path):
     data_dir = tmp_path / "hinge"
     metrics, _ = generate(compose("generate", [*TINY, f"data_dir={data_dir}", "+dataset.effects.aero_hinge_load={}"]))
-    assert metrics["fingerprint"] != reference[1]["fingerprint"]      # another store, never reused for the plain one
+    assert metrics["fingerprint"] != reference[1]["fingerprint"]  # another store, never reused for the plain one
     with DatasetStore(reference[0]) as plain, DatasetStore(data_dir) as store:
         cfg = OmegaConf.create(store.metadata["config"])
         assert common.plain(cfg.dataset.effects) == {"aero_hinge_load": {}}
@@ -209,7 +235,9 @@ def test_randomized_effects_vary_per_training_record_only(reference, compose, tm
     from phm_torch.data import randomization
 
     data_dir = tmp_path / "randomized"
-    cfg = compose("generate", [*TINY, f"data_dir={data_dir}", "+dataset.randomize.viscous_friction.coefficient=[0,2e-4]"])
+    cfg = compose(
+        "generate", [*TINY, f"data_dir={data_dir}", "+dataset.randomize.viscous_friction.coefficient=[0,2e-4]"]
+    )
     metrics, _ = generate(cfg)
     assert metrics["fingerprint"] != reference[1]["fingerprint"]
     with DatasetStore(reference[0]) as plain, DatasetStore(data_dir) as store:
@@ -226,9 +254,11 @@ def test_randomized_effects_vary_per_training_record_only(reference, compose, tm
     assert 0 <= values.min() and values.max() <= 2e-4 and values.std() > 3e-5
     command = common.command(cfg.command)
     for row in (0, 7):
-        sim = EMASimulator(common.actuator(cfg), "lf", effects={"viscous_friction": {"coefficient": float(values[row])}})
-        expected = sim.run(k[row:row + 1], command, float(command.duration), channels=["current"])["current"]
-        torch.testing.assert_close(current[row:row + 1], expected, rtol=0, atol=1e-5)
+        sim = EMASimulator(
+            common.actuator(cfg), "lf", effects={"viscous_friction": {"coefficient": float(values[row])}}
+        )
+        expected = sim.run(k[row : row + 1], command, float(command.duration), channels=["current"])["current"]
+        torch.testing.assert_close(current[row : row + 1], expected, rtol=0, atol=1e-5)
 
 
 def test_datamodule_lazy_deterministic_normalised(reference):
@@ -241,7 +271,7 @@ def test_datamodule_lazy_deterministic_normalised(reference):
 
     dm, a = first_batch(y_center="nominal", k_scaling="minmax")
     _, b = first_batch(y_center="nominal", k_scaling="minmax")
-    assert all(torch.equal(a[key], b[key]) for key in a)              # same seed, same batches
+    assert all(torch.equal(a[key], b[key]) for key in a)  # same seed, same batches
     assert a["y"].shape == (4, 401) and a["k"].shape == (4, 8) and a["y"].dtype == torch.float32
     with DatasetStore(data_dir) as store:
         tr, nominal = store.split("train"), store.split("nominal").current[0]
@@ -256,7 +286,7 @@ def test_datamodule_lazy_deterministic_normalised(reference):
     assert n["y_scale"] > 0 and np.allclose(n["y_center"], tr_mean(data_dir))
     assert abs(float(std_batch["k"][:, 0].mean())) < 3.0 and std_batch["y"].abs().max() < 50.0
     val = next(iter(dm.val_dataloader()))
-    assert val["index"].tolist() == [0, 1, 2]                          # validation in order
+    assert val["index"].tolist() == [0, 1, 2]  # validation in order
     with pytest.raises(ValueError, match="data.y_center"):
         EMADataModule(data_dir, batch_size=4, y_center="median")
     with pytest.raises(ValueError, match="split 'test'"):
@@ -271,7 +301,7 @@ def tr_mean(data_dir: Path) -> np.ndarray:
 def test_launcher_configs_name_their_plugins():
     plugins = {"local": "joblib", "slurm": "submitit_slurm", "ray_cluster": "ray"}
     for name, plugin in plugins.items():
-        assert name != plugin   # a file named as its plugin's config shadows it and includes itself (recursion)
+        assert name != plugin  # a file named as its plugin's config shadows it and includes itself (recursion)
         cfg = yaml.safe_load((CONF_DIR / "hydra" / "launcher" / f"{name}.yaml").read_text())
         assert cfg["defaults"] == [plugin]
 
@@ -280,19 +310,44 @@ def test_joblib_shards_then_merge(reference, tmp_path):
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
     data_dir = tmp_path / "joblib"
     env = {**os.environ, "PYTHONPATH": str(CONF_DIR.parent), "OMP_NUM_THREADS": "1"}
-    cmd = [sys.executable, "-m", APP, "-m", "hydra/launcher=local", *TINY, f"data_dir={data_dir}",
-           "shard.count=2", "shard.index=0,1", f"hydra.sweep.dir={tmp_path / 'multirun'}"]
+    cmd = [
+        sys.executable,
+        "-m",
+        APP,
+        "-m",
+        "hydra/launcher=local",
+        *TINY,
+        f"data_dir={data_dir}",
+        "shard.count=2",
+        "shard.index=0,1",
+        f"hydra.sweep.dir={tmp_path / 'multirun'}",
+    ]
     run = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300, check=False)
     assert run.returncode == 0, run.stderr[-2000:]
     if not (data_dir / "manifest.json").exists():  # both shards finished before either saw the other's chunks
-        merge = subprocess.run([sys.executable, "-m", APP, *TINY, f"data_dir={data_dir}", "stage=merge",
-                                f"hydra.run.dir={tmp_path / 'merge'}"], cwd=tmp_path, env=env,
-                               capture_output=True, text=True, timeout=300, check=False)
+        merge = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                APP,
+                *TINY,
+                f"data_dir={data_dir}",
+                "stage=merge",
+                f"hydra.run.dir={tmp_path / 'merge'}",
+            ],
+            cwd=tmp_path,
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=300,
+            check=False,
+        )
         assert merge.returncode == 0, merge.stderr[-2000:]
     assert _manifest(data_dir) == _manifest(reference[0])
 
 
 # --- the assessment-only labels split -------------------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def labelled(tmp_path_factory, compose):
@@ -309,14 +364,22 @@ def test_seed_streams_of_the_signal_splits_are_unchanged_by_labels():
             assert a.spawn_key == b.spawn_key and np.array_equal(a.generate_state(8), b.generate_state(8))
         streams = seed_streams(seed)
         assert list(streams) == list(STREAMS) and streams["labels"].spawn_key == (3,)
-        assert streams["randomize"].spawn_key == (4,)                 # added last: the others unchanged
+        assert streams["randomize"].spawn_key == (4,)  # added last: the others unchanged
     with pytest.raises(ValueError, match="seed must be"):
         seed_streams(-1)
 
 
 def test_spec_validates_label_fields():
-    base = {"n_train": 4, "n_val": 0, "n_rul": 0, "rul_radius": 0.1, "uniform": [6], "chunk_size": 4,
-            "fidelity": "lf", "compile": False}
+    base = {
+        "n_train": 4,
+        "n_val": 0,
+        "n_rul": 0,
+        "rul_radius": 0.1,
+        "uniform": [6],
+        "chunk_size": 4,
+        "fidelity": "lf",
+        "compile": False,
+    }
     assert DatasetSpec(**base).n_labels == 0
     for field, bad in (("n_labels", -3), ("n_labels", True), ("n_labels", "10"), ("label_chunk_size", 0)):
         with pytest.raises(ValueError, match=f"dataset.{field} must be an integer"):
@@ -335,7 +398,10 @@ def test_labels_split_contents(labelled, reference):
     assert lab["count"] == 20 and set(lab["sha256"]) == {"K", "healthy", "margins"}
     assert m["label_chunk_size"] == 7 and m["n_label_chunks"] == 3
     assert sorted(p.name for p in (data_dir / "chunks").glob("labels_*.h5")) == [
-        "labels_00000.h5", "labels_00001.h5", "labels_00002.h5"]
+        "labels_00000.h5",
+        "labels_00001.h5",
+        "labels_00002.h5",
+    ]
     # the signal splits (K, signals, labels) are exactly those of the store without labels
     assert {s: m["splits"][s] for s in SPLITS} == ref["splits"]
     with h5py.File(data_dir / "dataset.h5", "r") as f:
@@ -347,8 +413,8 @@ def test_labels_split_contents(labelled, reference):
         k_lab, k_train = g["K"][()], f["train"]["K"][()]
         assert int(g["healthy"][()].sum()) == lab["healthy"]
     assert np.all((k_lab >= 0) & (k_lab <= 1)) and len(np.unique(k_lab, axis=0)) == 20
-    assert not np.isin(k_lab[:, 0], k_train[:, 0]).any()                 # an independent stream
-    with DatasetStore(data_dir, verify=True) as store:                    # verify re-hashes labels too
+    assert not np.isin(k_lab[:, 0], k_train[:, 0]).any()  # an independent stream
+    with DatasetStore(data_dir, verify=True) as store:  # verify re-hashes labels too
         view = store.split("labels")
         assert len(view) == 20 and np.array_equal(view.K[()], k_lab)
         with pytest.raises(AttributeError, match="split 'labels' has no array 'current'"):
@@ -365,7 +431,7 @@ def test_label_rows_are_the_assessment_of_their_k(labelled, compose):
     assessment = common.build(cfg.assessment, "assessment", params=params, device=torch.device("cpu"))
     with DatasetStore(data_dir) as store:
         view = store.split("labels")
-        rows = [0, 6, 7, 19]                                              # first and last of chunks 0, 1, 2
+        rows = [0, 6, 7, 19]  # first and last of chunks 0, 1, 2
         k, healthy, margins = view.K[rows], view.healthy[rows], view.margins[rows]
     res = assessment(torch.as_tensor(k))
     assert np.array_equal(res.healthy.numpy().astype(np.uint8), healthy)
@@ -407,12 +473,12 @@ def test_read_labelled(labelled, reference):
     k, h = read_labelled(data_dir)
     assert k.shape == (30, 8) and k.dtype == np.float64 and h.shape == (30,) and h.dtype == bool
     assert np.array_equal(k, np.concatenate([k_tr, k_lab])) and np.array_equal(h, np.concatenate([h_tr, h_lab]) == 1)
-    with h5py.File(data_dir / "dataset.h5", "r") as f:                 # an open file, other splits
+    with h5py.File(data_dir / "dataset.h5", "r") as f:  # an open file, other splits
         k2, h2 = read_labelled(f, ("labels", "val"))
     assert k2.shape == (23, 8) and np.array_equal(k2[:20], k_lab) and h2.shape == (23,)
     k3, _ = read_labelled(data_dir / "dataset.h5", ("labels",))
     assert np.array_equal(k3, k_lab)
-    k_old, h_old = read_labelled(reference[0])                          # a store without labels: train only
+    k_old, h_old = read_labelled(reference[0])  # a store without labels: train only
     assert np.array_equal(k_old, k_tr) and h_old.shape == (10,)
     with pytest.raises(ValueError, match=r"lacks the split\(s\) \['labels'\]"):
         read_labelled(reference[0], optional=())

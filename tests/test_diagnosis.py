@@ -24,22 +24,22 @@ def test_censor_nulls_every_bound_at_or_beyond_the_horizon():
     assert censor([0.0, 1200.0, 20000.0], 20000.0) == ({"p5": 0.0, "p50": 1200.0, "p95": None}, True)
     assert censor([10.0, 20.0, 30.0], 20000.0) == ({"p5": 10.0, "p50": 20.0, "p95": 30.0}, False)
     assert censor([math.nan, 5.0, 25000.0], 20000.0)[0] == {"p5": None, "p50": 5.0, "p95": None}
-    assert censor([1.0, 2.0, 3.0], math.inf)[1] is False       # a file without its horizon: nothing censored
+    assert censor([1.0, 2.0, 3.0], math.inf)[1] is False  # a file without its horizon: nothing censored
 
 
 def test_identifiability_is_r2_per_component():
     g = torch.Generator().manual_seed(0)
     k = torch.rand(2000, 8, generator=g, dtype=torch.float64)
     k_hat = k.clone()
-    k_hat[:, 1] = k[:, 1] + 0.1 * torch.randn(2000, generator=g, dtype=torch.float64)   # var 1/12: R^2 0.88
-    k_hat[:, 5] = 0.5                                                                    # the prior: R^2 ~0
-    k_hat[:, 6] = 1.0 - k[:, 6]                                                          # anti-correlated: -3
+    k_hat[:, 1] = k[:, 1] + 0.1 * torch.randn(2000, generator=g, dtype=torch.float64)  # var 1/12: R^2 0.88
+    k_hat[:, 5] = 0.5  # the prior: R^2 ~0
+    k_hat[:, 6] = 1.0 - k[:, 6]  # anti-correlated: -3
     r2 = fdi_identifiability(k_hat, k)
     assert r2[0] == pytest.approx(1.0) and r2[1] == pytest.approx(1 - 0.01 * 12, abs=0.03)
     assert abs(r2[5]) < 0.01 and r2[6] == pytest.approx(-3.0, abs=0.1)
     flat = k.clone()
     flat[:, 7] = 0.5
-    assert math.isnan(fdi_identifiability(flat, flat)[7])          # a component that never varies: unknown
+    assert math.isnan(fdi_identifiability(flat, flat)[7])  # a component that never varies: unknown
     metadata = {"identifiability": dict(zip(FAULT_NAMES, r2))}
     assert not_identified(metadata) == [FAULT_NAMES[5], FAULT_NAMES[6]]
     assert not_identified({}) == [] and IDENTIFIED_R2 == 0.25
@@ -55,7 +55,7 @@ def test_the_predict_record_names_unidentified_components_and_censors_a_bound_pa
     record = diagnose(model, Record(t, None, None, nominal.clone()), InputContract.of(model, {}, None))
     assert record["k_not_identified"] == ["eccentricity"]
     raw = model.run(nominal.unsqueeze(0)).rul[0].tolist()
-    assert raw[2] >= model.horizon_hours                 # the nominal actuator outlives the horizon at 95 %
+    assert raw[2] >= model.horizon_hours  # the nominal actuator outlives the horizon at 95 %
     assert record["rul_censored"] and record["rul_hours"]["p95"] is None
     expected_p50 = None if raw[1] >= model.horizon_hours else pytest.approx(raw[1])
     assert record["rul_hours"]["p50"] == expected_p50

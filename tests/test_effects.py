@@ -24,10 +24,19 @@ from phm_torch.plant import build_plant
 from phm_torch.simulator import EMASimulator
 
 P = load_actuator()
-BUILTIN = ("viscous_friction", "stribeck_friction", "cogging_torque", "transmission_compliance", "aero_hinge_load",
-           "inverter_dead_time", "winding_temperature", "position_sensor_lag", "torque_constant_saturation",
-           "torque_ripple")
-LF_CASES = (None, *BUILTIN)                    # row i enables LF_CASES[i] only; row 0: all at strength 0
+BUILTIN = (
+    "viscous_friction",
+    "stribeck_friction",
+    "cogging_torque",
+    "transmission_compliance",
+    "aero_hinge_load",
+    "inverter_dead_time",
+    "winding_temperature",
+    "position_sensor_lag",
+    "torque_constant_saturation",
+    "torque_ripple",
+)
+LF_CASES = (None, *BUILTIN)  # row i enables LF_CASES[i] only; row 0: all at strength 0
 HF_CASES = (None, "inverter_dead_time", "winding_temperature", "cogging_torque")
 BARE_LF, BARE_HF = 0.25, 0.04  # [s] prefixes run without effects for the bit-identity checks
 CHANNELS = ("position", "current", "speed", "motor_angle", "user_angle")
@@ -42,8 +51,10 @@ def one_at_a_time(cases) -> dict[str, dict[str, torch.Tensor]]:
     spec = {}
     for name in BUILTIN:
         cls = EFFECTS[name]
-        spec[name] = {s: torch.tensor([cls.PARAMS[s].default if c == name else 0.0 for c in cases],
-                                      dtype=torch.float64) for s in cls.STRENGTH}
+        spec[name] = {
+            s: torch.tensor([cls.PARAMS[s].default if c == name else 0.0 for c in cases], dtype=torch.float64)
+            for s in cls.STRENGTH
+        }
     return spec
 
 
@@ -62,9 +73,20 @@ def record(sim: EMASimulator, batch: int, command, duration: float) -> dict[str,
     samples = []
     for k in range(n):
         m, plant = state.mech, state.plant
-        for key, val in zip(keys, (sim.motor.feedback_current(state.elec, m.theta_m, plant), state.ctrl.current_int,
-                                   state.ctrl.duty * plant.supply_voltage, m.omega_m, m.theta_m, m.omega_u,
-                                   m.theta_u, state.lvdt, cmd[k].expand(batch))):
+        for key, val in zip(
+            keys,
+            (
+                sim.motor.feedback_current(state.elec, m.theta_m, plant),
+                state.ctrl.current_int,
+                state.ctrl.duty * plant.supply_voltage,
+                m.omega_m,
+                m.theta_m,
+                m.omega_u,
+                m.theta_u,
+                state.lvdt,
+                cmd[k].expand(batch),
+            ),
+        ):
             rec[key].append(val)
         state, s = sim.step(state, cmd[k])
         samples.extend(s)
@@ -142,23 +164,31 @@ def test_registry_has_every_builtin_with_declarations():
         assert all(float(e[s]) != 0.0 for s in e.STRENGTH), e
 
 
-@pytest.mark.parametrize("spec, fragment", [
-    ({"no_such_effect": {}}, "no_such_effect"),
-    ({"cogging_torque": {"amplitud": 1e-3}}, "amplitud"),
-    ({"viscous_friction": {"coefficient": -1e-4}}, "effects.viscous_friction.coefficient"),
-    ({"inverter_dead_time": {"dead_time": -1e-6}}, "effects.inverter_dead_time.dead_time"),
-    ({"stribeck_friction": {"velocity": 0.0}}, "effects.stribeck_friction.velocity"),
-    ({"winding_temperature": {"temperature_rise": float("nan")}}, "effects.winding_temperature.temperature_rise"),
-    ({"aero_hinge_load": {"bias": "1 N m"}}, "effects.aero_hinge_load.bias"),
-])
+@pytest.mark.parametrize(
+    "spec, fragment",
+    [
+        ({"no_such_effect": {}}, "no_such_effect"),
+        ({"cogging_torque": {"amplitud": 1e-3}}, "amplitud"),
+        ({"viscous_friction": {"coefficient": -1e-4}}, "effects.viscous_friction.coefficient"),
+        ({"inverter_dead_time": {"dead_time": -1e-6}}, "effects.inverter_dead_time.dead_time"),
+        ({"stribeck_friction": {"velocity": 0.0}}, "effects.stribeck_friction.velocity"),
+        ({"winding_temperature": {"temperature_rise": float("nan")}}, "effects.winding_temperature.temperature_rise"),
+        ({"aero_hinge_load": {"bias": "1 N m"}}, "effects.aero_hinge_load.bias"),
+    ],
+)
 def test_bad_specs_raise_value_error_naming_the_field(spec, fragment):
     with pytest.raises(ValueError, match=fragment.replace(".", r"\.")):
         EMASimulator(P, "lf", effects=spec)
 
 
 def test_signed_parameters_accept_negative_values():
-    e = build_effects({"aero_hinge_load": {"stiffness": -500.0, "bias": -2.0},
-                       "cogging_torque": {"phase": -1.0}, "winding_temperature": {"temperature_rise": -20.0}})
+    e = build_effects(
+        {
+            "aero_hinge_load": {"stiffness": -500.0, "bias": -2.0},
+            "cogging_torque": {"phase": -1.0},
+            "winding_temperature": {"temperature_rise": -20.0},
+        }
+    )
     assert float(e[0]["bias"]) == -2.0 and float(e[2]["temperature_rise"]) == -20.0
 
 
@@ -188,15 +218,15 @@ def test_user_defined_effect_in_a_few_lines():
 def test_zero_strength_is_bit_identical_lf(lf):
     for c in CHANNELS:
         bare = lf["bare"][c][0, :-1]
-        assert torch.equal(lf["signals"][c][0, :bare.numel()], bare), c
+        assert torch.equal(lf["signals"][c][0, : bare.numel()], bare), c
 
 
 def test_zero_strength_is_bit_identical_hf(hf):
     bare = hf["bare"]
     for key in ("I", "u", "v", "wm", "thm", "thu", "lvdt"):
-        assert torch.equal(hf[key][0, :bare[key].shape[-1]], bare[key][0]), key
+        assert torch.equal(hf[key][0, : bare[key].shape[-1]], bare[key][0]), key
     for c in CHANNELS:
-        assert torch.equal(hf["signals"][c][0, :bare["signals"][c].shape[-1]], bare["signals"][c][0]), c
+        assert torch.equal(hf["signals"][c][0, : bare["signals"][c].shape[-1]], bare["signals"][c][0]), c
 
 
 def test_every_default_is_visible(lf):
@@ -204,8 +234,10 @@ def test_every_default_is_visible(lf):
     sig = lf["signals"]
     for name in BUILTIN:
         i = lf["row"][name]
-        nrmse = [((sig[c][i] - sig[c][0]).pow(2).mean().sqrt() / (sig[c][0].max() - sig[c][0].min())).item()
-                 for c in ("current", "position")]
+        nrmse = [
+            ((sig[c][i] - sig[c][0]).pow(2).mean().sqrt() / (sig[c][0].max() - sig[c][0].min())).item()
+            for c in ("current", "position")
+        ]
         assert max(nrmse) > 2e-3, (name, nrmse)
 
 
@@ -229,7 +261,7 @@ def test_gradients_of_strengths_at_zero_match_finite_differences():
     loss = s["current"].pow(2).mean(-1) + ((s["position"] - s["command"]) / 1e-3).pow(2).mean(-1)  # (B,)
     grads = torch.autograd.grad(loss[0], [zeros[leaf] for leaf in leaves])
     for r, (leaf, g) in enumerate(zip(leaves, grads), start=1):
-        assert torch.isfinite(g).all() and (g[1:] == 0).all(), leaf   # rows are independent
+        assert torch.isfinite(g).all() and (g[1:] == 0).all(), leaf  # rows are independent
         fd = (loss[r] - loss[0]).detach() / steps[leaf]
         assert g[0] != 0, leaf
         assert g[0].item() == pytest.approx(fd.item(), rel=0.01), leaf
@@ -241,22 +273,28 @@ def test_modify_plant_static_effects():
     base = build_plant(P, k)
     dt = torch.tensor([0.0, 50.0], dtype=torch.float64)
     comp = torch.tensor([2e-5, 0.0], dtype=torch.float64)
-    effects = build_effects({"winding_temperature": {"temperature_rise": dt},
-                             "transmission_compliance": {"compliance": comp},
-                             "position_sensor_lag": {"time_constant": 5e-4}})
+    effects = build_effects(
+        {
+            "winding_temperature": {"temperature_rise": dt},
+            "transmission_compliance": {"compliance": comp},
+            "position_sensor_lag": {"time_constant": 5e-4},
+        }
+    )
     plant = build_plant(P, k)
     for e in effects:
         plant = e.modify_plant(plant)
     r, m = 1 + 3.93e-3 * dt, 1 - 1.2e-3 * dt
     assert torch.allclose(plant.phase_resistance, base.phase_resistance * r)
-    assert torch.allclose(plant.resistance, base.resistance * r[:, None])       # per-phase, shorted phase kept
+    assert torch.allclose(plant.resistance, base.resistance * r[:, None])  # per-phase, shorted phase kept
     assert torch.allclose(plant.back_emf_constant, base.back_emf_constant * m)
     assert torch.allclose(plant.emf, base.emf * m[:, None])
     assert torch.equal(plant.inductance, base.inductance)
     assert plant.resistance[1, 0] > base.resistance[1, 0] and plant.emf[1, 0] < base.emf[1, 0]
     # series springs: 1/K_eff = 1/K_t + C; lower stiffness, unchanged at C = 0
     assert torch.allclose(1 / plant.output_stiffness, 1 / base.output_stiffness + comp)
-    assert plant.output_stiffness[0] < base.output_stiffness[0] and plant.output_stiffness[1] == base.output_stiffness[1]
+    assert (
+        plant.output_stiffness[0] < base.output_stiffness[0] and plant.output_stiffness[1] == base.output_stiffness[1]
+    )
     assert torch.allclose(plant.lvdt_time_constant, base.lvdt_time_constant + 5e-4)
 
 
@@ -273,9 +311,9 @@ def test_viscous_friction_current_proportional_to_speed(lf):
     ss = lf["steady"]
     d_i, w = delta(lf, "viscous_friction")[ss], lf["wm"][0][ss]
     slope = lstsq(d_i, w)[0]
-    assert slope == pytest.approx(c / torque_constant(), rel=0.15)           # dI = c w / k_t
+    assert slope == pytest.approx(c / torque_constant(), rel=0.15)  # dI = c w / k_t
     fast, slow = w.abs() > 40, w.abs() < 5
-    assert d_i[fast].abs().mean() > 10 * d_i[slow].abs().mean()              # at peak speed, not at reversals
+    assert d_i[fast].abs().mean() > 10 * d_i[slow].abs().mean()  # at peak speed, not at reversals
 
 
 def test_stribeck_friction_current_at_low_speed(lf):
@@ -284,8 +322,8 @@ def test_stribeck_friction_current_at_low_speed(lf):
     ss = lf["steady"]
     d_i, w = delta(lf, "stribeck_friction")[ss], lf["wm"][0][ss]
     slow, fast = w.abs() < ws, w.abs() > 4 * ws
-    assert d_i[slow].abs().mean() > 10 * d_i[fast].abs().mean()              # around velocity reversals
-    shape = torch.tanh(w / (0.1 * ws)) * torch.exp(-(w / ws) ** 2)
+    assert d_i[slow].abs().mean() > 10 * d_i[fast].abs().mean()  # around velocity reversals
+    shape = torch.tanh(w / (0.1 * ws)) * torch.exp(-((w / ws) ** 2))
     assert lstsq(d_i, shape)[0] == pytest.approx(a / torque_constant(), rel=0.4)  # against the motion
 
 
@@ -313,7 +351,7 @@ def test_transmission_compliance_increases_deflection(lf):
         return (lf["thm"][row] / P.gear_ratio - lf["thu"][row]).pow(2).mean().sqrt()
 
     ratio = deflection(i) / deflection(0)
-    assert ratio == pytest.approx(1 + P.output_stiffness * c, rel=0.1)        # same torque, softer spring
+    assert ratio == pytest.approx(1 + P.output_stiffness * c, rel=0.1)  # same torque, softer spring
 
 
 def test_aero_hinge_load_current_in_phase_with_position(lf):
@@ -335,8 +373,11 @@ def test_inverter_dead_time_costs_voltage_against_the_current(lf):
     # the current loop (mostly its integrator) commands the lost volt-seconds: 2 V_dc t_d f_pwm in the
     # current's direction, so the current itself barely changes
     for key, tol in (("v", 0.05), ("u", 0.1)):
-        gain, offset = lstsq(delta(lf, "inverter_dead_time", key)[ss], torch.tanh(cur / spec["current_scale"].default),
-                             torch.ones_like(cur))
+        gain, offset = lstsq(
+            delta(lf, "inverter_dead_time", key)[ss],
+            torch.tanh(cur / spec["current_scale"].default),
+            torch.ones_like(cur),
+        )
         assert gain == pytest.approx(expected, rel=tol), key
         assert abs(offset) < 0.05 * gain, key
 
@@ -382,6 +423,7 @@ def test_position_sensor_lag_delays_the_measurement(lf):
         return (x[last] * ref).sum() / (lf["cmd"][0][last] * ref).sum()
 
     f_last = chirp.f_end - 0.5 * rate / chirp.f_end  # mean frequency of the last cycle
+
     def sensor_phase(row):  # phase of the surface relative to the reading
         return torch.angle(response(lf["thu"][row]) / response(lf["lvdt"][row]))
 
@@ -401,7 +443,9 @@ def test_torque_constant_saturation_needs_more_current_at_high_current(lf):
     big, small = cur0.abs() > 1.5, cur0.abs() < 0.3
     excess = (cur[big] / cur0[big]).mean() - 1
     assert excess == pytest.approx(a * (cur[big] / i_s).pow(2).mean().item(), rel=0.1)  # k(I) I = k I0
-    assert (cur[big] / cur0[big]).mean() - 1 > 10 * ((cur - cur0)[small].abs() / cur0[small].abs().clamp(min=0.1)).mean()
+    assert (cur[big] / cur0[big]).mean() - 1 > 10 * (
+        (cur - cur0)[small].abs() / cur0[small].abs().clamp(min=0.1)
+    ).mean()
 
 
 # ---- HF: per-phase plant and driven-pair current --------------------------------------------------------
@@ -418,7 +462,7 @@ def test_hf_dead_time_temperature_and_cogging(hf):
     dt = temp["temperature_rise"].default
     slope = lstsq(hf["I"][i][ss], hf["I"][0][ss])[0]
     assert slope == pytest.approx(1 / (1 + temp["alpha_magnet"].default * dt), rel=0.02)
-    ratio = identify(hf, i) / identify(hf, 0)                                  # the per-phase R and k_e changed
+    ratio = identify(hf, i) / identify(hf, 0)  # the per-phase R and k_e changed
     assert ratio[0] == pytest.approx(1 + temp["alpha_copper"].default * dt, rel=0.03)
     assert ratio[1] == pytest.approx(1 + temp["alpha_magnet"].default * dt, abs=0.01)
 

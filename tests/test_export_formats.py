@@ -29,7 +29,7 @@ from phm_torch.surrogates.gappy_pod import GappyPOD
 
 N_FULL, N_MODES, N_POINTS = 2001, 6, 24
 TOL = 1e-5
-pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
 
 def _damage() -> DamageModel:
@@ -54,12 +54,23 @@ def small_pipeline() -> OnlinePipeline:
     k[:, 6:] = 0.5
     clf = PolynomialSVM(degree=2).fit(k.float(), k[:, :6].amax(1) < 0.3)
     widths = torch.full((2, 4, 8), 0.05) * torch.tensor([1.0, 2.0]).view(2, 1, 1)
-    pipe = OnlinePipeline(GappyPOD(modes, mean, torch.linspace(0, N_FULL - 1, N_POINTS).round().long()),
-                          FDIMLP(N_MODES, 10), clf, _damage(), torch.tensor([0.02, 0.0, -0.02]),
-                          torch.tensor([1.0] * 6 + [0.0, 1.0]), N_FULL, residual_threshold=0.05,
-                          full_check=FullSignalCheck(modes, mean, residual_threshold=0.2, plateau_threshold=0.5),
-                          verdict=(-2.0, 0.3), k_half_widths=widths, interval_noise=torch.tensor([0.0, 0.05]),
-                          calibration_noise=0.01, residual_limits=([0.05, 0.2], [0.01, 0.1]), nominal_record=mean)
+    pipe = OnlinePipeline(
+        GappyPOD(modes, mean, torch.linspace(0, N_FULL - 1, N_POINTS).round().long()),
+        FDIMLP(N_MODES, 10),
+        clf,
+        _damage(),
+        torch.tensor([0.02, 0.0, -0.02]),
+        torch.tensor([1.0] * 6 + [0.0, 1.0]),
+        N_FULL,
+        residual_threshold=0.05,
+        full_check=FullSignalCheck(modes, mean, residual_threshold=0.2, plateau_threshold=0.5),
+        verdict=(-2.0, 0.3),
+        k_half_widths=widths,
+        interval_noise=torch.tensor([0.0, 0.05]),
+        calibration_noise=0.01,
+        residual_limits=([0.05, 0.2], [0.01, 0.1]),
+        nominal_record=mean,
+    )
     pipe.modes, pipe.mean_signal = modes, mean
     return pipe.eval()
 
@@ -85,8 +96,18 @@ def eager(pipe: OnlinePipeline, x: torch.Tensor) -> dict[str, torch.Tensor]:
         lower, upper = pipe.k_interval(k_hat, noise) if full else pipe.k_interval(k_hat)
         found = pipeline_reasons(pipe, x)
     reasons = torch.tensor([[name in row for name in PIPELINE_CHECKS] for row in found])
-    return {"k_hat": k_hat, "k_lower": lower, "k_upper": upper, "score": score, "rul": rul, "ood": ood,
-            "residual": residual, "noise": noise, "p_faulty": pipe.faulty_probability(score), "reasons": reasons}
+    return {
+        "k_hat": k_hat,
+        "k_lower": lower,
+        "k_upper": upper,
+        "score": score,
+        "rul": rul,
+        "ood": ood,
+        "residual": residual,
+        "noise": noise,
+        "p_faulty": pipe.faulty_probability(score),
+        "reasons": reasons,
+    }
 
 
 def assert_equal_outputs(got: dict[str, torch.Tensor], ref: dict[str, torch.Tensor]) -> None:
@@ -115,7 +136,7 @@ def test_step_equals_the_eager_pipeline_and_its_reasons(pipeline):
             got = dict(zip(STEP_OUTPUTS, step(inputs, torch.zeros(inputs.shape[1]))))
         ref = eager(pipeline, inputs)
         assert_equal_outputs(got, ref)
-        assert bool(ref["ood"][2]) and not bool(ref["ood"][[0, 1, 3]].any())      # noise flagged, the gappy one not
+        assert bool(ref["ood"][2]) and not bool(ref["ood"][[0, 1, 3]].any())  # noise flagged, the gappy one not
         assert bool(torch.isnan(got["rul"][2]).all()) and bool(torch.isfinite(got["rul"][[0, 1, 3]]).all())
     assert torch.isfinite(ref["p_faulty"]).all() and torch.isfinite(ref["k_lower"]).all()
 
@@ -125,16 +146,18 @@ def test_step_equals_the_eager_pipeline_and_its_reasons(pipeline):
 def test_every_format_equals_eager(pipeline, loaded, batch, full):
     x = records(pipeline, max(batch, 3), seed=batch)
     x = x if full else x.index_select(1, pipeline.gappy.indices)
-    cases = [x[:batch]] if batch > 1 else [x[i:i + 1] for i in range(3)]   # batch 1: clean, 3 missing, noise
+    cases = [x[:batch]] if batch > 1 else [x[i : i + 1] for i in range(3)]  # batch 1: clean, 3 missing, noise
     for fmt, model in loaded.items():
         assert model.format == fmt
         for xb in cases:
             r = model.run(xb)
-            got = {name: getattr(r, name) for name in ("k_hat", "k_lower", "k_upper", "score", "p_faulty", "rul",
-                                                         "ood", "residual", "noise")}
+            got = {
+                name: getattr(r, name)
+                for name in ("k_hat", "k_lower", "k_upper", "score", "p_faulty", "rul", "ood", "residual", "noise")
+            }
             ref = eager(pipeline, xb)
             got["reasons"] = torch.tensor([[n in row for n in PIPELINE_CHECKS] for row in model.pipeline_reasons(xb)])
-            if not bool(ref["ood"].any()):       # pipeline_reasons lists nothing for a record in distribution
+            if not bool(ref["ood"].any()):  # pipeline_reasons lists nothing for a record in distribution
                 ref["reasons"] = got["reasons"] = torch.zeros(0)
             assert_equal_outputs(got, ref)
 
@@ -146,11 +169,11 @@ def test_export_file_loads_and_runs_without_phm_torch(pipeline, files, tmp_path)
     code = textwrap.dedent(f"""
         import sys, torch
         from torch.export.pt2_archive._package import load_pt2
-        x = torch.load({str(tmp_path / 'x.pt')!r}, weights_only=True)
-        programs = load_pt2({str(files['export'])!r}).exported_programs   # torch.export.load gives 'model'
+        x = torch.load({str(tmp_path / "x.pt")!r}, weights_only=True)
+        programs = load_pt2({str(files["export"])!r}).exported_programs   # torch.export.load gives 'model'
         full, samples = programs['model'].module(), programs['samples'].module()
         out = [full(x['x'], torch.zeros(x['x'].shape[1])), samples(x['s'], torch.zeros(x['s'].shape[1]))]
-        torch.save([list(o) for o in out], {str(tmp_path / 'out.pt')!r})
+        torch.save([list(o) for o in out], {str(tmp_path / "out.pt")!r})
         assert not any(name.startswith('phm_torch') for name in sys.modules), 'phm_torch was imported'
     """)
     subprocess.run([sys.executable, "-c", code], check=True, cwd=tmp_path)
@@ -168,10 +191,16 @@ def test_predict_gives_the_same_json_from_every_format(pipeline, files, compose,
     x = records(pipeline, 4, seed=3)
     zeros = torch.zeros(N_FULL, dtype=torch.float64)
     time = torch.arange(N_FULL, dtype=torch.float64) / 20000.0
-    csvs = [str(write_measurement(tmp_path / f"r{i}.csv", {"time": time, "command": zeros, "position": zeros,
-                                                          "current": x[i].nan_to_num(1.0).double()}))
-            for i in range(4)]
-    lines = Path(csvs[1]).read_text().splitlines()        # record 1: its 3 missing samples as empty cells
+    csvs = [
+        str(
+            write_measurement(
+                tmp_path / f"r{i}.csv",
+                {"time": time, "command": zeros, "position": zeros, "current": x[i].nan_to_num(1.0).double()},
+            )
+        )
+        for i in range(4)
+    ]
+    lines = Path(csvs[1]).read_text().splitlines()  # record 1: its 3 missing samples as empty cells
     column = lines[0].split(",").index("current")
     for i in torch.isnan(x[1]).nonzero().flatten().tolist():
         cells = lines[i + 1].split(",")
@@ -197,7 +226,7 @@ def test_bad_formats_and_files_are_one_line_errors(files, loaded, tmp_path):
     with pytest.raises(ValueError, match="is a 'export' file, not format='torchscript'"):
         load_pipeline(files["export"], "torchscript")
     wrong = tmp_path / "online.pt2"
-    wrong.write_bytes(files["torchscript"].read_bytes())               # TorchScript named as an export file
+    wrong.write_bytes(files["torchscript"].read_bytes())  # TorchScript named as an export file
     with pytest.raises(ValueError, match="holds a 'torchscript' pipeline but its name ends as a 'export'"):
         load_pipeline(wrong)
     with pytest.raises(ValueError, match=r"records: expected \(B, 2001\) full records or \(B, 24\)"):
@@ -222,8 +251,12 @@ def test_evaluate_refuses_an_unknown_export_format_before_any_work(compose, tmp_
     from phm_torch.apps.evaluate import evaluate_rul
 
     with pytest.raises(ValueError, match="format: unknown format 'tflite'"):
-        evaluate_rul(compose("evaluate", ["export_formats=[torchscript,tflite]", f"data_dir={tmp_path / 'none'}",
-                                          f"out_dir={tmp_path / 'out'}"]))
+        evaluate_rul(
+            compose(
+                "evaluate",
+                ["export_formats=[torchscript,tflite]", f"data_dir={tmp_path / 'none'}", f"out_dir={tmp_path / 'out'}"],
+            )
+        )
     assert not (tmp_path / "out").exists()
 
 
@@ -247,7 +280,7 @@ def test_aoti_package_equals_eager_and_runs_without_phm_torch(pipeline, aoti_fil
     assert model.format == "aoti"
     x = records(pipeline, 256, seed=5)
     for inputs in (x, x.index_select(1, pipeline.gappy.indices)):
-        for xb in (inputs, inputs[:1], inputs[1:2], inputs[2:3]):         # batch 256; clean, 3 missing, noise
+        for xb in (inputs, inputs[:1], inputs[1:2], inputs[2:3]):  # batch 256; clean, 3 missing, noise
             r = model.run(xb)
             ref = eager(pipeline, xb)
             ref.pop("reasons")
@@ -256,9 +289,9 @@ def test_aoti_package_equals_eager_and_runs_without_phm_torch(pipeline, aoti_fil
     code = textwrap.dedent(f"""
         import sys, torch
         from torch._inductor.package import load_package
-        x = torch.load({str(tmp_path / 'x.pt')!r}, weights_only=True)
+        x = torch.load({str(tmp_path / "x.pt")!r}, weights_only=True)
         out = load_package({str(path)!r}, model_name='model')(x, torch.zeros(x.shape[1]))
-        torch.save(list(out), {str(tmp_path / 'out.pt')!r})
+        torch.save(list(out), {str(tmp_path / "out.pt")!r})
         assert not any(name.startswith('phm_torch') for name in sys.modules), 'phm_torch was imported'
     """)
     subprocess.run([sys.executable, "-c", code], check=True, cwd=tmp_path)
@@ -278,12 +311,17 @@ def test_cpp_example_runs_the_aoti_package_as_python_does(pipeline, aoti_file, t
     binary = tmp_path / "phm_aoti"
     subprocess.run(["bash", str(root / "build.sh"), str(binary)], check=True, capture_output=True, timeout=600)
     model = load_pipeline(aoti_file)
-    x = records(pipeline, 3, seed=11)          # clean, 3 missing samples, noise (OOD)
-    cases = [(x[i:i + 1], "model") for i in range(3)] + [(x[1:2].index_select(1, pipeline.gappy.indices), "samples")]
+    x = records(pipeline, 3, seed=11)  # clean, 3 missing samples, noise (OOD)
+    cases = [(x[i : i + 1], "model") for i in range(3)] + [(x[1:2].index_select(1, pipeline.gappy.indices), "samples")]
     for xb, name in cases:
         xb.numpy().astype("<f4").tofile(tmp_path / "record.f32")
-        run = subprocess.run([str(binary), str(aoti_file), str(tmp_path / "record.f32"), name], capture_output=True,
-                             text=True, check=True, timeout=120)
+        run = subprocess.run(
+            [str(binary), str(aoti_file), str(tmp_path / "record.f32"), name],
+            capture_output=True,
+            text=True,
+            check=True,
+            timeout=120,
+        )
         lines = run.stdout.strip().splitlines()
         assert len(lines) == len(STEP_OUTPUTS)
         python = model._outputs(xb, None)
@@ -293,7 +331,7 @@ def test_cpp_example_runs_the_aoti_package_as_python_does(pipeline, aoti_file, t
             assert int(index) == i
             got = torch.tensor([float(v) for v in values], dtype=torch.float64)
             want = python[out_name].double().flatten()
-            torch.testing.assert_close(got, want, rtol=0.0, atol=0.0, equal_nan=True, msg=out_name)   # same kernels
+            torch.testing.assert_close(got, want, rtol=0.0, atol=0.0, equal_nan=True, msg=out_name)  # same kernels
             if out_name in ref and out_name != "reasons":
                 torch.testing.assert_close(got, ref[out_name].double().flatten(), rtol=TOL, atol=TOL, equal_nan=True)
         assert (lines[STEP_OUTPUTS.index("rul")].split()[1] == "nan") == bool(ref["ood"][0])

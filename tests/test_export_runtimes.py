@@ -22,7 +22,7 @@ from phm_torch.online.formats import check_formats, format_path, write_formats
 from phm_torch.online.loaded import UnservedRecord, load_pipeline
 from phm_torch.online.step import STEP_OUTPUTS
 
-pytestmark = pytest.mark.torchscript      # the JSON of phm-predict is compared with a TorchScript file's
+pytestmark = pytest.mark.torchscript  # the JSON of phm-predict is compared with a TorchScript file's
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +53,7 @@ def test_onnx_equals_eager_on_complete_records(pipeline, onnx_file, full):
     assert onnx_file.name == "online.onnx.zip" and model.format == "onnx" and not model.missing_samples
     x = complete_records(pipeline, 256, seed=7)
     x = x if full else x.index_select(1, pipeline.gappy.indices)
-    for xb in (x, x[:1], x[2:3]):          # batch 256; batch 1: clean, out of distribution (NaN RUL)
+    for xb in (x, x[:1], x[2:3]):  # batch 256; batch 1: clean, out of distribution (NaN RUL)
         r = model.run(xb)
         ref = eager(pipeline, xb)
         ref.pop("reasons")
@@ -65,8 +65,9 @@ def test_onnx_equals_eager_on_complete_records(pipeline, onnx_file, full):
         with torch.no_grad():
             rul = pipeline.rul(r.k_hat, True)
         rul = torch.where((r.score <= 0).unsqueeze(1) & (torch.arange(3) < 2), torch.zeros_like(rul), rul)
-        torch.testing.assert_close(r.rul, torch.where(r.ood.unsqueeze(1), torch.nan, rul), rtol=TOL, atol=TOL,
-                                   equal_nan=True)
+        torch.testing.assert_close(
+            r.rul, torch.where(r.ood.unsqueeze(1), torch.nan, rul), rtol=TOL, atol=TOL, equal_nan=True
+        )
         assert_equal_outputs(got, ref)
     assert bool(model.run(x[2:3]).ood[0]) and bool(torch.isnan(model.run(x[2:3]).rul).all())
 
@@ -74,6 +75,7 @@ def test_onnx_equals_eager_on_complete_records(pipeline, onnx_file, full):
 def test_onnx_refuses_records_with_missing_samples(pipeline, onnx_file, compose, tmp_path):
     from phm_torch.apps.predict import predict
     from phm_torch.online.export import read_metadata
+
     limits = read_metadata(onnx_file)["pipeline"]
     assert limits["missing_samples"] is False and "complete records only" in limits["limits"]
     x = records(pipeline, 4)
@@ -82,13 +84,14 @@ def test_onnx_refuses_records_with_missing_samples(pipeline, onnx_file, compose,
         with pytest.raises(UnservedRecord, match="record 1 misses 3 of its 24 selected samples"):
             model.run(xb)
     gap = x[0].clone()
-    gap[1] = float("nan")               # not a selected sample: the complete-record path, served as eager serves it
+    gap[1] = float("nan")  # not a selected sample: the complete-record path, served as eager serves it
     assert 1 not in pipeline.gappy.indices.tolist()
     torch.testing.assert_close(model.run(gap[None]).k_hat, eager(pipeline, gap[None])["k_hat"], rtol=TOL, atol=TOL)
     time = torch.arange(N_FULL, dtype=torch.float64) / 20000.0
     zeros = torch.zeros(N_FULL, dtype=torch.float64)
-    csv = write_measurement(tmp_path / "gappy.csv", {"time": time, "command": zeros, "position": zeros,
-                                                     "current": x[0].double()})
+    csv = write_measurement(
+        tmp_path / "gappy.csv", {"time": time, "command": zeros, "position": zeros, "current": x[0].double()}
+    )
     lines = Path(csv).read_text().splitlines()
     column = lines[0].split(",").index("current")
     cells = lines[int(pipeline.gappy.indices[4]) + 1].split(",")
@@ -104,17 +107,17 @@ def test_onnx_file_runs_without_phm_torch(pipeline, onnx_file, tmp_path):
     torch.save(x, tmp_path / "x.pt")
     code = textwrap.dedent(f"""
         import sys, zipfile, torch, onnxruntime
-        x = torch.load({str(tmp_path / 'x.pt')!r}, weights_only=True).numpy()
+        x = torch.load({str(tmp_path / "x.pt")!r}, weights_only=True).numpy()
         model = zipfile.ZipFile({str(onnx_file)!r}).read('online/model.onnx')
         out = onnxruntime.InferenceSession(model).run(None, {{'x': x, 'offset': x[0] * 0}})
-        torch.save([torch.from_numpy(o) for o in out], {str(tmp_path / 'out.pt')!r})
+        torch.save([torch.from_numpy(o) for o in out], {str(tmp_path / "out.pt")!r})
         assert not any(name.startswith('phm_torch') for name in sys.modules), 'phm_torch was imported'
     """)
     subprocess.run([sys.executable, "-c", code], check=True, cwd=tmp_path)
     out = dict(zip(STEP_OUTPUTS, torch.load(tmp_path / "out.pt", weights_only=True)))
     ref = eager(pipeline, x)
     for name in ("k_hat", "score", "rul", "ood", "residual", "k_lower", "p_faulty"):
-        tol = 1e-4 if name == "rul" else TOL       # see test_onnx_equals_eager_on_complete_records
+        tol = 1e-4 if name == "rul" else TOL  # see test_onnx_equals_eager_on_complete_records
         torch.testing.assert_close(out[name], ref[name], rtol=tol, atol=tol, equal_nan=True)
 
 
@@ -127,18 +130,21 @@ def test_a_missing_extra_is_one_clear_error(monkeypatch, tmp_path):
     hidden = {"onnxruntime", "executorch"}
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name in hidden else real(name, *a))
     for fmt, modules in (("onnx", "onnxruntime"), ("executorch", "executorch")):
-        with pytest.raises(ValueError, match=rf"format: '{fmt}' needs the optional packages {modules}.*"
-                                             rf"pip install 'phm-torch\[{fmt}\]'"):
+        with pytest.raises(
+            ValueError,
+            match=rf"format: '{fmt}' needs the optional packages {modules}.*"
+            rf"pip install 'phm-torch\[{fmt}\]'",
+        ):
             check_formats(["torchscript", fmt])
         path = tmp_path / f"online{format_path('a.pt', fmt).name[1:]}"
-        with zipfile.ZipFile(path, "w") as archive:       # a file of that format (its metadata is what is read)
+        with zipfile.ZipFile(path, "w") as archive:  # a file of that format (its metadata is what is read)
             archive.writestr("online/extra/phm_metadata.json", json.dumps({"format": fmt}))
         with pytest.raises(ValueError, match=rf"pip install 'phm-torch\[{fmt}\]'"):
             load_pipeline(path)
 
 
 ET_SKIP = "the executorch extra is not installed: pip install 'phm-torch[executorch]'"
-ET_RUL_RTOL = 1e-3      # see test_executorch_equals_eager_on_complete_records
+ET_RUL_RTOL = 1e-3  # see test_executorch_equals_eager_on_complete_records
 
 
 @pytest.fixture(scope="module")
@@ -157,7 +163,7 @@ def test_executorch_equals_eager_on_complete_records(pipeline, executorch_file, 
     assert executorch_file.name == "online.pte.zip" and model.format == "executorch" and model.max_batch == 256
     x = complete_records(pipeline, 300, seed=7)
     x = x if full else x.index_select(1, pipeline.gappy.indices)
-    for xb in (x, x[:256], x[:1], x[2:3]):          # 300 (two calls), 256, 1 clean, 1 out of distribution
+    for xb in (x, x[:256], x[:1], x[2:3]):  # 300 (two calls), 256, 1 clean, 1 out of distribution
         r = model.run(xb)
         ref = eager(pipeline, xb)
         ref.pop("reasons")
@@ -175,10 +181,10 @@ def test_executorch_file_runs_without_phm_torch(pipeline, executorch_file, tmp_p
     code = textwrap.dedent(f"""
         import sys, zipfile, torch
         from executorch.runtime import Runtime
-        x = torch.load({str(tmp_path / 'x.pt')!r}, weights_only=True)
+        x = torch.load({str(tmp_path / "x.pt")!r}, weights_only=True)
         program = Runtime.get().load_program(zipfile.ZipFile({str(executorch_file)!r}).read('online/program.pte'))
         out = program.load_method('model').execute([x, torch.zeros(x.shape[1])])
-        torch.save(list(out), {str(tmp_path / 'out.pt')!r})
+        torch.save(list(out), {str(tmp_path / "out.pt")!r})
         assert not any(name.startswith('phm_torch') for name in sys.modules), 'phm_torch was imported'
     """)
     subprocess.run([sys.executable, "-c", code], check=True, cwd=tmp_path)
@@ -206,21 +212,26 @@ def _close(a, b, path: str = "") -> None:
         assert a == b, path
 
 
-def test_predict_gives_the_same_json_from_onnx_and_executorch(pipeline, onnx_file, executorch_file, compose,
-                                                               tmp_path):
+def test_predict_gives_the_same_json_from_onnx_and_executorch(pipeline, onnx_file, executorch_file, compose, tmp_path):
     from phm_torch.apps.predict import predict
 
     torchscript = write_formats(pipeline, tmp_path / "online.pt", ["torchscript"])["torchscript"]
     x = complete_records(pipeline, 4, seed=3)
     zeros = torch.zeros(N_FULL, dtype=torch.float64)
     time = torch.arange(N_FULL, dtype=torch.float64) / 20000.0
-    csvs = [str(write_measurement(tmp_path / f"r{i}.csv", {"time": time, "command": zeros, "position": zeros,
-                                                          "current": x[i].double()})) for i in range(4)]
+    csvs = [
+        str(
+            write_measurement(
+                tmp_path / f"r{i}.csv", {"time": time, "command": zeros, "position": zeros, "current": x[i].double()}
+            )
+        )
+        for i in range(4)
+    ]
     outs = {}
     for path in (torchscript, onnx_file, executorch_file):
         args = [f"pipeline={path}", f"measurements=[{','.join(csvs)}]", f"baseline={csvs[0]}"]
         outs[path.name] = predict(compose("predict", args))[1]["records"]
     assert outs["online.pt"][2]["out_of_distribution"] and outs["online.pt"][2]["rul_hours"] is None
-    assert sum(r["rul_hours"] is not None for r in outs["online.pt"]) >= 2      # RULs to compare
+    assert sum(r["rul_hours"] is not None for r in outs["online.pt"]) >= 2  # RULs to compare
     for name in ("online.onnx.zip", "online.pte.zip"):
         _close(outs["online.pt"], outs[name], name)

@@ -28,14 +28,16 @@ from phm_torch.surrogates.fdi_ensemble import build_fdi_network
 from phm_torch.surrogates.lightning_fdi import FDIModule, KeepBest
 from phm_torch.surrogates.selectors import build_selector
 
-pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
 
 def teacher_data(n: int, seed: int, n_in: int = 6) -> tuple[torch.Tensor, torch.Tensor]:
     """Inputs (n, n_in) and targets (n, 8) in [0.05, 0.95] from a random network of the same form."""
     g = torch.Generator().manual_seed(seed)
-    w1, w2 = torch.randn(n_in, 12, generator=torch.Generator().manual_seed(99)), torch.randn(12, 8,
-                                                                                              generator=torch.Generator().manual_seed(98))
+    w1, w2 = (
+        torch.randn(n_in, 12, generator=torch.Generator().manual_seed(99)),
+        torch.randn(12, 8, generator=torch.Generator().manual_seed(98)),
+    )
     x = torch.randn(n, n_in, generator=g)
     y = 0.5 + 0.45 * torch.tanh(torch.tanh(x @ w1 / 2) @ w2 / 3)
     return x, y
@@ -47,11 +49,11 @@ def test_network_form():
     net.set_normalization(x)
     z = (x - net.in_center) / net.in_scale
     assert float(z.min()) == pytest.approx(-1.0) and float(z.max()) == pytest.approx(1.0)  # mapminmax
-    h = 2 / (1 + torch.exp(-2 * net.hidden(z))) - 1                                        # tansig
+    h = 2 / (1 + torch.exp(-2 * net.hidden(z))) - 1  # tansig
     pre = net.output(h)
     assert torch.allclose(net.preactivation(x), pre, atol=1e-5)
     out = net(x * 100)
-    assert float(out.min()) >= 0.0 and float(out.max()) <= 1.0                             # satlin
+    assert float(out.min()) >= 0.0 and float(out.max()) <= 1.0  # satlin
     with pytest.raises(ValueError, match="fdi.n_hidden must be a positive integer"):
         FDIMLP(4, 0)
     with pytest.raises(ValueError, match="fdi.n_layers must be a positive integer, got 0"):
@@ -71,8 +73,14 @@ def test_deeper_network_form_and_torchscript():
     scripted = torch.jit.script(net)
     assert torch.equal(scripted(x), net(x))
     # a one-layer state dict (the paper's network, older bundles) has the same keys as before the option
-    assert set(FDIMLP(4, 7).state_dict()) == {"hidden.weight", "hidden.bias", "output.weight", "output.bias",
-                                              "in_center", "in_scale"}
+    assert set(FDIMLP(4, 7).state_dict()) == {
+        "hidden.weight",
+        "hidden.bias",
+        "output.weight",
+        "output.bias",
+        "in_center",
+        "in_scale",
+    }
 
 
 def test_ensemble_is_the_mean_of_independently_fitted_members():
@@ -132,7 +140,7 @@ def test_lm_normal_equations_match_autograd_jacobian(n_layers):
     e = residual(flat)
     assert torch.allclose(jtj, jac.T @ jac, atol=1e-10)
     assert torch.allclose(jte, jac.T @ e, atol=1e-10)
-    assert perf == pytest.approx(float((e ** 2).mean()))
+    assert perf == pytest.approx(float((e**2).mean()))
 
 
 def test_lm_fits_a_teacher_network_quickly():
@@ -143,18 +151,30 @@ def test_lm_fits_a_teacher_network_quickly():
     lm = TrainLM(net, forward_name="preactivation")
     history = lm.fit(x, y, epochs=40, x_val=xv, y_val=yv)
     perfs = [h["perf"] for h in history]
-    assert all(b <= a for a, b in itertools.pairwise(perfs))      # LM only takes descending steps
+    assert all(b <= a for a, b in itertools.pairwise(perfs))  # LM only takes descending steps
     assert perfs[-1] < 1e-2 * perfs[0]
     assert float((net(xv) - yv).pow(2).mean()) < 2e-3
 
 
-def _fit(module: FDIModule, train: TensorDataset, val: TensorDataset, epochs: int, batch: int | None,
-         tmp_path) -> tuple[L.Trainer, KeepBest]:
+def _fit(
+    module: FDIModule, train: TensorDataset, val: TensorDataset, epochs: int, batch: int | None, tmp_path
+) -> tuple[L.Trainer, KeepBest]:
     keep = KeepBest()
-    trainer = L.Trainer(max_epochs=epochs, logger=False, enable_checkpointing=False, enable_progress_bar=False,
-                        enable_model_summary=False, callbacks=[keep], default_root_dir=tmp_path, accelerator="cpu")
-    trainer.fit(module, DataLoader(train, batch_size=batch or len(train), shuffle=batch is not None),
-                DataLoader(val, batch_size=len(val)))
+    trainer = L.Trainer(
+        max_epochs=epochs,
+        logger=False,
+        enable_checkpointing=False,
+        enable_progress_bar=False,
+        enable_model_summary=False,
+        callbacks=[keep],
+        default_root_dir=tmp_path,
+        accelerator="cpu",
+    )
+    trainer.fit(
+        module,
+        DataLoader(train, batch_size=batch or len(train), shuffle=batch is not None),
+        DataLoader(val, batch_size=len(val)),
+    )
     return trainer, keep
 
 
@@ -217,7 +237,7 @@ def test_checkpoint_from_another_configuration():
     with pytest.raises(ValueError, match="checkpoint from another configuration: n_hidden=5 in the checkpoint vs 7"):
         other.on_load_checkpoint(ckpt)
     deeper = FDIModule(FDIMLP(10, 5, n_layers=2))
-    old = {k: v for k, v in ckpt["hyper_parameters"].items() if k != "n_layers"}   # before the option
+    old = {k: v for k, v in ckpt["hyper_parameters"].items() if k != "n_layers"}  # before the option
     small.on_load_checkpoint({**ckpt, "hyper_parameters": old})
     with pytest.raises(ValueError, match="n_layers=1 in the checkpoint vs 2 now"):
         deeper.on_load_checkpoint({**ckpt, "hyper_parameters": old})
@@ -225,10 +245,10 @@ def test_checkpoint_from_another_configuration():
 
 def test_err_k_as_the_paper_defines_it():
     k_act = torch.zeros(2, 8)
-    k_act[:, 5] = torch.tensor([0.0, 0.5])             # eccentricity k6
+    k_act[:, 5] = torch.tensor([0.0, 0.5])  # eccentricity k6
     k_est = k_act.clone()
-    k_est[:, 6] += 0.4                                 # phase error 0.4 on both signals
-    k_est[0, 0] += 0.2                                 # friction error on the first
+    k_est[:, 6] += 0.4  # phase error 0.4 on both signals
+    k_est[0, 0] += 0.2  # friction error on the first
     w = err_k_weights(k_act)
     assert w[:, 6].tolist() == [0.0, 0.5] and float(w[:, :6].min()) == 1.0 and float(w[:, 7].min()) == 1.0
     # sqrt(mean over 2 x 8 entries of w (dk)^2) = sqrt((0.2^2 + 0.5 * 0.4^2) / 16)
@@ -251,13 +271,13 @@ def test_err_k_interval_brackets_err_k_and_narrows_with_more_signals():
     assert lo < err_k(*small) < hi
     lo_l, hi_l = err_k_interval(*large)
     assert lo_l < err_k(*large) < hi_l
-    assert hi_l - lo_l < 0.5 * (hi - lo)                 # width ~ 1 / sqrt(n): a quarter at 16x the signals
+    assert hi_l - lo_l < 0.5 * (hi - lo)  # width ~ 1 / sqrt(n): a quarter at 16x the signals
     assert err_k_interval(*small, seed=5) != (lo, hi) and err_k_interval(*small) == (lo, hi)
-    exact = torch.zeros(50, 8, dtype=torch.float64)      # every signal alike: the interval closes
-    value = err_k(exact + 0.1, exact)                    # sqrt(7 / 8) x 0.1: no eccentricity, no phase weight
+    exact = torch.zeros(50, 8, dtype=torch.float64)  # every signal alike: the interval closes
+    value = err_k(exact + 0.1, exact)  # sqrt(7 / 8) x 0.1: no eccentricity, no phase weight
     assert err_k_interval(exact + 0.1, exact) == pytest.approx((value, value))
     nan = small[0].clone()
-    nan[0] = float("nan")                                # a singular gappy system: left out
+    nan[0] = float("nan")  # a singular gappy system: left out
     assert all(math.isfinite(v) for v in err_k_interval(nan, small[1]))
     with pytest.raises(ValueError, match="level"):
         err_k_interval(*small, level=1.5)
@@ -271,8 +291,8 @@ def test_err_k_by_fault_count_splits_the_paper_err_k():
     g = torch.Generator().manual_seed(0)
     k_act = torch.rand(400, 8, generator=g, dtype=torch.float64) ** 3
     k_est = (k_act + 0.05 * torch.randn(400, 8, generator=g, dtype=torch.float64)).clamp(0, 1)
-    k_act[0] = torch.tensor([0.9, 0.9, 0.9, 0.0, 0.0, 0.0, 0.9, 0.0])      # 3 large, k7 not counted
-    k_act[1] = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.9, 0.31])     # 1 large
+    k_act[0] = torch.tensor([0.9, 0.9, 0.9, 0.0, 0.0, 0.0, 0.9, 0.0])  # 3 large, k7 not counted
+    k_act[1] = torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.9, 0.31])  # 1 large
     groups = err_k_by_fault_count(k_est, k_act)
     assert list(groups) == ["0", "1", "2", "3+"]
     assert sum(v["n"] for v in groups.values()) == 400
@@ -299,27 +319,32 @@ def test_err_alpha():
 def test_noise_aware_network_takes_the_level_as_one_more_input():
     torch.manual_seed(0)
     x, levels = torch.randn(200, 6), torch.rand(200) * 0.1
-    for net in (FDIMLP(6, 5, n_layers=2, input_scaling="robust", noise_input=True, default_noise=0.01, max_noise=0.1),
-                build_fdi_network(6, 5, 2, 3, input_scaling="robust", noise_input=True, default_noise=0.01,
-                                  max_noise=0.1)):
+    for net in (
+        FDIMLP(6, 5, n_layers=2, input_scaling="robust", noise_input=True, default_noise=0.01, max_noise=0.1),
+        build_fdi_network(6, 5, 2, 3, input_scaling="robust", noise_input=True, default_noise=0.01, max_noise=0.1),
+    ):
         with pytest.raises(ValueError, match="needs the training noise levels"):
             net.set_normalization(x)
         net.set_normalization(x, levels)
-        assert net.in_center.shape == (7,)                       # the level is scaled like a coefficient
+        assert net.in_center.shape == (7,)  # the level is scaled like a coefficient
         quiet, loud = net(x, torch.zeros(200)), net(x, torch.full((200,), 0.08))
         assert float((quiet - loud).abs().max()) > 1e-3
-        torch.testing.assert_close(net(x), net(x, torch.full((200,), 0.01)))         # None: default_noise
+        torch.testing.assert_close(net(x), net(x, torch.full((200,), 0.01)))  # None: default_noise
         torch.testing.assert_close(net(x, torch.full((200,), 0.5)), net(x, torch.full((200,), 0.1)))  # held
         scripted = torch.jit.script(net)
         torch.testing.assert_close(scripted(x, levels), net(x, levels))
         torch.testing.assert_close(scripted(x), net(x))
     plain = FDIMLP(6, 5).set_normalization(x)
-    torch.testing.assert_close(plain(x, levels), plain(x))       # a plain network ignores the level
-    assert "noise_input" not in "".join(plain.state_dict())       # and its state dict is unchanged
-    for kwargs, match in (({"noise_input": "yes"}, "fdi.noise_input must be true or false"),
-                          ({"noise_input": True, "max_noise": 0.0}, "fdi.max_noise must be > 0"),
-                          ({"noise_input": True, "default_noise": 0.2, "max_noise": 0.1},
-                           r"fdi.default_noise must be in \[0, max_noise=0.1\], got 0.2")):
+    torch.testing.assert_close(plain(x, levels), plain(x))  # a plain network ignores the level
+    assert "noise_input" not in "".join(plain.state_dict())  # and its state dict is unchanged
+    for kwargs, match in (
+        ({"noise_input": "yes"}, "fdi.noise_input must be true or false"),
+        ({"noise_input": True, "max_noise": 0.0}, "fdi.max_noise must be > 0"),
+        (
+            {"noise_input": True, "default_noise": 0.2, "max_noise": 0.1},
+            r"fdi.default_noise must be in \[0, max_noise=0.1\], got 0.2",
+        ),
+    ):
         with pytest.raises(ValueError, match=match):
             FDIMLP(6, 5, **kwargs)
     with pytest.raises(ValueError, match="noise_input=true needs noisy training records"):
@@ -349,8 +374,10 @@ def test_noise_aware_network_trained_on_noisy_records_keeps_its_clean_accuracy(t
         _, keep = _fit(module, TensorDataset(s, k, scale), TensorDataset(sv, kv, scale_v), 100, 32, tmp_path)
         keep.restore(module)
         with torch.no_grad():
-            err[aware] = (err_k(net(gappy(sv)[0], torch.zeros(len(sv))), kv),
-                          err_k(net(gappy(noisy_v)[0], torch.full((len(sv),), 0.1)), kv))
+            err[aware] = (
+                err_k(net(gappy(sv)[0], torch.zeros(len(sv))), kv),
+                err_k(net(gappy(noisy_v)[0], torch.full((len(sv),), 0.1)), kv),
+            )
     assert err[True][0] < 0.9 * err[False][0]
     assert err[True][1] < 1.02 * err[False][1]
 
@@ -360,8 +387,8 @@ def test_noise_level_is_unbiased_for_white_noise_and_ignores_sparse_spikes():
 
     g = torch.Generator().manual_seed(0)
     white = torch.randn(64, 10001, generator=g, dtype=torch.float64)
-    assert float(noise_level(white).mean()) == pytest.approx(1.0, abs=0.003)      # the clipped-mean factor
-    assert clipped_mean_factor() == pytest.approx(1.9401301101495292, rel=1e-12)    # the literal in the code
+    assert float(noise_level(white).mean()) == pytest.approx(1.0, abs=0.003)  # the clipped-mean factor
+    assert clipped_mean_factor() == pytest.approx(1.9401301101495292, rel=1e-12)  # the literal in the code
     windowed = noise_level(white, 2048)
     assert float(windowed.mean()) == pytest.approx(1.0, abs=0.01) and float(windowed.std()) < 0.05
     # a smooth record with rare spikes (ringing after commutation edges) and 1 % noise still reads ~1 %
@@ -369,8 +396,10 @@ def test_noise_level_is_unbiased_for_white_noise_and_ignores_sparse_spikes():
     record = 2.0 + torch.sin(2 * math.pi * 7 * t)
     spiky = record.clone()
     spiky[::500] += 0.5
-    rel = noise_level(torch.stack([record, spiky]) + 0.01 * rms(record.unsqueeze(0)) *
-                      torch.randn(2, 10001, generator=g, dtype=torch.float64))
+    rel = noise_level(
+        torch.stack([record, spiky])
+        + 0.01 * rms(record.unsqueeze(0)) * torch.randn(2, 10001, generator=g, dtype=torch.float64)
+    )
     torch.testing.assert_close(rel, torch.full((2,), 0.01, dtype=torch.float64), rtol=0.05, atol=0.0)
     assert float(noise_level(spiky.unsqueeze(0))) < 1e-3
     torch.testing.assert_close(torch.jit.script(noise_level)(white[:4], 2048), windowed[:4])

@@ -34,8 +34,16 @@ def case(pipe: OnlinePipeline, n: int, seed: int) -> tuple[OnlinePipeline, torch
     alpha = torch.zeros(n, pipe.n_modes, dtype=torch.float64)
     alpha[:, 0] = torch.arange(n, dtype=torch.float64)
     records = pipe.mean_signal + alpha @ pipe.modes.T
-    measured = OnlinePipeline(pipe.gappy, TableFDI(k_hat), pipe.classifier, damage(), pipe.deltas, pipe.direction,
-                              N_FULL, residual_threshold=1e3).eval()
+    measured = OnlinePipeline(
+        pipe.gappy,
+        TableFDI(k_hat),
+        pipe.classifier,
+        damage(),
+        pipe.deltas,
+        pipe.direction,
+        N_FULL,
+        residual_threshold=1e3,
+    ).eval()
     return measured, records, k
 
 
@@ -54,22 +62,22 @@ def test_band_reaches_its_coverage_on_calibration_and_on_fresh_records(pipeline)
     with torch.no_grad():
         k_hat = measured(records)[0]
     scale = (k_hat - k).abs().mean(0)
-    scale[6] = 0.0                                        # the eccentricity phase never grows
+    scale[6] = 0.0  # the eccentricity phase never grows
     torch.testing.assert_close(band.direction, scale)
-    assert not any(band.saturated) and band.deltas[1] == 0.0     # the median stays k_hat's own by default
+    assert not any(band.saturated) and band.deltas[1] == 0.0  # the median stays k_hat's own by default
     measured.fdi_deltas.copy_(band.deltas)
     measured.fdi_direction.copy_(band.direction)
     with torch.no_grad():
-        torch.testing.assert_close(measured.rul(k), measured.rul(k, False))   # a known k keeps the physics band
+        torch.testing.assert_close(measured.rul(k), measured.rul(k, False))  # a known k keeps the physics band
         truth, est = measured.rul(k)[:, 1], measured(records)[2]
     ok = truth > 0
     below = float((truth[ok] < est[ok, 0]).double().mean())
     above = float((truth[ok] > est[ok, 2]).double().mean())
     # the upper bound sits at the bisection's edge; the lower one is slack (the biased median is early)
     assert below <= 0.05 + 1e-9 and 0.03 <= above <= 0.05 + 1e-9
-    assert float((est[ok, 1] / truth[ok]).median()) < 0.9          # the biased k_hat: an early median
+    assert float((est[ok, 1] / truth[ok]).median()) < 0.9  # the biased k_hat: an early median
     corrected = calibrate_fdi_band(measured, records, k, correct_median=True)
-    assert corrected.deltas[1] < 0                                 # the upward FDI bias is taken back
+    assert corrected.deltas[1] < 0  # the upward FDI bias is taken back
     measured.fdi_deltas.copy_(corrected.deltas)
     with torch.no_grad():
         est = measured(records)[2]
@@ -106,9 +114,17 @@ class NominalIsFaulty(nn.Module):
 @pytest.mark.torchscript
 def test_a_verdict_that_cannot_cover_hands_the_upper_bound_to_the_health_classifier(pipeline):  # noqa: F811
     measured, records, k = case(pipeline, 300, seed=4)
-    blind = OnlinePipeline(measured.gappy, measured.fdi, measured.classifier, damage(), measured.deltas,
-                           measured.direction, N_FULL, residual_threshold=1e3,
-                           verdict_classifier=NominalIsFaulty()).eval()
+    blind = OnlinePipeline(
+        measured.gappy,
+        measured.fdi,
+        measured.classifier,
+        damage(),
+        measured.deltas,
+        measured.direction,
+        N_FULL,
+        residual_threshold=1e3,
+        verdict_classifier=NominalIsFaulty(),
+    ).eval()
     band = calibrate_fdi_band(blind, records, k)
     # the 95 % bound could not cover under the verdict (every propagation stops at once) and switched; the 5 %
     # bound covers trivially and keeps the verdict
@@ -119,13 +135,16 @@ def test_a_verdict_that_cannot_cover_hands_the_upper_bound_to_the_health_classif
     with torch.no_grad():
         truth, est = blind.rul(k)[:, 1], blind(records)[2]
     ok = truth > 0
-    assert float((est[ok, 0] == 0).double().mean()) == 1.0          # the verdict says faulty: nothing left at 5 %
-    assert float((truth[ok] <= est[ok, 2]).double().mean()) >= 0.95 - 1e-9   # the switched bound covers
+    assert float((est[ok, 0] == 0).double().mean()) == 1.0  # the verdict says faulty: nothing left at 5 %
+    assert float((truth[ok] <= est[ok, 2]).double().mean()) >= 0.95 - 1e-9  # the switched bound covers
     # the health-stopped upper propagation is the one the health classifier would give from the same start
     shift = blind.deltas.view(3, 1) * blind.direction + band.deltas.view(3, 1).to(blind.direction) * band.direction.to(
-        blind.direction)
+        blind.direction
+    )
     k_hat = blind(records)[0]
-    torch.testing.assert_close(blind.rul_shifted(k_hat, shift, True)[:, 2], blind.rul_shifted(k_hat, shift, False)[:, 2])
+    torch.testing.assert_close(
+        blind.rul_shifted(k_hat, shift, True)[:, 2], blind.rul_shifted(k_hat, shift, False)[:, 2]
+    )
     scripted = torch.jit.script(blind)
     torch.testing.assert_close(scripted(records)[2], blind(records)[2])
     with pytest.raises(ValueError, match="fdi_health_stop"):
@@ -137,18 +156,19 @@ def test_an_unidentified_component_starts_the_upper_bound_at_nominal(pipeline): 
     with torch.no_grad():
         k_hat = measured(records)[0]
         before = measured.rul(k_hat, True)
-        measured.set_unidentified([5, 6])       # eccentricity (grows) and its phase (does not: left alone)
+        measured.set_unidentified([5, 6])  # eccentricity (grows) and its phase (does not: left alone)
         after = measured.rul(k_hat, True)
         assert measured.unknown_shift[2].tolist() == [0, 0, 0, 0, 0, -1.0, 0, 0]
         assert measured.unknown_shift[:2].abs().sum() == 0
         start = k_hat.clone()
         start[:, 5] = measured.nominal[5]
         expected = measured.propagations(start, measured.fdi_deltas, measured.fdi_direction, True)[:, 2]
-        torch.testing.assert_close(measured.propagations(k_hat, measured.fdi_deltas, measured.fdi_direction, True)[:, 2],
-                                   expected)
-        torch.testing.assert_close(after[:, 1], before[:, 1])          # the median keeps k_hat's own start
-        assert bool((after[:, 2] >= before[:, 2] - 1e-6).all())         # less damage: never a shorter upper bound
-        torch.testing.assert_close(measured.rul(k), measured.rul(k, False))   # a known k is not touched
+        torch.testing.assert_close(
+            measured.propagations(k_hat, measured.fdi_deltas, measured.fdi_direction, True)[:, 2], expected
+        )
+        torch.testing.assert_close(after[:, 1], before[:, 1])  # the median keeps k_hat's own start
+        assert bool((after[:, 2] >= before[:, 2] - 1e-6).all())  # less damage: never a shorter upper bound
+        torch.testing.assert_close(measured.rul(k), measured.rul(k, False))  # a known k is not touched
         measured.set_unidentified(None)
         torch.testing.assert_close(measured.rul(k_hat, True), before)
     with pytest.raises(ValueError, match="unidentified"):

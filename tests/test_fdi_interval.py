@@ -9,7 +9,7 @@ import torch
 from phm_torch.online.fdi_interval import calibrate_fdi_interval, difficulty_class, interval_quality
 
 NOMINAL = torch.tensor([0.0] * 6 + [0.5, 0.5], dtype=torch.float64)
-SCALES = torch.tensor([0.01, 0.03, 0.08, 0.2], dtype=torch.float64)     # error scale of 0, 1, 2, 3+ large faults
+SCALES = torch.tensor([0.01, 0.03, 0.08, 0.2], dtype=torch.float64)  # error scale of 0, 1, 2, 3+ large faults
 
 
 def population(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -43,8 +43,9 @@ def test_coverage_holds_in_every_difficulty_class_on_fresh_records():
     # one class for all: valid on average, but over-wide near nominal and short in the hardest class
     single = calibrate_fdi_interval(k_hat, k, NOMINAL, coverage=0.9, min_count=20, n_classes=1)
     w1 = single.half_widths[0]
-    hardest = interval_quality((new_hat - w1).clamp(0, 1)[cls == 3], (new_hat + w1).clamp(0, 1)[cls == 3],
-                               new_k[cls == 3])
+    hardest = interval_quality(
+        (new_hat - w1).clamp(0, 1)[cls == 3], (new_hat + w1).clamp(0, 1)[cls == 3], new_k[cls == 3]
+    )
     assert max(hardest["coverage"][:6]) < 0.8
     assert float(w1[:6].mean()) > 3 * float(interval.half_widths[0, :6].mean())
 
@@ -52,19 +53,22 @@ def test_coverage_holds_in_every_difficulty_class_on_fresh_records():
 def test_a_small_class_is_pooled_downwards_and_widths_never_shrink_with_difficulty():
     k_hat, k = population(4000, 2)
     cls = difficulty_class(k_hat, NOMINAL, 0.3, 4)
-    keep = (cls < 3) | (torch.arange(len(cls)) % 40 == 0)          # few records with 3+ large faults
+    keep = (cls < 3) | (torch.arange(len(cls)) % 40 == 0)  # few records with 3+ large faults
     interval = calibrate_fdi_interval(k_hat[keep], k[keep], NOMINAL, coverage=0.9, min_count=50)
     assert interval.counts[3] < 50 and interval.pooled_from[3] < 3
     assert (interval.half_widths[1:] >= interval.half_widths[:-1]).all()
 
 
-@pytest.mark.parametrize("kwargs, message", [
-    ({"coverage": 1.0}, r"fdi_interval.coverage must be in \(0, 1\), got 1.0"),
-    ({"min_count": 0}, "fdi_interval.min_count must be an integer >= 1, got 0"),
-    ({"min_count": 500}, "fdi_interval: 100 calibration records, at least min_count=500 needed"),
-    ({"level": 0.0}, "fdi_interval.level must be > 0, got 0.0"),
-    ({"n_classes": 0}, "fdi_interval.n_classes must be an integer >= 1, got 0"),
-])
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"coverage": 1.0}, r"fdi_interval.coverage must be in \(0, 1\), got 1.0"),
+        ({"min_count": 0}, "fdi_interval.min_count must be an integer >= 1, got 0"),
+        ({"min_count": 500}, "fdi_interval: 100 calibration records, at least min_count=500 needed"),
+        ({"level": 0.0}, "fdi_interval.level must be > 0, got 0.0"),
+        ({"n_classes": 0}, "fdi_interval.n_classes must be an integer >= 1, got 0"),
+    ],
+)
 def test_bad_arguments_are_named(kwargs, message):
     k_hat, k = population(100, 3)
     args = {"coverage": 0.9, "min_count": 20, **kwargs}
@@ -74,14 +78,19 @@ def test_bad_arguments_are_named(kwargs, message):
         calibrate_fdi_interval(k_hat[:, :7], k[:, :7], NOMINAL, 0.9, 20)
 
 
-@pytest.mark.parametrize("override, message", [
-    ("fdi_interval.coverage=1.0", r"fdi_interval.coverage must be in \(0, 1\), got 1.0"),
-    ("fdi_interval.coverage=0", r"fdi_interval.coverage must be > 0, got 0"),
-    ("fdi_interval.min_count=0", r"fdi_interval.min_count must be >= 1, got 0"),
-    ("fdi_interval.noise_levels=[0.05,0.03]",
-     r"fdi_interval.noise_levels\[1\] must exceed 0.05 \(fdi_band.noise and the levels before it, increasing\), got 0.03"),
-    ("fdi_interval.noise_levels=[0.005]", r"fdi_interval.noise_levels\[0\] must exceed 0.01"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("fdi_interval.coverage=1.0", r"fdi_interval.coverage must be in \(0, 1\), got 1.0"),
+        ("fdi_interval.coverage=0", r"fdi_interval.coverage must be > 0, got 0"),
+        ("fdi_interval.min_count=0", r"fdi_interval.min_count must be >= 1, got 0"),
+        (
+            "fdi_interval.noise_levels=[0.05,0.03]",
+            r"fdi_interval.noise_levels\[1\] must exceed 0.05 \(fdi_band.noise and the levels before it, increasing\), got 0.03",
+        ),
+        ("fdi_interval.noise_levels=[0.005]", r"fdi_interval.noise_levels\[0\] must exceed 0.01"),
+    ],
+)
 def test_evaluate_refuses_bad_interval_settings_before_any_work(compose, tmp_path, override, message):
     from phm_torch.apps.evaluate import evaluate_rul
 
@@ -94,7 +103,7 @@ def test_a_sparse_easiest_class_is_pooled_upwards():
     that class with the next ones instead of taking a quantile of nothing."""
     k_hat, k = population(2000, 3)
     keep = difficulty_class(k_hat, NOMINAL, 0.3, 4) > 0
-    keep[:3] = True                                          # a few easy records only
+    keep[:3] = True  # a few easy records only
     interval = calibrate_fdi_interval(k_hat[keep], k[keep], NOMINAL, coverage=0.9, min_count=20)
     assert interval.counts[0] < 20 and torch.isfinite(interval.half_widths).all()
     assert (interval.half_widths[1:] >= interval.half_widths[:-1]).all()

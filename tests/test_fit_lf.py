@@ -32,16 +32,21 @@ def synthetic(params):
     """Fit on LF targets simulated with the known ``TRUTH``; held out: ``importance`` also from TRUTH,
     ``uniform`` from the physical coefficients (so the fit improves one held-out set and worsens the other)."""
     nominal = params.nominal_faults
-    sets = {"design": _faults([{}, {2: 0.3}, {3: 0.6}, {4: 0.8, 5: 0.5}, {2: 0.5, 3: 0.2}, {5: 0.8, 6: 0.3}], nominal),
-            "importance": _faults([{2: 0.4}, {4: 0.5, 5: 0.3}], nominal),
-            "uniform": _faults([{3: 0.4}, {2: 0.7, 5: 0.5}], nominal)}
+    sets = {
+        "design": _faults([{}, {2: 0.3}, {3: 0.6}, {4: 0.8, 5: 0.5}, {2: 0.5, 3: 0.2}, {5: 0.8, 6: 0.3}], nominal),
+        "importance": _faults([{2: 0.4}, {4: 0.5, 5: 0.3}], nominal),
+        "uniform": _faults([{3: 0.4}, {2: 0.7, 5: 0.5}], nominal),
+    }
 
     def run(faults: torch.Tensor, shape: LFShape) -> torch.Tensor:
         shapes = lf_fit.as_vector(shape).expand(faults.shape[0], -1)
         return lf_fit.simulate(params, "lf", faults, COMMAND, COMMAND.duration, shapes)
 
-    refs = {"design": run(sets["design"], TRUTH), "importance": run(sets["importance"], TRUTH),
-            "uniform": run(sets["uniform"], LFShape())}
+    refs = {
+        "design": run(sets["design"], TRUTH),
+        "importance": run(sets["importance"], TRUTH),
+        "uniform": run(sets["uniform"], LFShape()),
+    }
     settings = lf_fit.LFFitSettings(n_design=6, n_importance=2, n_uniform=2, max_iter=8, seed=0)
     return lf_fit.fit_and_validate(params, COMMAND, COMMAND.duration, sets, refs, settings)
 
@@ -57,8 +62,8 @@ def test_fit_recovers_known_coefficients(synthetic):
 
 def test_fit_worsening_one_held_out_set_keeps_physical_values(synthetic):
     imp, uni = synthetic.summary["importance"], synthetic.summary["uniform"]
-    assert imp["fitted"]["current"]["median"] < 0.5 * imp["physical"]["current"]["median"]   # better here
-    assert uni["fitted"]["current"]["median"] > uni["physical"]["current"]["median"]         # worse there
+    assert imp["fitted"]["current"]["median"] < 0.5 * imp["physical"]["current"]["median"]  # better here
+    assert uni["fitted"]["current"]["median"] > uni["physical"]["current"]["median"]  # worse there
     assert synthetic.decision.keep == "physical"
     assert synthetic.shape == LFShape()
     assert any(r.startswith("uniform current") and "worsens" in r for r in synthetic.decision.reasons)
@@ -87,22 +92,36 @@ def test_decide_rule():
 
 
 def _cfg(compose, tmp_path, *overrides: str):
-    return compose("fit_lf", ["command=sine", "command.frequency=10", "command.duration=0.01", "fit.n_design=3",
-                              "fit.n_importance=2", "fit.n_uniform=2", "fit.max_iter=1",
-                              f"out={tmp_path / 'act' / 'ema_lf.yaml'}", *overrides])
+    return compose(
+        "fit_lf",
+        [
+            "command=sine",
+            "command.frequency=10",
+            "command.duration=0.01",
+            "fit.n_design=3",
+            "fit.n_importance=2",
+            "fit.n_uniform=2",
+            "fit.max_iter=1",
+            f"out={tmp_path / 'act' / 'ema_lf.yaml'}",
+            *overrides,
+        ],
+    )
 
 
-@pytest.mark.parametrize("override, message", [
-    ("+fit.bogus=1", "bogus"),
-    ("fit.n_design=-4", "fit.n_design must be an integer >= 2, got -4"),
-    ("fit.n_uniform=0", "fit.n_uniform"),
-    ("+fit.min_gain=1.5", "fit.min_gain"),
-    ("+fit.duration=0.00015", "fit.duration"),
-    ("+fit.outlier_factor=0.5", "fit.outlier_factor"),
-    ("+fit.bounds={commutation_width: [0.1, 0.2]}", "fit.bounds.commutation_width"),
-    ("+fit.bounds={turns: [0, 1]}", "turns"),
-    ("out=fit.csv", "out must end in .yaml"),
-])
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("+fit.bogus=1", "bogus"),
+        ("fit.n_design=-4", "fit.n_design must be an integer >= 2, got -4"),
+        ("fit.n_uniform=0", "fit.n_uniform"),
+        ("+fit.min_gain=1.5", "fit.min_gain"),
+        ("+fit.duration=0.00015", "fit.duration"),
+        ("+fit.outlier_factor=0.5", "fit.outlier_factor"),
+        ("+fit.bounds={commutation_width: [0.1, 0.2]}", "fit.bounds.commutation_width"),
+        ("+fit.bounds={turns: [0, 1]}", "turns"),
+        ("out=fit.csv", "out must end in .yaml"),
+    ],
+)
 def test_bad_config_names_the_field(compose, tmp_path, override, message):
     with pytest.raises(ValueError, match=message.replace("[", r"\[").replace(".", r"\.")):
         fit_lf(_cfg(compose, tmp_path, override))

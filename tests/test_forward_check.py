@@ -17,7 +17,7 @@ from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
 from phm_torch.surrogates.fdi_mlp import FDIMLP
 from phm_torch.surrogates.forward import ForwardSurrogate, fit_forward_check
 
-pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
 N_E, N_LATENT = 801, 10
 WEIGHTS = torch.linspace(3.0, 0.6, N_LATENT, dtype=torch.float64)
@@ -26,16 +26,29 @@ NOMINAL = list(load_actuator().nominal_faults)
 
 def _basis() -> torch.Tensor:
     t = torch.linspace(0.0, 1.0, N_E, dtype=torch.float64)
-    cols = [torch.sin(2 * math.pi * (i + 1) * t * (1 + t)) * torch.exp(-((t - (i + 0.5) / N_LATENT) / 0.25) ** 2)
-            for i in range(N_LATENT)]
+    cols = [
+        torch.sin(2 * math.pi * (i + 1) * t * (1 + t)) * torch.exp(-(((t - (i + 0.5) / N_LATENT) / 0.25) ** 2))
+        for i in range(N_LATENT)
+    ]
     return torch.linalg.qr(torch.stack(cols, 1))[0]
 
 
 def _latent(k: torch.Tensor) -> torch.Tensor:
     """(B, 10) smooth map of k with k7 a phase of the eccentricity k6, as the actuator's."""
     angle = 2 * math.pi * k[:, 6:7]
-    return torch.cat([k[:, :6], k[:, 5:6] * torch.cos(angle), k[:, 5:6] * torch.sin(angle), k[:, :1] * k[:, 1:2],
-                      torch.sin(2.0 * k[:, 2:3])], 1) * WEIGHTS
+    return (
+        torch.cat(
+            [
+                k[:, :6],
+                k[:, 5:6] * torch.cos(angle),
+                k[:, 5:6] * torch.sin(angle),
+                k[:, :1] * k[:, 1:2],
+                torch.sin(2.0 * k[:, 2:3]),
+            ],
+            1,
+        )
+        * WEIGHTS
+    )
 
 
 def _mean() -> torch.Tensor:
@@ -59,7 +72,7 @@ class OracleFDI(torch.nn.Module):
     def __init__(self, pod: POD):
         super().__init__()
         v = _basis()
-        self.register_buffer("to_latent", pod.modes_.T @ v / WEIGHTS)    # alpha -> latent / weights, (n_m, 10)
+        self.register_buffer("to_latent", pod.modes_.T @ v / WEIGHTS)  # alpha -> latent / weights, (n_m, 10)
         self.register_buffer("offset", (pod.mean_ - _mean()) @ v / WEIGHTS)
 
     def forward(self, alpha: torch.Tensor) -> torch.Tensor:
@@ -88,7 +101,7 @@ def test_forward_surrogate_fits_a_smooth_map_with_a_phase(fitted):
     k = faults(300, 5)
     with torch.no_grad():
         err = (model(k).double() - pod(records(k))).norm(dim=1) / model.alpha_scale_.double()
-    assert float(model.error_ / model.alpha_scale_) < 0.05          # held-out, relative to the coefficients' spread
+    assert float(model.error_ / model.alpha_scale_) < 0.05  # held-out, relative to the coefficients' spread
     assert float(err.median()) < 0.05
     assert model.best_epoch_ > 0 and 0 < float(model.floor_full_) < 0.05
 
@@ -122,12 +135,12 @@ def test_statistic_is_stable_across_noise_and_large_for_shifted_or_flipped_recor
         full, _ = _statistics(fitted, y, torch.full((200,), level, dtype=torch.float64))
         medians.append(float(full.median()))
         highs.append(float(full.quantile(0.99)))
-    assert all(0.4 < m < 2.5 for m in medians), medians        # ~1: residual at the noise (or the floor)
+    assert all(0.4 < m < 2.5 for m in medians), medians  # ~1: residual at the noise (or the floor)
     assert max(highs) < 8.0, highs
     noise = torch.full((200,), 0.01, dtype=torch.float64)
     y = add_noise(clean, rms(clean), 0.01, torch.Generator().manual_seed(4))
-    shifted = torch.roll(y, 20, dims=1)                           # 1 ms at 20 kHz
-    flipped = -y                                                  # a probe the wrong way round
+    shifted = torch.roll(y, 20, dims=1)  # 1 ms at 20 kHz
+    flipped = -y  # a probe the wrong way round
     for bad in (shifted, flipped):
         full, sel = _statistics(fitted, bad, noise)
         assert float(full.median()) > 3 * max(highs), float(full.median())
@@ -144,8 +157,17 @@ def _pipeline(fitted, with_check: bool) -> OnlinePipeline:
     k = faults(300, 2)
     clf = PolynomialSVM(degree=2).fit(k, k[:, :5].amax(1) < 0.5)
     check = ConsistencyCheck(model, pod.mean_, pod.modes_, gappy.indices) if with_check else None
-    return OnlinePipeline(gappy, fdi, clf, _damage(), torch.tensor([0.02, 0.0, -0.02]), torch.ones(8), N_E,
-                          residual_threshold=1e3, consistency=check).eval()
+    return OnlinePipeline(
+        gappy,
+        fdi,
+        clf,
+        _damage(),
+        torch.tensor([0.02, 0.0, -0.02]),
+        torch.ones(8),
+        N_E,
+        residual_threshold=1e3,
+        consistency=check,
+    ).eval()
 
 
 def test_pipeline_flags_inconsistent_records_scripted_as_eager_and_without_check_as_before(fitted):
@@ -167,11 +189,11 @@ def test_pipeline_flags_inconsistent_records_scripted_as_eager_and_without_check
         margin = pipe.consistency(bad)
         samples = pipe.consistency(bad.index_select(1, pipe.gappy.indices), torch.full((120,), 0.01))
     ood, ood_plain = out[3], before[3]
-    assert not bool(ood_plain.any())                              # nothing else flags these records
-    assert float(ood[:40].double().mean()) <= 0.05                # the good ones pass
+    assert not bool(ood_plain.any())  # nothing else flags these records
+    assert float(ood[:40].double().mean()) <= 0.05  # the good ones pass
     assert bool(ood[40:].all()) and bool((margin[40:] > 1).all())  # shifted and flipped: inconsistent
     assert float((samples[40:] > 1).double().mean()) > 0.9 and float((samples[:40] > 1).double().mean()) <= 0.05
-    torch.testing.assert_close(out[0], before[0])                 # k_hat, score untouched
+    torch.testing.assert_close(out[0], before[0])  # k_hat, score untouched
     torch.testing.assert_close(out[1], before[1])
     assert bool(torch.isnan(scripted_plain.consistency(bad)).all())
 
@@ -193,5 +215,9 @@ def test_bundle_round_trip_with_and_without_forward_model(fitted, tmp_path):
         torch.testing.assert_close(back.forward_model(k_test), model(k_test))
     assert float(back.forward_model.floor_full_) == float(model.floor_full_)
     pipe = OnlinePipeline.from_bundle(back, _damage(), torch.zeros(3), torch.ones(8))
-    assert pipe.has_consistency and not OnlinePipeline.from_bundle(SurrogateBundle.load(tmp_path / "plain.pt"),
-                                                                   _damage(), torch.zeros(3), torch.ones(8)).has_consistency
+    assert (
+        pipe.has_consistency
+        and not OnlinePipeline.from_bundle(
+            SurrogateBundle.load(tmp_path / "plain.pt"), _damage(), torch.zeros(3), torch.ones(8)
+        ).has_consistency
+    )

@@ -12,7 +12,7 @@ from phm_torch.surrogates import POD, GappyPOD, drop_samples
 from phm_torch.surrogates.gappy_pod import WOODBURY_MAX
 from phm_torch.surrogates.selectors import build_selector
 
-pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
 
 @pytest.fixture(scope="module")
@@ -54,8 +54,9 @@ def test_residual_flags_signals_outside_the_span(pod, in_span):
 def test_missing_samples_are_dropped_from_that_signal_only(pod, in_span):
     idx = build_selector("greedy", n_points=20).fit(pod.modes_).indices_
     gappy = GappyPOD(pod.modes_, pod.mean_, idx)
-    noisy = gappy.select(in_span) + 0.05 * torch.randn(16, 20, generator=torch.Generator().manual_seed(0),
-                                                       dtype=torch.float64)
+    noisy = gappy.select(in_span) + 0.05 * torch.randn(
+        16, 20, generator=torch.Generator().manual_seed(0), dtype=torch.float64
+    )
     holed = drop_samples(noisy, torch.tensor([0, 3] + [0] * 14), torch.Generator().manual_seed(1))
     alpha, _ = gappy(holed)
     full, _ = gappy(noisy)
@@ -74,8 +75,9 @@ def test_few_missing_samples_by_the_woodbury_identity(pod, in_span, n_points):
     least squares as on the present samples (float64 exactly, float32 closely); more: a G per signal."""
     idx = build_selector("uniform", n_points=n_points).fit(pod.modes_).indices_
     gappy = GappyPOD(pod.modes_, pod.mean_, idx)
-    noisy = gappy.select(in_span) + 0.05 * torch.randn(16, n_points, generator=torch.Generator().manual_seed(2),
-                                                       dtype=torch.float64)
+    noisy = gappy.select(in_span) + 0.05 * torch.randn(
+        16, n_points, generator=torch.Generator().manual_seed(2), dtype=torch.float64
+    )
     counts = torch.arange(16) % (WOODBURY_MAX + 1)
     holed = drop_samples(noisy, counts, torch.Generator().manual_seed(3))
     alpha, resid = gappy(holed)
@@ -120,7 +122,7 @@ def test_torchscript(pod, in_span):
     a, r = scripted(s)
     b, q = gappy(s)
     assert torch.allclose(a, b) and torch.allclose(r, q)
-    assert gappy.noise_covariance.numel() == 0          # least squares carries no (n_w, n_w) matrix
+    assert gappy.noise_covariance.numel() == 0  # least squares carries no (n_w, n_w) matrix
 
 
 def test_condition_number(pod):
@@ -135,12 +137,12 @@ def test_bad_input(pod):
     with pytest.raises(ValueError, match=r"samples must be \(B, 16\)"):
         gappy(torch.zeros(2, 15, dtype=torch.float64))
     s = torch.zeros(2, 16, dtype=torch.float64)
-    s[1, :7] = float("nan")                                    # 9 present samples for 10 modes
+    s[1, :7] = float("nan")  # 9 present samples for 10 modes
     alpha, resid = gappy(s)
     assert bool(torch.isfinite(alpha[0]).all()) and bool(torch.isnan(alpha[1]).all())
     assert math.isfinite(float(resid[0])) and float(resid[1]) == float("inf")
     x = s.clone().requires_grad_(True)
-    gappy(x)[0][0].sum().backward()                            # the singular signal does not poison gradients
+    gappy(x)[0][0].sum().backward()  # the singular signal does not poison gradients
     assert bool(torch.isfinite(x.grad).all())
     ridged = GappyPOD(pod.modes_, pod.mean_, torch.arange(0, 800, 50), ridge=1e-3)
     assert bool(torch.isfinite(ridged(s)[0]).all())
@@ -149,6 +151,7 @@ def test_bad_input(pod):
 
 
 # ---- Bayesian gappy layer ------------------------------------------------------------------------------
+
 
 @pytest.fixture(scope="module")
 def truncated():
@@ -195,8 +198,13 @@ def test_bayesian_missing_samples_drop_their_rows_and_columns_of_r(truncated):
     holed = samples.clone()
     holed[:, [2, 5, 7]] = float("nan")
     alpha, resid = gappy(holed)
-    sub = GappyPOD(pod.modes_, pod.mean_, idx[keep], noise_covariance=stats["noise_covariance"][keep][:, keep],
-                   prior_variance=stats["prior_variance"])
+    sub = GappyPOD(
+        pod.modes_,
+        pod.mean_,
+        idx[keep],
+        noise_covariance=stats["noise_covariance"][keep][:, keep],
+        prior_variance=stats["prior_variance"],
+    )
     alpha_sub, resid_sub = sub(samples[:, keep])
     torch.testing.assert_close(alpha, alpha_sub, atol=1e-9, rtol=1e-9)
     torch.testing.assert_close(resid, resid_sub, atol=1e-9, rtol=1e-9)

@@ -11,7 +11,7 @@ T = torch.linspace(0, 1, 200, dtype=torch.float64)
 
 
 def linear(k: torch.Tensor) -> torch.Tensor:
-    basis = torch.stack([torch.sin((i + 1) * torch.pi * T) for i in range(8)])        # (8, n)
+    basis = torch.stack([torch.sin((i + 1) * torch.pi * T) for i in range(8)])  # (8, n)
     return k @ basis
 
 
@@ -37,7 +37,7 @@ def test_rough_signal_changes_as_much_at_the_smallest_step():
     k = torch.full((5, 8), 0.5, dtype=torch.float64)
     out = signal_sensitivity(rough, k, steps=(1e-3, 1e-1))
     assert float(out["linearity"].min()) > 20.0
-    assert float(out["rms_change"][:, 0].median()) > 0.3       # of a unit sine: no usable information
+    assert float(out["rms_change"][:, 0].median()) > 0.3  # of a unit sine: no usable information
 
 
 def test_steps_stay_inside_the_unit_box():
@@ -56,12 +56,15 @@ def test_steps_stay_inside_the_unit_box():
     assert torch.isfinite(out["linearity"]).all()
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"k": torch.zeros(3, 7)}, "k must be"),
-    ({"steps": (1e-2,)}, "steps must be"),
-    ({"steps": (1e-1, 1e-2)}, "steps must be"),
-    ({"frozen": (8,)}, "frozen must be"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"k": torch.zeros(3, 7)}, "k must be"),
+        ({"steps": (1e-2,)}, "steps must be"),
+        ({"steps": (1e-1, 1e-2)}, "steps must be"),
+        ({"frozen": (8,)}, "frozen must be"),
+    ],
+)
 def test_bad_arguments(kwargs, match):
     args = {"k": torch.full((2, 8), 0.5), **kwargs}
     with pytest.raises(ValueError, match=match):

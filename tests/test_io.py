@@ -16,8 +16,7 @@ RATE = 20000.0
 
 def table(n: int = 11, rate: float = RATE, **extra) -> dict[str, np.ndarray]:
     t = np.arange(n) / rate
-    cols = {"time": t, "command": 1e-3 * np.sin(50 * t), "position": 0.9e-3 * np.sin(50 * t - 0.1),
-            "current": 0.5 + t}
+    cols = {"time": t, "command": 1e-3 * np.sin(50 * t), "position": 0.9e-3 * np.sin(50 * t - 0.1), "current": 0.5 + t}
     cols.update(extra)
     return cols
 
@@ -50,8 +49,14 @@ def test_round_trip_is_exact_and_keeps_extra_channels(tmp_path):
 
 def test_write_from_batched_tensors_selects_index_and_columns(tmp_path):
     t = torch.arange(6, dtype=torch.float64) / RATE
-    batch = {"time": t, "command": torch.zeros(3, 6), "position": torch.arange(18.0).reshape(3, 6),
-             "current": torch.ones(3, 6), "speed": torch.ones(3, 6), "user_angle": torch.ones(3, 6)}
+    batch = {
+        "time": t,
+        "command": torch.zeros(3, 6),
+        "position": torch.arange(18.0).reshape(3, 6),
+        "current": torch.ones(3, 6),
+        "speed": torch.ones(3, 6),
+        "user_angle": torch.ones(3, 6),
+    }
     with pytest.raises(ValueError, match="index"):
         write_measurement(tmp_path / "b.csv", batch)
     path = write_measurement(tmp_path / "b.csv", batch, index=2, columns=["speed"])
@@ -74,8 +79,8 @@ def test_write_is_atomic_and_validates(tmp_path):
     del missing["position"]
     with pytest.raises(ValueError, match="position"):
         write_measurement(path, missing)
-    assert path.read_text() == before                       # the old file is untouched
-    write_measurement(path, table(21))                       # replaced in one step
+    assert path.read_text() == before  # the old file is untouched
+    write_measurement(path, table(21))  # replaced in one step
     assert len(path.read_text().splitlines()) == 22
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.csv"]  # no temporary file left behind
 
@@ -88,8 +93,11 @@ def test_quantised_timestamps_are_accepted(tmp_path):
 
 
 def test_columns_in_any_order_and_whitespace(tmp_path):
-    path = write_text(tmp_path / "o.csv", " current , time,position,command",
-                      ["0.5, 0.0, 1, 2", "0.6, 0.00005, 3, 4", "0.7, 0.0001, 5, 6"])
+    path = write_text(
+        tmp_path / "o.csv",
+        " current , time,position,command",
+        ["0.5, 0.0, 1, 2", "0.6, 0.00005, 3, 4", "0.7, 0.0001, 5, 6"],
+    )
     m = read_measurement(path, expected_rate=RATE)
     np.testing.assert_array_equal(m.current, [0.5, 0.6, 0.7])
     np.testing.assert_array_equal(m.command, [2, 4, 6])
@@ -98,7 +106,7 @@ def test_columns_in_any_order_and_whitespace(tmp_path):
 # ---- resampling -----------------------------------------------------------------------------------
 def test_rate_mismatch_raises_unless_resample(tmp_path):
     cols = table(101, rate=40000.0)
-    cols["position"] = 2.0 * cols["time"] + 1.0           # linear: interpolation is exact
+    cols["position"] = 2.0 * cols["time"] + 1.0  # linear: interpolation is exact
     path = write_measurement(tmp_path / "r.csv", cols)
     with pytest.raises(ValueError, match=r"sample rate 40000 Hz .*'time'.* expected 20000 Hz"):
         read_measurement(path, expected_rate=RATE)
@@ -118,24 +126,45 @@ def test_upsampling_keeps_span(tmp_path):
 # ---- bad input: each raises ValueError naming the field -------------------------------------------
 HEADER = "time,command,position,current"
 BAD_CASES = {
-    "missing column": ("time,command,current", [f"{i / RATE!r},0,0" for i in range(5)],
-                       r"missing required column\(s\) \['position'\]"),
-    "duplicate column": ("time,command,position,current,current", [f"{i / RATE!r},0,0,0,0" for i in range(5)],
-                         r"duplicate column 'current'"),
-    "empty header cell": ("time,command,position,current,", [f"{i / RATE!r},0,0,0,0" for i in range(5)],
-                          r"header column 5 is empty"),
-    "non-numeric": (HEADER, [*good_rows(3), "0.00015,0.001,abc,0.5"],
-                    r"line 5, column 'position': non-numeric value 'abc'"),
+    "missing column": (
+        "time,command,current",
+        [f"{i / RATE!r},0,0" for i in range(5)],
+        r"missing required column\(s\) \['position'\]",
+    ),
+    "duplicate column": (
+        "time,command,position,current,current",
+        [f"{i / RATE!r},0,0,0,0" for i in range(5)],
+        r"duplicate column 'current'",
+    ),
+    "empty header cell": (
+        "time,command,position,current,",
+        [f"{i / RATE!r},0,0,0,0" for i in range(5)],
+        r"header column 5 is empty",
+    ),
+    "non-numeric": (
+        HEADER,
+        [*good_rows(3), "0.00015,0.001,abc,0.5"],
+        r"line 5, column 'position': non-numeric value 'abc'",
+    ),
     "empty cell": (HEADER, [*good_rows(3), "0.00015,0.001,0.0009,"], r"line 5, column 'current': non-numeric"),
-    "nan": (HEADER, [*good_rows(2), "0.0001,nan,0.0009,0.5", "0.00015,0,0,0"],
-            r"line 4, column 'command': value 'nan' is not finite"),
+    "nan": (
+        HEADER,
+        [*good_rows(2), "0.0001,nan,0.0009,0.5", "0.00015,0,0,0"],
+        r"line 4, column 'command': value 'nan' is not finite",
+    ),
     "inf": (HEADER, [*good_rows(3), "0.00015,0.001,0.0009,-inf"], r"line 5, column 'current': value '-inf'"),
     "short row": (HEADER, [*good_rows(2), "0.0001,0.001,0.0009"], r"line 4 has 3 cells, the header has 4"),
-    "time decreasing": (HEADER, ["0.0,0,0,0", "0.00005,0,0,0", "0.00004,0,0,0", "0.00015,0,0,0"],
-                        r"column 'time' is not strictly increasing at line 4"),
+    "time decreasing": (
+        HEADER,
+        ["0.0,0,0,0", "0.00005,0,0,0", "0.00004,0,0,0", "0.00015,0,0,0"],
+        r"column 'time' is not strictly increasing at line 4",
+    ),
     "time repeated": (HEADER, ["0.0,0,0,0", "0.00005,0,0,0", "0.00005,0,0,0"], r"'time' is not strictly increasing"),
-    "time gap": (HEADER, [f"{t!r},0,0,0" for t in (0.0, 5e-5, 1e-4, 2e-4, 2.5e-4, 3e-4)],
-                 r"column 'time' is not uniformly sampled at line 5"),
+    "time gap": (
+        HEADER,
+        [f"{t!r},0,0,0" for t in (0.0, 5e-5, 1e-4, 2e-4, 2.5e-4, 3e-4)],
+        r"column 'time' is not uniformly sampled at line 5",
+    ),
     "one row": (HEADER, good_rows(1), r"at least 2 data rows, got 1"),
     "header only": (HEADER, [], r"at least 2 data rows, got 0"),
 }
@@ -170,7 +199,7 @@ def test_missing_ok_columns_read_empty_and_nan_cells_as_missing(tmp_path):
     m = read_measurement(path, missing_ok=("current",))
     assert np.isnan(m.current[2:4]).all() and np.isfinite(m.current[[0, 1, 4]]).all()
     with pytest.raises(ValueError, match=r"line 4, column 'current': non-numeric value ''"):
-        read_measurement(path)                                     # only where the caller can drop samples
+        read_measurement(path)  # only where the caller can drop samples
     bad = write_text(tmp_path / "bad.csv", HEADER, [*good_rows(2), "0.0001,nan,0.0009,0.5", "0.00015,0,0,inf"])
     with pytest.raises(ValueError, match=r"line 4, column 'command': value 'nan' is not finite"):
         read_measurement(bad, missing_ok=("current",))

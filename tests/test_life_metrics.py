@@ -32,34 +32,53 @@ def make_life(eols, tracker=(0.5, 1.0, 1.5), snapshot=(1.9, 2.0, 2.1), after=2):
     for n, eol in enumerate(eols):
         a = f"A{n:03d}"
         hours = [EVERY * i for i in range(int(eol // EVERY) + 1 + after)]
-        truth["actuators"][a] = {"rate_scale": 1.0, "eol_hours": eol, "k0": [0.0] * 8, "inspections": [
-            {"hours": h, "file": f"{a}_{i}.csv", "k_true": [0.0] * 8, "healthy": h < eol, "rul_true": eol - h}
-            for i, h in enumerate(hours)]}
-        track["actuators"][a] = {"inspections": [
-            {"hours": h, "file": f"{a}_{i}.csv", "healthy": h < eol, "p_faulty": float(h >= eol),
-             "rul_hours": _band(eol - h, *tracker), "rul_censored": False, "out_of_distribution": False,
-             "fused": True, "snapshot_rul_hours": _band(eol - h, *snapshot), "snapshot_rul_censored": False}
-            for i, h in enumerate(hours)]}
+        truth["actuators"][a] = {
+            "rate_scale": 1.0,
+            "eol_hours": eol,
+            "k0": [0.0] * 8,
+            "inspections": [
+                {"hours": h, "file": f"{a}_{i}.csv", "k_true": [0.0] * 8, "healthy": h < eol, "rul_true": eol - h}
+                for i, h in enumerate(hours)
+            ],
+        }
+        track["actuators"][a] = {
+            "inspections": [
+                {
+                    "hours": h,
+                    "file": f"{a}_{i}.csv",
+                    "healthy": h < eol,
+                    "p_faulty": float(h >= eol),
+                    "rul_hours": _band(eol - h, *tracker),
+                    "rul_censored": False,
+                    "out_of_distribution": False,
+                    "fused": True,
+                    "snapshot_rul_hours": _band(eol - h, *snapshot),
+                    "snapshot_rul_censored": False,
+                }
+                for i, h in enumerate(hours)
+            ]
+        }
     return track, truth
 
 
 # ---------------------------------------------------------------- array functions
 
+
 def test_lambda_index_takes_first_inspection_at_or_after_t_lambda():
     hours = np.arange(0.0, 1200.0, 200.0)
-    assert lm.lambda_index(hours, 0.0, 1050.0, 0.5) == 3          # t_lambda = 525 -> 600
-    assert lm.lambda_index(hours, 0.0, 1000.0, 0.4) == 2          # t_lambda = 400 exactly
+    assert lm.lambda_index(hours, 0.0, 1050.0, 0.5) == 3  # t_lambda = 525 -> 600
+    assert lm.lambda_index(hours, 0.0, 1000.0, 0.4) == 2  # t_lambda = 400 exactly
     assert lm.lambda_index(hours[:2], 0.0, 1050.0, 0.5) is None
 
 
 def test_alpha_lambda_cone_edges():
     hours = np.array([0.0, 200.0, 400.0, 600.0, 800.0])
-    true = 1050.0 - hours                                         # 450 h at the lambda inspection (600 h)
+    true = 1050.0 - hours  # 450 h at the lambda inspection (600 h)
     good, bad = true.copy(), true.copy()
     good[3], bad[3] = 450.0 * 1.19, 450.0 * 1.21
     assert lm.alpha_lambda(hours, true, good, 0.0, 1050.0, 0.2, 0.5) is True
     assert lm.alpha_lambda(hours, true, bad, 0.0, 1050.0, 0.2, 0.5) is False
-    bad[2] = bad[4] = 0.0                                         # other inspections do not matter
+    bad[2] = bad[4] = 0.0  # other inspections do not matter
     good[2] = good[4] = 0.0
     assert lm.alpha_lambda(hours, true, good, 0.0, 1050.0, 0.2, 0.5) is True
 
@@ -100,16 +119,17 @@ def test_eol_detection_delay():
 
 # ---------------------------------------------------------------- evaluate_life on hand-built tracks
 
+
 def test_perfect_tracker_against_biased_snapshot():
     track, truth = make_life([1050.0, 1450.0])
     r = lm.evaluate_life(track, truth)
     t, s = r["tracker"], r["snapshot"]
     assert t["alpha_lambda"] == 1.0 and t["relative_accuracy"] == pytest.approx(1.0)
-    assert t["prognostic_horizon"] == pytest.approx(1.0)                # the whole life
-    assert t["prognostic_horizon_hours"] == pytest.approx(1250.0)       # median of 1050 and 1450
+    assert t["prognostic_horizon"] == pytest.approx(1.0)  # the whole life
+    assert t["prognostic_horizon_hours"] == pytest.approx(1250.0)  # median of 1050 and 1450
     assert t["coverage_5_95"] == 1.0
-    assert t["median_relative_band_width_second_half"] == pytest.approx(1.0)   # (1.5 - 0.5) by construction
-    assert t["eol_detection_delay"] == pytest.approx(150.0)           # EOL 1050 -> 1200, 1450 -> 1600
+    assert t["median_relative_band_width_second_half"] == pytest.approx(1.0)  # (1.5 - 0.5) by construction
+    assert t["eol_detection_delay"] == pytest.approx(150.0)  # EOL 1050 -> 1200, 1450 -> 1600
     assert t["eol_flagged_within_one_inspection"] == 1.0 and t["positive_p50_when_faulty"] == 0
     # the snapshot p50 is twice the truth: outside the cone, RA = 0, band [1.9, 2.1] x RUL misses it
     assert s["alpha_lambda"] == 0.0 and s["relative_accuracy"] == pytest.approx(0.0)
@@ -117,10 +137,10 @@ def test_perfect_tracker_against_biased_snapshot():
     assert s["median_relative_band_width_second_half"] == pytest.approx(0.2)
     # PH bounds +- 105 h (A000): only the 1000 h inspection (RUL 50 h, error 50 h) is inside -> 50 h
     assert r["per_actuator"]["A000"]["snapshot"]["prognostic_horizon_hours"] == pytest.approx(50.0)
-    assert s["positive_p50_when_faulty"] is None                       # no snapshot verdict in the track
+    assert s["positive_p50_when_faulty"] is None  # no snapshot verdict in the track
     tg = r["targets"]
     assert tg["coverage_5_95"]["passed"] and tg["alpha_lambda"]["passed"] and tg["prognostic_horizon"]["passed"]
-    assert tg["median_relative_band_width_second_half"]["passed"]      # 1.0 <= 1.0
+    assert tg["median_relative_band_width_second_half"]["passed"]  # 1.0 <= 1.0
     assert not tg["band_width_ratio_to_snapshot"]["passed"]
     assert tg["band_width_ratio_to_snapshot"]["value"] == pytest.approx(5.0)
     assert not r["all_targets_passed"]
@@ -140,27 +160,27 @@ def test_biased_tracker_fails_targets():
 def test_censored_bounds_count_as_infinite():
     track, truth = make_life([1050.0])
     insp = track["actuators"]["A000"]["inspections"]
-    for i in insp[3:6]:                      # second half (>= 525 h): 600, 800, 1000 h
+    for i in insp[3:6]:  # second half (>= 525 h): 600, 800, 1000 h
         i["rul_hours"]["p95"] = None
         i["rul_censored"] = True
-    insp[0]["rul_hours"] = None              # every bound beyond the horizon: p5 = +inf misses the truth
+    insp[0]["rul_hours"] = None  # every bound beyond the horizon: p5 = +inf misses the truth
     r = lm.evaluate_life(track, truth)
     a = r["per_actuator"]["A000"]["tracker"]
     assert a["coverage_5_95"] == pytest.approx(5 / 6)
-    assert a["median_relative_band_width_second_half"] is None           # +inf, written as null
+    assert a["median_relative_band_width_second_half"] is None  # +inf, written as null
     assert r["tracker"]["median_relative_band_width_second_half"] is None
     assert r["tracker"]["relative_band_width_second_half_censored"] == 1.0
     assert r["snapshot"]["relative_band_width_second_half_censored"] == 0.0
     assert not r["targets"]["median_relative_band_width_second_half"]["passed"]
     assert not r["targets"]["band_width_ratio_to_snapshot"]["passed"]
-    json.dumps(r, allow_nan=False)                                        # strict JSON: no Infinity
+    json.dumps(r, allow_nan=False)  # strict JSON: no Infinity
 
 
 def test_eol_delay_in_inspections_and_early_flags():
     track, truth = make_life([1050.0, 1050.0, 1050.0], tracker=(0.5, 1.0, 1.5))
     for n, a in enumerate(("A000", "A001", "A002")):
         for i in track["actuators"][a]["inspections"]:
-            i["rul_hours"]["p50"] = max(1050.0 - i["hours"], 1.0)      # never 0: only the verdict flags
+            i["rul_hours"]["p50"] = max(1050.0 - i["hours"], 1.0)  # never 0: only the verdict flags
             # A000 flagged at 1200 h (first after EOL), A001 at 1400 h (two late), A002 at 600 h (early)
             i["healthy"] = i["hours"] < (1200.0, 1400.0, 600.0)[n]
     r = lm.evaluate_life(track, truth)
@@ -207,7 +227,6 @@ def test_a_run_without_eol_is_counted_not_scored():
     assert r["n_without_eol"] == 1 and r["tracker"]["alpha_lambda_n"] == 1
 
 
-
 def test_calibrated_lognormal_predictor_covers_90_percent():
     """p50 = RUL_true exp(sigma z), band p50 exp(+-1.645 sigma): the truth lies in the band iff |z| <= 1.645
     (90 %), the relative width has median 2 sinh(1.645 sigma) and alpha-lambda is P(|sigma z| <~ alpha)."""
@@ -227,17 +246,22 @@ def test_calibrated_lognormal_predictor_covers_90_percent():
     # within the 20 % cone: log-ratio in [log 0.8, log 1.2] = [-2.23, 1.82] sigma -> 0.953
     assert r["alpha_lambda"] == pytest.approx(0.953, abs=0.08)
 
+
 # ---------------------------------------------------------------- bad input
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda tr, gt: tr["actuators"].update(B999=tr["actuators"]["A000"]), "'B999' is in the track"),
-    (lambda tr, gt: gt["actuators"].pop("A001"), "'A001' is in the track but not in the truth"),
-    (lambda tr, gt: tr["actuators"].pop("A001"), "'A001' is in the truth but not in the track"),
-    (lambda tr, gt: tr["actuators"]["A001"]["inspections"][2].update(hours=401.0), "'A001' inspection 2"),
-    (lambda tr, gt: tr["actuators"]["A000"]["inspections"].pop(), "'A000' has 7 inspections in the track"),
-    (lambda tr, gt: gt.update(every_hours=0), "every_hours must be > 0, got 0"),
-    (lambda tr, gt: gt["actuators"]["A000"].update(eol_hours=math.inf), "'A000' eol_hours = inf"),
-])
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda tr, gt: tr["actuators"].update(B999=tr["actuators"]["A000"]), "'B999' is in the track"),
+        (lambda tr, gt: gt["actuators"].pop("A001"), "'A001' is in the track but not in the truth"),
+        (lambda tr, gt: tr["actuators"].pop("A001"), "'A001' is in the truth but not in the track"),
+        (lambda tr, gt: tr["actuators"]["A001"]["inspections"][2].update(hours=401.0), "'A001' inspection 2"),
+        (lambda tr, gt: tr["actuators"]["A000"]["inspections"].pop(), "'A000' has 7 inspections in the track"),
+        (lambda tr, gt: gt.update(every_hours=0), "every_hours must be > 0, got 0"),
+        (lambda tr, gt: gt["actuators"]["A000"].update(eol_hours=math.inf), "'A000' eol_hours = inf"),
+    ],
+)
 def test_input_validation_names_the_actuator_and_value(edit, message):
     track, truth = make_life([1050.0, 1450.0])
     track, truth = copy.deepcopy(track), copy.deepcopy(truth)
@@ -256,6 +280,7 @@ def test_bad_settings(kwargs):
 
 # ---------------------------------------------------------------- figures
 
+
 def test_plot_life_writes_figures_and_fleet_table(tmp_path):
     from phm_torch.faults import FAULT_NAMES
     from phm_torch.prognostics.life_plots import fleet_rows, plot_life, select_actuators
@@ -269,9 +294,9 @@ def test_plot_life_writes_figures_and_fleet_table(tmp_path):
             i["k_filtered"] = {name: (1e-4 * g["hours"] if j == 0 else 0.0) for j, name in enumerate(FAULT_NAMES)}
             i["k_interval"] = {FAULT_NAMES[0]: [0.9e-4 * g["hours"], 1.2e-4 * g["hours"]]}
             i["k_filtered_interval"] = {FAULT_NAMES[0]: [0.95e-4 * g["hours"], 1.05e-4 * g["hours"]]}
-    track["actuators"]["A000"]["inspections"][1]["k_interval"] = None          # one inspection without
+    track["actuators"]["A000"]["inspections"][1]["k_interval"] = None  # one inspection without
     last = track["actuators"]["A001"]["inspections"][-1]
-    last["rul_hours"] = None                                  # censored: listed last in the fleet
+    last["rul_hours"] = None  # censored: listed last in the fleet
     paths = plot_life(track, truth, tmp_path, max_actuators=2)
     assert [p.name for p in paths] == ["life_rul.png", "life_damage.png", "life_fleet.csv", "life_fleet.png"]
     assert all(p.stat().st_size > 1000 for p in paths if p.suffix == ".png")

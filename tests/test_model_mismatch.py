@@ -24,15 +24,16 @@ def smooth_records(k: torch.Tensor, n_e: int = 10001) -> torch.Tensor:
 
 @pytest.fixture(scope="module")
 def bundle() -> SurrogateBundle:
-    torch.manual_seed(0)                                          # the (untrained) network's weights
+    torch.manual_seed(0)  # the (untrained) network's weights
     k = faults(300, seed=0)
     x = smooth_records(k)
     pod = POD(10).fit(x)
     indices = torch.arange(5, x.shape[1], 500)
     gappy = GappyPOD(pod.modes_, pod.mean_, indices)
     with torch.no_grad():
-        residual = gappy(gappy.select(x + 0.01 * torch.randn(x.shape, generator=torch.Generator().manual_seed(1),
-                                                             dtype=x.dtype)))[1]
+        residual = gappy(
+            gappy.select(x + 0.01 * torch.randn(x.shape, generator=torch.Generator().manual_seed(1), dtype=x.dtype))
+        )[1]
     network = FDIMLP(10, 8).set_normalization(gappy(gappy.select(x))[0]).double()
     clf = MLPClassifier(hidden=[16], epochs=5, seed=0).fit(k, health(k))
     return SurrogateBundle(pod, indices, network, clf, 20000.0, residual_threshold=float(residual.max()) * 1.5)
@@ -55,7 +56,7 @@ def test_own_records_give_the_bundles_own_figures(bundle, vectors):
     assert m["chain_accuracy"] == pytest.approx(float((verdict == healthy).double().mean()))
     assert m["chain_missed_fault_rate"] == pytest.approx(float(verdict[~healthy].double().mean()))
     assert m["chain_false_alarm_rate"] == pytest.approx(float((~verdict[healthy]).double().mean()))
-    assert m["ood_rate"] == 0.0                                   # clean records of the training family
+    assert m["ood_rate"] == 0.0  # clean records of the training family
 
 
 def test_difference_size_and_out_of_distribution_flags(bundle, vectors):
@@ -66,8 +67,9 @@ def test_difference_size_and_out_of_distribution_flags(bundle, vectors):
     assert shifted["nrmse_median"] == pytest.approx(0.01, rel=1e-9)
     assert shifted["ood_rate_full"] == 0.0
     # white noise as large as the records: rough (the full-record check) and far from the span (gappy)
-    noise = reference + spread * torch.randn(reference.shape, generator=torch.Generator().manual_seed(0),
-                                             dtype=reference.dtype)
+    noise = reference + spread * torch.randn(
+        reference.shape, generator=torch.Generator().manual_seed(0), dtype=reference.dtype
+    )
     wild = mismatch_metrics(bundle, k, healthy, reference, noise)
     assert wild["ood_rate_full"] == 1.0 and wild["ood_rate_gappy"] == 1.0 and wild["ood_rate"] == 1.0
     assert wild["nrmse_median"] > 0.5

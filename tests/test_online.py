@@ -22,7 +22,7 @@ from phm_torch.surrogates.fdi_mlp import FDIMLP
 from phm_torch.surrogates.full_signal_check import FullSignalCheck
 from phm_torch.surrogates.gappy_pod import GappyPOD
 
-pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
 N_FULL, N_MODES = 2001, 6
 NOMINAL = list(load_actuator().nominal_faults)
@@ -46,8 +46,16 @@ def pipeline() -> OnlinePipeline:
     k = torch.rand(400, 8, generator=g, dtype=torch.float64) ** 3
     k[:, 6:] = 0.5
     clf = PolynomialSVM(degree=2).fit(k, k[:, :6].amax(1) < 0.3)
-    pipe = OnlinePipeline(gappy, fdi, clf, damage(), torch.tensor([0.02, 0.0, -0.02]),
-                          torch.tensor([1.0] * 6 + [0.0, 1.0]), N_FULL, residual_threshold=0.05)
+    pipe = OnlinePipeline(
+        gappy,
+        fdi,
+        clf,
+        damage(),
+        torch.tensor([0.02, 0.0, -0.02]),
+        torch.tensor([1.0] * 6 + [0.0, 1.0]),
+        N_FULL,
+        residual_threshold=0.05,
+    )
     pipe.modes, pipe.mean_signal = modes, mean  # for the tests
     return pipe.eval()
 
@@ -60,8 +68,16 @@ class ConstantFDI(torch.nn.Module):
 
 
 def test_any_alpha_to_k_module_fits_and_scripts(pipeline):
-    pipe = OnlinePipeline(pipeline.gappy, ConstantFDI(), pipeline.classifier, damage(), torch.zeros(3),
-                          torch.ones(8), N_FULL, residual_threshold=0.05).eval()
+    pipe = OnlinePipeline(
+        pipeline.gappy,
+        ConstantFDI(),
+        pipeline.classifier,
+        damage(),
+        torch.zeros(3),
+        torch.ones(8),
+        N_FULL,
+        residual_threshold=0.05,
+    ).eval()
     assert not pipe.noise_aware
     x = signals(pipeline, 3)
     torch.testing.assert_close(torch.jit.script(pipe)(x)[0], torch.full((3, 8), 0.01, dtype=torch.float64))
@@ -74,22 +90,32 @@ def signals(pipe, n: int, seed: int = 1) -> torch.Tensor:
 
 
 def test_rul_equals_torchdiffeq_propagation_with_the_same_score(pipeline):
-    k = torch.tensor([[0.05, 0.0, 0.02, 0.0, 0.0, 0.0, 0.5, 0.5], [0.01] * 6 + [0.5, 0.5],
-                      [0.9] + [0.0] * 5 + [0.5, 0.5]], dtype=torch.float64)
+    k = torch.tensor(
+        [[0.05, 0.0, 0.02, 0.0, 0.0, 0.0, 0.5, 0.5], [0.01] * 6 + [0.5, 0.5], [0.9] + [0.0] * 5 + [0.5, 0.5]],
+        dtype=torch.float64,
+    )
     fast = pipeline.rul(k)
-    est = RULEstimator(damage(), lambda x: pipeline.classifier(x) - pipeline.classifier.threshold,
-                       refine_iterations=14)
+    est = RULEstimator(damage(), lambda x: pipeline.classifier(x) - pipeline.classifier.threshold, refine_iterations=14)
     det = DeterministicRUL(est)
     torch.testing.assert_close(det.direction, pipeline.direction.to(det.direction))
     for j, d in enumerate(pipeline.deltas):
         ref, _ = est.first_crossing(det.disturbed(k, float(d)))
         torch.testing.assert_close(fast[:, j], ref, rtol=0.01, atol=5.0)
-    assert fast[2].eq(0).all()                                     # already faulty
+    assert fast[2].eq(0).all()  # already faulty
     assert (fast[:2, 0] <= fast[:2, 1]).all() and (fast[:2, 1] <= fast[:2, 2]).all()
     # the rate band: the median propagation on a wear clock sped up by s_q
     scales = torch.tensor([1.3, 1.0, 0.8], dtype=torch.float64)
-    rate = OnlinePipeline(pipeline.gappy, pipeline.fdi, pipeline.classifier, damage(), pipeline.deltas[1].repeat(3),
-                          pipeline.direction, N_FULL, residual_threshold=0.05, rate_scales=scales).eval()
+    rate = OnlinePipeline(
+        pipeline.gappy,
+        pipeline.fdi,
+        pipeline.classifier,
+        damage(),
+        pipeline.deltas[1].repeat(3),
+        pipeline.direction,
+        N_FULL,
+        residual_threshold=0.05,
+        rate_scales=scales,
+    ).eval()
     median, _ = est.first_crossing(det.disturbed(k, float(pipeline.deltas[1])))
     expected = (median.unsqueeze(1) / scales).clamp(max=float(rate.times[-1]))
     torch.testing.assert_close(rate.rul(k), expected[:, [0, 1, 2]], rtol=0.01, atol=5.0)
@@ -101,15 +127,15 @@ def test_full_signal_and_selected_samples_agree(pipeline):
     b = pipeline(x.index_select(1, pipeline.gappy.indices))
     for u, v in zip(a, b):
         torch.testing.assert_close(u, v, equal_nan=True)
-    assert not a[3].any()                                          # in-span signals are in distribution
+    assert not a[3].any()  # in-span signals are in distribution
 
 
 def test_garbage_never_gets_a_confident_rul(pipeline):
     x = signals(pipeline, 5)
-    x[0] = 0.7                                                     # flat line
-    x[1, pipeline.gappy.indices[:20]] = float("nan")               # most samples missing
-    x[2] = x[2].clamp(max=x[2].median())                           # clipped
-    x[3] = torch.randn(N_FULL, dtype=torch.float64)                # unlike anything in training
+    x[0] = 0.7  # flat line
+    x[1, pipeline.gappy.indices[:20]] = float("nan")  # most samples missing
+    x[2] = x[2].clamp(max=x[2].median())  # clipped
+    x[3] = torch.randn(N_FULL, dtype=torch.float64)  # unlike anything in training
     _, _, rul, ood, _ = pipeline(x)
     assert ood[:4].all() and not ood[4]
     assert torch.isnan(rul[:4]).all() and torch.isfinite(rul[4]).all()
@@ -127,8 +153,8 @@ def test_torchscript_export_reloads_without_phm_torch(pipeline, tmp_path):
     code = textwrap.dedent(f"""
         import sys, torch
         m = torch.jit.load({str(path)!r})
-        out = m(torch.load({str(tmp_path / 'x.pt')!r}, weights_only=True))
-        torch.save(list(out), {str(tmp_path / 'out.pt')!r})
+        out = m(torch.load({str(tmp_path / "x.pt")!r}, weights_only=True))
+        torch.save(list(out), {str(tmp_path / "out.pt")!r})
         assert torch.isnan(m.faulty_probability(out[1])).all()     # exported, NaN until calibrated
         assert torch.isnan(m.k_interval(out[0])[0]).all()
         assert not any(name.startswith('phm_torch') for name in sys.modules), 'phm_torch was imported'
@@ -147,50 +173,88 @@ def test_faulty_probability_is_nan_until_calibrated_then_the_platt_law(pipeline)
     pipe.verdict_offset.fill_(0.5)
     p = pipe.faulty_probability(score)
     torch.testing.assert_close(p, torch.sigmoid(-4.0 * score + 0.5))
-    assert p[0] > p[1] > p[2]                                    # the lower the score, the likelier a fault
+    assert p[0] > p[1] > p[2]  # the lower the score, the likelier a fault
     torch.testing.assert_close(torch.jit.script(pipe).faulty_probability(score), p)
 
 
 def test_pipeline_interval_is_nan_until_calibrated_then_by_the_estimates_class(pipeline):
     pipe = copy.deepcopy(pipeline)
-    k_hat = torch.tensor([[0.02] * 6 + [0.9, 0.5],                   # k7 far from 0.5 is a phase: class 0
-                          [0.5, 0.02, 0.02, 0.02, 0.02, 0.02, 0.5, 0.5],
-                          [0.99, 0.6, 0.7, 0.0, 0.0, 0.0, 0.5, 0.95]], dtype=torch.float64)
+    k_hat = torch.tensor(
+        [
+            [0.02] * 6 + [0.9, 0.5],  # k7 far from 0.5 is a phase: class 0
+            [0.5, 0.02, 0.02, 0.02, 0.02, 0.02, 0.5, 0.5],
+            [0.99, 0.6, 0.7, 0.0, 0.0, 0.0, 0.5, 0.95],
+        ],
+        dtype=torch.float64,
+    )
     assert torch.isnan(torch.stack(pipe.k_interval(k_hat))).all()
     widths = torch.tensor([[0.01] * 8, [0.05] * 8, [0.1] * 8, [0.3] * 8], dtype=torch.float64)
-    pipe.k_half_widths = widths.unsqueeze(0)                    # one noise level
+    pipe.k_half_widths = widths.unsqueeze(0)  # one noise level
     lower, upper = pipe.k_interval(k_hat)
     torch.testing.assert_close(upper[0], (k_hat[0] + 0.01).clamp(max=1.0))
     torch.testing.assert_close(lower[1], (k_hat[1] - 0.05).clamp(min=0.0))
-    torch.testing.assert_close(upper[2], (k_hat[2] + 0.3).clamp(max=1.0))     # 4 large faults: the last class
-    assert float(upper[2, 0]) == 1.0 and float(lower[2, 3]) == 0.0            # clipped to [0, 1]
+    torch.testing.assert_close(upper[2], (k_hat[2] + 0.3).clamp(max=1.0))  # 4 large faults: the last class
+    assert float(upper[2, 0]) == 1.0 and float(lower[2, 3]) == 0.0  # clipped to [0, 1]
     scripted = torch.jit.script(pipe)
     for a, b in zip(scripted.k_interval(k_hat), (lower, upper)):
         torch.testing.assert_close(a, b)
-    with pytest.raises(ValueError, match=r"online.k_half_widths must be \(n_classes, 8\) or \(n_levels, n_classes, 8\), "
-                                         r"got \(4, 7\)"):
-        type(pipe)(pipe.gappy, pipe.fdi, pipe.classifier, damage(), pipe.deltas,
-                   pipe.direction, pipe.n_full, 0.05, k_half_widths=widths[:, :7])
+    with pytest.raises(
+        ValueError,
+        match=r"online.k_half_widths must be \(n_classes, 8\) or \(n_levels, n_classes, 8\), "
+        r"got \(4, 7\)",
+    ):
+        type(pipe)(
+            pipe.gappy,
+            pipe.fdi,
+            pipe.classifier,
+            damage(),
+            pipe.deltas,
+            pipe.direction,
+            pipe.n_full,
+            0.05,
+            k_half_widths=widths[:, :7],
+        )
 
 
 def test_interval_widths_follow_the_records_noise_between_calibrated_levels(pipeline):
     widths = torch.stack([torch.full((4, 8), 0.01), torch.full((4, 8), 0.03), torch.full((4, 8), 0.09)])
-    widths[:, 3] *= 10                                          # the hardest class, at every level
-    pipe = type(pipeline)(pipeline.gappy, pipeline.fdi, pipeline.classifier, damage(), pipeline.deltas,
-                          pipeline.direction, pipeline.n_full, 0.05, k_half_widths=widths.double(),
-                          interval_noise=torch.tensor([0.01, 0.03, 0.1]))
+    widths[:, 3] *= 10  # the hardest class, at every level
+    pipe = type(pipeline)(
+        pipeline.gappy,
+        pipeline.fdi,
+        pipeline.classifier,
+        damage(),
+        pipeline.deltas,
+        pipeline.direction,
+        pipeline.n_full,
+        0.05,
+        k_half_widths=widths.double(),
+        interval_noise=torch.tensor([0.01, 0.03, 0.1]),
+    )
     k_hat = torch.tensor([[0.1] * 6 + [0.5, 0.5]] * 5, dtype=torch.float64)
     noise = torch.tensor([0.0, 0.01, 0.02, 0.065, 0.5], dtype=torch.float64)
     lower, upper = pipe.k_interval(k_hat, noise)
     half = (upper - lower)[:, 0] / 2
     torch.testing.assert_close(half, torch.tensor([0.01, 0.01, 0.02, 0.06, 0.09], dtype=torch.float64))
-    torch.testing.assert_close(pipe.k_interval(k_hat)[1], upper[:1].expand(5, 8))   # no noise given: level 0
+    torch.testing.assert_close(pipe.k_interval(k_hat)[1], upper[:1].expand(5, 8))  # no noise given: level 0
     scripted = torch.jit.script(pipe)
     for a, b in zip(scripted.k_interval(k_hat, noise), (lower, upper)):
         torch.testing.assert_close(a, b)
-    with pytest.raises(ValueError, match=r"online.interval_noise must hold 3 increasing levels, got \[0.03, 0.01, 0.1\]"):
-        type(pipeline)(pipeline.gappy, pipeline.fdi, pipeline.classifier, damage(), pipeline.deltas, pipeline.direction,
-                       pipeline.n_full, 0.05, k_half_widths=widths, interval_noise=torch.tensor([0.03, 0.01, 0.1]))
+    with pytest.raises(
+        ValueError, match=r"online.interval_noise must hold 3 increasing levels, got \[0.03, 0.01, 0.1\]"
+    ):
+        type(pipeline)(
+            pipeline.gappy,
+            pipeline.fdi,
+            pipeline.classifier,
+            damage(),
+            pipeline.deltas,
+            pipeline.direction,
+            pipeline.n_full,
+            0.05,
+            k_half_widths=widths,
+            interval_noise=torch.tensor([0.03, 0.01, 0.1]),
+        )
 
 
 def test_pipeline_interval_class_is_the_libraries_difficulty_class(pipeline):
@@ -199,12 +263,12 @@ def test_pipeline_interval_class_is_the_libraries_difficulty_class(pipeline):
     from phm_torch.online.fdi_interval import difficulty_class
 
     g = torch.Generator().manual_seed(5)
-    k_hat = 0.8 * torch.rand(400, 8, generator=g, dtype=torch.float64) ** 3     # mostly small: every class
+    k_hat = 0.8 * torch.rand(400, 8, generator=g, dtype=torch.float64) ** 3  # mostly small: every class
     k_hat[:, 7] = 0.5 + 0.5 * (k_hat[:, 7] - 0.4)
     widths = torch.arange(4, dtype=torch.float64).view(4, 1).expand(4, 8) * 0.01 + 0.001
     pipe = copy.deepcopy(pipeline)
     pipe.k_half_widths = widths.unsqueeze(0).clone()
-    _, upper = pipe.k_interval(k_hat)                             # k_hat <= 0.8: upper is never clipped
+    _, upper = pipe.k_interval(k_hat)  # k_hat <= 0.8: upper is never clipped
     cls = torch.round(((upper - k_hat)[:, 0] - 0.001) / 0.01).long()
     assert torch.equal(cls, difficulty_class(k_hat, pipe.nominal.double(), pipe.interval_level, 4))
     assert len(set(cls.tolist())) == 4
@@ -217,13 +281,13 @@ def test_noise_level_recovers_white_noise_on_a_smooth_record_and_skips_missing_s
     level = x.pow(2).mean(1).sqrt()
     noisy = x + (relative * level).unsqueeze(1) * torch.randn(x.shape, generator=g, dtype=torch.float64)
     est = pipeline.noise_level(noisy)
-    assert float(est[0]) < 1e-3                                  # the smooth record alone: ~0
+    assert float(est[0]) < 1e-3  # the smooth record alone: ~0
     torch.testing.assert_close(est[1:], relative[1:], rtol=0.08, atol=0.0)
     holed = noisy.clone()
     holed[:, 100:160] = float("nan")
     torch.testing.assert_close(pipeline.noise_level(holed)[1:], relative[1:], rtol=0.08, atol=0.0)
     torch.testing.assert_close(torch.jit.script(pipeline).noise_level(noisy), est)
-    assert torch.isnan(pipeline.calibration_noise)               # unknown until phm-evaluate sets it
+    assert torch.isnan(pipeline.calibration_noise)  # unknown until phm-evaluate sets it
     with pytest.raises(ValueError, match=r"noise_level: x must be \(B, n_full\)"):
         pipeline.noise_level(noisy[:, :24])
 
@@ -232,7 +296,7 @@ def test_rul_search_scores_in_blocks_with_the_same_result(pipeline):
     x = signals(pipeline, 40)
     whole = pipeline(x)
     pipe = copy.deepcopy(pipeline)
-    pipe.score_block = 50                        # 40 records x 3 quantiles x 17 coarse points: many blocks
+    pipe.score_block = 50  # 40 records x 3 quantiles x 17 coarse points: many blocks
     for a, b in zip(pipe(x), whole):
         torch.testing.assert_close(a, b, equal_nan=True, rtol=0, atol=0)
     for a, b in zip(torch.jit.script(pipe)(x), whole):
@@ -241,7 +305,7 @@ def test_rul_search_scores_in_blocks_with_the_same_result(pipeline):
 
 def test_rebase_moves_another_benchs_records_onto_the_training_model(pipeline, tmp_path):
     x = signals(pipeline, 3)
-    assert torch.isnan(pipeline.rebase(x, pipeline.mean_signal)).all()          # no nominal record: NaN
+    assert torch.isnan(pipeline.rebase(x, pipeline.mean_signal)).all()  # no nominal record: NaN
     pipe = copy.deepcopy(pipeline)
     pipe.nominal_record.copy_(pipeline.mean_signal + 0.1)
     offset = 0.05 * torch.sin(torch.linspace(0, 30, N_FULL, dtype=torch.float64))  # what the other bench adds
@@ -268,9 +332,15 @@ def test_predict_warns_when_a_baseline_could_be_given_and_is_not(pipeline, compo
     pipe.nominal_record.copy_(pipeline.mean_signal)
     export_torchscript(pipe, tmp_path / "online.pt")
     zeros = torch.zeros(N_FULL, dtype=torch.float64)
-    csv = write_measurement(tmp_path / "run.csv", {"time": torch.arange(N_FULL, dtype=torch.float64) / 20000.0,
-                                                  "command": zeros, "position": zeros,
-                                                  "current": pipeline.mean_signal})
+    csv = write_measurement(
+        tmp_path / "run.csv",
+        {
+            "time": torch.arange(N_FULL, dtype=torch.float64) / 20000.0,
+            "command": zeros,
+            "position": zeros,
+            "current": pipeline.mean_signal,
+        },
+    )
     args = [f"pipeline={tmp_path / 'online.pt'}", f"measurements={csv}"]
     with caplog.at_level(logging.WARNING, logger="phm_torch.apps.predict"):
         metrics, _ = predict(compose("predict", args))
@@ -280,7 +350,7 @@ def test_predict_warns_when_a_baseline_could_be_given_and_is_not(pipeline, compo
         metrics, _ = predict(compose("predict", [*args, f"baseline={csv}"]))
     assert metrics["baseline"] and not any("no baseline" in r.getMessage() for r in caplog.records)
     caplog.clear()
-    export_torchscript(pipeline, tmp_path / "plain.pt")              # no nominal record: nothing to give
+    export_torchscript(pipeline, tmp_path / "plain.pt")  # no nominal record: nothing to give
     with caplog.at_level(logging.WARNING, logger="phm_torch.apps.predict"):
         predict(compose("predict", [f"pipeline={tmp_path / 'plain.pt'}", f"measurements={csv}"]))
     assert not any("no baseline" in r.getMessage() for r in caplog.records)
@@ -293,37 +363,49 @@ def test_bundle_carries_the_nominal_record_into_the_pipeline(pipeline, tmp_path)
     pod.mean_, pod.modes_ = pipeline.mean_signal, pipeline.modes
     pod.singular_values_, pod.energy_ = torch.ones(N_MODES, dtype=torch.float64), torch.ones(N_MODES) / N_MODES
     nominal = pipeline.mean_signal + 0.2
-    bundle = SurrogateBundle(pod, pipeline.gappy.indices, pipeline.fdi, pipeline.classifier, 20000.0, 1.0,
-                             nominal_record=nominal)
+    bundle = SurrogateBundle(
+        pod, pipeline.gappy.indices, pipeline.fdi, pipeline.classifier, 20000.0, 1.0, nominal_record=nominal
+    )
     back = SurrogateBundle.load(bundle.save(tmp_path / "surrogates.pt"))
     assert torch.equal(back.nominal_record, nominal)
     pipe = OnlinePipeline.from_bundle(back, damage(), torch.zeros(3), torch.ones(8))
     torch.testing.assert_close(pipe.nominal_record, nominal.to(pipe.nominal_record.dtype))
     with pytest.raises(ValueError, match="nominal_record must have shape"):
-        SurrogateBundle(pod, pipeline.gappy.indices, pipeline.fdi, pipeline.classifier, 20000.0,
-                        nominal_record=nominal[:-1])
+        SurrogateBundle(
+            pod, pipeline.gappy.indices, pipeline.fdi, pipeline.classifier, 20000.0, nominal_record=nominal[:-1]
+        )
 
 
 def test_full_record_check_flags_what_the_few_gappy_samples_cannot(pipeline):
     """A full record outside the POD span is flagged even when its few selected samples fit: here noise
     whose selected samples are replaced by an in-distribution record's."""
     # these few-cycle synthetic records have broad crests (1 % of samples within 0.1 % of the peak)
-    check = FullSignalCheck(pipeline.modes, pipeline.mean_signal, stride=2, residual_threshold=0.5,
-                            plateau_threshold=0.05)
+    check = FullSignalCheck(
+        pipeline.modes, pipeline.mean_signal, stride=2, residual_threshold=0.5, plateau_threshold=0.05
+    )
     good = signals(pipeline, 3)
     torch.testing.assert_close(check.residual(good), torch.zeros(3, dtype=torch.float64), rtol=0, atol=1e-6)
     g = torch.Generator().manual_seed(5)
     noise = pipeline.mean_signal + torch.randn(2, N_FULL, generator=g, dtype=torch.float64)
-    assert (check.residual(noise) > 0.95).all()                    # ~sqrt(1 - n_m / n) for white noise
-    d = noise[0] - pipeline.mean_signal                            # stride 1: the plain projection residual
+    assert (check.residual(noise) > 0.95).all()  # ~sqrt(1 - n_m / n) for white noise
+    d = noise[0] - pipeline.mean_signal  # stride 1: the plain projection residual
     exact = (d - pipeline.modes @ (pipeline.modes.T @ d)).norm() / d.norm()
     torch.testing.assert_close(FullSignalCheck(pipeline.modes, pipeline.mean_signal, 1).residual(noise[:1])[0], exact)
     disguised = noise[:1].clone()
     disguised[0, pipeline.gappy.indices] = good[0, pipeline.gappy.indices]
-    checked = OnlinePipeline(pipeline.gappy, pipeline.fdi, pipeline.classifier, damage(), pipeline.deltas,
-                             pipeline.direction, N_FULL, residual_threshold=0.05, full_check=check).eval()
+    checked = OnlinePipeline(
+        pipeline.gappy,
+        pipeline.fdi,
+        pipeline.classifier,
+        damage(),
+        pipeline.deltas,
+        pipeline.direction,
+        N_FULL,
+        residual_threshold=0.05,
+        full_check=check,
+    ).eval()
     x = torch.cat([good, disguised])
-    assert not pipeline(x)[3][3]                                   # the gappy residual alone is fooled
+    assert not pipeline(x)[3][3]  # the gappy residual alone is fooled
     _, _, rul, ood, _ = checked(x)
     assert ood.tolist() == [False, False, False, True] and torch.isnan(rul[3]).all()
     scripted = torch.jit.script(checked)
@@ -341,11 +423,11 @@ def test_shape_statistics_flag_noise_clipping_and_crests_but_not_smooth_records(
     t = torch.linspace(0.0, 0.5, n, dtype=torch.float64)
     # a current pulse on a slow wave: a sharp peak, like the envelope current's (a broad sine crest would
     # sit on its own "plateau", as the docstring of FullSignalCheck says)
-    smooth = 0.2 + 2 * torch.exp(-((t - 0.15) / 0.02) ** 2) + 0.3 * torch.sin(2 * math.pi * 13 * t)
+    smooth = 0.2 + 2 * torch.exp(-(((t - 0.15) / 0.02) ** 2)) + 0.3 * torch.sin(2 * math.pi * 13 * t)
     modes = torch.linalg.qr(torch.randn(n, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(0)))[0]
     check = FullSignalCheck(modes, torch.zeros(n, dtype=torch.float64))
     noise = torch.randn(1, n, dtype=torch.float64, generator=torch.Generator().manual_seed(1))
-    assert check.roughness(noise).item() == pytest.approx(math.sqrt(2.0), rel=0.08)   # 626 sampled pairs
+    assert check.roughness(noise).item() == pytest.approx(math.sqrt(2.0), rel=0.08)  # 626 sampled pairs
     assert check.roughness(smooth[None]).item() < 0.05
     clipped = smooth.clamp(max=0.8 * float(smooth.max()))[None]
     sampled = clipped[:, check.shape_rows]
@@ -354,4 +436,4 @@ def test_shape_statistics_flag_noise_clipping_and_crests_but_not_smooth_records(
     torch.testing.assert_close(check.plateau(clipped)[0], on_top)
     assert check.plateau(smooth[None]).item() < 0.005 < check.plateau(clipped).item()
     x = torch.cat([smooth[None], noise, clipped, smooth[None] + 0.01 * noise])
-    assert check(x).tolist() == [False, True, True, False]            # 1 % noise is a measurement, not garbage
+    assert check(x).tolist() == [False, True, True, False]  # 1 % noise is a measurement, not garbage

@@ -29,13 +29,30 @@ def with_faults(**kw: float) -> list[float]:
     return k
 
 
-CASES = {"nominal": NOM, "k1": with_faults(k1=1.0), "k2": with_faults(k2=1.0), "k3": with_faults(k3=1.0),
-         "k4": with_faults(k4=1.0), "k5": with_faults(k5=1.0), "k6": with_faults(k6=1.0),
-         "k7": with_faults(k6=1.0, k7=0.0), "k8=1": with_faults(k8=1.0), "k8=0": with_faults(k8=0.0)}
+CASES = {
+    "nominal": NOM,
+    "k1": with_faults(k1=1.0),
+    "k2": with_faults(k2=1.0),
+    "k3": with_faults(k3=1.0),
+    "k4": with_faults(k4=1.0),
+    "k5": with_faults(k5=1.0),
+    "k6": with_faults(k6=1.0),
+    "k7": with_faults(k6=1.0, k7=0.0),
+    "k8=1": with_faults(k8=1.0),
+    "k8=0": with_faults(k8=0.0),
+}
 # ema_reference.md §6, (current, position) NRMSE vs nominal; k7 is against k6 = 1, k7 = 0.5.
-REFERENCE = {"k1": (0.108, 0.0024), "k2": (0.230, 0.0235), "k3": (0.197, 0.0036), "k4": (0.305, 0.0060),
-             "k5": (0.298, 0.0060), "k6": (0.069, 0.0012), "k7": (0.107, 0.0022), "k8=1": (0.064, 0.038),
-             "k8=0": (0.127, 0.090)}
+REFERENCE = {
+    "k1": (0.108, 0.0024),
+    "k2": (0.230, 0.0235),
+    "k3": (0.197, 0.0036),
+    "k4": (0.305, 0.0060),
+    "k5": (0.298, 0.0060),
+    "k6": (0.069, 0.0012),
+    "k7": (0.107, 0.0022),
+    "k8=1": (0.064, 0.038),
+    "k8=0": (0.127, 0.090),
+}
 
 
 def _run(fidelity: str) -> dict[str, dict[str, torch.Tensor]]:
@@ -117,7 +134,7 @@ def test_dry_friction_shows_at_velocity_reversals(hf):
         idx = ((torch.sign(w[1:]) * torch.sign(w[:-1])) < 0).nonzero().flatten()
         idx = idx[(idx > 60) & (idx < w.numel() - 60)]
         i = r["current"]
-        return torch.stack([(i[j + 20:j + 40].mean() - i[j - 40:j - 20].mean()).abs() for j in idx])
+        return torch.stack([(i[j + 20 : j + 40].mean() - i[j - 40 : j - 20].mean()).abs() for j in idx])
 
     nominal, faulty = reversal_jumps(hf["nominal"]), reversal_jumps(hf["k1"])
     assert faulty.numel() >= 4
@@ -173,7 +190,9 @@ def test_steady_state_current_equals_torque_over_torque_constant(fidelity):
     s = sim.run(torch.tensor([NOM]), lambda t: speed_u * t, 0.3)
     tail = s.time > 0.15
     omega_m = speed_u * P.gear_ratio
-    torque = load / P.gear_ratio + P.coulomb_friction + P.motor_viscous * omega_m + P.user_damping * speed_u / P.gear_ratio
+    torque = (
+        load / P.gear_ratio + P.coulomb_friction + P.motor_viscous * omega_m + P.user_damping * speed_u / P.gear_ratio
+    )
     expected = torque / (2 * P.back_emf_constant)  # two conducting phases
     assert s["current"][0, tail].mean().item() == pytest.approx(expected, rel=0.02)
     assert s["speed"][0, tail].mean().item() == pytest.approx(omega_m, rel=0.02)
@@ -226,7 +245,7 @@ def test_many_compiled_simulators_all_stay_compiled():
     torch.compiler.reset()
     before = counters["stats"]["unique_graphs"]
     k = torch.tensor([NOM, NOM])
-    configurations = [{}] + [{name: {}} for name in sorted(EFFECTS)]          # 10 > 8
+    configurations = [{}] + [{name: {}} for name in sorted(EFFECTS)]  # 10 > 8
     for effects in configurations:
         EMASimulator(P, "lf", effects=effects, compile=True).run(k, CHIRP, 0.002)
     assert counters["stats"]["unique_graphs"] - before >= len(configurations)

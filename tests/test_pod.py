@@ -29,9 +29,9 @@ def test_energy_spectrum(data):
     pod = POD(N_LATENT, n_spectrum=40).fit(data)
     e = pod.energy_.to(torch.float64)
     assert e.shape == (40,)
-    assert bool((e[:-1] >= e[1:] - 1e-9).all())                 # decreasing
+    assert bool((e[:-1] >= e[1:] - 1e-9).all())  # decreasing
     cum = pod.cumulative_energy()
-    assert 0.999 < float(cum[N_LATENT - 1]) <= 1.0 + 1e-6       # rank-10 family + weak noise
+    assert 0.999 < float(cum[N_LATENT - 1]) <= 1.0 + 1e-6  # rank-10 family + weak noise
     assert float(cum[-1]) <= 1.0 + 1e-6
     # Energy fraction = s^2 / ||Y - mean||_F^2
     yc = data.double() - data.double().mean(0)
@@ -56,7 +56,7 @@ def test_fit_leaves_float64_snapshots_untouched(data):
     assert torch.allclose(pod.mean_, before.mean(0), atol=1e-12)
 
 
-@pytest.mark.parametrize("n_e", [None, 120])      # wide (n_s < n_e) and tall (n_s > n_e) orientations
+@pytest.mark.parametrize("n_e", [None, 120])  # wide (n_s < n_e) and tall (n_s > n_e) orientations
 def test_streamed_randomized_svd_is_torch_svd_lowrank(data, n_e):
     # the same algorithm and random draw as torch.svd_lowrank on the centred float64 copy it replaces,
     # summed over uneven row blocks of the float32 snapshots
@@ -72,7 +72,7 @@ def test_streamed_randomized_svd_is_torch_svd_lowrank(data, n_e):
     s, v = randomized_svd_centred(y, mean, q=25, n_iter=4, block_rows=7)
     assert v.shape == (y.shape[1], 25) and s.dtype == torch.float64
     assert torch.allclose(s, s_ref, rtol=1e-9)
-    k = N_LATENT     # well-separated singular values: the vectors are unique up to sign
+    k = N_LATENT  # well-separated singular values: the vectors are unique up to sign
     assert torch.allclose((v[:, :k] * v_ref[:, :k]).sum(0).abs(), torch.ones(k, dtype=torch.float64), atol=1e-9)
 
 
@@ -105,7 +105,7 @@ def test_bad_input():
         POD(2).fit(torch.tensor([[1.0, float("nan"), 2.0], [0.0, 1.0, 2.0], [3.0, 1.0, 0.0]]))
     late_nan = torch.randn(9, 20)
     late_nan[8, 3] = float("inf")
-    with pytest.raises(ValueError, match="NaN or inf"):     # in the last of several blocks
+    with pytest.raises(ValueError, match="NaN or inf"):  # in the last of several blocks
         POD(2, solver="randomized", block_rows=4).fit(late_nan)
     with pytest.raises(ValueError, match="pod.block_rows"):
         POD(2, block_rows=0)

@@ -15,15 +15,19 @@ from phm_torch.io import Measurement, write_measurement
 from phm_torch.params import CONF_DIR, load_actuator
 from phm_torch.simulator import EMASimulator
 
-pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
 PIPELINE = CONF_DIR.parent / "pretrained" / "online_surrogates_best.pt"
-K = torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5],      # nominal
-                  [0.3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5],      # dry friction x1.6
-                  [0.0, 0.0, 0.4, 0.0, 0.0, 0.0, 0.5, 0.5],      # 40 % of phase A shorted
-                  [0.0, 0.2, 0.0, 0.0, 0.0, 0.0, 0.5, 0.7]],     # backlash x20 and gain drift
-                 dtype=torch.float64)
-DAMAGE = [0, 1, 2, 3, 4, 5, 7]                                    # every component but the phase k7
+K = torch.tensor(
+    [
+        [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5],  # nominal
+        [0.3, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5],  # dry friction x1.6
+        [0.0, 0.0, 0.4, 0.0, 0.0, 0.0, 0.5, 0.5],  # 40 % of phase A shorted
+        [0.0, 0.2, 0.0, 0.0, 0.0, 0.0, 0.5, 0.7],
+    ],  # backlash x20 and gain drift
+    dtype=torch.float64,
+)
+DAMAGE = [0, 1, 2, 3, 4, 5, 7]  # every component but the phase k7
 
 
 @pytest.fixture(scope="module")
@@ -43,17 +47,17 @@ def test_estimates_intervals_and_verdict_on_fresh_records(records):
         p_faulty = model.faulty_probability(score)
         noise = model.noise_level(sig["current"])
     assert not ood.any() and (noise < 0.002).all()
-    with torch.no_grad():                     # the selected samples with their noise level sent along
+    with torch.no_grad():  # the selected samples with their noise level sent along
         samples = sig["current"].index_select(1, model.gappy.indices)
         torch.testing.assert_close(model(samples, model.noise_level(sig["current"]))[0], k_hat, atol=0.01, rtol=0)
     err = (k_hat - K.to(k_hat))[:, DAMAGE].abs()
-    assert float(err.max()) < 0.04 and float(err.mean()) < 0.01, err      # every component within 4 % of the range
+    assert float(err.max()) < 0.04 and float(err.mean()) < 0.01, err  # every component within 4 % of the range
     truth = K.to(lower)
     inside = (truth >= lower - 1e-9) & (truth <= upper + 1e-9)
-    assert float(inside[:, DAMAGE].double().mean()) >= 0.8, (lower, upper)    # 90 % intervals: 26 of these 28
-    assert float(upper[0, 0] - lower[0, 0]) < 0.05                # tight near nominal
-    assert bool(score[0] > 0) and bool(score[2] > 0)              # healthy: nominal, a 40 % short on one phase
-    assert bool(score[1] < 0) and bool(score[3] < 0)              # faulty: friction x1.6, backlash x20 + drift
+    assert float(inside[:, DAMAGE].double().mean()) >= 0.8, (lower, upper)  # 90 % intervals: 26 of these 28
+    assert float(upper[0, 0] - lower[0, 0]) < 0.05  # tight near nominal
+    assert bool(score[0] > 0) and bool(score[2] > 0)  # healthy: nominal, a 40 % short on one phase
+    assert bool(score[1] < 0) and bool(score[3] < 0)  # faulty: friction x1.6, backlash x20 + drift
     assert float(p_faulty[0]) < 0.2 and float(p_faulty[1]) > 0.9
     assert torch.isfinite(rul[0]).all() and float(rul[1].max()) == 0.0
 
@@ -64,13 +68,20 @@ def test_phm_predict_with_the_pretrained_pipeline(records, compose, tmp_path):
     paths = []
     for i, noise in ((0, 0.01), (1, 0.01), (1, 0.05)):
         path = tmp_path / f"run{len(paths)}.csv"
-        write_measurement(path, Measurement(t, command(sig.time).numpy(), sig["position"][i].numpy(),
-                                            sig["current"][i].numpy() + noise * np.random.default_rng(i).standard_normal(len(t)),
-                                            sample_rate=20000.0))
+        write_measurement(
+            path,
+            Measurement(
+                t,
+                command(sig.time).numpy(),
+                sig["position"][i].numpy(),
+                sig["current"][i].numpy() + noise * np.random.default_rng(i).standard_normal(len(t)),
+                sample_rate=20000.0,
+            ),
+        )
         paths.append(str(path))
     _, out = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements=[{','.join(paths)}]"]))
     nominal, friction, noisy = out["records"]
-    lo5, hi5 = noisy["k_interval"]["dry_friction"]                  # 6 % noise: the intervals widen with it
+    lo5, hi5 = noisy["k_interval"]["dry_friction"]  # 6 % noise: the intervals widen with it
     assert noisy["noise_above_calibration"] and abs(noisy["k_hat"]["dry_friction"] - 0.3) < 0.08
     assert hi5 - lo5 > 1.5 * (friction["k_interval"]["dry_friction"][1] - friction["k_interval"]["dry_friction"][0])
     assert nominal["healthy"] and not friction["healthy"]
@@ -113,12 +124,13 @@ def test_phm_predict_drops_missing_current_cells(records, compose, tmp_path):
     t = sig.time.numpy()
     current = sig["current"][1].numpy()
     full_path, holed_path = tmp_path / "full.csv", tmp_path / "holed.csv"
-    write_measurement(full_path, Measurement(t, command(sig.time).numpy(), sig["position"][1].numpy(), current,
-                                             sample_rate=20000.0))
+    write_measurement(
+        full_path, Measurement(t, command(sig.time).numpy(), sig["position"][1].numpy(), current, sample_rate=20000.0)
+    )
     text = full_path.read_text().splitlines()
     assert text[0].split(",")[-1] == "current"
     for cell, index in zip(("nan", "", "NaN"), model.gappy.indices[:3].tolist()):
-        line = index + 1                                            # the header is line 0
+        line = index + 1  # the header is line 0
         text[line] = text[line].rsplit(",", 1)[0] + "," + cell
     holed_path.write_text("\n".join(text) + "\n")
     _, out = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements=[{full_path},{holed_path}]"]))
@@ -166,8 +178,10 @@ def test_pretrained_pipeline_knows_its_actuator_and_flags_another_command(record
     paths = []
     for name, cmd in (("right", command(sig.time)), ("late", command(sig.time - 0.010))):
         path = tmp_path / f"{name}.csv"
-        write_measurement(path, Measurement(t, cmd.numpy(), sig["position"][0].numpy(), sig["current"][0].numpy(),
-                                            sample_rate=20000.0))
+        write_measurement(
+            path,
+            Measurement(t, cmd.numpy(), sig["position"][0].numpy(), sig["current"][0].numpy(), sample_rate=20000.0),
+        )
         paths.append(str(path))
     _, out = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements=[{','.join(paths)}]"]))
     right, late = out["records"]

@@ -37,11 +37,11 @@ def test_torchdiffeq_matches_exact_propagators():
     k0 = torch.tensor([[0.05, 0.02, 0.01, 0.0, 0.03, 0.04, 0.3, 0.6], [0.0] * 6 + [0.5, 0.5]], dtype=torch.float64)
     eps = torch.full((2, 200, 8), 1e-5, dtype=torch.float64)
     eps[:, :, 6] = 0
-    traj = d.integrate(k0, eps)                                   # (T, B, 8)
+    traj = d.integrate(k0, eps)  # (T, B, 8)
     a, b = d.transitions(d.grid)
     exact = d.nominal + (a @ (k0 - d.nominal).T).permute(0, 2, 1) + (b @ eps[:, 0].T).permute(0, 2, 1)
     torch.testing.assert_close(traj, exact, rtol=1e-6, atol=1e-9)  # RK4 truncation at F h ~ 0.03
-    assert torch.equal(traj[:, :, 6], k0[:, 6].expand_as(traj[:, :, 6]))   # k7 never grows
+    assert torch.equal(traj[:, :, 6], k0[:, 6].expand_as(traj[:, :, 6]))  # k7 never grows
 
 
 def test_rul_matches_analytic_crossing_per_sample():
@@ -92,21 +92,30 @@ def test_deterministic_variant_reproduces_monte_carlo_quantiles():
     est, k = calibration_case()
     det = DeterministicRUL(est)
     deltas = det.calibrate(k, torch.Generator().manual_seed(2))
-    assert deltas[0] > deltas[1] > deltas[2]                      # 5 % RUL needs the most damage
+    assert deltas[0] > deltas[1] > deltas[2]  # 5 % RUL needs the most damage
     pred = det.predict(k)
     mc = est.estimate(k, torch.Generator().manual_seed(3)).empirical
     ratio = (pred / mc).median(0).values
     torch.testing.assert_close(ratio, torch.ones(3, dtype=torch.float64), rtol=0, atol=0.15)
 
 
-@pytest.mark.parametrize("field,kwargs,match", [
-    ("rate", {"rate": [[0.0] * 8] * 7}, "damage.rate must be a finite 8x8"),
-    ("noise_std", {"noise_std": [-1.0] + [0.0] * 7}, "damage.noise_std"),
-    ("step_hours", {"step_hours": 0.0}, "damage.step_hours must be > 0"),
-])
+@pytest.mark.parametrize(
+    "field,kwargs,match",
+    [
+        ("rate", {"rate": [[0.0] * 8] * 7}, "damage.rate must be a finite 8x8"),
+        ("noise_std", {"noise_std": [-1.0] + [0.0] * 7}, "damage.noise_std"),
+        ("step_hours", {"step_hours": 0.0}, "damage.step_hours must be > 0"),
+    ],
+)
 def test_bad_damage_config(field, kwargs, match):
-    base = {"rate": [[0.0] * 8] * 8, "noise_std": [0.0] * 8, "noise_correlation_hours": 100.0,
-            "horizon_hours": 1000.0, "step_hours": 10.0, "nominal": NOMINAL}
+    base = {
+        "rate": [[0.0] * 8] * 8,
+        "noise_std": [0.0] * 8,
+        "noise_correlation_hours": 100.0,
+        "horizon_hours": 1000.0,
+        "step_hours": 10.0,
+        "nominal": NOMINAL,
+    }
     with pytest.raises(ValueError, match=match):
         DamageModel(**(base | kwargs))
     rate = [[0.0] * 8 for _ in range(8)]
@@ -124,13 +133,14 @@ def test_coarse_event_search_equals_scoring_every_grid_point():
         def score(k):
             calls[name] += k.shape[0]
             return threshold_score(k, 0.25)
+
         return score
 
     d = diagonal_model(noise=3e-6)
     g = torch.Generator().manual_seed(3)
     k0 = torch.rand(300, 8, generator=g, dtype=torch.float64) * 0.05
     k0[:, 6] = 0.5
-    k0[0, 0], k0[1] = 0.4, torch.tensor([0.0] * 6 + [0.5, 0.5])        # already faulty; slowest
+    k0[0, 0], k0[1] = 0.4, torch.tensor([0.0] * 6 + [0.5, 0.5])  # already faulty; slowest
     eps = d.sample_noise(300, g)
     fine = RULEstimator(d, counted("fine"), coarse=1).first_crossing(k0, eps)
     coarse = RULEstimator(d, counted("coarse"), coarse=8).first_crossing(k0, eps)
@@ -159,7 +169,7 @@ def test_removing_damage_stops_at_nominal_and_keeps_the_band_ordered():
     r_less, r_mid, r_more = (det.rul(k0, d) for d in (-0.01, 0.0, 0.01))
     assert (r_less > r_mid).all() and (r_mid > r_more).all()
     below = k0.clone()
-    below[0, 7] = 0.49                                         # the other side of nominal: symmetric
+    below[0, 7] = 0.49  # the other side of nominal: symmetric
     assert det.disturbed(below, 0.01)[0, 7] == pytest.approx(0.48)
 
 
@@ -174,16 +184,18 @@ def test_a_faster_wear_clock_divides_the_rul_exactly():
     """Without noise the damage ODE is linear in F: k(t; s F) = k(s t; F), so RUL(s F) = RUL(F) / s.
     The rate band rests on this; checked here with torchdiffeq on the shipped coupled model."""
     d = shipped_model()
-    k0 = torch.tensor([[0.02, 0.01, 0.0, 0.03, 0.0, 0.02, 0.5, 0.52], [0.04, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5]],
-                      dtype=torch.float64)
+    k0 = torch.tensor(
+        [[0.02, 0.01, 0.0, 0.03, 0.0, 0.02, 0.5, 0.52], [0.04, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5]], dtype=torch.float64
+    )
 
     def rul(model: DamageModel) -> torch.Tensor:
         return RULEstimator(model, threshold_score, refine_iterations=20, coarse=1).first_crossing(k0)[0]
 
     base = rul(d)
     for s in (0.8, 1.3):
-        faster = DamageModel((d.rate * s).tolist(), d.noise_std.tolist(), d.block, d.horizon, d.step,
-                             d.nominal.tolist())
+        faster = DamageModel(
+            (d.rate * s).tolist(), d.noise_std.tolist(), d.block, d.horizon, d.step, d.nominal.tolist()
+        )
         torch.testing.assert_close(rul(faster), base / s, rtol=1e-3, atol=0.1)
 
 
@@ -191,7 +203,7 @@ def test_rate_band_reproduces_monte_carlo_quantiles_and_never_collapses():
     est, k = calibration_case()
     det = DeterministicRUL(est, "rate")
     det.calibrate(k, torch.Generator().manual_seed(2))
-    assert det.scales_[0] > 1.0 == det.scales_[1] > det.scales_[2]          # 5 %: a faster clock
+    assert det.scales_[0] > 1.0 == det.scales_[1] > det.scales_[2]  # 5 %: a faster clock
     pred = det.predict(k)
     torch.testing.assert_close(pred[:, 0], pred[:, 1] / det.scales_[0])
     assert (pred[:, 0] < pred[:, 1]).all() and (pred[:, 1] < pred[:, 2]).all()

@@ -20,9 +20,9 @@ CHIRP = {"_target_": "phm_torch.command.Chirp", "amplitude": 5e-3, "f_start": 0.
 def test_actuator_record_hashes_values_not_spelling(params):
     record = provenance.actuator_record("ema_reference", params)
     again = provenance.actuator_record("renamed", params.replace(gear_ratio=int(params.gear_ratio)))
-    assert record["sha256"] == again["sha256"]                  # 200 and 200.0 are the same actuator
+    assert record["sha256"] == again["sha256"]  # 200 and 200.0 are the same actuator
     other = provenance.actuator_record("ema_reference", params.replace(gear_ratio=params.gear_ratio * 1.01))
-    assert other["sha256"] != record["sha256"]                  # a 1 % change is another actuator
+    assert other["sha256"] != record["sha256"]  # a 1 % change is another actuator
     assert provenance.validate(record, "actuator", "x") == record
     edited = json.loads(json.dumps(record))
     edited["values"]["gear_ratio"] = 150.0
@@ -47,8 +47,11 @@ def test_reconcile_adopts_or_refuses(params):
     same = provenance.actuator_record("copy", params)
     assert provenance.reconcile(made, same, True, "actuator", "store s")["sha256"] == made["sha256"]
     # an explicit, different choice is a one-line error naming both
-    with pytest.raises(ValueError, match=r"actuator=my_ema .* differs from the actuator store s was made for: "
-                                         r"ema_reference"):
+    with pytest.raises(
+        ValueError,
+        match=r"actuator=my_ema .* differs from the actuator store s was made for: "
+        r"ema_reference",
+    ):
         provenance.reconcile(made, asked, True, "actuator", "store s")
     # an artefact from before provenance: the request is assumed
     assert provenance.reconcile(None, asked, True, "actuator", "old") == asked
@@ -59,14 +62,15 @@ def test_command_check_names_shift_scale_and_other_command():
     cmd = Chirp(**{k: v for k, v in CHIRP.items() if k != "_target_"})
     t = time_grid(cmd.duration, fs)
     expected = cmd(t)
-    same = check_command(expected + 1e-6 * torch.randn(t.shape, generator=torch.Generator().manual_seed(0),
-                                                        dtype=t.dtype), expected, fs)
+    same = check_command(
+        expected + 1e-6 * torch.randn(t.shape, generator=torch.Generator().manual_seed(0), dtype=t.dtype), expected, fs
+    )
     assert same.ok and same.nrmse < 0.01 and math.isclose(same.gain, 1.0, abs_tol=1e-3)
-    late = check_command(cmd(t - 0.010), expected, fs)          # a 10 ms trigger offset
+    late = check_command(cmd(t - 0.010), expected, fs)  # a 10 ms trigger offset
     assert not late.ok and late.nrmse > 0.1
     assert late.best_lag_s == pytest.approx(0.010, abs=1.0 / fs)
     assert "best lag 10.0 ms" in late.reason()
-    double = check_command(2.0 * expected, expected, fs)        # twice the amplitude
+    double = check_command(2.0 * expected, expected, fs)  # twice the amplitude
     assert not double.ok and double.gain == pytest.approx(2.0, rel=1e-3)
     other = check_command(Chirp(5e-3, 0.0, 8.0, 0.5)(t), expected, fs)
     assert not other.ok and other.nrmse > NRMSE_TOLERANCE
@@ -81,19 +85,44 @@ def test_train_refuses_a_store_of_another_actuator_and_evaluate_adopts_it(compos
     from phm_torch.apps.train import train_surrogates
 
     data = tmp_path / "data"
-    generate(compose("generate", [f"data_dir={data}", "actuator.gear_ratio=180.0", "dataset.n_train=24",
-                                  "dataset.n_val=8", "dataset.n_rul=4", "dataset.chunk_size=24",
-                                  "dataset.fidelity=lf", "dataset.n_labels=0", "+dataset.healthy_fraction=null",
-                                  "progress=false"]))
+    generate(
+        compose(
+            "generate",
+            [
+                f"data_dir={data}",
+                "actuator.gear_ratio=180.0",
+                "dataset.n_train=24",
+                "dataset.n_val=8",
+                "dataset.n_rul=4",
+                "dataset.chunk_size=24",
+                "dataset.fidelity=lf",
+                "dataset.n_labels=0",
+                "+dataset.healthy_fraction=null",
+                "progress=false",
+            ],
+        )
+    )
     manifest = json.loads((data / "manifest.json").read_text())
     assert manifest["provenance"]["actuator"]["values"]["gear_ratio"] == 180.0
     assert manifest["provenance"]["command"]["name"] == "chirp"
     with pytest.raises(ValueError, match=r"actuator=ema_reference .* differs from the actuator store"):
         train_surrogates(compose("train", [f"data_dir={data}", "actuator=ema_reference", f"out_dir={tmp_path}/t"]))
-    metrics, objects = train_surrogates(compose("train", [
-        f"data_dir={data}", f"out_dir={tmp_path}/t", "n_modes=4", "n_points=8", "selector=qdeim",
-        "model.fit.max_epochs=2", "classifier_refine.rounds=0", "verdict_classifier=false",
-        "trainer.enable_progress_bar=false"]))
+    metrics, objects = train_surrogates(
+        compose(
+            "train",
+            [
+                f"data_dir={data}",
+                f"out_dir={tmp_path}/t",
+                "n_modes=4",
+                "n_points=8",
+                "selector=qdeim",
+                "model.fit.max_epochs=2",
+                "classifier_refine.rounds=0",
+                "verdict_classifier=false",
+                "trainer.enable_progress_bar=false",
+            ],
+        )
+    )
     recorded = objects["bundle"].provenance
     assert recorded["actuator"]["sha256"] == manifest["provenance"]["actuator"]["sha256"]
     # the chosen config's name with the hash of the values actually used (gear ratio 180, not the shipped 200)
@@ -117,22 +146,30 @@ def test_user_config_folder_reaches_every_stage(run_cli, tmp_path):
     text = (CONF_DIR / "actuator" / "ema_reference.yaml").read_text()
     (folder / "actuator" / "my_ema.yaml").write_text(text.replace("gear_ratio: 200.0", "gear_ratio: 160.0"))
     (folder / "command" / "my_chirp.yaml").write_text(
-        "_target_: phm_torch.command.Chirp\namplitude: 4.0e-3\nf_start: 0.0\nf_end: 12.0\nduration: 0.1\n")
-    done = run_cli("phm_torch.apps.run", "actuator=my_ema", "command=my_chirp", f"hydra.searchpath=[file://{folder}]",
-                   f"out_dir={tmp_path}/run", "stages=[generate]",
-                   'generate=["dataset.n_train=8","dataset.n_val=4","dataset.n_rul=2","dataset.chunk_size=8",'
-                   '"dataset.fidelity=lf","dataset.n_labels=0","+dataset.healthy_fraction=null","progress=false"]',
-                   timeout=300)
+        "_target_: phm_torch.command.Chirp\namplitude: 4.0e-3\nf_start: 0.0\nf_end: 12.0\nduration: 0.1\n"
+    )
+    done = run_cli(
+        "phm_torch.apps.run",
+        "actuator=my_ema",
+        "command=my_chirp",
+        f"hydra.searchpath=[file://{folder}]",
+        f"out_dir={tmp_path}/run",
+        "stages=[generate]",
+        'generate=["dataset.n_train=8","dataset.n_val=4","dataset.n_rul=2","dataset.chunk_size=8",'
+        '"dataset.fidelity=lf","dataset.n_labels=0","+dataset.healthy_fraction=null","progress=false"]',
+        timeout=300,
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     manifest = json.loads((Path(tmp_path) / "run" / "data" / "manifest.json").read_text())
     actuator, command = manifest["provenance"]["actuator"], manifest["provenance"]["command"]
     assert actuator["name"] == "my_ema" and actuator["values"]["gear_ratio"] == 160.0
-    assert actuator["sha256"] == provenance.actuator_record("x", load_actuator(
-        str(folder / "actuator" / "my_ema.yaml")))["sha256"]
+    assert (
+        actuator["sha256"]
+        == provenance.actuator_record("x", load_actuator(str(folder / "actuator" / "my_ema.yaml")))["sha256"]
+    )
     assert command["name"] == "my_chirp" and command["params"]["f_end"] == 12.0
     # a consumer told another actuator explicitly refuses, naming both
-    refused = run_cli("phm_torch.apps.train", f"data_dir={tmp_path}/run/data", "actuator=ema_reference",
-                      timeout=120)
+    refused = run_cli("phm_torch.apps.train", f"data_dir={tmp_path}/run/data", "actuator=ema_reference", timeout=120)
     assert refused.returncode == 2
     assert "differs from the actuator" in refused.stderr and "my_ema" in refused.stderr
 

@@ -24,12 +24,12 @@ def test_verdict_table_counts_and_mcnemar(script):
 
     healthy = torch.tensor([True] * 40 + [False] * 60)
     a = healthy.clone()
-    a[:5] = False                     # a: 5 false alarms
-    a[40:52] = True                   # and 12 missed faults
+    a[:5] = False  # a: 5 false alarms
+    a[40:52] = True  # and 12 missed faults
     b = healthy.clone()
-    b[40:43] = True                   # b: 3 missed faults (right on 9 records a gets wrong)
-    b[90:92] = True                   # and 2 missed faults that a gets right
-    b[:5] = False                     # the same 5 false alarms
+    b[40:43] = True  # b: 3 missed faults (right on 9 records a gets wrong)
+    b[90:92] = True  # and 2 missed faults that a gets right
+    b[:5] = False  # the same 5 false alarms
     out = script.verdict_table({"a": a, "b": b}, healthy)
     assert out["a"]["accuracy"] == pytest.approx(0.83) and out["a"]["missed_fault_rate"] == pytest.approx(12 / 60)
     assert out["a"]["false_alarm_rate"] == pytest.approx(5 / 40) and "mcnemar_p" not in out["a"]
@@ -43,7 +43,7 @@ def test_ranking_of_a_uniformly_better_bundle(rank):
     g = torch.Generator().manual_seed(0)
     counts = torch.randint(0, 4, (3000,), generator=g)
     base = (0.01 + 0.05 * counts.double()) * torch.rand(3000, generator=g, dtype=torch.float64)
-    sq = {"a": base.pow(2), "b": (0.9 * base).pow(2)}     # b: every signal's error 10 % smaller
+    sq = {"a": base.pow(2), "b": (0.9 * base).pow(2)}  # b: every signal's error 10 % smaller
     out = rank(sq, counts, seed=1)
     err_a = float(base.pow(2).mean().sqrt())
     assert out["n"] == 3000 and out["a"]["err_k_pct"] == pytest.approx(100 * err_a)
@@ -61,8 +61,9 @@ def test_ranking_of_a_uniformly_better_bundle(rank):
 
 def test_bundle_specs_name_the_bundles(tmp_path, monkeypatch):
     from phm_torch.surrogates import bundle as bundle_module
+
     monkeypatch.setattr(bundle_module.SurrogateBundle, "load", classmethod(lambda cls, path: f"loaded {path}"))
-    sweep = "multirun/0/n_hidden=20/surrogates.pt"           # a Hydra sweep's path keeps its '='
+    sweep = "multirun/0/n_hidden=20/surrogates.pt"  # a Hydra sweep's path keeps its '='
     got = bundle_module.load_named_bundles(["a=x.pt", "y.pt", f"b={sweep}", sweep])
     assert got == {"a": "loaded x.pt", "bundle1": "loaded y.pt", "b": f"loaded {sweep}", "bundle3": f"loaded {sweep}"}
     assert bundle_module.load_named_bundles(["only.pt"]) == {"bundle": "loaded only.pt"}

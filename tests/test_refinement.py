@@ -53,7 +53,7 @@ def test_refinement_labels_the_boundary_and_beats_as_many_random_labels(tmp_path
     k_all, h_all, info = refine_classifier(clf, k0, phi(k0), sample, assess, settings, seed=0, cache_dir=tmp_path)
     assert k_all.shape == (1500 + 2 * 750, 8) and h_all.dtype == torch.bool
     assert info["added"] == 1500 and assess.rows == 1500 and info["cached"] == [False, False]
-    assert torch.equal(h_all, phi(k_all))                           # every new label is phi's
+    assert torch.equal(h_all, phi(k_all))  # every new label is phi's
     # the new vectors are the hard ones: the initial classifier is far from perfect on them ...
     assert info["boundary_accuracy"][0] < 0.9
     # ... and both classes are there (importance sampling alone gives mostly one side near the boundary)
@@ -63,7 +63,7 @@ def test_refinement_labels_the_boundary_and_beats_as_many_random_labels(tmp_path
     k_rand = torch.cat([k0, importance(1500, 2)])
     plain = small_mlp().fit(k_rand, phi(k_rand))
     assert accuracy(clf, test) > accuracy(plain, test) + 0.003
-    assert 1 - accuracy(clf, test) < 0.8 * (1 - accuracy(plain, test))     # errors cut by >= 20 %
+    assert 1 - accuracy(clf, test) < 0.8 * (1 - accuracy(plain, test))  # errors cut by >= 20 %
 
 
 def test_refinement_resumes_from_its_cache_and_is_deterministic(tmp_path):
@@ -84,13 +84,20 @@ def test_refinement_resumes_from_its_cache_and_is_deterministic(tmp_path):
     assert c.calls == 2
     # no rounds: a plain fit
     n = Counting()
-    k3, _, info = refine_classifier(small_mlp(), k0, phi(k0), sample, n,
-                                    BoundaryRefinement(0, 0.25, 10), 0, None)
+    k3, _, info = refine_classifier(small_mlp(), k0, phi(k0), sample, n, BoundaryRefinement(0, 0.25, 10), 0, None)
     assert n.calls == 0 and k3.shape == (600, 8) and info["added"] == 0
 
 
-@pytest.mark.parametrize("field,value", [("rounds", -1), ("rounds", 1.5), ("labels_per_round", 0.0),
-                                         ("labels_per_round", float("nan")), ("candidates_per_label", 0)])
+@pytest.mark.parametrize(
+    "field,value",
+    [
+        ("rounds", -1),
+        ("rounds", 1.5),
+        ("labels_per_round", 0.0),
+        ("labels_per_round", float("nan")),
+        ("candidates_per_label", 0),
+    ],
+)
 def test_bad_settings_name_the_field(field, value):
     kwargs = {"rounds": 1, "labels_per_round": 0.5, "candidates_per_label": 10, field: value}
     with pytest.raises(ValueError, match=f"classifier_refine.{field}"):
@@ -100,5 +107,15 @@ def test_bad_settings_name_the_field(field, value):
 def test_train_refuses_refinement_on_a_store_without_its_assessment(compose, tmp_path):
     store = write_store(tmp_path / "s", {"train": 60, "val": 20})
     with pytest.raises(ValueError, match=r"classifier_refine.rounds=3: the store .* does not record"):
-        train_surrogates(compose("train", [f"data_dir={store}", f"out_dir={tmp_path / 'o'}", "n_modes=10",
-                                           "n_points=16", "model.fit.max_epochs=1"]))
+        train_surrogates(
+            compose(
+                "train",
+                [
+                    f"data_dir={store}",
+                    f"out_dir={tmp_path / 'o'}",
+                    "n_modes=10",
+                    "n_points=16",
+                    "model.fit.max_epochs=1",
+                ],
+            )
+        )

@@ -11,71 +11,101 @@ from phm_torch.apps.export import export
 from phm_torch.apps.predict import predict
 from phm_torch.apps.run import compose_stage, generate_overrides, run_all
 
-pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
 
-TINY_LIFE = ('generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=8","dataset.chunk_size=64",'
-             '"dataset.fidelity=lf","dataset.life.n_actuators=2","dataset.life.compile=false"]')
+TINY_LIFE = (
+    'generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=8","dataset.chunk_size=64",'
+    '"dataset.fidelity=lf","dataset.life.n_actuators=2","dataset.life.compile=false"]'
+)
 
 
 @pytest.mark.slow
 def test_phm_run_tiny_with_the_life_split_and_the_track_stage(tmp_path):
     """The default stage list with a life split (~7 min on the shared 2-core host: the life records and their phi_a
     labels); phm-track itself is tested fast in tests/test_tracking_app.py."""
-    cfg = compose_stage("run", [
-        f"out_dir={tmp_path}", TINY_LIFE, 'cases=["fidelity=lf","duration=0.05"]',
-        'train=["n_modes=8","n_points=16","selector=qdeim"]', 'evaluate=["rul.n_samples=20"]',
-        'track=["n_particles=128","rul_particles=32"]',
-        'workbench=["measurements=examples/workbench_hidden_cogging.csv","refit.top=1","refit.rounds=1"]',
-        "report.hidden_neurons=[4]", "report.hidden_epochs=2", "report.latency_repeats=5",
-    ])
+    cfg = compose_stage(
+        "run",
+        [
+            f"out_dir={tmp_path}",
+            TINY_LIFE,
+            'cases=["fidelity=lf","duration=0.05"]',
+            'train=["n_modes=8","n_points=16","selector=qdeim"]',
+            'evaluate=["rul.n_samples=20"]',
+            'track=["n_particles=128","rul_particles=32"]',
+            'workbench=["measurements=examples/workbench_hidden_cogging.csv","refit.top=1","refit.rounds=1"]',
+            "report.hidden_neurons=[4]",
+            "report.hidden_epochs=2",
+            "report.latency_repeats=5",
+        ],
+    )
     run_all(cfg)
     saved = json.loads((tmp_path / "metrics.json").read_text())
     # the track stage: both life histories tracked with the evaluate stage's pipeline, scored against the truth
     assert saved["track"]["actuators"] == 2 and saved["track"]["inspections"] >= 2 * 3
     life = json.loads((tmp_path / "track" / "metrics.json").read_text())
-    assert set(life["targets"]) >= {"coverage_5_95", "alpha_lambda", "prognostic_horizon",
-                                    "eol_flagged_within_one_inspection", "positive_p50_when_faulty"}
+    assert set(life["targets"]) >= {
+        "coverage_5_95",
+        "alpha_lambda",
+        "prognostic_horizon",
+        "eol_flagged_within_one_inspection",
+        "positive_p50_when_faulty",
+    }
     assert life["n_actuators"] == 2 and set(life["tracker"]) == set(life["snapshot"])
     assert "Life tracking" in (tmp_path / "report" / "index.html").read_text()
 
 
 def test_phm_run_tiny_end_to_end(tmp_path):
-    cfg = compose_stage("run", [
-        f"out_dir={tmp_path}", "stages=[cases,generate,train,evaluate,workbench,report]",
-        ('generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=8","dataset.chunk_size=64",'
-         '"dataset.fidelity=lf","dataset.life.n_actuators=0",'
-         # the paper's sampling: the healthy-fraction pilot (1,536 uncompiled phi_a labels) took 2 of the 3 min
-         '"+dataset.healthy_fraction=null"]'),
-        'cases=["fidelity=lf","duration=0.05"]',
-        'train=["n_modes=8","n_points=16","selector=qdeim"]',
-        'evaluate=["rul.n_samples=20"]',
-        'workbench=["measurements=examples/workbench_hidden_cogging.csv","refit.top=1","refit.rounds=1"]',
-        "report.hidden_neurons=[4,8]", "report.hidden_epochs=5", "report.latency_repeats=20",
-    ])
+    cfg = compose_stage(
+        "run",
+        [
+            f"out_dir={tmp_path}",
+            "stages=[cases,generate,train,evaluate,workbench,report]",
+            (
+                'generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=8","dataset.chunk_size=64",'
+                '"dataset.fidelity=lf","dataset.life.n_actuators=0",'
+                # the paper's sampling: the healthy-fraction pilot (1,536 uncompiled phi_a labels) took 2 of the 3 min
+                '"+dataset.healthy_fraction=null"]'
+            ),
+            'cases=["fidelity=lf","duration=0.05"]',
+            'train=["n_modes=8","n_points=16","selector=qdeim"]',
+            'evaluate=["rul.n_samples=20"]',
+            'workbench=["measurements=examples/workbench_hidden_cogging.csv","refit.top=1","refit.rounds=1"]',
+            "report.hidden_neurons=[4,8]",
+            "report.hidden_epochs=5",
+            "report.latency_repeats=20",
+        ],
+    )
     run_all(cfg)
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert set(saved) >= {"cases", "generate", "train", "evaluate", "workbench", "report", "wall_s"}
     assert 0.0 <= saved["train"]["err_k"] < 1.0
-    assert saved["evaluate"]["export_max_abs_diff"] < 1e-5           # TorchScript reloads equal to eager
-    assert saved["evaluate"]["fdi_band_n_used"] >= 10                # the full-flow band is calibrated on val
+    assert saved["evaluate"]["export_max_abs_diff"] < 1e-5  # TorchScript reloads equal to eager
+    assert saved["evaluate"]["fdi_band_n_used"] >= 10  # the full-flow band is calibrated on val
     # phm-export rebuilds the same pipeline, FDI band included, from the bundle and rul_calibration.json
     calibration = json.loads((tmp_path / "evaluate" / "rul_calibration.json").read_text())
     assert calibration["fdi_deltas"] == saved["evaluate"]["fdi_band_deltas"]
-    exported, objects = export(compose_stage("export", [f"bundle={tmp_path}/train/surrogates.pt",
-                                                        f"calibration={tmp_path}/evaluate/rul_calibration.json",
-                                                        f"out={tmp_path}/export/online.pt"]))
+    exported, objects = export(
+        compose_stage(
+            "export",
+            [
+                f"bundle={tmp_path}/train/surrogates.pt",
+                f"calibration={tmp_path}/evaluate/rul_calibration.json",
+                f"out={tmp_path}/export/online.pt",
+            ],
+        )
+    )
     assert exported["max_abs_diff_reloaded"] < 1e-5
     first = torch.jit.load(saved["evaluate"]["export"])
     torch.testing.assert_close(objects["pipeline"].fdi_deltas, first.fdi_deltas)
     # the verdict's Platt scaling (on the noisy val records) travels the same way, and phm-predict reports it
     a, b = calibration["verdict"]
     assert saved["evaluate"]["verdict_calibration"] == [a, b]
-    assert float(first.verdict_scale) == pytest.approx(a, rel=1e-6)                  # the pipeline's dtype
+    assert float(first.verdict_scale) == pytest.approx(a, rel=1e-6)  # the pipeline's dtype
     assert float(objects["pipeline"].verdict_offset) == pytest.approx(b, rel=1e-6, abs=1e-7)
     assert 0.0 <= saved["evaluate"]["verdict_brier"] <= 1.0
     # so do the k_hat intervals (conformal on the noisy val records), evaluated on the rul split
-    widths = torch.tensor(calibration["fdi_interval"]["half_widths"])       # (noise levels, classes, 8)
+    widths = torch.tensor(calibration["fdi_interval"]["half_widths"])  # (noise levels, classes, 8)
     assert widths.shape == (3, 4, 8) and calibration["fdi_interval"]["noise_levels"] == [0.01, 0.03, 0.1]
     assert (widths[:, 1:] >= widths[:, :-1]).all() and (widths[1:] >= widths[:-1]).all()
     torch.testing.assert_close(objects["pipeline"].k_half_widths, widths.to(objects["pipeline"].k_half_widths))
@@ -83,36 +113,61 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     assert len(saved["evaluate"]["fdi_interval_coverage"]) == 8
     assert calibration["calibration_noise"] == 0.01 and float(first.calibration_noise) == pytest.approx(0.01)
     assert float(objects["pipeline"].calibration_noise) == pytest.approx(0.01)
-    _, predicted = predict(compose_stage("predict", [f"pipeline={saved['evaluate']['export']}",
-                                                     "measurements=examples/workbench_hidden_cogging.csv"]))
+    _, predicted = predict(
+        compose_stage(
+            "predict", [f"pipeline={saved['evaluate']['export']}", "measurements=examples/workbench_hidden_cogging.csv"]
+        )
+    )
     record = predicted["records"][0]
-    assert set(record) >= {"k_hat", "k_interval", "health_score", "healthy", "p_faulty", "rul_hours",
-                           "out_of_distribution"}
+    assert set(record) >= {
+        "k_hat",
+        "k_interval",
+        "health_score",
+        "healthy",
+        "p_faulty",
+        "rul_hours",
+        "out_of_distribution",
+    }
     if not record["out_of_distribution"]:
-        assert record["p_faulty"] == pytest.approx(float(torch.sigmoid(torch.tensor(a * record["health_score"] + b))),
-                                                   rel=1e-5)
+        assert record["p_faulty"] == pytest.approx(
+            float(torch.sigmoid(torch.tensor(a * record["health_score"] + b))), rel=1e-5
+        )
         for name, (lower, upper) in record["k_interval"].items():
             assert 0.0 <= lower <= record["k_hat"][name] <= upper <= 1.0
     assert 0.0 < record["noise"] < 0.1 and isinstance(record["noise_above_calibration"], bool)
     # a healthy record of the measuring bench as baseline: the record itself then reads as the training
     # model's own nominal record (the store's nominal split, carried by the bundle into the pipeline)
-    metrics, rebased = predict(compose_stage("predict", [f"pipeline={saved['evaluate']['export']}",
-                                                         "measurements=examples/workbench_hidden_cogging.csv",
-                                                         "baseline=examples/workbench_hidden_cogging.csv"]))
+    metrics, rebased = predict(
+        compose_stage(
+            "predict",
+            [
+                f"pipeline={saved['evaluate']['export']}",
+                "measurements=examples/workbench_hidden_cogging.csv",
+                "baseline=examples/workbench_hidden_cogging.csv",
+            ],
+        )
+    )
     assert metrics["baseline"]
     with torch.no_grad():
         own = first(first.nominal_record.unsqueeze(0))[0][0]
     assert list(rebased["records"][0]["k_hat"].values()) == pytest.approx(own.tolist(), abs=1e-5)
     assert saved["report"]["latency"]["online_step_us_p50"] > 0
     html = (tmp_path / "report" / "index.html").read_text()
-    for heading in ("Gappy-POD coefficient error vs retained modes", "Placement of the sample points",
-                    "err_k and timings vs hidden neurons", "confusion table", "RUL vs expected RUL",
-                    "Three-panel RUL error comparison", "Online latencies", "Workbench",
-                    "k_hat intervals and P(faulty)"):
+    for heading in (
+        "Gappy-POD coefficient error vs retained modes",
+        "Placement of the sample points",
+        "err_k and timings vs hidden neurons",
+        "confusion table",
+        "RUL vs expected RUL",
+        "Three-panel RUL error comparison",
+        "Online latencies",
+        "Workbench",
+        "k_hat intervals and P(faulty)",
+    ):
         assert heading in html, heading
-    assert html.count("data:image/png;base64,") >= 6                  # figures embedded, offline
+    assert html.count("data:image/png;base64,") >= 6  # figures embedded, offline
     top = json.loads((tmp_path / "workbench" / "report.json").read_text())["candidates"][0]["effect"]
-    assert top == "cogging_torque"                                    # the hidden effect is found
+    assert top == "cogging_torque"  # the hidden effect is found
 
 
 def test_paper_experiment_reaches_the_generate_stage():
@@ -127,8 +182,7 @@ def test_paper_experiment_reaches_the_generate_stage():
 
 def test_a_later_run_of_some_stages_keeps_the_earlier_metrics(tmp_path):
     (tmp_path / "metrics.json").write_text(json.dumps({"train": {"err_k": 0.05}, "wall_s": {"train": 3.0}}))
-    cfg = compose_stage("run", [f"out_dir={tmp_path}", "stages=[cases]",
-                                'cases=["fidelity=lf","duration=0.05"]'])
+    cfg = compose_stage("run", [f"out_dir={tmp_path}", "stages=[cases]", 'cases=["fidelity=lf","duration=0.05"]'])
     run_all(cfg)
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["train"] == {"err_k": 0.05} and "cases" in saved
@@ -169,16 +223,25 @@ def test_phm_run_on_the_second_actuator_end_to_end(tmp_path):
     slot order), on a record simulated for it."""
     from phm_torch.online.export import read_metadata
 
-    cfg = compose_stage("run", [
-        "actuator=ema_hvdc_rudder", "command=chirp_hvdc_rudder", f"out_dir={tmp_path}",
-        ('generate=["dataset.n_train=300","dataset.n_val=60","dataset.n_rul=8","dataset.chunk_size=128",'
-         '"dataset.fidelity=lf","dataset.n_labels=512","+dataset.pilot_size=768"]'),
-        'cases=["fidelity=lf","duration=0.05"]',
-        'train=["n_modes=8","n_points=24","selector=qdeim","classifier_refine.rounds=1"]',
-        'evaluate=["rul.n_samples=20"]',
-        'workbench=["refit.top=1","refit.rounds=1"]',
-        "report.hidden_neurons=[4]", "report.hidden_epochs=5", "report.latency_repeats=20",
-    ])
+    cfg = compose_stage(
+        "run",
+        [
+            "actuator=ema_hvdc_rudder",
+            "command=chirp_hvdc_rudder",
+            f"out_dir={tmp_path}",
+            (
+                'generate=["dataset.n_train=300","dataset.n_val=60","dataset.n_rul=8","dataset.chunk_size=128",'
+                '"dataset.fidelity=lf","dataset.n_labels=512","+dataset.pilot_size=768"]'
+            ),
+            'cases=["fidelity=lf","duration=0.05"]',
+            'train=["n_modes=8","n_points=24","selector=qdeim","classifier_refine.rounds=1"]',
+            'evaluate=["rul.n_samples=20"]',
+            'workbench=["refit.top=1","refit.rounds=1"]',
+            "report.hidden_neurons=[4]",
+            "report.hidden_epochs=5",
+            "report.latency_repeats=20",
+        ],
+    )
     run_all(cfg)
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert set(saved) >= {"cases", "generate", "train", "evaluate", "workbench", "report"}

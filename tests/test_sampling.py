@@ -42,12 +42,12 @@ def test_the_ks_test_detects_a_wrong_exponent(paper):
 
 def test_phase_uniform_and_gain_drift_symmetric(paper):
     k = paper.sample(4000, 1)
-    assert kstest(k[:, 6], "uniform").pvalue > 0.01           # k7 not rescaled
+    assert kstest(k[:, 6], "uniform").pvalue > 0.01  # k7 not rescaled
     above = (k[:, 7] > 0.5).mean()
-    assert 0.45 < above < 0.55                                 # k8 symmetric about its nominal 0.5
+    assert 0.45 < above < 0.55  # k8 symmetric about its nominal 0.5
     assert kstest(np.abs(k[:, 7] - 0.5) / 0.5, lambda a: np.clip(a, 0, 1) ** (1 / 7)).pvalue > 0.01
     # denser near nominal: half of the damages below 0.5 ** 7
-    assert abs(np.median(k[:, 0]) - 0.5 ** 7) < 0.003
+    assert abs(np.median(k[:, 0]) - 0.5**7) < 0.003
 
 
 def test_latin_hypercube_strata(paper):
@@ -68,12 +68,15 @@ def test_restricted_domain_and_determinism():
     assert not np.array_equal(k, near.sample(2000, 4))
 
 
-@pytest.mark.parametrize("kwargs, field", [
-    ({"radius": 0.0}, "sampling.radius"),
-    ({"radius": 1.5}, "sampling.radius"),
-    ({"uniform": (9,)}, "sampling.uniform"),
-    ({"nominal": (0.0,) * 7}, "sampling.nominal"),
-])
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [
+        ({"radius": 0.0}, "sampling.radius"),
+        ({"radius": 1.5}, "sampling.radius"),
+        ({"uniform": (9,)}, "sampling.uniform"),
+        ({"nominal": (0.0,) * 7}, "sampling.nominal"),
+    ],
+)
 def test_bad_sampler_config(kwargs, field):
     args = {"nominal": NOMINAL, "uniform": (6,), "radius": 1.0, **kwargs}
     with pytest.raises(ValueError, match=field):
@@ -81,6 +84,7 @@ def test_bad_sampler_config(kwargs, field):
 
 
 # -- the distance exponent q and its calibration to a healthy fraction (phm_torch/data/calibration.py) ---------
+
 
 @pytest.mark.parametrize("q", [0.5, 2.5])
 def test_distance_exponent(q):
@@ -93,8 +97,10 @@ def test_distance_exponent(q):
     paper = ImportanceSampler(NOMINAL, (6,), 1.0).sample(4000, 5)
     ratio = (k[:, :6] - 0.0) / np.maximum(paper[:, :6], 1e-300)
     assert np.allclose(ratio, (s.distance(k) / ImportanceSampler(NOMINAL, (6,), 1.0).distance(paper))[:, None])
-    assert np.array_equal(k[:, 6], paper[:, 6])                                     # k7 untouched
-    assert np.array_equal(ImportanceSampler(NOMINAL, (6,), 1.0, 1.0).sample(500, 6), ImportanceSampler(NOMINAL, (6,), 1.0).sample(500, 6))
+    assert np.array_equal(k[:, 6], paper[:, 6])  # k7 untouched
+    assert np.array_equal(
+        ImportanceSampler(NOMINAL, (6,), 1.0, 1.0).sample(500, 6), ImportanceSampler(NOMINAL, (6,), 1.0).sample(500, 6)
+    )
 
 
 @pytest.mark.parametrize("target", [0.15, 0.3, 0.4])
@@ -108,7 +114,7 @@ def test_calibrated_exponent_on_a_synthetic_health_function(target):
 
     rec = calibrate(sampler, assess, target, 0.02, 2000, np.random.SeedSequence(1))
     assert not rec["kept_paper"] and rec["reached"]
-    assert rec["pilot_healthy_fraction"] == pytest.approx(c, abs=0.01)              # Latin hypercube: d uniform
+    assert rec["pilot_healthy_fraction"] == pytest.approx(c, abs=0.01)  # Latin hypercube: d uniform
     assert rec["distance_exponent"] == pytest.approx(math.log(target) / math.log(c), rel=0.03)
     calibrated = ImportanceSampler(NOMINAL, (6,), 1.0, rec["distance_exponent"])
     assert assess(calibrated.sample(4000, 2)).mean() == pytest.approx(target, abs=0.02)
@@ -152,10 +158,14 @@ def test_calibration_on_a_real_pilot(params):
     assert assess(fresh).mean() == pytest.approx(0.5, abs=0.1)
 
 
-@pytest.mark.parametrize("kwargs, field", [
-    ({"target": 0.0}, "dataset.healthy_fraction"), ({"target": 1.2}, "dataset.healthy_fraction"),
-    ({"target": 0.3, "tolerance": -0.1}, "dataset.healthy_fraction_tolerance"),
-])
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [
+        ({"target": 0.0}, "dataset.healthy_fraction"),
+        ({"target": 1.2}, "dataset.healthy_fraction"),
+        ({"target": 0.3, "tolerance": -0.1}, "dataset.healthy_fraction_tolerance"),
+    ],
+)
 def test_bad_calibration_config(kwargs, field):
     with pytest.raises(ValueError, match=field):
         ExponentCalibrator(**kwargs)

@@ -33,7 +33,7 @@ def test_interface(name, modes, snapshots):
     idx = sel.indices_
     assert idx.dtype == torch.long and idx.shape == (20,)
     assert idx.unique().numel() == 20
-    assert bool((idx[1:] > idx[:-1]).all())                     # increasing (acquisition order)
+    assert bool((idx[1:] > idx[:-1]).all())  # increasing (acquisition order)
     assert int(idx.min()) >= 0 and int(idx.max()) < modes.shape[0]
     assert "n_points" in sel.get_params()
 
@@ -49,12 +49,12 @@ def test_qdeim_is_pysensors_qr(modes):
 def test_greedy_oversampling_raises_the_smallest_singular_value(modes):
     qdeim = build_selector("qdeim", n_points=8).fit(modes).indices_
     greedy8 = GreedySelector(8).fit(modes).indices_
-    assert greedy8.tolist() == qdeim.tolist()                   # below/at n_m it is Q-DEIM
+    assert greedy8.tolist() == qdeim.tolist()  # below/at n_m it is Q-DEIM
     previous = smallest_singular(modes, greedy8)
     for n in (12, 16, 24):
         idx = GreedySelector(n).fit(modes).indices_
         s = smallest_singular(modes, idx)
-        assert s >= previous - 1e-12                            # each added point can only raise it
+        assert s >= previous - 1e-12  # each added point can only raise it
         previous = s
     rand = build_selector("random", n_points=24, seed=3).fit(modes).indices_
     unif = build_selector("uniform", n_points=24).fit(modes).indices_
@@ -74,22 +74,28 @@ def test_min_error_lowers_the_coefficient_error_of_held_out_signals():
     n_e = 801
     t = torch.linspace(0, 1, n_e, dtype=torch.float64)
     ripple = torch.sin(2 * torch.pi * 90 * t) * (1 + 4 * (t > 0.5))  # strong in the second half
+
     def family(seed: int) -> torch.Tensor:
         g = torch.Generator().manual_seed(seed)
         base = signals(faults(300, seed), noise=0.0).double()
         return base + torch.randn(300, 1, generator=g, dtype=torch.float64) * ripple
+
     train, test = family(3), family(4)
     pod = POD(8).fit(train)
     full = pod(test)
+
     def error(sel) -> float:
         gappy = GappyPOD(pod.modes_, pod.mean_, sel.indices_)
         return float(err_alpha(gappy(gappy.select(test))[0], full).median())
+
     mine = error(MinErrorSelector(24).fit(pod.modes_, snapshots=train, mean=pod.mean_))
     assert mine < 0.7 * error(GreedySelector(24).fit(pod.modes_))
     assert mine < 0.7 * error(GreedySelector(24, criterion="d_optimal").fit(pod.modes_))
     # At n_points <= n_m it is Q-DEIM.
-    assert torch.equal(MinErrorSelector(8).fit(pod.modes_, snapshots=train).indices_,
-                       build_selector("qdeim", n_points=8).fit(pod.modes_).indices_)
+    assert torch.equal(
+        MinErrorSelector(8).fit(pod.modes_, snapshots=train).indices_,
+        build_selector("qdeim", n_points=8).fit(pod.modes_).indices_,
+    )
     with pytest.raises(ValueError, match="min_error needs the training snapshots"):
         MinErrorSelector(12).fit(pod.modes_)
 
@@ -110,7 +116,7 @@ def test_som_puts_points_where_the_modes_vary():
     m = torch.stack([torch.sin(40 * np.pi * t) * bump, torch.cos(40 * np.pi * t) * bump + 0.01], 1)
     idx = SOMSelector(20, time_weight=0.5).fit(m, t).indices_
     early = int((t[idx] < 0.2).sum())
-    assert early >= 8                                          # uniform sampling would put 4 there
+    assert early >= 8  # uniform sampling would put 4 there
     # Deterministic (batch SOM).
     assert torch.equal(idx, SOMSelector(20, time_weight=0.5).fit(m, t).indices_)
 

@@ -20,14 +20,20 @@ from phm_torch.tracking.fleet import censor
 
 N_FULL, N_MODES = 2001, 6
 NOMINAL = list(load_actuator().nominal_faults)
-HALF_WIDTH = 0.02          # calibrated 90 % half-width of the synthetic pipeline's k_hat (k7: 0.4)
+HALF_WIDTH = 0.02  # calibrated 90 % half-width of the synthetic pipeline's k_hat (k7: 0.4)
 
 
 def damage_config() -> dict:
     f = torch.diag(torch.tensor([5e-4] * 6 + [0.0, 3e-4], dtype=torch.float64))
     f[1, 0] = 2e-4
-    return {"rate": f.tolist(), "noise_std": [1e-6] * 6 + [0.0, 1e-6], "noise_correlation_hours": 100.0,
-            "horizon_hours": 20000.0, "step_hours": 50.0, "rate_scale_sigma": 0.35}
+    return {
+        "rate": f.tolist(),
+        "noise_std": [1e-6] * 6 + [0.0, 1e-6],
+        "noise_correlation_hours": 100.0,
+        "horizon_hours": 20000.0,
+        "step_hours": 50.0,
+        "rate_scale_sigma": 0.35,
+    }
 
 
 def make_pipeline(calibrated: bool = True) -> OnlinePipeline:
@@ -44,9 +50,17 @@ def make_pipeline(calibrated: bool = True) -> OnlinePipeline:
     cfg = {key: v for key, v in damage_config().items() if key != "rate_scale_sigma"}
     widths = torch.full((4, 8), HALF_WIDTH, dtype=torch.float64)
     widths[:, 6] = 0.4
-    pipe = OnlinePipeline(gappy, fdi, clf, DamageModel(**cfg, nominal=NOMINAL), torch.zeros(3),
-                          torch.tensor([1.0] * 6 + [0.0, 1.0]), N_FULL, residual_threshold=0.05,
-                          k_half_widths=widths if calibrated else None)
+    pipe = OnlinePipeline(
+        gappy,
+        fdi,
+        clf,
+        DamageModel(**cfg, nominal=NOMINAL),
+        torch.zeros(3),
+        torch.tensor([1.0] * 6 + [0.0, 1.0]),
+        N_FULL,
+        residual_threshold=0.05,
+        k_half_widths=widths if calibrated else None,
+    )
     pipe.modes, pipe.mean_signal = modes, mean
     return pipe.eval()
 
@@ -90,13 +104,18 @@ def test_propagation_is_the_matrix_exponential_of_s_f_dt(law):
 def test_process_noise_std_is_that_of_block_constant_rates_with_a_random_phase(law, dt):
     g = torch.Generator().manual_seed(1)
     n, tc = 40000, law.noise_correlation_hours
-    phase = torch.rand(n, generator=g, dtype=torch.float64) * tc          # where the first block ends
+    phase = torch.rand(n, generator=g, dtype=torch.float64) * tc  # where the first block ends
     blocks = math.ceil(dt / tc) + 2
     eps = torch.randn(n, blocks, generator=g, dtype=torch.float64)
-    edges = torch.cat([torch.zeros(n, 1, dtype=torch.float64), phase.unsqueeze(1)
-                       + tc * torch.arange(blocks - 1, dtype=torch.float64)], 1).clamp(max=dt)
+    edges = torch.cat(
+        [
+            torch.zeros(n, 1, dtype=torch.float64),
+            phase.unsqueeze(1) + tc * torch.arange(blocks - 1, dtype=torch.float64),
+        ],
+        1,
+    ).clamp(max=dt)
     lengths = torch.diff(torch.cat([edges, torch.full((n, 1), dt, dtype=torch.float64)], 1), dim=1)
-    integral = (eps * lengths).sum(1)                                     # unit std per block
+    integral = (eps * lengths).sum(1)  # unit std per block
     expected = float(law.noise_std_over(torch.tensor([dt]))[0, 0]) / float(law.noise_std[0])
     assert abs(float(integral.std()) / expected - 1.0) < 0.02
 
@@ -105,8 +124,9 @@ def test_exact_measurements_converge_to_the_true_k_and_s(pipeline, law):
     k = truth_path(law, [0.02, 0.01, 0.0, 0.0, 0.0, 0.02] + NOMINAL[6:], 1.6, 15)
     tr = tracker(pipeline, law)
     for i in range(k.shape[0]):
-        post = tr.update(["A"], torch.tensor([200.0 * i]), k[i:i + 1], scale_of(k[i:i + 1], 0.002),
-                         torch.tensor([True]))
+        post = tr.update(
+            ["A"], torch.tensor([200.0 * i]), k[i : i + 1], scale_of(k[i : i + 1], 0.002), torch.tensor([True])
+        )
     assert float((post.k_mean[0] - k[-1])[[0, 1, 5]].abs().max()) < 0.005
     assert abs(float(post.rate_scale[0, 1]) / 1.6 - 1.0) < 0.05
 
@@ -119,8 +139,11 @@ def run_noisy(pipeline, law, s_true: float, n: int, seed: int = 0) -> list:
     for i in range(n):
         k_hat = (k[i] + HALF_WIDTH / 1.645 * torch.randn(8, generator=g, dtype=torch.float64)).clamp(0, 1)
         k_hat[6] = k[i, 6]
-        out.append(tr.update(["A"], torch.tensor([200.0 * i]), k_hat.unsqueeze(0), scale_of(k_hat.unsqueeze(0)),
-                             torch.tensor([True])))
+        out.append(
+            tr.update(
+                ["A"], torch.tensor([200.0 * i]), k_hat.unsqueeze(0), scale_of(k_hat.unsqueeze(0)), torch.tensor([True])
+            )
+        )
     return out
 
 
@@ -128,8 +151,8 @@ def test_an_actuator_wearing_twice_as_fast_as_the_fleet_moves_its_rate_scale_tow
     runs = [run_noisy(pipeline, law, 2.0, 12, seed) for seed in range(4)]
     first = torch.stack([posts[0].rate_scale[0, 1] for posts in runs])
     last = torch.stack([posts[-1].rate_scale[0, 1] for posts in runs])
-    assert float((first - 1.0).abs().max()) < 0.1            # the fleet prior: median 1
-    assert float(last.median()) > 1.6, last                  # 2.4 h of wear per 200 h at 12 inspections
+    assert float((first - 1.0).abs().max()) < 0.1  # the fleet prior: median 1
+    assert float(last.median()) > 1.6, last  # 2.4 h of wear per 200 h at 12 inspections
 
 
 def test_the_rul_band_narrows_with_more_inspections(pipeline, law):
@@ -142,11 +165,11 @@ def test_particle_rul_is_the_pipelines_propagation_on_a_wear_clock(pipeline, law
     rul = ParticleRUL(pipeline, law, bisections=8)
     k = torch.tensor([[0.05, 0.0, 0.02, 0.0, 0.0, 0.0, 0.5, 0.5], [0.1] * 6 + [0.5, 0.5]], dtype=torch.float64)
     with torch.no_grad():
-        reference = pipeline.rul(k)[:, 1]                   # zero deltas: the noise-free propagation, s = 1
+        reference = pipeline.rul(k)[:, 1]  # zero deltas: the noise-free propagation, s = 1
     tau = rul.wear_clock_crossing(k, law.horizon_hours)
     torch.testing.assert_close(tau, reference, rtol=0.01, atol=5.0)
     q, censored, _ = rul(k.unsqueeze(1).expand(2, 4, 8), torch.full((2, 4), 2.0, dtype=torch.float64))
-    torch.testing.assert_close(q[:, 1], reference / 2.0, rtol=0.01, atol=5.0)     # noise-free RUL = RUL_1 / s
+    torch.testing.assert_close(q[:, 1], reference / 2.0, rtol=0.01, atol=5.0)  # noise-free RUL = RUL_1 / s
     assert not censored.any()
 
 
@@ -174,29 +197,31 @@ def test_an_ood_inspection_is_predicted_but_not_fused(pipeline, law):
     log_s = tr.log_s[0].clone()
     wild = torch.tensor([[0.9] * 6 + [0.5, 0.5]], dtype=torch.float64)
     post = tr.update(["A"], torch.tensor([200.0]), wild, scale_of(wild), torch.tensor([False]))
-    assert torch.equal(tr.log_s[0], log_s)                  # no reweighting: s untouched
-    assert float(post.k_mean[0, 0]) < 0.07                   # moved by the law only (~5 % in 200 h)
+    assert torch.equal(tr.log_s[0], log_s)  # no reweighting: s untouched
+    assert float(post.k_mean[0, 0]) < 0.07  # moved by the law only (~5 % in 200 h)
     first = tr.update(["B"], torch.tensor([0.0]), wild, scale_of(wild), torch.tensor([False]))
-    assert not first.tracked[0] and torch.isnan(first.rul).all()     # an OOD first inspection starts nothing
+    assert not first.tracked[0] and torch.isnan(first.rul).all()  # an OOD first inspection starts nothing
 
 
 def test_maintenance_restarts_the_track(pipeline, law):
     posts = run_noisy(pipeline, law, 2.0, 10)
     tr = tracker(pipeline, law)
-    for i, p in enumerate(posts):      # rebuild the worn track, then restart it at a repaired state
+    for i, p in enumerate(posts):  # rebuild the worn track, then restart it at a repaired state
         k = p.k_mean
         tr.update(["A"], torch.tensor([200.0 * i]), k, scale_of(k, 0.002), torch.tensor([True]))
     fresh = torch.tensor([[0.01, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5]], dtype=torch.float64)
-    post = tr.update(["A"], torch.tensor([2200.0]), fresh, scale_of(fresh), torch.tensor([True]),
-                     restart=torch.tensor([True]))
+    post = tr.update(
+        ["A"], torch.tensor([2200.0]), fresh, scale_of(fresh), torch.tensor([True]), restart=torch.tensor([True])
+    )
     assert abs(float(post.k_mean[0, 0]) - 0.01) < 0.01
     band = post.rate_scale[0]
-    assert float(band[2] / band[0]) > math.exp(2 * 1.645 * 0.35) * 0.8           # back to the fleet prior
+    assert float(band[2] / band[0]) > math.exp(2 * 1.645 * 0.35) * 0.8  # back to the fleet prior
 
 
 def test_an_actuators_track_does_not_depend_on_its_batch(pipeline, law):
-    k = torch.tensor([[0.05, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5], [0.02, 0.01, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5]],
-                     dtype=torch.float64)
+    k = torch.tensor(
+        [[0.05, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5], [0.02, 0.01, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5]], dtype=torch.float64
+    )
     together, alone = tracker(pipeline, law), tracker(pipeline, law)
     for i in range(3):
         a = together.update(["A", "B"], torch.tensor([200.0 * i] * 2), k, scale_of(k), torch.tensor([True, True]))
@@ -214,7 +239,7 @@ def exact_rate_scale_band(law: DamageLaw, k_hat: torch.Tensor, sd: torch.Tensor,
     w = 1.0 / sd[comps] ** 2
     y = (k_hat - law.nominal)[:, comps]
     t = torch.tensor(hours, dtype=torch.float64)
-    a = torch.linalg.matrix_exp(law.rate * (grid.view(-1, 1) * t).reshape(-1, 1, 1))        # (G T, 8, 8)
+    a = torch.linalg.matrix_exp(law.rate * (grid.view(-1, 1) * t).reshape(-1, 1, 1))  # (G T, 8, 8)
     a = a.reshape(len(grid), len(hours), 8, 8)[:, :, comps][:, :, :, comps]
     h = torch.einsum("gtji,j,gtjk->gik", a, w, a)
     x = torch.linalg.solve(h, torch.einsum("gtji,j,tj->gi", a, w, y))
@@ -241,12 +266,17 @@ def test_the_rate_scale_band_is_the_exact_posteriors_and_covers_the_true_s(law):
         k_hat = (k + HALF_WIDTH / 1.645 * torch.randn(n_act, 8, generator=g, dtype=torch.float64)).clamp(0, 1)
         k_hat[:, 6] = k[:, 6]
         k_hats.append(k_hat)
-        post = tr.update(ids, torch.full((n_act,), 200.0 * i), k_hat, scale_of(k_hat, HALF_WIDTH * 2.132 / 1.645),
-                         torch.ones(n_act, dtype=torch.bool))
+        post = tr.update(
+            ids,
+            torch.full((n_act,), 200.0 * i),
+            k_hat,
+            scale_of(k_hat, HALF_WIDTH * 2.132 / 1.645),
+            torch.ones(n_act, dtype=torch.bool),
+        )
     band = post.rate_scale
     assert int(((band[:, 0] <= s_true) & (s_true <= band[:, 2])).sum()) >= 16
     sd = scale_of(k_hats[0][:1], HALF_WIDTH * 2.132 / 1.645)[0]
-    for a in range(0, n_act, 4):            # five of them against the exact posterior
+    for a in range(0, n_act, 4):  # five of them against the exact posterior
         exact = exact_rate_scale_band(law, torch.stack([k[a] for k in k_hats]), sd, [200.0 * i for i in range(n)])
         assert max(abs(math.log(f / e)) for f, e in zip(band[a].tolist(), exact)) < 0.05, (band[a], exact)
 
@@ -258,8 +288,8 @@ def test_the_warm_started_crossing_is_the_cold_one(pipeline, law):
     k[:, :6] = 0.02 + 0.1 * torch.rand(16, 6, generator=g, dtype=torch.float64)
     tau_max = torch.full((16,), 8 * law.horizon_hours, dtype=torch.float64)
     cold = rul.wear_clock_crossing(k, float(tau_max[0]))
-    guess = cold * (1.0 + 0.05 * torch.randn(16, generator=g, dtype=torch.float64))      # a noisy previous one
-    guess[:3] = float("nan")                                                            # unknown: cold search
+    guess = cold * (1.0 + 0.05 * torch.randn(16, generator=g, dtype=torch.float64))  # a noisy previous one
+    guess[:3] = float("nan")  # unknown: cold search
     torch.testing.assert_close(rul.warm_crossing(k, guess, tau_max), cold, rtol=2e-3, atol=1.0)
 
 
@@ -267,14 +297,14 @@ def test_a_band_calibrated_with_the_rate_scale_has_that_share_removed_once(pipel
     from phm_torch.tracking.particle_rul import eps_log_sigmas
 
     lo, hi = eps_log_sigmas(pipeline, law, False)
-    assert lo == hi == 0.0                                          # the synthetic pipeline: no band
+    assert lo == hi == 0.0  # the synthetic pipeline: no band
     wide = make_pipeline()
     wide.rate_scales.copy_(torch.tensor([math.exp(1.645 * 0.5), 1.0, math.exp(-1.645 * 0.4)]))
     lo, hi = eps_log_sigmas(wide, law, True)
-    assert abs(hi - math.sqrt(0.5 ** 2 - 0.35 ** 2)) < 1e-4 and abs(lo - math.sqrt(0.4 ** 2 - 0.35 ** 2)) < 1e-4
+    assert abs(hi - math.sqrt(0.5**2 - 0.35**2)) < 1e-4 and abs(lo - math.sqrt(0.4**2 - 0.35**2)) < 1e-4
     narrow = make_pipeline()
     narrow.rate_scales.copy_(torch.tensor([math.exp(1.645 * 0.16), 1.0, math.exp(-1.645 * 0.1)]))
-    assert eps_log_sigmas(narrow, law, True) == pytest.approx((0.1, 0.16), rel=1e-4)   # cannot hold s: eps alone
+    assert eps_log_sigmas(narrow, law, True) == pytest.approx((0.1, 0.16), rel=1e-4)  # cannot hold s: eps alone
 
 
 def test_a_pipeline_calibrated_before_the_rate_scale_tracks_s_with_the_composed_prior(pipeline):
@@ -297,14 +327,15 @@ def test_the_kalman_update_is_the_joint_one_and_a_clamped_reading_is_a_bound():
     k_hat = 0.3 + 0.05 * torch.randn(2, 8, generator=g, dtype=torch.float64)
     scale = torch.full((2, 8), 0.01, dtype=torch.float64)
     m1, c1, ll = kalman.update(m, c, k_hat, scale)
-    s_mat = c + torch.diag_embed(scale ** 2).unsqueeze(1)
+    s_mat = c + torch.diag_embed(scale**2).unsqueeze(1)
     gain = c @ torch.linalg.inv(s_mat)
     innov = (k_hat.unsqueeze(1) - m).unsqueeze(-1)
     torch.testing.assert_close(m1, m + (gain @ innov).squeeze(-1))
     torch.testing.assert_close(c1, c - gain @ c)
-    exact = -0.5 * (innov.transpose(-1, -2) @ torch.linalg.solve(s_mat, innov)).reshape(2, 3) \
-        - 0.5 * torch.logdet(s_mat)
-    torch.testing.assert_close(ll - ll[:, :1], exact - exact[:, :1])        # up to a constant per row
+    exact = -0.5 * (innov.transpose(-1, -2) @ torch.linalg.solve(s_mat, innov)).reshape(2, 3) - 0.5 * torch.logdet(
+        s_mat
+    )
+    torch.testing.assert_close(ll - ll[:, :1], exact - exact[:, :1])  # up to a constant per row
     # k_hat clamped at 0 on a component whose prior sits at 0.02 +/- 0.01: it says k + e <= 0, so k moves down
     # and its variance shrinks, by the moments of the truncated normal; a prior far above 0 is improbable
     m0 = torch.full((1, 2, 8), 0.3, dtype=torch.float64)
@@ -314,7 +345,10 @@ def test_the_kalman_update_is_the_joint_one_and_a_clamped_reading_is_a_bound():
     k_hat0[0, 0] = 0.0
     m2, c2, ll2 = kalman.update(m0, c0, k_hat0, torch.full((1, 8), 0.01, dtype=torch.float64))
     assert float(m2[0, 0, 0]) < 0.02 and float(c2[0, 0, 0, 0]) < 1e-4
-    v = 2e-4                                                      # var of k + e
+    v = 2e-4  # var of k + e
     assert float(ll2[0, 0] - ll2[0, 1]) == pytest.approx(
-        float(torch.special.log_ndtr(torch.tensor(-0.02 / v ** 0.5)) - torch.special.log_ndtr(torch.tensor(-0.1 / v ** 0.5))),
-        rel=1e-6)
+        float(
+            torch.special.log_ndtr(torch.tensor(-0.02 / v**0.5)) - torch.special.log_ndtr(torch.tensor(-0.1 / v**0.5))
+        ),
+        rel=1e-6,
+    )

@@ -12,13 +12,17 @@ from test_tracking import N_FULL, damage_config, make_pipeline
 from phm_torch.io import write_measurement
 from phm_torch.online.export import export_torchscript
 
-pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
 
 def record(pipe, alpha: torch.Tensor) -> dict:
     zeros = torch.zeros(N_FULL, dtype=torch.float64)
-    return {"time": torch.arange(N_FULL, dtype=torch.float64) / 20000.0, "command": zeros, "position": zeros,
-            "current": pipe.mean_signal + pipe.modes @ alpha}
+    return {
+        "time": torch.arange(N_FULL, dtype=torch.float64) / 20000.0,
+        "command": zeros,
+        "position": zeros,
+        "current": pipe.mean_signal + pipe.modes @ alpha,
+    }
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +32,7 @@ def fleet(tmp_path_factory):
     pipe = make_pipeline()
     export_torchscript(pipe, root / "online.pt", {"damage": damage_config()})
     export_torchscript(make_pipeline(calibrated=False), root / "raw.pt", {"damage": damage_config()})
-    export_torchscript(pipe, root / "old.pt")                      # no damage config: the composed fallback
+    export_torchscript(pipe, root / "old.pt")  # no damage config: the composed fallback
     g = torch.Generator().manual_seed(0)
     rows = ["actuator,hours,file,event"]
     for a in range(3):
@@ -36,7 +40,7 @@ def fleet(tmp_path_factory):
         for i in range(4):
             path = root / "records" / f"A{a}_{i}.csv"
             data = record(pipe, base + 0.02 * i)
-            if a == 1 and i == 2:                                  # not like any training record
+            if a == 1 and i == 2:  # not like any training record
                 data["current"] = torch.randn(N_FULL, generator=g, dtype=torch.float64)
             write_measurement(path, data)
             rows.append(f"A{a},{200 * i},records/{path.name},{'maintenance' if a == 2 and i == 2 else ''}")
@@ -47,8 +51,20 @@ def fleet(tmp_path_factory):
 def run(compose, root, out, *extra):
     from phm_torch.apps.track import track
 
-    return track(compose("track", [f"index={root / 'index.csv'}", f"pipeline={root / 'online.pt'}",
-                                   f"out_dir={out}", "n_particles=64", "rul_particles=16", "chunk_size=1", *extra]))
+    return track(
+        compose(
+            "track",
+            [
+                f"index={root / 'index.csv'}",
+                f"pipeline={root / 'online.pt'}",
+                f"out_dir={out}",
+                "n_particles=64",
+                "rul_particles=16",
+                "chunk_size=1",
+                *extra,
+            ],
+        )
+    )
 
 
 def test_track_json_fleet_ood_and_maintenance(fleet, compose, tmp_path):
@@ -58,18 +74,32 @@ def test_track_json_fleet_ood_and_maintenance(fleet, compose, tmp_path):
     insp = track["actuators"]["A1"]["inspections"]
     assert insp[2]["out_of_distribution"] and not insp[2]["fused"] and insp[2]["ood_reasons"]
     assert all(i["fused"] for k, i in enumerate(insp) if k != 2)
-    keys = {"hours", "file", "k_hat", "k_filtered", "k_interval", "rate_scale", "p_faulty", "healthy", "rul_hours",
-            "rul_censored", "out_of_distribution", "ood_reasons", "fused", "snapshot_rul_hours",
-            "snapshot_rul_censored"}
+    keys = {
+        "hours",
+        "file",
+        "k_hat",
+        "k_filtered",
+        "k_interval",
+        "rate_scale",
+        "p_faulty",
+        "healthy",
+        "rul_hours",
+        "rul_censored",
+        "out_of_distribution",
+        "ood_reasons",
+        "fused",
+        "snapshot_rul_hours",
+        "snapshot_rul_censored",
+    }
     assert keys <= set(insp[0])
     for i in (x for a in track["actuators"].values() for x in a["inspections"]):
-        if i["rul_hours"] is not None:          # censored bounds are null, never the horizon
+        if i["rul_hours"] is not None:  # censored bounds are null, never the horizon
             assert all(v is None or v < 20000.0 for v in i["rul_hours"].values())
             assert i["rul_censored"] == any(v is None for v in i["rul_hours"].values())
     a2 = track["actuators"]["A2"]["inspections"]
     assert a2[2]["event"] == "maintenance"
     width = [i["rate_scale"]["p95"] / i["rate_scale"]["p5"] for i in a2]
-    assert width[2] > width[1]                              # the restarted track forgets the old wear rate
+    assert width[2] > width[1]  # the restarted track forgets the old wear rate
     assert len(track["fleet"]) == 3
     assert json.loads((tmp_path / "fleet.json").read_text()) == track["fleet"]
 
@@ -83,7 +113,7 @@ def test_an_interrupted_run_resumes_to_the_same_result(fleet, compose, tmp_path,
 
     def flaky(*args, **kwargs):
         calls["n"] += 1
-        if calls["n"] == 6:                                  # dies inside the second actuator
+        if calls["n"] == 6:  # dies inside the second actuator
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
@@ -98,18 +128,24 @@ def test_an_interrupted_run_resumes_to_the_same_result(fleet, compose, tmp_path,
     assert resumed["actuators"] == expected["actuators"] and resumed["fleet"] == expected["fleet"]
 
 
-@pytest.mark.parametrize("rows, message", [
-    (["A0,0,records/A0_0.csv,", "A0,400,records/A0_1.csv,", "A0,200,records/A0_2.csv,"],
-     r"line 4 \(actuator A0\): hours 200 not after the previous inspection's 400 \(line 3\)"),
-    (["A0,0,records/A0_0.csv,", "A0,0,records/A0_1.csv,"], r"line 3 \(actuator A0\): duplicate hours 0 \(line 2\)"),
-    (["A0,0,records/nope.csv,"], r"line 2 \(actuator A0\): no such file 'records/nope.csv'"),
-    (["A0,0,records/A0_0.csv,repair"], r"line 2 \(actuator A0\): unknown event 'repair'"),
-    (["A0,ten,records/A0_0.csv,"], r"line 2 \(actuator A0\): hours 'ten' is not a number"),
-])
+@pytest.mark.parametrize(
+    "rows, message",
+    [
+        (
+            ["A0,0,records/A0_0.csv,", "A0,400,records/A0_1.csv,", "A0,200,records/A0_2.csv,"],
+            r"line 4 \(actuator A0\): hours 200 not after the previous inspection's 400 \(line 3\)",
+        ),
+        (["A0,0,records/A0_0.csv,", "A0,0,records/A0_1.csv,"], r"line 3 \(actuator A0\): duplicate hours 0 \(line 2\)"),
+        (["A0,0,records/nope.csv,"], r"line 2 \(actuator A0\): no such file 'records/nope.csv'"),
+        (["A0,0,records/A0_0.csv,repair"], r"line 2 \(actuator A0\): unknown event 'repair'"),
+        (["A0,ten,records/A0_0.csv,"], r"line 2 \(actuator A0\): hours 'ten' is not a number"),
+    ],
+)
 def test_bad_index_rows_are_one_line_errors(fleet, compose, tmp_path, rows, message):
     index = tmp_path / "index.csv"
-    index.write_text("\n".join(["actuator,hours,file,event", *[r.replace("records/", f"{fleet}/records/")
-                                                               for r in rows]]) + "\n")
+    index.write_text(
+        "\n".join(["actuator,hours,file,event", *[r.replace("records/", f"{fleet}/records/") for r in rows]]) + "\n"
+    )
     with pytest.raises(ValueError, match=message.replace("records/", ".*records/")) as err:
         run(compose, fleet, tmp_path / "out", f"index={index}")
     assert "\n" not in str(err.value)

@@ -19,12 +19,26 @@ from phm_torch.surrogates.data import load_store
 from phm_torch.surrogates.full_signal_check import FullSignalCheck
 from phm_torch.surrogates.ood_calibration import ood_thresholds
 
-pytestmark = pytest.mark.torchscript      # scripts, saves or loads TorchScript on purpose
+pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
-REQUIRED = ("err_alpha_median", "err_alpha_iqr", "err_k", "fdi_mae", "classifier_accuracy", "missed_fault_rate",
-            "false_alarm_rate", "fdi_latency_us_p50")
-QUICK = ("n_modes=10", "n_points=16", "n_hidden=12", "eval.latency_repeats=50", "trainer.enable_progress_bar=false",
-         "classifier_refine.rounds=0")   # the synthetic store records no assessment to label with
+REQUIRED = (
+    "err_alpha_median",
+    "err_alpha_iqr",
+    "err_k",
+    "fdi_mae",
+    "classifier_accuracy",
+    "missed_fault_rate",
+    "false_alarm_rate",
+    "fdi_latency_us_p50",
+)
+QUICK = (
+    "n_modes=10",
+    "n_points=16",
+    "n_hidden=12",
+    "eval.latency_repeats=50",
+    "trainer.enable_progress_bar=false",
+    "classifier_refine.rounds=0",
+)  # the synthetic store records no assessment to label with
 
 
 @pytest.fixture(scope="module")
@@ -45,9 +59,15 @@ def test_metrics_json(lm_run):
     for key in REQUIRED:
         assert key in written, key
     assert len(written["fdi_mae"]) == 8
-    for key in ("err_alpha_median", "err_alpha_iqr", "err_k", "classifier_accuracy", "missed_fault_rate",
-                "false_alarm_rate"):
-        assert 0.0 <= written[key] <= 1.0, key                  # fractions
+    for key in (
+        "err_alpha_median",
+        "err_alpha_iqr",
+        "err_k",
+        "classifier_accuracy",
+        "missed_fault_rate",
+        "false_alarm_rate",
+    ):
+        assert 0.0 <= written[key] <= 1.0, key  # fractions
     # The synthetic family is rank 10 and learnable: the pipeline must actually work.
     assert written["err_alpha_median"] < 0.05
     assert written["err_k"] < 0.05
@@ -60,7 +80,7 @@ def test_metrics_json(lm_run):
     assert 0 < written["err_k_mean_per_signal"] <= written["err_k"] + 1e-12
     lo, hi = written["err_k_ci95"]
     assert lo <= written["err_k"] <= hi and hi - lo > 0
-    assert (objects["out_dir"] / "logs").is_dir()              # CSV logger
+    assert (objects["out_dir"] / "logs").is_dir()  # CSV logger
     assert list((objects["out_dir"] / "checkpoints").glob("*.ckpt"))
     # the epoch is chosen on 5 % of the training signals held out from the fit, not on val
     assert (written["n_fdi_fit"], written["n_fdi_monitor"], written["n_val"]) == (380, 20, 100)
@@ -86,14 +106,14 @@ def test_bundle_round_trip(lm_run, store):
     arrays = torch.load(objects["out_dir"] / "predictions.pt", weights_only=True)
     from surrogate_data import faults, signals
 
-    k = faults(100, 17)                                        # the val split of write_store (seed 0 + 17)
+    k = faults(100, 17)  # the val split of write_store (seed 0 + 17)
     samples = bundle.compress(signals(k, 0.01, 1))
     assert torch.allclose(bundle.fdi(samples), arrays["k_hat"], atol=1e-5)
     assert torch.allclose(bundle(samples), arrays["k_hat"], atol=1e-5)
     # estimate: the online FDI on full records (noise level estimated per record), float64
     estimate = bundle.estimate(signals(k, 0.01, 1))
     assert estimate.dtype == torch.float64 and torch.allclose(estimate, arrays["k_hat"].double(), atol=1e-5)
-    scripted = torch.jit.script(bundle)                        # exportable as it is (issue 5)
+    scripted = torch.jit.script(bundle)  # exportable as it is (issue 5)
     holed = samples.clone()
     holed[:, :2] = float("nan")
     assert torch.allclose(scripted(holed), bundle.fdi(holed), atol=1e-6)
@@ -139,14 +159,23 @@ def test_bundle_from_another_configuration(lm_run, tmp_path):
     old = tmp_path / "old.pt"
     torch.save(blob, old)
     before = SurrogateBundle.load(old, expect={"n_layers": 1, "n_members": 1})
-    assert before.network.n_layers == 1 and before.verdict_classifier is None    # and no verdict classifier
+    assert before.network.n_layers == 1 and before.verdict_classifier is None  # and no verdict classifier
     with pytest.raises(ValueError, match="n_layers=1 in the file, 2 expected"):
         SurrogateBundle.load(old, expect={"n_layers": 2})
 
 
 def test_end_to_end_adam_and_resume_mismatch(store, compose, tmp_path):
-    over = [f"data_dir={store}", f"out_dir={tmp_path / 'e2e'}", *QUICK, "model=fdi_e2e", "model.fit.max_epochs=80",
-            "selector=greedy", "loggers=[csv]", "n_layers=2", "n_members=2"]
+    over = [
+        f"data_dir={store}",
+        f"out_dir={tmp_path / 'e2e'}",
+        *QUICK,
+        "model=fdi_e2e",
+        "model.fit.max_epochs=80",
+        "selector=greedy",
+        "loggers=[csv]",
+        "n_layers=2",
+        "n_members=2",
+    ]
     metrics, objects = train_surrogates(compose("train", over))
     assert metrics["model"] == "adam_e2e" and math.isfinite(metrics["err_k"]) and metrics["err_k"] < 0.1
     assert (metrics["n_layers"], metrics["n_members"]) == (2, 2)
@@ -160,10 +189,13 @@ def test_end_to_end_adam_and_resume_mismatch(store, compose, tmp_path):
         train_surrogates(compose("train", [*over, "n_hidden=9", f"ckpt_path={last}"]))
 
 
-@pytest.mark.parametrize("change,match", [
-    ({"drop": {"val": "current"}}, r"split 'val' lacks an array"),
-    ({"n_time": 700}, r"current has shape \(60, 801\), expected \(60, 700\)"),
-])
+@pytest.mark.parametrize(
+    "change,match",
+    [
+        ({"drop": {"val": "current"}}, r"split 'val' lacks an array"),
+        ({"n_time": 700}, r"current has shape \(60, 801\), expected \(60, 700\)"),
+    ],
+)
 def test_bad_store(change, match, compose, tmp_path):
     store = write_store(tmp_path / "bad", {"train": 60, "val": 20}, **change)
     with pytest.raises(ValueError, match=match):
@@ -173,25 +205,27 @@ def test_bad_store(change, match, compose, tmp_path):
 def test_a_non_finite_record_past_the_first_read_block_is_named(tmp_path):
     store = write_store(tmp_path / "inf", {"train": 600, "val": 20})
     with h5py.File(store / "dataset.h5", "r+") as f:
-        f["train/current"][530, 7] = float("inf")      # READ_ROWS = 512: the second block
+        f["train/current"][530, 7] = float("inf")  # READ_ROWS = 512: the second block
     with pytest.raises(ValueError, match=r"split 'train': current row 530 holds NaN or inf"):
         load_store(store, {"train": "train", "val": "val"})
 
 
 def test_ood_thresholds_are_block_size_free_and_grow_with_the_noise():
-    y = signals(faults(300, 5), noise=0.02)       # residuals well above round-off
+    y = signals(faults(300, 5), noise=0.02)  # residuals well above round-off
     pod = POD(10).fit(y)
     gappy = GappyPOD(pod.modes_, pod.mean_, torch.arange(0, y.shape[1], 40))
     check = FullSignalCheck(pod.modes_, pod.mean_)
     clean = ood_thresholds(y, gappy, check, 0.0, 0.99, seed=1, block_rows=300)
     # float32 round-off of energy - explained differs with the batch shape (~1e-4 of the residual)
     assert ood_thresholds(y, gappy, check, 0.0, 0.99, seed=1, block_rows=7) == pytest.approx(clean, rel=1e-3)
-    with torch.no_grad():   # the whole-array computation it replaces
-        direct = (float(torch.quantile(gappy(gappy.select(y))[1].double(), 0.99)),
-                  float(torch.quantile(check.residual(y).double(), 0.99)))
+    with torch.no_grad():  # the whole-array computation it replaces
+        direct = (
+            float(torch.quantile(gappy(gappy.select(y))[1].double(), 0.99)),
+            float(torch.quantile(check.residual(y).double(), 0.99)),
+        )
     assert clean == pytest.approx(direct, rel=1e-3)
     noisy = ood_thresholds(y, gappy, check, 0.05, 0.99, seed=1, block_rows=64)
-    assert noisy == ood_thresholds(y, gappy, check, 0.05, 0.99, seed=1, block_rows=64)   # seeded
+    assert noisy == ood_thresholds(y, gappy, check, 0.05, 0.99, seed=1, block_rows=64)  # seeded
     assert noisy[0] > 2 * clean[0] and noisy[1] > 2 * clean[1]
     with pytest.raises(ValueError, match="eval.ood_quantile"):
         ood_thresholds(y, gappy, check, 0.0, 1.5, seed=1)
@@ -205,7 +239,7 @@ def test_missing_split_and_config_errors(compose, tmp_path):
         train_surrogates(compose("train", [f"data_dir={store}", "n_points=5", "n_modes=10"]))
     with pytest.raises(ValueError, match="holds no finished dataset store"):
         train_surrogates(compose("train", [f"data_dir={tmp_path / 'nothing'}", *QUICK]))
-    for override, message in (                      # one bad setting each: the error names it
+    for override, message in (  # one bad setting each: the error names it
         ("loggers=[wandb]", "loggers must be a list"),
         ("threads=0", "threads"),
         ("monitor_fraction=0.5", "monitor_fraction must be < 0.5"),
@@ -225,7 +259,7 @@ def test_threads_setting(compose):
     try:
         common.set_threads(compose("train", ["threads=1"]))
         assert torch.get_num_threads() == 1
-        common.set_threads(compose("train"))                      # null: left alone
+        common.set_threads(compose("train"))  # null: left alone
         assert torch.get_num_threads() == 1
         assert compose("evaluate").threads is None
     finally:
@@ -238,12 +272,15 @@ def test_cli_reports_a_missing_store(run_cli, tmp_path):
     assert "phm-train: error: data_dir" in proc.stderr and "run phm-generate first" in proc.stderr
 
 
-@pytest.mark.parametrize("name,key,values", [
-    ("ablation_modes", "n_modes", "5,10,15,22,30"),
-    ("ablation_hidden", "n_hidden", "5,10,20,50,100"),
-    ("ablation_points", "n_points", "22,30,45,60"),
-    ("ablation_selector", "selector", "som,qdeim,greedy,min_error,uniform,random"),
-])
+@pytest.mark.parametrize(
+    "name,key,values",
+    [
+        ("ablation_modes", "n_modes", "5,10,15,22,30"),
+        ("ablation_hidden", "n_hidden", "5,10,20,50,100"),
+        ("ablation_points", "n_points", "22,30,45,60"),
+        ("ablation_selector", "selector", "som,qdeim,greedy,min_error,uniform,random"),
+    ],
+)
 def test_sweep_configs(name, key, values):
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
@@ -260,8 +297,8 @@ def test_best_experiment_composes(compose):
     cfg = compose("train", ["experiment=surrogates_best"])
     assert cfg.selector._target_.endswith("UniformSelector") and cfg.model.optimizer == "adam"
     assert (cfg.n_modes, cfg.n_points, cfg.n_hidden, cfg.n_layers, cfg.n_members) == (40, 1000, 256, 2, 4)
-    assert cfg.model.fit.patience >= cfg.model.fit.max_epochs     # the whole cosine schedule
-    assert cfg.model.network.input_scaling == "robust"          # the model group's own setting is kept
+    assert cfg.model.fit.patience >= cfg.model.fit.max_epochs  # the whole cosine schedule
+    assert cfg.model.network.input_scaling == "robust"  # the model group's own setting is kept
     robust = compose("train", ["experiment=robust_30_points"])
     assert robust.gappy.estimator == "bayesian" and robust.model.end_to_end and robust.model.optimizer == "adam"
     assert (robust.n_modes, robust.n_points, robust.selector._target_.rsplit(".", 1)[-1]) == (22, 30, "SOMSelector")
@@ -269,8 +306,16 @@ def test_best_experiment_composes(compose):
 
 def test_multirun_jobs_write_into_their_own_directories(store, run_cli, tmp_path):
     sweep = tmp_path / "sweep"
-    proc = run_cli("phm_torch.apps.train", "-m", f"data_dir={store}", *QUICK, "model.fit.max_epochs=2",
-                   "n_hidden=4,6", f"hydra.sweep.dir={sweep}", timeout=240)
+    proc = run_cli(
+        "phm_torch.apps.train",
+        "-m",
+        f"data_dir={store}",
+        *QUICK,
+        "model.fit.max_epochs=2",
+        "n_hidden=4,6",
+        f"hydra.sweep.dir={sweep}",
+        timeout=240,
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     hidden = [json.loads((sweep / job / "metrics.json").read_text())["n_hidden"] for job in ("0", "1")]
     assert hidden == [4, 6]
@@ -284,17 +329,26 @@ def test_classifier_also_learns_from_the_labels_split(compose, tmp_path):
     k, h = classifier_set(settings_from_config(compose("train", [f"data_dir={data_dir}"])), train)
     assert k.shape == (340, 8) and h.shape == (340,) and k.dtype == torch.float64
     assert torch.equal(h[:40], train.healthy)
-    assert torch.equal(h[40:], health(faults(300, 34)))            # write_store's seed for the 3rd split
-    k_only, _ = classifier_set(settings_from_config(compose("train", [f"data_dir={data_dir}", "classifier_labels=false"])), train)
+    assert torch.equal(h[40:], health(faults(300, 34)))  # write_store's seed for the 3rd split
+    k_only, _ = classifier_set(
+        settings_from_config(compose("train", [f"data_dir={data_dir}", "classifier_labels=false"])), train
+    )
     assert k_only.shape == (40, 8)
     plain = write_store(tmp_path / "p", {"train": 40, "val": 10})  # a store without labels: train only
     assert classifier_set(settings_from_config(compose("train", [f"data_dir={plain}"])), train)[0].shape == (40, 8)
 
 
 def test_bayesian_gappy_estimator_round_trips_through_the_bundle(store, compose, tmp_path):
-    over = [f"data_dir={store}", f"out_dir={tmp_path / 'bayes'}", *QUICK, "model.fit.max_epochs=10", "n_modes=6",
-            "n_points=5", "gappy.estimator=bayesian",            # fewer points than modes: the prior decides
-            "verdict_classifier=false"]                          # the health classifier judges the estimates
+    over = [
+        f"data_dir={store}",
+        f"out_dir={tmp_path / 'bayes'}",
+        *QUICK,
+        "model.fit.max_epochs=10",
+        "n_modes=6",
+        "n_points=5",
+        "gappy.estimator=bayesian",  # fewer points than modes: the prior decides
+        "verdict_classifier=false",
+    ]  # the health classifier judges the estimates
     metrics, objects = train_surrogates(compose("train", over))
     assert metrics["gappy_estimator"] == "bayesian" and math.isfinite(metrics["err_alpha_median"])
     assert metrics["chain_accuracy"] == metrics["chain_accuracy_health_classifier"]
@@ -335,14 +389,25 @@ def test_noise_aware_end_to_end_run_and_its_pipeline(store, compose, tmp_path):
     with pytest.raises(ValueError, match="noise_input=true needs noisy training records: model.end_to_end=true"):
         train_surrogates(compose("train", [*base, f"out_dir={tmp_path / 'a'}", "+model.network.noise_input=true"]))
     with pytest.raises(ValueError, match="model.network.max_noise: it is model.augment.noise"):
-        train_surrogates(compose("train", [*base, f"out_dir={tmp_path / 'b'}", "model=fdi_e2e",
-                                           "+model.network.max_noise=0.2"]))
-    metrics, objects = train_surrogates(compose("train", [*base, f"out_dir={tmp_path / 'c'}", "model=fdi_e2e",
-                                                          "+model.network.noise_input=true", "model.augment.noise=0.05"]))
+        train_surrogates(
+            compose("train", [*base, f"out_dir={tmp_path / 'b'}", "model=fdi_e2e", "+model.network.max_noise=0.2"])
+        )
+    metrics, objects = train_surrogates(
+        compose(
+            "train",
+            [
+                *base,
+                f"out_dir={tmp_path / 'c'}",
+                "model=fdi_e2e",
+                "+model.network.noise_input=true",
+                "model.augment.noise=0.05",
+            ],
+        )
+    )
     assert math.isfinite(metrics["err_k"]) and math.isfinite(metrics["err_k_noise"])
     bundle = SurrogateBundle.load(objects["out_dir"] / "surrogates.pt")
     net = bundle.network
-    assert (net.noise_input, net.default_noise, net.max_noise) == (True, 0.01, 0.05)   # eval.noise, augment.noise
+    assert (net.noise_input, net.default_noise, net.max_noise) == (True, 0.01, 0.05)  # eval.noise, augment.noise
     assert bundle.metadata()["noise_input"] is True
     torch.testing.assert_close(net.in_center, objects["bundle"].network.in_center)
     # the pipeline tells the network each full record's estimated noise; selected samples alone: the default
@@ -356,7 +421,7 @@ def test_noise_aware_end_to_end_run_and_its_pipeline(store, compose, tmp_path):
         k_full = pipe(noisy)[0]
         k_told = bundle.fdi(bundle.compress(noisy).float(), noise=noise_level(noisy, NOISE_WINDOW).float())
         k_samples = pipe(bundle.compress(noisy))[0]
-        k_sent = torch.jit.script(pipe)(bundle.compress(noisy), noise_level(noisy, NOISE_WINDOW))[0]   # level sent along
+        k_sent = torch.jit.script(pipe)(bundle.compress(noisy), noise_level(noisy, NOISE_WINDOW))[0]  # level sent along
     torch.testing.assert_close(k_sent, k_full)
     with pytest.raises(ValueError, match=r"online: noise must be \(B,\)"):
         pipe(noisy, torch.zeros(2))

@@ -17,14 +17,14 @@ def test_recovers_a_known_logistic_law():
     assert a == pytest.approx(truth_a, rel=0.05) and b == pytest.approx(truth_b, rel=0.08)
     p = torch.sigmoid(a * score + b)
     q = verdict_quality(p, faulty)
-    assert q["brier"] < q["brier_base_rate"]                    # it knows more than the base rate
+    assert q["brier"] < q["brier_base_rate"]  # it knows more than the base rate
     assert 0.5 < q["accuracy"] <= 1.0
 
 
 def test_separable_records_give_a_steep_but_finite_law():
     score = torch.linspace(-1, 1, 200, dtype=torch.float64)
     a, b = calibrate_verdict(score, score < 0)
-    assert a < -5 and abs(b) < 1e-6 * abs(a) + 1e-6            # the boundary stays at score 0
+    assert a < -5 and abs(b) < 1e-6 * abs(a) + 1e-6  # the boundary stays at score 0
     assert float(torch.sigmoid(torch.tensor(a * 0.5 + b))) < 0.1
 
 
@@ -49,17 +49,23 @@ def test_prior_shift_transfers_the_law_to_another_fault_rate():
 
     a, b = calibrate_verdict(*population(60000, 0.7), ridge=0.0)
     a2, b2 = calibrate_verdict(*population(60000, 0.2), ridge=0.0)
-    assert a == pytest.approx(a2, rel=0.05) and a == pytest.approx(-2.0, rel=0.05)   # log LR slope of the classes
+    assert a == pytest.approx(a2, rel=0.05) and a == pytest.approx(-2.0, rel=0.05)  # log LR slope of the classes
     assert shift_prior(b, 0.7, 0.2) == pytest.approx(b2, abs=0.05)
     with pytest.raises(ValueError, match="prior must be in"):
         shift_prior(b, 0.7, 1.0)
 
 
-@pytest.mark.parametrize("value, message", [(1.0, r"verdict.prior_faulty must be in \(0, 1\), got 1.0"),
-                                            (0, r"verdict.prior_faulty must be > 0, got 0")])
+@pytest.mark.parametrize(
+    "value, message",
+    [(1.0, r"verdict.prior_faulty must be in \(0, 1\), got 1.0"), (0, r"verdict.prior_faulty must be > 0, got 0")],
+)
 def test_evaluate_refuses_a_bad_prior_before_any_work(compose, tmp_path, value, message):
     from phm_torch.apps.evaluate import evaluate_rul
 
     with pytest.raises(ValueError, match=message):
-        evaluate_rul(compose("evaluate", [f"verdict.prior_faulty={value}", f"data_dir={tmp_path / 'none'}",
-                                          f"out_dir={tmp_path / 'out'}"]))
+        evaluate_rul(
+            compose(
+                "evaluate",
+                [f"verdict.prior_faulty={value}", f"data_dir={tmp_path / 'none'}", f"out_dir={tmp_path / 'out'}"],
+            )
+        )

@@ -74,8 +74,12 @@ def test_batched_levenberg_marquardt_fits_two_problems_sharing_calls():
         calls.append(sorted({j for j, _ in items}))
         return [((x[:, :1] * torch.exp(-x[:, 1:] * t) - data[j]) / 0.01, list(range(len(x)))) for j, x in items]
 
-    problems = [Problem(torch.tensor([1.0, 1.0]), torch.tensor([0.0, 0.0]), torch.tensor([10.0, 10.0]),
-                        torch.tensor([1e-6, 1e-6])) for _ in truth]
+    problems = [
+        Problem(
+            torch.tensor([1.0, 1.0]), torch.tensor([0.0, 0.0]), torch.tensor([10.0, 10.0]), torch.tensor([1e-6, 1e-6])
+        )
+        for _ in truth
+    ]
     res = fit(evaluate, problems, max_iter=30, tol_abs=1e-6, tol_rel=1e-10)
     for r, (a, b) in zip(res, truth, strict=True):
         std = r.std()
@@ -99,7 +103,7 @@ def test_diagnostics_find_the_slot_harmonic_the_worst_window_and_non_white_resid
     rng = np.random.default_rng(3)
     n, fs = 8001, 20000.0
     t = np.arange(n) / fs
-    angle = 1.0 * np.sin(2 * np.pi * 5 * t)              # +-1 rad of rotor travel, as on the test chirp
+    angle = 1.0 * np.sin(2 * np.pi * 5 * t)  # +-1 rad of rotor travel, as on the test chirp
     speed = np.gradient(angle) * fs
     coords = [Coordinates(speed, angle, np.abs(np.cos(2 * np.pi * 5 * t)), np.ones(n))]
     noise = rng.standard_normal(n)
@@ -153,37 +157,68 @@ def _edit(path: Path, tmp: Path, name: str, edit) -> Path:
     return out
 
 
-@pytest.mark.parametrize("name, edit, match", [
-    ("missing.csv", lambda ls: [",".join(x.split(",")[:3]) for x in ls], r"missing required column\(s\) \['current'\]"),
-    ("nonuniform.csv", lambda ls: ls[:100] + ls[101:], r"not uniformly sampled at line 101"),
-    ("backwards.csv", lambda ls: ls[:50] + [ls[51], ls[50]] + ls[52:], r"not strictly increasing at line"),
-    ("nan.csv", lambda ls: ls[:10] + [ls[10].rsplit(",", 1)[0] + ",nan"] + ls[11:], r"line 11, column 'current'.*not finite"),
-    ("inf.csv", lambda ls: ls[:10] + [ls[10].split(",", 1)[0] + ",inf," + ls[10].split(",", 2)[2]] + ls[11:],
-     r"column 'command'.*not finite"),
-    ("rate.csv", lambda ls: [ls[0]] + [",".join([repr(float(x.split(",")[0]) * 2), *x.split(",")[1:]]) for x in ls[1:]],
-     r"sample rate 10000 Hz .*differs from the expected 20000 Hz; pass resample=True"),
-])
+@pytest.mark.parametrize(
+    "name, edit, match",
+    [
+        (
+            "missing.csv",
+            lambda ls: [",".join(x.split(",")[:3]) for x in ls],
+            r"missing required column\(s\) \['current'\]",
+        ),
+        ("nonuniform.csv", lambda ls: ls[:100] + ls[101:], r"not uniformly sampled at line 101"),
+        ("backwards.csv", lambda ls: ls[:50] + [ls[51], ls[50]] + ls[52:], r"not strictly increasing at line"),
+        (
+            "nan.csv",
+            lambda ls: ls[:10] + [ls[10].rsplit(",", 1)[0] + ",nan"] + ls[11:],
+            r"line 11, column 'current'.*not finite",
+        ),
+        (
+            "inf.csv",
+            lambda ls: ls[:10] + [ls[10].split(",", 1)[0] + ",inf," + ls[10].split(",", 2)[2]] + ls[11:],
+            r"column 'command'.*not finite",
+        ),
+        (
+            "rate.csv",
+            lambda ls: [ls[0]] + [",".join([repr(float(x.split(",")[0]) * 2), *x.split(",")[1:]]) for x in ls[1:]],
+            r"sample rate 10000 Hz .*differs from the expected 20000 Hz; pass resample=True",
+        ),
+    ],
+)
 def test_bad_csv_is_refused(good_csv, tmp_path, name, edit, match):
     with pytest.raises(ValueError, match=match):
         load_records(_edit(good_csv, tmp_path, name, edit), P, ["position", "current"])
 
 
 def test_other_rate_is_resampled_only_on_request(good_csv, tmp_path):
-    path = _edit(good_csv, tmp_path, "rate.csv", lambda ls: [ls[0]] + [",".join(
-        [repr(float(x.split(",")[0]) * 2), *x.split(",")[1:]]) for x in ls[1:]])
+    path = _edit(
+        good_csv,
+        tmp_path,
+        "rate.csv",
+        lambda ls: [ls[0]] + [",".join([repr(float(x.split(",")[0]) * 2), *x.split(",")[1:]]) for x in ls[1:]],
+    )
     rec = load_records(path, P, ["position", "current"], resample=True)[0]
     assert rec.sample_rate == 20000.0 and len(rec) == 8001
 
 
-@pytest.mark.parametrize("change, channels, match", [
-    ({"command": np.full(4001, 0.6)}, ["position", "current"], r"command' = 0.6 rad .*end stops .*end_stop_angle"),
-    ({"position": 0.9 * 5e-3 * np.sin(2 * np.pi * 5 * np.arange(4001) / 2e4) + 2e-3}, ["position", "current"],
-     r"position' starts at 0.0020.* rad .*at rest at 0 rad"),
-    ({}, ["position", "speed"], r"channel\(s\) \['speed'\] requested by channels= are not in the file"),
-    ({}, ["position", "torque"], r"channels: \['torque'\] cannot be compared"),
-    ({"current": np.ones(4001)}, ["position", "current"], r"column 'current' is constant"),
-    ({"sample_rate": 10000.0}, ["position", "current"], r"sample rate 10000 Hz differs from the model's .*sample_rate"),
-])
+@pytest.mark.parametrize(
+    "change, channels, match",
+    [
+        ({"command": np.full(4001, 0.6)}, ["position", "current"], r"command' = 0.6 rad .*end stops .*end_stop_angle"),
+        (
+            {"position": 0.9 * 5e-3 * np.sin(2 * np.pi * 5 * np.arange(4001) / 2e4) + 2e-3},
+            ["position", "current"],
+            r"position' starts at 0.0020.* rad .*at rest at 0 rad",
+        ),
+        ({}, ["position", "speed"], r"channel\(s\) \['speed'\] requested by channels= are not in the file"),
+        ({}, ["position", "torque"], r"channels: \['torque'\] cannot be compared"),
+        ({"current": np.ones(4001)}, ["position", "current"], r"column 'current' is constant"),
+        (
+            {"sample_rate": 10000.0},
+            ["position", "current"],
+            r"sample rate 10000 Hz differs from the model's .*sample_rate",
+        ),
+    ],
+)
 def test_record_that_does_not_fit_the_model_is_refused(change, channels, match):
     with pytest.raises(ValueError, match=match):
         record_from_measurement(_measurement(**change), P, channels, "bad")
@@ -198,21 +233,24 @@ def test_too_short_and_missing_files_are_refused(tmp_path):
         load_records([], P, ["position"])
 
 
-@pytest.mark.parametrize("overrides, match", [
-    (["free=[motor_inertia,bogus]"], r"free: unknown parameter 'bogus'"),
-    (["free=[k9]"], r"free: unknown parameter 'k9'"),
-    (["free=[k8,k8]"], r"listed twice"),
-    (["+effects.no_such_effect={}"], r"unknown effect 'no_such_effect'"),
-    (["+effects.cogging_torque.amplitude=-1"], r"effects.cogging_torque.amplitude"),
-    (["library=[cogging_torque,warp_drive]"], r"library: unknown effect\(s\) \['warp_drive'\]"),
-    (["fidelity=mf"], r"fidelity must be one of"),
-    (["score.alpha=2"], r"score.alpha"),
-    (["closure.enabled=maybe"], r"closure.enabled"),
-    (["groups.dry_friction=[coulomb_friction,grip]"], r"groups.dry_friction: unknown"),
-    (["scale_bounds=[2.0,5.0]"], r"scale_bounds must satisfy"),
-    (["noise.band=[0.4,0.2]"], r"noise.band"),
-    (["refit.free.cogging_torque=[amplitude,colour]"], r"refit_free.cogging_torque: unknown parameter"),
-])
+@pytest.mark.parametrize(
+    "overrides, match",
+    [
+        (["free=[motor_inertia,bogus]"], r"free: unknown parameter 'bogus'"),
+        (["free=[k9]"], r"free: unknown parameter 'k9'"),
+        (["free=[k8,k8]"], r"listed twice"),
+        (["+effects.no_such_effect={}"], r"unknown effect 'no_such_effect'"),
+        (["+effects.cogging_torque.amplitude=-1"], r"effects.cogging_torque.amplitude"),
+        (["library=[cogging_torque,warp_drive]"], r"library: unknown effect\(s\) \['warp_drive'\]"),
+        (["fidelity=mf"], r"fidelity must be one of"),
+        (["score.alpha=2"], r"score.alpha"),
+        (["closure.enabled=maybe"], r"closure.enabled"),
+        (["groups.dry_friction=[coulomb_friction,grip]"], r"groups.dry_friction: unknown"),
+        (["scale_bounds=[2.0,5.0]"], r"scale_bounds must satisfy"),
+        (["noise.band=[0.4,0.2]"], r"noise.band"),
+        (["refit.free.cogging_torque=[amplitude,colour]"], r"refit_free.cogging_torque: unknown parameter"),
+    ],
+)
 def test_bad_configuration_is_refused_before_simulating(compose, good_csv, tmp_path, overrides, match):
     from phm_torch.apps.workbench import run_workbench
 
@@ -227,8 +265,10 @@ def test_bad_configuration_is_refused_before_simulating(compose, good_csv, tmp_p
 def short_records(tmp_path_factory) -> dict[str, Path]:
     """Hidden cogging and a control (nothing missing), LF, 0.2 s chirp, noisy; one batched simulation."""
     cmd = Chirp(duration=SHORT)
-    cases = {"cogging": Case({"cogging_torque": {"amplitude": 4e-3, "phase": 0.7}}, NOISE, seed=11),
-             "control": Case({}, NOISE, seed=12)}
+    cases = {
+        "cogging": Case({"cogging_torque": {"amplitude": 4e-3, "phase": 0.7}}, NOISE, seed=11),
+        "control": Case({}, NOISE, seed=12),
+    }
     out = tmp_path_factory.mktemp("wb_short")
     paths = {}
     for (name, _), m in zip(cases.items(), synthesize(P, list(cases.values()), cmd, SHORT), strict=True):
@@ -251,8 +291,9 @@ def test_app_finds_hidden_cogging_and_the_error_falls_to_the_noise_floor(compose
     from phm_torch.apps.workbench import run_workbench
 
     out = tmp_path / "wb"
-    metrics, objects = run_workbench(compose("workbench", [f"measurements={short_records['cogging']}",
-                                                           f"out_dir={out}", "refit.rounds=1"]))
+    metrics, objects = run_workbench(
+        compose("workbench", [f"measurements={short_records['cogging']}", f"out_dir={out}", "refit.rounds=1"])
+    )
     report = json.loads((out / "report.json").read_text())
     assert report == objects["report"]
     for key in ("nrmse", "noise_floor", "worst_windows", "candidates", "fitted", "before_after"):
@@ -266,7 +307,7 @@ def test_app_finds_hidden_cogging_and_the_error_falls_to_the_noise_floor(compose
     assert [c["effect"] for c in report["candidates"] if c["significant"]] == ["cogging_torque"]
     assert best["evidence"]["pattern"] == "harmonic" and best["evidence"]["harmonic"] == 24, best["evidence"]
     floor = report["noise_floor"]
-    assert report["nrmse"]["total"] > 1.5 * floor["total"]                       # the model misses something
+    assert report["nrmse"]["total"] > 1.5 * floor["total"]  # the model misses something
     after = best["nrmse_after_refit_channels"]
     assert after["total"] <= 1.2 * floor["total"] and after["current"] <= 1.2 * floor["current"], (after, floor)
     amp = best["fitted"]["cogging_torque.amplitude"]
@@ -325,8 +366,12 @@ def test_several_records_of_different_lengths_are_fitted_together():
 def test_hf_model_calibrates_on_a_short_record():
     m = synthesize(P, [Case({}, NOISE, seed=3)], Chirp(duration=0.02), 0.02, fidelity="hf")[0]
     rec = record_from_measurement(m, P, ["position", "current"], "hf")
-    wb = Workbench(P, fidelity="hf", free=["dry_friction"],
-                   settings=quick_settings(calibration=quick_settings().calibration.__class__(max_iter=1)))
+    wb = Workbench(
+        P,
+        fidelity="hf",
+        free=["dry_friction"],
+        settings=quick_settings(calibration=quick_settings().calibration.__class__(max_iter=1)),
+    )
     cal = wb.calibrate(wb.evaluator([rec]))
     assert math.isfinite(cal.chi2) and 0.7 < cal.chi2 / len(cal.result.residual) < 1.3
     assert set(cal.fitted()) == {"dry_friction"}
@@ -337,10 +382,18 @@ def test_retrain_overrides_compose_into_the_dataset_spec(compose):
 
     from phm_torch.workbench.report import generate_overrides
 
-    line = generate_overrides({"aero_hinge_load": {"stiffness": 1015.0133, "bias": 0.98963921}, "cogging_torque":
-                               {"amplitude": 0.0041, "phase": -0.3}})
-    assert line == ("'+dataset.effects.aero_hinge_load={stiffness: 1015.01, bias: 0.989639}' "
-                    "'+dataset.effects.cogging_torque={amplitude: 0.0041, phase: -0.3}'")
+    line = generate_overrides(
+        {
+            "aero_hinge_load": {"stiffness": 1015.0133, "bias": 0.98963921},
+            "cogging_torque": {"amplitude": 0.0041, "phase": -0.3},
+        }
+    )
+    assert line == (
+        "'+dataset.effects.aero_hinge_load={stiffness: 1015.01, bias: 0.989639}' "
+        "'+dataset.effects.cogging_torque={amplitude: 0.0041, phase: -0.3}'"
+    )
     spec = instantiate(compose("generate", [o.strip("'") for o in line.split(" '")]).dataset)
-    assert spec.effects == {"aero_hinge_load": {"stiffness": 1015.01, "bias": 0.989639},
-                            "cogging_torque": {"amplitude": 0.0041, "phase": -0.3}}
+    assert spec.effects == {
+        "aero_hinge_load": {"stiffness": 1015.01, "bias": 0.989639},
+        "cogging_torque": {"amplitude": 0.0041, "phase": -0.3},
+    }

@@ -23,9 +23,11 @@ def setup():
 def test_scaled_strength_gives_the_requested_snr(setup):
     params, cmd = setup
     noise = {"current": 0.02, "position": 2e-5}
-    cases = [Case({"viscous_friction": {"coefficient": 1e-5}}, noise),
-             Case({"cogging_torque": {"amplitude": 1e-3, "phase": 0.7}}, noise),
-             Case({}, noise)]
+    cases = [
+        Case({"viscous_friction": {"coefficient": 1e-5}}, noise),
+        Case({"cogging_torque": {"amplitude": 1e-3, "phase": 0.7}}, noise),
+        Case({}, noise),
+    ]
     targets = [3.0, 0.5, None]
     out, info = scale_to_snr(params, cases, targets, cmd, DURATION)
     assert out[2] is cases[2] and info[2] == {}
@@ -42,8 +44,12 @@ def test_snr_is_in_noise_units(setup):
     """The same signature under twice the noise on both channels is half the SNR (noise-free simulations)."""
     params, cmd = setup
     eff = {"viscous_friction": {"coefficient": 3e-5}}
-    a, b = signature_snr(params, [Case(eff, {"current": 0.02, "position": 2e-5}),
-                                  Case(eff, {"current": 0.04, "position": 4e-5})], cmd, DURATION)
+    a, b = signature_snr(
+        params,
+        [Case(eff, {"current": 0.02, "position": 2e-5}), Case(eff, {"current": 0.04, "position": 4e-5})],
+        cmd,
+        DURATION,
+    )
     assert a > 0 and b == pytest.approx(a / 2, rel=1e-9)
 
 
@@ -55,4 +61,6 @@ def test_bad_input_names_the_field(setup):
     with pytest.raises(ValueError, match="targets"):
         scale_to_snr(params, [case], [-1.0], cmd, DURATION)
     assert scaled(Case({"aero_hinge_load": {"stiffness": 10.0}}), 2.0).effects["aero_hinge_load"] == {
-        "stiffness": 20.0, "bias": 2.0}  # missing strength parameters scale from their defaults
+        "stiffness": 20.0,
+        "bias": 2.0,
+    }  # missing strength parameters scale from their defaults

@@ -34,7 +34,7 @@ def test_orders_follow_the_actuators_slots_poles_and_pinion():
     assert actuator_orders(other) == {"electrical": 3, "commutation": 18, "cogging": 18}
     assert max_order(other) == 36 and closure_orders(other, [7]) == (1, 2, 3, 6, 7, 18, 36)
     assert Workbench(other).max_order == 36
-    odd = P.replace(stator_slots=9, pole_pairs=4)                # fractional-slot: cogging lcm(9, 8) = 72
+    odd = P.replace(stator_slots=9, pole_pairs=4)  # fractional-slot: cogging lcm(9, 8) = 72
     assert actuator_orders(odd)["cogging"] == 72 and max_order(odd) == 144
     geared = P.replace(pinion_teeth=31)
     assert actuator_orders(geared)["gear_mesh"] == 31 and max_order(geared) == 62 and 31 in closure_orders(geared)
@@ -44,7 +44,7 @@ def test_orders_follow_the_actuators_slots_poles_and_pinion():
 
 def _coords(n: int = 8001, fs: float = 20000.0) -> list[Coordinates]:
     t = np.arange(n) / fs
-    angle = np.sin(2 * np.pi * 5 * t)                            # +-1 rad of rotor travel, as on the test chirp
+    angle = np.sin(2 * np.pi * 5 * t)  # +-1 rad of rotor travel, as on the test chirp
     return [Coordinates(np.gradient(angle) * fs, angle, np.ones(n), np.ones(n))]
 
 
@@ -59,7 +59,7 @@ def test_residual_orders_find_the_ripple_order_and_skip_excluded_ones(order):
     assert all(abs(a - b) >= 3 for a in found for b in found if a != b)  # one order per peak
     # resolution 2 pi / (2 rad covered) ~ 3 orders: nothing named within it of an excluded order
     assert all(abs(h - order) >= 3 for h in residual_orders(values, coords, 48, 3, exclude=[order]))
-    assert min(residual_orders(values, coords, 48, 10)) >= 7    # >= 2 periods over the 2 rad covered
+    assert min(residual_orders(values, coords, 48, 10)) >= 7  # >= 2 periods over the 2 rad covered
 
 
 def test_torque_ripple_effect_is_the_declared_wave_and_off_at_zero_amplitude():
@@ -89,8 +89,12 @@ def _settings(**kw) -> WorkbenchSettings:
 @pytest.fixture(scope="module")
 def ripple_run(tmp_path_factory):
     """A hidden torque ripple of order 17 per motor turn (4 mN m, a gear mesh), LF, 0.2 s chirp, noisy."""
-    m = synthesize(P, [Case({"torque_ripple": {"order": 17.0, "amplitude": 4e-3, "phase": 0.3}}, NOISE, seed=21)],
-                   Chirp(duration=SHORT), SHORT)[0]
+    m = synthesize(
+        P,
+        [Case({"torque_ripple": {"order": 17.0, "amplitude": 4e-3, "phase": 0.3}}, NOISE, seed=21)],
+        Chirp(duration=SHORT),
+        SHORT,
+    )[0]
     path = write_measurement(tmp_path_factory.mktemp("wb_ripple") / "gear_mesh.csv", m)
     wb = Workbench(P, settings=_settings(rounds=2), actuator="ema_reference")
     return wb, wb.run(wb.load(path))
@@ -101,7 +105,7 @@ def test_hidden_order_17_ripple_is_named_by_its_order_and_the_error_falls_to_the
     assert res.orders["residual"][0] == 17 and res.orders["max_order"] == 48
     best = res.candidates[0]
     assert best.effect == "torque_ripple" and best.significant and best.start["order"] == 17.0
-    assert res.added == ["torque_ripple"]                      # the cogging candidate is explained away by it
+    assert res.added == ["torque_ripple"]  # the cogging candidate is explained away by it
     assert not [c.effect for c in res.rounds[-1].candidates if c.significant]
     before, after = res.metrics["model"], res.metrics["model + torque_ripple"]
     assert before["nrmse"]["total"] > 1.5 * before["noise_floor"]["total"]

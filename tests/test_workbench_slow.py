@@ -57,7 +57,9 @@ def records(tmp_path_factory) -> dict[str, Path]:
     """Every synthetic case of this module in one batched LF simulation."""
     faults = list(P.nominal_faults)
     faults[7] = K8
-    cases = {name: Case({name: vals}, NOISE, faults, OFF_NOMINAL, seed=i) for i, (name, vals) in enumerate(HIDDEN.items())}
+    cases = {
+        name: Case({name: vals}, NOISE, faults, OFF_NOMINAL, seed=i) for i, (name, vals) in enumerate(HIDDEN.items())
+    }
     cases["two"] = Case(TWO, NOISE, faults, OFF_NOMINAL, seed=20)
     cases["control"] = Case({}, NOISE, faults, OFF_NOMINAL, seed=21)
     cases["closure"] = Case({"cogging_torque": {"amplitude": 4e-3, "phase": 0.3}}, NOISE, faults, OFF_NOMINAL, seed=22)
@@ -93,8 +95,9 @@ def test_hidden_effect_ranks_first_and_the_error_falls_to_the_noise_floor(record
 def test_two_hidden_effects_are_added_in_two_rounds(records):
     wb = Workbench(P, settings=settings(rounds=3))
     res = wb.run(wb.load(records["two"]))
-    assert set(res.added) == set(TWO), [(r.model.label, [(c.effect, c.significant) for c in r.candidates[:3]])
-                                        for r in res.rounds]
+    assert set(res.added) == set(TWO), [
+        (r.model.label, [(c.effect, c.significant) for c in r.candidates[:3]]) for r in res.rounds
+    ]
     assert {c.effect for c in res.candidates[:2]} == set(TWO)
     assert at_floor(res.metrics[res.final.label]), res.metrics[res.final.label]
     assert res.rounds[-1].added is None  # the third round finds nothing more
@@ -108,8 +111,18 @@ def test_control_with_nothing_missing_raises_no_significant_candidate(records):
 
 
 def test_neural_closure_absorbs_an_effect_outside_the_library_and_names_its_harmonic(records):
-    library = [n for n in ("stribeck_friction", "aero_hinge_load", "inverter_dead_time", "position_sensor_lag",
-                           "viscous_friction", "transmission_compliance", "torque_constant_saturation")]
+    library = [
+        n
+        for n in (
+            "stribeck_friction",
+            "aero_hinge_load",
+            "inverter_dead_time",
+            "position_sensor_lag",
+            "viscous_friction",
+            "transmission_compliance",
+            "torque_constant_saturation",
+        )
+    ]
     wb = Workbench(P, settings=settings(library=library, rounds=1))
     res = wb.run(wb.load(records["closure"]))
     assert not [c.effect for c in res.candidates if c.significant], [(c.effect, c.log10_p) for c in res.candidates]
@@ -136,8 +149,12 @@ def test_demo_cross_fidelity_then_add_the_effect_on_the_command_line(compose, tm
     # test_workbench.py).
     assert after["total"] <= 1.35 * rep["noise_floor"]["total"], (after, rep["noise_floor"])
     assert rep["added"] == ["cogging_torque"] and rep["closure"] is None
-    _, obj = run_workbench(compose("workbench", [f"measurements={DEMO}", f"out_dir={tmp_path / 'b'}",
-                                                 "+effects.cogging_torque={}", "refit.rounds=1"]))
+    _, obj = run_workbench(
+        compose(
+            "workbench",
+            [f"measurements={DEMO}", f"out_dir={tmp_path / 'b'}", "+effects.cogging_torque={}", "refit.rounds=1"],
+        )
+    )
     rep = obj["report"]
     rows = {r["model"]: r for r in rep["before_after"]}
     assert list(rows) == ["datasheet model", "model"]

@@ -2,4 +2,4 @@
 
 from .schema import register_commands
 
-register_commands()   # conf/command/*.yaml compose their class's defaults in (apps/schema.py)
+register_commands()  # conf/command/*.yaml compose their class's defaults in (apps/schema.py)

@@ -76,8 +76,9 @@ def parse_cases(node: Any, nominal: list[float], only: Any = None) -> dict[str, 
             cases[name] = common.fault_vector(case, f"cases.{name}")
             continue
         if not isinstance(case, Mapping) or not case:
-            raise ValueError(f"cases.{name} must be a non-empty mapping {{kN: value}} or a list of {N_FAULTS} "
-                             f"values, got {case!r}")
+            raise ValueError(
+                f"cases.{name} must be a non-empty mapping {{kN: value}} or a list of {N_FAULTS} values, got {case!r}"
+            )
         k = list(nominal)
         for key, value in case.items():
             m = _FAULT_KEY.match(str(key))
@@ -96,8 +97,16 @@ def run_cases(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         output, batch order ``names``; ``out_dir``; ``params``; ``command``).
     """
     st = common.simulation_settings(cfg)
-    params, fid, command, duration, seed, std, effects, dev = (st.params, st.fidelity, st.command, st.duration,
-                                                               st.seed, st.noise, st.effects, st.device)
+    params, fid, command, duration, seed, std, effects, dev = (
+        st.params,
+        st.fidelity,
+        st.command,
+        st.duration,
+        st.seed,
+        st.noise,
+        st.effects,
+        st.device,
+    )
     nominal = common.fault_vector(list(params.nominal_faults), "actuator.nominal_faults")
     cases = parse_cases(cfg.get("cases"), nominal, cfg.get("only"))
     out_value = cfg.get("out_dir")
@@ -118,8 +127,7 @@ def run_cases(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     clean = signals.channels
     results: dict[str, Any] = {}
     for i, name in enumerate(names):
-        csv_path = write_measurement(out_dir / f"{name}.csv", {"time": signals.time, **noisy}, index=i,
-                                     columns=columns)
+        csv_path = write_measurement(out_dir / f"{name}.csv", {"time": signals.time, **noisy}, index=i, columns=columns)
         entry: dict[str, Any] = {"faults": faults[i]}
         if i > 0:
             for c in ("current", "position"):
@@ -130,19 +138,32 @@ def run_cases(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         if i > 0 and cfg.plot:
             from ..plotting import plot_signals  # matplotlib only when plotting
 
-            runs = {"nominal": {c: noisy[c][0] for c in ("command", "position", "current")},
-                    name: {c: noisy[c][i] for c in ("command", "position", "current")}}
-            plot = plot_signals(signals.time, runs, out_dir / f"{name}.png",
-                                title=f"{name} vs nominal ({fid.upper()}), faults={faults[i]}")
+            runs = {
+                "nominal": {c: noisy[c][0] for c in ("command", "position", "current")},
+                name: {c: noisy[c][i] for c in ("command", "position", "current")},
+            }
+            plot = plot_signals(
+                signals.time,
+                runs,
+                out_dir / f"{name}.png",
+                title=f"{name} vs nominal ({fid.upper()}), faults={faults[i]}",
+            )
             entry["plot"] = plot.name
         results[name] = entry
 
-    metrics = {"fidelity": fid, "duration": duration, "samples": int(signals.time.numel()),
-               "sample_rate": params.sample_rate, "seed": seed, "noise": std,
-               "effects": sorted(common.plain(cfg.get("effects")) or {}),
-               "nrmse_definition": "RMS(case - nominal) / (max(nominal) - min(nominal)), noise-free, fraction",
-               "wall_time_s": round(wall, 3),
-               "nominal": results["nominal"], "cases": {n: results[n] for n in names[1:]}}
+    metrics = {
+        "fidelity": fid,
+        "duration": duration,
+        "samples": int(signals.time.numel()),
+        "sample_rate": params.sample_rate,
+        "seed": seed,
+        "noise": std,
+        "effects": sorted(common.plain(cfg.get("effects")) or {}),
+        "nrmse_definition": "RMS(case - nominal) / (max(nominal) - min(nominal)), noise-free, fraction",
+        "wall_time_s": round(wall, 3),
+        "nominal": results["nominal"],
+        "cases": {n: results[n] for n in names[1:]},
+    }
     common.write_json(out_dir / "metrics.json", metrics)
     objects = {"signals": signals, "names": names, "out_dir": out_dir, "params": params, "command": command}
     return metrics, objects
@@ -152,8 +173,10 @@ def run_cases(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
 @common.report_errors("phm-cases")
 def main(cfg: DictConfig) -> None:
     metrics, objects = run_cases(cfg)
-    summary = {name: {"nrmse_current": c["nrmse_current"], "nrmse_position": c["nrmse_position"]}
-               for name, c in metrics["cases"].items()}
+    summary = {
+        name: {"nrmse_current": c["nrmse_current"], "nrmse_position": c["nrmse_position"]}
+        for name, c in metrics["cases"].items()
+    }
     print(json.dumps(summary, indent=2), flush=True)
     print(f"results in {objects['out_dir']}", flush=True)
 

@@ -73,7 +73,7 @@ def actuator(cfg: DictConfig) -> ActuatorParams:
         raise ValueError(f"actuator: {e}") from None
 
 
-CHOICES = "choices"   # where a config composed by phm-run keeps its config-group choices (see choice)
+CHOICES = "choices"  # where a config composed by phm-run keeps its config-group choices (see choice)
 
 
 def keep_choices(cfg: DictConfig, keys: tuple[str, ...] = provenance.KEYS) -> DictConfig:
@@ -126,8 +126,10 @@ def reconcile_provenance(cfg: DictConfig, recorded: Mapping[str, Any] | None, wh
     an explicit ``actuator=``/``command=`` must match the artefact's record, else the artefact's is adopted."""
     requested = requested_provenance(cfg)
     recorded = recorded or {}
-    return {key: provenance.reconcile(recorded.get(key), requested[key], cfg.get(key) is not None, key, where)
-            for key in provenance.KEYS}
+    return {
+        key: provenance.reconcile(recorded.get(key), requested[key], cfg.get(key) is not None, key, where)
+        for key in provenance.KEYS
+    }
 
 
 def actuator_of(record: Mapping[str, Any] | None, cfg: DictConfig) -> ActuatorParams:
@@ -159,8 +161,9 @@ def effects(value: Any) -> list[Effect]:
         raise ValueError(f"effects must be a mapping {{name: {{param: value}}}}, got {spec!r}")
     for key, params in spec.items():
         if params is not None and not isinstance(params, Mapping):
-            raise ValueError(f"effects.{key} must be a mapping of parameters (e.g. +effects.{key}={{}}), "
-                             f"got {params!r}")
+            raise ValueError(
+                f"effects.{key} must be a mapping of parameters (e.g. +effects.{key}={{}}), got {params!r}"
+            )
     return build_effects(spec)
 
 
@@ -192,9 +195,10 @@ def simulation_settings(cfg: DictConfig) -> SimulationSettings:
     params = actuator(cfg)
     fid = fidelity(cfg.fidelity)
     cmd = command(cfg.command)
-    dur = number(cfg.duration, "duration", 0.0, strict=True)   # the YAML's default: ${command.duration}
-    return SimulationSettings(params, fid, cmd, dur, integer(cfg.seed, "seed", 0), noise(cfg),
-                              effects(cfg.effects), device(cfg.device))
+    dur = number(cfg.duration, "duration", 0.0, strict=True)  # the YAML's default: ${command.duration}
+    return SimulationSettings(
+        params, fid, cmd, dur, integer(cfg.seed, "seed", 0), noise(cfg), effects(cfg.effects), device(cfg.device)
+    )
 
 
 def noise(cfg: DictConfig) -> dict[str, float]:
@@ -213,10 +217,12 @@ def noise(cfg: DictConfig) -> dict[str, float]:
 def signal_metrics(channels: Mapping[str, torch.Tensor]) -> dict[str, list[float]]:
     """Per-run tracking error RMS/max [rad], peak current [A] and peak motor speed [rad/s] of (B, n) channels."""
     err = channels["command"] - channels["position"]
-    return {"tracking_error_rms": err.pow(2).mean(-1).sqrt().tolist(),
-            "tracking_error_max": err.abs().amax(-1).tolist(),
-            "peak_current": channels["current"].abs().amax(-1).tolist(),
-            "peak_speed": channels["speed"].abs().amax(-1).tolist()}
+    return {
+        "tracking_error_rms": err.pow(2).mean(-1).sqrt().tolist(),
+        "tracking_error_max": err.abs().amax(-1).tolist(),
+        "peak_current": channels["current"].abs().amax(-1).tolist(),
+        "peak_speed": channels["speed"].abs().amax(-1).tolist(),
+    }
 
 
 def hydra_output_dir() -> Path | None:

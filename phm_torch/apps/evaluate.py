@@ -42,22 +42,38 @@ from . import common
 log = logging.getLogger(__name__)
 
 
-def _reference(cfg: DictConfig, assessment: Any, params: ActuatorParams, damage: Any, k: torch.Tensor,
-               deltas: torch.Tensor, cache: Path) -> torch.Tensor:
+def _reference(
+    cfg: DictConfig,
+    assessment: Any,
+    params: ActuatorParams,
+    damage: Any,
+    k: torch.Tensor,
+    deltas: torch.Tensor,
+    cache: Path,
+) -> torch.Tensor:
     """Reference RULs, cached in ``cache`` under a key of everything they depend on."""
-    key_data = {"damage": common.plain(cfg.damage), "assessment": common.plain(assessment),
-                "actuator": provenance.actuator_values(params), "reference": common.plain(cfg.reference),
-                "deltas": [round(float(d), 12) for d in deltas],
-                "k": hashlib.sha256(k.numpy().tobytes()).hexdigest()}
+    key_data = {
+        "damage": common.plain(cfg.damage),
+        "assessment": common.plain(assessment),
+        "actuator": provenance.actuator_values(params),
+        "reference": common.plain(cfg.reference),
+        "deltas": [round(float(d), 12) for d in deltas],
+        "k": hashlib.sha256(k.numpy().tobytes()).hexdigest(),
+    }
     key = hashlib.sha256(json.dumps(key_data, sort_keys=True).encode()).hexdigest()
     if cache.is_file():
         stored = json.loads(cache.read_text())
         if stored.get("key") == key:
             return torch.tensor(stored["rul"], dtype=torch.float64)
     assess = common.build(assessment, "assessment", params=params)
-    ref = reference_rul(damage, margin_score(assess), k, deltas,
-                        common.number(cfg.reference.step_hours, "reference.step_hours", 0.0, strict=True),
-                        common.integer(cfg.reference.refine_iterations, "reference.refine_iterations", 0))
+    ref = reference_rul(
+        damage,
+        margin_score(assess),
+        k,
+        deltas,
+        common.number(cfg.reference.step_hours, "reference.step_hours", 0.0, strict=True),
+        common.integer(cfg.reference.refine_iterations, "reference.refine_iterations", 0),
+    )
     common.write_json(cache, {"key": key, "rul": ref.tolist()})
     return ref
 
@@ -90,8 +106,9 @@ def _verdict_prior(cfg: DictConfig) -> float | None:
     return prior
 
 
-def _verdict(prior: float | None, score: torch.Tensor, ood: torch.Tensor, healthy: torch.Tensor
-             ) -> tuple[float, float, float] | None:
+def _verdict(
+    prior: float | None, score: torch.Tensor, ood: torch.Tensor, healthy: torch.Tensor
+) -> tuple[float, float, float] | None:
     """Platt scaling (a, b) of the pipeline's health score on held-out (noisy) signals, moved to the fault
     rate ``prior`` (None: the signals' own), and that rate; or None (with a warning: the exported
     pipeline's P(faulty) is then NaN) when the signals are not two-class. ``score`` and ``ood`` (N,): the
@@ -113,14 +130,21 @@ def _identifiability(k_hat: torch.Tensor, k: torch.Tensor, ood: torch.Tensor) ->
     (:func:`~phm_torch.surrogates.metrics.fdi_identifiability`); a warning names those the test command does not
     identify, whose k_hat is mostly the training prior."""
     keep = ~ood
-    r2 = fdi_identifiability(k_hat[keep].to(torch.float64), k[keep].to(torch.float64)) if int(keep.sum()) > 1 \
+    r2 = (
+        fdi_identifiability(k_hat[keep].to(torch.float64), k[keep].to(torch.float64))
+        if int(keep.sum()) > 1
         else [float("nan")] * len(FAULT_NAMES)
+    )
     out = {name: round(v, 4) for name, v in zip(FAULT_NAMES, r2)}
     weak = {name: v for name, v in out.items() if not v >= IDENTIFIED_R2}
     if weak:
-        log.warning("the test command does not identify %s (R^2 %s on held-out records, below %.2f): their k_hat is "
-                    "mostly the training prior; phm-predict lists them under k_not_identified",
-                    ", ".join(weak), ", ".join(f"{v:.2f}" for v in weak.values()), IDENTIFIED_R2)
+        log.warning(
+            "the test command does not identify %s (R^2 %s on held-out records, below %.2f): their k_hat is "
+            "mostly the training prior; phm-predict lists them under k_not_identified",
+            ", ".join(weak),
+            ", ".join(f"{v:.2f}" for v in weak.values()),
+            IDENTIFIED_R2,
+        )
     return out
 
 
@@ -137,28 +161,44 @@ def _interval_settings(cfg: DictConfig) -> tuple[float, int, list[float]]:
     for i, value in enumerate(extra):
         level = common.number(value, f"fdi_interval.noise_levels[{i}]", 0.0, strict=True)
         if level <= levels[-1]:
-            raise ValueError(f"fdi_interval.noise_levels[{i}] must exceed {levels[-1]!r} (fdi_band.noise and the "
-                             f"levels before it, increasing), got {level!r}")
+            raise ValueError(
+                f"fdi_interval.noise_levels[{i}] must exceed {levels[-1]!r} (fdi_band.noise and the "
+                f"levels before it, increasing), got {level!r}"
+            )
         levels.append(level)
     return coverage, common.integer(cfg.fdi_interval.min_count, "fdi_interval.min_count", 1), levels
 
 
-def _fdi_interval(settings: tuple[float, int, list[float]], nominal: torch.Tensor, k_hat: torch.Tensor, ood: torch.Tensor,
-                  k: torch.Tensor) -> FDIInterval | None:
+def _fdi_interval(
+    settings: tuple[float, int, list[float]],
+    nominal: torch.Tensor,
+    k_hat: torch.Tensor,
+    ood: torch.Tensor,
+    k: torch.Tensor,
+) -> FDIInterval | None:
     """Conformal half-widths of the k_hat intervals from the pipeline's estimates k_hat (N, 8) and flags ood
     (N,) on held-out (noisy) signals of true fault vectors k (N, 8), or None (with a warning: the exported
     pipeline's intervals are then NaN) when too few are in distribution."""
     coverage, min_count, _ = settings
     if int((~ood).sum()) < min_count:
-        log.warning("k_hat intervals not calibrated: %d in-distribution records, fdi_interval.min_count=%d",
-                    int((~ood).sum()), min_count)
+        log.warning(
+            "k_hat intervals not calibrated: %d in-distribution records, fdi_interval.min_count=%d",
+            int((~ood).sum()),
+            min_count,
+        )
         return None
     return calibrate_fdi_interval(k_hat[~ood], k[~ood].to(k_hat.dtype), nominal, coverage, min_count)
 
 
-def _fdi_intervals(settings: tuple[float, int, list[float]], pipeline: OnlinePipeline, k_hat: torch.Tensor,
-                   ood: torch.Tensor, clean: torch.Tensor, k: torch.Tensor, seed: int) -> tuple[FDIInterval | None,
-                                                                                               list[float]]:
+def _fdi_intervals(
+    settings: tuple[float, int, list[float]],
+    pipeline: OnlinePipeline,
+    k_hat: torch.Tensor,
+    ood: torch.Tensor,
+    clean: torch.Tensor,
+    k: torch.Tensor,
+    seed: int,
+) -> tuple[FDIInterval | None, list[float]]:
     """Calibrate the pipeline's k_hat intervals in place at every noise level of ``settings``: the first from
     the pipeline's outputs k_hat, ood on the (noisy) calibration signals, the others from the noise-free
     ``clean`` signals (N, n) with that level of noise added. Returns the first level's interval (None: not
@@ -175,7 +215,7 @@ def _fdi_intervals(settings: tuple[float, int, list[float]], pipeline: OnlinePip
         more = _fdi_interval(settings, pipeline.nominal, k_hat_l, ood_l, k)
         if more is None:
             break
-        widths.append(torch.maximum(more.half_widths, widths[-1]))    # never narrower with more noise
+        widths.append(torch.maximum(more.half_widths, widths[-1]))  # never narrower with more noise
         levels.append(level)
     pipeline.k_half_widths = torch.stack(widths).to(pipeline.times.dtype)
     pipeline.interval_noise = torch.tensor(levels, dtype=pipeline.times.dtype)
@@ -197,8 +237,8 @@ def _tracking_ranges(store: DatasetStore, block_rows: int = 2048) -> tuple[list[
         if "position" not in view.group or len(view) == 0:
             continue
         for start in range(0, len(view), block_rows):
-            position = torch.as_tensor(view.position[start:start + block_rows])
-            healthy = torch.as_tensor(view.healthy[start:start + block_rows]).bool()
+            position = torch.as_tensor(view.position[start : start + block_rows])
+            healthy = torch.as_tensor(view.healthy[start : start + block_rows]).bool()
             for key, rows in ((False, position), (True, position[healthy])):
                 if rows.shape[0]:
                     lo, hi = tracking_range(command, rows)
@@ -217,21 +257,28 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     formats = check_formats(common.plain(cfg.get("export_formats", "torchscript"))) if cfg.export else []
     with DatasetStore(cfg.data_dir) as store:
         prov = common.reconcile_provenance(cfg, store.provenance, f"store {cfg.data_dir}")
-        assessment = cfg.assessment if cfg.get("assessment") is not None else \
-            (store.metadata.get("config") or {}).get("assessment")
+        assessment = (
+            cfg.assessment
+            if cfg.get("assessment") is not None
+            else (store.metadata.get("config") or {}).get("assessment")
+        )
     if assessment is None:
-        raise ValueError(f"assessment: store {cfg.data_dir} records no assessment config; choose one with "
-                         "assessment=frequency_response")
+        raise ValueError(
+            f"assessment: store {cfg.data_dir} records no assessment config; choose one with "
+            "assessment=frequency_response"
+        )
     params = common.actuator_of(prov["actuator"], cfg)
     damage = common.build(cfg.damage, "damage", nominal=list(params.nominal_faults))
     out_dir = Path(cfg.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     bundle = SurrogateBundle.load(cfg.bundle)
-    provenance.require_same(bundle.provenance, prov, f"bundle {cfg.bundle}")   # trained on a store of the same
+    provenance.require_same(bundle.provenance, prov, f"bundle {cfg.bundle}")  # trained on a store of the same
     band_split = str(cfg.fdi_band.split)
     if band_split == cfg.split:
-        raise ValueError(f"fdi_band.split must differ from split (both {band_split!r}): the FDI band would be "
-                         "calibrated on the signals it is evaluated on")
+        raise ValueError(
+            f"fdi_band.split must differ from split (both {band_split!r}): the FDI band would be "
+            "calibrated on the signals it is evaluated on"
+        )
     with DatasetStore(cfg.data_dir) as store:
         view = store.split(cfg.split)
         k = torch.as_tensor(view.K[()], dtype=torch.float64)
@@ -246,20 +293,28 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if k.shape[0] == 0:
         raise ValueError(f"split {cfg.split!r} of {cfg.data_dir} is empty")
     t0 = time.perf_counter()
-    est = RULEstimator(damage, bundle.health_score, common.integer(cfg.rul.n_samples, "rul.n_samples", 2),
-                       common.integer(cfg.rul.refine_iterations, "rul.refine_iterations", 0))
+    est = RULEstimator(
+        damage,
+        bundle.health_score,
+        common.integer(cfg.rul.n_samples, "rul.n_samples", 2),
+        common.integer(cfg.rul.refine_iterations, "rul.refine_iterations", 0),
+    )
     det = DeterministicRUL(est, str(cfg.rul.band))
-    deltas = det.calibrate(k, torch.Generator().manual_seed(int(cfg.seed)),
-                           bracket=common.number(cfg.rul.delta_bracket, "rul.delta_bracket", 0.0, strict=True))
+    deltas = det.calibrate(
+        k,
+        torch.Generator().manual_seed(int(cfg.seed)),
+        bracket=common.number(cfg.rul.delta_bracket, "rul.delta_bracket", 0.0, strict=True),
+    )
     mc = est.estimate(k, torch.Generator().manual_seed(int(cfg.seed) + 1))
     min_present = common.number(cfg.online.min_present, "online.min_present", 0.0, True)
     pipelines = {}
-    for variant in VARIANTS:            # the configured band is exported; the other one is reported
+    for variant in VARIANTS:  # the configured band is exported; the other one is reported
         pipe_deltas, scales = det.pipeline_parameters(variant)
-        pipelines[variant] = OnlinePipeline.from_bundle(bundle, damage, pipe_deltas, det.direction, min_present,
-                                                        rate_scales=scales).eval()
+        pipelines[variant] = OnlinePipeline.from_bundle(
+            bundle, damage, pipe_deltas, det.direction, min_present, rate_scales=scales
+        ).eval()
     pipeline = pipelines[det.variant]
-    with torch.no_grad():      # k_hat does not depend on the band: what the command identifies, first
+    with torch.no_grad():  # k_hat does not depend on the band: what the command identifies, first
         band_k_hat, _, _, band_ood, _ = pipeline(band_signals.to(pipeline.times.dtype))
     identifiability = _identifiability(band_k_hat, band_k, band_ood)
     unidentified = [FAULT_NAMES.index(name) for name, r2 in identifiability.items() if not r2 >= IDENTIFIED_R2]
@@ -275,14 +330,29 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if verdict is not None:
         pipeline.verdict_scale.fill_(verdict[0])
         pipeline.verdict_offset.fill_(verdict[1])
-    calibration_noise = interval_settings[2][0]          # fdi_band.noise: the band signals' own
+    calibration_noise = interval_settings[2][0]  # fdi_band.noise: the band signals' own
     pipeline.calibration_noise.fill_(calibration_noise)
-    interval, noise_levels = _fdi_intervals(interval_settings, pipeline, band_k_hat, band_ood, band_clean, band_k,
-                                            int(cfg.seed))
-    gappy_residual = calibrate_gappy_residual(pipeline, band_clean, interval_settings[2], int(cfg.seed), common.number(
-        cfg.ood.quantile, "ood.quantile", 0.0, strict=True))
-    consistency = calibrate_consistency(pipeline, band_clean, interval_settings[2], int(cfg.seed), common.number(
-        cfg.consistency.quantile, "consistency.quantile", 0.0, strict=True)) if pipeline.has_consistency else None
+    interval, noise_levels = _fdi_intervals(
+        interval_settings, pipeline, band_k_hat, band_ood, band_clean, band_k, int(cfg.seed)
+    )
+    gappy_residual = calibrate_gappy_residual(
+        pipeline,
+        band_clean,
+        interval_settings[2],
+        int(cfg.seed),
+        common.number(cfg.ood.quantile, "ood.quantile", 0.0, strict=True),
+    )
+    consistency = (
+        calibrate_consistency(
+            pipeline,
+            band_clean,
+            interval_settings[2],
+            int(cfg.seed),
+            common.number(cfg.consistency.quantile, "consistency.quantile", 0.0, strict=True),
+        )
+        if pipeline.has_consistency
+        else None
+    )
     with torch.no_grad():
         true_k = pipeline.rul(k.to(pipeline.times.dtype)).to(torch.float64)
         true_k_by_band = {v: p.rul(k.to(p.times.dtype)).to(torch.float64) for v, p in pipelines.items()}
@@ -293,8 +363,9 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         physics_only = torch.where(ood.unsqueeze(1), torch.full_like(physics_only, float("nan")), physics_only)
     t_est = time.perf_counter() - t0
     t0 = time.perf_counter()
-    reference = _reference(cfg, assessment, params, damage, k, deltas,
-                           Path(cfg.data_dir) / f"rul_reference_{cfg.split}.json")
+    reference = _reference(
+        cfg, assessment, params, damage, k, deltas, Path(cfg.data_dir) / f"rul_reference_{cfg.split}.json"
+    )
     t_ref = time.perf_counter() - t0
     comparison = RULComparison(reference, true_k, full_flow.to(torch.float64))
     metrics: dict[str, Any] = comparison.metrics()
@@ -305,14 +376,21 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     finite = torch.isfinite(ff[:, 1]) & (ff[:, 1] > 0)
     metrics.update(
         rul_uncertainty_median_full_flow=float(((ff[:, 2] - ff[:, 0]) / ff[:, 1])[finite].median())
-        if finite.any() else float("nan"),
+        if finite.any()
+        else float("nan"),
         rul_band_coverage_full_flow_physics_only=physics["rul_band_coverage_full_flow"],
         rul_err_median_full_flow_physics_only=physics["rul_err_median_full_flow"],
-        rul_band=det.variant, rate_scales=det.scales_.tolist(),
-        **{f"rul_band_coverage_true_k_{v}": RULComparison(reference, b, full_flow.to(torch.float64)).metrics()[
-            "rul_band_coverage_true_k"] for v, b in true_k_by_band.items()},
-        fdi_band_split=band_split, fdi_band_n_used=band.n_used if band else 0,
-        fdi_band_deltas=pipeline.fdi_deltas.tolist() if band else None,       # as the pipeline holds them
+        rul_band=det.variant,
+        rate_scales=det.scales_.tolist(),
+        **{
+            f"rul_band_coverage_true_k_{v}": RULComparison(reference, b, full_flow.to(torch.float64)).metrics()[
+                "rul_band_coverage_true_k"
+            ]
+            for v, b in true_k_by_band.items()
+        },
+        fdi_band_split=band_split,
+        fdi_band_n_used=band.n_used if band else 0,
+        fdi_band_deltas=pipeline.fdi_deltas.tolist() if band else None,  # as the pipeline holds them
         fdi_band_direction=pipeline.fdi_direction.tolist() if band else None,
         fdi_band_saturated=band.saturated if band else None,
         fdi_band_health_stop=band.health_stop if band else None,
@@ -320,46 +398,100 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         fdi_not_identified=[name for name, r2 in identifiability.items() if not r2 >= IDENTIFIED_R2],
         verdict_calibration=list(verdict[:2]) if verdict else None,
         verdict_prior_faulty=verdict[2] if verdict else None,
-        **({f"verdict_{key}": value for key, value in verdict_quality(p_faulty[~ood], ~healthy[~ood]).items()}
-           if verdict and bool((~ood).any()) else {}),
+        **(
+            {f"verdict_{key}": value for key, value in verdict_quality(p_faulty[~ood], ~healthy[~ood]).items()}
+            if verdict and bool((~ood).any())
+            else {}
+        ),
         fdi_interval_half_widths=interval.half_widths.tolist() if interval else None,
         fdi_interval_half_widths_by_noise=pipeline.k_half_widths.tolist() if interval else None,
         fdi_interval_noise_levels=noise_levels if interval else None,
         fdi_interval_counts=interval.counts if interval else None,
-        **({f"fdi_interval_{key}": value for key, value in interval_quality(
-            k_lower[~ood], k_upper[~ood], k[~ood].to(k_lower.dtype)).items()} if interval and bool((~ood).any()) else {}))
-    metrics.update(rul_err_median_true_k_monte_carlo=gauss["rul_err_median_true_k"],
-                   rul_band_coverage_true_k_monte_carlo=gauss["rul_band_coverage_true_k"],
-                   deltas=deltas.tolist(), deltas_saturated=det.saturated_, estimate_wall_s=round(t_est, 3), reference_wall_s=round(t_ref, 3),
-                   ood_fraction=float(ood.double().mean()), consistency=consistency,
-                   gappy_residual=gappy_residual)
-    figures = {"rul_vs_expected": rul_vs_expected(reference, {"RUL from true k": true_k, "full online flow":
-                                                              full_flow.to(torch.float64)},
-                                                  out_dir / "rul_vs_expected.png"),
-               "rul_errors": error_panels(reference, true_k, full_flow.to(torch.float64), out_dir / "rul_errors.png")}
-    common.write_json(out_dir / "rul_calibration.json",
-                      {"band": det.variant, "deltas": pipeline.deltas.tolist(), "direction": det.direction.tolist(),
-                       "rate_scales": pipeline.rate_scales.tolist(), "initial_state_deltas": deltas.tolist(),
-                       "fdi_deltas": pipeline.fdi_deltas.tolist(), "fdi_direction": pipeline.fdi_direction.tolist(),
-                       "fdi_health_stop": pipeline.health_stop_index.tolist(), "identifiability": identifiability,
-                       "fdi_unidentified": unidentified,
-                       "verdict": list(verdict[:2]) if verdict else None,
-                       "verdict_prior_faulty": verdict[2] if verdict else None,
-                       "fdi_interval": {"half_widths": pipeline.k_half_widths.tolist(), "noise_levels": noise_levels,
-                                        "level": interval.level, "coverage": interval.coverage} if interval else None,
-                       "calibration_noise": calibration_noise, "tracking_nrmse": tracking, "tracking_nrmse_healthy": tracking_healthy,
-                       "consistency": consistency,
-                       "gappy_residual": gappy_residual,
-                       "damage": common.plain(cfg.damage), "provenance": prov})
-    common.write_json(out_dir / "rul_predictions.json",
-                      {"k": k.tolist(), "k_hat": k_hat.tolist(), "reference": reference.tolist(),
-                       "true_k": true_k.tolist(), "full_flow": torch.nan_to_num(full_flow, nan=-1.0).tolist(),
-                       "out_of_distribution": ood.tolist()})
-    if cfg.export:        # each format of export_formats beside online.pt, reloaded and compared with eager
-        checked = write_checked(pipeline, out_dir / "online.pt", formats,
-                                {"provenance": prov, "tracking_nrmse": tracking,
-                                 "tracking_nrmse_healthy": tracking_healthy, "identifiability": identifiability,
-                                 "damage": common.plain(cfg.damage)}, signals[:8])    # phm-track's process model
+        **(
+            {
+                f"fdi_interval_{key}": value
+                for key, value in interval_quality(k_lower[~ood], k_upper[~ood], k[~ood].to(k_lower.dtype)).items()
+            }
+            if interval and bool((~ood).any())
+            else {}
+        ),
+    )
+    metrics.update(
+        rul_err_median_true_k_monte_carlo=gauss["rul_err_median_true_k"],
+        rul_band_coverage_true_k_monte_carlo=gauss["rul_band_coverage_true_k"],
+        deltas=deltas.tolist(),
+        deltas_saturated=det.saturated_,
+        estimate_wall_s=round(t_est, 3),
+        reference_wall_s=round(t_ref, 3),
+        ood_fraction=float(ood.double().mean()),
+        consistency=consistency,
+        gappy_residual=gappy_residual,
+    )
+    figures = {
+        "rul_vs_expected": rul_vs_expected(
+            reference,
+            {"RUL from true k": true_k, "full online flow": full_flow.to(torch.float64)},
+            out_dir / "rul_vs_expected.png",
+        ),
+        "rul_errors": error_panels(reference, true_k, full_flow.to(torch.float64), out_dir / "rul_errors.png"),
+    }
+    common.write_json(
+        out_dir / "rul_calibration.json",
+        {
+            "band": det.variant,
+            "deltas": pipeline.deltas.tolist(),
+            "direction": det.direction.tolist(),
+            "rate_scales": pipeline.rate_scales.tolist(),
+            "initial_state_deltas": deltas.tolist(),
+            "fdi_deltas": pipeline.fdi_deltas.tolist(),
+            "fdi_direction": pipeline.fdi_direction.tolist(),
+            "fdi_health_stop": pipeline.health_stop_index.tolist(),
+            "identifiability": identifiability,
+            "fdi_unidentified": unidentified,
+            "verdict": list(verdict[:2]) if verdict else None,
+            "verdict_prior_faulty": verdict[2] if verdict else None,
+            "fdi_interval": {
+                "half_widths": pipeline.k_half_widths.tolist(),
+                "noise_levels": noise_levels,
+                "level": interval.level,
+                "coverage": interval.coverage,
+            }
+            if interval
+            else None,
+            "calibration_noise": calibration_noise,
+            "tracking_nrmse": tracking,
+            "tracking_nrmse_healthy": tracking_healthy,
+            "consistency": consistency,
+            "gappy_residual": gappy_residual,
+            "damage": common.plain(cfg.damage),
+            "provenance": prov,
+        },
+    )
+    common.write_json(
+        out_dir / "rul_predictions.json",
+        {
+            "k": k.tolist(),
+            "k_hat": k_hat.tolist(),
+            "reference": reference.tolist(),
+            "true_k": true_k.tolist(),
+            "full_flow": torch.nan_to_num(full_flow, nan=-1.0).tolist(),
+            "out_of_distribution": ood.tolist(),
+        },
+    )
+    if cfg.export:  # each format of export_formats beside online.pt, reloaded and compared with eager
+        checked = write_checked(
+            pipeline,
+            out_dir / "online.pt",
+            formats,
+            {
+                "provenance": prov,
+                "tracking_nrmse": tracking,
+                "tracking_nrmse_healthy": tracking_healthy,
+                "identifiability": identifiability,
+                "damage": common.plain(cfg.damage),
+            },
+            signals[:8],
+        )  # phm-track's process model
         metrics["export_max_abs_diff"] = max(checked["max_abs_diff"].values())
         metrics["export"] = next(iter(checked["files"].values()))
         metrics["export_files"], metrics["export_max_abs_diff_by_format"] = checked["files"], checked["max_abs_diff"]

@@ -25,8 +25,11 @@ def _verdict(cal: dict[str, Any], path: Path) -> tuple[float, float] | None:
     """(a, b) of the verdict's Platt scaling from the calibration file; None (P(faulty) NaN) if it has none."""
     verdict = cal.get("verdict")
     if verdict is None:
-        log.warning("calibration %s has no verdict scaling (written by phm-evaluate since it exists): the "
-                    "pipeline's P(faulty) is NaN", path)
+        log.warning(
+            "calibration %s has no verdict scaling (written by phm-evaluate since it exists): the "
+            "pipeline's P(faulty) is NaN",
+            path,
+        )
         return None
     if not (isinstance(verdict, list) and len(verdict) == 2 and all(isinstance(v, (int, float)) for v in verdict)):
         raise ValueError(f"calibration {str(path)!r}: verdict must be [a, b], got {verdict!r}")
@@ -37,8 +40,11 @@ def _fdi_interval(cal: dict[str, Any], path: Path) -> dict[str, Any]:
     """Pipeline arguments of the k_hat intervals from the calibration file; {} (intervals NaN) if it has none."""
     interval = cal.get("fdi_interval")
     if interval is None:
-        log.warning("calibration %s has no k_hat intervals (written by phm-evaluate since they exist): the "
-                    "pipeline's k_interval is NaN", path)
+        log.warning(
+            "calibration %s has no k_hat intervals (written by phm-evaluate since they exist): the "
+            "pipeline's k_interval is NaN",
+            path,
+        )
         return {}
     widths = interval.get("half_widths") if isinstance(interval, dict) else None
     level = interval.get("level") if isinstance(interval, dict) else None
@@ -47,10 +53,18 @@ def _fdi_interval(cal: dict[str, Any], path: Path) -> dict[str, Any]:
     except (TypeError, ValueError, RuntimeError):
         tensor = None
     levels = interval.get("noise_levels") if isinstance(interval, dict) else None
-    if (tensor is None or tensor.dim() not in (2, 3) or tensor.shape[-1] != 8 or not isinstance(level, (int, float))
-            or not level > 0 or (tensor.dim() == 3 and not (isinstance(levels, list) and len(levels) == tensor.shape[0]))):
-        raise ValueError(f"calibration {str(path)!r}: fdi_interval must be {{half_widths: [n_levels][n_classes][8], "
-                         f"noise_levels: [n_levels], level: > 0}} (or half_widths [n_classes][8]), got {interval!r}")
+    if (
+        tensor is None
+        or tensor.dim() not in (2, 3)
+        or tensor.shape[-1] != 8
+        or not isinstance(level, (int, float))
+        or not level > 0
+        or (tensor.dim() == 3 and not (isinstance(levels, list) and len(levels) == tensor.shape[0]))
+    ):
+        raise ValueError(
+            f"calibration {str(path)!r}: fdi_interval must be {{half_widths: [n_levels][n_classes][8], "
+            f"noise_levels: [n_levels], level: > 0}} (or half_widths [n_classes][8]), got {interval!r}"
+        )
     out: dict[str, Any] = {"k_half_widths": tensor, "interval_level": float(level)}
     if tensor.dim() == 3:
         out["interval_noise"] = torch.tensor(levels, dtype=torch.float64)
@@ -76,12 +90,18 @@ def _damage(cal: dict[str, Any], cfg: DictConfig, path: Path) -> dict[str, Any]:
         return composed
     if not isinstance(damage, dict):
         raise ValueError(f"calibration {str(path)!r}: damage must be a mapping (the damage config), got {damage!r}")
-    differ = [key for key in ("rate", "noise_std", "noise_correlation_hours", "rate_scale_sigma")
-              if damage.get(key) != composed.get(key)]
+    differ = [
+        key
+        for key in ("rate", "noise_std", "noise_correlation_hours", "rate_scale_sigma")
+        if damage.get(key) != composed.get(key)
+    ]
     if differ:
-        log.warning("calibration %s was made with another damage law than the composed one (%s differ): the "
-                    "pipeline's propagators follow the composed law, its metadata and RUL band the calibration's",
-                    path, ", ".join(differ))
+        log.warning(
+            "calibration %s was made with another damage law than the composed one (%s differ): the "
+            "pipeline's propagators follow the composed law, its metadata and RUL band the calibration's",
+            path,
+            ", ".join(differ),
+        )
     return damage
 
 
@@ -91,42 +111,64 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     bundle = SurrogateBundle.load(cfg.bundle)
     cal_path = Path(cfg.calibration)
     if not cal_path.is_file():
-        raise ValueError(f"calibration: no such file {str(cal_path)!r}; run phm-evaluate first (it writes "
-                         f"rul_calibration.json)")
+        raise ValueError(
+            f"calibration: no such file {str(cal_path)!r}; run phm-evaluate first (it writes rul_calibration.json)"
+        )
     cal = json.loads(cal_path.read_text())
     for key in ("deltas", "direction"):
         if key not in cal:
             raise ValueError(f"calibration {str(cal_path)!r} has no {key!r}")
     prov = common.reconcile_provenance(cfg, bundle.provenance or None, f"bundle {cfg.bundle}")
-    provenance.require_same(cal.get("provenance"), prov, f"calibration {cal_path}")   # a run on the same
+    provenance.require_same(cal.get("provenance"), prov, f"calibration {cal_path}")  # a run on the same
     damage = common.build(cfg.damage, "damage", nominal=list(common.actuator_of(prov["actuator"], cfg).nominal_faults))
     fdi = {key: torch.tensor(cal[key]) for key in ("fdi_deltas", "fdi_direction") if key in cal}
     if len(fdi) < 2:
-        log.warning("calibration %s has no FDI band (fdi_deltas, fdi_direction; written by phm-evaluate since "
-                    "the band exists): the RUL bounds hold the physics spread only", cal_path)
-    pipeline = OnlinePipeline.from_bundle(bundle, damage, torch.tensor(cal["deltas"]), torch.tensor(cal["direction"]),
-                                          common.number(cfg.min_present, "min_present", 0.0, strict=True),
-                                          fdi.get("fdi_deltas"), fdi.get("fdi_direction"),
-                                          torch.tensor(cal["rate_scales"]) if "rate_scales" in cal else None,
-                                          verdict=_verdict(cal, cal_path), **_fdi_interval(cal, cal_path),
-                                          calibration_noise=_calibration_noise(cal, cal_path),
-                                          consistency=cal.get("consistency"), residual_limits=cal.get("gappy_residual"),
-                                          fdi_health_stop=cal.get("fdi_health_stop"),
-                                          unidentified=cal.get("fdi_unidentified"))
+        log.warning(
+            "calibration %s has no FDI band (fdi_deltas, fdi_direction; written by phm-evaluate since "
+            "the band exists): the RUL bounds hold the physics spread only",
+            cal_path,
+        )
+    pipeline = OnlinePipeline.from_bundle(
+        bundle,
+        damage,
+        torch.tensor(cal["deltas"]),
+        torch.tensor(cal["direction"]),
+        common.number(cfg.min_present, "min_present", 0.0, strict=True),
+        fdi.get("fdi_deltas"),
+        fdi.get("fdi_direction"),
+        torch.tensor(cal["rate_scales"]) if "rate_scales" in cal else None,
+        verdict=_verdict(cal, cal_path),
+        **_fdi_interval(cal, cal_path),
+        calibration_noise=_calibration_noise(cal, cal_path),
+        consistency=cal.get("consistency"),
+        residual_limits=cal.get("gappy_residual"),
+        fdi_health_stop=cal.get("fdi_health_stop"),
+        unidentified=cal.get("fdi_unidentified"),
+    )
     if pipeline.has_consistency and cal.get("consistency") is None:
-        log.warning("calibration %s has no consistency thresholds (phm-evaluate writes them for a bundle with a "
-                    "forward surrogate): the consistency check never flags", cal_path)
+        log.warning(
+            "calibration %s has no consistency thresholds (phm-evaluate writes them for a bundle with a "
+            "forward surrogate): the consistency check never flags",
+            cal_path,
+        )
     out = Path(cfg.out)
-    extra = {key: cal[key] for key in ("tracking_nrmse", "tracking_nrmse_healthy")      # the input contract's
-             if cal.get(key) is not None}
-    extra["damage"] = _damage(cal, cfg, cal_path)        # the tracker's process model (phm-track)
-    probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)      # each file reloaded as phm-predict reads it
+    extra = {
+        key: cal[key]
+        for key in ("tracking_nrmse", "tracking_nrmse_healthy")  # the input contract's
+        if cal.get(key) is not None
+    }
+    extra["damage"] = _damage(cal, cfg, cal_path)  # the tracker's process model (phm-track)
+    probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)  # each file reloaded as phm-predict reads it
     checked = write_checked(pipeline, out, formats, {"provenance": prov, **extra}, probe)
     diffs = checked["max_abs_diff"]
-    return {"out": next(iter(checked["files"].values())), "files": checked["files"],
-            "max_abs_diff_reloaded": max(diffs.values()), "max_abs_diff_by_format": diffs,
-            "actuator": provenance.describe(prov["actuator"]),
-            "command": provenance.describe(prov["command"])}, {"pipeline": pipeline}
+    return {
+        "out": next(iter(checked["files"].values())),
+        "files": checked["files"],
+        "max_abs_diff_reloaded": max(diffs.values()),
+        "max_abs_diff_by_format": diffs,
+        "actuator": provenance.describe(prov["actuator"]),
+        "command": provenance.describe(prov["command"]),
+    }, {"pipeline": pipeline}
 
 
 @hydra.main(config_path=common.CONFIG_PATH, config_name="export", version_base="1.3")

@@ -73,8 +73,9 @@ def plot_report(result: lf_fit.LFFitResult, path: Path, title: str) -> Path:
             lo, hi = min(lo, *x, *y), max(hi, *x, *y)
         lo = max(lo, 1e-4)
         ax.plot([lo, hi], [lo, hi], "k:", lw=0.8)
-        ax.set(xscale="log", yscale="log", xlabel=f"{channel} NRMSE, physical [%]",
-               ylabel=f"{channel} NRMSE, fitted [%]")
+        ax.set(
+            xscale="log", yscale="log", xlabel=f"{channel} NRMSE, physical [%]", ylabel=f"{channel} NRMSE, fitted [%]"
+        )
         for axis in (ax.xaxis, ax.yaxis):  # decade labels only: minor labels of a short log range overlap
             axis.set_minor_formatter(NullFormatter())
         ax.legend(fontsize=7)
@@ -113,36 +114,66 @@ def fit_lf(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     result = lf_fit.run_fit(params, command, settings)
     wall = time.perf_counter() - t0
 
-    held = {name: {label: result.summary[name][label] for label in ("physical", "fitted", "jitter")}
-            for name in lf_fit.HELD_OUT}
+    held = {
+        name: {label: result.summary[name][label] for label in ("physical", "fitted", "jitter")}
+        for name in lf_fit.HELD_OUT
+    }
     kept = dataclasses.asdict(result.shape)
-    header = [(f"phm-fit-lf: actuator {provenance.describe(records['actuator'])} with lf_shape fitted to HF on "
-              f"command {provenance.describe(records['command'])}"),
-              f"kept: {result.decision.keep} coefficients ({'; '.join(result.decision.reasons)})",
-              f"report: {report_path.name}",
-              "provenance (of the input actuator and the command): " + json.dumps(records)]
+    header = [
+        (
+            f"phm-fit-lf: actuator {provenance.describe(records['actuator'])} with lf_shape fitted to HF on "
+            f"command {provenance.describe(records['command'])}"
+        ),
+        f"kept: {result.decision.keep} coefficients ({'; '.join(result.decision.reasons)})",
+        f"report: {report_path.name}",
+        "provenance (of the input actuator and the command): " + json.dumps(records),
+    ]
     with atomic_open(yaml_path, "w") as fh:
         fh.write(actuator_yaml(common.plain(cfg.actuator), result.shape, header))
-    report = {"provenance": records, "kept": result.decision.keep, "reasons": result.decision.reasons,
-              "lf_shape": kept, "fitted": dataclasses.asdict(result.fit.shape),
-              "physical": dataclasses.asdict(lf_fit.LFShape()), "input": dataclasses.asdict(params.lf_shape),
-              # no Gauss-Newton std: the cost jitters at the scale of the jitter candidate, not a smooth bowl
-              "fit": {"cost_history": result.fit.cost_history,
-                      "iterations": result.fit.iterations, "converged": result.fit.converged,
-                      "at_bound": result.fit.at_bound, "excluded_design_rows": result.fit.excluded},
-              "settings": dataclasses.asdict(settings), "duration": duration, "wall_time_s": round(wall, 1),
-              "nrmse": result.summary, "per_vector": result.per_vector, "actuator_yaml": str(yaml_path)}
+    report = {
+        "provenance": records,
+        "kept": result.decision.keep,
+        "reasons": result.decision.reasons,
+        "lf_shape": kept,
+        "fitted": dataclasses.asdict(result.fit.shape),
+        "physical": dataclasses.asdict(lf_fit.LFShape()),
+        "input": dataclasses.asdict(params.lf_shape),
+        # no Gauss-Newton std: the cost jitters at the scale of the jitter candidate, not a smooth bowl
+        "fit": {
+            "cost_history": result.fit.cost_history,
+            "iterations": result.fit.iterations,
+            "converged": result.fit.converged,
+            "at_bound": result.fit.at_bound,
+            "excluded_design_rows": result.fit.excluded,
+        },
+        "settings": dataclasses.asdict(settings),
+        "duration": duration,
+        "wall_time_s": round(wall, 1),
+        "nrmse": result.summary,
+        "per_vector": result.per_vector,
+        "actuator_yaml": str(yaml_path),
+    }
     common.write_json(report_path, report)
     if cfg.plot:
-        plot_report(result, plot_path, f"{records['actuator']['name']} on {records['command']['name']}: "
-                                       f"kept {result.decision.keep}")
+        plot_report(
+            result,
+            plot_path,
+            f"{records['actuator']['name']} on {records['command']['name']}: kept {result.decision.keep}",
+        )
     else:
         plot_path = None
 
-    metrics = {"kept": result.decision.keep, "reasons": result.decision.reasons, "lf_shape": kept,
-               "fitted": report["fitted"], "held_out": held, "wall_time_s": round(wall, 1),
-               "actuator_yaml": str(yaml_path), "report": str(report_path),
-               "plot": str(plot_path) if plot_path else None}
+    metrics = {
+        "kept": result.decision.keep,
+        "reasons": result.decision.reasons,
+        "lf_shape": kept,
+        "fitted": report["fitted"],
+        "held_out": held,
+        "wall_time_s": round(wall, 1),
+        "actuator_yaml": str(yaml_path),
+        "report": str(report_path),
+        "plot": str(plot_path) if plot_path else None,
+    }
     objects = {"result": result, "params": params, "yaml": yaml_path, "report": report_path, "plot": plot_path}
     return metrics, objects
 

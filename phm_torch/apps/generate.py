@@ -46,17 +46,24 @@ DATA_NODES = ("actuator", "command", "dataset", "assessment", "seed")
 # dataset.life is not in it: a life split is added to a finished store without invalidating it; the life
 # data record their own settings (truth.json) and resume per actuator on their own key.
 NOT_FINGERPRINTED = ("life",)
-STAGES = (*gen.STAGES, "life")   # life: only the life split (no store)
+STAGES = (*gen.STAGES, "life")  # life: only the life split (no store)
 
 
 def git_revision() -> str:
     """The repository's HEAD commit (with ``-dirty`` if modified), or ``unknown``."""
     root = CONF_DIR.parent
     try:
-        rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True,
-                             timeout=10, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
-                               capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+        rev = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10, check=True
+        ).stdout.strip()
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=root,
+            capture_output=True,
+            text=True,
+            timeout=10,
+            check=True,
+        ).stdout.strip()
     except (OSError, subprocess.SubprocessError):
         return "unknown"
     return rev + ("-dirty" if dirty else "")
@@ -89,7 +96,7 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     dev = common.device(cfg.device)
     assessment: AssessmentFunction = common.build(cfg.assessment, "assessment", params=params, device=dev)
     seed = common.integer(cfg.seed, "seed", 0)
-    prov = common.requested_provenance(cfg)   # which actuator and command this store belongs to
+    prov = common.requested_provenance(cfg)  # which actuator and command this store belongs to
     count = common.integer(cfg.shard.count, "shard.count", 1)
     index = common.integer(cfg.shard.index, "shard.index", 0)
     if index >= count:
@@ -112,7 +119,8 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     gen.prepare_store(data_dir, fp, data_cfg, bool(cfg.overwrite))
     # the importance sampler calibrated to dataset.healthy_fraction (a pilot, cached in data_dir)
     sampling, pilot_s = calibration.load_or_calibrate(
-        data_dir, fp, lambda: calibration.calibrate_spec(spec, params.nominal_faults, assessment, seed))
+        data_dir, fp, lambda: calibration.calibrate_spec(spec, params.nominal_faults, assessment, seed)
+    )
     q = float(sampling["distance_exponent"])
     plan = gen.make_plan(spec, params.nominal_faults, seed, q)
     label_plan = make_label_plan(spec, params.nominal_faults, seed, q)
@@ -126,6 +134,7 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         log.info("%s already holds the finished store of this config", data_dir)
     else:
         if stage in ("all", "chunks"):
+
             def compute(k, effect_values=None):
                 nonlocal computer
                 if computer is None:
@@ -141,47 +150,77 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         if stage == "merge" or (stage == "all" and not missing):
             grid = time_grid(duration, params.sample_rate)
             seeds = {"seed": seed, **plan.seeds, **(label_plan.seeds if label_plan is not None else {})}
-            metadata = {"config": common.plain(cfg), "fingerprint": fp, "seeds": seeds, "provenance": prov,
-                        "package_version": __version__, "git_revision": git_revision(),
-                        "torch_version": torch.__version__, "margin_names": list(gen.MARGIN_NAMES),
-                        "sampling": sampling, "assessment_sweep": assessment.record()}
-            extra = {"seed": seed, "provenance": prov, "package_version": __version__, "chunk_size": plan.chunk_size,
-                     "n_chunks": plan.n_chunks, "sampling": sampling, "assessment_sweep": assessment.record()}
+            metadata = {
+                "config": common.plain(cfg),
+                "fingerprint": fp,
+                "seeds": seeds,
+                "provenance": prov,
+                "package_version": __version__,
+                "git_revision": git_revision(),
+                "torch_version": torch.__version__,
+                "margin_names": list(gen.MARGIN_NAMES),
+                "sampling": sampling,
+                "assessment_sweep": assessment.record(),
+            }
+            extra = {
+                "seed": seed,
+                "provenance": prov,
+                "package_version": __version__,
+                "chunk_size": plan.chunk_size,
+                "n_chunks": plan.n_chunks,
+                "sampling": sampling,
+                "assessment_sweep": assessment.record(),
+            }
             if label_plan is not None:
                 extra |= {"label_chunk_size": label_plan.chunk_size, "n_label_chunks": label_plan.n_chunks}
             gen.merge(data_dir, plan, fp, grid.numpy(), command(grid).numpy(), metadata, extra, labels=label_plan)
         elif missing:
-            log.info("chunks %s are not done yet (other shards); run with stage=merge once they are",
-                     "; ".join(f"{unit} {m}" for unit, m in missing.items()))
+            log.info(
+                "chunks %s are not done yet (other shards); run with stage=merge once they are",
+                "; ".join(f"{unit} {m}" for unit, m in missing.items()),
+            )
     wall = time.perf_counter() - t0
 
     complete = gen.is_complete(data_dir, fp)
     life = None
-    if spec.life.n_actuators > 0 and stage != "chunks" and index == 0:   # one shard writes it
+    if spec.life.n_actuators > 0 and stage != "chunks" and index == 0:  # one shard writes it
         life = _life(cfg, spec, params, command, duration, assessment, seed, prov, dev, data_dir)
     manifest = read_json(data_dir / gen.MANIFEST_FILE) if complete else None
-    metrics: dict[str, Any] = {"data_dir": str(data_dir), "complete": complete, "fingerprint": fp,
-                               "actuator": provenance.describe(prov["actuator"]),
-                               "command": provenance.describe(prov["command"]),
-                               "shard": {"index": index, "count": count}, "stage": stage,
-                               "chunks": {"total": plan.n_chunks, **counts}}
+    metrics: dict[str, Any] = {
+        "data_dir": str(data_dir),
+        "complete": complete,
+        "fingerprint": fp,
+        "actuator": provenance.describe(prov["actuator"]),
+        "command": provenance.describe(prov["command"]),
+        "shard": {"index": index, "count": count},
+        "stage": stage,
+        "chunks": {"total": plan.n_chunks, **counts},
+    }
     if label_plan is not None:
         metrics["label_chunks"] = {"total": label_plan.n_chunks, **label_counts}
     metrics["wall_time_s"] = round(wall, 2)
     metrics["sampling"] = {**sampling, "pilot_s": round(pilot_s, 2)}
-    metrics["assessment_sweep"] = {"frequencies": list(assessment.sweep.frequencies),
-                                   "amplitude": assessment.sweep.amplitude, "auto": assessment.auto}
+    metrics["assessment_sweep"] = {
+        "frequencies": list(assessment.sweep.frequencies),
+        "amplitude": assessment.sweep.amplitude,
+        "auto": assessment.auto,
+    }
     if manifest is not None:
-        metrics["splits"] = {s: {"count": v["count"], "healthy": v["healthy"],
-                                 "healthy_fraction": round(v["healthy"] / v["count"], 4) if v["count"] else None,
-                                 "unmeasurable": v.get("unmeasurable")}
-                             for s, v in manifest["splits"].items()}
+        metrics["splits"] = {
+            s: {
+                "count": v["count"],
+                "healthy": v["healthy"],
+                "healthy_fraction": round(v["healthy"] / v["count"], 4) if v["count"] else None,
+                "unmeasurable": v.get("unmeasurable"),
+            }
+            for s, v in manifest["splits"].items()
+        }
     timing: dict[str, float] = {}
     if computer is not None:
         n_sig = counts["computed"] * spec.chunk_size
         metrics["signals_per_s"] = round(n_sig / max(computer.timing["signals_s"], 1e-9), 2)
         timing |= computer.timing
-    if labeller is not None and labeller.vectors:   # vectors assessed for the labels split, padding included
+    if labeller is not None and labeller.vectors:  # vectors assessed for the labels split, padding included
         metrics["labels_per_s"] = round(labeller.vectors / max(labeller.timing["labels_s"], 1e-9), 2)
         timing |= labeller.timing
     if pilot_s:
@@ -194,28 +233,61 @@ def generate(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     return metrics, {"data_dir": data_dir, "manifest": manifest, "plan": plan, "label_plan": label_plan}
 
 
-def _life(cfg: DictConfig, spec: gen.DatasetSpec, params: Any, command: Any, duration: float, assessment: Any,
-          seed: int, prov: dict[str, Any], dev: torch.device, data_dir: Path) -> dict[str, Any]:
+def _life(
+    cfg: DictConfig,
+    spec: gen.DatasetSpec,
+    params: Any,
+    command: Any,
+    duration: float,
+    assessment: Any,
+    seed: int,
+    prov: dict[str, Any],
+    dev: torch.device,
+    data_dir: Path,
+) -> dict[str, Any]:
     """Write (or resume) the life split of ``cfg`` into ``<data_dir>/life``; returns its metrics."""
     if cfg.get("damage") is None:
         raise ValueError("damage: the life split needs a damage model (damage=coupled)")
     damage = common.build(cfg.damage, "damage", nominal=list(params.nominal_faults))
     life = spec.life
-    simulate = life_split.simulator(params, spec.fidelity, spec.substeps, spec.effects, life.compile, command,
-                                    duration, dev)
-    generator = life_split.LifeGenerator(life, damage, lambda k: assessment(k).healthy, simulate,
-                                         gen.seed_streams(seed)["life"], params.nominal_faults, spec.uniform,
-                                         spec.label_chunk_size)
+    simulate = life_split.simulator(
+        params, spec.fidelity, spec.substeps, spec.effects, life.compile, command, duration, dev
+    )
+    generator = life_split.LifeGenerator(
+        life,
+        damage,
+        lambda k: assessment(k).healthy,
+        simulate,
+        gen.seed_streams(seed)["life"],
+        params.nominal_faults,
+        spec.uniform,
+        spec.label_chunk_size,
+    )
     signal = {"fidelity": spec.fidelity, "substeps": spec.substeps, "effects": common.plain(spec.effects)}
     settings = life_split.settings_record(life)
-    key_data = {"life": {k: v for k, v in settings.items() if k not in ("n_actuators", "batch", "compile")},
-                "seed": seed, "actuator": prov["actuator"], "command": prov["command"],
-                "damage": common.plain(cfg.damage), "assessment": common.plain(cfg.assessment), "signal": signal}
-    header = {"actuator": prov["actuator"], "command": prov["command"], "damage": common.plain(cfg.damage),
-              "every_hours": float(life.every), "life": settings, "seed": seed, "signal": signal,
-              "assessment": common.plain(cfg.assessment), "package_version": __version__}
-    return life_files.generate_life(data_dir / life_files.LIFE_DIR, generator, key_data, header,
-                                    bool(cfg.overwrite), bool(cfg.progress))
+    key_data = {
+        "life": {k: v for k, v in settings.items() if k not in ("n_actuators", "batch", "compile")},
+        "seed": seed,
+        "actuator": prov["actuator"],
+        "command": prov["command"],
+        "damage": common.plain(cfg.damage),
+        "assessment": common.plain(cfg.assessment),
+        "signal": signal,
+    }
+    header = {
+        "actuator": prov["actuator"],
+        "command": prov["command"],
+        "damage": common.plain(cfg.damage),
+        "every_hours": float(life.every),
+        "life": settings,
+        "seed": seed,
+        "signal": signal,
+        "assessment": common.plain(cfg.assessment),
+        "package_version": __version__,
+    }
+    return life_files.generate_life(
+        data_dir / life_files.LIFE_DIR, generator, key_data, header, bool(cfg.overwrite), bool(cfg.progress)
+    )
 
 
 @hydra.main(config_path=common.CONFIG_PATH, config_name="generate", version_base="1.3")

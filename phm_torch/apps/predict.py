@@ -59,7 +59,7 @@ from . import common
 log = logging.getLogger(__name__)
 
 __all__ = ["NOISE_FLOOR", "predict"]
-LENGTH_TOLERANCE = 0.01   # fraction of the test record a measurement may be shorter or longer by
+LENGTH_TOLERANCE = 0.01  # fraction of the test record a measurement may be shorter or longer by
 
 
 def _paths(value: Any, name: str) -> list[str]:
@@ -82,24 +82,37 @@ def _read(path: str, model: LoadedPipeline, resample: bool) -> tuple[torch.Tenso
     length. One longer or shorter than the test record by at most ``LENGTH_TOLERANCE`` of it (another
     implementation may stop one sample early or late) is cut to length, or its tail is marked missing (NaN:
     the gappy layer drops those samples), with a warning; a larger difference is an error naming the file."""
-    m = read_measurement(path, expected_rate=float(model.sample_rate), resample=resample, missing_ok=("current",),
-                         optional=("command", "position"))
+    m = read_measurement(
+        path,
+        expected_rate=float(model.sample_rate),
+        resample=resample,
+        missing_ok=("current",),
+        optional=("command", "position"),
+    )
     current = torch.as_tensor(m.current, dtype=model.dtype).unsqueeze(0)
     n, n_full = current.shape[1], int(model.n_full)
     if n == n_full:
         return current, m
     if abs(n - n_full) > LENGTH_TOLERANCE * n_full:
-        raise ValueError(f"{path}: current has {n} samples; the model expects {n_full} (the full test record; "
-                         f"within {LENGTH_TOLERANCE:.0%} of that length the record is cut or its tail marked missing)")
-    log.warning("%s: %d samples instead of %d: %s", path, n, n_full,
-                "the tail beyond the test record is dropped" if n > n_full else "the missing tail is marked missing")
+        raise ValueError(
+            f"{path}: current has {n} samples; the model expects {n_full} (the full test record; "
+            f"within {LENGTH_TOLERANCE:.0%} of that length the record is cut or its tail marked missing)"
+        )
+    log.warning(
+        "%s: %d samples instead of %d: %s",
+        path,
+        n,
+        n_full,
+        "the tail beyond the test record is dropped" if n > n_full else "the missing tail is marked missing",
+    )
     if n > n_full:
         return current[:, :n_full], m
     return torch.cat([current, current.new_full((1, n_full - n), float("nan"))], 1), m
 
 
-def _pipeline_command(cfg: DictConfig, metadata: dict[str, Any], model_path: Path
-                      ) -> tuple[dict[str, Any], Callable[[torch.Tensor], torch.Tensor] | None]:
+def _pipeline_command(
+    cfg: DictConfig, metadata: dict[str, Any], model_path: Path
+) -> tuple[dict[str, Any], Callable[[torch.Tensor], torch.Tensor] | None]:
     """The pipeline's provenance (from its ``metadata``, checked against an explicit ``actuator=``/``command=``)
     and its test command (``None`` for a pipeline exported before it recorded one)."""
     prov = common.reconcile_provenance(cfg, metadata.get("provenance"), f"pipeline {model_path}")
@@ -112,7 +125,7 @@ def _pipeline_command(cfg: DictConfig, metadata: dict[str, Any], model_path: Pat
 def _record(m: Any, current: torch.Tensor) -> Record:
     """The measurement as a record of the test's length (command and position ``None`` when the CSV lacks them)."""
     n = min(len(m.time), current.shape[1])
-    column = (lambda x: None if np.isnan(x).all() else torch.as_tensor(x[:n], dtype=torch.float64))
+    column = lambda x: None if np.isnan(x).all() else torch.as_tensor(x[:n], dtype=torch.float64)
     return Record(torch.as_tensor(m.time[:n], dtype=torch.float64), column(m.command), column(m.position), current[0])
 
 
@@ -121,8 +134,10 @@ def _bench_nominal(cfg: DictConfig, model: LoadedPipeline) -> torch.Tensor | Non
     if cfg.get("baseline") is None:
         return None
     if not model.can_rebase:
-        raise ValueError(f"baseline: the pipeline {str(cfg.pipeline)!r} holds no nominal record of its training "
-                         f"model (exported before baselines existed, or trained on a store without a nominal split)")
+        raise ValueError(
+            f"baseline: the pipeline {str(cfg.pipeline)!r} holds no nominal record of its training "
+            f"model (exported before baselines existed, or trained on a store without a nominal split)"
+        )
     return torch.cat([_current(p, model, bool(cfg.resample)) for p in _paths(cfg.baseline, "baseline")]).mean(0)
 
 
@@ -131,7 +146,7 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     training model with the bench's healthy ``baseline`` records, when given)."""
     paths = _paths(cfg.measurements, "measurements")
     model_path = Path(cfg.pipeline)
-    model = load_pipeline(model_path, cfg.get("format"))       # checks the file and its format
+    model = load_pipeline(model_path, cfg.get("format"))  # checks the file and its format
     metadata = model.metadata
     prov, command = _pipeline_command(cfg, metadata, model_path)
     if not model.calibrated:
@@ -140,39 +155,51 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if bench_nominal is None and model.can_rebase:
         # a bench differing from the training model by 0.5 % of the current can turn 14 % of the faults
         # into "healthy" verdicts; the rebase restores them (docs/surrogates.md, modelling differences)
-        log.warning("no baseline: the measurements are read as records of the training model; on another "
-                    "bench give baseline=<healthy record(s) of that bench>, since a small modelling difference "
-                    "moves the verdict (docs/surrogates.md, 'Modelling differences')")
+        log.warning(
+            "no baseline: the measurements are read as records of the training model; on another "
+            "bench give baseline=<healthy record(s) of that bench>, since a small modelling difference "
+            "moves the verdict (docs/surrogates.md, 'Modelling differences')"
+        )
     contract = InputContract.of(model, metadata, command)
     bench = None if bench_nominal is None else check_bench(model, bench_nominal)
     if bench is not None and not bench.ok:
         log.warning("%s; every record is out of distribution (reason 'bench')", bench.message())
-    elif bench is not None and not bench.healthy:     # within tolerance, but a known-healthy record read faulty
-        log.warning("the bench's healthy baseline record reads faulty (%s %.1f interval half-widths from nominal): "
-                    "the verdicts of this bench lean to 'faulty'; check it with phm-workbench", bench.worst,
-                    bench.max_deviation)
+    elif bench is not None and not bench.healthy:  # within tolerance, but a known-healthy record read faulty
+        log.warning(
+            "the bench's healthy baseline record reads faulty (%s %.1f interval half-widths from nominal): "
+            "the verdicts of this bench lean to 'faulty'; check it with phm-workbench",
+            bench.worst,
+            bench.max_deviation,
+        )
     records = []
     for path in paths:
         current, m = _read(path, model, bool(cfg.resample))
         try:
             record = {"file": str(path), **diagnose(model, _record(m, current), contract, bench_nominal, bench)}
-        except UnservedRecord as e:       # a format that serves complete records only (onnx)
+        except UnservedRecord as e:  # a format that serves complete records only (onnx)
             raise UnservedRecord(f"measurements: {str(path)!r}: {e}") from None
         for message in record["messages"]:
             log.warning("%s: %s; the record is out of distribution", path, message)
         if record["noise_above_calibration"]:
-            log.warning("%s: estimated current noise %.2f %% of its RMS, more than twice the %.2f %% the "
-                        "uncertainty outputs were calibrated at: they are too narrow", path, 100 * record["noise"],
-                        100 * float(model.calibration_noise))
+            log.warning(
+                "%s: estimated current noise %.2f %% of its RMS, more than twice the %.2f %% the "
+                "uncertainty outputs were calibrated at: they are too narrow",
+                path,
+                100 * record["noise"],
+                100 * float(model.calibration_noise),
+            )
         records.append(record)
     if cfg.out:
         common.write_json(Path(cfg.out), records)
-    return {"files": len(records), "out_of_distribution": sum(r["out_of_distribution"] for r in records),
-            "baseline": bench_nominal is not None, "bench_check": None if bench is None else bench.as_dict(),
-            "actuator": provenance.describe(prov["actuator"]),
-            "command": provenance.describe(prov["command"]),
-            "noise_above_calibration": sum(bool(r["noise_above_calibration"]) for r in records)}, \
-        {"records": records}
+    return {
+        "files": len(records),
+        "out_of_distribution": sum(r["out_of_distribution"] for r in records),
+        "baseline": bench_nominal is not None,
+        "bench_check": None if bench is None else bench.as_dict(),
+        "actuator": provenance.describe(prov["actuator"]),
+        "command": provenance.describe(prov["command"]),
+        "noise_above_calibration": sum(bool(r["noise_above_calibration"]) for r in records),
+    }, {"records": records}
 
 
 @hydra.main(config_path=common.CONFIG_PATH, config_name="predict", version_base="1.3")

@@ -48,7 +48,7 @@ def compose_stage(app: str, overrides: list[str]) -> DictConfig:
     return common.keep_choices(cfg, SHARED_GROUPS)
 
 
-DATA_KEYS = ("dataset", "assessment")   # config nodes of phm-generate that a run-level experiment may set
+DATA_KEYS = ("dataset", "assessment")  # config nodes of phm-generate that a run-level experiment may set
 
 
 def _dotted(prefix: str, node: Any) -> list[str]:
@@ -58,7 +58,7 @@ def _dotted(prefix: str, node: Any) -> list[str]:
     return [f"{prefix}={json.dumps(common.plain(node))}"]
 
 
-SHARED_GROUPS = ("actuator", "command")   # chosen once for the run and passed to every stage
+SHARED_GROUPS = ("actuator", "command")  # chosen once for the run and passed to every stage
 
 
 def shared_overrides(cfg: DictConfig) -> list[str]:
@@ -72,8 +72,10 @@ def shared_overrides(cfg: DictConfig) -> list[str]:
             record = common.requested_provenance(cfg)[key]
             name = provenance.known_name(key, record["sha256"]) if record else None
         if name is None:
-            raise ValueError(f"{key}: phm-run needs a {key} config chosen by name ({key}=<name> of a "
-                             f"conf/{key}/<name>.yaml in the config search path)")
+            raise ValueError(
+                f"{key}: phm-run needs a {key} config chosen by name ({key}=<name> of a "
+                f"conf/{key}/<name>.yaml in the config search path)"
+            )
         out += [f"{key}={name}", *_dotted(key, cfg[key])]
     searchpath = _searchpath()
     if searchpath:
@@ -90,7 +92,10 @@ def _searchpath() -> list[str]:
 def generate_overrides(cfg: DictConfig) -> list[str]:
     """phm-generate's overrides in a run: the run's ``generate`` list, then the dataset/assessment settings
     that a data experiment (``phm-run experiment=paper``) put at the run level, which win."""
-    return [*_overrides(cfg.generate, "generate"), *(o for key in DATA_KEYS if key in cfg for o in _dotted(key, cfg[key]))]
+    return [
+        *_overrides(cfg.generate, "generate"),
+        *(o for key in DATA_KEYS if key in cfg for o in _dotted(key, cfg[key])),
+    ]
 
 
 def _overrides(value: Any, name: str) -> list[str]:
@@ -101,8 +106,10 @@ def _overrides(value: Any, name: str) -> list[str]:
     for item in items:  # a shipped example file is found from any working directory
         key, _, path = item.partition("=")
         if key.lstrip("+~").split(".")[0] in SHARED_GROUPS:
-            raise ValueError(f"{name}: {item!r} sets the actuator or command of one stage only; set it for the "
-                             f"whole run (phm-run {item.lstrip('+~')})")
+            raise ValueError(
+                f"{name}: {item!r} sets the actuator or command of one stage only; set it for the "
+                f"whole run (phm-run {item.lstrip('+~')})"
+            )
         shipped = CONF_DIR.parent / path
         if key == "measurements" and path and not Path(path).exists() and shipped.is_file():
             item = f"{key}={shipped}"
@@ -119,25 +126,43 @@ def workbench_measurement(cfg: DictConfig, shared: list[str], out_dir: Path) -> 
     sidecar = json.loads(shipped.with_suffix(".json").read_text()) if shipped.with_suffix(".json").is_file() else {}
     requested = common.requested_provenance(cfg)
     recorded = sidecar.get("provenance") or {}
-    if shipped.is_file() and all((recorded.get(k) or {}).get("sha256") == (requested[k] or {}).get("sha256")
-                                 for k in SHARED_GROUPS):
+    if shipped.is_file() and all(
+        (recorded.get(k) or {}).get("sha256") == (requested[k] or {}).get("sha256") for k in SHARED_GROUPS
+    ):
         return shipped
     from .simulate import simulate_to_csv
 
     params = common.actuator(cfg)
     effect = str(demo.effect)
-    amplitude = common.number(demo.amplitude_per_coulomb_friction, "workbench_demo.amplitude_per_coulomb_friction",
-                              0.0, strict=True) * params.coulomb_friction
+    amplitude = (
+        common.number(
+            demo.amplitude_per_coulomb_friction, "workbench_demo.amplitude_per_coulomb_friction", 0.0, strict=True
+        )
+        * params.coulomb_friction
+    )
     noise = common.number(demo.current_noise_per_limit, "workbench_demo.current_noise_per_limit", 0.0)
     out = out_dir / f"hidden_{effect}.csv"
-    print(f"[phm-run] workbench: simulating a record of {common.choice(cfg, 'actuator')} with a hidden {effect} "
-          f"(amplitude {amplitude:.3g} N m) -> {out}", flush=True)
-    simulate_to_csv(compose_stage("simulate", [
-        *shared, "fidelity=hf", f"+effects.{effect}.amplitude={amplitude}",
-        *(f"+effects.{effect}.{k}={json.dumps(v)}" for k, v in (common.plain(demo.params) or {}).items()),
-        f"seed={common.integer(demo.seed, 'workbench_demo.seed', 0)}", f"noise.current={noise * params.current_limit}",
-        f"noise.position={common.number(demo.position_noise, 'workbench_demo.position_noise', 0.0)}",
-        f"out={out}", "plot=false"]))
+    print(
+        f"[phm-run] workbench: simulating a record of {common.choice(cfg, 'actuator')} with a hidden {effect} "
+        f"(amplitude {amplitude:.3g} N m) -> {out}",
+        flush=True,
+    )
+    simulate_to_csv(
+        compose_stage(
+            "simulate",
+            [
+                *shared,
+                "fidelity=hf",
+                f"+effects.{effect}.amplitude={amplitude}",
+                *(f"+effects.{effect}.{k}={json.dumps(v)}" for k, v in (common.plain(demo.params) or {}).items()),
+                f"seed={common.integer(demo.seed, 'workbench_demo.seed', 0)}",
+                f"noise.current={noise * params.current_limit}",
+                f"noise.position={common.number(demo.position_noise, 'workbench_demo.position_noise', 0.0)}",
+                f"out={out}",
+                "plot=false",
+            ],
+        )
+    )
     return out
 
 
@@ -156,8 +181,11 @@ def _latency(model_path: Path, signals: torch.Tensor, repeats: int) -> dict[str,
             throughput = 1024 / (time.perf_counter() - t0)
     finally:
         torch.set_num_threads(threads)
-    return {"online_step_us_p50": step["p50_us"], "online_step_us_p99": step["p99_us"],
-            "online_batched_signals_per_s": throughput}
+    return {
+        "online_step_us_p50": step["p50_us"],
+        "online_step_us_p99": step["p99_us"],
+        "online_batched_signals_per_s": throughput,
+    }
 
 
 def pretrained_study(cfg: DictConfig, run_dir: Path, metrics: dict[str, Any]) -> dict[str, Any] | None:
@@ -175,19 +203,24 @@ def pretrained_study(cfg: DictConfig, run_dir: Path, metrics: dict[str, Any]) ->
     if not pipeline.is_file():
         return {**study, "skipped": f"report.pretrained: no file {str(pipeline)!r}"}
     recorded = read_metadata(pipeline).get("provenance") or {}
-    study.update(actuator=provenance.describe(recorded.get("actuator")),
-                 command=provenance.describe(recorded.get("command")))
+    study.update(
+        actuator=provenance.describe(recorded.get("actuator")), command=provenance.describe(recorded.get("command"))
+    )
     requested = common.requested_provenance(cfg)
     for key in SHARED_GROUPS:
         if (recorded.get(key) or {}).get("sha256") != (requested[key] or {}).get("sha256"):
-            return {**study, "skipped": f"it is for the {key} {study[key]}, this run's is "
-                                        f"{provenance.describe(requested[key])}"}
+            return {
+                **study,
+                "skipped": f"it is for the {key} {study[key]}, this run's is {provenance.describe(requested[key])}",
+            }
     files: list[tuple[Path, str, dict[str, float] | None]] = []
     for item in common.plain(cfg.report.get("pretrained_records")) or []:
         path = _shipped(str(item))
         sidecar = json.loads(path.with_suffix(".json").read_text()) if path.with_suffix(".json").is_file() else {}
-        hidden = "; ".join(f"hidden {name} " + ", ".join(f"{k} {v:g}" for k, v in values.items())
-                           for name, values in (sidecar.get("hidden_effect") or {}).items())
+        hidden = "; ".join(
+            f"hidden {name} " + ", ".join(f"{k} {v:g}" for k, v in values.items())
+            for name, values in (sidecar.get("hidden_effect") or {}).items()
+        )
         files.append((path, f"bundled example {item}" + (f" ({hidden})" if hidden else ""), None))
     cases = metrics.get("cases") or {}
     command = (recorded.get("command") or {}).get("params") or {}
@@ -196,18 +229,28 @@ def pretrained_study(cfg: DictConfig, run_dir: Path, metrics: dict[str, Any]) ->
         for name, case in {"nominal": cases.get("nominal") or {}, **(cases.get("cases") or {})}.items():
             faults = case.get("faults") or []
             true = {FAULT_NAMES[i]: v for i, v in enumerate(faults) if i >= len(nominal) or v != nominal[i]}
-            files.append((run_dir / "cases" / str(case.get("csv")), (f"virtual bench ({cases.get('fidelity')}, "
-                          f"noise-free): {name}"), true))
+            files.append(
+                (
+                    run_dir / "cases" / str(case.get("csv")),
+                    (f"virtual bench ({cases.get('fidelity')}, noise-free): {name}"),
+                    true,
+                )
+            )
     elif cases:
-        study["notes"].append(f"The virtual bench's records are left out: they last {cases.get('duration')} s, the "
-                              f"pipeline's test record {command.get('duration')} s.")
+        study["notes"].append(
+            f"The virtual bench's records are left out: they last {cases.get('duration')} s, the "
+            f"pipeline's test record {command.get('duration')} s."
+        )
     files = [f for f in files if f[0].is_file()]
     if not files:
         return {**study, "skipped": "no record to run it on"}
-    _, objects = predict(compose_stage("predict", [f"pipeline={pipeline}",
-                                                   f"measurements={json.dumps([str(f[0]) for f in files])}"]))
-    study["records"] = [{"name": path.name, "source": source, "true_k": true, "prediction": pred}
-                        for (path, source, true), pred in zip(files, objects["records"])]
+    _, objects = predict(
+        compose_stage("predict", [f"pipeline={pipeline}", f"measurements={json.dumps([str(f[0]) for f in files])}"])
+    )
+    study["records"] = [
+        {"name": path.name, "source": source, "true_k": true, "prediction": pred}
+        for (path, source, true), pred in zip(files, objects["records"])
+    ]
     return study
 
 
@@ -217,8 +260,9 @@ def _shipped(path: str) -> Path:
     return Path(path) if Path(path).exists() or not shipped.exists() else shipped
 
 
-def _studies(cfg: DictConfig, run_dir: Path, data_dir: Path, train_dir: Path, eval_dir: Path,
-             metrics: dict[str, Any]) -> dict[str, Any]:
+def _studies(
+    cfg: DictConfig, run_dir: Path, data_dir: Path, train_dir: Path, eval_dir: Path, metrics: dict[str, Any]
+) -> dict[str, Any]:
     fig_dir = run_dir / "report"
     fig_dir.mkdir(parents=True, exist_ok=True)
     studies: dict[str, Any] = {"pretrained": pretrained_study(cfg, run_dir, metrics)}
@@ -235,16 +279,26 @@ def _studies(cfg: DictConfig, run_dir: Path, data_dir: Path, train_dir: Path, ev
         studies["err_alpha"] = err_alpha_vs_modes(bundle, yva, fig_dir / "err_alpha_vs_modes.png")
         studies["placement"] = placement(bundle, bundle.sample_rate, fig_dir / "placement.png")
         sizes = [common.integer(h, "report.hidden_neurons[]", 1) for h in common.plain(cfg.report.hidden_neurons)]
-        studies["hidden"] = {"rows": hidden_neuron_study(bundle, ytr, ktr, yva, kva, sizes,
-                                                         common.integer(cfg.report.hidden_epochs, "report.hidden_epochs", 1),
-                                                         fig_dir / "hidden_neurons.png"),
-                             "figure": fig_dir / "hidden_neurons.png"}
+        studies["hidden"] = {
+            "rows": hidden_neuron_study(
+                bundle,
+                ytr,
+                ktr,
+                yva,
+                kva,
+                sizes,
+                common.integer(cfg.report.hidden_epochs, "report.hidden_epochs", 1),
+                fig_dir / "hidden_neurons.png",
+            ),
+            "figure": fig_dir / "hidden_neurons.png",
+        }
         if metrics.get("train", {}).get("fdi_mae"):
             studies["fdi_per_parameter"] = fdi_per_parameter(metrics["train"]["fdi_mae"], fig_dir / "fdi_mae.png")
         model = eval_dir / "online.pt"
         if model.is_file():
-            studies["latency"] = _latency(model, yva, common.integer(cfg.report.latency_repeats,
-                                                                     "report.latency_repeats", 10))
+            studies["latency"] = _latency(
+                model, yva, common.integer(cfg.report.latency_repeats, "report.latency_repeats", 10)
+            )
     return studies
 
 
@@ -265,13 +319,31 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "cases": ("cases", [*shared, f"out_dir={run_dir / 'cases'}", *_overrides(cfg.cases, "cases")]),
         "generate": ("generate", [*shared, f"data_dir={data_dir}", *gen_over]),
         "train": ("train", [*shared, f"data_dir={data_dir}", f"out_dir={train_dir}", *_overrides(cfg.train, "train")]),
-        "evaluate": ("evaluate", [*shared, f"data_dir={data_dir}", f"bundle={train_dir / 'surrogates.pt'}",
-                                  f"out_dir={eval_dir}", *_overrides(cfg.evaluate, "evaluate")]),
-        "track": ("track", [*shared, f"index={data_dir / 'life' / 'index.csv'}", f"pipeline={eval_dir / 'online.pt'}",
-                            f"truth={data_dir / 'life' / 'truth.json'}", f"out_dir={run_dir / 'track'}",
-                            *_overrides(cfg.track, "track")]),
-        "workbench": ("workbench", [*shared, f"out_dir={run_dir / 'workbench'}",
-                                    *_overrides(cfg.workbench, "workbench")]),
+        "evaluate": (
+            "evaluate",
+            [
+                *shared,
+                f"data_dir={data_dir}",
+                f"bundle={train_dir / 'surrogates.pt'}",
+                f"out_dir={eval_dir}",
+                *_overrides(cfg.evaluate, "evaluate"),
+            ],
+        ),
+        "track": (
+            "track",
+            [
+                *shared,
+                f"index={data_dir / 'life' / 'index.csv'}",
+                f"pipeline={eval_dir / 'online.pt'}",
+                f"truth={data_dir / 'life' / 'truth.json'}",
+                f"out_dir={run_dir / 'track'}",
+                *_overrides(cfg.track, "track"),
+            ],
+        ),
+        "workbench": (
+            "workbench",
+            [*shared, f"out_dir={run_dir / 'workbench'}", *_overrides(cfg.workbench, "workbench")],
+        ),
     }
     from .cases import run_cases
     from .evaluate import evaluate_rul
@@ -280,14 +352,20 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     from .train import train_surrogates
     from .workbench import run_workbench
 
-    functions = {"cases": run_cases, "generate": generate, "train": train_surrogates, "evaluate": evaluate_rul,
-                 "track": track, "workbench": run_workbench}
+    functions = {
+        "cases": run_cases,
+        "generate": generate,
+        "train": train_surrogates,
+        "evaluate": evaluate_rul,
+        "track": track,
+        "workbench": run_workbench,
+    }
     # resumable: a run of some stages keeps the metrics of the stages run before in this out_dir (and the
     # report stage sees them); each stage run now replaces its own entry
     previous = run_dir / "metrics.json"
     metrics: dict[str, Any] = json.loads(previous.read_text()) if previous.is_file() else {}
     timings: dict[str, float] = dict(metrics.get("wall_s") or {})
-    metrics["wall_s"] = timings     # the stages run so far, for the report's banner
+    metrics["wall_s"] = timings  # the stages run so far, for the report's banner
     objects: dict[str, Any] = {}
     for i, stage in enumerate(stages, 1):
         log.info("[phm-run] stage %d/%d: %s", i, len(stages), stage)
@@ -301,8 +379,10 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         else:
             app, overrides = plan[stage]
             if stage == "track" and not (data_dir / "life" / "index.csv").is_file():
-                raise ValueError(f"stages: track needs the life split of the generate stage ({data_dir / 'life'} "
-                                 "has no index.csv); give the generate stage dataset.life.n_actuators > 0")
+                raise ValueError(
+                    f"stages: track needs the life split of the generate stage ({data_dir / 'life'} "
+                    "has no index.csv); give the generate stage dataset.life.n_actuators > 0"
+                )
             if stage == "workbench" and not any(o.startswith("measurements=") for o in overrides):
                 overrides = [*overrides, f"measurements={workbench_measurement(cfg, shared, run_dir / 'workbench')}"]
             stage_metrics, _ = functions[stage](compose_stage(app, overrides))

@@ -57,8 +57,16 @@ def simulate_to_csv(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         ``csv`` and ``plot`` paths.
     """
     st = common.simulation_settings(cfg)
-    params, fid, command, duration, seed, std, effects, dev = (st.params, st.fidelity, st.command, st.duration,
-                                                               st.seed, st.noise, st.effects, st.device)
+    params, fid, command, duration, seed, std, effects, dev = (
+        st.params,
+        st.fidelity,
+        st.command,
+        st.duration,
+        st.seed,
+        st.noise,
+        st.effects,
+        st.device,
+    )
     faults = common.fault_vector(cfg.faults)
     csv_path = output_path(cfg.get("out"), "simulation.csv")
 
@@ -74,17 +82,35 @@ def simulate_to_csv(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if cfg.plot:
         from ..plotting import plot_signals  # matplotlib only when plotting
 
-        plot_path = plot_signals(signals.time, {"simulation": {k: channels[k][0] for k in
-                                                               ("command", "position", "current")}},
-                                 csv_path.with_suffix(".png"), title=f"{fid.upper()} simulation, faults={faults}")
+        plot_path = plot_signals(
+            signals.time,
+            {"simulation": {k: channels[k][0] for k in ("command", "position", "current")}},
+            csv_path.with_suffix(".png"),
+            title=f"{fid.upper()} simulation, faults={faults}",
+        )
 
     stats = common.signal_metrics(signals.channels)
     metrics = {key: values[0] for key, values in stats.items()}
-    metrics.update(fidelity=fid, faults=faults, duration=duration, samples=int(signals.time.numel()),
-                   seed=seed, noise=std, effects=sorted(common.plain(cfg.get("effects")) or {}),
-                   wall_time_s=round(wall, 3), csv=str(csv_path), plot=str(plot_path) if plot_path else None)
-    objects = {"signals": signals, "channels": channels, "params": params, "command": command,
-               "csv": csv_path, "plot": plot_path}
+    metrics.update(
+        fidelity=fid,
+        faults=faults,
+        duration=duration,
+        samples=int(signals.time.numel()),
+        seed=seed,
+        noise=std,
+        effects=sorted(common.plain(cfg.get("effects")) or {}),
+        wall_time_s=round(wall, 3),
+        csv=str(csv_path),
+        plot=str(plot_path) if plot_path else None,
+    )
+    objects = {
+        "signals": signals,
+        "channels": channels,
+        "params": params,
+        "command": command,
+        "csv": csv_path,
+        "plot": plot_path,
+    }
     return metrics, objects
 
 

@@ -48,7 +48,7 @@ schema.register("track", {key: schema.plain(getattr(TrackerSettings(), key)) for
 
 def _settings(cfg: DictConfig) -> TrackerSettings:
     values = {key: cfg[key] for key in TRACKER_KEYS}
-    if values["measurement_dof"] in (".inf", "inf"):   # the command line's spelling of infinity
+    if values["measurement_dof"] in (".inf", "inf"):  # the command line's spelling of infinity
         values["measurement_dof"] = math.inf
     return TrackerSettings(**values)
 
@@ -57,10 +57,12 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Track every actuator of ``cfg.index`` with the pipeline ``cfg.pipeline``; returns (metrics, objects)."""
     torch.set_num_threads(common.integer(cfg.threads, "threads", 1))
     model_path = Path(cfg.pipeline)
-    loaded = load_pipeline(model_path)        # checks the file; phm-predict's reader and diagnosis take it
+    loaded = load_pipeline(model_path)  # checks the file; phm-predict's reader and diagnosis take it
     if not isinstance(loaded, TorchScriptPipeline):
-        raise ValueError(f"pipeline: {str(model_path)!r} is a {loaded.format!r} file; phm-track needs the "
-                         f"TorchScript pipeline (its classifier and propagators drive the filter's RUL)")
+        raise ValueError(
+            f"pipeline: {str(model_path)!r} is a {loaded.format!r} file; phm-track needs the "
+            f"TorchScript pipeline (its classifier and propagators drive the filter's RUL)"
+        )
     metadata = loaded.metadata
     prov, command = _pipeline_command(cfg, metadata, model_path)
     model = loaded.module
@@ -82,20 +84,36 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
 
     out_dir = Path(cfg.out_dir)
     run_key = {"pipeline_sha256": _sha256(model_path), "settings": vars(settings), **described}
-    actuators = track_fleet(index, tracker, model, diagnose_rows, out_dir / "state" if cfg.resume else None,
-                            run_key, common.integer(cfg.chunk_size, "chunk_size", 1))
-    result = {"pipeline": str(model_path), "actuator": prov["actuator"], "command": prov["command"],
-              "tracker": {"settings": vars(settings), **described}, "actuators": actuators,
-              "fleet": fleet_list(actuators)}
+    actuators = track_fleet(
+        index,
+        tracker,
+        model,
+        diagnose_rows,
+        out_dir / "state" if cfg.resume else None,
+        run_key,
+        common.integer(cfg.chunk_size, "chunk_size", 1),
+    )
+    result = {
+        "pipeline": str(model_path),
+        "actuator": prov["actuator"],
+        "command": prov["command"],
+        "tracker": {"settings": vars(settings), **described},
+        "actuators": actuators,
+        "fleet": fleet_list(actuators),
+    }
     common.write_json(out_dir / "track.json", result)
     common.write_json(out_dir / "fleet.json", result["fleet"])
     inspections = [i for a in actuators.values() for i in a["inspections"]]
     metrics: dict[str, Any] = {
-        "actuators": len(actuators), "inspections": len(inspections),
+        "actuators": len(actuators),
+        "inspections": len(inspections),
         "fused": sum(i["fused"] for i in inspections),
         "out_of_distribution": sum(i["out_of_distribution"] for i in inspections),
-        "damage_source": described["damage_source"], "out_dir": str(out_dir),
-        "actuator": provenance.describe(prov["actuator"]), "command": provenance.describe(prov["command"])}
+        "damage_source": described["damage_source"],
+        "out_dir": str(out_dir),
+        "actuator": provenance.describe(prov["actuator"]),
+        "command": provenance.describe(prov["command"]),
+    }
     objects: dict[str, Any] = {"track": result}
     if cfg.truth is not None:
         from ..prognostics.life_metrics import evaluate_life

@@ -35,8 +35,18 @@ from . import common
 
 log = logging.getLogger(__name__)
 
-SUMMARY = ("err_alpha_median", "err_alpha_iqr", "err_k", "err_k_noise", "err_k_missing", "fdi_mae",
-           "classifier_accuracy", "missed_fault_rate", "false_alarm_rate", "fdi_latency_us_p50")
+SUMMARY = (
+    "err_alpha_median",
+    "err_alpha_iqr",
+    "err_k",
+    "err_k_noise",
+    "err_k_missing",
+    "fdi_mae",
+    "classifier_accuracy",
+    "missed_fault_rate",
+    "false_alarm_rate",
+    "fdi_latency_us_p50",
+)
 
 
 def _instantiate(node: Any, name: str, **kwargs: Any) -> Any:
@@ -63,20 +73,33 @@ def settings_from_config(cfg: DictConfig) -> TrainSettings:
     model = _instantiate(cfg.model, "model", _convert_="all")
     refine = cfg.classifier_refine
     return TrainSettings(
-        data_dir=str(cfg.data_dir), out_dir=_out_dir(cfg),
+        data_dir=str(cfg.data_dir),
+        out_dir=_out_dir(cfg),
         splits={k: str(v) for k, v in common.plain(cfg.splits).items()},
-        limits=common.plain(cfg.limit) or {}, seed=cfg.seed, n_modes=cfg.n_modes, n_points=cfg.n_points,
-        n_hidden=cfg.n_hidden, n_layers=cfg.n_layers, n_members=cfg.n_members, model=model,
-        pod_solver=str(cfg.pod.solver), gappy=GappySettings(str(cfg.gappy.estimator), cfg.gappy.ridge),
+        limits=common.plain(cfg.limit) or {},
+        seed=cfg.seed,
+        n_modes=cfg.n_modes,
+        n_points=cfg.n_points,
+        n_hidden=cfg.n_hidden,
+        n_layers=cfg.n_layers,
+        n_members=cfg.n_members,
+        model=model,
+        pod_solver=str(cfg.pod.solver),
+        gappy=GappySettings(str(cfg.gappy.estimator), cfg.gappy.ridge),
         eval=EvalSettings(cfg.eval.noise, cfg.eval.missing, cfg.eval.ood_quantile, cfg.eval.latency_repeats),
-        monitor_fraction=cfg.monitor_fraction, max_missed_fault_rate=cfg.calibration.max_missed_fault_rate,
+        monitor_fraction=cfg.monitor_fraction,
+        max_missed_fault_rate=cfg.calibration.max_missed_fault_rate,
         classifier_labels=bool(cfg.classifier_labels),
         refine=BoundaryRefinement(refine.rounds, refine.labels_per_round, refine.candidates_per_label),
-        refine_device=str(refine.device), verdict_classifier=bool(cfg.verdict_classifier),
-        forward_check=bool(cfg.forward_check), loggers=common.plain(cfg.loggers) or [],
-        trainer=common.plain(cfg.trainer), ckpt_path=None if cfg.ckpt_path is None else str(cfg.ckpt_path),
+        refine_device=str(refine.device),
+        verdict_classifier=bool(cfg.verdict_classifier),
+        forward_check=bool(cfg.forward_check),
+        loggers=common.plain(cfg.loggers) or [],
+        trainer=common.plain(cfg.trainer),
+        ckpt_path=None if cfg.ckpt_path is None else str(cfg.ckpt_path),
         requested_provenance=common.requested_provenance(cfg),
-        explicit_provenance=frozenset(k for k in provenance.KEYS if cfg.get(k) is not None))
+        explicit_provenance=frozenset(k for k in provenance.KEYS if cfg.get(k) is not None),
+    )
 
 
 def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -94,7 +117,7 @@ def train_surrogates(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     selector = _instantiate(cfg.selector, "selector")
     make_classifier = partial(_instantiate, cfg.classifier, "classifier")
     metrics, objects = pipeline.train_surrogates(settings, selector, make_classifier)
-    if metrics:   # rank zero of a multi-device run writes
+    if metrics:  # rank zero of a multi-device run writes
         out_dir = objects["out_dir"]
         objects["bundle"].save(out_dir / "surrogates.pt")
         with atomic_open(out_dir / "predictions.pt", "wb") as fh:

@@ -41,11 +41,17 @@ from . import common, schema
 log = logging.getLogger(__name__)
 
 # config node -> the settings dataclass it instantiates (the home of its defaults)
-SETTINGS_NODES = {"calibration": FitSettings, "refit": RefitSettings, "score": ScoreSettings,
-                  "closure": ClosureSettings, "diagnostics": DiagnosticSettings, "noise": HighBandNoise}
-LOOP_KEYS = ("library", "before_after", "fd_step")   # WorkbenchSettings' own fields
+SETTINGS_NODES = {
+    "calibration": FitSettings,
+    "refit": RefitSettings,
+    "score": ScoreSettings,
+    "closure": ClosureSettings,
+    "diagnostics": DiagnosticSettings,
+    "noise": HighBandNoise,
+}
+LOOP_KEYS = ("library", "before_after", "fd_step")  # WorkbenchSettings' own fields
 MODEL_KEYS = ("fidelity", "effects", "free", "groups", "faults", "channels", "scale_bounds", "device", "threads")
-CALL_KEYS = {"resample": Workbench.load, "plot": write_report}   # keyword arguments of the calls the app makes
+CALL_KEYS = {"resample": Workbench.load, "plot": write_report}  # keyword arguments of the calls the app makes
 
 
 def code_defaults() -> dict[str, Any]:
@@ -55,10 +61,12 @@ def code_defaults() -> dict[str, Any]:
     the calls (:data:`CALL_KEYS`)."""
     loop = WorkbenchSettings()
     model = inspect.signature(Workbench).parameters
-    return {**{key: schema.node(cls()) for key, cls in SETTINGS_NODES.items()},
-            **{key: schema.plain(getattr(loop, key)) for key in LOOP_KEYS},
-            **{key: schema.plain(model[key].default) for key in MODEL_KEYS},
-            **{key: inspect.signature(call).parameters[key].default for key, call in CALL_KEYS.items()}}
+    return {
+        **{key: schema.node(cls()) for key, cls in SETTINGS_NODES.items()},
+        **{key: schema.plain(getattr(loop, key)) for key in LOOP_KEYS},
+        **{key: schema.plain(model[key].default) for key in MODEL_KEYS},
+        **{key: inspect.signature(call).parameters[key].default for key, call in CALL_KEYS.items()},
+    }
 
 
 schema.register("workbench", code_defaults())
@@ -70,9 +78,14 @@ def settings_from_config(cfg: DictConfig) -> tuple[WorkbenchSettings, HighBandNo
     given = {key: cfg[key] for key in (*SETTINGS_NODES, *LOOP_KEYS) if key in cfg}
     tree = OmegaConf.merge({key: code_defaults()[key] for key in (*SETTINGS_NODES, *LOOP_KEYS)}, given)
     nodes = {key: common.build(tree[key], key) for key in SETTINGS_NODES}
-    settings = WorkbenchSettings.of(nodes["refit"], calibration=nodes["calibration"], score=nodes["score"],
-                                    closure=nodes["closure"], diagnostics=nodes["diagnostics"],
-                                    **{key: common.plain(tree[key]) for key in LOOP_KEYS})
+    settings = WorkbenchSettings.of(
+        nodes["refit"],
+        calibration=nodes["calibration"],
+        score=nodes["score"],
+        closure=nodes["closure"],
+        diagnostics=nodes["diagnostics"],
+        **{key: common.plain(tree[key]) for key in LOOP_KEYS},
+    )
     return settings, nodes["noise"]
 
 
@@ -80,7 +93,7 @@ def build_workbench(cfg: DictConfig) -> Workbench:
     """The :class:`Workbench` of the composed config (validated; no simulation yet)."""
     params = common.actuator(cfg)
     fid = common.fidelity(cfg.fidelity)
-    faults = None if cfg.faults is None else common.fault_vector(cfg.faults)   # None: the actuator's nominal
+    faults = None if cfg.faults is None else common.fault_vector(cfg.faults)  # None: the actuator's nominal
     effects = common.effects(cfg.effects)  # validates names and values like phm-simulate
     spec = {e.name: {k: float(v) for k, v in e.values.items()} for e in effects}
     groups = {k: checks.names(v, f"groups.{k}") for k, v in checks.mapping(common.plain(cfg.groups), "groups").items()}
@@ -90,9 +103,22 @@ def build_workbench(cfg: DictConfig) -> Workbench:
     channels = checks.names(common.plain(cfg.channels), "channels")
     settings, noise = settings_from_config(cfg)
     n_threads = None if cfg.threads is None else common.integer(cfg.threads, "threads", 1)
-    name = common.choice(cfg, "actuator") or "custom"   # the report's provenance
-    return Workbench(params, fid, spec, checks.names(common.plain(cfg.free), "free"), groups, faults, channels,
-                     settings, noise, (bounds[0], bounds[1]), common.device(cfg.device), n_threads, name)
+    name = common.choice(cfg, "actuator") or "custom"  # the report's provenance
+    return Workbench(
+        params,
+        fid,
+        spec,
+        checks.names(common.plain(cfg.free), "free"),
+        groups,
+        faults,
+        channels,
+        settings,
+        noise,
+        (bounds[0], bounds[1]),
+        common.device(cfg.device),
+        n_threads,
+        name,
+    )
 
 
 def command_provenance(cfg: DictConfig, records: list[Any]) -> dict[str, Any]:
@@ -129,12 +155,17 @@ def run_workbench(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     report["command"] = command
     common.write_json(paths["report.json"], report)
     best = next((c for c in report["candidates"] if c["significant"]), None)
-    metrics = {"nrmse": report["nrmse"], "noise_floor": report["noise_floor"],
-               "best_candidate": best["effect"] if best else None,
-               "nrmse_after": report["final"]["nrmse"], "added": report["added"],
-               "closure_lead": report["closure"]["lead"] if report["closure"] else None,
-               "timing": report["timing"], "report": str(paths["report.json"]),
-               "html": str(paths.get("report.html")) if "report.html" in paths else None}
+    metrics = {
+        "nrmse": report["nrmse"],
+        "noise_floor": report["noise_floor"],
+        "best_candidate": best["effect"] if best else None,
+        "nrmse_after": report["final"]["nrmse"],
+        "added": report["added"],
+        "closure_lead": report["closure"]["lead"] if report["closure"] else None,
+        "timing": report["timing"],
+        "report": str(paths["report.json"]),
+        "html": str(paths.get("report.html")) if "report.html" in paths else None,
+    }
     return metrics, {"result": result, "report": report, "workbench": wb, "paths": paths}
 
 

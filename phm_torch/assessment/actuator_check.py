@@ -43,8 +43,16 @@ from .frequency_response import FrequencyResponse, SineSweep
 from .linear import linear_loop
 from .margins import Margins, margins
 
-FAULT_EXTREMES = {"k1": (0, 1.0), "k2": (1, 1.0), "k3": (2, 1.0), "k4": (3, 1.0), "k5": (4, 1.0),
-                  "k6": (5, 1.0), "k8=0": (7, 0.0), "k8=1": (7, 1.0)}
+FAULT_EXTREMES = {
+    "k1": (0, 1.0),
+    "k2": (1, 1.0),
+    "k3": (2, 1.0),
+    "k4": (3, 1.0),
+    "k5": (4, 1.0),
+    "k6": (5, 1.0),
+    "k8=0": (7, 0.0),
+    "k8=1": (7, 1.0),
+}
 # k7 is the phase of the eccentricity: only visible with k6 > 0, every value is a worst end.
 ECCENTRICITY_PHASES = (0.0, 0.25, 0.75)
 
@@ -72,8 +80,10 @@ class CheckRequirements:
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ValueError(f"requirements.{name} must be a finite number, got {v!r}")
         if self.max_growth <= 0 or self.max_excursion <= 1:
-            raise ValueError(f"requirements.max_growth must be > 0 and max_excursion > 1, got "
-                             f"{self.max_growth} and {self.max_excursion}")
+            raise ValueError(
+                f"requirements.max_growth must be > 0 and max_excursion > 1, got "
+                f"{self.max_growth} and {self.max_excursion}"
+            )
 
 
 def single_fault_cases(nominal: Sequence[float]) -> dict[str, list[float]]:
@@ -115,8 +125,10 @@ def default_frequencies(params: ActuatorParams, points: int = 14) -> tuple[float
     crossover up), capped at a quarter of the control rate."""
     fig = linear_figures(params)
     if not math.isfinite(fig["crossover_hz"]):
-        raise ValueError("actuator: the linearised nominal loop has no gain crossover below the control Nyquist "
-                         "frequency; pass the test frequencies explicitly")
+        raise ValueError(
+            "actuator: the linearised nominal loop has no gain crossover below the control Nyquist "
+            "frequency; pass the test frequencies explicitly"
+        )
     top = max(v for v in (fig["phase_crossover_hz"], fig["bandwidth_hz"], 2 * fig["crossover_hz"]) if math.isfinite(v))
     f_lo, f_hi = fig["crossover_hz"] / 4.0, min(2.0 * top, params.pwm_frequency / 4.0)
     return tuple(float(f"{f:.4g}") for f in np.geomspace(f_lo, f_hi, points))
@@ -138,8 +150,9 @@ def step_duration(params: ActuatorParams) -> float:
     return math.ceil(t * 100 - 1e-9) / 100
 
 
-def step_metrics(time_s: torch.Tensor, position: torch.Tensor, amplitude: float,
-                 requirements: CheckRequirements) -> dict[str, torch.Tensor]:
+def step_metrics(
+    time_s: torch.Tensor, position: torch.Tensor, amplitude: float, requirements: CheckRequirements
+) -> dict[str, torch.Tensor]:
     """Step-response figures per record.
 
     Args:
@@ -152,7 +165,7 @@ def step_metrics(time_s: torch.Tensor, position: torch.Tensor, amplitude: float,
     """
     e = (position - amplitude) / amplitude
     n = e.shape[-1]
-    q3, q4 = e[:, n // 2: 3 * n // 4], e[:, 3 * n // 4:]
+    q3, q4 = e[:, n // 2 : 3 * n // 4], e[:, 3 * n // 4 :]
     finite = torch.isfinite(position).all(-1)
     peak3 = q3.abs().amax(-1)
     peak4 = q4.abs().amax(-1)
@@ -165,9 +178,15 @@ def step_metrics(time_s: torch.Tensor, position: torch.Tensor, amplitude: float,
     settling = torch.where(settled, time_s[(last_out + 1).clamp(max=n - 1)], torch.full_like(peak4, math.nan))
     bounded = finite & (position.abs().amax(-1) <= requirements.max_excursion * amplitude)
     stable = bounded & (growth <= requirements.max_growth)
-    return {"overshoot": (position.amax(-1) / amplitude - 1.0).clamp(min=0.0), "settling_s": settling,
-            "final_error": q4.mean(-1), "residual": peak4, "growth": growth,
-            "bounded": bounded.double(), "stable": stable.double()}
+    return {
+        "overshoot": (position.amax(-1) / amplitude - 1.0).clamp(min=0.0),
+        "settling_s": settling,
+        "final_error": q4.mean(-1),
+        "residual": peak4,
+        "growth": growth,
+        "bounded": bounded.double(),
+        "stable": stable.double(),
+    }
 
 
 def tracking_metrics(sig: Signals, command: Callable, end_stop_angle: float) -> dict[str, torch.Tensor]:
@@ -176,12 +195,17 @@ def tracking_metrics(sig: Signals, command: Callable, end_stop_angle: float) -> 
     pos, cmd = sig["position"], sig["command"]
     peak = cmd.abs().amax(-1).clamp(min=1e-30)
     err = pos - cmd
-    out = {"error_rms": err.pow(2).mean(-1).sqrt() / peak, "error_max": err.abs().amax(-1) / peak,
-           "peak_current_A": sig["current"].abs().amax(-1), "peak_speed_rad_s": sig["speed"].abs().amax(-1),
-           "bounded": (torch.isfinite(pos).all(-1) & (sig["user_angle"].abs().amax(-1) < end_stop_angle)).double()}
+    out = {
+        "error_rms": err.pow(2).mean(-1).sqrt() / peak,
+        "error_max": err.abs().amax(-1) / peak,
+        "peak_current_A": sig["current"].abs().amax(-1),
+        "peak_speed_rad_s": sig["speed"].abs().amax(-1),
+        "bounded": (torch.isfinite(pos).all(-1) & (sig["user_angle"].abs().amax(-1) < end_stop_angle)).double(),
+    }
     if isinstance(command, Chirp) and command.f_start == 0 and command.f_end > 0:
-        last = [chirp_last_cycle(sig.time, cmd[b], pos[b], command.f_end, command.duration)
-                for b in range(pos.shape[0])]
+        last = [
+            chirp_last_cycle(sig.time, cmd[b], pos[b], command.f_end, command.duration) for b in range(pos.shape[0])
+        ]
         out["last_cycle_ratio"] = torch.tensor([r for r, _ in last], dtype=torch.float64)
         out["last_cycle_lag_deg"] = torch.tensor([lag for _, lag in last], dtype=torch.float64)
     return out
@@ -194,6 +218,7 @@ def _rows(names: Sequence[str], table: Mapping[str, torch.Tensor], digits: int =
 def _step_command(amplitude: float) -> Callable[[torch.Tensor], torch.Tensor]:
     def command(t: torch.Tensor) -> torch.Tensor:
         return torch.full_like(t, amplitude)
+
     return command
 
 
@@ -212,10 +237,18 @@ class ActuatorCheck:
         log: progress printer (``None``: silent).
     """
 
-    def __init__(self, params: ActuatorParams, command: Any, frequencies: Sequence[float] | None = None,
-                 sweep_amplitude: float | None = None, requirements: CheckRequirements | None = None,
-                 hf_cases: Sequence[str] | None = None, cycles: int = 4, measure_cycles: int = 2,
-                 log: Callable[[str], None] | None = None):
+    def __init__(
+        self,
+        params: ActuatorParams,
+        command: Any,
+        frequencies: Sequence[float] | None = None,
+        sweep_amplitude: float | None = None,
+        requirements: CheckRequirements | None = None,
+        hf_cases: Sequence[str] | None = None,
+        cycles: int = 4,
+        measure_cycles: int = 2,
+        log: Callable[[str], None] | None = None,
+    ):
         for attr in ("duration", "amplitude"):
             value = getattr(command, attr, None)
             if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
@@ -229,8 +262,16 @@ class ActuatorCheck:
         self.requirements = requirements or CheckRequirements()
         freqs = tuple(frequencies) if frequencies is not None else default_frequencies(params)
         amp = sweep_amplitude if sweep_amplitude is not None else default_sweep_amplitude(params, command.amplitude)
-        self.sweep = SineSweep(frequencies=freqs, amplitude=amp, cycles=cycles, measure_cycles=measure_cycles,
-                               min_duration=0.0, substeps=1, group_size=4, compile=False)
+        self.sweep = SineSweep(
+            frequencies=freqs,
+            amplitude=amp,
+            cycles=cycles,
+            measure_cycles=measure_cycles,
+            min_duration=0.0,
+            substeps=1,
+            group_size=4,
+            compile=False,
+        )
         self.step_amplitude = float(command.amplitude)
         self.step_duration = step_duration(params)
         self.log = log or (lambda msg: None)
@@ -257,8 +298,9 @@ class ActuatorCheck:
         """The whole check as a JSON-able report (see ``scripts/check_actuator.py``)."""
         req, names = self.requirements, list(self.cases)
         t0 = time.perf_counter()
-        linear = {name: linear_figures(self.params, scale) for name, scale in
-                  (("nominal", 1.0), ("k8=0", 0.5), ("k8=1", 1.5))}
+        linear = {
+            name: linear_figures(self.params, scale) for name, scale in (("nominal", 1.0), ("k8=0", 0.5), ("k8=1", 1.5))
+        }
         self.log(f"linear loop: {linear['nominal']}")
         m = self.measured_margins()
         self.log(f"LF sweep: {time.perf_counter() - t0:.1f} s")
@@ -273,41 +315,63 @@ class ActuatorCheck:
             hf_step, hf_test = self.simulate("hf", self.hf_cases)
             self.log(f"HF step and command ({len(idx)} cases): {time.perf_counter() - t0:.1f} s")
             hf_sm = step_metrics(hf_step.time, hf_step["position"], self.step_amplitude, req)
-            hf = {"step": _rows(self.hf_cases, hf_sm),
-                  "command": _rows(self.hf_cases, tracking_metrics(hf_test, self.command, self.params.end_stop_angle))}
+            hf = {
+                "step": _rows(self.hf_cases, hf_sm),
+                "command": _rows(self.hf_cases, tracking_metrics(hf_test, self.command, self.params.end_stop_angle)),
+            }
             cur = nrmse(lf_test["current"][idx], hf_test["current"])
             pos = nrmse(lf_test["position"][idx], hf_test["position"])
             step_pos = nrmse(lf_step["position"][idx], hf_step["position"])
-            agreement = {n: {"current_nrmse": round(float(cur[j]), 5), "position_nrmse": round(float(pos[j]), 6),
-                             "step_position_nrmse": round(float(step_pos[j]), 6)}
-                         for j, n in enumerate(self.hf_cases)}
+            agreement = {
+                n: {
+                    "current_nrmse": round(float(cur[j]), 5),
+                    "position_nrmse": round(float(pos[j]), 6),
+                    "step_position_nrmse": round(float(step_pos[j]), 6),
+                }
+                for j, n in enumerate(self.hf_cases)
+            }
         margins_rows = _rows(names, m.as_dict(), 3)
         table: dict[str, dict[str, Any]] = {}
-        plays = build_plant(self.params, self.faults(names)).backlash      # the faulted play of each case [rad]
+        plays = build_plant(self.params, self.faults(names)).backlash  # the faulted play of each case [rad]
         for i, n in enumerate(names):
             gm, pm = float(m.gain_margin_db[i]), float(m.phase_margin_deg[i])
             valid = float(plays[i]) <= self.sweep.amplitude
-            fr_stable = (pm > 0) and not (gm <= 0) or not valid   # nan gain margin: no phase crossover on the grid
-            row = {"k": self.cases[n], **margins_rows[n], "frequency_response_valid": valid,
-                   "lf_step_stable": bool(lf_sm["stable"][i]),
-                   "lf_command_bounded": bool(lf_tm["bounded"][i])}
+            fr_stable = (pm > 0) and not (gm <= 0) or not valid  # nan gain margin: no phase crossover on the grid
+            row = {
+                "k": self.cases[n],
+                **margins_rows[n],
+                "frequency_response_valid": valid,
+                "lf_step_stable": bool(lf_sm["stable"][i]),
+                "lf_command_bounded": bool(lf_tm["bounded"][i]),
+            }
             if n in hf.get("step", {}):
                 row["hf_step_stable"] = bool(hf["step"][n]["stable"])
                 row["hf_command_bounded"] = bool(hf["command"][n]["bounded"])
-            row["stable"] = bool(fr_stable and row["lf_step_stable"] and row["lf_command_bounded"]
-                                 and row.get("hf_step_stable", True) and row.get("hf_command_bounded", True))
+            row["stable"] = bool(
+                fr_stable
+                and row["lf_step_stable"]
+                and row["lf_command_bounded"]
+                and row.get("hf_step_stable", True)
+                and row.get("hf_command_bounded", True)
+            )
             table[n] = row
         nom = table["nominal"]
-        verdict = {"nominal_gain_margin": nom["gain_margin_db"] >= req.gain_margin_db,
-                   "nominal_phase_margin": nom["phase_margin_deg"] >= req.phase_margin_deg,
-                   "linear_gain_margin": linear["nominal"]["gain_margin_db"] >= req.gain_margin_db,
-                   "linear_phase_margin": linear["nominal"]["phase_margin_deg"] >= req.phase_margin_deg,
-                   "every_single_fault_stable": all(r["stable"] for r in table.values())}
+        verdict = {
+            "nominal_gain_margin": nom["gain_margin_db"] >= req.gain_margin_db,
+            "nominal_phase_margin": nom["phase_margin_deg"] >= req.phase_margin_deg,
+            "linear_gain_margin": linear["nominal"]["gain_margin_db"] >= req.gain_margin_db,
+            "linear_phase_margin": linear["nominal"]["phase_margin_deg"] >= req.phase_margin_deg,
+            "every_single_fault_stable": all(r["stable"] for r in table.values()),
+        }
         verdict["pass"] = all(verdict.values())
         return {
             "requirements": vars(req),
-            "sweep": {"frequencies": list(self.sweep.frequencies), "amplitude": self.sweep.amplitude,
-                      "cycles": self.sweep.cycles, "measure_cycles": self.sweep.measure_cycles},
+            "sweep": {
+                "frequencies": list(self.sweep.frequencies),
+                "amplitude": self.sweep.amplitude,
+                "cycles": self.sweep.cycles,
+                "measure_cycles": self.sweep.measure_cycles,
+            },
             "step": {"amplitude": self.step_amplitude, "duration": self.step_duration},
             "linear": {k: {n: round(v, 4) for n, v in d.items()} for k, d in linear.items()},
             "single_faults": table,
@@ -319,5 +383,13 @@ class ActuatorCheck:
         }
 
 
-__all__ = ["ActuatorCheck", "CheckRequirements", "default_frequencies", "default_sweep_amplitude",
-           "linear_figures", "single_fault_cases", "step_metrics", "tracking_metrics"]
+__all__ = [
+    "ActuatorCheck",
+    "CheckRequirements",
+    "default_frequencies",
+    "default_sweep_amplitude",
+    "linear_figures",
+    "single_fault_cases",
+    "step_metrics",
+    "tracking_metrics",
+]

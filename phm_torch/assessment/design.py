@@ -69,8 +69,15 @@ class SweepDesign:
     limit_fraction: float = 0.5
 
     def __post_init__(self) -> None:
-        for name in ("low_margin", "high_margin", "points_per_decade", "friction_factor", "backlash_factor",
-                     "stroke_fraction", "limit_fraction"):
+        for name in (
+            "low_margin",
+            "high_margin",
+            "points_per_decade",
+            "friction_factor",
+            "backlash_factor",
+            "stroke_fraction",
+            "limit_fraction",
+        ):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ValueError(f"assessment.sweep.design.{name} must be a finite number, got {v!r}")
@@ -80,8 +87,10 @@ class SweepDesign:
         if self.points_per_decade < 2:
             raise ValueError(f"assessment.sweep.design.points_per_decade must be >= 2, got {self.points_per_decade}")
         if self.friction_factor <= 0 or self.backlash_factor < 0:
-            raise ValueError(f"assessment.sweep.design.friction_factor must be > 0 and backlash_factor >= 0, "
-                             f"got {self.friction_factor} and {self.backlash_factor}")
+            raise ValueError(
+                f"assessment.sweep.design.friction_factor must be > 0 and backlash_factor >= 0, "
+                f"got {self.friction_factor} and {self.backlash_factor}"
+            )
         for name in ("stroke_fraction", "limit_fraction"):
             if not 0 < getattr(self, name) <= 1:
                 raise ValueError(f"assessment.sweep.design.{name} must be in (0, 1], got {getattr(self, name)}")
@@ -97,8 +106,10 @@ class SweepDesign:
         """
         lp = linear_loop(params)
         if np.abs(np.linalg.eigvals(lp.closed.A)).max() >= 1.0:
-            raise ValueError("assessment.sweep: auto: the linearised nominal position loop of the actuator is "
-                             "unstable; set assessment.sweep.frequencies and amplitude explicitly")
+            raise ValueError(
+                "assessment.sweep: auto: the linearised nominal position loop of the actuator is "
+                "unstable; set assessment.sweep.frequencies and amplitude explicitly"
+            )
         f_ctrl = params.pwm_frequency
         fine = np.geomspace(f_ctrl * 1e-5, 0.499 * f_ctrl, 4000)
         l_resp, t_resp = lp.response(fine)
@@ -106,10 +117,12 @@ class SweepDesign:
         out = {k: float(v[0]) for k, v in m.as_dict().items()}
         for name in ("crossover_hz", "phase_crossover_hz"):
             if not math.isfinite(out[name]):
-                raise ValueError(f"assessment.sweep: auto: the linearised nominal loop has no {name} below the "
-                                 f"control Nyquist frequency ({0.5 * f_ctrl:g} Hz); set "
-                                 f"assessment.sweep.frequencies explicitly")
-        if not math.isfinite(out["bandwidth_hz"]):      # above -3 dB up to Nyquist: the phase crossover bounds it
+                raise ValueError(
+                    f"assessment.sweep: auto: the linearised nominal loop has no {name} below the "
+                    f"control Nyquist frequency ({0.5 * f_ctrl:g} Hz); set "
+                    f"assessment.sweep.frequencies explicitly"
+                )
+        if not math.isfinite(out["bandwidth_hz"]):  # above -3 dB up to Nyquist: the phase crossover bounds it
             out["bandwidth_hz"] = out["phase_crossover_hz"]
         return out
 
@@ -120,8 +133,10 @@ class SweepDesign:
         f_lo = fig["crossover_hz"] / self.low_margin
         f_hi = min(max(fig["phase_crossover_hz"], fig["bandwidth_hz"]) * self.high_margin, params.pwm_frequency / 4)
         if f_hi <= f_lo * 1.5:
-            raise ValueError(f"assessment.sweep: auto: derived band [{f_lo:.4g}, {f_hi:.4g}] Hz is too narrow "
-                             f"(control rate {params.pwm_frequency:g} Hz); set assessment.sweep.frequencies")
+            raise ValueError(
+                f"assessment.sweep: auto: derived band [{f_lo:.4g}, {f_hi:.4g}] Hz is too narrow "
+                f"(control rate {params.pwm_frequency:g} Hz); set assessment.sweep.frequencies"
+            )
         n = math.ceil(self.points_per_decade * math.log10(f_hi / f_lo) - 1e-9) + 1
         return tuple(float(f"{f:.4g}") for f in np.geomspace(f_lo, f_hi, n))
 
@@ -130,13 +145,15 @@ class SweepDesign:
         """The bounds of the module docstring [rad, user side]: friction, backlash (lower), stroke, speed,
         current (upper), for a sweep whose highest frequency is ``f_max`` [Hz]."""
         p = params
-        gain = p.speed_gain * p.position_gain          # A per rad of user-side position error
+        gain = p.speed_gain * p.position_gain  # A per rad of user-side position error
         a_friction = max(p.static_friction, p.coulomb_friction) / (2.0 * p.back_emf_constant * gain)
-        return {"friction": self.friction_factor * a_friction,
-                "backlash": self.backlash_factor * p.backlash,
-                "stroke": self.stroke_fraction * p.end_stop_angle,
-                "speed": self.limit_fraction * p.speed_limit / (2.0 * math.pi * f_max * p.gear_ratio),
-                "current": self.limit_fraction * p.current_limit / gain}
+        return {
+            "friction": self.friction_factor * a_friction,
+            "backlash": self.backlash_factor * p.backlash,
+            "stroke": self.stroke_fraction * p.end_stop_angle,
+            "speed": self.limit_fraction * p.speed_limit / (2.0 * math.pi * f_max * p.gear_ratio),
+            "current": self.limit_fraction * p.current_limit / gain,
+        }
 
     def amplitude(self, params: ActuatorParams, f_max: float) -> float:
         """The test amplitude [rad]: the largest lower bound, checked against the smallest upper bound."""
@@ -144,14 +161,19 @@ class SweepDesign:
         lower = max(b["friction"], b["backlash"])
         upper_name = min(("stroke", "speed", "current"), key=b.__getitem__)
         if lower > b[upper_name]:
-            raise ValueError(f"assessment.sweep.amplitude: auto: the friction/backlash need >= {lower:.3g} rad but "
-                             f"the {upper_name} limit allows <= {b[upper_name]:.3g} rad; set it explicitly")
+            raise ValueError(
+                f"assessment.sweep.amplitude: auto: the friction/backlash need >= {lower:.3g} rad but "
+                f"the {upper_name} limit allows <= {b[upper_name]:.3g} rad; set it explicitly"
+            )
         return float(f"{lower:.4g}")
 
     def record(self, params: ActuatorParams) -> dict[str, Any]:
         """JSON-able account of the derivation: the linear loop figures, the grid and the amplitude bounds."""
         fig = self.loop_figures(params)
         freqs = self.frequencies(params, fig)
-        return {"linear_loop": {k: round(v, 4) for k, v in fig.items()}, "frequencies": list(freqs),
-                "amplitude": self.amplitude(params, freqs[-1]),
-                "amplitude_bounds": {k: float(f"{v:.4g}") for k, v in self.amplitude_bounds(params, freqs[-1]).items()}}
+        return {
+            "linear_loop": {k: round(v, 4) for k, v in fig.items()},
+            "frequencies": list(freqs),
+            "amplitude": self.amplitude(params, freqs[-1]),
+            "amplitude_bounds": {k: float(f"{v:.4g}") for k, v in self.amplitude_bounds(params, freqs[-1]).items()},
+        }

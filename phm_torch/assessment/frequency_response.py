@@ -64,34 +64,43 @@ class SineSweep:
     def __post_init__(self) -> None:
         if isinstance(self.frequencies, str):
             if self.frequencies != AUTO:
-                raise ValueError(f"assessment.sweep.frequencies must be a list of frequencies [Hz] or "
-                                 f"'{AUTO}', got {self.frequencies!r}")
+                raise ValueError(
+                    f"assessment.sweep.frequencies must be a list of frequencies [Hz] or "
+                    f"'{AUTO}', got {self.frequencies!r}"
+                )
         else:
             try:
                 freqs = tuple(float(f) for f in self.frequencies)
             except (TypeError, ValueError):
-                raise ValueError(f"assessment.sweep.frequencies must be a list of frequencies [Hz] or "
-                                 f"'{AUTO}', got {self.frequencies!r}") from None
+                raise ValueError(
+                    f"assessment.sweep.frequencies must be a list of frequencies [Hz] or "
+                    f"'{AUTO}', got {self.frequencies!r}"
+                ) from None
             object.__setattr__(self, "frequencies", freqs)
             if len(freqs) < 2:
                 raise ValueError(f"assessment.sweep.frequencies needs at least 2 values, got {list(freqs)}")
-            if any(not math.isfinite(f) or f <= 0 for f in freqs) or \
-                    any(b <= a for a, b in itertools.pairwise(freqs)):
+            if any(not math.isfinite(f) or f <= 0 for f in freqs) or any(b <= a for a, b in itertools.pairwise(freqs)):
                 raise ValueError(f"assessment.sweep.frequencies must be positive and increasing, got {list(freqs)}")
         if isinstance(self.amplitude, str):
             if self.amplitude != AUTO:
-                raise ValueError(f"assessment.sweep.amplitude must be a number [rad] or '{AUTO}', "
-                                 f"got {self.amplitude!r}")
-        elif isinstance(self.amplitude, bool) or not isinstance(self.amplitude, (int, float)) or \
-                not (math.isfinite(self.amplitude) and self.amplitude > 0):
+                raise ValueError(
+                    f"assessment.sweep.amplitude must be a number [rad] or '{AUTO}', got {self.amplitude!r}"
+                )
+        elif (
+            isinstance(self.amplitude, bool)
+            or not isinstance(self.amplitude, (int, float))
+            or not (math.isfinite(self.amplitude) and self.amplitude > 0)
+        ):
             raise ValueError(f"assessment.sweep.amplitude must be > 0 [rad], got {self.amplitude}")
         if not isinstance(self.design, SweepDesign):
             raise ValueError(f"assessment.sweep.design must be a SweepDesign, got {self.design!r}")
         if int(self.measure_cycles) != self.measure_cycles or self.measure_cycles < 1:
             raise ValueError(f"assessment.sweep.measure_cycles must be an integer >= 1, got {self.measure_cycles}")
         if int(self.cycles) != self.cycles or self.cycles <= self.measure_cycles:
-            raise ValueError(f"assessment.sweep.cycles must be an integer > measure_cycles "
-                             f"({self.measure_cycles}), got {self.cycles}")
+            raise ValueError(
+                f"assessment.sweep.cycles must be an integer > measure_cycles "
+                f"({self.measure_cycles}), got {self.cycles}"
+            )
         if not (math.isfinite(self.min_duration) and self.min_duration >= 0):
             raise ValueError(f"assessment.sweep.min_duration must be >= 0 [s], got {self.min_duration}")
         if int(self.substeps) != self.substeps or self.substeps < 1:
@@ -142,12 +151,13 @@ class FrequencyResponse:
         self.params = params.replace(sample_rate=params.pwm_frequency)
         self.sweep = sweep = sweep.resolve(params)
         self.device = torch.device(device)
-        self.sim = EMASimulator(self.params, "lf", substeps=int(sweep.substeps), device=self.device,
-                                compile=bool(sweep.compile))
+        self.sim = EMASimulator(
+            self.params, "lf", substeps=int(sweep.substeps), device=self.device, compile=bool(sweep.compile)
+        )
         f_ctrl = self.params.pwm_frequency
         plan = []
         for f in sweep.frequencies:
-            window = max(1, round(sweep.measure_cycles * f_ctrl / f))        # control periods measured
+            window = max(1, round(sweep.measure_cycles * f_ctrl / f))  # control periods measured
             f_true = sweep.measure_cycles * f_ctrl / window
             periods = max(math.ceil(sweep.cycles * f_ctrl / f_true), math.ceil(sweep.min_duration * f_ctrl), window)
             plan.append((f_true, window, periods))
@@ -212,5 +222,8 @@ class FrequencyResponse:
                 l_cols[i] = y_h / (r_h - y_h)
                 t_cols[i] = y_h / r_h
         order = range(len(self.plan))
-        return LoopResponse(self.frequencies.to(self.device), torch.stack([l_cols[i] for i in order], -1),
-                            torch.stack([t_cols[i] for i in order], -1))
+        return LoopResponse(
+            self.frequencies.to(self.device),
+            torch.stack([l_cols[i] for i in order], -1),
+            torch.stack([t_cols[i] for i in order], -1),
+        )

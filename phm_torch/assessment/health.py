@@ -40,18 +40,23 @@ class HealthRequirements:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ValueError(f"assessment.requirements.{name} must be a finite number, got {value!r}")
         if not 0.0 <= self.phase_margin_deg < 180.0:
-            raise ValueError(f"assessment.requirements.phase_margin_deg must be in [0, 180), "
-                             f"got {self.phase_margin_deg}")
+            raise ValueError(
+                f"assessment.requirements.phase_margin_deg must be in [0, 180), got {self.phase_margin_deg}"
+            )
         if self.gain_margin_db < 0:
             raise ValueError(f"assessment.requirements.gain_margin_db must be >= 0, got {self.gain_margin_db}")
         if not 0.0 < self.bandwidth_fraction <= 1.0:
-            raise ValueError(f"assessment.requirements.bandwidth_fraction must be in (0, 1], "
-                             f"got {self.bandwidth_fraction}")
+            raise ValueError(
+                f"assessment.requirements.bandwidth_fraction must be in (0, 1], got {self.bandwidth_fraction}"
+            )
 
     def healthy(self, m: Margins, nominal_bandwidth_hz: float) -> torch.Tensor:
         """(B,) bool: every requirement met (a nan margin, i.e. not measurable, fails)."""
-        return ((m.phase_margin_deg >= self.phase_margin_deg) & (m.gain_margin_db >= self.gain_margin_db)
-                & (m.bandwidth_hz >= self.bandwidth_fraction * nominal_bandwidth_hz))
+        return (
+            (m.phase_margin_deg >= self.phase_margin_deg)
+            & (m.gain_margin_db >= self.gain_margin_db)
+            & (m.bandwidth_hz >= self.bandwidth_fraction * nominal_bandwidth_hz)
+        )
 
 
 @dataclass
@@ -75,23 +80,29 @@ class AssessmentFunction:
     The nominal bandwidth is measured once, on first use, with an uncompiled batch of one.
     """
 
-    def __init__(self, params: ActuatorParams, sweep: SineSweep, requirements: HealthRequirements,
-                 device: str | torch.device = "cpu"):
+    def __init__(
+        self,
+        params: ActuatorParams,
+        sweep: SineSweep,
+        requirements: HealthRequirements,
+        device: str | torch.device = "cpu",
+    ):
         self.params = params
         self.sweep = sweep.resolve(params)
         self.auto = {name: isinstance(getattr(sweep, name), str) for name in ("frequencies", "amplitude")}
         self.requirements = requirements
         self.response = FrequencyResponse(params, self.sweep, device)
         self._nominal: Margins | None = None
-        self.wall_s = 0.0          # time spent simulating [s]
-        self.vectors = 0           # fault vectors assessed
+        self.wall_s = 0.0  # time spent simulating [s]
+        self.vectors = 0  # fault vectors assessed
 
     @property
     def nominal(self) -> Margins:
         """Margins of the nominal actuator (batch of one)."""
         if self._nominal is None:
-            eager = FrequencyResponse(self.params, SineSweep(**{**vars(self.sweep), "compile": False}),
-                                      self.response.device)
+            eager = FrequencyResponse(
+                self.params, SineSweep(**{**vars(self.sweep), "compile": False}), self.response.device
+            )
             k0 = torch.tensor([self.params.nominal_faults], dtype=torch.float64)
             r = eager.measure(k0)
             self._nominal = margins(r.frequencies, r.open_loop, r.closed_loop)
@@ -102,16 +113,21 @@ class AssessmentFunction:
         bw = float(self.nominal.bandwidth_hz[0])
         if not math.isfinite(bw):
             f = self.sweep.frequencies
-            raise ValueError(f"assessment.sweep.frequencies: the nominal bandwidth is not on the grid "
-                             f"[{f[0]}, {f[-1]}] Hz (got {bw}); extend the grid")
+            raise ValueError(
+                f"assessment.sweep.frequencies: the nominal bandwidth is not on the grid "
+                f"[{f[0]}, {f[-1]}] Hz (got {bw}); extend the grid"
+            )
         return bw
 
     def record(self) -> dict[str, Any]:
         """JSON-able account of the sweep actually used: frequencies [Hz], amplitude [rad], which of them
         were derived (``auto``), the derivation (linear loop figures, amplitude bounds) when any was, and
         the nominal actuator's measured margins."""
-        out: dict[str, Any] = {"frequencies": list(self.sweep.frequencies), "amplitude": self.sweep.amplitude,
-                               "auto": dict(self.auto)}
+        out: dict[str, Any] = {
+            "frequencies": list(self.sweep.frequencies),
+            "amplitude": self.sweep.amplitude,
+            "auto": dict(self.auto),
+        }
         if any(self.auto.values()):
             out["design"] = self.sweep.design.record(self.params)
         out["nominal_margins"] = {k: round(float(v[0]), 4) for k, v in self.nominal.as_dict().items()}

@@ -45,7 +45,7 @@ def isotonic_decreasing(y: np.ndarray) -> np.ndarray:
     for v in np.asarray(y, dtype=np.float64):
         means.append(float(v))
         sizes.append(1)
-        while len(means) > 1 and means[-2] < means[-1]:     # violates "non-increasing": pool the two
+        while len(means) > 1 and means[-2] < means[-1]:  # violates "non-increasing": pool the two
             m, n = means.pop(), sizes.pop()
             means[-1] = (means[-1] * sizes[-1] + m * n) / (sizes[-1] + n)
             sizes[-1] += n
@@ -84,15 +84,16 @@ class ExponentCalibrator:
 
     def expected_fraction(self, q: float) -> float:
         """H(q) of the fitted step function [-]."""
-        return float(np.sum(self.health_ * np.diff(self.edges_ ** q)))
+        return float(np.sum(self.health_ * np.diff(self.edges_**q)))
 
     def fit(self, distance: np.ndarray, healthy: np.ndarray) -> ExponentCalibrator:
         """Fit on a pilot sampled with q = 1: ``distance`` (n,) d / r in [0, 1], ``healthy`` (n,) bool."""
         d = np.asarray(distance, dtype=np.float64)
         h = np.asarray(healthy, dtype=np.float64)
         if d.ndim != 1 or d.shape != h.shape or d.size < 2:
-            raise ValueError(f"pilot: distance and healthy must be two (n,) arrays with n >= 2, got {d.shape} "
-                             f"and {h.shape}")
+            raise ValueError(
+                f"pilot: distance and healthy must be two (n,) arrays with n >= 2, got {d.shape} and {h.shape}"
+            )
         order = np.argsort(d, kind="stable")
         d, h = d[order], h[order]
         self.health_ = isotonic_decreasing(h)
@@ -104,7 +105,7 @@ class ExponentCalibrator:
             self.exponent_ = 1.0
         else:
             lo, hi = (math.log(b) for b in self.exponent_bounds)
-            if self.expected_fraction(math.exp(lo)) < self.target:       # H non-increasing in q
+            if self.expected_fraction(math.exp(lo)) < self.target:  # H non-increasing in q
                 self.exponent_, self.reached_ = math.exp(lo), False
             elif self.expected_fraction(math.exp(hi)) > self.target:
                 self.exponent_, self.reached_ = math.exp(hi), False
@@ -118,8 +119,14 @@ class ExponentCalibrator:
         return self
 
 
-def calibrate(sampler: ImportanceSampler, assess: Callable[[np.ndarray], np.ndarray], target: float,
-              tolerance: float, pilot_size: int, seed: np.random.SeedSequence) -> dict[str, Any]:
+def calibrate(
+    sampler: ImportanceSampler,
+    assess: Callable[[np.ndarray], np.ndarray],
+    target: float,
+    tolerance: float,
+    pilot_size: int,
+    seed: np.random.SeedSequence,
+) -> dict[str, Any]:
     """Draw the pilot with ``sampler`` (its distance exponent must be 1), label it with ``assess``
     (K (n, 8) -> healthy (n,) bool) and fit the exponent.
 
@@ -134,10 +141,16 @@ def calibrate(sampler: ImportanceSampler, assess: Callable[[np.ndarray], np.ndar
     healthy = np.asarray(assess(k), dtype=bool)
     cal = ExponentCalibrator(target, tolerance).fit(sampler.distance(k) / sampler.radius, healthy)
     q = cal.exponent_
-    return {"healthy_fraction_target": target, "tolerance": tolerance, "pilot_size": int(pilot_size),
-            "pilot_healthy_fraction": round(cal.pilot_fraction_, 4), "distance_exponent": q,
-            "expected_healthy_fraction": round(cal.expected_fraction_, 4), "kept_paper": bool(cal.kept_paper_),
-            "reached": bool(cal.reached_)}
+    return {
+        "healthy_fraction_target": target,
+        "tolerance": tolerance,
+        "pilot_size": int(pilot_size),
+        "pilot_healthy_fraction": round(cal.pilot_fraction_, 4),
+        "distance_exponent": q,
+        "expected_healthy_fraction": round(cal.expected_fraction_, 4),
+        "kept_paper": bool(cal.kept_paper_),
+        "reached": bool(cal.reached_),
+    }
 
 
 def paper_record() -> dict[str, Any]:
@@ -145,7 +158,9 @@ def paper_record() -> dict[str, Any]:
     return {"healthy_fraction_target": None, "distance_exponent": 1.0}
 
 
-def load_or_calibrate(data_dir: Path, fingerprint: str, run: Callable[[], dict[str, Any]]) -> tuple[dict[str, Any], float]:
+def load_or_calibrate(
+    data_dir: Path, fingerprint: str, run: Callable[[], dict[str, Any]]
+) -> tuple[dict[str, Any], float]:
     """The calibration cached in ``data_dir/sampling.json`` under ``fingerprint``, or ``run()``'s, cached.
 
     Returns:
@@ -177,8 +192,15 @@ def calibrate_spec(spec: Any, nominal: Any, assessment: Any, seed: int) -> dict[
     labeller = LabelComputer(assessment, nominal, spec.chunk_size)
 
     def assess(k: np.ndarray) -> np.ndarray:
-        return np.concatenate([labeller(k[i:i + spec.chunk_size])["healthy"]
-                               for i in range(0, len(k), spec.chunk_size)]).astype(bool)
+        return np.concatenate(
+            [labeller(k[i : i + spec.chunk_size])["healthy"] for i in range(0, len(k), spec.chunk_size)]
+        ).astype(bool)
 
-    return calibrate(sampler, assess, float(spec.healthy_fraction), float(spec.healthy_fraction_tolerance),
-                     spec.pilot_size, seed_streams(seed)["pilot"])
+    return calibrate(
+        sampler,
+        assess,
+        float(spec.healthy_fraction),
+        float(spec.healthy_fraction_tolerance),
+        spec.pilot_size,
+        seed_streams(seed)["pilot"],
+    )

@@ -44,8 +44,16 @@ class SplitDataset(Dataset):
             y' = (y - y_center) / y_scale, k' = (k - k_offset) / k_scale.
     """
 
-    def __init__(self, path: Path, split: str, channel: str, y_center: np.ndarray, y_scale: float,
-                 k_offset: np.ndarray, k_scale: np.ndarray):
+    def __init__(
+        self,
+        path: Path,
+        split: str,
+        channel: str,
+        y_center: np.ndarray,
+        y_scale: float,
+        k_offset: np.ndarray,
+        k_scale: np.ndarray,
+    ):
         self.path, self.split, self.channel = Path(path), split, channel
         self.y_center = torch.as_tensor(y_center, dtype=torch.float32)
         self.y_scale = float(y_scale)
@@ -96,9 +104,14 @@ def train_statistics(store: DatasetStore, channel: str, rows_per_read: int = 512
     ys, ks = getattr(tr, channel), tr.K[()].astype(np.float64)
     total = np.zeros(ys.shape[1])
     for start in range(0, ys.shape[0], rows_per_read):
-        total += ys[start:start + rows_per_read].astype(np.float64).sum(0)
-    return {"y_mean": total / ys.shape[0], "k_min": ks.min(0), "k_max": ks.max(0), "k_mean": ks.mean(0),
-            "k_std": ks.std(0)}
+        total += ys[start : start + rows_per_read].astype(np.float64).sum(0)
+    return {
+        "y_mean": total / ys.shape[0],
+        "k_min": ks.min(0),
+        "k_max": ks.max(0),
+        "k_mean": ks.mean(0),
+        "k_std": ks.std(0),
+    }
 
 
 def centred_rms(store: DatasetStore, channel: str, center: np.ndarray, rows_per_read: int = 512) -> float:
@@ -106,7 +119,7 @@ def centred_rms(store: DatasetStore, channel: str, center: np.ndarray, rows_per_
     ys = getattr(store.split("train"), channel)
     acc = 0.0
     for start in range(0, ys.shape[0], rows_per_read):
-        acc += float(((ys[start:start + rows_per_read].astype(np.float64) - center) ** 2).sum())
+        acc += float(((ys[start : start + rows_per_read].astype(np.float64) - center) ** 2).sum())
     return float(np.sqrt(acc / (ys.shape[0] * ys.shape[1])))
 
 
@@ -123,12 +136,26 @@ class EMADataModule(L.LightningDataModule):
         train_split, val_split: split names.
     """
 
-    def __init__(self, data_dir: str | os.PathLike, batch_size: int, channel: str = "current",
-                 y_center: str = "nominal", y_scale: str = "none", k_scaling: str = "none", seed: int = 0,
-                 num_workers: int = 0, train_split: str = "train", val_split: str = "val"):
+    def __init__(
+        self,
+        data_dir: str | os.PathLike,
+        batch_size: int,
+        channel: str = "current",
+        y_center: str = "nominal",
+        y_scale: str = "none",
+        k_scaling: str = "none",
+        seed: int = 0,
+        num_workers: int = 0,
+        train_split: str = "train",
+        val_split: str = "val",
+    ):
         super().__init__()
-        for name, value, allowed in (("channel", channel, CHANNELS), ("y_center", y_center, Y_CENTERS),
-                                     ("y_scale", y_scale, Y_SCALES), ("k_scaling", k_scaling, K_SCALINGS)):
+        for name, value, allowed in (
+            ("channel", channel, CHANNELS),
+            ("y_center", y_center, Y_CENTERS),
+            ("y_scale", y_scale, Y_SCALES),
+            ("k_scaling", k_scaling, K_SCALINGS),
+        ):
             if value not in allowed:
                 raise ValueError(f"data.{name} must be one of {list(allowed)}, got {value!r}")
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
@@ -147,8 +174,10 @@ class EMADataModule(L.LightningDataModule):
         with DatasetStore(self.data_dir) as store:
             for split in (self.train_split, self.val_split):
                 if self.channel not in store.split(split).group:  # store.split: a clear error when missing
-                    raise ValueError(f"split {split!r} holds no {self.channel!r} signals (the labels split holds "
-                                     "labels only); data.train_split / data.val_split must name signal splits")
+                    raise ValueError(
+                        f"split {split!r} holds no {self.channel!r} signals (the labels split holds "
+                        "labels only); data.train_split / data.val_split must name signal splits"
+                    )
             stats = train_statistics(store, self.channel)
             n_e = stats["y_mean"].shape[0]
             if self.y_center_mode == "nominal":
@@ -165,8 +194,12 @@ class EMADataModule(L.LightningDataModule):
         else:
             k_off, k_scale = np.zeros(8), np.ones(8)
         k_scale = np.where(k_scale > 0, k_scale, 1.0)
-        self.normalisation = {"y_center": center, "y_scale": float(scale if scale > 0 else 1.0),
-                              "k_offset": k_off, "k_scale": k_scale}
+        self.normalisation = {
+            "y_center": center,
+            "y_scale": float(scale if scale > 0 else 1.0),
+            "k_offset": k_off,
+            "k_scale": k_scale,
+        }
         path = self.data_dir / DATASET_FILE
         args = (self.channel, center, self.normalisation["y_scale"], k_off, k_scale)
         self.train_set = SplitDataset(path, self.train_split, *args)
@@ -182,10 +215,21 @@ class EMADataModule(L.LightningDataModule):
     def train_dataloader(self) -> DataLoader:
         self.setup()
         gen = torch.Generator().manual_seed(self.seed)
-        return DataLoader(self.train_set, batch_size=self.batch_size, shuffle=True, generator=gen,
-                          num_workers=self.num_workers, persistent_workers=self.num_workers > 0)
+        return DataLoader(
+            self.train_set,
+            batch_size=self.batch_size,
+            shuffle=True,
+            generator=gen,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+        )
 
     def val_dataloader(self) -> DataLoader:
         self.setup()
-        return DataLoader(self.val_set, batch_size=self.batch_size, shuffle=False, num_workers=self.num_workers,
-                          persistent_workers=self.num_workers > 0)
+        return DataLoader(
+            self.val_set,
+            batch_size=self.batch_size,
+            shuffle=False,
+            num_workers=self.num_workers,
+            persistent_workers=self.num_workers > 0,
+        )

@@ -55,9 +55,17 @@ from .store import (
 
 log = logging.getLogger(__name__)
 
-STREAMS = ("train", "val", "rul", "labels", "randomize", "pilot", "life")   # child i of SeedSequence(seed) seeds STREAMS[i]
+STREAMS = (
+    "train",
+    "val",
+    "rul",
+    "labels",
+    "randomize",
+    "pilot",
+    "life",
+)  # child i of SeedSequence(seed) seeds STREAMS[i]
 STAGES = ("all", "chunks", "merge")
-ROWS_PER_H5_CHUNK = 1    # HDF5 chunk shape (1, n_e) of the signal arrays: a random row read reads that row only
+ROWS_PER_H5_CHUNK = 1  # HDF5 chunk shape (1, n_e) of the signal arrays: a random row read reads that row only
 
 
 def seed_streams(seed: int) -> dict[str, np.random.SeedSequence]:
@@ -80,11 +88,11 @@ class Plan:
     of chunk file (``SIGNAL_CHUNKS``: signals and phi_a; ``LABEL_CHUNKS``: phi_a only)."""
 
     K: np.ndarray
-    offsets: dict[str, tuple[int, int]]   # split -> [start, stop) rows of the global list
+    offsets: dict[str, tuple[int, int]]  # split -> [start, stop) rows of the global list
     chunk_size: int
     seeds: dict[str, Any]
     layout: ChunkLayout = SIGNAL_CHUNKS
-    effect_values: np.ndarray | None = None   # (N, P) randomised effect parameters (NaN: not randomised)
+    effect_values: np.ndarray | None = None  # (N, P) randomised effect parameters (NaN: not randomised)
 
     @property
     def n_rows(self) -> int:
@@ -127,13 +135,26 @@ def make_plan(spec: DatasetSpec, nominal: Sequence[float], seed: int, distance_e
 class ChunkComputer:
     """Computes the arrays of one chunk: HF (or LF) signals on the test command, then phi_a."""
 
-    def __init__(self, params: ActuatorParams, command: Callable[[torch.Tensor], torch.Tensor], duration: float,
-                 spec: DatasetSpec, assessment: AssessmentFunction, device: str | torch.device = "cpu"):
+    def __init__(
+        self,
+        params: ActuatorParams,
+        command: Callable[[torch.Tensor], torch.Tensor],
+        duration: float,
+        spec: DatasetSpec,
+        assessment: AssessmentFunction,
+        device: str | torch.device = "cpu",
+    ):
         self.spec = spec
         self.command, self.duration = command, duration
         self.assessment = assessment
-        self.sim = EMASimulator(params, spec.fidelity, substeps=spec.substeps, device=device, compile=spec.compile,
-                                effects=randomization.simulator_effects(spec.effects, spec.randomized))
+        self.sim = EMASimulator(
+            params,
+            spec.fidelity,
+            substeps=spec.substeps,
+            device=device,
+            compile=spec.compile,
+            effects=randomization.simulator_effects(spec.effects, spec.randomized),
+        )
         self.base_values = randomization.base_values(self.sim.effects, spec.randomized)
         self.nominal = np.asarray(params.nominal_faults, dtype=np.float64)
         self.timing = {"signals_s": 0.0, "assessment_s": 0.0}
@@ -143,22 +164,28 @@ class ChunkComputer:
         parameters of its records (``Plan.effect_values``; required when the spec randomises)."""
         m = k.shape[0]
         if self.spec.randomized:
-            randomization.set_values(self.sim.effects, self.spec.randomized, effect_values, m, self.base_values,
-                                     self.spec.chunk_size)
+            randomization.set_values(
+                self.sim.effects, self.spec.randomized, effect_values, m, self.base_values, self.spec.chunk_size
+            )
         pad = np.repeat(self.nominal[None], self.spec.chunk_size - m, axis=0)
         kt = torch.as_tensor(np.concatenate([k, pad]), dtype=torch.float64)
         t0 = time.perf_counter()
         with torch.no_grad():
-            sig = self.sim.run(kt, self.command, self.duration, channels=["current", "position"],
-                               out_dtype=torch.float32)
+            sig = self.sim.run(
+                kt, self.command, self.duration, channels=["current", "position"], out_dtype=torch.float32
+            )
         t1 = time.perf_counter()
         res = self.assessment(kt)
         t2 = time.perf_counter()
         self.timing["signals_s"] += t1 - t0
         self.timing["assessment_s"] += t2 - t1
-        return {"K": k.astype(np.float64), "current": sig["current"][:m].numpy(),
-                "position": sig["position"][:m].numpy(), "healthy": res.healthy[:m].numpy().astype(np.uint8),
-                "margins": res.margins.stacked()[:m].numpy()}
+        return {
+            "K": k.astype(np.float64),
+            "current": sig["current"][:m].numpy(),
+            "position": sig["position"][:m].numpy(),
+            "healthy": res.healthy[:m].numpy().astype(np.uint8),
+            "margins": res.margins.stacked()[:m].numpy(),
+        }
 
 
 def check_writable(data_dir: Path) -> None:
@@ -186,11 +213,13 @@ def prepare_store(data_dir: Path, fingerprint: str, config: Mapping[str, Any], o
         if old == fingerprint:
             return
         if not overwrite:
-            raise ValueError(f"data_dir {str(data_dir)!r} holds a store made with a different config "
-                             f"(fingerprint {old!r}, this config {fingerprint!r}); choose another data_dir "
-                             "or pass overwrite=true to delete it and start over")
+            raise ValueError(
+                f"data_dir {str(data_dir)!r} holds a store made with a different config "
+                f"(fingerprint {old!r}, this config {fingerprint!r}); choose another data_dir "
+                "or pass overwrite=true to delete it and start over"
+            )
         log.warning("overwrite=true: deleting the store in %s", data_dir)
-        for name in (MANIFEST_FILE, DATASET_FILE, STORE_FILE, "sampling.json"):   # sampling.json: calibration.py
+        for name in (MANIFEST_FILE, DATASET_FILE, STORE_FILE, "sampling.json"):  # sampling.json: calibration.py
             (data_dir / name).unlink(missing_ok=True)
         shutil.rmtree(data_dir / CHUNK_DIR, ignore_errors=True)
     write_json(marker, {"fingerprint": fingerprint, "config": config})
@@ -201,8 +230,16 @@ def chunk_attrs(plan: Plan, chunk: int, fingerprint: str) -> dict[str, Any]:
     return {"fingerprint": fingerprint, "chunk": chunk, "rows": np.array([start, stop], dtype=np.int64)}
 
 
-def compute_chunks(data_dir: Path, plan: Plan, fingerprint: str, compute: Callable[[np.ndarray], dict],
-                   shard_index: int, shard_count: int, repair: bool, progress: bool) -> dict[str, int]:
+def compute_chunks(
+    data_dir: Path,
+    plan: Plan,
+    fingerprint: str,
+    compute: Callable[[np.ndarray], dict],
+    shard_index: int,
+    shard_count: int,
+    repair: bool,
+    progress: bool,
+) -> dict[str, int]:
     """Compute this shard's missing chunks (verifying the ones present).
 
     ``compute`` maps the K (m, 8) of a chunk to its arrays (``plan.layout.arrays``, m rows each).
@@ -230,13 +267,24 @@ def compute_chunks(data_dir: Path, plan: Plan, fingerprint: str, compute: Callab
             repaired += 1
     total = sum(plan.rows(c)[1] - plan.rows(c)[0] for c in mine)
     desc = f"shard {shard_index + 1}/{shard_count}" + ("" if layout is SIGNAL_CHUNKS else f" {layout.prefix}")
-    bar = tqdm(total=total, initial=done_rows, unit=layout.unit, desc=desc,
-               disable=not progress, file=sys.stderr, dynamic_ncols=True, smoothing=0.0)
+    bar = tqdm(
+        total=total,
+        initial=done_rows,
+        unit=layout.unit,
+        desc=desc,
+        disable=not progress,
+        file=sys.stderr,
+        dynamic_ncols=True,
+        smoothing=0.0,
+    )
     try:
         for c in todo:
             start, stop = plan.rows(c)
-            arrays = compute(plan.K[start:stop]) if plan.effect_values is None else \
-                compute(plan.K[start:stop], plan.effect_values[start:stop])
+            arrays = (
+                compute(plan.K[start:stop])
+                if plan.effect_values is None
+                else compute(plan.K[start:stop], plan.effect_values[start:stop])
+            )
             write_chunk(chunk_path(data_dir, c, layout), arrays, chunk_attrs(plan, c, fingerprint), layout.arrays)
             bar.update(stop - start)
     finally:
@@ -248,9 +296,16 @@ def missing_chunks(data_dir: Path, plan: Plan) -> list[int]:
     return [c for c in range(plan.n_chunks) if not chunk_path(data_dir, c, plan.layout).exists()]
 
 
-def merge(data_dir: Path, plan: Plan, fingerprint: str, time_grid: np.ndarray, command: np.ndarray,
-          metadata: Mapping[str, Any], manifest_extra: Mapping[str, Any],
-          labels: Plan | None = None) -> dict[str, Any]:
+def merge(
+    data_dir: Path,
+    plan: Plan,
+    fingerprint: str,
+    time_grid: np.ndarray,
+    command: np.ndarray,
+    metadata: Mapping[str, Any],
+    manifest_extra: Mapping[str, Any],
+    labels: Plan | None = None,
+) -> dict[str, Any]:
     """Verify every chunk and merge them into ``dataset.h5`` (atomically), then write ``manifest.json``.
 
     ``plan``: the signal splits; ``labels``: the plan of the labels split (``labels.make_label_plan``),
@@ -263,9 +318,11 @@ def merge(data_dir: Path, plan: Plan, fingerprint: str, time_grid: np.ndarray, c
     for p in plans:
         missing = missing_chunks(data_dir, p)
         if missing:
-            raise ValueError(f"cannot merge: {p.layout.unit} chunks {missing} of {p.n_chunks} are missing in "
-                             f"{str(data_dir / CHUNK_DIR)!r}; run the shards that own them (chunk c belongs "
-                             "to shard c % shard.count)")
+            raise ValueError(
+                f"cannot merge: {p.layout.unit} chunks {missing} of {p.n_chunks} are missing in "
+                f"{str(data_dir / CHUNK_DIR)!r}; run the shards that own them (chunk c belongs "
+                "to shard c % shard.count)"
+            )
     n_e = int(time_grid.shape[0])
     splits: dict[str, Any] = {}
     with atomic_h5(data_dir / DATASET_FILE) as f:
@@ -274,8 +331,15 @@ def merge(data_dir: Path, plan: Plan, fingerprint: str, time_grid: np.ndarray, c
         f.create_dataset("command", data=command, track_times=False)
         for p in plans:
             splits.update(_merge_plan(f, data_dir, p, fingerprint, n_e))
-    manifest = {"format": 1, "fingerprint": fingerprint, "splits": splits, "arrays": list(SIGNAL_CHUNKS.arrays),
-                "margin_names": list(MARGIN_NAMES), "signal_samples": n_e, **manifest_extra}
+    manifest = {
+        "format": 1,
+        "fingerprint": fingerprint,
+        "splits": splits,
+        "arrays": list(SIGNAL_CHUNKS.arrays),
+        "margin_names": list(MARGIN_NAMES),
+        "signal_samples": n_e,
+        **manifest_extra,
+    }
     write_json(data_dir / MANIFEST_FILE, manifest)
     return manifest
 
@@ -293,11 +357,17 @@ def _merge_plan(f: Any, data_dir: Path, plan: Plan, fingerprint: str, n_e: int) 
         n = b - a
         # row-chunked signal arrays (one record per read); an empty split cannot be chunked
         chunks = (min(ROWS_PER_H5_CHUNK, n), n_e) if n else None
-        shapes = {"K": ((n, 8), "f8", None), "current": ((n, n_e), "f4", chunks),
-                  "position": ((n, n_e), "f4", chunks), "healthy": ((n,), "u1", None),
-                  "margins": ((n, len(MARGIN_NAMES)), "f8", None)}
-        out[s] = {name: g.create_dataset(name, shapes[name][0], shapes[name][1], chunks=shapes[name][2],
-                                         track_times=False) for name in names}
+        shapes = {
+            "K": ((n, 8), "f8", None),
+            "current": ((n, n_e), "f4", chunks),
+            "position": ((n, n_e), "f4", chunks),
+            "healthy": ((n,), "u1", None),
+            "margins": ((n, len(MARGIN_NAMES)), "f8", None),
+        }
+        out[s] = {
+            name: g.create_dataset(name, shapes[name][0], shapes[name][1], chunks=shapes[name][2], track_times=False)
+            for name in names
+        }
         g.attrs["margin_names"] = list(MARGIN_NAMES)
     for c in range(plan.n_chunks):
         start, stop = plan.rows(c)
@@ -310,17 +380,23 @@ def _merge_plan(f: Any, data_dir: Path, plan: Plan, fingerprint: str, n_e: int) 
             if lo >= hi:
                 continue
             for name in names:
-                part = np.ascontiguousarray(arrays[name][lo - start:hi - start])
-                out[s][name][lo - a:hi - a] = part
+                part = np.ascontiguousarray(arrays[name][lo - start : hi - start])
+                out[s][name][lo - a : hi - a] = part
                 hashes[s][name].update(part.tobytes())
-            healthy[s] += int(arrays["healthy"][lo - start:hi - start].sum())
-            for key, v in unmeasurable_counts(arrays["margins"][lo - start:hi - start]).items():
+            healthy[s] += int(arrays["healthy"][lo - start : hi - start].sum())
+            for key, v in unmeasurable_counts(arrays["margins"][lo - start : hi - start]).items():
                 unmeasurable[s][key] += v
     # unmeasurable: rows whose margin has no crossing on the test grid (nan; labelled faulty)
-    return {s: {"count": b - a, "healthy": healthy[s],
-                "healthy_fraction": round(healthy[s] / (b - a), 4) if b > a else None,
-                "unmeasurable": unmeasurable[s], "sha256": {n: hashes[s][n].hexdigest() for n in names}}
-            for s, (a, b) in plan.offsets.items()}
+    return {
+        s: {
+            "count": b - a,
+            "healthy": healthy[s],
+            "healthy_fraction": round(healthy[s] / (b - a), 4) if b > a else None,
+            "unmeasurable": unmeasurable[s],
+            "sha256": {n: hashes[s][n].hexdigest() for n in names},
+        }
+        for s, (a, b) in plan.offsets.items()
+    }
 
 
 def is_complete(data_dir: Path, fingerprint: str) -> bool:

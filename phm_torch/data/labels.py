@@ -35,8 +35,9 @@ def label_chunk_rows(n_labels: int, label_chunk_size: int) -> int:
     return math.ceil(n_labels / n_chunks)
 
 
-def make_label_plan(spec: DatasetSpec, nominal: Sequence[float], seed: int,
-                    distance_exponent: float = 1.0) -> Plan | None:
+def make_label_plan(
+    spec: DatasetSpec, nominal: Sequence[float], seed: int, distance_exponent: float = 1.0
+) -> Plan | None:
     """The labels split's row list: K (n_labels, 8) from the full-domain importance sampler (with the
     calibrated ``distance_exponent``, as train) and the ``labels`` seed stream; None when ``spec.n_labels``
     is 0 (the store then has no labels split)."""
@@ -63,7 +64,7 @@ class LabelComputer:
         self.nominal = np.asarray(nominal, dtype=np.float64)
         self.chunk_size = int(chunk_size)
         self.timing = {"labels_s": 0.0}
-        self.vectors = 0           # fault vectors assessed, padding included
+        self.vectors = 0  # fault vectors assessed, padding included
 
     def __call__(self, k: np.ndarray) -> dict[str, np.ndarray]:
         """K (m, 8) -> {"K" (m, 8) float64, "healthy" (m,) uint8, "margins" (m, 5) float64}."""
@@ -74,5 +75,8 @@ class LabelComputer:
         res = self.assessment(kt)
         self.timing["labels_s"] += time.perf_counter() - t0
         self.vectors += kt.shape[0]
-        return {"K": k.astype(np.float64), "healthy": res.healthy[:m].numpy().astype(np.uint8),
-                "margins": res.margins.stacked()[:m].numpy()}
+        return {
+            "K": k.astype(np.float64),
+            "healthy": res.healthy[:m].numpy().astype(np.uint8),
+            "margins": res.margins.stacked()[:m].numpy(),
+        }

@@ -35,10 +35,10 @@ from ..simulator import EMASimulator
 
 log = logging.getLogger(__name__)
 
-ROUND = 16          # inspections assessed per actuator and phi_a round
-CANDIDATES = 8      # initial vectors drawn per actuator and round until one is healthy
+ROUND = 16  # inspections assessed per actuator and phi_a round
+CANDIDATES = 8  # initial vectors drawn per actuator and round until one is healthy
 MAX_DRAW_ROUNDS = 25
-REFINE_POINTS, REFINE_LEVELS = 16, 2   # EOL inside its damage-grid step: step / 16^2 resolution
+REFINE_POINTS, REFINE_LEVELS = 16, 2  # EOL inside its damage-grid step: step / 16^2 resolution
 
 
 @dataclass(frozen=True)
@@ -73,19 +73,30 @@ class LifeSpec:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
                 raise ValueError(f"dataset.life.{name} must be an integer >= {low}, got {v!r}")
-        for name, lo, hi, strict in (("every", 0.0, math.inf, True), ("initial_damage", 0.0, 1.0, True),
-                                     ("noise", 0.0, 1.0, False)):
+        for name, lo, hi, strict in (
+            ("every", 0.0, math.inf, True),
+            ("initial_damage", 0.0, 1.0, True),
+            ("noise", 0.0, 1.0, False),
+        ):
             v = getattr(self, name)
-            ok = not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and v <= hi and \
-                (v > lo if strict else v >= lo)
+            ok = (
+                not isinstance(v, bool)
+                and isinstance(v, (int, float))
+                and math.isfinite(v)
+                and v <= hi
+                and (v > lo if strict else v >= lo)
+            )
             if not ok:
-                raise ValueError(f"dataset.life.{name} must be a number in {'(' if strict else '['}{lo:g}, {hi:g}], "
-                                 f"got {v!r}")
+                raise ValueError(
+                    f"dataset.life.{name} must be a number in {'(' if strict else '['}{lo:g}, {hi:g}], got {v!r}"
+                )
         if not isinstance(self.compile, bool):
             raise ValueError(f"dataset.life.compile must be true or false, got {self.compile!r}")
         if self.after_eol >= self.max_inspections:
-            raise ValueError(f"dataset.life.after_eol ({self.after_eol}) must be below dataset.life.max_inspections "
-                             f"({self.max_inspections})")
+            raise ValueError(
+                f"dataset.life.after_eol ({self.after_eol}) must be below dataset.life.max_inspections "
+                f"({self.max_inspections})"
+            )
 
     @classmethod
     def of(cls, node: LifeSpec | Mapping[str, Any] | None) -> LifeSpec:
@@ -124,18 +135,27 @@ class LifeGenerator:
         assess_batch: the most vectors per phi_a call.
     """
 
-    def __init__(self, life: LifeSpec, damage: DamageModel, assess: Callable[[torch.Tensor], torch.Tensor],
-                 simulate: Callable[[torch.Tensor], tuple[torch.Tensor, dict[str, torch.Tensor]]],
-                 stream: np.random.SeedSequence, nominal: Sequence[float], uniform: Sequence[int] = (),
-                 assess_batch: int = 4096):
+    def __init__(
+        self,
+        life: LifeSpec,
+        damage: DamageModel,
+        assess: Callable[[torch.Tensor], torch.Tensor],
+        simulate: Callable[[torch.Tensor], tuple[torch.Tensor, dict[str, torch.Tensor]]],
+        stream: np.random.SeedSequence,
+        nominal: Sequence[float],
+        uniform: Sequence[int] = (),
+        assess_batch: int = 4096,
+    ):
         ratio = life.every / damage.step
         if abs(ratio - round(ratio)) > 1e-9:
-            raise ValueError(f"dataset.life.every ({life.every}) must be a multiple of damage.step_hours "
-                             f"({damage.step}): inspections lie on the damage grid")
+            raise ValueError(
+                f"dataset.life.every ({life.every}) must be a multiple of damage.step_hours "
+                f"({damage.step}): inspections lie on the damage grid"
+            )
         self.life, self.damage, self.assess_fn, self.simulate = life, damage, assess, simulate
         self.stream, self.uniform = stream, tuple(int(i) for i in uniform)
         self.nominal = torch.as_tensor(nominal, dtype=torch.float64)
-        self.per = round(ratio)                       # damage-grid steps per inspection interval
+        self.per = round(ratio)  # damage-grid steps per inspection interval
         self.assess_batch = int(assess_batch)
         self.timing = {"phi_a_s": 0.0, "integrate_s": 0.0, "simulate_s": 0.0, "write_s": 0.0}
         self.phi_a_vectors = 0
@@ -146,8 +166,13 @@ class LifeGenerator:
         defined (damage past 1 only happens on a path already faulty)."""
         t0 = time.perf_counter()
         k = k.clamp(0.0, 1.0)
-        out = torch.cat([self.assess_fn(k[i:i + self.assess_batch]).bool()
-                         for i in range(0, k.shape[0], self.assess_batch)]) if k.shape[0] else torch.zeros(0, dtype=bool)
+        out = (
+            torch.cat(
+                [self.assess_fn(k[i : i + self.assess_batch]).bool() for i in range(0, k.shape[0], self.assess_batch)]
+            )
+            if k.shape[0]
+            else torch.zeros(0, dtype=bool)
+        )
         self.timing["phi_a_s"] += time.perf_counter() - t0
         self.phi_a_vectors += k.shape[0]
         return out
@@ -157,7 +182,7 @@ class LifeGenerator:
         nom = self.nominal
         u = torch.rand(CANDIDATES, nom.numel(), generator=g, dtype=torch.float64)
         side = torch.where(torch.rand(CANDIDATES, nom.numel(), generator=g, dtype=torch.float64) < 0.5, -1.0, 1.0)
-        side = torch.where(nom <= 0.0, 1.0, torch.where(nom >= 1.0, -1.0, side))     # inward at a bound
+        side = torch.where(nom <= 0.0, 1.0, torch.where(nom >= 1.0, -1.0, side))  # inward at a bound
         k = (nom + side * u * self.life.initial_damage).clamp(0.0, 1.0)
         phase = torch.rand(CANDIDATES, nom.numel(), generator=g, dtype=torch.float64)
         for i in self.uniform:
@@ -172,14 +197,16 @@ class LifeGenerator:
             todo = [i for i in indices if i not in chosen]
             if not todo:
                 break
-            cands = torch.stack([self._candidates(gens[i]) for i in todo])           # (P, C, 8)
+            cands = torch.stack([self._candidates(gens[i]) for i in todo])  # (P, C, 8)
             healthy = self._assess(cands.reshape(-1, cands.shape[-1])).view(len(todo), CANDIDATES)
             for row, i in enumerate(todo):
                 if healthy[row].any():
                     chosen[i] = cands[row, int(healthy[row].double().argmax())]
         if len(chosen) < len(indices):
-            raise ValueError(f"dataset.life.initial_damage={self.life.initial_damage!r}: no healthy initial state in "
-                             f"{MAX_DRAW_ROUNDS * CANDIDATES} draws for some actuator; use a smaller value")
+            raise ValueError(
+                f"dataset.life.initial_damage={self.life.initial_damage!r}: no healthy initial state in "
+                f"{MAX_DRAW_ROUNDS * CANDIDATES} draws for some actuator; use a smaller value"
+            )
         return torch.stack([chosen[i] for i in indices])
 
     def histories(self, indices: Sequence[int]) -> list[dict[str, Any]]:
@@ -196,12 +223,12 @@ class LifeGenerator:
         eps = torch.cat([d.sample_noise(1, g, hours=span) for g in gens])
         t0 = time.perf_counter()
         grid = torch.arange(round(span / d.step) + 1, dtype=torch.float64) * d.step
-        traj = d.integrate(k_init, eps, t=grid, scale=scale)                           # (T, P, 8)
+        traj = d.integrate(k_init, eps, t=grid, scale=scale)  # (T, P, 8)
         self.timing["integrate_s"] += time.perf_counter() - t0
         n_p, cap = len(indices), life.max_inspections
         health = torch.ones(n_p, cap, dtype=torch.bool)
-        done = torch.zeros(n_p, dtype=torch.long)            # inspections assessed so far
-        first = torch.full((n_p,), -1, dtype=torch.long)     # first faulty inspection (-1: none yet)
+        done = torch.zeros(n_p, dtype=torch.long)  # inspections assessed so far
+        first = torch.full((n_p,), -1, dtype=torch.long)  # first faulty inspection (-1: none yet)
         while True:
             need = torch.where(first >= 0, (first + life.after_eol).clamp(max=cap), torch.full_like(first, cap))
             active = (done < need).nonzero().flatten().tolist()
@@ -216,50 +243,58 @@ class LifeGenerator:
             health[rows_t, cols_t] = self._assess(traj[cols_t * self.per, rows_t])
             for p in active:
                 done[p] = min(int(done[p]) + ROUND, cap)
-                if first[p] < 0 and not health[p, :done[p]].all():
-                    first[p] = int((~health[p, :done[p]]).double().argmax())
+                if first[p] < 0 and not health[p, : done[p]].all():
+                    first[p] = int((~health[p, : done[p]]).double().argmax())
         eol = self._locate_eol(traj, first, eps, scale)
         out = []
         for p, _ in enumerate(indices):
             n = int(min(int(first[p]) + life.after_eol, cap)) if first[p] >= 0 else cap
             j = torch.arange(n)
-            out.append({"k0": k_init[p], "rate_scale": float(scale[p]), "hours": (j * life.every).double(),
-                        "k": traj[j * self.per, p].clamp(0.0, 1.0), "healthy": health[p, :n],
-                        "eol_hours": float(eol[p]) if first[p] >= 0 else None})
+            out.append(
+                {
+                    "k0": k_init[p],
+                    "rate_scale": float(scale[p]),
+                    "hours": (j * life.every).double(),
+                    "k": traj[j * self.per, p].clamp(0.0, 1.0),
+                    "healthy": health[p, :n],
+                    "eol_hours": float(eol[p]) if first[p] >= 0 else None,
+                }
+            )
         return out
 
-    def _locate_eol(self, traj: torch.Tensor, first: torch.Tensor, eps: torch.Tensor, scale: torch.Tensor
-                    ) -> torch.Tensor:
+    def _locate_eol(
+        self, traj: torch.Tensor, first: torch.Tensor, eps: torch.Tensor, scale: torch.Tensor
+    ) -> torch.Tensor:
         """EOL [h] (P,) of the actuators with a faulty inspection ``first`` (others: NaN): the first faulty
         damage-grid point after the last healthy inspection, refined inside its step."""
         d = self.damage
         eol = torch.full((first.numel(),), float("nan"), dtype=torch.float64)
-        found = (first > 0).nonzero().flatten()        # first == 0 cannot happen: the start is healthy
+        found = (first > 0).nonzero().flatten()  # first == 0 cannot happen: the start is healthy
         if not found.numel():
             return eol
-        lo = (first[found] - 1) * self.per                         # last healthy inspection's grid index
-        g = first[found] * self.per                                # first faulty inspection's grid index
-        if self.per > 1:                                           # grid points between the two inspections
+        lo = (first[found] - 1) * self.per  # last healthy inspection's grid index
+        g = first[found] * self.per  # first faulty inspection's grid index
+        if self.per > 1:  # grid points between the two inspections
             offs = torch.arange(1, self.per)
-            idx = lo.unsqueeze(1) + offs                           # (n, per - 1)
+            idx = lo.unsqueeze(1) + offs  # (n, per - 1)
             bad = ~self._assess(traj[idx, found.unsqueeze(1)].reshape(-1, traj.shape[-1])).view(idx.shape)
             hit = bad.any(1)
             g = torch.where(hit, idx.gather(1, bad.double().argmax(1, keepdim=True)).squeeze(1), g)
-        start = traj[g - 1, found]                                 # last healthy grid state (n, 8)
+        start = traj[g - 1, found]  # last healthy grid state (n, 8)
         t_start = (g - 1).double() * d.step
         block = torch.clamp((t_start / d.block).floor().long(), max=eps.shape[1] - 1)
-        rate_eps, s = eps[found, block], scale[found]                  # constant over the step
+        rate_eps, s = eps[found, block], scale[found]  # constant over the step
         a_lo, width = torch.zeros(found.numel(), dtype=torch.float64), d.step
         frac = torch.arange(1, REFINE_POINTS + 1, dtype=torch.float64) / REFINE_POINTS
         for _ in range(REFINE_LEVELS):
-            tau = a_lo.unsqueeze(1) + width * frac                                      # (n, M)
-            k = self._advance(start, tau, rate_eps, s)                                  # (n, M, 8)
+            tau = a_lo.unsqueeze(1) + width * frac  # (n, M)
+            k = self._advance(start, tau, rate_eps, s)  # (n, M, 8)
             bad = ~self._assess(k.reshape(-1, k.shape[-1])).view(tau.shape)
-            bad[:, -1] |= width == d.step    # the grid point itself is faulty (RK4 vs exact: ~1e-12 apart)
+            bad[:, -1] |= width == d.step  # the grid point itself is faulty (RK4 vs exact: ~1e-12 apart)
             m = torch.where(bad.any(1), bad.double().argmax(1), torch.full_like(a_lo, REFINE_POINTS - 1).long())
             a_lo = a_lo + width * m.double() / REFINE_POINTS
             width = width / REFINE_POINTS
-        eol[found] = t_start + a_lo + width                        # the first faulty sub-point
+        eol[found] = t_start + a_lo + width  # the first faulty sub-point
         return eol
 
     def _advance(self, k: torch.Tensor, tau: torch.Tensor, rate_eps: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
@@ -268,7 +303,7 @@ class LifeGenerator:
         a, b = self.damage.transitions((s.unsqueeze(1) * tau).reshape(-1))
         n, m = tau.shape
         a, b = a.view(n, m, 8, 8), b.view(n, m, 8, 8)
-        dk = (k - self.nominal).unsqueeze(1).unsqueeze(-1)                         # (n, 1, 8, 1)
+        dk = (k - self.nominal).unsqueeze(1).unsqueeze(-1)  # (n, 1, 8, 1)
         e = (rate_eps / s.unsqueeze(1)).unsqueeze(1).unsqueeze(-1)
         return self.nominal + (a @ dk + b @ e).squeeze(-1)
 
@@ -279,8 +314,12 @@ class LifeGenerator:
         cur = signals["current"].double()
         rms = torch.linalg.vector_norm(cur, dim=-1, keepdim=True) / cur.shape[-1] ** 0.5
         noisy = cur + self.life.noise * rms * torch.randn(cur.shape, generator=g, dtype=torch.float64)
-        return {"time": time_s.double().numpy(), "command": signals["command"].double().numpy(),
-                "position": signals["position"].double().numpy(), "current": noisy.numpy()}
+        return {
+            "time": time_s.double().numpy(),
+            "command": signals["command"].double().numpy(),
+            "position": signals["position"].double().numpy(),
+            "current": noisy.numpy(),
+        }
 
 
 def settings_record(life: LifeSpec) -> dict[str, Any]:
@@ -288,9 +327,16 @@ def settings_record(life: LifeSpec) -> dict[str, Any]:
     return asdict(life)
 
 
-def simulator(params: Any, fidelity: str, substeps: int | None, effects: Mapping[str, Any], compile: bool,
-              command: Callable[[torch.Tensor], torch.Tensor], duration: float, device: str | torch.device = "cpu"
-              ) -> Callable[[torch.Tensor], tuple[torch.Tensor, dict[str, torch.Tensor]]]:
+def simulator(
+    params: Any,
+    fidelity: str,
+    substeps: int | None,
+    effects: Mapping[str, Any],
+    compile: bool,
+    command: Callable[[torch.Tensor], torch.Tensor],
+    duration: float,
+    device: str | torch.device = "cpu",
+) -> Callable[[torch.Tensor], tuple[torch.Tensor, dict[str, torch.Tensor]]]:
     """The records' simulator: fault vectors (B, 8) -> (time (n,) [s], noise-free channels (B, n))."""
     sim = EMASimulator(params, fidelity, substeps=substeps, device=device, compile=compile, effects=effects)
 

@@ -46,8 +46,14 @@ def _json_k(k: torch.Tensor) -> list[float]:
     return [round(float(v), 12) for v in k]
 
 
-def generate_life(out_dir: Path, generator: LifeGenerator, key_data: Mapping[str, Any], header: Mapping[str, Any],
-                  overwrite: bool = False, progress: bool = True) -> dict[str, Any]:
+def generate_life(
+    out_dir: Path,
+    generator: LifeGenerator,
+    key_data: Mapping[str, Any],
+    header: Mapping[str, Any],
+    overwrite: bool = False,
+    progress: bool = True,
+) -> dict[str, Any]:
     """Write (or resume) the life split into ``out_dir``; returns its metrics.
 
     ``key_data``: everything the histories depend on (the life settings except ``n_actuators``, seed, actuator,
@@ -61,13 +67,15 @@ def generate_life(out_dir: Path, generator: LifeGenerator, key_data: Mapping[str
     pending = []
     for i, name in enumerate(ids):
         adir = out_dir / name
-        for stale in adir.glob(".*.tmp"):         # a temp file of a killed run: never data
+        for stale in adir.glob(".*.tmp"):  # a temp file of a killed run: never data
             stale.unlink(missing_ok=True)
         state = _part_ok(adir / PART_FILE, key)
         if state is False:
             if not overwrite:
-                raise ValueError(f"{adir} holds an actuator made with different settings; choose another data_dir "
-                                 "or pass overwrite=true to regenerate it")
+                raise ValueError(
+                    f"{adir} holds an actuator made with different settings; choose another data_dir "
+                    "or pass overwrite=true to regenerate it"
+                )
             shutil.rmtree(adir)
         if not state:
             pending.append(i)
@@ -83,7 +91,7 @@ def generate_life(out_dir: Path, generator: LifeGenerator, key_data: Mapping[str
     size = math.ceil(len(flat) / max(math.ceil(len(flat) / life.batch), 1)) if flat else life.batch
     try:
         for start in range(0, len(flat), size):
-            part = flat[start:start + size]
+            part = flat[start : start + size]
             k = torch.stack([histories[p]["k"][j] for p, j in part])
             pad = size - k.shape[0]
             k = torch.cat([k, generator.nominal.expand(pad, -1)]) if pad else k
@@ -104,18 +112,36 @@ def generate_life(out_dir: Path, generator: LifeGenerator, key_data: Mapping[str
     truth = collect(out_dir, ids, header)
     counts = [len(a["inspections"]) for a in truth["actuators"].values()]
     censored = sum(a["eol_hours"] is None for a in truth["actuators"].values())
-    return {"dir": str(out_dir), "actuators": len(ids), "computed": len(pending), "reused": len(ids) - len(pending),
-            "records_computed": n_rec, "inspections": {"min": min(counts, default=0), "median":
-                                                       float(np.median(counts)) if counts else 0.0,
-                                                       "max": max(counts, default=0), "total": sum(counts)},
-            "censored": censored, "wall_s": round(wall, 2),
-            "s_per_actuator": round(wall / len(pending), 2) if pending else None,
-            "phi_a_vectors": generator.phi_a_vectors,
-            "timing_s": {k: round(v, 2) for k, v in generator.timing.items()}}
+    return {
+        "dir": str(out_dir),
+        "actuators": len(ids),
+        "computed": len(pending),
+        "reused": len(ids) - len(pending),
+        "records_computed": n_rec,
+        "inspections": {
+            "min": min(counts, default=0),
+            "median": float(np.median(counts)) if counts else 0.0,
+            "max": max(counts, default=0),
+            "total": sum(counts),
+        },
+        "censored": censored,
+        "wall_s": round(wall, 2),
+        "s_per_actuator": round(wall / len(pending), 2) if pending else None,
+        "phi_a_vectors": generator.phi_a_vectors,
+        "timing_s": {k: round(v, 2) for k, v in generator.timing.items()},
+    }
 
 
-def _write_actuator(out_dir: Path, name: str, index: int, history: Mapping[str, Any], generator: LifeGenerator,
-                    time_s: torch.Tensor, signals: Mapping[str, torch.Tensor], key: str) -> None:
+def _write_actuator(
+    out_dir: Path,
+    name: str,
+    index: int,
+    history: Mapping[str, Any],
+    generator: LifeGenerator,
+    time_s: torch.Tensor,
+    signals: Mapping[str, torch.Tensor],
+    key: str,
+) -> None:
     """The actuator's CSVs, then its part.json (the completion mark), each atomically."""
     t0 = time.perf_counter()
     data = generator.records(index, time_s, signals)
@@ -124,11 +150,23 @@ def _write_actuator(out_dir: Path, name: str, index: int, history: Mapping[str, 
     for j, hours in enumerate(history["hours"].tolist()):
         rel = f"{name}/{j:04d}.csv"
         write_measurement(out_dir / rel, data, index=j, columns=())
-        inspections.append({"hours": hours, "file": rel, "k_true": _json_k(history["k"][j]),
-                            "healthy": bool(history["healthy"][j]),
-                            "rul_true": None if eol is None else round(eol - hours, 6)})
-    part = {"key": key, "rate_scale": history["rate_scale"], "eol_hours": None if eol is None else round(eol, 6),
-            "censored": eol is None, "k0": _json_k(history["k0"]), "inspections": inspections}
+        inspections.append(
+            {
+                "hours": hours,
+                "file": rel,
+                "k_true": _json_k(history["k"][j]),
+                "healthy": bool(history["healthy"][j]),
+                "rul_true": None if eol is None else round(eol - hours, 6),
+            }
+        )
+    part = {
+        "key": key,
+        "rate_scale": history["rate_scale"],
+        "eol_hours": None if eol is None else round(eol, 6),
+        "censored": eol is None,
+        "k0": _json_k(history["k0"]),
+        "inspections": inspections,
+    }
     with atomic_open(out_dir / name / PART_FILE, "w") as fh:
         json.dump(part, fh, indent=1)
     generator.timing["write_s"] += time.perf_counter() - t0

@@ -32,8 +32,9 @@ class RandomizedParam:
     high: float
 
 
-def parse_randomization(randomize: Mapping[str, Any] | None, effects: Mapping[str, Mapping[str, Any]]
-                        ) -> tuple[RandomizedParam, ...]:
+def parse_randomization(
+    randomize: Mapping[str, Any] | None, effects: Mapping[str, Mapping[str, Any]]
+) -> tuple[RandomizedParam, ...]:
     """Validate ``dataset.randomize`` and flatten it (sorted by effect, then parameter).
 
     Raises:
@@ -55,11 +56,15 @@ def parse_randomization(randomize: Mapping[str, Any] | None, effects: Mapping[st
             if param not in EFFECTS[name].PARAMS:
                 raise ValueError(f"{where}: unknown parameter; known: {sorted(EFFECTS[name].PARAMS)}")
             bounds = ranges[param]
-            if (not isinstance(bounds, Sequence) or isinstance(bounds, str) or len(bounds) != 2
-                    or not all(isinstance(b, (int, float)) and not isinstance(b, bool) for b in bounds)
-                    or not bounds[0] <= bounds[1]):
+            if (
+                not isinstance(bounds, Sequence)
+                or isinstance(bounds, str)
+                or len(bounds) != 2
+                or not all(isinstance(b, (int, float)) and not isinstance(b, bool) for b in bounds)
+                or not bounds[0] <= bounds[1]
+            ):
                 raise ValueError(f"{where} must be [low, high] with low <= high, got {bounds!r}")
-            try:   # the effect's own checks (finite, minimum) on both ends
+            try:  # the effect's own checks (finite, minimum) on both ends
                 for b in bounds:
                     build_effects({name: {**effects.get(name, {}), param: float(b)}})
             except ValueError as e:
@@ -67,14 +72,17 @@ def parse_randomization(randomize: Mapping[str, Any] | None, effects: Mapping[st
             out.append(RandomizedParam(name, param, float(bounds[0]), float(bounds[1])))
         strength = EFFECTS[name].STRENGTH
         if name not in effects and not set(strength) & set(ranges):
-            raise ValueError(f"dataset.randomize.{name}: the effect is off in the training model and none of its "
-                             f"strength parameters {list(strength)} is randomised, so it stays off; randomise "
-                             f"one of them or list the effect in dataset.effects")
+            raise ValueError(
+                f"dataset.randomize.{name}: the effect is off in the training model and none of its "
+                f"strength parameters {list(strength)} is randomised, so it stays off; randomise "
+                f"one of them or list the effect in dataset.effects"
+            )
     return tuple(out)
 
 
-def simulator_effects(effects: Mapping[str, Mapping[str, Any]], randomized: Sequence[RandomizedParam]
-                      ) -> dict[str, dict[str, Any]]:
+def simulator_effects(
+    effects: Mapping[str, Mapping[str, Any]], randomized: Sequence[RandomizedParam]
+) -> dict[str, dict[str, Any]]:
     """The effect set of the signal simulator: ``effects``, plus each randomised effect not among them with
     its strength at 0 (off: the value of the records outside ``train``)."""
     out = {name: dict(values) for name, values in effects.items()}
@@ -92,11 +100,12 @@ def draw(randomized: Sequence[RandomizedParam], n: int, stream: np.random.SeedSe
     return low + (high - low) * rng.random((n, len(randomized)))
 
 
-def plan_values(randomized: Sequence[RandomizedParam], n_rows: int, train: tuple[int, int],
-                stream: np.random.SeedSequence) -> np.ndarray:
+def plan_values(
+    randomized: Sequence[RandomizedParam], n_rows: int, train: tuple[int, int], stream: np.random.SeedSequence
+) -> np.ndarray:
     """(n_rows, P) values of a plan's rows: :func:`draw` for the ``train`` rows [start, stop), NaN elsewhere."""
     values = np.full((n_rows, len(randomized)), np.nan)
-    values[train[0]:train[1]] = draw(randomized, train[1] - train[0], stream)
+    values[train[0] : train[1]] = draw(randomized, train[1] - train[0], stream)
     return values
 
 
@@ -107,8 +116,14 @@ def base_values(sim_effects: Sequence[Effect], randomized: Sequence[RandomizedPa
     return np.array([float(by_name[r.effect].values[r.param].reshape(-1)[0]) for r in randomized])
 
 
-def set_values(sim_effects: Sequence[Effect], randomized: Sequence[RandomizedParam], values: np.ndarray | None,
-               m: int, base: np.ndarray, batch: int) -> None:
+def set_values(
+    sim_effects: Sequence[Effect],
+    randomized: Sequence[RandomizedParam],
+    values: np.ndarray | None,
+    m: int,
+    base: np.ndarray,
+    batch: int,
+) -> None:
     """Give each randomised parameter of the simulator's effects its per-record values, (batch,) tensors.
 
     Args:
@@ -119,8 +134,10 @@ def set_values(sim_effects: Sequence[Effect], randomized: Sequence[RandomizedPar
         batch: the simulator batch (>= m); rows m.. (padding) get ``base``.
     """
     if values is None or values.shape != (m, len(randomized)):
-        raise ValueError(f"dataset.randomize: the chunk's effect values must be ({m}, {len(randomized)}), got "
-                         f"{None if values is None else values.shape}")
+        raise ValueError(
+            f"dataset.randomize: the chunk's effect values must be ({m}, {len(randomized)}), got "
+            f"{None if values is None else values.shape}"
+        )
     by_name = {e.name: e for e in sim_effects}
     for j, r in enumerate(randomized):
         column = np.full(batch, base[j])

@@ -61,8 +61,9 @@ class ImportanceSampler:
             raise ValueError(f"sampling.nominal must be {N_FAULTS} values in [0, 1], got {list(nominal)}")
         bad = [i for i in self.uniform if not 0 <= i < N_FAULTS]
         if bad or len(set(self.uniform)) != len(self.uniform):
-            raise ValueError(f"sampling.uniform must be distinct indices in [0, {N_FAULTS - 1}], "
-                             f"got {list(self.uniform)}")
+            raise ValueError(
+                f"sampling.uniform must be distinct indices in [0, {N_FAULTS - 1}], got {list(self.uniform)}"
+            )
         if self.n_rescaled < 1:
             raise ValueError("sampling.uniform: at least one parameter must be rescaled")
         if not (math.isfinite(self.radius) and 0.0 < self.radius <= 1.0):
@@ -80,7 +81,6 @@ class ImportanceSampler:
     def n_rescaled(self) -> int:
         """n_r, the number of rescaled parameters (the paper's exponent of the rescaling)."""
         return len(self.rescaled)
-
 
     def sample(self, n: int, seed: int | np.random.SeedSequence) -> np.ndarray:
         """n fault vectors (n, 8) float64; deterministic in ``seed``."""
@@ -105,7 +105,7 @@ class ImportanceSampler:
                 u = np.abs(2.0 * j[:, i] - 1.0) ** p
                 k[:, i] = np.where(j[:, i] >= 0.5, k0 + r * (1.0 - k0) * u, k0 - r * k0 * u)
         k = np.clip(k, 0.0, 1.0)
-        if self.distance_exponent != 1.0:                 # radial remapping d -> r (d/r) ** (1/q)
+        if self.distance_exponent != 1.0:  # radial remapping d -> r (d/r) ** (1/q)
             d = self.distance(k)
             scale = np.where(d > 0, (d / r) ** (1.0 / self.distance_exponent - 1.0), 1.0)
             cols = list(self.rescaled)

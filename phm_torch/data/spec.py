@@ -16,7 +16,7 @@ from ..physics.motor import MOTORS
 from . import randomization
 from .life import LifeSpec
 
-SPLITS = ("nominal", "train", "val", "rul")   # the signal splits (the optional labels split: labels.py)
+SPLITS = ("nominal", "train", "val", "rul")  # the signal splits (the optional labels split: labels.py)
 
 
 @dataclass(frozen=True)
@@ -84,8 +84,15 @@ class DatasetSpec:
         object.__setattr__(self, "effects", effects)
         object.__setattr__(self, "randomized", randomization.parse_randomization(self.randomize, effects))
         object.__setattr__(self, "life", LifeSpec.of(self.life))
-        for name, low in (("n_train", 1), ("n_val", 0), ("n_rul", 0), ("chunk_size", 1), ("n_labels", 0),
-                          ("label_chunk_size", 1), ("pilot_size", 16)):
+        for name, low in (
+            ("n_train", 1),
+            ("n_val", 0),
+            ("n_rul", 0),
+            ("chunk_size", 1),
+            ("n_labels", 0),
+            ("label_chunk_size", 1),
+            ("pilot_size", 16),
+        ):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < low:
                 raise ValueError(f"dataset.{name} must be an integer >= {low}, got {v!r}")

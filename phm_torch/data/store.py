@@ -43,8 +43,8 @@ from ..params import ActuatorParams
 from ..provenance import from_config
 
 ARRAYS = ("K", "current", "position", "healthy", "margins")
-LABELS = "labels"                              # the assessment-only split
-LABEL_ARRAYS = ("K", "healthy", "margins")     # its arrays (no signals)
+LABELS = "labels"  # the assessment-only split
+LABEL_ARRAYS = ("K", "healthy", "margins")  # its arrays (no signals)
 DATASET_FILE = "dataset.h5"
 MANIFEST_FILE = "manifest.json"
 STORE_FILE = "store.json"
@@ -65,7 +65,7 @@ class ChunkLayout:
     unit: str
 
 
-SIGNAL_CHUNKS = ChunkLayout("chunk", ARRAYS, "signal")        # rows of nominal|train|val|rul
+SIGNAL_CHUNKS = ChunkLayout("chunk", ARRAYS, "signal")  # rows of nominal|train|val|rul
 LABEL_CHUNKS = ChunkLayout("labels", LABEL_ARRAYS, "label")  # rows of the labels split
 
 
@@ -95,8 +95,9 @@ def chunk_path(data_dir: Path, index: int, layout: ChunkLayout = SIGNAL_CHUNKS) 
     return Path(data_dir) / CHUNK_DIR / f"{layout.prefix}_{index:05d}.h5"
 
 
-def write_chunk(path: Path, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any],
-                names: Sequence[str] = ARRAYS) -> str:
+def write_chunk(
+    path: Path, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any], names: Sequence[str] = ARRAYS
+) -> str:
     """Write the arrays ``names`` of one chunk atomically with their SHA-256; returns the digest."""
     digest = array_digest(arrays, names)
     with atomic_h5(path) as f:
@@ -126,8 +127,7 @@ def read_chunk(path: Path, expect: Mapping[str, Any], names: Sequence[str] = ARR
             raise CorruptChunkError(f"chunk {path}: attribute {key} is {attrs.get(key)!r}, expected {value!r}")
     digest = array_digest(arrays, names)
     if attrs.get("sha256") != digest:
-        raise CorruptChunkError(f"chunk {path}: checksum mismatch (stored {attrs.get('sha256')!r}, "
-                                f"content {digest!r})")
+        raise CorruptChunkError(f"chunk {path}: checksum mismatch (stored {attrs.get('sha256')!r}, content {digest!r})")
     return arrays
 
 
@@ -157,8 +157,10 @@ class SplitView:
 
     def __getattr__(self, attr: str) -> Any:  # only called for a missing attribute
         if attr in ARRAYS:
-            raise AttributeError(f"split {self.name!r} has no array {attr!r} (its arrays: "
-                                 f"{list(split_arrays(self.name))}; the labels split holds no signals)")
+            raise AttributeError(
+                f"split {self.name!r} has no array {attr!r} (its arrays: "
+                f"{list(split_arrays(self.name))}; the labels split holds no signals)"
+            )
         raise AttributeError(attr)
 
     def __len__(self) -> int:
@@ -203,8 +205,10 @@ class DatasetStore:
         self.data_dir = Path(data_dir)
         manifest, dataset = self.data_dir / MANIFEST_FILE, self.data_dir / DATASET_FILE
         if not manifest.is_file() or not dataset.is_file():
-            raise ValueError(f"data_dir {str(self.data_dir)!r} holds no finished dataset store "
-                             f"({MANIFEST_FILE} and {DATASET_FILE}); run phm-generate first")
+            raise ValueError(
+                f"data_dir {str(self.data_dir)!r} holds no finished dataset store "
+                f"({MANIFEST_FILE} and {DATASET_FILE}); run phm-generate first"
+            )
         self.manifest = read_json(manifest)
         self.file = h5py.File(dataset, "r")
         self.metadata = json.loads(self.file.attrs["metadata"])
@@ -255,13 +259,16 @@ def split_digests(group: h5py.Group, names: Sequence[str] = ARRAYS, rows_per_rea
         ds = group[name]
         h = hashlib.sha256()
         for start in range(0, ds.shape[0], rows_per_read):
-            h.update(np.ascontiguousarray(ds[start:start + rows_per_read]).tobytes())
+            h.update(np.ascontiguousarray(ds[start : start + rows_per_read]).tobytes())
         out[name] = h.hexdigest()
     return out
 
 
-def read_labelled(source: str | os.PathLike | h5py.File, splits: Sequence[str] = ("train", LABELS),
-                  optional: Sequence[str] = (LABELS,)) -> tuple[np.ndarray, np.ndarray]:
+def read_labelled(
+    source: str | os.PathLike | h5py.File,
+    splits: Sequence[str] = ("train", LABELS),
+    optional: Sequence[str] = (LABELS,),
+) -> tuple[np.ndarray, np.ndarray]:
     """Fault vectors and their phi_a labels from several splits of a store, concatenated in order.
 
     Args:
@@ -303,8 +310,9 @@ def _read_labelled(f: h5py.File, splits: Sequence[str], optional: Sequence[str])
             raise ValueError(f"{f.filename}: split {s!r} lacks K or healthy")
         k, h = np.asarray(g["K"][()], dtype=np.float64), np.asarray(g["healthy"][()])
         if k.ndim != 2 or k.shape[1] != 8 or h.shape != (k.shape[0],):
-            raise ValueError(f"{f.filename}: split {s!r}: K has shape {k.shape}, healthy {h.shape}; "
-                             "expected (n, 8) and (n,)")
+            raise ValueError(
+                f"{f.filename}: split {s!r}: K has shape {k.shape}, healthy {h.shape}; expected (n, 8) and (n,)"
+            )
         ks.append(k)
         hs.append(h.astype(bool))
     if not ks:

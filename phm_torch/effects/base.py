@@ -73,8 +73,7 @@ class Effect:
     def __init__(self, **values: Any):
         unknown = sorted(set(values) - set(self.PARAMS))
         if unknown:
-            raise ValueError(f"effects.{self.name}: unknown parameter(s) {unknown}; "
-                             f"known: {sorted(self.PARAMS)}")
+            raise ValueError(f"effects.{self.name}: unknown parameter(s) {unknown}; known: {sorted(self.PARAMS)}")
         self.values: dict[str, torch.Tensor] = {}
         for key, spec in self.PARAMS.items():
             v = values.get(key, spec.default)

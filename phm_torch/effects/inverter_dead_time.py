@@ -23,8 +23,10 @@ class InverterDeadTime(Effect):
         "current_scale": EffectParam(0.1, "A", "current I_eps over which the error changes sign", 1.0e-6, 0.1),
     }
     STRENGTH = ("dead_time",)
-    explains = ("voltage (current-loop integrator) offset against the sign of the current, "
-                "current distortion at current zero crossings")
+    explains = (
+        "voltage (current-loop integrator) offset against the sign of the current, "
+        "current distortion at current zero crossings"
+    )
 
     def voltage_error(self, ctx: EffectContext) -> torch.Tensor:
         plant = ctx.plant

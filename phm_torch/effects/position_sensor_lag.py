@@ -20,7 +20,9 @@ class PositionSensorLag(Effect):
         "time_constant": EffectParam(1.0e-3, "s", "extra LVDT time constant tau", 0.0, 1.0e-3),
     }
     STRENGTH = ("time_constant",)
-    explains = "measured position lagging the surface by tau d(theta_u)/dt; more phase lag and resonance at high frequency"
+    explains = (
+        "measured position lagging the surface by tau d(theta_u)/dt; more phase lag and resonance at high frequency"
+    )
 
     def modify_plant(self, plant: Plant) -> Plant:
         return replace(plant, lvdt_time_constant=plant.lvdt_time_constant + self.values["time_constant"])

@@ -20,8 +20,10 @@ class TransmissionCompliance(Effect):
         "compliance": EffectParam(1.0e-5, "rad/(N m)", "extra series compliance C, user side", 0.0, 1.0e-5),
     }
     STRENGTH = ("compliance",)
-    explains = ("larger gear-to-surface deflection under load and a lower output-stage resonance: "
-                "position error growing with the chirp frequency")
+    explains = (
+        "larger gear-to-surface deflection under load and a lower output-stage resonance: "
+        "position error growing with the chirp frequency"
+    )
 
     def modify_plant(self, plant: Plant) -> Plant:
         k = plant.output_stiffness

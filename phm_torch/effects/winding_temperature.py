@@ -35,6 +35,10 @@ class WindingTemperature(Effect):
         dt = self.values["temperature_rise"]
         r = 1.0 + self.values["alpha_copper"] * dt
         k = 1.0 + self.values["alpha_magnet"] * dt
-        return replace(plant, phase_resistance=plant.phase_resistance * r,
-                       back_emf_constant=plant.back_emf_constant * k,
-                       resistance=plant.resistance * _per_phase(r), emf=plant.emf * _per_phase(k))
+        return replace(
+            plant,
+            phase_resistance=plant.phase_resistance * r,
+            back_emf_constant=plant.back_emf_constant * k,
+            resistance=plant.resistance * _per_phase(r),
+            emf=plant.emf * _per_phase(k),
+        )

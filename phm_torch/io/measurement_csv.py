@@ -27,8 +27,18 @@ import numpy as np
 from .atomic import atomic_open
 
 REQUIRED = ("time", "command", "position", "current")
-UNITS = {"time": "s", "command": "rad", "position": "rad", "current": "A", "ia": "A", "ib": "A", "ic": "A",
-         "speed": "rad/s", "motor_angle": "rad", "user_angle": "rad"}
+UNITS = {
+    "time": "s",
+    "command": "rad",
+    "position": "rad",
+    "current": "A",
+    "ia": "A",
+    "ib": "A",
+    "ic": "A",
+    "speed": "rad/s",
+    "motor_angle": "rad",
+    "user_angle": "rad",
+}
 
 # Relative tolerances: a time step may differ from the median step by this fraction of it (timestamps
 # written with a few decimals are quantised); the sample rate may differ from the expected one by this.
@@ -102,8 +112,10 @@ def _collect(data: Any, index: int | None) -> dict[str, np.ndarray]:
         if arr.ndim == 2:
             if index is None:
                 if arr.shape[0] != 1:
-                    raise ValueError(f"write_measurement: column {name!r} holds a batch of {arr.shape[0]} runs; "
-                                     "pass index= to choose one")
+                    raise ValueError(
+                        f"write_measurement: column {name!r} holds a batch of {arr.shape[0]} runs; "
+                        "pass index= to choose one"
+                    )
                 arr = arr[0]
             else:
                 if not -arr.shape[0] <= index < arr.shape[0]:
@@ -115,8 +127,9 @@ def _collect(data: Any, index: int | None) -> dict[str, np.ndarray]:
     return cols
 
 
-def write_measurement(path: str | os.PathLike, data: Any, index: int | None = None,
-                      columns: Iterable[str] | None = None) -> Path:
+def write_measurement(
+    path: str | os.PathLike, data: Any, index: int | None = None, columns: Iterable[str] | None = None
+) -> Path:
     """Write one acquisition to a measurement CSV, atomically (temporary file + ``os.replace``).
 
     Args:
@@ -165,8 +178,13 @@ def write_measurement(path: str | os.PathLike, data: Any, index: int | None = No
 
 
 # ---- reading --------------------------------------------------------------------------------------
-def read_measurement(path: str | os.PathLike, expected_rate: float | None = None, resample: bool = False,
-                     missing_ok: Iterable[str] = (), optional: Iterable[str] = ()) -> Measurement:
+def read_measurement(
+    path: str | os.PathLike,
+    expected_rate: float | None = None,
+    resample: bool = False,
+    missing_ok: Iterable[str] = (),
+    optional: Iterable[str] = (),
+) -> Measurement:
     """Read and validate a measurement CSV.
 
     Args:
@@ -235,14 +253,18 @@ def read_measurement(path: str | os.PathLike, expected_rate: float | None = None
     bad = np.flatnonzero(step <= 0)
     if bad.size:
         line = int(bad[0]) + 3
-        raise ValueError(f"{path}: column 'time' is not strictly increasing at line {line} "
-                         f"({time[bad[0]]!r} -> {time[bad[0] + 1]!r})")
+        raise ValueError(
+            f"{path}: column 'time' is not strictly increasing at line {line} "
+            f"({time[bad[0]]!r} -> {time[bad[0] + 1]!r})"
+        )
     median = float(np.median(step))
     bad = np.flatnonzero(np.abs(step - median) > TIME_STEP_TOLERANCE * median)
     if bad.size:
         line = int(bad[0]) + 3
-        raise ValueError(f"{path}: column 'time' is not uniformly sampled at line {line}: step "
-                         f"{step[bad[0]]:.6g} s, median step {median:.6g} s")
+        raise ValueError(
+            f"{path}: column 'time' is not uniformly sampled at line {line}: step "
+            f"{step[bad[0]]:.6g} s, median step {median:.6g} s"
+        )
     rate = (len(time) - 1) / float(time[-1] - time[0])
 
     source_rate = None
@@ -251,18 +273,23 @@ def read_measurement(path: str | os.PathLike, expected_rate: float | None = None
             raise ValueError(f"expected_rate must be a positive number, got {expected_rate!r}")
         if abs(rate - expected_rate) > RATE_TOLERANCE * expected_rate:
             if not resample:
-                raise ValueError(f"{path}: sample rate {rate:.6g} Hz (from column 'time') differs from the "
-                                 f"expected {expected_rate:.6g} Hz; pass resample=True to interpolate")
+                raise ValueError(
+                    f"{path}: sample rate {rate:.6g} Hz (from column 'time') differs from the "
+                    f"expected {expected_rate:.6g} Hz; pass resample=True to interpolate"
+                )
             source_rate = rate
             n_new = math.floor((time[-1] - time[0]) * expected_rate * (1 + 1e-12)) + 1
             if n_new < 2:
-                raise ValueError(f"{path}: resampling {time[-1] - time[0]:.6g} s at {expected_rate:.6g} Hz "
-                                 "gives fewer than 2 samples")
+                raise ValueError(
+                    f"{path}: resampling {time[-1] - time[0]:.6g} s at {expected_rate:.6g} Hz "
+                    "gives fewer than 2 samples"
+                )
             new_time = time[0] + np.arange(n_new) / expected_rate
             cols = {name: np.interp(new_time, time, values) for name, values in cols.items() if name != "time"}
             cols["time"] = new_time
             rate = float(expected_rate)
 
     extra = {name: cols[name] for name in header if name not in REQUIRED}
-    return Measurement(cols["time"], cols["command"], cols["position"], cols["current"], extra,
-                       float(rate), source_rate)
+    return Measurement(
+        cols["time"], cols["command"], cols["position"], cols["current"], extra, float(rate), source_rate
+    )

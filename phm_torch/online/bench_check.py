@@ -31,7 +31,7 @@ from .loaded import as_loaded
 # the bench's healthy record may read this many interval half-widths from nominal (any damage component);
 # between the harmless differences (<= 8) and the harmful ones (>= 17) of the measurement above
 BENCH_TOLERANCE = 12.0
-PHASE = FAULT_NAMES.index("eccentricity_phase")       # a phase, not a damage: undefined at zero eccentricity
+PHASE = FAULT_NAMES.index("eccentricity_phase")  # a phase, not a damage: undefined at zero eccentricity
 
 
 @dataclass(frozen=True)
@@ -49,16 +49,23 @@ class BenchCheck:
 
     def message(self) -> str:
         """The one-line reason a user reads."""
-        return (f"the bench's healthy baseline record reads {self.worst} = "
-                f"{self.k_hat[FAULT_NAMES.index(self.worst)]:.3f}, {self.max_deviation:.1f} interval half-widths "
-                f"from nominal (tolerance {BENCH_TOLERANCE:g}){'' if self.healthy else ' and faulty'}: this bench "
-                "differs from the training model more than a baseline can correct; run phm-workbench on it")
+        return (
+            f"the bench's healthy baseline record reads {self.worst} = "
+            f"{self.k_hat[FAULT_NAMES.index(self.worst)]:.3f}, {self.max_deviation:.1f} interval half-widths "
+            f"from nominal (tolerance {BENCH_TOLERANCE:g}){'' if self.healthy else ' and faulty'}: this bench "
+            "differs from the training model more than a baseline can correct; run phm-workbench on it"
+        )
 
     def as_dict(self) -> dict[str, Any]:
-        return {"k_hat": dict(zip(FAULT_NAMES, self.k_hat)),
-                "deviation_half_widths": {n: d for n, d in zip(FAULT_NAMES, self.deviation) if not math.isnan(d)},
-                "max_deviation_half_widths": self.max_deviation, "worst": self.worst, "healthy": self.healthy,
-                "tolerance": BENCH_TOLERANCE, "ok": self.ok}
+        return {
+            "k_hat": dict(zip(FAULT_NAMES, self.k_hat)),
+            "deviation_half_widths": {n: d for n, d in zip(FAULT_NAMES, self.deviation) if not math.isnan(d)},
+            "max_deviation_half_widths": self.max_deviation,
+            "worst": self.worst,
+            "healthy": self.healthy,
+            "tolerance": BENCH_TOLERANCE,
+            "ok": self.ok,
+        }
 
 
 @torch.no_grad()
@@ -75,9 +82,15 @@ def check_bench(model: Any, bench_nominal: torch.Tensor) -> BenchCheck | None:
     if not bool(torch.isfinite(half).all()):
         return None
     nominal = model.nominal.double()
-    deviation = ((k_hat[0].double() - nominal).abs() / half.clamp(min=1e-6))
+    deviation = (k_hat[0].double() - nominal).abs() / half.clamp(min=1e-6)
     deviation[PHASE] = float("nan")
     worst = int(torch.nan_to_num(deviation, nan=-1.0).argmax())
     largest = float(deviation[worst])
-    return BenchCheck(k_hat[0].double().tolist(), deviation.tolist(), largest, FAULT_NAMES[worst],
-                      bool(score[0] > 0), largest <= BENCH_TOLERANCE)
+    return BenchCheck(
+        k_hat[0].double().tolist(),
+        deviation.tolist(),
+        largest,
+        FAULT_NAMES[worst],
+        bool(score[0] > 0),
+        largest <= BENCH_TOLERANCE,
+    )

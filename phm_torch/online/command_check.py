@@ -12,8 +12,8 @@ from dataclasses import dataclass
 
 import torch
 
-NRMSE_TOLERANCE = 0.05     # RMS of (recorded - expected command) over the expected command's range
-MAX_LAG_S = 0.05           # the trigger offsets searched for the message [s]
+NRMSE_TOLERANCE = 0.05  # RMS of (recorded - expected command) over the expected command's range
+MAX_LAG_S = 0.05  # the trigger offsets searched for the message [s]
 
 
 @dataclass(frozen=True)
@@ -35,12 +35,15 @@ class CommandCheck:
 
     def reason(self) -> str:
         """One line for the user, e.g. ``command differs from the pipeline's test command: NRMSE 0.31, ...``."""
-        return (f"command differs from the pipeline's test command: NRMSE {self.nrmse:.2f}, best lag "
-                f"{1000 * self.best_lag_s:.1f} ms, gain {self.gain:.2f}")
+        return (
+            f"command differs from the pipeline's test command: NRMSE {self.nrmse:.2f}, best lag "
+            f"{1000 * self.best_lag_s:.1f} ms, gain {self.gain:.2f}"
+        )
 
 
-def check_command(recorded: torch.Tensor, expected: torch.Tensor, sample_rate: float,
-                  tolerance: float = NRMSE_TOLERANCE) -> CommandCheck:
+def check_command(
+    recorded: torch.Tensor, expected: torch.Tensor, sample_rate: float, tolerance: float = NRMSE_TOLERANCE
+) -> CommandCheck:
     """Compare a record's command column with the pipeline's test command on the same time grid.
 
     Args:
@@ -57,15 +60,15 @@ def check_command(recorded: torch.Tensor, expected: torch.Tensor, sample_rate: f
     if not span > 0:
         raise ValueError("command: the pipeline's test command is constant; nothing to check the record against")
     nrmse = float((recorded - expected).pow(2).mean().sqrt()) / span
-    if nrmse <= tolerance:   # the search below only explains a mismatch
+    if nrmse <= tolerance:  # the search below only explains a mismatch
         gain = float((recorded * expected).sum() / expected.pow(2).sum())
         return CommandCheck(nrmse, 0.0, gain, True)
     n = recorded.numel()
     max_lag = min(round(MAX_LAG_S * sample_rate), n // 4)
     best = (math.inf, 0, 1.0)
-    for lag in range(-max_lag, max_lag + 1):   # recorded[i] = expected[i - lag]: a record that starts late
-        r = recorded[max(lag, 0):n + min(lag, 0)]
-        e = expected[max(-lag, 0):n - max(lag, 0)]
+    for lag in range(-max_lag, max_lag + 1):  # recorded[i] = expected[i - lag]: a record that starts late
+        r = recorded[max(lag, 0) : n + min(lag, 0)]
+        e = expected[max(-lag, 0) : n - max(lag, 0)]
         gain = float((r * e).sum() / e.pow(2).sum().clamp_min(1e-300))
         err = float((r - gain * e).pow(2).mean())
         if err < best[0]:

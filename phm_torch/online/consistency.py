@@ -42,8 +42,15 @@ class ConsistencyCheck(nn.Module):
         noise_levels: (n_levels,) increasing relative noise levels of the threshold columns; None: one level, 0.
     """
 
-    def __init__(self, model: ForwardSurrogate, mean: torch.Tensor, modes: torch.Tensor, indices: torch.Tensor,
-                 thresholds: torch.Tensor | None = None, noise_levels: torch.Tensor | None = None):
+    def __init__(
+        self,
+        model: ForwardSurrogate,
+        mean: torch.Tensor,
+        modes: torch.Tensor,
+        indices: torch.Tensor,
+        thresholds: torch.Tensor | None = None,
+        noise_levels: torch.Tensor | None = None,
+    ):
         super().__init__()
         dtype = modes.dtype
         self.model = model
@@ -64,13 +71,27 @@ class ConsistencyCheck(nn.Module):
     def set_thresholds(self, thresholds: torch.Tensor | None, noise_levels: torch.Tensor | None) -> None:
         """Set the (2, n_levels) thresholds at the increasing ``noise_levels`` (n_levels,) (None: uncalibrated)."""
         dtype = self.modes_rows.dtype
-        t = torch.full((2, 1), math.inf, dtype=dtype) if thresholds is None else torch.as_tensor(thresholds, dtype=dtype)
-        levels = torch.zeros(t.shape[-1], dtype=dtype) if noise_levels is None else \
-            torch.as_tensor(noise_levels, dtype=dtype).reshape(-1)
-        if t.dim() != 2 or t.shape[0] != 2 or levels.numel() != t.shape[1] or bool((levels[1:] <= levels[:-1]).any()) \
-                or not bool((t > 0).all()):
-            raise ValueError(f"consistency: thresholds must be (2, n_levels) > 0 at n_levels increasing noise levels, "
-                             f"got {tuple(t.shape)} at {levels.tolist()}")
+        t = (
+            torch.full((2, 1), math.inf, dtype=dtype)
+            if thresholds is None
+            else torch.as_tensor(thresholds, dtype=dtype)
+        )
+        levels = (
+            torch.zeros(t.shape[-1], dtype=dtype)
+            if noise_levels is None
+            else torch.as_tensor(noise_levels, dtype=dtype).reshape(-1)
+        )
+        if (
+            t.dim() != 2
+            or t.shape[0] != 2
+            or levels.numel() != t.shape[1]
+            or bool((levels[1:] <= levels[:-1]).any())
+            or not bool((t > 0).all())
+        ):
+            raise ValueError(
+                f"consistency: thresholds must be (2, n_levels) > 0 at n_levels increasing noise levels, "
+                f"got {tuple(t.shape)} at {levels.tolist()}"
+            )
         self.register_buffer("thresholds", t.contiguous())
         self.register_buffer("noise_levels", levels)
 
@@ -80,10 +101,11 @@ class ConsistencyCheck(nn.Module):
         alpha = self.model(k_hat)
         if x.shape[1] == self.n_full:
             # a strided slice, not index_select on dim 1: the same rows (arange(0, n, STRIDE)) at ~2/3 of the cost
-            y = x[:, ::self.stride].to(self.mean_rows.dtype)
+            y = x[:, :: self.stride].to(self.mean_rows.dtype)
             return consistency_statistic(y, self.mean_rows, self.modes_rows, alpha, noise, self.floors[0])
-        return consistency_statistic(x.to(self.mean_hat.dtype), self.mean_hat, self.modes_hat, alpha, noise,
-                                     self.floors[1])
+        return consistency_statistic(
+            x.to(self.mean_hat.dtype), self.mean_hat, self.modes_hat, alpha, noise, self.floors[1]
+        )
 
     def threshold(self, noise: torch.Tensor, full: bool) -> torch.Tensor:
         """Threshold (B,) at relative noise levels (B,), linear between the calibrated levels."""
@@ -105,8 +127,9 @@ class ConsistencyCheck(nn.Module):
 
 
 @torch.no_grad()
-def consistency_statistics(pipeline: nn.Module, x: torch.Tensor, block_rows: int = 1024
-                           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+def consistency_statistics(
+    pipeline: nn.Module, x: torch.Tensor, block_rows: int = 1024
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """For full records x (N, n_full) [A]: the full-record statistic (N,), the selected-sample statistic (N,) (the
     record's estimated noise told), that noise (N,) and the pipeline's OOD flag (N,) bool, in row blocks."""
     check: ConsistencyCheck = pipeline.consistency_check
@@ -116,14 +139,16 @@ def consistency_statistics(pipeline: nn.Module, x: torch.Tensor, block_rows: int
         k_hat, _, _, ood, _ = pipeline(block)
         level = check.record_noise(block, None)
         samples = block.index_select(1, check.indices)
-        for store, value in zip(out, (check.statistic(block, k_hat, level), check.statistic(samples, k_hat, level),
-                                      level, ood)):
+        for store, value in zip(
+            out, (check.statistic(block, k_hat, level), check.statistic(samples, k_hat, level), level, ood)
+        ):
             store.append(value)
-    return tuple(torch.cat(v) for v in out)     # type: ignore[return-value]
+    return tuple(torch.cat(v) for v in out)  # type: ignore[return-value]
 
 
-def calibrate_consistency(pipeline: nn.Module, clean: torch.Tensor, levels: Sequence[float], seed: int,
-                          quantile: float = DEFAULT_QUANTILE) -> dict[str, list]:
+def calibrate_consistency(
+    pipeline: nn.Module, clean: torch.Tensor, levels: Sequence[float], seed: int, quantile: float = DEFAULT_QUANTILE
+) -> dict[str, list]:
     """Calibrate the pipeline's consistency thresholds in place on held-out noise-free records.
 
     Args:
@@ -140,10 +165,12 @@ def calibrate_consistency(pipeline: nn.Module, clean: torch.Tensor, levels: Sequ
         raise ValueError(f"consistency.quantile must be in (0, 1), got {quantile!r}")
     if not levels or any(b <= a for a, b in itertools.pairwise(levels)):
         raise ValueError(f"consistency: noise levels must be increasing, got {list(levels)}")
-    pipeline.consistency_check.set_thresholds(None, None)        # statistics unflagged by the check itself
+    pipeline.consistency_check.set_thresholds(None, None)  # statistics unflagged by the check itself
     rows: list[list[float]] = [[], []]
     for i, level in enumerate(levels):
-        noisy = add_noise(clean, rms(clean), level, torch.Generator().manual_seed(seed + 20 + i)) if level > 0 else clean
+        noisy = (
+            add_noise(clean, rms(clean), level, torch.Generator().manual_seed(seed + 20 + i)) if level > 0 else clean
+        )
         full, samples, _, ood = consistency_statistics(pipeline, noisy)
         keep = ~ood
         if int(keep.sum()) < 1:

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-HUM_FREQUENCY = 400.0      # [Hz] the aircraft mains frequency (and its hum on a bench's probes)
+HUM_FREQUENCY = 400.0  # [Hz] the aircraft mains frequency (and its hum on a bench's probes)
 
 
 @dataclass(frozen=True)
@@ -33,8 +33,9 @@ class Record:
     current: torch.Tensor
 
 
-CorruptionFn = Callable[[torch.Tensor, "torch.Tensor | None", "torch.Tensor | None", torch.Tensor, float,
-                         np.random.Generator], Record]
+CorruptionFn = Callable[
+    [torch.Tensor, "torch.Tensor | None", "torch.Tensor | None", torch.Tensor, float, np.random.Generator], Record
+]
 
 
 @dataclass(frozen=True)
@@ -50,14 +51,17 @@ class Corruption:
 CORRUPTIONS: dict[str, Corruption] = {}
 
 
-def register(name: str, severities: tuple[float, ...], unit: str, description: str
-             ) -> Callable[[CorruptionFn], CorruptionFn]:
+def register(
+    name: str, severities: tuple[float, ...], unit: str, description: str
+) -> Callable[[CorruptionFn], CorruptionFn]:
     """Decorator adding a corruption to ``CORRUPTIONS`` under ``name``."""
+
     def add(fn: CorruptionFn) -> CorruptionFn:
         if name in CORRUPTIONS:
             raise ValueError(f"corruption {name!r} is registered twice")
         CORRUPTIONS[name] = Corruption(fn, tuple(severities), unit, description)
         return fn
+
     return add
 
 
@@ -145,22 +149,30 @@ def stuck(time, command, position, current, severity, rng):
     return Record(time, command, position, out)
 
 
-@register("trigger_offset", (0.0005, 0.002, 0.005, 0.01, 0.02), "delay [s]",
-          "the acquisition starts late: every channel, command included, lags the test command")
+@register(
+    "trigger_offset",
+    (0.0005, 0.002, 0.005, 0.01, 0.02),
+    "delay [s]",
+    "the acquisition starts late: every channel, command included, lags the test command",
+)
 def trigger_offset(time, command, position, current, severity, rng):
     lag = round(severity * _rate(time))
     return Record(time, _delay(command, lag), _delay(position, lag), _delay(current, lag))
 
 
-@register("current_lag", (0.0005, 0.002, 0.005, 0.01, 0.02), "delay [s]",
-          "the current channel alone lags (another logger, a filter's delay)")
+@register(
+    "current_lag",
+    (0.0005, 0.002, 0.005, 0.01, 0.02),
+    "delay [s]",
+    "the current channel alone lags (another logger, a filter's delay)",
+)
 def current_lag(time, command, position, current, severity, rng):
     return Record(time, command, position, _delay(current, round(severity * _rate(time))))
 
 
 @register("time_reversal", (1.0,), "-", "every channel written backwards")
 def time_reversal(time, command, position, current, severity, rng):
-    flip = (lambda x: None if x is None else x.flip(0))
+    flip = lambda x: None if x is None else x.flip(0)
     return Record(time, flip(command), flip(position), current.flip(0))
 
 
@@ -171,15 +183,21 @@ def current_reversal(time, command, position, current, severity, rng):
 
 @register("white_noise", (0.05, 0.1, 0.2, 0.4), "noise std / RMS current", "white measurement noise")
 def white_noise(time, command, position, current, severity, rng):
-    return Record(time, command, position, current + severity * _rms(current) * _noise(current.numel(), rng, current.dtype))
+    return Record(
+        time, command, position, current + severity * _rms(current) * _noise(current.numel(), rng, current.dtype)
+    )
 
 
-@register("coloured_noise", (0.05, 0.1, 0.2, 0.4), "noise std / RMS current",
-          "noise low-passed at 1/100 of the sample rate (pickup, drifting references)")
+@register(
+    "coloured_noise",
+    (0.05, 0.1, 0.2, 0.4),
+    "noise std / RMS current",
+    "noise low-passed at 1/100 of the sample rate (pickup, drifting references)",
+)
 def coloured_noise(time, command, position, current, severity, rng):
     n = current.numel()
     white = _noise(n + 400, rng, torch.float64)
-    a = math.exp(-2.0 * math.pi / 100.0)                      # one-pole low-pass, corner at f_s / 100
+    a = math.exp(-2.0 * math.pi / 100.0)  # one-pole low-pass, corner at f_s / 100
     coeff = a ** torch.arange(400, dtype=torch.float64)
     coloured = torch.nn.functional.conv1d(white.view(1, 1, -1), coeff.flip(0).view(1, 1, -1)).flatten()[:n]
     coloured = coloured / coloured.std()
@@ -222,8 +240,12 @@ def drift(time, command, position, current, severity, rng):
     return Record(time, command, position, current + severity * _rms(current) * ramp)
 
 
-@register("clock_error", (0.001, 0.005, 0.02, 0.05), "relative clock error",
-          "the logger's clock runs fast: the current is the actuator's at t (1 + s)")
+@register(
+    "clock_error",
+    (0.001, 0.005, 0.02, 0.05),
+    "relative clock error",
+    "the logger's clock runs fast: the current is the actuator's at t (1 + s)",
+)
 def clock_error(time, command, position, current, severity, rng):
     t = time - time[0]
     src = (t * (1.0 + severity)).clamp(max=float(t[-1]))

@@ -44,8 +44,13 @@ def not_identified(metadata: Mapping[str, Any]) -> list[str]:
     return [name for name in FAULT_NAMES if name in r2 and not (r2[name] is not None and r2[name] >= IDENTIFIED_R2)]
 
 
-def diagnose(model: Any, record: Record, contract: InputContract,
-             bench_nominal: torch.Tensor | None = None, bench: BenchCheck | None = None) -> dict[str, Any]:
+def diagnose(
+    model: Any,
+    record: Record,
+    contract: InputContract,
+    bench_nominal: torch.Tensor | None = None,
+    bench: BenchCheck | None = None,
+) -> dict[str, Any]:
     """The diagnosis of one record by the exported pipeline ``model``, as a JSON-able dict.
 
     Args:
@@ -62,7 +67,7 @@ def diagnose(model: Any, record: Record, contract: InputContract,
     current = torch.as_tensor(record.current, dtype=model.dtype).reshape(1, -1)
     step = model.run(current, bench_nominal)
     k_hat, score, rul, ood, resid, current = step.k_hat, step.score, step.rul, step.ood, step.residual, step.current
-    noise, p_faulty = float(step.noise[0]), float(step.p_faulty[0])      # noise as measured, before the baseline
+    noise, p_faulty = float(step.noise[0]), float(step.p_faulty[0])  # noise as measured, before the baseline
     bounds = None if step.k_lower is None else torch.stack([step.k_lower, step.k_upper], -1)[0]
     reference = float(getattr(model, "calibration_noise", float("nan")))
     noisy = None if math.isnan(reference) or math.isnan(noise) else noise > max(2.0 * reference, NOISE_FLOOR)
@@ -79,15 +84,21 @@ def diagnose(model: Any, record: Record, contract: InputContract,
     return {
         "k_hat": dict(zip(FAULT_NAMES, k_hat[0].tolist())),
         "k_interval": dict(zip(FAULT_NAMES, bounds.tolist())) if trusted_bounds else None,
-        "health_score": float(score[0]), "healthy": bool(score[0] > 0),
+        "health_score": float(score[0]),
+        "healthy": bool(score[0] > 0),
         "p_faulty": None if out or math.isnan(p_faulty) else p_faulty,
-        "rul_hours": rul_hours, "rul_censored": rul_censored,
+        "rul_hours": rul_hours,
+        "rul_censored": rul_censored,
         "k_not_identified": not_identified(model.metadata),
-        "out_of_distribution": out, "ood_reasons": checks.reasons, "checks_skipped": checks.skipped,
+        "out_of_distribution": out,
+        "ood_reasons": checks.reasons,
+        "checks_skipped": checks.skipped,
         "residual": float(resid[0]),
-        "command_check": None if command is None else {"nrmse": command.nrmse, "best_lag_s": command.best_lag_s,
-                                                       "gain": command.gain, "ok": command.ok},
+        "command_check": None
+        if command is None
+        else {"nrmse": command.nrmse, "best_lag_s": command.best_lag_s, "gain": command.gain, "ok": command.ok},
         "tracking_check": checks.tracking,
-        "noise": None if math.isnan(noise) else noise, "noise_above_calibration": noisy,
+        "noise": None if math.isnan(noise) else noise,
+        "noise_above_calibration": noisy,
         "messages": checks.messages,
     }

@@ -29,10 +29,9 @@ from ..io.atomic import atomic_open
 from .export import METADATA_FILE
 from .extras import require, without_searchsorted
 
-MAX_BATCH = 256          # records per call; the memory plan grows with it (one record is the on-board case)
+MAX_BATCH = 256  # records per call; the memory plan grows with it (one record is the on-board case)
 ARCHIVE_DIR = "online"
-LIMITS = ("complete records only: the masked least squares of a record with missing samples does not lower to "
-          "ExecuTorch")
+LIMITS = "complete records only: the masked least squares of a record with missing samples does not lower to ExecuTorch"
 
 
 def pte_bytes(programs: dict[str, torch.export.ExportedProgram]) -> bytes:
@@ -44,8 +43,7 @@ def pte_bytes(programs: dict[str, torch.export.ExportedProgram]) -> bytes:
     return edge.to_executorch().buffer
 
 
-def write_executorch(programs: dict[str, torch.export.ExportedProgram], path: str | os.PathLike,
-                     metadata: str) -> None:
+def write_executorch(programs: dict[str, torch.export.ExportedProgram], path: str | os.PathLike, metadata: str) -> None:
     """Write the ``executorch`` archive of ``programs`` atomically to ``path``."""
     data = pte_bytes(programs)
     with atomic_open(path, "wb") as fh, zipfile.ZipFile(fh, "w", zipfile.ZIP_DEFLATED) as archive:

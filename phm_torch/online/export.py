@@ -14,11 +14,12 @@ import torch
 from ..io.atomic import atomic_open
 from .pipeline import OnlinePipeline
 
-METADATA_FILE = "phm_metadata.json"   # the extra file of the archive with the pipeline's provenance
+METADATA_FILE = "phm_metadata.json"  # the extra file of the archive with the pipeline's provenance
 
 
-def export_torchscript(pipeline: OnlinePipeline, path: str | os.PathLike,
-                       metadata: Mapping[str, Any] | None = None) -> torch.jit.ScriptModule:
+def export_torchscript(
+    pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None
+) -> torch.jit.ScriptModule:
     """Script ``pipeline`` (eval mode) and write it atomically to ``path``; returns the scripted module.
 
     ``metadata`` (JSON-able: the actuator and command the pipeline belongs to, under ``provenance``; the input
@@ -38,7 +39,7 @@ def export_torchscript(pipeline: OnlinePipeline, path: str | os.PathLike,
 
 def read_metadata(path: str | os.PathLike) -> dict[str, Any]:
     """The ``phm_metadata.json`` of an exported pipeline (``{}`` for a file exported before it existed)."""
-    try:   # the archive is a zip file: read the entry without loading (or running) the program
+    try:  # the archive is a zip file: read the entry without loading (or running) the program
         with zipfile.ZipFile(path) as archive:
             names = [n for n in archive.namelist() if n.endswith(f"/extra/{METADATA_FILE}")]
             if not names:

@@ -65,9 +65,16 @@ class FDIBand:
     health_stop: list[int]
 
 
-def calibrate_fdi_band(pipeline: OnlinePipeline, signals: torch.Tensor, k: torch.Tensor, coverage: float = 0.9,
-                       bracket: float = 20.0, iterations: int = 30, min_used: int = 10,
-                       correct_median: bool = False) -> FDIBand:
+def calibrate_fdi_band(
+    pipeline: OnlinePipeline,
+    signals: torch.Tensor,
+    k: torch.Tensor,
+    coverage: float = 0.9,
+    bracket: float = 20.0,
+    iterations: int = 30,
+    min_used: int = 10,
+    correct_median: bool = False,
+) -> FDIBand:
     """Calibrate the FDI band of ``pipeline`` on held-out records.
 
     Args:
@@ -86,8 +93,9 @@ def calibrate_fdi_band(pipeline: OnlinePipeline, signals: torch.Tensor, k: torch
     if not bracket > 0:
         raise ValueError(f"fdi_band.bracket must be > 0, got {bracket!r}")
     if signals.shape[0] != k.shape[0] or k.dim() != 2 or k.shape[1] != 8:
-        raise ValueError(f"fdi_band: signals (N, n) and k (N, 8) expected, got {tuple(signals.shape)} and "
-                         f"{tuple(k.shape)}")
+        raise ValueError(
+            f"fdi_band: signals (N, n) and k (N, 8) expected, got {tuple(signals.shape)} and {tuple(k.shape)}"
+        )
     dtype = pipeline.times.dtype
     with torch.no_grad():
         k_hat, _, _, ood, _ = pipeline(signals.to(dtype))
@@ -97,7 +105,8 @@ def calibrate_fdi_band(pipeline: OnlinePipeline, signals: torch.Tensor, k: torch
         if int(keep.sum()) < min_used:
             raise TooFewCalibrationSignals(
                 f"fdi_band: only {int(keep.sum())} of {k.shape[0]} calibration signals are in distribution and "
-                f"healthy under their true k; at least {min_used} are needed")
+                f"healthy under their true k; at least {min_used} are needed"
+            )
         k, k_hat, target = k[keep], k_hat[keep], target[keep]
         scale = (k_hat - k).abs().mean(0) * (pipeline.direction > 0).to(dtype)
         tail = 0.5 * (1.0 - coverage)
@@ -107,17 +116,27 @@ def calibrate_fdi_band(pipeline: OnlinePipeline, signals: torch.Tensor, k: torch
         stuck = [j for j, sign in ((0, 1.0), (2, -1.0)) if saturated[j] and deltas[j] * sign > 0]
         if stuck:
             pipeline.set_health_stop(stuck)
-            again, again_saturated = _bisect_all(pipeline, k_hat, scale, target, tail, bracket, iterations,
-                                                 correct_median, only=stuck)
+            again, again_saturated = _bisect_all(
+                pipeline, k_hat, scale, target, tail, bracket, iterations, correct_median, only=stuck
+            )
             for j in stuck:
                 deltas[j], saturated[j] = again[j], again_saturated[j]
-    return FDIBand(torch.tensor(deltas, dtype=torch.float64), scale.to(torch.float64), int(keep.sum()), saturated,
-                   stuck)
+    return FDIBand(
+        torch.tensor(deltas, dtype=torch.float64), scale.to(torch.float64), int(keep.sum()), saturated, stuck
+    )
 
 
-def _bisect_all(pipeline: OnlinePipeline, k_hat: torch.Tensor, scale: torch.Tensor, target: torch.Tensor,
-                tail: float, bracket: float, iterations: int, correct_median: bool,
-                only: list[int] | None = None) -> tuple[list[float], list[bool]]:
+def _bisect_all(
+    pipeline: OnlinePipeline,
+    k_hat: torch.Tensor,
+    scale: torch.Tensor,
+    target: torch.Tensor,
+    tail: float,
+    bracket: float,
+    iterations: int,
+    correct_median: bool,
+    only: list[int] | None = None,
+) -> tuple[list[float], list[bool]]:
     """eta_5, eta_50 (0 unless ``correct_median``), eta_95 by bisection, and whether each ended on the
     bracket; ``only``: bisect these quantiles, 0 (unsaturated) for the others."""
     dtype = k_hat.dtype
@@ -127,9 +146,11 @@ def _bisect_all(pipeline: OnlinePipeline, k_hat: torch.Tensor, scale: torch.Tens
 
     # each objective rises with eta (more damage, shorter RUL); the coverage bounds keep the bracket end
     # on their covering side (the statistic is a step function of eta), the median the midpoint
-    objectives = ((lambda eta: float((target >= rul_at(0, eta)).to(dtype).mean()) - (1.0 - tail), "hi"),
-                  (lambda eta: 1.0 - float((rul_at(1, eta) / target).median()), "mid"),
-                  (lambda eta: (1.0 - tail) - float((target <= rul_at(2, eta)).to(dtype).mean()), "lo"))
+    objectives = (
+        (lambda eta: float((target >= rul_at(0, eta)).to(dtype).mean()) - (1.0 - tail), "hi"),
+        (lambda eta: 1.0 - float((rul_at(1, eta) / target).median()), "mid"),
+        (lambda eta: (1.0 - tail) - float((target <= rul_at(2, eta)).to(dtype).mean()), "lo"),
+    )
     deltas, saturated = [], []
     for j, (objective, side) in enumerate(objectives):
         if (j == 1 and not correct_median) or (only is not None and j not in only):

@@ -25,8 +25,8 @@ import torch
 
 from ..surrogates.metrics import fault_count
 
-DEFAULT_LEVEL = 0.3      # "large fault", as in metrics.fault_count and err_k_by_fault_count
-DEFAULT_CLASSES = 4      # 0, 1, 2, 3 or more large faults
+DEFAULT_LEVEL = 0.3  # "large fault", as in metrics.fault_count and err_k_by_fault_count
+DEFAULT_CLASSES = 4  # 0, 1, 2, 3 or more large faults
 
 
 @dataclass
@@ -54,9 +54,15 @@ def difficulty_class(k_hat: torch.Tensor, nominal: torch.Tensor, level: float, n
     return fault_count(k_hat, nominal, level).clamp(max=n_classes - 1)
 
 
-def calibrate_fdi_interval(k_hat: torch.Tensor, k: torch.Tensor, nominal: torch.Tensor, coverage: float,
-                           min_count: int, level: float = DEFAULT_LEVEL, n_classes: int = DEFAULT_CLASSES
-                           ) -> FDIInterval:
+def calibrate_fdi_interval(
+    k_hat: torch.Tensor,
+    k: torch.Tensor,
+    nominal: torch.Tensor,
+    coverage: float,
+    min_count: int,
+    level: float = DEFAULT_LEVEL,
+    n_classes: int = DEFAULT_CLASSES,
+) -> FDIInterval:
     """Split-conformal half-widths of k_hat per difficulty class, from held-out records.
 
     Args:
@@ -89,8 +95,8 @@ def calibrate_fdi_interval(k_hat: torch.Tensor, k: torch.Tensor, nominal: torch.
     widths, pooled_from = torch.zeros(n_classes, 8, dtype=torch.float64), []
     for c in range(n_classes):
         low, high = c, c
-        while sum(counts[low:high + 1]) < min_count:   # pool with the classes below, then (the easiest
-            if low > 0:                                  # class, when sparse) with those above
+        while sum(counts[low : high + 1]) < min_count:  # pool with the classes below, then (the easiest
+            if low > 0:  # class, when sparse) with those above
                 low -= 1
             else:
                 high += 1
@@ -107,5 +113,7 @@ def interval_quality(lower: torch.Tensor, upper: torch.Tensor, k: torch.Tensor) 
     """Per-parameter coverage (fraction of the true k inside [lower, upper]) and mean width of intervals
     (B, 8) each, against the true fault vectors k (B, 8)."""
     inside = (k >= lower) & (k <= upper)
-    return {"coverage": inside.to(torch.float64).mean(0).tolist(),
-            "width": (upper - lower).to(torch.float64).mean(0).tolist()}
+    return {
+        "coverage": inside.to(torch.float64).mean(0).tolist(),
+        "width": (upper - lower).to(torch.float64).mean(0).tolist(),
+    }

@@ -39,8 +39,8 @@ from .input_contract import PIPELINE_CHECKS
 from .pipeline import OnlinePipeline
 from .step import STEP_OUTPUTS, OnlineStep
 
-PROGRAMS = {"model": True, "samples": False}     # program name -> full records (else selected samples)
-EXAMPLE_BATCH = 4     # tracing batch: any size > 1 (a batch of 1 would be specialised), dynamic from 1 up
+PROGRAMS = {"model": True, "samples": False}  # program name -> full records (else selected samples)
+EXAMPLE_BATCH = 4  # tracing batch: any size > 1 (a batch of 1 would be specialised), dynamic from 1 up
 MAX_BATCH = 1 << 20
 
 
@@ -51,20 +51,30 @@ def _finite_list(t: torch.Tensor) -> list[float] | None:
 def pipeline_constants(pipeline: OnlinePipeline) -> dict[str, Any]:
     """What phm-predict reads of a pipeline besides its outputs, JSON-able (float32 values round-trip exactly)."""
     noise = float(pipeline.calibration_noise)
-    return {"dtype": str(pipeline.times.dtype).removeprefix("torch."), "n_full": pipeline.n_full,
-            "n_points": pipeline.n_points, "indices": [int(i) for i in pipeline.gappy.indices.tolist()],
-            "sample_rate": pipeline.sample_rate, "horizon_hours": float(pipeline.times[-1]),
-            "interval_level": pipeline.interval_level, "calibration_noise": None if math.isnan(noise) else noise,
-            "calibrated": bool(torch.isfinite(pipeline.verdict_scale)),
-            "nominal": _finite_list(pipeline.nominal), "interval_mask": _finite_list(pipeline.interval_mask),
-            "interval_noise": _finite_list(pipeline.interval_noise),
-            "nominal_record": _finite_list(pipeline.nominal_record),
-            "inputs": ["x (B, n) current [A], NaN = missing", "offset (n,) [A] subtracted first (zeros: none)"],
-            "outputs": list(STEP_OUTPUTS), "reasons": list(PIPELINE_CHECKS), "programs": dict(PROGRAMS)}
+    return {
+        "dtype": str(pipeline.times.dtype).removeprefix("torch."),
+        "n_full": pipeline.n_full,
+        "n_points": pipeline.n_points,
+        "indices": [int(i) for i in pipeline.gappy.indices.tolist()],
+        "sample_rate": pipeline.sample_rate,
+        "horizon_hours": float(pipeline.times[-1]),
+        "interval_level": pipeline.interval_level,
+        "calibration_noise": None if math.isnan(noise) else noise,
+        "calibrated": bool(torch.isfinite(pipeline.verdict_scale)),
+        "nominal": _finite_list(pipeline.nominal),
+        "interval_mask": _finite_list(pipeline.interval_mask),
+        "interval_noise": _finite_list(pipeline.interval_noise),
+        "nominal_record": _finite_list(pipeline.nominal_record),
+        "inputs": ["x (B, n) current [A], NaN = missing", "offset (n,) [A] subtracted first (zeros: none)"],
+        "outputs": list(STEP_OUTPUTS),
+        "reasons": list(PIPELINE_CHECKS),
+        "programs": dict(PROGRAMS),
+    }
 
 
-def export_programs(pipeline: OnlinePipeline, complete_only: bool = False, max_batch: int = MAX_BATCH
-                    ) -> dict[str, torch.export.ExportedProgram]:
+def export_programs(
+    pipeline: OnlinePipeline, complete_only: bool = False, max_batch: int = MAX_BATCH
+) -> dict[str, torch.export.ExportedProgram]:
     """The two :class:`OnlineStep` programs (full records, selected samples) of ``pipeline``, batch dynamic from 1
     to ``max_batch``; ``complete_only``: without the missing-sample path (see :class:`OnlineStep`)."""
     pipeline = pipeline.eval()
@@ -76,26 +86,42 @@ def export_programs(pipeline: OnlinePipeline, complete_only: bool = False, max_b
         n = step.length
         # in-distribution example records: the mean signal (a NaN would only be data, not a traced branch)
         x = pipeline.gappy.mean_hat.new_zeros(EXAMPLE_BATCH, n, dtype=dtype) + (
-            pipeline.nominal_record if full and bool(torch.isfinite(pipeline.nominal_record).all())
-            else torch.ones(n, dtype=dtype))
+            pipeline.nominal_record
+            if full and bool(torch.isfinite(pipeline.nominal_record).all())
+            else torch.ones(n, dtype=dtype)
+        )
         with torch.no_grad():
-            out[name] = torch.export.export(step, (x, torch.zeros(n, dtype=dtype)),
-                                            dynamic_shapes={"x": {0: batch}, "offset": None}, strict=False)
+            out[name] = torch.export.export(
+                step, (x, torch.zeros(n, dtype=dtype)), dynamic_shapes={"x": {0: batch}, "offset": None}, strict=False
+            )
     return out
 
 
-def _metadata(pipeline: OnlinePipeline, metadata: Mapping[str, Any] | None, fmt: str, limits: str | None = None,
-              max_batch: int | None = None) -> str:
+def _metadata(
+    pipeline: OnlinePipeline,
+    metadata: Mapping[str, Any] | None,
+    fmt: str,
+    limits: str | None = None,
+    max_batch: int | None = None,
+) -> str:
     """The file's metadata; ``limits``: what the format cannot serve (then ``pipeline.missing_samples`` is false:
     records with a missing sample are refused by the loader); ``max_batch``: records per program call (the loader
     splits larger batches), None: no bound."""
-    const = {**pipeline_constants(pipeline), "missing_samples": limits is None, "limits": limits,
-             "max_batch": max_batch}
+    const = {
+        **pipeline_constants(pipeline),
+        "missing_samples": limits is None,
+        "limits": limits,
+        "max_batch": max_batch,
+    }
     return json.dumps({**dict(metadata or {}), "format": fmt, "pipeline": const}, sort_keys=True)
 
 
-def write_export(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None,
-                 programs: dict[str, torch.export.ExportedProgram] | None = None) -> None:
+def write_export(
+    pipeline: OnlinePipeline,
+    path: str | os.PathLike,
+    metadata: Mapping[str, Any] | None = None,
+    programs: dict[str, torch.export.ExportedProgram] | None = None,
+) -> None:
     """Write the ``export`` format (a ``.pt2`` archive of :func:`export_programs`) atomically to ``path``."""
     from torch.export.pt2_archive._package import package_pt2  # what torch.export.save writes, several programs
 
@@ -103,12 +129,17 @@ def write_export(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Ma
     with atomic_open(path, "wb") as fh, warnings.catch_warnings():
         # buffers sharing storage (e.g. the verdict classifier that is the health classifier) are stored once
         warnings.filterwarnings("ignore", message="No complete tensor found in the group")
-        package_pt2(fh, exported_programs=programs,
-                    extra_files={METADATA_FILE: _metadata(pipeline, metadata, "export")})
+        package_pt2(
+            fh, exported_programs=programs, extra_files={METADATA_FILE: _metadata(pipeline, metadata, "export")}
+        )
 
 
-def write_aoti(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None,
-               programs: dict[str, torch.export.ExportedProgram] | None = None) -> None:
+def write_aoti(
+    pipeline: OnlinePipeline,
+    path: str | os.PathLike,
+    metadata: Mapping[str, Any] | None = None,
+    programs: dict[str, torch.export.ExportedProgram] | None = None,
+) -> None:
     """Compile :func:`export_programs` with AOTInductor (a C++ compiler is needed) and write the package
     atomically to ``path``; minutes on a small CPU."""
     from torch.export.pt2_archive._package import package_pt2
@@ -117,41 +148,55 @@ def write_aoti(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapp
     files = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name, ep in programs.items():
-            options = {"aot_inductor.package": True, "aot_inductor.model_name_for_generated_files": name,
-                       "aot_inductor.output_path": str(Path(tmp) / name)}
+            options = {
+                "aot_inductor.package": True,
+                "aot_inductor.model_name_for_generated_files": name,
+                "aot_inductor.output_path": str(Path(tmp) / name),
+            }
             files[name] = torch._inductor.aot_compile(ep.module(), ep.example_inputs[0], options=options)
         with atomic_open(path, "wb") as fh:
             package_pt2(fh, aoti_files=files, extra_files={METADATA_FILE: _metadata(pipeline, metadata, "aoti")})
 
 
-def _write_torchscript(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None,
-                       programs: Any = None) -> None:
+def _write_torchscript(
+    pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None, programs: Any = None
+) -> None:
     export_torchscript(pipeline, path, metadata)
 
 
-def write_onnx(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None,
-               programs: Any = None) -> None:
+def write_onnx(
+    pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None, programs: Any = None
+) -> None:
     """Write the ``onnx`` format (:mod:`.onnx_format`: complete records only) atomically to ``path``."""
     from . import onnx_format
 
-    onnx_format.write_onnx(export_programs(pipeline, complete_only=True), path,
-                           _metadata(pipeline, metadata, "onnx", onnx_format.LIMITS))
+    onnx_format.write_onnx(
+        export_programs(pipeline, complete_only=True), path, _metadata(pipeline, metadata, "onnx", onnx_format.LIMITS)
+    )
 
 
-def write_executorch(pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None,
-                     programs: Any = None) -> None:
+def write_executorch(
+    pipeline: OnlinePipeline, path: str | os.PathLike, metadata: Mapping[str, Any] | None = None, programs: Any = None
+) -> None:
     """Write the ``executorch`` format (:mod:`.executorch_format`: complete records, batches up to its
     ``MAX_BATCH``) atomically to ``path``."""
     from . import executorch_format as et
 
-    et.write_executorch(export_programs(pipeline, complete_only=True, max_batch=et.MAX_BATCH), path,
-                        _metadata(pipeline, metadata, "executorch", et.LIMITS, et.MAX_BATCH))
+    et.write_executorch(
+        export_programs(pipeline, complete_only=True, max_batch=et.MAX_BATCH),
+        path,
+        _metadata(pipeline, metadata, "executorch", et.LIMITS, et.MAX_BATCH),
+    )
 
 
 # format name -> (file suffix, writer(pipeline, path, metadata, programs))
 WRITERS: dict[str, tuple[str, Callable[..., None]]] = {
-    "torchscript": (".pt", _write_torchscript), "export": (".pt2", write_export), "aoti": (".aoti.pt2", write_aoti),
-    "onnx": (".onnx.zip", write_onnx), "executorch": (".pte.zip", write_executorch)}
+    "torchscript": (".pt", _write_torchscript),
+    "export": (".pt2", write_export),
+    "aoti": (".aoti.pt2", write_aoti),
+    "onnx": (".onnx.zip", write_onnx),
+    "executorch": (".pte.zip", write_executorch),
+}
 
 
 def check_formats(formats: str | Sequence[str]) -> list[str]:
@@ -162,7 +207,7 @@ def check_formats(formats: str | Sequence[str]) -> list[str]:
     for n in names:
         if n not in WRITERS:
             raise ValueError(f"format: unknown format {n!r}; known: {', '.join(WRITERS)}")
-    for n in names:          # an optional extra: refused before any work when it is not installed
+    for n in names:  # an optional extra: refused before any work when it is not installed
         if n in EXTRAS:
             require(n)
     return list(dict.fromkeys(names))
@@ -179,8 +224,12 @@ def format_path(out: str | os.PathLike, fmt: str) -> Path:
     return out.with_name(name + WRITERS[fmt][0])
 
 
-def write_formats(pipeline: OnlinePipeline, out: str | os.PathLike, formats: str | Sequence[str],
-                  metadata: Mapping[str, Any] | None = None) -> dict[str, Path]:
+def write_formats(
+    pipeline: OnlinePipeline,
+    out: str | os.PathLike,
+    formats: str | Sequence[str],
+    metadata: Mapping[str, Any] | None = None,
+) -> dict[str, Path]:
     """Write ``pipeline`` in each of ``formats`` beside ``out`` (:func:`format_path`); returns format -> path."""
     names = check_formats(formats)
     programs = export_programs(pipeline) if set(names) & {"export", "aoti"} else None
@@ -191,8 +240,13 @@ def write_formats(pipeline: OnlinePipeline, out: str | os.PathLike, formats: str
     return paths
 
 
-def write_checked(pipeline: OnlinePipeline, out: str | os.PathLike, formats: str | Sequence[str],
-                  metadata: Mapping[str, Any] | None, probe: torch.Tensor) -> dict[str, Any]:
+def write_checked(
+    pipeline: OnlinePipeline,
+    out: str | os.PathLike,
+    formats: str | Sequence[str],
+    metadata: Mapping[str, Any] | None,
+    probe: torch.Tensor,
+) -> dict[str, Any]:
     """:func:`write_formats`, then each file reloaded as phm-predict reads it
     (:func:`~phm_torch.online.loaded.load_pipeline`) and its five outputs on ``probe`` (B, n_full) [A] compared
     with eager. Returns ``{"files": {format: path}, "max_abs_diff": {format: largest |reloaded - eager|}}``

@@ -61,21 +61,21 @@ PIPELINE_CHECKS = ("missing", "flat", "gappy_residual", "pod_residual", "roughne
 # a position anti-correlated with its command is a reversed sensor; a stalled actuator (a double short stops it)
 # correlates near 0 either way, the val records of the paper store 0.82 and above
 REVERSED_CORRELATION = -0.5
-TRACKING_MARGIN = 1.5        # the training range of the tracking NRMSE, widened by this factor on both sides
+TRACKING_MARGIN = 1.5  # the training range of the tracking NRMSE, widened by this factor on both sides
 # without a training range: a loop that follows its command with at most 90 deg of lag at equal amplitude
 # (its bandwidth covers the test command) misses it by |1 - e^{-j pi/2}| A / sqrt(2) over a range 2 A: 0.5
 TRACKING_NRMSE_MAX = 0.5
 # position range over the command's range: a loop does not move its load twice as far as commanded (no lower
 # bound: a heavy fault can stall the actuator, position range 0.09 x the command's on a paper-sampled vector)
 POSITION_GAIN = 2.0
-REST_LEVEL = 0.02            # the rest window: nominal |current| <= this x its RMS
-REST_MIN = 8                 # samples: a shorter rest window is no check
-OFFSET_MAX = 0.05            # |record - nominal| mean over the rest window, over the nominal RMS (+ 4 noise std)
-SHAPE_MIN = 0.9              # correlation with the nominal record
-NOISE_MAX = 0.1              # relative noise limit of a pipeline that does not record its calibrated levels
-NOISE_MARGIN = 1.5           # the intervals are held at their highest calibrated level up to this factor above it
-SPIKE_SIGMA = 12.0           # a spike: a second difference above this many noise std of a second difference...
-SPIKE_STEP = 0.8             # ... and above this fraction of the nominal RMS current (the current's own steps)
+REST_LEVEL = 0.02  # the rest window: nominal |current| <= this x its RMS
+REST_MIN = 8  # samples: a shorter rest window is no check
+OFFSET_MAX = 0.05  # |record - nominal| mean over the rest window, over the nominal RMS (+ 4 noise std)
+SHAPE_MIN = 0.9  # correlation with the nominal record
+NOISE_MAX = 0.1  # relative noise limit of a pipeline that does not record its calibrated levels
+NOISE_MARGIN = 1.5  # the intervals are held at their highest calibrated level up to this factor above it
+SPIKE_SIGMA = 12.0  # a spike: a second difference above this many noise std of a second difference...
+SPIKE_STEP = 0.8  # ... and above this fraction of the nominal RMS current (the current's own steps)
 
 
 @dataclass(frozen=True)
@@ -128,18 +128,20 @@ def pipeline_reasons(model: Any, x: torch.Tensor) -> list[list[str]] | None:
     with torch.no_grad():
         _, residual = gappy(filled, torch.where(enough.unsqueeze(1), valid, torch.ones_like(valid)))
         low, high = torch.aminmax(torch.where(valid, samples, samples.nanmean(1, keepdim=True)), dim=1)
-        flat = (high - low) < 1e-6 if bool(valid.all()) else \
-            torch.where(valid, samples, torch.zeros_like(samples)).std(1) < 1e-6     # as the forward decides
-        if hasattr(model, "gappy_residual_limit"):        # per record, at its noise (noise_threshold.py)
+        flat = (
+            (high - low) < 1e-6
+            if bool(valid.all())
+            else torch.where(valid, samples, torch.zeros_like(samples)).std(1) < 1e-6
+        )  # as the forward decides
+        if hasattr(model, "gappy_residual_limit"):  # per record, at its noise (noise_threshold.py)
             threshold = model.gappy_residual_limit(x)
-        flags = {"missing": ~enough, "flat": flat,
-                 "gappy_residual": (residual > threshold) | ~torch.isfinite(residual)}
+        flags = {"missing": ~enough, "flat": flat, "gappy_residual": (residual > threshold) | ~torch.isfinite(residual)}
         if check is not None:
             flags["pod_residual"] = check.residual(x) > float(check.residual_threshold)
             flags["roughness"] = check.roughness(x) > float(check.roughness_threshold)
             flags["plateau"] = check.plateau(x) > float(check.plateau_threshold)
         if bool(getattr(model, "has_consistency", False)):
-            flags["inconsistent"] = model.consistency(x) > 1.0        # NaN (no finite sample) compares False
+            flags["inconsistent"] = model.consistency(x) > 1.0  # NaN (no finite sample) compares False
     return [[name for name in PIPELINE_CHECKS if name in flags and bool(flags[name][i])] for i in range(x.shape[0])]
 
 
@@ -185,12 +187,13 @@ class InputContract:
     command: Callable[[torch.Tensor], torch.Tensor] | None = None
     tracking_range: tuple[float, float] | None = None
     noise_max: float = NOISE_MAX
-    nominal: torch.Tensor | None = None      # the pipeline's nominal record (n_full,) [A], float64; None: unknown
-    tracking_range_healthy: tuple[float, float] | None = None    # that of the healthy training records
+    nominal: torch.Tensor | None = None  # the pipeline's nominal record (n_full,) [A], float64; None: unknown
+    tracking_range_healthy: tuple[float, float] | None = None  # that of the healthy training records
 
     @classmethod
-    def of(cls, model: Any, metadata: Mapping[str, Any],
-           command: Callable[[torch.Tensor], torch.Tensor] | None) -> InputContract:
+    def of(
+        cls, model: Any, metadata: Mapping[str, Any], command: Callable[[torch.Tensor], torch.Tensor] | None
+    ) -> InputContract:
         """The contract of an exported pipeline from its metadata (:func:`~.export.read_metadata`)."""
         tracking, healthy = (_range(metadata, key) for key in ("tracking_nrmse", "tracking_nrmse_healthy"))
         levels = getattr(model, "interval_noise", None)
@@ -204,19 +207,21 @@ class InputContract:
         nrmse = tracking_nrmse(cmd, pos)
         gain = float(pos.max() - pos.min()) / float(cmd.max() - cmd.min())
         corr = float(torch.corrcoef(torch.stack([pos.double().flatten(), cmd.double().flatten()]))[0, 1])
-        known = self.tracking_range_healthy if healthy and self.tracking_range_healthy is not None \
-            else self.tracking_range
+        known = (
+            self.tracking_range_healthy if healthy and self.tracking_range_healthy is not None else self.tracking_range
+        )
         if known is not None:
             low, high = known[0] / TRACKING_MARGIN, known[1] * TRACKING_MARGIN
             ok = low <= nrmse <= high
         else:
             low, high = 0.0, TRACKING_NRMSE_MAX
             ok = nrmse <= high and gain <= POSITION_GAIN
-        ok = ok and not corr < REVERSED_CORRELATION          # NaN (a constant position) is not reversed
+        ok = ok and not corr < REVERSED_CORRELATION  # NaN (a constant position) is not reversed
         return {"nrmse": nrmse, "range": [low, high], "position_gain": gain, "correlation": corr, "ok": bool(ok)}
 
-    def current_reasons(self, model: Any, current: torch.Tensor, noise: float, k_hat: torch.Tensor | None = None
-                        ) -> list[str]:
+    def current_reasons(
+        self, model: Any, current: torch.Tensor, noise: float, k_hat: torch.Tensor | None = None
+    ) -> list[str]:
         """The checks of the current (n_full,) [A] against the noise calibration and the nominal record, those
         of a near-nominal answer given its estimate k_hat (8,) (None: skipped)."""
         reasons = []
@@ -234,9 +239,10 @@ class InputContract:
             return reasons
         quiet = (nominal.abs() <= REST_LEVEL * scale).int().cumprod(0)
         rest = int(quiet.sum())
-        sigma = 0.0 if math.isnan(noise) else noise * float(_nanmean(x.pow(2)).sqrt())     # noise std [A]
-        if rest >= REST_MIN and abs(float(_nanmean(x[:rest] - nominal[:rest]))) > \
-                OFFSET_MAX * scale + 4.0 * sigma / math.sqrt(rest):
+        sigma = 0.0 if math.isnan(noise) else noise * float(_nanmean(x.pow(2)).sqrt())  # noise std [A]
+        if rest >= REST_MIN and abs(
+            float(_nanmean(x[:rest] - nominal[:rest]))
+        ) > OFFSET_MAX * scale + 4.0 * sigma / math.sqrt(rest):
             reasons.append("offset")
         if large > 0:
             return reasons
@@ -252,8 +258,16 @@ class InputContract:
             reasons.append("spikes")
         return reasons
 
-    def check(self, model: Any, record: Record, current: torch.Tensor, noise: float, ood: bool,
-              k_hat: torch.Tensor | None = None, healthy: bool | None = None) -> ContractChecks:
+    def check(
+        self,
+        model: Any,
+        record: Record,
+        current: torch.Tensor,
+        noise: float,
+        ood: bool,
+        k_hat: torch.Tensor | None = None,
+        healthy: bool | None = None,
+    ) -> ContractChecks:
         """Every check of one record: ``current`` (n_full,) [A] as the pipeline saw it (after any rebase),
         ``noise`` its estimated relative noise (as measured), ``ood`` the pipeline's own flag, ``k_hat`` (8,) its
         estimate (None: the checks of a near-nominal answer are skipped), ``healthy`` its verdict (True: the
@@ -262,7 +276,7 @@ class InputContract:
         reasons, skipped, messages = [], [], []
         if ood:
             found = pipeline_reasons(model, current.unsqueeze(0))
-            reasons += (found[0] if found and found[0] else ["pipeline"])
+            reasons += found[0] if found and found[0] else ["pipeline"]
         command = tracking = None
         has_command = record.command is not None and bool(torch.isfinite(record.command).all())
         has_position = record.position is not None and bool(torch.isfinite(record.position).all())
@@ -280,11 +294,13 @@ class InputContract:
             tracking = self._tracking(record, healthy)
             if not tracking["ok"]:
                 reasons.append("tracking")
-                messages.append(f"position does not follow the command as this actuator can: tracking NRMSE "
-                                f"{tracking['nrmse']:.3f} outside [{tracking['range'][0]:.3f}, "
-                                f"{tracking['range'][1]:.3f}], position range {tracking['position_gain']:.2f} "
-                                f"x the command's, correlation {tracking['correlation']:.2f}")
-        else:     # no command or position column, or a constant command: nothing to follow
+                messages.append(
+                    f"position does not follow the command as this actuator can: tracking NRMSE "
+                    f"{tracking['nrmse']:.3f} outside [{tracking['range'][0]:.3f}, "
+                    f"{tracking['range'][1]:.3f}], position range {tracking['position_gain']:.2f} "
+                    f"x the command's, correlation {tracking['correlation']:.2f}"
+                )
+        else:  # no command or position column, or a constant command: nothing to follow
             skipped.append("tracking")
         reasons += [r for r in self.current_reasons(model, current, noise, k_hat) if r not in reasons]
         return ContractChecks(reasons, skipped, command, tracking, messages)

@@ -62,7 +62,7 @@ class LoadedPipeline(abc.ABC):
     dtype: torch.dtype
     n_full: int
     sample_rate: float
-    horizon_hours: float        # the RUL horizon [h]: a bound at it means "beyond" (inf where a file lacks it)
+    horizon_hours: float  # the RUL horizon [h]: a bound at it means "beyond" (inf where a file lacks it)
 
     @abc.abstractmethod
     def run(self, x: torch.Tensor, bench_nominal: torch.Tensor | None = None) -> StepResult:
@@ -101,7 +101,7 @@ class TorchScriptPipeline(LoadedPipeline):
         self.horizon_hours = float(module.times[-1])
 
     def __getattr__(self, name: str) -> Any:
-        if name == "module":      # not set yet (unpickling, copy): no recursion
+        if name == "module":  # not set yet (unpickling, copy): no recursion
             raise AttributeError(name)
         return getattr(self.module, name)
 
@@ -119,14 +119,17 @@ class TorchScriptPipeline(LoadedPipeline):
         nan = torch.full((x.shape[0],), float("nan"), dtype=self.dtype)
         noise_known = hasattr(m, "noise_level") and x.shape[1] == int(m.n_full)
         with torch.no_grad():
-            noise = m.noise_level(x) if noise_known else nan      # as measured, before the baseline
+            noise = m.noise_level(x) if noise_known else nan  # as measured, before the baseline
             current = m.rebase(x, bench_nominal) if bench_nominal is not None else x
             k_hat, score, rul, ood, residual = m(current)
             p_faulty = m.faulty_probability(score) if self.calibrated else nan
             lower = upper = None
-            if hasattr(m, "k_interval"):       # widths follow the noise where the file's method takes it
-                lower, upper = m.k_interval(k_hat, noise.to(k_hat.dtype)) \
-                    if noise_known and "noise" in str(m.k_interval.schema) else m.k_interval(k_hat)
+            if hasattr(m, "k_interval"):  # widths follow the noise where the file's method takes it
+                lower, upper = (
+                    m.k_interval(k_hat, noise.to(k_hat.dtype))
+                    if noise_known and "noise" in str(m.k_interval.schema)
+                    else m.k_interval(k_hat)
+                )
         return StepResult(k_hat, lower, upper, score, p_faulty, rul, ood, residual, noise, current)
 
     def pipeline_reasons(self, x: torch.Tensor) -> list[list[str]] | None:
@@ -144,37 +147,43 @@ class ProgramPipeline(LoadedPipeline):
     def __init__(self, programs: dict[str, Any], metadata: dict[str, Any], fmt: str, path: str):
         const = metadata.get("pipeline")
         if not isinstance(const, dict) or set(const.get("outputs", [])) != set(STEP_OUTPUTS):
-            raise ValueError(f"pipeline: {path!r} has no online-step metadata of this phm_torch version "
-                             f"(re-export it with phm-export)")
+            raise ValueError(
+                f"pipeline: {path!r} has no online-step metadata of this phm_torch version "
+                f"(re-export it with phm-export)"
+            )
         self.programs, self.metadata, self.format = programs, metadata, fmt
         self.dtype = getattr(torch, const["dtype"])
         self.n_full, self.n_points = int(const["n_full"]), int(const["n_points"])
         self.sample_rate, self.interval_level = float(const["sample_rate"]), float(const["interval_level"])
-        self.horizon_hours = float(const.get("horizon_hours") or math.inf)      # files before it: never censored
+        self.horizon_hours = float(const.get("horizon_hours") or math.inf)  # files before it: never censored
         noise = const["calibration_noise"]
         self.calibration_noise = torch.tensor(math.nan if noise is None else noise, dtype=self.dtype)
         for name in ("nominal", "interval_mask", "interval_noise", "nominal_record"):
             setattr(self, name, _tensor(const[name], self.dtype))
         self.reason_names = list(const["reasons"])
-        self.indices = torch.tensor(const["indices"], dtype=torch.long)     # the selected samples of a full record
-        self.missing_samples = bool(const.get("missing_samples", True))     # False: complete records only
+        self.indices = torch.tensor(const["indices"], dtype=torch.long)  # the selected samples of a full record
+        self.missing_samples = bool(const.get("missing_samples", True))  # False: complete records only
         self.limits = const.get("limits")
-        self.max_batch = const.get("max_batch")      # records per program call (None: any)
+        self.max_batch = const.get("max_batch")  # records per program call (None: any)
 
     def _outputs(self, x: torch.Tensor, offset: torch.Tensor | None) -> dict[str, torch.Tensor]:
         n = x.shape[1]
         if n not in (self.n_full, self.n_points) or x.dim() != 2:
-            raise ValueError(f"records: expected (B, {self.n_full}) full records or (B, {self.n_points}) selected "
-                             f"samples, got {tuple(x.shape)}")
+            raise ValueError(
+                f"records: expected (B, {self.n_full}) full records or (B, {self.n_points}) selected "
+                f"samples, got {tuple(x.shape)}"
+            )
         program = self.programs["model" if n == self.n_full else "samples"]
         if not self.missing_samples:
             samples = x.index_select(1, self.indices) if n == self.n_full else x
             gaps = (~torch.isfinite(samples)).sum(1)
             if bool(gaps.any()):
                 i = int(gaps.nonzero()[0, 0])
-                raise UnservedRecord(f"record {i} misses {int(gaps[i])} of its {self.n_points} selected samples "
-                                     f"(NaN); this {self.format!r} pipeline serves {self.limits}; use its "
-                                     f"torchscript, export or aoti file for such records")
+                raise UnservedRecord(
+                    f"record {i} misses {int(gaps[i])} of its {self.n_points} selected samples "
+                    f"(NaN); this {self.format!r} pipeline serves {self.limits}; use its "
+                    f"torchscript, export or aoti file for such records"
+                )
         offset = torch.zeros(n, dtype=self.dtype) if offset is None else offset
         x = x.to(self.dtype).contiguous()
         chunks = [x] if self.max_batch is None else x.split(int(self.max_batch))
@@ -186,22 +195,37 @@ class ProgramPipeline(LoadedPipeline):
     def run(self, x: torch.Tensor, bench_nominal: torch.Tensor | None = None) -> StepResult:
         x = x.to(self.dtype)
         offset = None
-        if bench_nominal is not None:    # as OnlinePipeline.rebase: x - (bench_nominal - nominal_record)
+        if bench_nominal is not None:  # as OnlinePipeline.rebase: x - (bench_nominal - nominal_record)
             if self.nominal_record is None or bench_nominal.shape != self.nominal_record.shape:
                 raise ValueError("rebase: the pipeline has no nominal record of the record's length")
             offset = bench_nominal.to(self.dtype) - self.nominal_record
         o = self._outputs(x, offset)
         current = x if offset is None else x - offset
-        return StepResult(o["k_hat"], o["k_lower"], o["k_upper"], o["score"], o["p_faulty"], o["rul"], o["ood"],
-                          o["residual"], o["noise"], current)
+        return StepResult(
+            o["k_hat"],
+            o["k_lower"],
+            o["k_upper"],
+            o["score"],
+            o["p_faulty"],
+            o["rul"],
+            o["ood"],
+            o["residual"],
+            o["noise"],
+            current,
+        )
 
     def pipeline_reasons(self, x: torch.Tensor) -> list[list[str]] | None:
         flags = self._outputs(x, None)["reasons"]
         return [[name for name, on in zip(self.reason_names, row.tolist()) if on] for row in flags]
 
 
-SUFFIXES = {".aoti.pt2": "aoti", ".onnx.zip": "onnx", ".pte.zip": "executorch", ".pt2": "export",
-            ".pt": "torchscript"}    # longest first
+SUFFIXES = {
+    ".aoti.pt2": "aoti",
+    ".onnx.zip": "onnx",
+    ".pte.zip": "executorch",
+    ".pt2": "export",
+    ".pt": "torchscript",
+}  # longest first
 
 
 def _format_of(path: Path, metadata: dict[str, Any]) -> str:
@@ -209,16 +233,20 @@ def _format_of(path: Path, metadata: dict[str, Any]) -> str:
     must be the one its suffix names (``ValueError`` naming the file otherwise)."""
     found = metadata.get("format")
     if found is None:
-        with zipfile.ZipFile(path) as archive:      # read_metadata has checked it is one
+        with zipfile.ZipFile(path) as archive:  # read_metadata has checked it is one
             names = archive.namelist()
         found = "torchscript" if any("/code/" in n or n.endswith("constants.pkl") for n in names) else None
     by_name = next((fmt for suffix, fmt in SUFFIXES.items() if path.name.endswith(suffix)), None)
     if found is None:
-        raise ValueError(f"pipeline: {str(path)!r} is no exported pipeline (no TorchScript code, no "
-                         f"phm_metadata.json naming its format)")
+        raise ValueError(
+            f"pipeline: {str(path)!r} is no exported pipeline (no TorchScript code, no "
+            f"phm_metadata.json naming its format)"
+        )
     if by_name is not None and by_name != found:
-        raise ValueError(f"pipeline: {str(path)!r} holds a {found!r} pipeline but its name ends as a {by_name!r} "
-                         f"file's ({', '.join(f'{k} {v}' for k, v in SUFFIXES.items())})")
+        raise ValueError(
+            f"pipeline: {str(path)!r} holds a {found!r} pipeline but its name ends as a {by_name!r} "
+            f"file's ({', '.join(f'{k} {v}' for k, v in SUFFIXES.items())})"
+        )
     return str(found)
 
 
@@ -236,8 +264,10 @@ def load_pipeline(path: str | os.PathLike, format: str | None = None) -> LoadedP
         raise ValueError(f"pipeline: {str(path)!r} is a {found!r} file, not format={format!r}")
     if found == "torchscript":
         try:
-            with warnings.catch_warnings():     # the deprecation of TorchScript, chosen here on purpose
-                warnings.filterwarnings("ignore", message=r".*torch\.jit\.load. is deprecated", category=DeprecationWarning)
+            with warnings.catch_warnings():  # the deprecation of TorchScript, chosen here on purpose
+                warnings.filterwarnings(
+                    "ignore", message=r".*torch\.jit\.load. is deprecated", category=DeprecationWarning
+                )
                 module = torch.jit.load(str(path))
         except RuntimeError as e:
             raise ValueError(f"pipeline: {str(path)!r} is not a TorchScript file ({str(e).splitlines()[0]})") from None
@@ -245,21 +275,27 @@ def load_pipeline(path: str | os.PathLike, format: str | None = None) -> LoadedP
     try:
         if found == "export":
             from torch.export.pt2_archive._package import load_pt2
+
             programs = {name: ep.module() for name, ep in load_pt2(str(path)).exported_programs.items()}
         elif found == "aoti":
             from torch._inductor.package import load_package  # aoti_load_package, with the model's name
+
             programs = {name: load_package(str(path), model_name=name) for name in ("model", "samples")}
         elif found == "onnx":
             from .onnx_format import load_onnx
+
             programs = load_onnx(path)
         elif found == "executorch":
             from .executorch_format import load_executorch
+
             programs = load_executorch(path)
         else:
             raise ValueError(f"pipeline: {str(path)!r} names the unknown format {found!r}")
     except (RuntimeError, KeyError, zipfile.BadZipFile) as e:
-        raise ValueError(f"pipeline: {str(path)!r} is not a readable {found!r} file ({type(e).__name__}: "
-                         f"{str(e).splitlines()[0] if str(e) else ''})") from None
+        raise ValueError(
+            f"pipeline: {str(path)!r} is not a readable {found!r} file ({type(e).__name__}: "
+            f"{str(e).splitlines()[0] if str(e) else ''})"
+        ) from None
     if set(programs) != {"model", "samples"}:
         raise ValueError(f"pipeline: {str(path)!r} holds the programs {sorted(programs)}, not model and samples")
     return ProgramPipeline(programs, metadata, found, str(path))
@@ -268,4 +304,3 @@ def load_pipeline(path: str | os.PathLike, format: str | None = None) -> LoadedP
 def as_loaded(model: Any) -> LoadedPipeline:
     """``model`` as a :class:`LoadedPipeline` (a scripted or eager ``OnlinePipeline`` is wrapped)."""
     return model if isinstance(model, LoadedPipeline) else TorchScriptPipeline(model)
-

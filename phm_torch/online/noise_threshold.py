@@ -29,21 +29,31 @@ class NoiseScaledThreshold(nn.Module):
         levels: (n_levels,) increasing relative noise levels (noise std / record RMS); None: one level, 0.
     """
 
-    def __init__(self, values: torch.Tensor | Sequence[float] | float, levels: torch.Tensor | Sequence[float] | None = None,
-                 dtype: torch.dtype = torch.float32):
+    def __init__(
+        self,
+        values: torch.Tensor | Sequence[float] | float,
+        levels: torch.Tensor | Sequence[float] | None = None,
+        dtype: torch.dtype = torch.float32,
+    ):
         super().__init__()
         self.dtype = dtype
         self.set(values, levels)
 
-    def set(self, values: torch.Tensor | Sequence[float] | float,
-            levels: torch.Tensor | Sequence[float] | None = None) -> None:
+    def set(
+        self, values: torch.Tensor | Sequence[float] | float, levels: torch.Tensor | Sequence[float] | None = None
+    ) -> None:
         """Replace the thresholds ``values`` (n_levels,) at ``levels`` (n_levels,) (None: one level, 0)."""
         v = torch.as_tensor(values, dtype=self.dtype).reshape(-1)
-        lv = torch.zeros(v.numel(), dtype=self.dtype) if levels is None else \
-            torch.as_tensor(levels, dtype=self.dtype).reshape(-1)
+        lv = (
+            torch.zeros(v.numel(), dtype=self.dtype)
+            if levels is None
+            else torch.as_tensor(levels, dtype=self.dtype).reshape(-1)
+        )
         if v.numel() < 1 or lv.numel() != v.numel() or bool((lv[1:] <= lv[:-1]).any()) or not bool((v > 0).all()):
-            raise ValueError(f"noise-scaled threshold: values must be > 0, one per increasing noise level, got "
-                             f"{v.tolist()} at {lv.tolist()}")
+            raise ValueError(
+                f"noise-scaled threshold: values must be > 0, one per increasing noise level, got "
+                f"{v.tolist()} at {lv.tolist()}"
+            )
         self.register_buffer("values", v.contiguous())
         self.register_buffer("levels", lv.contiguous())
 
@@ -73,8 +83,14 @@ def conformal_quantile(values: torch.Tensor, quantile: float) -> float:
 
 
 @torch.no_grad()
-def calibrate_gappy_residual(pipeline: nn.Module, clean: torch.Tensor, levels: Sequence[float], seed: int,
-                             quantile: float, block_rows: int = 1024) -> dict[str, list[float] | float]:
+def calibrate_gappy_residual(
+    pipeline: nn.Module,
+    clean: torch.Tensor,
+    levels: Sequence[float],
+    seed: int,
+    quantile: float,
+    block_rows: int = 1024,
+) -> dict[str, list[float] | float]:
     """Set the pipeline's gappy-residual threshold per noise level, in place, on held-out records.
 
     Args:
@@ -94,10 +110,15 @@ def calibrate_gappy_residual(pipeline: nn.Module, clean: torch.Tensor, levels: S
     floor = float(pipeline.residual_threshold)
     thresholds = []
     for i, level in enumerate(levels):
-        noisy = add_noise(clean, rms(clean), level, torch.Generator().manual_seed(seed + 40 + i)) if level > 0 \
-            else clean
-        residual = torch.cat([pipeline.gappy(pipeline.gappy.select(block.to(pipeline.times.dtype)))[1]
-                              for block in noisy.split(block_rows)])
+        noisy = (
+            add_noise(clean, rms(clean), level, torch.Generator().manual_seed(seed + 40 + i)) if level > 0 else clean
+        )
+        residual = torch.cat(
+            [
+                pipeline.gappy(pipeline.gappy.select(block.to(pipeline.times.dtype)))[1]
+                for block in noisy.split(block_rows)
+            ]
+        )
         thresholds.append(max(floor, conformal_quantile(residual, quantile)))
     pipeline.residual_limit.set(thresholds, levels)
     return {"thresholds": thresholds, "noise_levels": [float(v) for v in levels], "quantile": float(quantile)}

@@ -33,8 +33,10 @@ from .extras import require, without_searchsorted
 from .step import STEP_OUTPUTS
 
 ARCHIVE_DIR = "online"
-LIMITS = ("complete records only: ONNX has no linear solve (Cholesky) for the masked least squares of a record "
-          "with missing samples")
+LIMITS = (
+    "complete records only: ONNX has no linear solve (Cholesky) for the masked least squares of a record "
+    "with missing samples"
+)
 
 
 def onnx_bytes(program: torch.export.ExportedProgram, metadata: str) -> bytes:
@@ -42,12 +44,18 @@ def onnx_bytes(program: torch.export.ExportedProgram, metadata: str) -> bytes:
     require("onnx")
     program = without_searchsorted(program)
     batch = torch.export.Dim("batch", min=1, max=1 << 20)
-    quiet = logging.getLogger("onnx_ir")       # one INFO line per deduplicated constant, hundreds per program
+    quiet = logging.getLogger("onnx_ir")  # one INFO line per deduplicated constant, hundreds per program
     level = quiet.level
     quiet.setLevel(logging.ERROR)
     try:
-        onnx_program = torch.onnx.export(program, dynamic_shapes={"x": {0: batch}, "offset": None}, dynamo=True,
-                                         input_names=["x", "offset"], output_names=list(STEP_OUTPUTS), verbose=False)
+        onnx_program = torch.onnx.export(
+            program,
+            dynamic_shapes={"x": {0: batch}, "offset": None},
+            dynamo=True,
+            input_names=["x", "offset"],
+            output_names=list(STEP_OUTPUTS),
+            verbose=False,
+        )
     finally:
         quiet.setLevel(level)
     with tempfile.TemporaryDirectory() as tmp:

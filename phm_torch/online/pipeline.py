@@ -31,7 +31,7 @@ from .fdi_interval import DEFAULT_CLASSES, DEFAULT_LEVEL
 from .noise_threshold import NoiseScaledThreshold
 from .rul_propagation import RULPropagation
 
-NOISE_WINDOW, NOISE_ROWS = 1024, 64     # the noise estimate of a noise-aware FDI: samples, rows per block
+NOISE_WINDOW, NOISE_ROWS = 1024, 64  # the noise estimate of a noise-aware FDI: samples, rows per block
 
 
 class OnlinePipeline(nn.Module, RULPropagation):
@@ -83,19 +83,37 @@ class OnlinePipeline(nn.Module, RULPropagation):
         unidentified: indices of the components the test command does not identify (:meth:`set_unidentified`).
     """
 
-    __constants__ = ("noise_aware", "has_consistency")     # TorchScript compiles only the FDI call that applies
+    __constants__ = ("noise_aware", "has_consistency")  # TorchScript compiles only the FDI call that applies
 
-    def __init__(self, gappy: nn.Module, fdi: nn.Module, classifier: nn.Module, damage: DamageModel,
-                 deltas: torch.Tensor, direction: torch.Tensor, n_full: int, residual_threshold: float,
-                 min_present: float = 0.8, sample_rate: float = 20000.0, coarse: int = 25,
-                 full_check: nn.Module | None = None, fdi_deltas: torch.Tensor | None = None,
-                 fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None,
-                 verdict: tuple[float, float] | None = None, nominal_record: torch.Tensor | None = None,
-                 k_half_widths: torch.Tensor | None = None, interval_level: float = DEFAULT_LEVEL,
-                 calibration_noise: float | None = None, interval_noise: torch.Tensor | None = None,
-                 verdict_classifier: nn.Module | None = None, consistency: nn.Module | None = None,
-                 residual_limits: tuple[Sequence[float], Sequence[float]] | None = None,
-                 fdi_health_stop: Sequence[int] | None = None, unidentified: Sequence[int] | None = None):
+    def __init__(
+        self,
+        gappy: nn.Module,
+        fdi: nn.Module,
+        classifier: nn.Module,
+        damage: DamageModel,
+        deltas: torch.Tensor,
+        direction: torch.Tensor,
+        n_full: int,
+        residual_threshold: float,
+        min_present: float = 0.8,
+        sample_rate: float = 20000.0,
+        coarse: int = 25,
+        full_check: nn.Module | None = None,
+        fdi_deltas: torch.Tensor | None = None,
+        fdi_direction: torch.Tensor | None = None,
+        rate_scales: torch.Tensor | None = None,
+        verdict: tuple[float, float] | None = None,
+        nominal_record: torch.Tensor | None = None,
+        k_half_widths: torch.Tensor | None = None,
+        interval_level: float = DEFAULT_LEVEL,
+        calibration_noise: float | None = None,
+        interval_noise: torch.Tensor | None = None,
+        verdict_classifier: nn.Module | None = None,
+        consistency: nn.Module | None = None,
+        residual_limits: tuple[Sequence[float], Sequence[float]] | None = None,
+        fdi_health_stop: Sequence[int] | None = None,
+        unidentified: Sequence[int] | None = None,
+    ):
         super().__init__()
         if not 0.0 < min_present <= 1.0:
             raise ValueError(f"online.min_present must be in (0, 1], got {min_present}")
@@ -114,34 +132,48 @@ class OnlinePipeline(nn.Module, RULPropagation):
         scale, offset = (float("nan"), float("nan")) if verdict is None else (float(verdict[0]), float(verdict[1]))
         self.register_buffer("verdict_scale", torch.tensor(scale, dtype=dtype))
         self.register_buffer("verdict_offset", torch.tensor(offset, dtype=dtype))
-        self.register_buffer("nominal_record", torch.full((int(n_full),), float("nan"), dtype=dtype)
-                             if nominal_record is None else torch.as_tensor(nominal_record, dtype=dtype).reshape(n_full))
+        self.register_buffer(
+            "nominal_record",
+            torch.full((int(n_full),), float("nan"), dtype=dtype)
+            if nominal_record is None
+            else torch.as_tensor(nominal_record, dtype=dtype).reshape(n_full),
+        )
         widths = torch.full((DEFAULT_CLASSES, 8), float("nan")) if k_half_widths is None else k_half_widths
         widths = torch.as_tensor(widths, dtype=dtype)
         widths = widths.unsqueeze(0) if widths.dim() == 2 else widths
         if widths.dim() != 3 or widths.shape[0] < 1 or widths.shape[1] < 1 or widths.shape[2] != 8:
-            raise ValueError(f"online.k_half_widths must be (n_classes, 8) or (n_levels, n_classes, 8), got "
-                             f"{tuple(torch.as_tensor(k_half_widths).shape)}")
-        levels = torch.zeros(widths.shape[0], dtype=dtype) if interval_noise is None else \
-            torch.as_tensor(interval_noise, dtype=dtype).reshape(-1)
+            raise ValueError(
+                f"online.k_half_widths must be (n_classes, 8) or (n_levels, n_classes, 8), got "
+                f"{tuple(torch.as_tensor(k_half_widths).shape)}"
+            )
+        levels = (
+            torch.zeros(widths.shape[0], dtype=dtype)
+            if interval_noise is None
+            else torch.as_tensor(interval_noise, dtype=dtype).reshape(-1)
+        )
         if levels.numel() != widths.shape[0] or bool((levels[1:] <= levels[:-1]).any()):
-            raise ValueError(f"online.interval_noise must hold {widths.shape[0]} increasing levels, got "
-                             f"{[float(f'{v:.6g}') for v in levels.tolist()]}")
+            raise ValueError(
+                f"online.interval_noise must hold {widths.shape[0]} increasing levels, got "
+                f"{[float(f'{v:.6g}') for v in levels.tolist()]}"
+            )
         if not interval_level > 0:
             raise ValueError(f"online.interval_level must be > 0, got {interval_level}")
         self.register_buffer("k_half_widths", widths)
         self.register_buffer("interval_noise", levels)
-        self.register_buffer("interval_mask", (torch.arange(8) != ECC_PHASE).to(dtype))   # k7 is a phase
+        self.register_buffer("interval_mask", (torch.arange(8) != ECC_PHASE).to(dtype))  # k7 is a phase
         self.interval_level = float(interval_level)
-        self.register_buffer("calibration_noise", torch.tensor(float("nan") if calibration_noise is None
-                                                               else float(calibration_noise), dtype=dtype))
+        self.register_buffer(
+            "calibration_noise",
+            torch.tensor(float("nan") if calibration_noise is None else float(calibration_noise), dtype=dtype),
+        )
         self.n_full = int(n_full)
         self.sample_rate = float(sample_rate)
         self.n_points = int(gappy.modes_hat.shape[0])
         self.n_modes = int(gappy.modes_hat.shape[1])
         self.residual_threshold = float(residual_threshold)
-        self.residual_limit = NoiseScaledThreshold(*(([residual_threshold], None) if residual_limits is None
-                                                     else residual_limits), dtype=dtype)
+        self.residual_limit = NoiseScaledThreshold(
+            *(([residual_threshold], None) if residual_limits is None else residual_limits), dtype=dtype
+        )
         # least squares needs n_m + 1 present samples for a residual; the Bayesian layer's prior makes
         # any count solvable and its residual (shrinkage included) is informative from one sample
         floor = 1 if bool(getattr(gappy, "bayesian", False)) else self.n_modes + 1
@@ -151,34 +183,69 @@ class OnlinePipeline(nn.Module, RULPropagation):
         self.set_unidentified(unidentified)
 
     @classmethod
-    def from_bundle(cls, bundle: nn.Module, damage: DamageModel, deltas: torch.Tensor, direction: torch.Tensor,
-                    min_present: float = 0.8, fdi_deltas: torch.Tensor | None = None,
-                    fdi_direction: torch.Tensor | None = None, rate_scales: torch.Tensor | None = None,
-                    verdict: tuple[float, float] | None = None, k_half_widths: torch.Tensor | None = None,
-                    interval_level: float = DEFAULT_LEVEL, calibration_noise: float | None = None,
-                    interval_noise: torch.Tensor | None = None,
-                    consistency: dict | None = None, residual_limits: dict | None = None,
-                    fdi_health_stop: Sequence[int] | None = None,
-                    unidentified: Sequence[int] | None = None) -> OnlinePipeline:
+    def from_bundle(
+        cls,
+        bundle: nn.Module,
+        damage: DamageModel,
+        deltas: torch.Tensor,
+        direction: torch.Tensor,
+        min_present: float = 0.8,
+        fdi_deltas: torch.Tensor | None = None,
+        fdi_direction: torch.Tensor | None = None,
+        rate_scales: torch.Tensor | None = None,
+        verdict: tuple[float, float] | None = None,
+        k_half_widths: torch.Tensor | None = None,
+        interval_level: float = DEFAULT_LEVEL,
+        calibration_noise: float | None = None,
+        interval_noise: torch.Tensor | None = None,
+        consistency: dict | None = None,
+        residual_limits: dict | None = None,
+        fdi_health_stop: Sequence[int] | None = None,
+        unidentified: Sequence[int] | None = None,
+    ) -> OnlinePipeline:
         """Assemble from a trained ``SurrogateBundle`` (gappy layer, network, classifiers, OOD threshold, and its
         forward surrogate when it has one: the consistency check, thresholds from ``consistency``, the
         ``{"thresholds", "noise_levels"}`` of :func:`~phm_torch.online.consistency.calibrate_consistency`;
         ``residual_limits`` that of :func:`~phm_torch.online.noise_threshold.calibrate_gappy_residual`)."""
         threshold = float(bundle.full_residual_threshold)
         check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_, residual_threshold=threshold)
-        return cls(bundle.gappy, bundle.network, bundle.classifier, damage, deltas, direction,
-                   int(bundle.pod.mean_.shape[0]), float(bundle.residual_threshold), min_present,
-                   float(bundle.sample_rate), full_check=check, fdi_deltas=fdi_deltas, fdi_direction=fdi_direction,
-                   rate_scales=rate_scales, verdict=verdict, nominal_record=bundle.nominal_record,
-                   k_half_widths=k_half_widths, interval_level=interval_level,
-                   calibration_noise=calibration_noise, interval_noise=interval_noise,
-                   verdict_classifier=bundle.verdict, consistency=None if getattr(bundle, "forward_model", None) is None
-                   else ConsistencyCheck(bundle.forward_model, bundle.pod.mean_, bundle.pod.modes_, bundle.indices,
-                                         *[torch.tensor(consistency[key]) if consistency else None
-                                           for key in ("thresholds", "noise_levels")]),
-                   residual_limits=None if residual_limits is None else (residual_limits["thresholds"],
-                                                                         residual_limits["noise_levels"]),
-                   fdi_health_stop=fdi_health_stop, unidentified=unidentified)
+        return cls(
+            bundle.gappy,
+            bundle.network,
+            bundle.classifier,
+            damage,
+            deltas,
+            direction,
+            int(bundle.pod.mean_.shape[0]),
+            float(bundle.residual_threshold),
+            min_present,
+            float(bundle.sample_rate),
+            full_check=check,
+            fdi_deltas=fdi_deltas,
+            fdi_direction=fdi_direction,
+            rate_scales=rate_scales,
+            verdict=verdict,
+            nominal_record=bundle.nominal_record,
+            k_half_widths=k_half_widths,
+            interval_level=interval_level,
+            calibration_noise=calibration_noise,
+            interval_noise=interval_noise,
+            verdict_classifier=bundle.verdict,
+            consistency=None
+            if getattr(bundle, "forward_model", None) is None
+            else ConsistencyCheck(
+                bundle.forward_model,
+                bundle.pod.mean_,
+                bundle.pod.modes_,
+                bundle.indices,
+                *[torch.tensor(consistency[key]) if consistency else None for key in ("thresholds", "noise_levels")],
+            ),
+            residual_limits=None
+            if residual_limits is None
+            else (residual_limits["thresholds"], residual_limits["noise_levels"]),
+            fdi_health_stop=fdi_health_stop,
+            unidentified=unidentified,
+        )
 
     @torch.jit.export
     def noise_level(self, x: torch.Tensor) -> torch.Tensor:
@@ -237,7 +304,9 @@ class OnlinePipeline(nn.Module, RULPropagation):
 
     def _estimated_noise(self, x: torch.Tensor) -> torch.Tensor:
         """Relative noise (B,) of full records from their first NOISE_WINDOW samples, in cache-sized blocks."""
-        return torch.cat([noise_level(rows.to(self.times.dtype), self.noise_window) for rows in x.split(self.noise_rows)])
+        return torch.cat(
+            [noise_level(rows.to(self.times.dtype), self.noise_window) for rows in x.split(self.noise_rows)]
+        )
 
     def _limit(self, noise: torch.Tensor | None, like: torch.Tensor) -> torch.Tensor:
         if noise is None:
@@ -261,8 +330,9 @@ class OnlinePipeline(nn.Module, RULPropagation):
             raise ValueError("rebase: x must be (B, n_full) and bench_nominal (n_full,)")
         return x.to(self.nominal_record.dtype) - (bench_nominal.to(self.nominal_record.dtype) - self.nominal_record)
 
-    def forward(self, x: torch.Tensor, noise: torch.Tensor | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(
+        self, x: torch.Tensor, noise: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """Args: x (B, n_full) envelope current [A] or (B, n_points) samples at the selected times; NaN = missing.
         noise: (B,) the records' relative noise level, for a noise-aware FDI network; None: estimated from
         each full record (:meth:`noise_level` on its first samples), the network's default level for
@@ -278,7 +348,7 @@ class OnlinePipeline(nn.Module, RULPropagation):
         foreign = torch.zeros(x.shape[0], dtype=torch.bool, device=x.device)
         if x.shape[1] == self.n_full:
             samples = x.index_select(1, self.gappy.indices)
-            if self.has_full_check:      # NaN (missing samples) compares False: the gappy checks decide then
+            if self.has_full_check:  # NaN (missing samples) compares False: the gappy checks decide then
                 foreign = self.full_check(x)
             if noise is None and (self.noise_aware or self.residual_limit.levels.shape[0] > 1):
                 noise = self._estimated_noise(x)
@@ -288,10 +358,10 @@ class OnlinePipeline(nn.Module, RULPropagation):
             raise ValueError("online: input length must be the full acquisition or the selected samples")
         samples = samples.to(self.gappy.modes_hat.dtype)
         valid = torch.isfinite(samples)
-        if self.n_points >= self.min_count and bool(valid.all()):    # the usual case, in fewer passes
+        if self.n_points >= self.min_count and bool(valid.all()):  # the usual case, in fewer passes
             enough = torch.ones(samples.shape[0], dtype=torch.bool, device=samples.device)
             alpha, residual = self.gappy(samples)
-            low, high = torch.aminmax(samples, dim=1)     # one pass; std would take two
+            low, high = torch.aminmax(samples, dim=1)  # one pass; std would take two
             flat = (high - low) < 1e-6
         else:
             enough = valid.sum(1) >= self.min_count
@@ -300,13 +370,13 @@ class OnlinePipeline(nn.Module, RULPropagation):
             mask = torch.where(enough.unsqueeze(1), valid, torch.ones_like(valid))
             alpha, residual = self.gappy(filled, mask)
             flat = torch.where(valid, samples, torch.zeros_like(samples)).std(1) < 1e-6
-        if self.noise_aware:     # a constant: TorchScript compiles one branch, so any alpha -> k_hat module fits
+        if self.noise_aware:  # a constant: TorchScript compiles one branch, so any alpha -> k_hat module fits
             k_hat = self.fdi(alpha, noise)
         else:
             k_hat = self.fdi(alpha)
         score = self.verdict_classifier(k_hat) - self.verdict_classifier.threshold
         ood = (~enough) | flat | foreign | (residual > self._limit(noise, residual)) | ~torch.isfinite(residual)
-        if self.has_consistency:     # analysis by synthesis: NaN (no finite sample) compares False
+        if self.has_consistency:  # analysis by synthesis: NaN (no finite sample) compares False
             ood = ood | (self.consistency_check(x, k_hat, noise) > 1.0)
         rul = self.rul(k_hat, True)
         # the median propagation starts δ_50 of damage away from k_hat, which can move a record just across

@@ -22,34 +22,50 @@ import torch
 
 from ..prognostics.damage import DamageModel
 
-SCORE_BLOCK = 4096    # rows per classifier call in the RUL search
+SCORE_BLOCK = 4096  # rows per classifier call in the RUL search
 
 
 class RULPropagation:
     """The RUL buffers and methods of an online pipeline (see the module docstring)."""
 
-    def _init_rul(self, damage: DamageModel, deltas: torch.Tensor, direction: torch.Tensor,
-                  rate_scales: torch.Tensor | None, fdi_deltas: torch.Tensor | None,
-                  fdi_direction: torch.Tensor | None, coarse: int, dtype: torch.dtype) -> None:
+    def _init_rul(
+        self,
+        damage: DamageModel,
+        deltas: torch.Tensor,
+        direction: torch.Tensor,
+        rate_scales: torch.Tensor | None,
+        fdi_deltas: torch.Tensor | None,
+        fdi_direction: torch.Tensor | None,
+        coarse: int,
+        dtype: torch.dtype,
+    ) -> None:
         """Register the RUL buffers (arguments as :class:`~phm_torch.online.pipeline.OnlinePipeline`'s)."""
         t = damage.grid
         a, _ = damage.transitions(t)
         self.register_buffer("times", t.to(dtype))
-        self.register_buffer("propagators", a.to(dtype))                     # (T, 8, 8)
+        self.register_buffer("propagators", a.to(dtype))  # (T, 8, 8)
         self.register_buffer("nominal", damage.nominal.to(dtype))
         self.register_buffer("deltas", torch.as_tensor(deltas, dtype=dtype).reshape(3))
         self.register_buffer("direction", torch.as_tensor(direction, dtype=dtype).reshape(8))
-        self.register_buffer("rate_scales", torch.ones(3, dtype=dtype) if rate_scales is None
-                             else torch.as_tensor(rate_scales, dtype=dtype).reshape(3))
-        self.register_buffer("fdi_deltas", torch.zeros(3, dtype=dtype) if fdi_deltas is None
-                             else torch.as_tensor(fdi_deltas, dtype=dtype).reshape(3))
-        self.register_buffer("fdi_direction", torch.zeros(8, dtype=dtype) if fdi_direction is None
-                             else torch.as_tensor(fdi_direction, dtype=dtype).reshape(8))
+        self.register_buffer(
+            "rate_scales",
+            torch.ones(3, dtype=dtype) if rate_scales is None else torch.as_tensor(rate_scales, dtype=dtype).reshape(3),
+        )
+        self.register_buffer(
+            "fdi_deltas",
+            torch.zeros(3, dtype=dtype) if fdi_deltas is None else torch.as_tensor(fdi_deltas, dtype=dtype).reshape(3),
+        )
+        self.register_buffer(
+            "fdi_direction",
+            torch.zeros(8, dtype=dtype)
+            if fdi_direction is None
+            else torch.as_tensor(fdi_direction, dtype=dtype).reshape(8),
+        )
         self.coarse = int(coarse)
         if self.coarse < 1:
             raise ValueError(f"online.coarse must be >= 1, got {coarse}")
         self.score_block = SCORE_BLOCK
-        self.bisections = max(0, (self.coarse - 1).bit_length())   # down to one grid step
+        self.bisections = max(0, (self.coarse - 1).bit_length())  # down to one grid step
         n_t = int(t.shape[0])
         coarse_index = list(range(0, n_t, self.coarse))
         coarse_index += [] if coarse_index[-1] == n_t - 1 else [n_t - 1]
@@ -69,7 +85,7 @@ class RULPropagation:
         shift = torch.zeros_like(self.unknown_shift)
         for j in idx:
             if float(self.direction[j]) > 0:
-                shift[2, j] = -1.0           # |k - k0| <= 1: the moved damage clamps at nominal
+                shift[2, j] = -1.0  # |k - k0| <= 1: the moved damage clamps at nominal
         self.unknown_shift.copy_(shift)
 
     def set_health_stop(self, quantiles: Sequence[int] | None) -> None:
@@ -126,8 +142,14 @@ class RULPropagation:
         rul = self.propagations(k, fdi, self.fdi_direction, measured, blocked)
         return torch.stack([rul.amin(-1), rul[:, 1], rul.amax(-1)], dim=-1)
 
-    def propagations(self, k: torch.Tensor, fdi_deltas: torch.Tensor, fdi_direction: torch.Tensor,
-                     measured: bool = False, blocked: bool = True) -> torch.Tensor:
+    def propagations(
+        self,
+        k: torch.Tensor,
+        fdi_deltas: torch.Tensor,
+        fdi_direction: torch.Tensor,
+        measured: bool = False,
+        blocked: bool = True,
+    ) -> torch.Tensor:
         """RUL [h] (B, 3) of the three propagations q, unordered: from k (B, 8) with its damage moved by
         ``deltas[q] direction + fdi_deltas[q] fdi_direction`` (fdi_deltas (3,), fdi_direction (8,)), on a
         wear clock sped up by ``rate_scales[q]``
@@ -136,10 +158,11 @@ class RULPropagation:
         if measured:
             shift = shift + self.unknown_shift
         rul = self.rul_shifted(k, shift, measured, blocked) / self.rate_scales
-        return torch.minimum(rul, self.times[-1])     # a tensor bound: the traced step reads no Python float
+        return torch.minimum(rul, self.times[-1])  # a tensor bound: the traced step reads no Python float
 
-    def rul_shifted(self, k: torch.Tensor, shift: torch.Tensor, measured: bool = False,
-                    blocked: bool = True) -> torch.Tensor:
+    def rul_shifted(
+        self, k: torch.Tensor, shift: torch.Tensor, measured: bool = False, blocked: bool = True
+    ) -> torch.Tensor:
         """RUL [h] (B, 3) of three noise-free propagations from k (B, 8) with its damage |k - k_nom| moved by
         shift (3, 8), unordered, stopped as :meth:`rul` says for ``measured``.
 
@@ -154,22 +177,22 @@ class RULPropagation:
         # (DeterministicRUL.disturbed)
         side = torch.where(dev >= 0, torch.ones_like(dev), -torch.ones_like(dev)).unsqueeze(1)
         magnitude = dev.abs().unsqueeze(1) + shift.to(dev.dtype).unsqueeze(0)
-        dk = side * magnitude.clamp(min=0.0)                                                    # (B, 3, 8)
+        dk = side * magnitude.clamp(min=0.0)  # (B, 3, 8)
         coarse = self.coarse_index
-        traj = self.nominal + torch.einsum("tij,bqj->tbqi", self.propagators[coarse], dk)      # (Tc, B, 3, 8)
+        traj = self.nominal + torch.einsum("tij,bqj->tbqi", self.propagators[coarse], dk)  # (Tc, B, 3, 8)
         n_c = traj.shape[0]
         score = self._stop_scores(traj.reshape(-1, 3, 8), measured, blocked).reshape(n_c, b, 3)
         faulty = score <= 0
         any_faulty = faulty.any(0)
-        first = torch.argmax(faulty.to(torch.int64), dim=0)                                     # (B, 3)
-        hi = coarse[first]                                           # faulty grid index
+        first = torch.argmax(faulty.to(torch.int64), dim=0)  # (B, 3)
+        hi = coarse[first]  # faulty grid index
         prev = (first - 1).clamp(min=0)
-        lo = coarse[prev]                                            # healthy grid index (or 0)
-        s1 = score.gather(0, first.unsqueeze(0)).squeeze(0)          # scores at lo and hi, kept up to date
+        lo = coarse[prev]  # healthy grid index (or 0)
+        s1 = score.gather(0, first.unsqueeze(0)).squeeze(0)  # scores at lo and hi, kept up to date
         s0 = score.gather(0, prev.unsqueeze(0)).squeeze(0)
         for _ in range(self.bisections):
             mid = torch.div(lo + hi, 2, rounding_mode="floor")
-            states = self.nominal + (self.propagators[mid] @ dk.unsqueeze(-1)).squeeze(-1)      # (B, 3, 8)
+            states = self.nominal + (self.propagators[mid] @ dk.unsqueeze(-1)).squeeze(-1)  # (B, 3, 8)
             s_mid = self._stop_scores(states, measured, blocked)
             inner = mid > lo
             bad = (s_mid <= 0) & inner
@@ -177,6 +200,6 @@ class RULPropagation:
             hi, s1 = torch.where(bad, mid, hi), torch.where(bad, s_mid, s1)
             lo, s0 = torch.where(good, mid, lo), torch.where(good, s_mid, s0)
         t0, t1 = self.times[lo], self.times[hi]
-        frac = (s0 / (s0 - s1).clamp(min=1e-12)).clamp(0.0, 1.0)                             # linear zero
+        frac = (s0 / (s0 - s1).clamp(min=1e-12)).clamp(0.0, 1.0)  # linear zero
         crossing = torch.where(first > 0, t0 + frac * (t1 - t0), torch.zeros_like(t0))
         return torch.where(any_faulty, crossing, self.times[-1].expand_as(crossing))

@@ -30,8 +30,19 @@ from .input_contract import PIPELINE_CHECKS
 from .pipeline import OnlinePipeline
 
 # outputs of OnlineStep.forward, in order (the names phm-predict and the file's metadata use)
-STEP_OUTPUTS = ("k_hat", "k_lower", "k_upper", "score", "p_faulty", "rul", "ood", "residual", "noise",
-                "consistency", "reasons")
+STEP_OUTPUTS = (
+    "k_hat",
+    "k_lower",
+    "k_upper",
+    "score",
+    "p_faulty",
+    "rul",
+    "ood",
+    "residual",
+    "noise",
+    "consistency",
+    "reasons",
+)
 
 
 def masked_gappy(gappy: nn.Module, samples: torch.Tensor, mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -42,16 +53,17 @@ def masked_gappy(gappy: nn.Module, samples: torch.Tensor, mask: torch.Tensor) ->
     valid = torch.isfinite(centred) & mask
     n_w = gappy.modes_hat.shape[0]
     fast = centred @ gappy.solve_matrix.T
-    fast_resid = torch.linalg.vector_norm(centred - fast @ gappy.modes_hat.T, dim=-1) / n_w ** 0.5
+    fast_resid = torch.linalg.vector_norm(centred - fast @ gappy.modes_hat.T, dim=-1) / n_w**0.5
     centred = torch.where(valid, centred, torch.zeros_like(centred))
     w = valid.to(samples.dtype)
     count = w.sum(-1)
     missing = ~valid
-    vm = gappy.modes_hat.unsqueeze(0) * w.unsqueeze(-1)                               # (B, n_w, n_m)
-    if gappy.bayesian:     # as GappyPOD.forward: R restricted to the present samples, factorised in float64
+    vm = gappy.modes_hat.unsqueeze(0) * w.unsqueeze(-1)  # (B, n_w, n_m)
+    if gappy.bayesian:  # as GappyPOD.forward: R restricted to the present samples, factorised in float64
         w64 = w.to(torch.float64)
-        cov = gappy.noise_covariance.to(torch.float64) * (w64.unsqueeze(-1) * w64.unsqueeze(-2)) \
-            + torch.diag_embed(1.0 - w64)
+        cov = gappy.noise_covariance.to(torch.float64) * (w64.unsqueeze(-1) * w64.unsqueeze(-2)) + torch.diag_embed(
+            1.0 - w64
+        )
         weighted = torch.cholesky_solve(vm.to(torch.float64), torch.linalg.cholesky(cov)).transpose(1, 2).to(vm.dtype)
     else:
         weighted = vm.transpose(1, 2)
@@ -82,13 +94,15 @@ class OnlineStep(nn.Module):
     def __init__(self, pipeline: OnlinePipeline, full: bool, complete_only: bool = False):
         super().__init__()
         if complete_only and pipeline.n_points < pipeline.min_count:
-            raise ValueError(f"complete_only: the pipeline needs {pipeline.min_count} of its {pipeline.n_points} "
-                             f"samples, so every record takes its missing-sample path (no complete-record step)")
+            raise ValueError(
+                f"complete_only: the pipeline needs {pipeline.min_count} of its {pipeline.n_points} "
+                f"samples, so every record takes its missing-sample path (no complete-record step)"
+            )
         self.pipeline = pipeline.eval()
         self.full = bool(full)
         self.complete_only = bool(complete_only)
         self.length = pipeline.n_full if full else pipeline.n_points
-        self.register_buffer("phases", torch.arange(3) < 2)          # RUL 5 and 50 % of a faulty verdict
+        self.register_buffer("phases", torch.arange(3) < 2)  # RUL 5 and 50 % of a faulty verdict
         self.estimate_noise = self.full and (pipeline.noise_aware or pipeline.residual_limit.levels.shape[0] > 1)
 
     def _score(self, k: torch.Tensor) -> torch.Tensor:
@@ -139,31 +153,55 @@ class OnlineStep(nn.Module):
         noise = noise_level(x, p.noise_window) if self.estimate_noise else None
         samples = x.index_select(1, p.gappy.indices) if self.full else x
         samples = samples.to(p.gappy.modes_hat.dtype)
-        if self.complete_only:     # the caller guarantees every sample present (no linear solve in the graph)
+        if self.complete_only:  # the caller guarantees every sample present (no linear solve in the graph)
             alpha, residual, enough, flat = self._complete(samples)
         else:
             alpha, residual, enough, flat = self._gappy(samples)
-        if p.n_points >= p.min_count and not self.complete_only:     # both paths, the pipeline's choice selected
+        if p.n_points >= p.min_count and not self.complete_only:  # both paths, the pipeline's choice selected
             complete = torch.isfinite(samples).all()
-            alpha, residual, enough, flat = (torch.where(complete, a, b) for a, b in
-                                             zip(self._complete(samples), (alpha, residual, enough, flat)))
+            alpha, residual, enough, flat = (
+                torch.where(complete, a, b) for a, b in zip(self._complete(samples), (alpha, residual, enough, flat))
+            )
         k_hat = p.fdi(alpha, noise) if p.noise_aware else p.fdi(alpha)
         score = self._score(k_hat)
         check = p.full_check if self.full and p.has_full_check else None
-        pod, rough, plateau = (false, false, false) if check is None else \
-            (check.residual(x) > check.residual_threshold, check.roughness(x) > check.roughness_threshold,
-             check.plateau(x) > check.plateau_threshold)
+        pod, rough, plateau = (
+            (false, false, false)
+            if check is None
+            else (
+                check.residual(x) > check.residual_threshold,
+                check.roughness(x) > check.roughness_threshold,
+                check.plateau(x) > check.plateau_threshold,
+            )
+        )
         gappy_flag = (residual > p._limit(noise, residual)) | ~torch.isfinite(residual)
         consistency = p.consistency_check(x, k_hat, noise) if p.has_consistency else nan
-        inconsistent = consistency > 1.0          # NaN (no finite sample, or no check) compares False
-        flags = {"missing": ~enough, "flat": flat, "gappy_residual": gappy_flag, "pod_residual": pod,
-                 "roughness": rough, "plateau": plateau, "inconsistent": inconsistent}
+        inconsistent = consistency > 1.0  # NaN (no finite sample, or no check) compares False
+        flags = {
+            "missing": ~enough,
+            "flat": flat,
+            "gappy_residual": gappy_flag,
+            "pod_residual": pod,
+            "roughness": rough,
+            "plateau": plateau,
+            "inconsistent": inconsistent,
+        }
         reasons = torch.stack([flags[name] for name in PIPELINE_CHECKS], 1)
         ood = reasons.any(1)
         rul = p.rul(k_hat, True, blocked=False)
         rul = torch.where((score <= 0).unsqueeze(1) & self.phases, torch.zeros_like(rul), rul)
         rul = torch.where(ood.unsqueeze(1), torch.full_like(rul, float("nan")), rul)
         lower, upper = p.k_interval(k_hat, measured) if self.full else p.k_interval(k_hat)
-        return (k_hat, lower, upper, score, p.faulty_probability(score), rul, ood, residual, measured,
-                consistency, reasons)
-
+        return (
+            k_hat,
+            lower,
+            upper,
+            score,
+            p.faulty_probability(score),
+            rul,
+            ood,
+            residual,
+            measured,
+            consistency,
+            reasons,
+        )

@@ -17,8 +17,9 @@ import math
 import torch
 
 
-def calibrate_verdict(score: torch.Tensor, faulty: torch.Tensor, ridge: float = 1e-3,
-                      iterations: int = 100) -> tuple[float, float]:
+def calibrate_verdict(
+    score: torch.Tensor, faulty: torch.Tensor, ridge: float = 1e-3, iterations: int = 100
+) -> tuple[float, float]:
     """Platt scaling of health scores: (a, b) of P(faulty | s) = sigmoid(a s + b).
 
     Newton's method on the mean logistic loss of the standardised score, with a small ridge so that
@@ -40,10 +41,11 @@ def calibrate_verdict(score: torch.Tensor, faulty: torch.Tensor, ridge: float = 
         raise ValueError("score must be finite (drop out-of-distribution records first)")
     y = faulty.to(torch.float64)
     if not 0 < float(y.sum()) < y.numel():
-        raise ValueError(f"calibrating the verdict needs healthy and faulty records, got {int(y.sum())} faulty "
-                         f"of {y.numel()}")
+        raise ValueError(
+            f"calibrating the verdict needs healthy and faulty records, got {int(y.sum())} faulty of {y.numel()}"
+        )
     center, spread = score.mean(), score.std().clamp(min=1e-12)
-    x = torch.stack([(score - center) / spread, torch.ones_like(score)], 1)     # (N, 2)
+    x = torch.stack([(score - center) / spread, torch.ones_like(score)], 1)  # (N, 2)
     w = torch.zeros(2, dtype=torch.float64)
     eye = torch.eye(2, dtype=torch.float64)
     for _ in range(iterations):
@@ -71,5 +73,8 @@ def verdict_quality(p_faulty: torch.Tensor, faulty: torch.Tensor) -> dict[str, f
     """Brier score of P(faulty) (N,) against the actual health (N,) bool, beside that of the constant base
     rate (what a verdict without information scores), and the accuracy of p > 0.5."""
     p, y = p_faulty.to(torch.float64), faulty.to(torch.float64)
-    return {"brier": float((p - y).pow(2).mean()), "brier_base_rate": float((y.mean() - y).pow(2).mean()),
-            "accuracy": float(((p > 0.5).to(torch.float64) == y).to(torch.float64).mean())}
+    return {
+        "brier": float((p - y).pow(2).mean()),
+        "brier_base_rate": float((y.mean() - y).pow(2).mean()),
+        "accuracy": float(((p > 0.5).to(torch.float64) == y).to(torch.float64).mean()),
+    }

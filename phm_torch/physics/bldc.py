@@ -30,8 +30,10 @@ def _member(sector: torch.Tensor, pair: tuple[int, int], dtype: torch.dtype) -> 
 def phase_roles(theta_e: torch.Tensor) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
     """Float masks (high[x], low[x]) per phase x for the Hall sector of theta_e (B,)."""
     s = hall_sector(theta_e)
-    return ([_member(s, _HIGH[x], theta_e.dtype) for x in range(3)],
-            [_member(s, _LOW[x], theta_e.dtype) for x in range(3)])
+    return (
+        [_member(s, _HIGH[x], theta_e.dtype) for x in range(3)],
+        [_member(s, _LOW[x], theta_e.dtype) for x in range(3)],
+    )
 
 
 def emf_shape_constants(theta_m: torch.Tensor, plant, emf_scale) -> list[torch.Tensor]:
@@ -70,18 +72,28 @@ class BLDCMotor:
 
     def magnetic_energy(self, currents: torch.Tensor, theta_m: torch.Tensor, plant) -> torch.Tensor:
         """sum_x L_x i_x^2 / 2 [J] (B,)."""
-        return 0.5 * (plant.inductance * currents ** 2).sum(-1)
+        return 0.5 * (plant.inductance * currents**2).sum(-1)
 
-    def electrical_energy(self, old: torch.Tensor, new: torch.Tensor, theta_old: torch.Tensor,
-                          theta_new: torch.Tensor, plant, h: float) -> dict[str, torch.Tensor]:
+    def electrical_energy(
+        self, old: torch.Tensor, new: torch.Tensor, theta_old: torch.Tensor, theta_new: torch.Tensor, plant, h: float
+    ) -> dict[str, torch.Tensor]:
         """Copper loss sum_x R_x i_x^2 h [J] (B,) at the trapezoidal rule's mid-step currents; the phase
         inductances do not depend on the rotor angle, so the windings exchange nothing else."""
         i2 = (0.5 * (new + old)) ** 2
         return {"copper": h * (plant.resistance * i2).sum(-1)}
 
-    def step(self, currents: torch.Tensor, duty: torch.Tensor, t_in_period: torch.Tensor, theta_m: torch.Tensor,
-             omega_m: torch.Tensor, emf_scale, plant, h: float, period: float
-             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+    def step(
+        self,
+        currents: torch.Tensor,
+        duty: torch.Tensor,
+        t_in_period: torch.Tensor,
+        theta_m: torch.Tensor,
+        omega_m: torch.Tensor,
+        emf_scale,
+        plant,
+        h: float,
+        period: float,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
         """Advance the phase currents over [t_in_period, t_in_period + h] of the PWM period.
 
         Args:
@@ -109,7 +121,7 @@ class BLDCMotor:
         a, b, v, off, i_off = [], [], [], [], 0.0
         for x in range(3):
             o = 1.0 - high[x] - low[x]
-            diode = torch.where(i[x] < 0, vdc, torch.zeros_like(vdc))    # off phase through its diodes
+            diode = torch.where(i[x] < 0, vdc, torch.zeros_like(vdc))  # off phase through its diodes
             vx = high[x] * v_hi + low[x] * v_lo + o * diode
             lh = plant.inductance[:, x] / h
             half_r = 0.5 * plant.resistance[:, x]
@@ -125,7 +137,7 @@ class BLDCMotor:
         # Off phase open, or its diode blocking within the step: a single loop through the pair,
         # started from the pair's flux so that the clamp conserves it.
         sgn = [high[x] - low[x] for x in range(3)]
-        num = sgn[0] * b[0] + sgn[1] * b[1] + sgn[2] * b[2]          # b_high - b_low
+        num = sgn[0] * b[0] + sgn[1] * b[1] + sgn[2] * b[2]  # b_high - b_low
         den = a[0] + a[1] + a[2] - (off[0] * a[0] + off[1] * a[1] + off[2] * a[2])
         i_loop = num / den
         i3_off = off[0] * i3[0] + off[1] * i3[1] + off[2] * i3[2]

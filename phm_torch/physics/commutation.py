@@ -30,7 +30,7 @@ def trapezoid(angle: torch.Tensor) -> torch.Tensor:
     x = torch.remainder(angle, 2.0 * math.pi)
     rise = (x < math.pi / 6) | (x >= 11 * math.pi / 6)
     ramp_up = torch.remainder(x + math.pi / 6, 2.0 * math.pi) / (math.pi / 6) - 1.0  # -1 at 330°, +1 at 30°
-    ramp_down = 1.0 - (x - 5 * math.pi / 6) / (math.pi / 6)                           # +1 at 150°, -1 at 210°
+    ramp_down = 1.0 - (x - 5 * math.pi / 6) / (math.pi / 6)  # +1 at 150°, -1 at 210°
     flat = torch.where(x < math.pi, torch.ones_like(x), -torch.ones_like(x))
     out = torch.where((x >= 5 * math.pi / 6) & (x < 7 * math.pi / 6), ramp_down, flat)
     return torch.where(rise, ramp_up, out)

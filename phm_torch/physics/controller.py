@@ -25,8 +25,7 @@ class ControlState:
         return cls(*(torch.zeros(batch, dtype=dtype, device=device) for _ in range(3)))
 
 
-def _pi(error: torch.Tensor, integral: torch.Tensor, kp, ki, limit, period: float
-        ) -> tuple[torch.Tensor, torch.Tensor]:
+def _pi(error: torch.Tensor, integral: torch.Tensor, kp, ki, limit, period: float) -> tuple[torch.Tensor, torch.Tensor]:
     raw = kp * error + integral
     out = torch.maximum(torch.minimum(raw, limit), -limit)
     winding = ((raw > limit) & (error > 0)) | ((raw < -limit) & (error < 0))
@@ -34,8 +33,15 @@ def _pi(error: torch.Tensor, integral: torch.Tensor, kp, ki, limit, period: floa
     return out, integral
 
 
-def controller_step(state: ControlState, command: torch.Tensor, position: torch.Tensor, speed: torch.Tensor,
-                    current: torch.Tensor, plant, period: float) -> tuple[ControlState, dict[str, torch.Tensor]]:
+def controller_step(
+    state: ControlState,
+    command: torch.Tensor,
+    position: torch.Tensor,
+    speed: torch.Tensor,
+    current: torch.Tensor,
+    plant,
+    period: float,
+) -> tuple[ControlState, dict[str, torch.Tensor]]:
     """One control period.
 
     Args:
@@ -48,9 +54,16 @@ def controller_step(state: ControlState, command: torch.Tensor, position: torch.
     """
     speed_ref = plant.position_gain * (command - position)
     speed_ref = torch.maximum(torch.minimum(speed_ref, plant.speed_limit), -plant.speed_limit)
-    current_ref, s_int = _pi(speed_ref - speed, state.speed_int, plant.speed_gain, plant.speed_integral_gain,
-                             plant.current_limit, period)
-    voltage, c_int = _pi(current_ref - current, state.current_int, plant.current_gain,
-                         plant.current_integral_gain, plant.supply_voltage, period)
+    current_ref, s_int = _pi(
+        speed_ref - speed, state.speed_int, plant.speed_gain, plant.speed_integral_gain, plant.current_limit, period
+    )
+    voltage, c_int = _pi(
+        current_ref - current,
+        state.current_int,
+        plant.current_gain,
+        plant.current_integral_gain,
+        plant.supply_voltage,
+        period,
+    )
     new = ControlState(s_int, c_int, voltage / plant.supply_voltage)
     return new, {"speed_ref": speed_ref, "current_ref": current_ref, "voltage": voltage}

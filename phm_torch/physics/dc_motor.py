@@ -77,20 +77,29 @@ class DCMotor:
 
     def magnetic_energy(self, current: torch.Tensor, theta_m: torch.Tensor, plant) -> torch.Tensor:
         """L_eq(theta_m) I^2 / 2 [J] (B,)."""
-        return 0.5 * self.equivalent(theta_m, plant)[2] * current ** 2
+        return 0.5 * self.equivalent(theta_m, plant)[2] * current**2
 
-    def electrical_energy(self, old: torch.Tensor, new: torch.Tensor, theta_old: torch.Tensor,
-                          theta_new: torch.Tensor, plant, h: float) -> dict[str, torch.Tensor]:
+    def electrical_energy(
+        self, old: torch.Tensor, new: torch.Tensor, theta_old: torch.Tensor, theta_new: torch.Tensor, plant, h: float
+    ) -> dict[str, torch.Tensor]:
         """Copper loss R_eq I^2 h at the mid-step current and, as ``numerical``, the energy 0.5 (L_new - L_old) I^2
         [J] (B,) the shape functions exchange as L_eq changes with the rotor angle (not otherwise accounted)."""
         _, r, ind = self.equivalent(theta_old, plant)
         i2 = (0.5 * (new + old)) ** 2
-        return {"numerical": 0.5 * (self.equivalent(theta_new, plant)[2] - ind) * new * new,
-                "copper": h * r * i2}
+        return {"numerical": 0.5 * (self.equivalent(theta_new, plant)[2] - ind) * new * new, "copper": h * r * i2}
 
-    def step(self, current: torch.Tensor, duty: torch.Tensor, t_in_period: torch.Tensor, theta_m: torch.Tensor,
-             omega_m: torch.Tensor, emf_scale, plant, h: float, period: float
-             ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
+    def step(
+        self,
+        current: torch.Tensor,
+        duty: torch.Tensor,
+        t_in_period: torch.Tensor,
+        theta_m: torch.Tensor,
+        omega_m: torch.Tensor,
+        emf_scale,
+        plant,
+        h: float,
+        period: float,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, dict[str, torch.Tensor]]:
         """Trapezoidal-rule step of the DC equivalent; same signature as ``BLDCMotor.step``."""
         k_eq, r_eq, l_eq = self.equivalent(theta_m, plant)
         k_eq = k_eq * emf_scale

@@ -71,9 +71,15 @@ def end_stop_torque(state: MechState, plant) -> torch.Tensor:
     return torch.where(x > 0, force.clamp(min=0.0), torch.where(x < 0, force.clamp(max=0.0), zero))
 
 
-def mechanics_step(state: MechState, motor_torque: torch.Tensor, load_torque: torch.Tensor,
-                   kinetic_friction: torch.Tensor, breakaway: torch.Tensor, plant, h: float
-                   ) -> tuple[MechState, dict[str, torch.Tensor]]:
+def mechanics_step(
+    state: MechState,
+    motor_torque: torch.Tensor,
+    load_torque: torch.Tensor,
+    kinetic_friction: torch.Tensor,
+    breakaway: torch.Tensor,
+    plant,
+    h: float,
+) -> tuple[MechState, dict[str, torch.Tensor]]:
     """Advance the drive train by h seconds.
 
     Args:

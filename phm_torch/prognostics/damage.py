@@ -38,8 +38,16 @@ class DamageModel:
             wears at F (the datasheet's law).
     """
 
-    def __init__(self, rate: Sequence[Sequence[float]], noise_std: Sequence[float], noise_correlation_hours: float,
-                 horizon_hours: float, step_hours: float, nominal: Sequence[float], rate_scale_sigma: float = 0.0):
+    def __init__(
+        self,
+        rate: Sequence[Sequence[float]],
+        noise_std: Sequence[float],
+        noise_correlation_hours: float,
+        horizon_hours: float,
+        step_hours: float,
+        nominal: Sequence[float],
+        rate_scale_sigma: float = 0.0,
+    ):
         f = torch.as_tensor(rate, dtype=torch.float64)
         if f.shape != (N_FAULTS, N_FAULTS) or not torch.isfinite(f).all():
             raise ValueError(f"damage.rate must be a finite 8x8 matrix, got shape {tuple(f.shape)}")
@@ -50,14 +58,20 @@ class DamageModel:
             raise ValueError(f"damage.noise_std must be 8 finite values >= 0, got {list(noise_std)}")
         if sd[PHASE_INDEX] != 0:
             raise ValueError(f"damage.noise_std[6] (k7) must be 0, got {float(sd[PHASE_INDEX])}")
-        for name, v in (("noise_correlation_hours", noise_correlation_hours), ("horizon_hours", horizon_hours),
-                        ("step_hours", step_hours)):
+        for name, v in (
+            ("noise_correlation_hours", noise_correlation_hours),
+            ("horizon_hours", horizon_hours),
+            ("step_hours", step_hours),
+        ):
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"damage.{name} must be > 0, got {v}")
         if step_hours > horizon_hours:
             raise ValueError(f"damage.step_hours ({step_hours}) must not exceed horizon_hours ({horizon_hours})")
-        if isinstance(rate_scale_sigma, bool) or not isinstance(rate_scale_sigma, (int, float)) \
-                or not (math.isfinite(rate_scale_sigma) and 0.0 <= rate_scale_sigma <= 2.0):
+        if (
+            isinstance(rate_scale_sigma, bool)
+            or not isinstance(rate_scale_sigma, (int, float))
+            or not (math.isfinite(rate_scale_sigma) and 0.0 <= rate_scale_sigma <= 2.0)
+        ):
             # sigma 2 already spans a factor 700 between the 5 % and 95 % actuators: beyond is a typo
             raise ValueError(f"damage.rate_scale_sigma must be a number in [0, 2], got {rate_scale_sigma!r}")
         self.rate, self.noise_std = f, sd
@@ -74,8 +88,9 @@ class DamageModel:
         n = math.ceil(self.horizon / self.step)
         return torch.arange(n + 1, dtype=torch.float64) * self.step
 
-    def sample_noise(self, batch: int, generator: torch.Generator | None = None,
-                     hours: float | None = None) -> torch.Tensor:
+    def sample_noise(
+        self, batch: int, generator: torch.Generator | None = None, hours: float | None = None
+    ) -> torch.Tensor:
         """eps per block: (batch, n_blocks, 8) [1/h], blocks covering ``hours`` (default: the horizon)."""
         hours = self.horizon if hours is None else float(hours)
         n_blocks = math.ceil(hours / self.block) + 1
@@ -107,8 +122,14 @@ class DamageModel:
 
         return rhs
 
-    def integrate(self, k0: torch.Tensor, eps: torch.Tensor | None = None, t: torch.Tensor | None = None,
-                  method: str = "rk4", scale: torch.Tensor | None = None) -> torch.Tensor:
+    def integrate(
+        self,
+        k0: torch.Tensor,
+        eps: torch.Tensor | None = None,
+        t: torch.Tensor | None = None,
+        method: str = "rk4",
+        scale: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """k(t) on the grid with torchdiffeq: k0 (B, 8) -> (T, B, 8).
 
         ``scale``: the wear-rate scale s per sample (B,) (None: s = 1). The fixed-step solver steps exactly
@@ -119,13 +140,21 @@ class DamageModel:
         if scale is not None:
             scale = torch.as_tensor(scale, dtype=torch.float64).reshape(-1)
             if scale.shape[0] != k0.shape[0] or not (torch.isfinite(scale).all() and (scale > 0).all()):
-                raise ValueError(f"damage.integrate: scale must be (B,) = ({k0.shape[0]},) finite values > 0, "
-                                 f"got shape {tuple(scale.shape)}")
+                raise ValueError(
+                    f"damage.integrate: scale must be (B,) = ({k0.shape[0]},) finite values > 0, "
+                    f"got shape {tuple(scale.shape)}"
+                )
         if eps is not None and abs(self.block / self.step - round(self.block / self.step)) > 1e-9:
-            raise ValueError(f"damage.noise_correlation_hours ({self.block}) must be a multiple of step_hours "
-                             f"({self.step})")
-        return odeint(self._rhs(eps, scale), k0.to(torch.float64), t.to(torch.float64), method=method,
-                      options={"step_size": self.step} if method in ("rk4", "euler", "midpoint") else None)
+            raise ValueError(
+                f"damage.noise_correlation_hours ({self.block}) must be a multiple of step_hours ({self.step})"
+            )
+        return odeint(
+            self._rhs(eps, scale),
+            k0.to(torch.float64),
+            t.to(torch.float64),
+            method=method,
+            options={"step_size": self.step} if method in ("rk4", "euler", "midpoint") else None,
+        )
 
     def transitions(self, t: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Exact propagators of the linear ODE with constant eps and s = 1: k(t) - k0 = A(t) dk0 + B(t) eps.

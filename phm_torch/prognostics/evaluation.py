@@ -49,9 +49,11 @@ class RULComparison:
             "rul_band_coverage_true_k": coverage(self.true_k),
             "rul_band_coverage_full_flow": coverage(self.full_flow),
             "rul_underestimate_fraction": float((ff[finite, 1] < r[finite, 1]).double().mean())
-            if finite.any() else float("nan"),
+            if finite.any()
+            else float("nan"),
             "rul_err_median_hours_true_k": float((self.true_k[usable, 1] - r[:, 1]).abs().median())
-            if usable.any() else float("nan"),
+            if usable.any()
+            else float("nan"),
             "rul_reference_faulty": int((~usable).sum()),
             "rul_untrustworthy_full_flow": int((~torch.isfinite(self.full_flow[:, 1])).sum()),
             "rul_vectors": int(ref.shape[0]),

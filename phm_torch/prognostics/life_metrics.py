@@ -28,6 +28,7 @@ METHODS = {"tracker": ("rul_hours", "rul_censored"), "snapshot": ("snapshot_rul_
 
 # ---------------------------------------------------------------- metrics on arrays (one actuator's profile)
 
+
 def lambda_index(hours: np.ndarray, t_start: float, eol: float, lam: float) -> int | None:
     """Index of the first inspection at or after t_lambda = t_start + lam (eol - t_start) and before eol.
 
@@ -44,15 +45,22 @@ def in_alpha_bounds(rul_true: np.ndarray, rul_pred: np.ndarray, alpha: float) ->
     return (p >= (1 - alpha) * t) & (p <= (1 + alpha) * t)
 
 
-def alpha_lambda(hours: np.ndarray, rul_true: np.ndarray, rul_p50: np.ndarray, t_start: float, eol: float,
-                 alpha: float = 0.2, lam: float = 0.5) -> bool | None:
+def alpha_lambda(
+    hours: np.ndarray,
+    rul_true: np.ndarray,
+    rul_p50: np.ndarray,
+    t_start: float,
+    eol: float,
+    alpha: float = 0.2,
+    lam: float = 0.5,
+) -> bool | None:
     """Alpha-lambda accuracy of one actuator: is the p50 at the lambda inspection inside the alpha cone?
 
     Args: hours, rul_true, rul_p50 (n,) [h] of the inspections before eol; t_start, eol [h].
     Returns None when no inspection lies in [t_lambda, eol).
     """
     i = lambda_index(hours, t_start, eol, lam)
-    return None if i is None else bool(in_alpha_bounds(rul_true[i:i + 1], rul_p50[i:i + 1], alpha)[0])
+    return None if i is None else bool(in_alpha_bounds(rul_true[i : i + 1], rul_p50[i : i + 1], alpha)[0])
 
 
 def relative_accuracy(rul_true: np.ndarray, rul_pred: np.ndarray) -> np.ndarray:
@@ -62,8 +70,9 @@ def relative_accuracy(rul_true: np.ndarray, rul_pred: np.ndarray) -> np.ndarray:
         return np.where(np.isinf(p), -np.inf, 1.0 - np.abs(t - p) / t)
 
 
-def prognostic_horizon(hours: np.ndarray, rul_true: np.ndarray, rul_p50: np.ndarray, eol: float, life: float,
-                       alpha: float = 0.1) -> float:
+def prognostic_horizon(
+    hours: np.ndarray, rul_true: np.ndarray, rul_p50: np.ndarray, eol: float, life: float, alpha: float = 0.1
+) -> float:
     """Prognostic horizon [h]: eol minus the first inspection from which every later p50 stays within
     rul_true +- alpha x life (Saxena's constant-width bounds). 0 when the last inspection is outside.
 
@@ -100,6 +109,7 @@ def eol_detection_delay(hours: np.ndarray, flagged: np.ndarray, eol: float) -> f
 
 
 # ---------------------------------------------------------------- reading track.json / truth.json
+
 
 def _quantiles(inspection: Mapping[str, Any], key: str) -> tuple[float, float, float]:
     """(p5, p50, p95) [h]; a null bound (or a null dict: all censored) is +inf."""
@@ -140,8 +150,10 @@ def check_inputs(track: Mapping[str, Any], truth: Mapping[str, Any]) -> None:
                 raise ValueError(f"evaluate_life: actuator {a!r} inspection {j}: track hours {x} != truth hours {y}")
         if len(th) != len(gh):
             extra = th[len(gh)] if len(th) > len(gh) else gh[len(th)]
-            raise ValueError(f"evaluate_life: actuator {a!r} has {len(th)} inspections in the track and {len(gh)} "
-                             f"in the truth (first unmatched hours {extra})")
+            raise ValueError(
+                f"evaluate_life: actuator {a!r} has {len(th)} inspections in the track and {len(gh)} "
+                f"in the truth (first unmatched hours {extra})"
+            )
         eol = g.get("eol_hours")
         if eol is not None and not math.isfinite(float(eol)):
             raise ValueError(f"evaluate_life: actuator {a!r} eol_hours = {eol} is not finite")
@@ -154,16 +166,21 @@ def _flags(inspections: Sequence[Mapping[str, Any]], method: str) -> np.ndarray:
     return np.array([(i.get(verdict) is False) or _quantiles(i, key)[1] <= 0.0 for i in inspections], bool)
 
 
-def _actuator(track_a: Mapping[str, Any], truth_a: Mapping[str, Any], every: float, alpha: float, lam: float,
-              horizon_alpha: float) -> dict[str, Any]:
+def _actuator(
+    track_a: Mapping[str, Any], truth_a: Mapping[str, Any], every: float, alpha: float, lam: float, horizon_alpha: float
+) -> dict[str, Any]:
     """Per-actuator metrics for both methods, plus the raw arrays the fleet figures pool."""
     insp = track_a["inspections"]
     hours = np.array([float(i["hours"]) for i in insp])
     ood = np.array([bool(i.get("out_of_distribution", False)) for i in insp])
     eol = truth_a.get("eol_hours")
     t_start = float(truth_a["inspections"][0]["hours"]) if truth_a["inspections"] else 0.0
-    out: dict[str, Any] = {"eol_hours": eol, "rate_scale": truth_a.get("rate_scale"), "n_inspections": len(insp),
-                           "n_out_of_distribution": int(ood.sum())}
+    out: dict[str, Any] = {
+        "eol_hours": eol,
+        "rate_scale": truth_a.get("rate_scale"),
+        "n_inspections": len(insp),
+        "n_out_of_distribution": int(ood.sum()),
+    }
     pooled: dict[str, Any] = {}
     if eol is None:  # a run that never reached its end of life: no truth to score against
         out["life_hours"] = None
@@ -178,26 +195,36 @@ def _actuator(track_a: Mapping[str, Any], truth_a: Mapping[str, Any], every: flo
         q = np.array([_quantiles(i, key) for i in insp]).reshape(-1, 3)
         p5, p50, p95 = q[valid, 0], q[valid, 1], q[valid, 2]
         i_lam = lambda_index(h, t_start, eol, lam)
-        ra = None if i_lam is None else float(relative_accuracy(rul_true[i_lam:i_lam + 1], p50[i_lam:i_lam + 1])[0])
+        ra = None if i_lam is None else float(relative_accuracy(rul_true[i_lam : i_lam + 1], p50[i_lam : i_lam + 1])[0])
         ph = prognostic_horizon(h, rul_true, p50, eol, life, horizon_alpha) if len(h) else 0.0
         cov = covered(rul_true, p5, p95)
         width = relative_band_width(rul_true[second], p5[second], p95[second])
         delay = eol_detection_delay(hours[~ood], _flags(insp, method)[~ood], eol)
         verdicts = [i.get("healthy" if method == "tracker" else "snapshot_healthy") for i in insp]
-        violations = None if all(v is None for v in verdicts) else int(sum(
-            v is False and _quantiles(i, key)[1] > 0.0 for v, i in zip(verdicts, insp)))
+        violations = (
+            None
+            if all(v is None for v in verdicts)
+            else int(sum(v is False and _quantiles(i, key)[1] > 0.0 for v, i in zip(verdicts, insp)))
+        )
         out[method] = {
             "alpha_lambda": alpha_lambda(h, rul_true, p50, t_start, eol, alpha, lam),
             "relative_accuracy": _finite_or_none(ra),
-            "prognostic_horizon_hours": ph, "prognostic_horizon_fraction": ph / life if life > 0 else None,
+            "prognostic_horizon_hours": ph,
+            "prognostic_horizon_fraction": ph / life if life > 0 else None,
             "coverage_5_95": float(cov.mean()) if cov.size else None,
             "median_relative_band_width_second_half": _finite_or_none(_median(width)) if width.size else None,
             "eol_detection_delay_hours": _finite_or_none(delay),
             "eol_flagged_within_one_inspection": bool(abs(delay) <= every + HOURS_TOLERANCE),
             "eol_flagged_early": bool(delay < -every - HOURS_TOLERANCE),
-            "positive_p50_when_faulty": violations}
-        pooled[method] = {"covered": cov, "width": width, "ra": ra, "delay": delay,
-                          "p50_in_alpha_second_half": in_alpha_bounds(rul_true[second], p50[second], alpha)}
+            "positive_p50_when_faulty": violations,
+        }
+        pooled[method] = {
+            "covered": cov,
+            "width": width,
+            "ra": ra,
+            "delay": delay,
+            "p50_in_alpha_second_half": in_alpha_bounds(rul_true[second], p50[second], alpha),
+        }
     return {"values": out, "pooled": pooled}
 
 
@@ -214,26 +241,33 @@ def _fleet(per: Mapping[str, Mapping[str, Any]], method: str) -> dict[str, Any]:
     delays = [p["delay"] for p in pools]
     viol = [v["positive_p50_when_faulty"] for v in vals if v["positive_p50_when_faulty"] is not None]
     return {
-        "alpha_lambda": float(np.mean(al)) if al else None, "alpha_lambda_n": len(al),
-        "relative_accuracy": _finite_or_none(_median(ras)), "relative_accuracy_n": len(ras),
-        "prognostic_horizon": _median(phf), "prognostic_horizon_n": len(phf),
+        "alpha_lambda": float(np.mean(al)) if al else None,
+        "alpha_lambda_n": len(al),
+        "relative_accuracy": _finite_or_none(_median(ras)),
+        "relative_accuracy_n": len(ras),
+        "prognostic_horizon": _median(phf),
+        "prognostic_horizon_n": len(phf),
         "prognostic_horizon_hours": _median([v["prognostic_horizon_hours"] for v in vals]),
-        "coverage_5_95": float(cov.mean()) if cov.size else None, "coverage_5_95_n": int(cov.size),
+        "coverage_5_95": float(cov.mean()) if cov.size else None,
+        "coverage_5_95_n": int(cov.size),
         "median_relative_band_width_second_half": _finite_or_none(_median(width)) if width.size else None,
         "relative_band_width_second_half_n": int(width.size),
         "relative_band_width_second_half_censored": float(np.isinf(width).mean()) if width.size else None,
         "p50_within_alpha_second_half": float(in_a.mean()) if in_a.size else None,
         "eol_detection_delay": _finite_or_none(_median(delays)),
-        "eol_flagged_within_one_inspection": (float(np.mean([v["eol_flagged_within_one_inspection"]
-                                                             for v in vals])) if vals else None),
+        "eol_flagged_within_one_inspection": (
+            float(np.mean([v["eol_flagged_within_one_inspection"] for v in vals])) if vals else None
+        ),
         "eol_flagged_early": float(np.mean([v["eol_flagged_early"] for v in vals])) if vals else None,
         "eol_never_flagged": int(sum(math.isinf(d) for d in delays)),
         "positive_p50_when_faulty": int(sum(viol)) if viol else None,
-        "_width_raw": _median(width) if width.size else None}
+        "_width_raw": _median(width) if width.size else None,
+    }
 
 
 def _targets(tracker: Mapping[str, Any], snapshot: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
     """Issue 25's deliverable 5: each target with value, target and passed (a missing value fails)."""
+
     def row(value: float | None, target: float, ok: bool) -> dict[str, Any]:
         return {"value": _finite_or_none(value), "target": target, "passed": bool(value is not None and ok)}
 
@@ -254,11 +288,13 @@ def _targets(tracker: Mapping[str, Any], snapshot: Mapping[str, Any]) -> dict[st
         "alpha_lambda": row(al, 0.7, al is not None and al >= 0.7),
         "prognostic_horizon": row(ph, 0.6, ph is not None and ph >= 0.6),
         "eol_flagged_within_one_inspection": row(fl, 0.9, fl is not None and fl >= 0.9),
-        "positive_p50_when_faulty": row(viol, 0, viol == 0)}
+        "positive_p50_when_faulty": row(viol, 0, viol == 0),
+    }
 
 
-def evaluate_life(track: Mapping[str, Any], truth: Mapping[str, Any], alpha: float = 0.2, lam: float = 0.5,
-                  horizon_alpha: float = 0.1) -> dict[str, Any]:
+def evaluate_life(
+    track: Mapping[str, Any], truth: Mapping[str, Any], alpha: float = 0.2, lam: float = 0.5, horizon_alpha: float = 0.1
+) -> dict[str, Any]:
     """Tracker and snapshot RULs of a life split scored against the truth, side by side.
 
     Args:
@@ -276,25 +312,34 @@ def evaluate_life(track: Mapping[str, Any], truth: Mapping[str, Any], alpha: flo
          "n_actuators", "n_inspections", "n_out_of_distribution", "n_without_eol", "settings"}.
         Out-of-distribution inspections are excluded from every metric but counted.
     """
-    for name, v, ok in (("alpha", alpha, 0 < alpha < 1), ("lam", lam, 0 <= lam <= 1),
-                        ("horizon_alpha", horizon_alpha, 0 < horizon_alpha <= 1)):
+    for name, v, ok in (
+        ("alpha", alpha, 0 < alpha < 1),
+        ("lam", lam, 0 <= lam <= 1),
+        ("horizon_alpha", horizon_alpha, 0 < horizon_alpha <= 1),
+    ):
         if not ok:
             raise ValueError(f"evaluate_life: {name} = {v!r} is outside its range")
     every = truth.get("every_hours")
     if not isinstance(every, (int, float)) or not every > 0:
         raise ValueError(f"evaluate_life: truth.every_hours must be > 0, got {every!r}")
     check_inputs(track, truth)
-    per = {a: _actuator(track["actuators"][a], g, float(every), alpha, lam, horizon_alpha)
-           for a, g in truth["actuators"].items()}
+    per = {
+        a: _actuator(track["actuators"][a], g, float(every), alpha, lam, horizon_alpha)
+        for a, g in truth["actuators"].items()
+    }
     fleet = {m: _fleet(per, m) for m in METHODS}
     targets = _targets(fleet["tracker"], fleet["snapshot"])
     for m in fleet.values():
         m.pop("_width_raw")
     values = [p["values"] for p in per.values()]
-    return {**fleet, "targets": targets, "all_targets_passed": all(t["passed"] for t in targets.values()),
-            "per_actuator": {a: p["values"] for a, p in per.items()},
-            "n_actuators": len(per), "n_inspections": sum(v["n_inspections"] for v in values),
-            "n_out_of_distribution": sum(v["n_out_of_distribution"] for v in values),
-            "n_without_eol": sum(v["life_hours"] is None for v in values),
-            "settings": {"alpha": alpha, "lambda": lam, "horizon_alpha": horizon_alpha,
-                         "every_hours": float(every)}}
+    return {
+        **fleet,
+        "targets": targets,
+        "all_targets_passed": all(t["passed"] for t in targets.values()),
+        "per_actuator": {a: p["values"] for a, p in per.items()},
+        "n_actuators": len(per),
+        "n_inspections": sum(v["n_inspections"] for v in values),
+        "n_out_of_distribution": sum(v["n_out_of_distribution"] for v in values),
+        "n_without_eol": sum(v["life_hours"] is None for v in values),
+        "settings": {"alpha": alpha, "lambda": lam, "horizon_alpha": horizon_alpha, "every_hours": float(every)},
+    }

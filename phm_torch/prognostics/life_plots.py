@@ -48,21 +48,34 @@ def _grid(n: int, width: float = 5.0, height: float = 3.6) -> tuple[Any, np.ndar
     return fig, axes.flat
 
 
-def _rul_panel(ax: Any, a: str, track_a: Mapping[str, Any], truth_a: Mapping[str, Any], alpha: float,
-               lam: float, horizon_alpha: float) -> None:
+def _rul_panel(
+    ax: Any,
+    a: str,
+    track_a: Mapping[str, Any],
+    truth_a: Mapping[str, Any],
+    alpha: float,
+    lam: float,
+    horizon_alpha: float,
+) -> None:
     insp = track_a["inspections"]
     hours = np.array([float(i["hours"]) for i in insp])
     ood = np.array([bool(i.get("out_of_distribution", False)) for i in insp])
     eol = float(truth_a["eol_hours"])
     t0 = float(truth_a["inspections"][0]["hours"])
     life = eol - t0
-    top = 1.6 * life                                   # censored bounds are drawn here
+    top = 1.6 * life  # censored bounds are drawn here
     h = np.linspace(t0, eol, 50)
     true = eol - h
     ax.fill_between(h, (1 - alpha) * true, (1 + alpha) * true, color="0.85", label=f"alpha cone (+-{alpha:.0%})")
     ax.plot(h, true + horizon_alpha * life, ":", color="0.4", lw=0.8)
-    ax.plot(h, (true - horizon_alpha * life).clip(min=0), ":", color="0.4", lw=0.8,
-            label=f"PH bounds (+-{horizon_alpha:.0%} of life)")
+    ax.plot(
+        h,
+        (true - horizon_alpha * life).clip(min=0),
+        ":",
+        color="0.4",
+        lw=0.8,
+        label=f"PH bounds (+-{horizon_alpha:.0%} of life)",
+    )
     ax.plot(h, true, "k-", lw=1.2, label="true RUL")
     for method, (key, _) in METHODS.items():
         q = np.array([_quantiles(i, key) for i in insp]).reshape(-1, 3)
@@ -83,15 +96,21 @@ def _rul_panel(ax: Any, a: str, track_a: Mapping[str, Any], truth_a: Mapping[str
     ax.set_ylim(0, top * 1.05)
     ax.set_xlim(t0, hours.max() + 1)
     scale = truth_a.get("rate_scale")
-    ax.set_title(f"{a}: s = {scale:.2f}, EOL {eol:.0f} h" if scale is not None else f"{a}: EOL {eol:.0f} h",
-                 fontsize=9)
+    ax.set_title(f"{a}: s = {scale:.2f}, EOL {eol:.0f} h" if scale is not None else f"{a}: EOL {eol:.0f} h", fontsize=9)
     ax.set_xlabel("hours [h]")
     ax.set_ylabel("RUL [h]")
     ax.grid(alpha=0.3)
 
 
-def rul_figure(track: Mapping[str, Any], truth: Mapping[str, Any], ids: Sequence[str], path: Path,
-               alpha: float = 0.2, lam: float = 0.5, horizon_alpha: float = 0.1) -> Path:
+def rul_figure(
+    track: Mapping[str, Any],
+    truth: Mapping[str, Any],
+    ids: Sequence[str],
+    path: Path,
+    alpha: float = 0.2,
+    lam: float = 0.5,
+    horizon_alpha: float = 0.1,
+) -> Path:
     """One panel per actuator: true RUL, the alpha cone, PH bounds, both methods' p50 and 5-95 % band."""
     fig, axes = _grid(len(ids))
     for ax, a in zip(axes, ids):
@@ -132,12 +151,12 @@ def damage_figure(track: Mapping[str, Any], truth: Mapping[str, Any], ids: Seque
         moving = [j for j in range(k_true.shape[1]) if j != PHASE_INDEX and np.ptp(k_true[:, j]) > 1e-9]
         for j in moving:
             name = FAULT_NAMES[j] if j < len(FAULT_NAMES) else f"k{j + 1}"
-            color = f"C{j}"                                      # one colour per component in every panel
-            handles[name], = ax.plot(gh, k_true[:, j] - k0[j], "-", color=color, lw=1.4)
+            color = f"C{j}"  # one colour per component in every panel
+            (handles[name],) = ax.plot(gh, k_true[:, j] - k0[j], "-", color=color, lw=1.4)
             filt = np.array([_named(i.get("k_filtered"), FAULT_NAMES).get(name, np.nan) for i in insp], float)
             khat = np.array([_named(i.get("k_hat"), FAULT_NAMES).get(name, np.nan) for i in insp], float)
             ax.plot(hours, filt - k0[j], "--", color=color, lw=1.0)
-            bars = _interval(insp, "k_interval", name, khat)      # the measurement's calibrated interval
+            bars = _interval(insp, "k_interval", name, khat)  # the measurement's calibrated interval
             ax.errorbar(hours, khat - k0[j], yerr=bars, fmt=".", color=color, ms=3, alpha=0.5, elinewidth=0.5)
             band = _interval(insp, "k_filtered_interval", name, filt)
             if np.isfinite(band).any():
@@ -164,9 +183,16 @@ def fleet_rows(track: Mapping[str, Any], truth: Mapping[str, Any] | None = None)
             continue
         last = t["inspections"][-1]
         p5, p50, p95 = _quantiles(last, "rul_hours")
-        row = {"actuator": a, "hours": float(last["hours"]), "rul_p5": p5, "rul_p50": p50, "rul_p95": p95,
-               "rul_censored": bool(last.get("rul_censored", False)), "healthy": last.get("healthy"),
-               "p_faulty": last.get("p_faulty")}
+        row = {
+            "actuator": a,
+            "hours": float(last["hours"]),
+            "rul_p5": p5,
+            "rul_p50": p50,
+            "rul_p95": p95,
+            "rul_censored": bool(last.get("rul_censored", False)),
+            "healthy": last.get("healthy"),
+            "p_faulty": last.get("p_faulty"),
+        }
         if truth is not None and a in truth["actuators"]:
             eol = truth["actuators"][a].get("eol_hours")
             row["rul_true"] = None if eol is None else float(eol) - row["hours"]
@@ -190,8 +216,12 @@ def fleet_table(rows: Sequence[Mapping[str, Any]], csv_path: Path, png_path: Pat
     def cell(v: Any) -> str:
         if v is None:
             return "censored"
-        return f"{v:.0f}" if isinstance(v, float) and not isinstance(v, bool) and abs(v) >= 10 else (
-            f"{v:.2f}" if isinstance(v, float) else str(v))
+        return (
+            f"{v:.0f}"
+            if isinstance(v, float) and not isinstance(v, bool) and abs(v) >= 10
+            else (f"{v:.2f}" if isinstance(v, float) else str(v))
+        )
+
     shown = rows[:max_rows]
     fig, ax = plt.subplots(figsize=(1.25 * len(cols), 0.32 * (len(shown) + 2) + 0.6))
     ax.axis("off")
@@ -203,8 +233,15 @@ def fleet_table(rows: Sequence[Mapping[str, Any]], csv_path: Path, png_path: Pat
     return [Path(csv_path), save_figure(fig, png_path)]
 
 
-def plot_life(track: Mapping[str, Any], truth: Mapping[str, Any], out_dir: str | os.PathLike,
-              max_actuators: int = 6, alpha: float = 0.2, lam: float = 0.5, horizon_alpha: float = 0.1) -> list[Path]:
+def plot_life(
+    track: Mapping[str, Any],
+    truth: Mapping[str, Any],
+    out_dir: str | os.PathLike,
+    max_actuators: int = 6,
+    alpha: float = 0.2,
+    lam: float = 0.5,
+    horizon_alpha: float = 0.1,
+) -> list[Path]:
     """Write life_rul.png, life_damage.png, life_fleet.csv and life_fleet.png under ``out_dir``.
 
     Args:

@@ -27,9 +27,14 @@ def margin_score(assess: Callable[[torch.Tensor], object]) -> Callable[[torch.Te
         req = assess.requirements
         m = a.margins
         bw_min = req.bandwidth_fraction * assess.nominal_bandwidth_hz
-        parts = torch.stack([(m.phase_margin_deg - req.phase_margin_deg) / req.phase_margin_deg,
-                             (m.gain_margin_db - req.gain_margin_db) / max(req.gain_margin_db, 1e-9),
-                             (m.bandwidth_hz - bw_min) / bw_min], dim=1).to(torch.float64)
+        parts = torch.stack(
+            [
+                (m.phase_margin_deg - req.phase_margin_deg) / req.phase_margin_deg,
+                (m.gain_margin_db - req.gain_margin_db) / max(req.gain_margin_db, 1e-9),
+                (m.bandwidth_hz - bw_min) / bw_min,
+            ],
+            dim=1,
+        ).to(torch.float64)
         s = torch.nan_to_num(parts, nan=-1.0).amin(1)
         # keep the binary decision exact: the score's sign is phi_a's label
         return torch.where(a.healthy, s.clamp(min=1e-6), s.clamp(max=-1e-6))
@@ -37,8 +42,14 @@ def margin_score(assess: Callable[[torch.Tensor], object]) -> Callable[[torch.Te
     return score
 
 
-def reference_rul(damage: DamageModel, score: Callable[[torch.Tensor], torch.Tensor], k0: torch.Tensor,
-                  deltas: torch.Tensor, step_hours: float = 500.0, refine_iterations: int = 8) -> torch.Tensor:
+def reference_rul(
+    damage: DamageModel,
+    score: Callable[[torch.Tensor], torch.Tensor],
+    k0: torch.Tensor,
+    deltas: torch.Tensor,
+    step_hours: float = 500.0,
+    refine_iterations: int = 8,
+) -> torch.Tensor:
     """RUL 5/50/95 % [h] (B, 3) with the given (true) score, by the deterministic delta variant.
 
     Args:
@@ -47,8 +58,14 @@ def reference_rul(damage: DamageModel, score: Callable[[torch.Tensor], torch.Ten
         k0: (B, 8) initial fault vectors.   deltas: (3,) calibrated disturbances (see DeterministicRUL).
         step_hours: coarse event grid of the reference [h].
     """
-    coarse = DamageModel(damage.rate.tolist(), damage.noise_std.tolist(), damage.block, damage.horizon, step_hours,
-                         damage.nominal.tolist())
+    coarse = DamageModel(
+        damage.rate.tolist(),
+        damage.noise_std.tolist(),
+        damage.block,
+        damage.horizon,
+        step_hours,
+        damage.nominal.tolist(),
+    )
     # coarse=1: the true score is evaluated at every point of its (already coarse) grid
     det = DeterministicRUL(RULEstimator(coarse, score, n_samples=2, refine_iterations=refine_iterations, coarse=1))
     det.deltas_ = torch.as_tensor(deltas, dtype=torch.float64)

@@ -53,8 +53,14 @@ class RULEstimator:
         refine_iterations: bisection steps inside the crossing interval (step / 2^n resolution).
     """
 
-    def __init__(self, damage: DamageModel, score: HealthScore, n_samples: int = 200, refine_iterations: int = 12,
-                 coarse: int = 8):
+    def __init__(
+        self,
+        damage: DamageModel,
+        score: HealthScore,
+        n_samples: int = 200,
+        refine_iterations: int = 12,
+        coarse: int = 8,
+    ):
         if n_samples < 2:
             raise ValueError(f"rul.n_samples must be >= 2, got {n_samples}")
         if refine_iterations < 0:
@@ -67,11 +73,12 @@ class RULEstimator:
     def _scores(self, k: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
         flat = k.reshape(-1, k.shape[-1]).clamp(0.0, 1.0)  # the score is defined on the unit cube
         # chunks bound the memory of kernel features (a Monte Carlo batch is ~10^7 points)
-        out = torch.cat([self.score(flat[i:i + chunk]) for i in range(0, flat.shape[0], chunk)])
+        out = torch.cat([self.score(flat[i : i + chunk]) for i in range(0, flat.shape[0], chunk)])
         return out.reshape(k.shape[:-1])
 
-    def first_crossing(self, k0: torch.Tensor, eps: torch.Tensor | None = None,
-                       scale: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    def first_crossing(
+        self, k0: torch.Tensor, eps: torch.Tensor | None = None, scale: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Time [h] of the first healthy -> faulty transition per sample, and whether it was censored.
 
         Args:
@@ -83,13 +90,13 @@ class RULEstimator:
         """
         d = self.damage
         t = d.grid
-        traj = d.integrate(k0, eps, scale=scale)                     # (T, B, 8)
+        traj = d.integrate(k0, eps, scale=scale)  # (T, B, 8)
         first, any_faulty = self._first_faulty_index(traj)
         rul = torch.where(any_faulty, t[first], torch.full_like(t[first], d.horizon))
         inside = any_faulty & (first > 0)
         if inside.any() and self.refine_iterations:
             b = inside.nonzero().flatten()
-            start = traj[first[b] - 1, b]                              # (n, 8) last healthy grid state
+            start = traj[first[b] - 1, b]  # (n, 8) last healthy grid state
             t_start = t[first[b] - 1]
             e = eps[b] if eps is not None else None
             sc = scale[b] if scale is not None else None
@@ -116,30 +123,36 @@ class RULEstimator:
         grid = torch.arange(0, n_t, self.coarse)
         if int(grid[-1]) != n_t - 1:
             grid = torch.cat([grid, torch.tensor([n_t - 1])])
-        faulty_c = self._scores(traj[grid]) <= 0                     # (Tc, B)
+        faulty_c = self._scores(traj[grid]) <= 0  # (Tc, B)
         any_faulty = faulty_c.any(0)
         first_c = faulty_c.float().argmax(0)
         first = torch.where(any_faulty, grid[first_c], torch.full((b,), n_t - 1, dtype=torch.long))
         inside = (any_faulty & (first_c > 0)).nonzero().flatten()
         if inside.numel() and self.coarse > 1:
-            lo = grid[first_c[inside] - 1]                              # last healthy coarse point
+            lo = grid[first_c[inside] - 1]  # last healthy coarse point
             width = int((grid[first_c[inside]] - lo).max())
-            idx = (lo.unsqueeze(1) + torch.arange(1, width + 1)).clamp(max=n_t - 1)      # (n, width)
-            window = traj[idx, inside.unsqueeze(1)]                     # (n, width, 8)
+            idx = (lo.unsqueeze(1) + torch.arange(1, width + 1)).clamp(max=n_t - 1)  # (n, width)
+            window = traj[idx, inside.unsqueeze(1)]  # (n, width, 8)
             bad = self._scores(window) <= 0
-            bad |= idx >= grid[first_c[inside]].unsqueeze(1)            # the faulty coarse point itself
+            bad |= idx >= grid[first_c[inside]].unsqueeze(1)  # the faulty coarse point itself
             first[inside] = idx.gather(1, bad.float().argmax(1, keepdim=True)).squeeze(1)
         return first, any_faulty
 
-    def _advance(self, k: torch.Tensor, t0: torch.Tensor, tau: torch.Tensor, eps: torch.Tensor | None,
-                 scale: torch.Tensor | None = None) -> torch.Tensor:
+    def _advance(
+        self,
+        k: torch.Tensor,
+        t0: torch.Tensor,
+        tau: torch.Tensor,
+        eps: torch.Tensor | None,
+        scale: torch.Tensor | None = None,
+    ) -> torch.Tensor:
         """k after a per-sample time tau from per-sample start t0 (wear-rate scale per sample, or None):
         one batched odeint on rescaled time."""
         f, k_nom, block = self.damage.rate, self.damage.nominal, self.damage.block
         rate = None
         if eps is not None:
             i = torch.clamp((t0 / block).floor().long(), max=eps.shape[1] - 1)
-            rate = eps[torch.arange(eps.shape[0]), i]                  # constant within the grid step
+            rate = eps[torch.arange(eps.shape[0]), i]  # constant within the grid step
 
         def rhs(s: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
             dy = (y - k_nom) @ f.T
@@ -235,22 +248,27 @@ class DeterministicRUL:
         """Noise-free RUL [h] (B,) from k0 disturbed by delta (see :meth:`disturbed`)."""
         return self.estimator.first_crossing(self.disturbed(k0, delta))[0]
 
-    def calibrate(self, k_calib: torch.Tensor, generator: torch.Generator | None = None, iterations: int = 30,
-                  bracket: float = 0.05) -> torch.Tensor:
+    def calibrate(
+        self,
+        k_calib: torch.Tensor,
+        generator: torch.Generator | None = None,
+        iterations: int = 30,
+        bracket: float = 0.05,
+    ) -> torch.Tensor:
         """Find delta_5, delta_50, delta_95 (fitted to ``deltas_``, (3,)) and the rate scales s_5, 1, s_95
         (``scales_``, (3,)) on calibration vectors (N, 8).
 
         ``bracket`` bounds |delta| (in units of the damage k); ``saturated_`` records, per quantile,
         whether the bisection ended on the bracket (the target RUL not reachable within it).
         """
-        mc = self.estimator.estimate(k_calib, generator).empirical          # (N, 3)
+        mc = self.estimator.estimate(k_calib, generator).empirical  # (N, 3)
         usable = mc[:, 1] > 0
         if not usable.any():
             raise ValueError("rul calibration: every calibration vector is already faulty")
         k, target = k_calib[usable], mc[usable]
         deltas = []
         for j in range(len(QUANTILES)):
-            lo, hi = -bracket, bracket          # larger delta = more damage = shorter RUL
+            lo, hi = -bracket, bracket  # larger delta = more damage = shorter RUL
             for _ in range(iterations):
                 mid = 0.5 * (lo + hi)
                 ratio = (self.rul(k, mid) / target[:, j].clamp(min=1e-9)).median()
@@ -262,11 +280,12 @@ class DeterministicRUL:
         self.deltas_ = torch.tensor(deltas, dtype=torch.float64)
         self.saturated_ = [bool(abs(abs(d) - bracket) < 1e-6 * bracket) for d in deltas]
         median = self.rul(k, deltas[1])
-        inside = (median > 0) & (median < self.estimator.damage.horizon)      # censored medians say nothing
+        inside = (median > 0) & (median < self.estimator.damage.horizon)  # censored medians say nothing
         if not inside.any():
             raise ValueError("rul calibration: no calibration vector fails within the horizon")
-        self.scales_ = torch.stack([(median[inside] / target[inside, j].clamp(min=1e-9)).median()
-                                    for j in range(len(QUANTILES))]).to(torch.float64)
+        self.scales_ = torch.stack(
+            [(median[inside] / target[inside, j].clamp(min=1e-9)).median() for j in range(len(QUANTILES))]
+        ).to(torch.float64)
         self.scales_[1] = 1.0
         return self.deltas_
 

@@ -33,12 +33,24 @@ def err_alpha_vs_modes(bundle, current: torch.Tensor, path: Path, max_modes: int
         alpha, _ = gappy(gappy.select(x))
         e = err_alpha(alpha, full)
         q = torch.quantile(e.double(), torch.tensor([0.25, 0.5, 0.75], dtype=torch.float64))
-        rows.append({"n_modes": m, "median": float(q[1]), "q25": float(q[0]), "q75": float(q[2]),
-                     "energy": float(pod.cumulative_energy()[m - 1]) if hasattr(pod, "cumulative_energy") else None})
+        rows.append(
+            {
+                "n_modes": m,
+                "median": float(q[1]),
+                "q25": float(q[0]),
+                "q75": float(q[2]),
+                "energy": float(pod.cumulative_energy()[m - 1]) if hasattr(pod, "cumulative_energy") else None,
+            }
+        )
     fig, ax = plt.subplots(figsize=(7, 4))
-    ax.errorbar([r["n_modes"] for r in rows], [100 * r["median"] for r in rows],
-                yerr=[[100 * (r["median"] - r["q25"]) for r in rows], [100 * (r["q75"] - r["median"]) for r in rows]],
-                fmt="x", capsize=3, label="ours: median, IQR band")
+    ax.errorbar(
+        [r["n_modes"] for r in rows],
+        [100 * r["median"] for r in rows],
+        yerr=[[100 * (r["median"] - r["q25"]) for r in rows], [100 * (r["q75"] - r["median"]) for r in rows]],
+        fmt="x",
+        capsize=3,
+        label="ours: median, IQR band",
+    )
     ax.axhline(2.0, color="r", ls="--", lw=1, label="paper: < 2 % at 22 modes")
     ax.set_xlabel("retained POD modes n_m")
     ax.set_ylabel("err_alpha [%]")
@@ -64,8 +76,17 @@ def placement(bundle, sample_rate: float, path: Path) -> Path:
     return path
 
 
-def hidden_neuron_study(bundle, train_current: torch.Tensor, train_k: torch.Tensor, val_current: torch.Tensor,
-                        val_k: torch.Tensor, sizes: list[int], epochs: int, path: Path, seed: int = 0) -> list[dict]:
+def hidden_neuron_study(
+    bundle,
+    train_current: torch.Tensor,
+    train_k: torch.Tensor,
+    val_current: torch.Tensor,
+    val_k: torch.Tensor,
+    sizes: list[int],
+    epochs: int,
+    path: Path,
+    seed: int = 0,
+) -> list[dict]:
     """err_k and train/evaluation time against hidden neurons (LM-trained MLPs on gappy coefficients)."""
     gappy = bundle.gappy
     dtype = gappy.modes_hat.dtype
@@ -84,8 +105,9 @@ def hidden_neuron_study(bundle, train_current: torch.Tensor, train_k: torch.Tens
             for _ in range(200):
                 net(one)
             t_eval = (time.perf_counter() - t0) / 200
-            rows.append({"n_hidden": h, "err_k": err_k(net(a_va), val_k.to(dtype)), "train_s": t_train,
-                         "eval_us": 1e6 * t_eval})
+            rows.append(
+                {"n_hidden": h, "err_k": err_k(net(a_va), val_k.to(dtype)), "train_s": t_train, "eval_us": 1e6 * t_eval}
+            )
     fig, axes = plt.subplots(3, 1, figsize=(7, 8), sharex=True)
     hs = [r["n_hidden"] for r in rows]
     axes[0].plot(hs, [100 * r["err_k"] for r in rows], "o-", label="ours")

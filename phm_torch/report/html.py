@@ -107,13 +107,17 @@ class HtmlReport:
             data = Path(source).read_bytes()
         b64 = base64.b64encode(data).decode()
         below = f"<figcaption>{esc(caption)}</figcaption>" if caption else ""
-        self.parts.append(f'<figure><img src="data:image/png;base64,{b64}" alt="{esc(caption if alt is None else alt)}">'
-                          f"{below}</figure>")
+        self.parts.append(
+            f'<figure><img src="data:image/png;base64,{b64}" alt="{esc(caption if alt is None else alt)}">'
+            f"{below}</figure>"
+        )
 
     def render(self) -> str:
-        return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{esc(self.title)}</title>"
-                f"<style>{_STYLE}</style></head><body><h1>{esc(self.heading)}</h1>{''.join(self.parts)}"
-                "</body></html>\n")
+        return (
+            f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{esc(self.title)}</title>"
+            f"<style>{_STYLE}</style></head><body><h1>{esc(self.heading)}</h1>{''.join(self.parts)}"
+            "</body></html>\n"
+        )
 
     def write(self, path: str | os.PathLike) -> Path:
         path = Path(path)

@@ -26,19 +26,26 @@ PAPER = {
     "false_alarm_rate": (0.0133, "1.33 %"),
     "healthy_fraction": (123 / 500, "123 of 500 healthy"),
 }
-TARGETS = {"err_alpha_median": ("<=", 0.01), "err_k": ("<=", 0.03), "fdi_mae_max": ("<=", 0.01),
-           "classifier_accuracy": (">=", 0.99), "missed_fault_rate": ("<=", 0.01)}
-LABELS = {"err_alpha_median": "gappy-POD coefficient error err_alpha, median",
-          "err_k": "fault estimate error err_k",
-          "fdi_mae_max": "largest mean |k_i error| of one parameter",
-          "classifier_accuracy": "health classifier on the true k: accuracy",
-          "missed_fault_rate": "health classifier: missed faults (faulty called healthy)",
-          "false_alarm_rate": "health classifier: false alarms",
-          "healthy_fraction": "healthy fraction of the training signals"}
-PAPER_N_TRAIN = 10_000      # the paper's training signals (conf/experiment/paper.yaml)
-MIN_ERR_ALPHA_MODES = 2     # err_alpha divides by the range of the coefficients over the modes: 0 for one mode
+TARGETS = {
+    "err_alpha_median": ("<=", 0.01),
+    "err_k": ("<=", 0.03),
+    "fdi_mae_max": ("<=", 0.01),
+    "classifier_accuracy": (">=", 0.99),
+    "missed_fault_rate": ("<=", 0.01),
+}
+LABELS = {
+    "err_alpha_median": "gappy-POD coefficient error err_alpha, median",
+    "err_k": "fault estimate error err_k",
+    "fdi_mae_max": "largest mean |k_i error| of one parameter",
+    "classifier_accuracy": "health classifier on the true k: accuracy",
+    "missed_fault_rate": "health classifier: missed faults (faulty called healthy)",
+    "false_alarm_rate": "health classifier: false alarms",
+    "healthy_fraction": "healthy fraction of the training signals",
+}
+PAPER_N_TRAIN = 10_000  # the paper's training signals (conf/experiment/paper.yaml)
+MIN_ERR_ALPHA_MODES = 2  # err_alpha divides by the range of the coefficients over the modes: 0 for one mode
 
-RUL_ROWS = (   # key in the evaluate stage's metrics, label, unit ("%" of a fraction, "h", "" as is)
+RUL_ROWS = (  # key in the evaluate stage's metrics, label, unit ("%" of a fraction, "h", "" as is)
     ("rul_vectors", "RUL records evaluated", ""),
     ("rul_reference_faulty", "of them already faulty under the reference (RUL 0; left out of relative errors)", ""),
     ("rul_uncertainty_median", "Delta_RUL of the physics reference, median", "%"),
@@ -58,9 +65,11 @@ RUL_ROWS = (   # key in the evaluate stage's metrics, label, unit ("%" of a frac
     ("rul_band_coverage_true_k_rate", "reference RUL inside the rate band from the true k", "%"),
     ("rul_band", "band model of the RUL", ""),
 )
-LATENCY_LABELS = {"online_step_us_p50": "online step (reloaded TorchScript), one signal, p50 [us]",
-                  "online_step_us_p99": "online step (reloaded TorchScript), one signal, p99 [us]",
-                  "online_batched_signals_per_s": "online step, batch of 1024 [signals/s]"}
+LATENCY_LABELS = {
+    "online_step_us_p50": "online step (reloaded TorchScript), one signal, p50 [us]",
+    "online_step_us_p99": "online step (reloaded TorchScript), one signal, p99 [us]",
+    "online_batched_signals_per_s": "online step, batch of 1024 [signals/s]",
+}
 
 
 def _load(path: Path) -> dict[str, Any]:
@@ -83,35 +92,61 @@ def run_scale(metrics: dict[str, Any]) -> dict[str, Any]:
         return tr.get(key) if tr.get(key) is not None else (splits.get(split) or {}).get("count")
 
     wall = {k: float(v) for k, v in (metrics.get("wall_s") or {}).items()}
-    return {"n_train": count("n_train", "train"), "n_val": count("n_val", "val"),
-            "n_rul": (splits.get("rul") or {}).get("count"),
-            "n_life": (metrics.get("generate", {}).get("life") or {}).get("actuators"),
-            "wall_s": wall, "total_s": sum(wall.values()) if wall else None}
+    return {
+        "n_train": count("n_train", "train"),
+        "n_val": count("n_val", "val"),
+        "n_rul": (splits.get("rul") or {}).get("count"),
+        "n_life": (metrics.get("generate", {}).get("life") or {}).get("actuators"),
+        "wall_s": wall,
+        "total_s": sum(wall.values()) if wall else None,
+    }
 
 
 def _banner(r: HtmlReport, metrics: dict[str, Any], repo: Path | None) -> None:
     s = run_scale(metrics)
     n = s["n_train"]
-    size = (f"{n:,} training signals" if n is not None else "an unrecorded number of training signals") + (
-        f" ({s['n_val']:,} validation, {s['n_rul']:,} RUL)" if s["n_val"] is not None and s["n_rul"] is not None
-        else "") + (f" and {s['n_life']} run-to-failure histories" if s["n_life"] else "")
-    wall = (f"its stages took {_duration(s['total_s'])} on this machine ("
-            + ", ".join(f"{k} {_duration(v)}" for k, v in s["wall_s"].items()) + ")") if s["total_s"] else \
-        "its wall time was not recorded"
+    size = (
+        (f"{n:,} training signals" if n is not None else "an unrecorded number of training signals")
+        + (
+            f" ({s['n_val']:,} validation, {s['n_rul']:,} RUL)"
+            if s["n_val"] is not None and s["n_rul"] is not None
+            else ""
+        )
+        + (f" and {s['n_life']} run-to-failure histories" if s["n_life"] else "")
+    )
+    wall = (
+        (
+            f"its stages took {_duration(s['total_s'])} on this machine ("
+            + ", ".join(f"{k} {_duration(v)}" for k, v in s["wall_s"].items())
+            + ")"
+        )
+        if s["total_s"]
+        else "its wall time was not recorded"
+    )
     lines = [f"Scale of this run: {size}; {wall}."]
     if n is None:
         lines.append("This run's scale is not recorded (no generate or train metrics in metrics.json).")
     elif n >= PAPER_N_TRAIN:
         lines.append("This run is at the paper's data scale (phm-run experiment=paper: 10,000 training signals).")
     else:
-        lines.append(f"This run is below the paper's data scale (it trains on {PAPER_N_TRAIN:,} signals): the default "
-                     "phm-run is the demo scale, sized to finish in minutes on a 2-core CPU. Its figures below show "
-                     "that every stage runs end to end, not what the method reaches.")
-    lines.append("Paper-scale figures (phm-run experiment=paper) and those of the pretrained pipeline (80,000 "
-                 "training signals): README.md, section 'Results against the seed paper', and pretrained/README.md. "
-                 "The section 'Pretrained pipeline on the bundled records' below runs that shipped pipeline here.")
-    links = [] if repo is None else [("README.md", (repo / "README.md").as_uri()),
-                                     ("pretrained/README.md", (repo / "pretrained" / "README.md").as_uri())]
+        lines.append(
+            f"This run is below the paper's data scale (it trains on {PAPER_N_TRAIN:,} signals): the default "
+            "phm-run is the demo scale, sized to finish in minutes on a 2-core CPU. Its figures below show "
+            "that every stage runs end to end, not what the method reaches."
+        )
+    lines.append(
+        "Paper-scale figures (phm-run experiment=paper) and those of the pretrained pipeline (80,000 "
+        "training signals): README.md, section 'Results against the seed paper', and pretrained/README.md. "
+        "The section 'Pretrained pipeline on the bundled records' below runs that shipped pipeline here."
+    )
+    links = (
+        []
+        if repo is None
+        else [
+            ("README.md", (repo / "README.md").as_uri()),
+            ("pretrained/README.md", (repo / "pretrained" / "README.md").as_uri()),
+        ]
+    )
     r.banner(lines, links)
 
 
@@ -124,17 +159,33 @@ def _met(key: str, value: float | None) -> str | None:
 
 def _summary(r: HtmlReport, metrics: dict[str, Any], studies: dict[str, Any]) -> None:
     tr = metrics.get("train", {})
-    ours = {"err_alpha_median": tr.get("err_alpha_median"), "err_k": tr.get("err_k"),
-            "fdi_mae_max": max(tr["fdi_mae"]) if tr.get("fdi_mae") else None,
-            "classifier_accuracy": tr.get("classifier_accuracy"), "missed_fault_rate": tr.get("missed_fault_rate"),
-            "false_alarm_rate": tr.get("false_alarm_rate"), "healthy_fraction": studies.get("healthy_fraction")}
+    ours = {
+        "err_alpha_median": tr.get("err_alpha_median"),
+        "err_k": tr.get("err_k"),
+        "fdi_mae_max": max(tr["fdi_mae"]) if tr.get("fdi_mae") else None,
+        "classifier_accuracy": tr.get("classifier_accuracy"),
+        "missed_fault_rate": tr.get("missed_fault_rate"),
+        "false_alarm_rate": tr.get("false_alarm_rate"),
+        "healthy_fraction": studies.get("healthy_fraction"),
+    }
     r.section("Summary: ours, the paper's, the target")
-    r.table(["quantity", "ours [%]", "paper", "target", "met"],
-            [[LABELS[key], None if ours[key] is None else round(100 * ours[key], 3), text,
-              "" if key not in TARGETS else f"{TARGETS[key][0]} {100 * TARGETS[key][1]:g} %", _met(key, ours[key])]
-             for key, (_, text) in PAPER.items()])
-    r.note("A dash: the stage that measures it was not run. The targets are the project's (README.md); at the "
-           "demo scale they are not expected to be met.")
+    r.table(
+        ["quantity", "ours [%]", "paper", "target", "met"],
+        [
+            [
+                LABELS[key],
+                None if ours[key] is None else round(100 * ours[key], 3),
+                text,
+                "" if key not in TARGETS else f"{TARGETS[key][0]} {100 * TARGETS[key][1]:g} %",
+                _met(key, ours[key]),
+            ]
+            for key, (_, text) in PAPER.items()
+        ],
+    )
+    r.note(
+        "A dash: the stage that measures it was not run. The targets are the project's (README.md); at the "
+        "demo scale they are not expected to be met."
+    )
 
 
 def _data(r: HtmlReport, gen: dict[str, Any]) -> None:
@@ -142,12 +193,19 @@ def _data(r: HtmlReport, gen: dict[str, Any]) -> None:
         return
     r.section("Data (phm-generate)")
     splits = gen.get("splits") or {}
-    r.table(["split", "signals", "healthy", "healthy [%]"],
-            [[name, s.get("count"), s.get("healthy"), _pct(s.get("healthy_fraction"))] for name, s in splits.items()])
-    r.table(["quantity", "value"],
-            [["wall time [s]", gen.get("wall_time_s")], ["HF signals per second", gen.get("signals_per_s")],
-             ["assessment labels per second", gen.get("labels_per_s")],
-             ["store fingerprint (SHA-256, first 16)", str(gen.get("fingerprint") or "")[:16] or None]])
+    r.table(
+        ["split", "signals", "healthy", "healthy [%]"],
+        [[name, s.get("count"), s.get("healthy"), _pct(s.get("healthy_fraction"))] for name, s in splits.items()],
+    )
+    r.table(
+        ["quantity", "value"],
+        [
+            ["wall time [s]", gen.get("wall_time_s")],
+            ["HF signals per second", gen.get("signals_per_s")],
+            ["assessment labels per second", gen.get("labels_per_s")],
+            ["store fingerprint (SHA-256, first 16)", str(gen.get("fingerprint") or "")[:16] or None],
+        ],
+    )
     r.note("The labels split holds signals labelled by the assessment function only (for the health classifier).")
 
 
@@ -157,11 +215,15 @@ def _err_alpha(r: HtmlReport, ea: dict[str, Any] | None) -> None:
         r.note("(not computed: the train stage's bundle or the data store is missing)")
         return
     rows = [x for x in ea["rows"] if x["n_modes"] >= MIN_ERR_ALPHA_MODES and math.isfinite(x["median"])]
-    r.table(["n_modes", "median [%]", "q25 [%]", "q75 [%]"],
-            [[x["n_modes"], 100 * x["median"], 100 * x["q25"], 100 * x["q75"]] for x in rows])
+    r.table(
+        ["n_modes", "median [%]", "q25 [%]", "q75 [%]"],
+        [[x["n_modes"], 100 * x["median"], 100 * x["q25"], 100 * x["q75"]] for x in rows],
+    )
     if len(rows) < len(ea["rows"]):
-        r.note("err_alpha is the RMS coefficient error divided by the range (max - min) of the coefficients over the "
-               "retained modes; with one mode that range is zero, so the figure is undefined and its row is left out.")
+        r.note(
+            "err_alpha is the RMS coefficient error divided by the range (max - min) of the coefficients over the "
+            "retained modes; with one mode that range is zero, so the figure is undefined and its row is left out."
+        )
     r.figure(ea.get("figure"), "err_alpha vs modes, at the selected sample points")
 
 
@@ -169,18 +231,28 @@ def _classifier(r: HtmlReport, tr: dict[str, Any]) -> None:
     r.section("Health classifier confusion table (paper Table: 98.2 % correct, 3.25 % missed faults)")
     conf = tr.get("classifier_confusion") or {}
     if conf:
-        r.table(["validation records", "called healthy", "called faulty"],
-                [["healthy", conf.get("healthy_correct"), conf.get("false_alarms")],
-                 ["faulty", conf.get("missed_faults"), conf.get("faulty_correct")]])
-    r.table(["rate", "ours [%]", "paper [%]"],
-            [["accuracy", _pct(tr.get("classifier_accuracy")), 98.2],
-             ["missed faults (faulty called healthy)", _pct(tr.get("missed_fault_rate")), 3.25],
-             ["false alarms", _pct(tr.get("false_alarm_rate")), 1.33],
-             ["verdict from k_hat (the whole chain): accuracy", _pct(tr.get("chain_accuracy")), None],
-             ["verdict from k_hat: missed faults", _pct(tr.get("chain_missed_fault_rate")), None],
-             ["verdict from k_hat: false alarms", _pct(tr.get("chain_false_alarm_rate")), None]])
-    r.note("The health classifier is given the true k of each validation record, as in the paper; the verdict "
-           "from k_hat is what a measurement gets (the paper does not report it).")
+        r.table(
+            ["validation records", "called healthy", "called faulty"],
+            [
+                ["healthy", conf.get("healthy_correct"), conf.get("false_alarms")],
+                ["faulty", conf.get("missed_faults"), conf.get("faulty_correct")],
+            ],
+        )
+    r.table(
+        ["rate", "ours [%]", "paper [%]"],
+        [
+            ["accuracy", _pct(tr.get("classifier_accuracy")), 98.2],
+            ["missed faults (faulty called healthy)", _pct(tr.get("missed_fault_rate")), 3.25],
+            ["false alarms", _pct(tr.get("false_alarm_rate")), 1.33],
+            ["verdict from k_hat (the whole chain): accuracy", _pct(tr.get("chain_accuracy")), None],
+            ["verdict from k_hat: missed faults", _pct(tr.get("chain_missed_fault_rate")), None],
+            ["verdict from k_hat: false alarms", _pct(tr.get("chain_false_alarm_rate")), None],
+        ],
+    )
+    r.note(
+        "The health classifier is given the true k of each validation record, as in the paper; the verdict "
+        "from k_hat is what a measurement gets (the paper does not report it)."
+    )
 
 
 def _rul(r: HtmlReport, run_dir: Path, ev: dict[str, Any]) -> None:
@@ -189,11 +261,15 @@ def _rul(r: HtmlReport, run_dir: Path, ev: dict[str, Any]) -> None:
     rows = [[label, _pct(ev[key]) if unit == "%" else ev[key], unit] for key, label, unit in RUL_ROWS if key in ev]
     rows += [[key, ev[key], ""] for key in ev if key.startswith("rul_") and key not in known]
     r.table(["quantity", "ours", "unit"], rows)
-    r.note("Delta_RUL = (RUL_95 - RUL_5) / RUL_50 of the reference, as the paper defines it. Targets: median "
-           "err_RUL from the true k <= the median Delta_RUL; full flow <= 1.5x that; >= 90 % of reference RULs "
-           "inside the predicted band. The full-flow band width is relative to its own p50, large where "
-           "that p50 is near zero.")
-    r.figure(run_dir / "evaluate" / "rul_vs_expected.png", "RUL vs expected (reference median); shaded: reference 5-95 %")
+    r.note(
+        "Delta_RUL = (RUL_95 - RUL_5) / RUL_50 of the reference, as the paper defines it. Targets: median "
+        "err_RUL from the true k <= the median Delta_RUL; full flow <= 1.5x that; >= 90 % of reference RULs "
+        "inside the predicted band. The full-flow band width is relative to its own p50, large where "
+        "that p50 is near zero."
+    )
+    r.figure(
+        run_dir / "evaluate" / "rul_vs_expected.png", "RUL vs expected (reference median); shaded: reference 5-95 %"
+    )
     r.section("Three-panel RUL error comparison (paper Fig.: physics uncertainty, RUL step, full flow)")
     r.figure(run_dir / "evaluate" / "rul_errors.png", "uncertainty of the physics model / RUL step / full flow")
 
@@ -203,16 +279,31 @@ def _uncertainty(r: HtmlReport, ev: dict[str, Any]) -> None:
     if ev.get("fdi_interval_coverage"):
         names = [f"k{i + 1}" for i in range(len(ev["fdi_interval_coverage"]))]
         widths = ev["fdi_interval_half_widths"]
-        per_class = [[f"half-width, {c}{'+' if c == len(widths) - 1 else ''} large faults ({n} calibration records)"]
-                     + list(w) for c, (w, n) in enumerate(zip(widths, ev["fdi_interval_counts"]))]
-        r.table(["k_hat interval, evaluated split"] + names,
-                [["coverage [%] (target 90 per parameter)"] + [100 * v for v in ev["fdi_interval_coverage"]],
-                 ["mean width"] + list(ev["fdi_interval_width"])] + per_class)
-    r.table(["P(faulty) on the evaluated split", "ours"],
-            [["Brier score", ev.get("verdict_brier")], ["Brier score of the base rate", ev.get("verdict_brier_base_rate")],
-             ["accuracy [%]", _pct(ev.get("verdict_accuracy"))], ["prior P(faulty)", ev.get("verdict_prior_faulty")]])
-    r.note("Both are calibrated on the noisy val records (docs/prognostics.md): split-conformal half-widths per "
-           "number of large faults of k_hat, and Platt scaling of the health score.")
+        per_class = [
+            [f"half-width, {c}{'+' if c == len(widths) - 1 else ''} large faults ({n} calibration records)"] + list(w)
+            for c, (w, n) in enumerate(zip(widths, ev["fdi_interval_counts"]))
+        ]
+        r.table(
+            ["k_hat interval, evaluated split"] + names,
+            [
+                ["coverage [%] (target 90 per parameter)"] + [100 * v for v in ev["fdi_interval_coverage"]],
+                ["mean width"] + list(ev["fdi_interval_width"]),
+            ]
+            + per_class,
+        )
+    r.table(
+        ["P(faulty) on the evaluated split", "ours"],
+        [
+            ["Brier score", ev.get("verdict_brier")],
+            ["Brier score of the base rate", ev.get("verdict_brier_base_rate")],
+            ["accuracy [%]", _pct(ev.get("verdict_accuracy"))],
+            ["prior P(faulty)", ev.get("verdict_prior_faulty")],
+        ],
+    )
+    r.note(
+        "Both are calibrated on the noisy val records (docs/prognostics.md): split-conformal half-widths per "
+        "number of large faults of k_hat, and Platt scaling of the health score."
+    )
 
 
 def build_report(run_dir: Path, metrics: dict[str, Any], studies: dict[str, Any], repo: Path | None = None) -> Path:
@@ -224,11 +315,13 @@ def build_report(run_dir: Path, metrics: dict[str, Any], studies: dict[str, Any]
     tr, ev, gen = metrics.get("train", {}), metrics.get("evaluate", {}), metrics.get("generate", {})
     actuator = gen.get("actuator") or tr.get("actuator") or ev.get("actuator")
     command = gen.get("command") or tr.get("command") or ev.get("command")
-    r.paragraph(f"Actuator: {actuator or 'not recorded'}; test command: {command or 'not recorded'} (name and "
-                "SHA-256 of the values, as every artefact of the run records them). Every figure below was measured "
-                "by this run (metrics.json beside this report); the paper's are quoted from Berri, Dalla Vedova "
-                "and Mainini, for its own actuator and chirp: on another actuator they are a point of comparison, "
-                "not a target.")
+    r.paragraph(
+        f"Actuator: {actuator or 'not recorded'}; test command: {command or 'not recorded'} (name and "
+        "SHA-256 of the values, as every artefact of the run records them). Every figure below was measured "
+        "by this run (metrics.json beside this report); the paper's are quoted from Berri, Dalla Vedova "
+        "and Mainini, for its own actuator and chirp: on another actuator they are a point of comparison, "
+        "not a target."
+    )
     _summary(r, metrics, studies)
     pretrained_section(r, studies.get("pretrained"))
     _data(r, gen)
@@ -240,14 +333,18 @@ def build_report(run_dir: Path, metrics: dict[str, Any], studies: dict[str, Any]
     r.section("err_k and timings vs hidden neurons (paper: ~5 % at 20 neurons, no gain beyond)")
     hs = studies.get("hidden")
     if hs:
-        r.table(["hidden neurons", "err_k [%]", "train [s]", "eval [us]"],
-                [[x["n_hidden"], 100 * x["err_k"], x["train_s"], x["eval_us"]] for x in hs["rows"]])
+        r.table(
+            ["hidden neurons", "err_k [%]", "train [s]", "eval [us]"],
+            [[x["n_hidden"], 100 * x["err_k"], x["train_s"], x["eval_us"]] for x in hs["rows"]],
+        )
         r.figure(hs["figure"], "err_k, evaluation and training time vs hidden neurons")
 
     r.section("FDI error per fault parameter (paper: at most ~1 %, k1 best, k6 worst)")
     if tr.get("fdi_mae"):
-        r.table(["k"] + [f"k{i + 1}" for i in range(len(tr["fdi_mae"]))],
-                [["mean |error| [%]"] + [100 * v for v in tr["fdi_mae"]]])
+        r.table(
+            ["k"] + [f"k{i + 1}" for i in range(len(tr["fdi_mae"]))],
+            [["mean |error| [%]"] + [100 * v for v in tr["fdi_mae"]]],
+        )
     r.figure(studies.get("fdi_per_parameter"), "mean |k_i error| per parameter")
 
     _classifier(r, tr)
@@ -257,8 +354,11 @@ def build_report(run_dir: Path, metrics: dict[str, Any], studies: dict[str, Any]
 
     r.section("Online latencies (paper: milliseconds on a desktop; targets FDI <= 100 us, full step <= 1 ms)")
     lat = studies.get("latency", {})
-    r.table(["quantity", "ours"], [["FDI, one signal, p50 [us] (phm-train)", tr.get("fdi_latency_us_p50")]]
-            + [[LATENCY_LABELS.get(k, k), v] for k, v in lat.items()])
+    r.table(
+        ["quantity", "ours"],
+        [["FDI, one signal, p50 [us] (phm-train)", tr.get("fdi_latency_us_p50")]]
+        + [[LATENCY_LABELS.get(k, k), v] for k, v in lat.items()],
+    )
 
     _workbench(r, run_dir, metrics.get("workbench", {}))
     _cases(r, run_dir, metrics.get("cases"))
@@ -271,18 +371,38 @@ def _workbench(r: HtmlReport, run_dir: Path, wb: dict[str, Any]) -> None:
     if not wbr:
         r.note("(workbench stage not run)")
         return
-    r.table(["effect", "score", "p-value", "significant", "NRMSE after refit [%]"],
-            [[c.get("label") or c.get("effect"), c.get("score"), c.get("p_value"), c.get("significant"),
-              _pct(c.get("nrmse_after_refit"))] for c in wbr.get("candidates", [])[:5]])
+    r.table(
+        ["effect", "score", "p-value", "significant", "NRMSE after refit [%]"],
+        [
+            [
+                c.get("label") or c.get("effect"),
+                c.get("score"),
+                c.get("p_value"),
+                c.get("significant"),
+                _pct(c.get("nrmse_after_refit")),
+            ]
+            for c in wbr.get("candidates", [])[:5]
+        ],
+    )
     nrmse, floor, after = wbr.get("nrmse") or {}, wbr.get("noise_floor") or {}, wb.get("nrmse_after") or {}
-    r.table(["channel", "NRMSE, model as given [%]", "noise floor [%]", "NRMSE, effects added [%]"],
-            [[c, _pct(nrmse.get(c)), _pct(floor.get(c)), _pct(after.get(c))] for c in nrmse])
+    r.table(
+        ["channel", "NRMSE, model as given [%]", "noise floor [%]", "NRMSE, effects added [%]"],
+        [[c, _pct(nrmse.get(c)), _pct(floor.get(c)), _pct(after.get(c))] for c in nrmse],
+    )
     timing = wb.get("timing") or {}
-    r.table(["quantity", "value"],
-            [["most likely missing effect", wb.get("best_candidate")], ["effects added", wb.get("added") or "none"],
-             ["neural closure's lead input", wb.get("closure_lead")], ["wall time [s]", timing.get("total_s")]])
-    r.markup('<p class="note">The workbench\'s own page, with every diagnostic: '
-             '<a href="../workbench/report.html">workbench/report.html</a>.</p>')
+    r.table(
+        ["quantity", "value"],
+        [
+            ["most likely missing effect", wb.get("best_candidate")],
+            ["effects added", wb.get("added") or "none"],
+            ["neural closure's lead input", wb.get("closure_lead")],
+            ["wall time [s]", timing.get("total_s")],
+        ],
+    )
+    r.markup(
+        '<p class="note">The workbench\'s own page, with every diagnostic: '
+        '<a href="../workbench/report.html">workbench/report.html</a>.</p>'
+    )
     for png in ("before_after", "candidates", "overlay"):
         if (run_dir / "workbench" / f"{png}.png").is_file():
             r.figure(run_dir / "workbench" / f"{png}.png", png.replace("_", " "))
@@ -297,27 +417,47 @@ def _cases(r: HtmlReport, run_dir: Path, cases: dict[str, Any] | None) -> None:
     nominal = (cases.get("nominal") or {}).get("faults") or []
     rows = []
     for name, c in (cases.get("cases") or {}).items():
-        changed = {FAULT_NAMES[i]: v for i, v in enumerate(c.get("faults") or []) if i >= len(nominal) or v != nominal[i]}
-        rows.append([name, changed or "none", _pct(c.get("nrmse_current")), _pct(c.get("nrmse_position")),
-                     c.get("peak_current")])
-    r.table(["case", "faults (differing from nominal)", "NRMSE current [%]", "NRMSE position [%]", "peak current [A]"],
-            rows)
-    r.note(f"{str(cases.get('fidelity', '')).upper()} records of {cases.get('duration')} s; NRMSE = RMS(case - "
-           f"nominal) / range of the nominal signal, noise-free; simulated in {cases.get('wall_time_s')} s.")
+        changed = {
+            FAULT_NAMES[i]: v for i, v in enumerate(c.get("faults") or []) if i >= len(nominal) or v != nominal[i]
+        }
+        rows.append(
+            [
+                name,
+                changed or "none",
+                _pct(c.get("nrmse_current")),
+                _pct(c.get("nrmse_position")),
+                c.get("peak_current"),
+            ]
+        )
+    r.table(
+        ["case", "faults (differing from nominal)", "NRMSE current [%]", "NRMSE position [%]", "peak current [A]"], rows
+    )
+    r.note(
+        f"{str(cases.get('fidelity', '')).upper()} records of {cases.get('duration')} s; NRMSE = RMS(case - "
+        f"nominal) / range of the nominal signal, noise-free; simulated in {cases.get('wall_time_s')} s."
+    )
     for png in sorted((run_dir / "cases").glob("*.png"))[:3]:
         r.figure(png, png.stem)
 
 
-LIFE_ROWS = (   # metric of phm_torch.prognostics.life_metrics, its label, its key in the targets block
+LIFE_ROWS = (  # metric of phm_torch.prognostics.life_metrics, its label, its key in the targets block
     ("coverage_5_95", "true RUL inside the 5-95 % band", "coverage_5_95"),
-    ("median_relative_band_width_second_half", "median (p95 - p5) / true RUL, second half of life",
-     "median_relative_band_width_second_half"),
+    (
+        "median_relative_band_width_second_half",
+        "median (p95 - p5) / true RUL, second half of life",
+        "median_relative_band_width_second_half",
+    ),
     ("alpha_lambda", "alpha-lambda accuracy (alpha 0.2, lambda 0.5)", "alpha_lambda"),
     ("relative_accuracy", "relative accuracy at lambda 0.5 (median)", None),
     ("prognostic_horizon", "prognostic horizon / life (median, alpha 0.1)", "prognostic_horizon"),
     ("eol_detection_delay", "end-of-life detection delay [h] (median)", None),
-    ("eol_flagged_within_one_inspection", "end of life flagged within one inspection", "eol_flagged_within_one_inspection"),
-    ("positive_p50_when_faulty", "positive RUL p50 on a faulty verdict (count)", "positive_p50_when_faulty"))
+    (
+        "eol_flagged_within_one_inspection",
+        "end of life flagged within one inspection",
+        "eol_flagged_within_one_inspection",
+    ),
+    ("positive_p50_when_faulty", "positive RUL p50 on a faulty verdict (count)", "positive_p50_when_faulty"),
+)
 
 
 def _life_section(r: HtmlReport, run_dir: Path) -> None:
@@ -330,18 +470,27 @@ def _life_section(r: HtmlReport, run_dir: Path) -> None:
         return
     targets = scores.get("targets", {})
 
-    def value(which: str, key: str) -> Any:   # a metric recorded as null is infinite; one not recorded, a dash
+    def value(which: str, key: str) -> Any:  # a metric recorded as null is infinite; one not recorded, a dash
         v = scores[which].get(key)
         return "∞" if v is None and key in scores[which] else v
 
     rows = []
     for key, label, target_key in LIFE_ROWS:
         t = targets.get(target_key) if target_key else None
-        rows.append([label, value("tracker", key), value("snapshot", key),
-                     "" if t is None else t["target"], "" if t is None else t["passed"]])
+        rows.append(
+            [
+                label,
+                value("tracker", key),
+                value("snapshot", key),
+                "" if t is None else t["target"],
+                "" if t is None else t["passed"],
+            ]
+        )
     r.table(["Saxena et al. (2010) metric", "tracker", "snapshot", "target", "met"], rows)
-    r.note(f"{scores.get('n_actuators')} actuators, {scores.get('n_inspections')} inspections "
-           f"({scores.get('n_out_of_distribution')} out of distribution, not fused); metric definitions in "
-           "docs/prognostics.md (Life tracking metrics). ∞: an infinite value (a censored band).")
+    r.note(
+        f"{scores.get('n_actuators')} actuators, {scores.get('n_inspections')} inspections "
+        f"({scores.get('n_out_of_distribution')} out of distribution, not fused); metric definitions in "
+        "docs/prognostics.md (Life tracking metrics). ∞: an infinite value (a censored band)."
+    )
     for name in ("life_rul", "life_damage", "life_fleet"):
         r.figure(run_dir / "track" / f"{name}.png", name.replace("_", " "))

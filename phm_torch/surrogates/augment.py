@@ -41,31 +41,36 @@ def noise_level(x: torch.Tensor, window: int = 0) -> torch.Tensor:
     sample, for a stationary noise the same level to ~5 % (1024 samples) at a tenth of the cost (the online step).
     """
     n = x.shape[1]
-    w = x if window <= 0 else x[:, :window + 2]
+    w = x if window <= 0 else x[:, : window + 2]
     d2 = (w[:, 2:] - 2.0 * w[:, 1:-1] + w[:, :-2]).abs()
     present = torch.isfinite(d2)
     d2 = torch.where(present, d2, torch.zeros_like(d2))
     count = present.sum(1).clamp(min=1)
     m = d2.sum(1) / count
-    for _ in range(2):                                 # literals: TorchScript reads no Python globals
+    for _ in range(2):  # literals: TorchScript reads no Python globals
         m = torch.minimum(d2, 3.0 * m.unsqueeze(1)).sum(1) / count
-    xs = x if window <= 0 else x[:, ::max(1, 4 * n // window)]     # a quarter as many: cache lines skipped
+    xs = x if window <= 0 else x[:, :: max(1, 4 * n // window)]  # a quarter as many: cache lines skipped
     finite = torch.isfinite(xs)
     level = torch.where(finite, xs, torch.zeros_like(xs)).pow(2).sum(1) / finite.sum(1).clamp(min=1)
     return m / 1.9401301101495292 / level.sqrt().clamp(min=1e-12)
 
 
-def add_noise(samples: torch.Tensor, scale: torch.Tensor, relative_std: float | torch.Tensor,
-              generator: torch.Generator | None = None) -> torch.Tensor:
+def add_noise(
+    samples: torch.Tensor,
+    scale: torch.Tensor,
+    relative_std: float | torch.Tensor,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
     """samples (B, n_w) + Gaussian noise of std ``relative_std * scale``; scale (B,) [A] (e.g. the RMS current),
     relative_std a float or (B,). (Absolute sensor noise on simulated channels: :mod:`phm_torch.sensor_noise`.)"""
-    std = torch.as_tensor(relative_std, dtype=samples.dtype, device=samples.device) * scale   # (B,)
+    std = torch.as_tensor(relative_std, dtype=samples.dtype, device=samples.device) * scale  # (B,)
     noise = torch.randn(samples.shape, generator=generator, dtype=samples.dtype, device=samples.device)
     return samples + noise * std.unsqueeze(-1)
 
 
-def drop_samples(samples: torch.Tensor, n_missing: int | torch.Tensor,
-                 generator: torch.Generator | None = None) -> torch.Tensor:
+def drop_samples(
+    samples: torch.Tensor, n_missing: int | torch.Tensor, generator: torch.Generator | None = None
+) -> torch.Tensor:
     """Copy of samples (B, n_w) with ``n_missing`` (int or (B,) ints) random samples per row set to NaN."""
     b, n = samples.shape
     count = torch.as_tensor(n_missing, device=samples.device).expand(b)

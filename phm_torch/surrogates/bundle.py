@@ -91,15 +91,28 @@ class SurrogateBundle(nn.Module):
             (analysis by synthesis, :mod:`phm_torch.online.consistency`); None: no such check.
     """
 
-    __jit_unused_properties__: ClassVar[list[str]] = ["verdict", "provenance"]   # scripting exports the FDI; these are plain Python
+    __jit_unused_properties__: ClassVar[list[str]] = [
+        "verdict",
+        "provenance",
+    ]  # scripting exports the FDI; these are plain Python
 
-    def __init__(self, pod: POD, indices: torch.Tensor, network: FDIMLP | FDIEnsemble, classifier: HealthClassifier,
-                 sample_rate: float, residual_threshold: float = float("inf"), gappy_ridge: float = 0.0,
-                 selector: Mapping[str, Any] | None = None, meta: Mapping[str, Any] | None = None,
-                 full_residual_threshold: float = float("inf"),
-                 gappy_statistics: Mapping[str, torch.Tensor] | None = None,
-                 nominal_record: torch.Tensor | None = None, verdict_classifier: HealthClassifier | None = None,
-                 forward_model: ForwardSurrogate | None = None):
+    def __init__(
+        self,
+        pod: POD,
+        indices: torch.Tensor,
+        network: FDIMLP | FDIEnsemble,
+        classifier: HealthClassifier,
+        sample_rate: float,
+        residual_threshold: float = float("inf"),
+        gappy_ridge: float = 0.0,
+        selector: Mapping[str, Any] | None = None,
+        meta: Mapping[str, Any] | None = None,
+        full_residual_threshold: float = float("inf"),
+        gappy_statistics: Mapping[str, torch.Tensor] | None = None,
+        nominal_record: torch.Tensor | None = None,
+        verdict_classifier: HealthClassifier | None = None,
+        forward_model: ForwardSurrogate | None = None,
+    ):
         super().__init__()
         if network.n_inputs != pod.n_modes:
             raise ValueError(f"network has {network.n_inputs} inputs but the POD has {pod.n_modes} modes")
@@ -117,7 +130,9 @@ class SurrogateBundle(nn.Module):
         self.register_buffer("residual_threshold", torch.tensor(float(residual_threshold)))
         self.register_buffer("full_residual_threshold", torch.tensor(float(full_residual_threshold)))
         if nominal_record is not None and tuple(nominal_record.shape) != tuple(pod.mean_.shape):
-            raise ValueError(f"nominal_record must have shape {tuple(pod.mean_.shape)}, got {tuple(nominal_record.shape)}")
+            raise ValueError(
+                f"nominal_record must have shape {tuple(pod.mean_.shape)}, got {tuple(nominal_record.shape)}"
+            )
         self.nominal_record = None if nominal_record is None else nominal_record.detach().cpu()
 
     # ---- online API -------------------------------------------------------------------------------
@@ -131,13 +146,15 @@ class SurrogateBundle(nn.Module):
             raise ValueError(f"signals must have {self.pod.mean_.shape[0]} samples, got shape {tuple(signals.shape)}")
         return self.gappy.select(signals)
 
-    def coefficients(self, samples: torch.Tensor, mask: torch.Tensor | None = None
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    def coefficients(
+        self, samples: torch.Tensor, mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Gappy POD: alpha (B, n_m) and residual (B,) [A] from samples (B, n_w) [A]."""
         return self.gappy(samples, mask)
 
-    def fdi(self, samples: torch.Tensor, mask: torch.Tensor | None = None,
-            noise: torch.Tensor | None = None) -> torch.Tensor:
+    def fdi(
+        self, samples: torch.Tensor, mask: torch.Tensor | None = None, noise: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """Estimated fault vector k_hat (B, 8) in [0, 1] from samples (B, n_w) [A]; ``noise`` (B,) the records'
         relative noise, for a noise-aware network (None: its ``default_noise``)."""
         alpha, _ = self.gappy(samples, mask)
@@ -156,13 +173,18 @@ class SurrogateBundle(nn.Module):
         level = noise_level(signals.to(torch.float64)) if noise is None else noise
         return self.fdi(self.compress(signals.to(dtype)), noise=level.to(dtype)).double()
 
-    def diagnose(self, samples: torch.Tensor, mask: torch.Tensor | None = None,
-                 noise: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    def diagnose(
+        self, samples: torch.Tensor, mask: torch.Tensor | None = None, noise: torch.Tensor | None = None
+    ) -> dict[str, torch.Tensor]:
         """k_hat (B, 8), alpha (B, n_m), residual (B,) [A], out_of_distribution (B,) bool (``noise`` as
         :meth:`fdi`)."""
         alpha, residual = self.gappy(samples, mask)
-        return {"k_hat": self.network(alpha, noise), "alpha": alpha, "residual": residual,
-                "out_of_distribution": residual > self.residual_threshold}
+        return {
+            "k_hat": self.network(alpha, noise),
+            "alpha": alpha,
+            "residual": residual,
+            "out_of_distribution": residual > self.residual_threshold,
+        }
 
     def health_score(self, k: torch.Tensor) -> torch.Tensor:
         """Score f(k) - threshold (B,) float64 for fault vectors (B, 8): > 0 healthy, < 0 faulty."""
@@ -200,25 +222,42 @@ class SurrogateBundle(nn.Module):
     # ---- persistence ------------------------------------------------------------------------------
     def metadata(self) -> dict[str, Any]:
         """The ``meta`` block of the file (plain JSON-able values)."""
-        return {"n_samples": int(self.pod.mean_.shape[0]), "n_modes": self.pod.n_modes,
-                "n_points": self.gappy.n_points, "n_hidden": self.network.n_hidden,
-                "n_layers": self.network.n_layers, "n_members": self.network.n_members,
-                "input_scaling": self.network.input_scaling, "noise_input": self.network.noise_input,
-                "default_noise": self.network.default_noise, "max_noise": self.network.max_noise,
-                "sample_rate": self.sample_rate,
-                "signal": "current", "unit": "A", "fault_names": list(FAULT_NAMES),
-                "health_convention": HEALTH_CONVENTION, "selector": self.selector_info,
-                "classifier": _spec(self.classifier), "verdict_classifier": _spec(self.verdict_classifier),
-                "forward_model": None if self.forward_model is None else self.forward_model.get_params(),
-                "gappy_ridge": self.gappy.ridge, "phm_torch_version": __version__, "extra": self.extra}
+        return {
+            "n_samples": int(self.pod.mean_.shape[0]),
+            "n_modes": self.pod.n_modes,
+            "n_points": self.gappy.n_points,
+            "n_hidden": self.network.n_hidden,
+            "n_layers": self.network.n_layers,
+            "n_members": self.network.n_members,
+            "input_scaling": self.network.input_scaling,
+            "noise_input": self.network.noise_input,
+            "default_noise": self.network.default_noise,
+            "max_noise": self.network.max_noise,
+            "sample_rate": self.sample_rate,
+            "signal": "current",
+            "unit": "A",
+            "fault_names": list(FAULT_NAMES),
+            "health_convention": HEALTH_CONVENTION,
+            "selector": self.selector_info,
+            "classifier": _spec(self.classifier),
+            "verdict_classifier": _spec(self.verdict_classifier),
+            "forward_model": None if self.forward_model is None else self.forward_model.get_params(),
+            "gappy_ridge": self.gappy.ridge,
+            "phm_torch_version": __version__,
+            "extra": self.extra,
+        }
 
     def save(self, path: str | os.PathLike) -> Path:
         """Write the bundle atomically to ``path`` (conventionally ``surrogates.pt``)."""
-        tensors = {f"pod.{k}": getattr(self.pod, k).detach().cpu()
-                   for k in ("mean_", "modes_", "singular_values_", "energy_")}
-        tensors.update(indices=self.indices.cpu(), sample_times=self.sample_times.cpu(),
-                       residual_threshold=self.residual_threshold.cpu(),
-                       full_residual_threshold=self.full_residual_threshold.cpu())
+        tensors = {
+            f"pod.{k}": getattr(self.pod, k).detach().cpu() for k in ("mean_", "modes_", "singular_values_", "energy_")
+        }
+        tensors.update(
+            indices=self.indices.cpu(),
+            sample_times=self.sample_times.cpu(),
+            residual_threshold=self.residual_threshold.cpu(),
+            full_residual_threshold=self.full_residual_threshold.cpu(),
+        )
         tensors.update({f"gappy.{k}": v for k, v in self.gappy_statistics.items()})
         if self.nominal_record is not None:
             tensors["nominal_record"] = self.nominal_record
@@ -234,8 +273,9 @@ class SurrogateBundle(nn.Module):
         return path
 
     @classmethod
-    def load(cls, path: str | os.PathLike, expect: Mapping[str, Any] | None = None,
-             map_location: str | torch.device = "cpu") -> SurrogateBundle:
+    def load(
+        cls, path: str | os.PathLike, expect: Mapping[str, Any] | None = None, map_location: str | torch.device = "cpu"
+    ) -> SurrogateBundle:
         """Read a bundle written by :meth:`save` (``weights_only=True``).
 
         Args:
@@ -251,14 +291,16 @@ class SurrogateBundle(nn.Module):
         except Exception as e:  # noqa: BLE001 - any unreadable file is the same user error
             raise ValueError(f"{path}: not a readable surrogate bundle ({type(e).__name__}: {e})") from None
         if not isinstance(blob, dict) or blob.get("format") != FORMAT:
-            raise ValueError(f"{path}: not a surrogate bundle (format {blob.get('format') if isinstance(blob, dict) else None!r}, "
-                             f"expected {FORMAT!r})")
+            raise ValueError(
+                f"{path}: not a surrogate bundle (format {blob.get('format') if isinstance(blob, dict) else None!r}, "
+                f"expected {FORMAT!r})"
+            )
         if blob.get("version") != VERSION:
             raise ValueError(f"{path}: bundle version {blob.get('version')!r} is not supported (expected {VERSION})")
         meta, t = blob.get("meta"), blob.get("tensors")
         if isinstance(meta, dict):
-            meta.setdefault("n_layers", 1)          # bundles written before the options: one network
-            meta.setdefault("n_members", 1)         # of one hidden layer, not noise-aware
+            meta.setdefault("n_layers", 1)  # bundles written before the options: one network
+            meta.setdefault("n_members", 1)  # of one hidden layer, not noise-aware
             meta.setdefault("noise_input", False)
         required = (*COMPARED, "input_scaling", "sample_rate", "selector", "classifier", "gappy_ridge", "extra")
         missing = [k for k in required if not isinstance(meta, dict) or k not in meta]
@@ -268,19 +310,27 @@ class SurrogateBundle(nn.Module):
             if key not in COMPARED:
                 raise ValueError(f"expect: unknown field {key!r}; known: {list(COMPARED)}")
             if want is not None and meta[key] != want:
-                raise ValueError(f"{path}: bundle from another configuration: {key}={meta[key]} in the file, "
-                                 f"{want} expected")
+                raise ValueError(
+                    f"{path}: bundle from another configuration: {key}={meta[key]} in the file, {want} expected"
+                )
         n_m = meta["n_modes"]
         pod = POD(n_m)
         for k in ("mean_", "modes_", "singular_values_", "energy_"):
             setattr(pod, k, t[f"pod.{k}"])
         if tuple(pod.modes_.shape) != (meta["n_samples"], n_m):
-            raise ValueError(f"{path}: pod.modes_ has shape {tuple(pod.modes_.shape)}, meta says "
-                             f"({meta['n_samples']}, {n_m})")
+            raise ValueError(
+                f"{path}: pod.modes_ has shape {tuple(pod.modes_.shape)}, meta says ({meta['n_samples']}, {n_m})"
+            )
         noise_kwargs = {k: meta[k] for k in ("default_noise", "max_noise") if k in meta}
-        network = build_fdi_network(n_m, meta["n_hidden"], meta["n_layers"], meta["n_members"],
-                                    input_scaling=meta["input_scaling"], noise_input=meta["noise_input"],
-                                    **noise_kwargs)
+        network = build_fdi_network(
+            n_m,
+            meta["n_hidden"],
+            meta["n_layers"],
+            meta["n_members"],
+            input_scaling=meta["input_scaling"],
+            noise_input=meta["noise_input"],
+            **noise_kwargs,
+        )
         network.load_state_dict(_prefixed(t, "network."))
         classifier = _classifier(meta["classifier"], _prefixed(t, "classifier."), path)
         verdict_spec = meta.get("verdict_classifier")
@@ -292,10 +342,22 @@ class SurrogateBundle(nn.Module):
                 forward_model.load_state_dict(_prefixed(t, "forward_model."))
             except (TypeError, ValueError, RuntimeError) as e:
                 raise ValueError(f"{path}: forward_model: {e}") from None
-        bundle = cls(pod, t["indices"], network, classifier, meta["sample_rate"],
-                     float(t["residual_threshold"]), meta["gappy_ridge"], meta["selector"], meta["extra"],
-                     float(t.get("full_residual_threshold", float("inf"))), _prefixed(t, "gappy.") or None,
-                     t.get("nominal_record"), verdict, forward_model.eval() if forward_model else None)
+        bundle = cls(
+            pod,
+            t["indices"],
+            network,
+            classifier,
+            meta["sample_rate"],
+            float(t["residual_threshold"]),
+            meta["gappy_ridge"],
+            meta["selector"],
+            meta["extra"],
+            float(t.get("full_residual_threshold", float("inf"))),
+            _prefixed(t, "gappy.") or None,
+            t.get("nominal_record"),
+            verdict,
+            forward_model.eval() if forward_model else None,
+        )
         return bundle.eval()
 
 
@@ -311,16 +373,15 @@ def _classifier(spec: Mapping[str, Any], state: Mapping[str, torch.Tensor], path
         raise ValueError(f"{path}: {e}") from None
     known = dict(classifier.named_buffers())
     if set(state) != set(known):
-        raise ValueError(f"{path}: classifier tensors {sorted(state)} do not match {spec['name']}'s "
-                         f"{sorted(known)}")
+        raise ValueError(f"{path}: classifier tensors {sorted(state)} do not match {spec['name']}'s {sorted(known)}")
     for k, v in state.items():  # fitted buffers may have other shapes than the unfitted twin's
-        owner, _, name = k.rpartition(".")      # a submodule's buffer (dotted name) is set on it
+        owner, _, name = k.rpartition(".")  # a submodule's buffer (dotted name) is set on it
         setattr(classifier.get_submodule(owner) if owner else classifier, name, v)
     return classifier
 
 
 def _prefixed(tensors: Mapping[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
-    return {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix)}
+    return {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
 
 
 def load_named_bundles(specs: Sequence[str]) -> dict[str, SurrogateBundle]:

@@ -49,12 +49,17 @@ def read_split(store: DatasetStore, name: str, n_samples: int, limit: int | None
     where = f"store {str(store.data_dir)!r}, split {name!r}"
     if n == 0:
         raise ValueError(f"{where} is empty")
-    shapes = {"K": (view.K.shape, (len(view), N_FAULTS)), "current": (view.current.shape, (len(view), n_samples)),
-              "healthy": (view.healthy.shape, (len(view),))}
+    shapes = {
+        "K": (view.K.shape, (len(view), N_FAULTS)),
+        "current": (view.current.shape, (len(view), n_samples)),
+        "healthy": (view.healthy.shape, (len(view),)),
+    }
     for arr, (got, want) in shapes.items():
         if tuple(got) != want:
-            raise ValueError(f"{where}: {arr} has shape {tuple(got)}, expected {want} "
-                             f"(n rows, {n_samples} samples = the store's time grid)")
+            raise ValueError(
+                f"{where}: {arr} has shape {tuple(got)}, expected {want} "
+                f"(n rows, {n_samples} samples = the store's time grid)"
+            )
     k = torch.from_numpy(np.asarray(view.K[:n], dtype=np.float32))
     if not torch.isfinite(k).all() or bool(((k < 0) | (k > 1)).any()):
         raise ValueError(f"{where}: K holds values outside [0, 1] or non-finite")
@@ -71,8 +76,9 @@ def read_split(store: DatasetStore, name: str, n_samples: int, limit: int | None
     return SplitData(name, k, current, healthy)
 
 
-def load_store(data_dir: str | os.PathLike, splits: dict[str, str],
-               limits: dict[str, int | None] | None = None) -> tuple[dict[str, SplitData], torch.Tensor, dict[str, Any]]:
+def load_store(
+    data_dir: str | os.PathLike, splits: dict[str, str], limits: dict[str, int | None] | None = None
+) -> tuple[dict[str, SplitData], torch.Tensor, dict[str, Any]]:
     """Read the requested splits of the store in ``data_dir``.
 
     Args:
@@ -87,9 +93,16 @@ def load_store(data_dir: str | os.PathLike, splits: dict[str, str],
         time = torch.from_numpy(np.asarray(store.time, dtype=np.float64))
         if time.ndim != 1 or time.numel() < 2:
             raise ValueError(f"store {str(data_dir)!r}: time has shape {tuple(time.shape)}, expected (n_e,)")
-        out = {role: read_split(store, name, int(time.numel()), (limits or {}).get(role))
-               for role, name in splits.items()}
-        info = {"manifest": store.manifest, "metadata": store.metadata,
-                "nominal": (read_split(store, "nominal", int(time.numel())).current[0]
-                            if "nominal" in store.manifest.get("splits", {}) else None)}
+        out = {
+            role: read_split(store, name, int(time.numel()), (limits or {}).get(role)) for role, name in splits.items()
+        }
+        info = {
+            "manifest": store.manifest,
+            "metadata": store.metadata,
+            "nominal": (
+                read_split(store, "nominal", int(time.numel())).current[0]
+                if "nominal" in store.manifest.get("splits", {})
+                else None
+            ),
+        }
     return out, time, info

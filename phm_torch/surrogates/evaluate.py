@@ -22,9 +22,17 @@ def quartiles(x: torch.Tensor) -> dict[str, float]:
 
 
 @torch.no_grad()
-def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tensor, k: torch.Tensor, noise: float,
-                 missing: int, seed: int, nominal: torch.Tensor | None = None
-                 ) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
+def evaluate_fdi(
+    pod: POD,
+    gappy: GappyPOD,
+    network: FDIMLP,
+    current: torch.Tensor,
+    k: torch.Tensor,
+    noise: float,
+    missing: int,
+    seed: int,
+    nominal: torch.Tensor | None = None,
+) -> tuple[dict[str, Any], dict[str, torch.Tensor]]:
     """Coefficient and fault-identification errors on full records ``current`` (n, n_e) with faults k (n, 8):
     clean, with relative noise ``noise`` (fraction of each signal's RMS current) and with ``missing``
     random samples missing per signal (skipped, its metrics None, when fewer samples than modes would
@@ -41,13 +49,12 @@ def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tens
     if gappy.n_points - missing >= gappy.n_modes or gappy.ridge > 0 or gappy.bayesian:
         cases["_missing"] = drop_samples(samples, missing, gen)
     else:
-        out.update(err_alpha_median_missing=None, err_alpha_iqr_missing=None, err_k_missing=None,
-                   fdi_mae_missing=None)
+        out.update(err_alpha_median_missing=None, err_alpha_iqr_missing=None, err_k_missing=None, fdi_mae_missing=None)
     arrays: dict[str, torch.Tensor] = {"k": k, "alpha_full": alpha_full}
     for suffix, s in cases.items():
         alpha, resid = gappy(s)
         k_hat = network(alpha, torch.full((len(s),), noise if suffix == "_noise" else 0.0, dtype=alpha.dtype))
-        solved = torch.isfinite(alpha).all(-1)                  # singular gappy systems give NaN
+        solved = torch.isfinite(alpha).all(-1)  # singular gappy systems give NaN
         ea = quartiles(err_alpha(alpha[solved], alpha_full[solved]))
         out[f"err_alpha_median{suffix}"], out[f"err_alpha_iqr{suffix}"] = ea["median"], ea["iqr"]
         out[f"err_k{suffix}"] = err_k(k_hat[solved], k[solved])
@@ -62,7 +69,7 @@ def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tens
     per_signal = err_k_per_signal(arrays["k_hat"], k)
     out["err_k_mean_per_signal"] = float(per_signal.mean())
     out["err_k_median_per_signal"] = float(per_signal.median())
-    out["err_k_ci95"] = list(err_k_interval(arrays["k_hat"], k, seed=seed))   # how finely this split ranks runs
+    out["err_k_ci95"] = list(err_k_interval(arrays["k_hat"], k, seed=seed))  # how finely this split ranks runs
     out["err_k_by_fault_count"] = err_k_by_fault_count(arrays["k_hat"], k, nominal)
     out["fdi_mae_noise"] = fdi_mae(arrays["k_hat_noise"], k)  # noise never makes a system singular
     if "k_hat_missing" in arrays:
@@ -72,20 +79,32 @@ def evaluate_fdi(pod: POD, gappy: GappyPOD, network: FDIMLP, current: torch.Tens
 
 
 @torch.no_grad()
-def evaluate_classifier(classifier: HealthClassifier, k: torch.Tensor, healthy: torch.Tensor,
-                        k_hat: torch.Tensor | None = None, verdict: HealthClassifier | None = None) -> dict[str, Any]:
+def evaluate_classifier(
+    classifier: HealthClassifier,
+    k: torch.Tensor,
+    healthy: torch.Tensor,
+    k_hat: torch.Tensor | None = None,
+    verdict: HealthClassifier | None = None,
+) -> dict[str, Any]:
     """Confusion of the classifier on the actual k and (``k_hat`` given) the verdict's on the FDI estimates
     (``chain_*``; the verdict classifier's, else the health classifier's), with the health classifier's
     accuracy on the estimates (``chain_accuracy_health_classifier``) for comparison."""
     conf = confusion(classifier.predict(k), healthy)
-    out: dict[str, Any] = {"classifier_accuracy": conf["accuracy"], "missed_fault_rate": conf["missed_fault_rate"],
-                           "false_alarm_rate": conf["false_alarm_rate"], "classifier_confusion": conf}
+    out: dict[str, Any] = {
+        "classifier_accuracy": conf["accuracy"],
+        "missed_fault_rate": conf["missed_fault_rate"],
+        "false_alarm_rate": conf["false_alarm_rate"],
+        "classifier_confusion": conf,
+    }
     if k_hat is not None:
         by_health = confusion(classifier.predict(k_hat), healthy)
         chain = by_health if verdict is None else confusion(verdict.predict(k_hat), healthy)
-        out.update(chain_accuracy=chain["accuracy"], chain_missed_fault_rate=chain["missed_fault_rate"],
-                   chain_false_alarm_rate=chain["false_alarm_rate"],
-                   chain_accuracy_health_classifier=by_health["accuracy"])
+        out.update(
+            chain_accuracy=chain["accuracy"],
+            chain_missed_fault_rate=chain["missed_fault_rate"],
+            chain_false_alarm_rate=chain["false_alarm_rate"],
+            chain_accuracy_health_classifier=by_health["accuracy"],
+        )
     return out
 
 
@@ -95,8 +114,9 @@ def latency_us(fn: Callable[[], Any], repeats: int, warmup: int = 50) -> float:
 
 
 @torch.inference_mode()
-def measure_latency(gappy: GappyPOD, network: FDIMLP, classifier: HealthClassifier, samples: torch.Tensor,
-                    repeats: int) -> dict[str, float]:
+def measure_latency(
+    gappy: GappyPOD, network: FDIMLP, classifier: HealthClassifier, samples: torch.Tensor, repeats: int
+) -> dict[str, float]:
     """Single-signal latencies [us] on one thread: gappy POD + FDI network, and the health score."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
@@ -107,8 +127,10 @@ def measure_latency(gappy: GappyPOD, network: FDIMLP, classifier: HealthClassifi
         def fdi() -> torch.Tensor:
             return network(gappy(one)[0])
 
-        return {"fdi_latency_us_p50": latency_us(fdi, repeats),
-                "gappy_latency_us_p50": latency_us(lambda: gappy(one), repeats),
-                "health_score_latency_us_p50": latency_us(lambda: classifier(k), repeats)}
+        return {
+            "fdi_latency_us_p50": latency_us(fdi, repeats),
+            "gappy_latency_us_p50": latency_us(lambda: gappy(one), repeats),
+            "health_score_latency_us_p50": latency_us(lambda: classifier(k), repeats),
+        }
     finally:
         torch.set_num_threads(threads)

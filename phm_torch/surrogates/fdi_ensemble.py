@@ -46,14 +46,24 @@ class FDIEnsemble(nn.Module):
         n_members: networks in the ensemble (>= 2; one network is an :class:`FDIMLP`).
     """
 
-    def __init__(self, n_inputs: int, n_hidden: int = 20, n_outputs: int = N_FAULTS, input_scaling: str = "minmax",
-                 n_layers: int = 1, n_members: int = 4, noise_input: bool = False, default_noise: float = 0.01,
-                 max_noise: float = 0.1):
+    def __init__(
+        self,
+        n_inputs: int,
+        n_hidden: int = 20,
+        n_outputs: int = N_FAULTS,
+        input_scaling: str = "minmax",
+        n_layers: int = 1,
+        n_members: int = 4,
+        noise_input: bool = False,
+        default_noise: float = 0.01,
+        max_noise: float = 0.1,
+    ):
         super().__init__()
         if isinstance(n_members, bool) or not isinstance(n_members, int) or n_members < 2:
             raise ValueError(f"fdi.n_members of an ensemble must be an integer >= 2, got {n_members!r}")
-        check_architecture(n_inputs=n_inputs, n_hidden=n_hidden, n_outputs=n_outputs, n_layers=n_layers,
-                           input_scaling=input_scaling)
+        check_architecture(
+            n_inputs=n_inputs, n_hidden=n_hidden, n_outputs=n_outputs, n_layers=n_layers, input_scaling=input_scaling
+        )
         m = n_members
         self.noise_input = check_noise_input(noise_input, default_noise, max_noise)
         self.default_noise, self.max_noise = float(default_noise), float(max_noise)
@@ -77,7 +87,9 @@ class FDIEnsemble(nn.Module):
 
     def member_preactivations(self, alpha: torch.Tensor, noise: torch.Tensor | None = None) -> torch.Tensor:
         """(n_members, B, 8) each member's output before saturation: each member is fitted on its own."""
-        x = (network_inputs(alpha, noise, self.noise_input, self.default_noise, self.max_noise) - self.in_center) / self.in_scale
+        x = (
+            network_inputs(alpha, noise, self.noise_input, self.default_noise, self.max_noise) - self.in_center
+        ) / self.in_scale
         h = torch.tanh(torch.baddbmm(self.b_in, x.unsqueeze(0).expand(self.n_members, -1, -1), self.w_in))
         for i in range(self.n_layers - 1):
             h = torch.tanh(torch.baddbmm(self.b_deep[i], h, self.w_deep[i]))
@@ -89,13 +101,16 @@ class FDIEnsemble(nn.Module):
         return self.member_preactivations(alpha, noise).clamp(0.0, 1.0).mean(0)
 
     def extra_repr(self) -> str:
-        return (f"n_members={self.n_members}, n_inputs={self.n_inputs}, n_hidden={self.n_hidden}, "
-                f"n_layers={self.n_layers}, n_outputs={self.n_outputs}, input_scaling={self.input_scaling}, "
-                f"noise_input={self.noise_input}")
+        return (
+            f"n_members={self.n_members}, n_inputs={self.n_inputs}, n_hidden={self.n_hidden}, "
+            f"n_layers={self.n_layers}, n_outputs={self.n_outputs}, input_scaling={self.input_scaling}, "
+            f"noise_input={self.noise_input}"
+        )
 
 
-def build_fdi_network(n_inputs: int, n_hidden: int, n_layers: int = 1, n_members: int = 1,
-                      **kwargs: object) -> FDIMLP | FDIEnsemble:
+def build_fdi_network(
+    n_inputs: int, n_hidden: int, n_layers: int = 1, n_members: int = 1, **kwargs: object
+) -> FDIMLP | FDIEnsemble:
     """One :class:`FDIMLP` (``n_members=1``, the paper) or an :class:`FDIEnsemble` of ``n_members``."""
     if n_members == 1:
         return FDIMLP(n_inputs, n_hidden, n_layers=n_layers, **kwargs)  # type: ignore[arg-type]

@@ -66,8 +66,9 @@ def scaling_statistics(alpha: torch.Tensor, input_scaling: str, n_inputs: int) -
     return center, scale.clamp(min=1e-12)
 
 
-def network_inputs(alpha: torch.Tensor, noise: torch.Tensor | None, noise_input: bool,
-                   default_noise: float, max_noise: float) -> torch.Tensor:
+def network_inputs(
+    alpha: torch.Tensor, noise: torch.Tensor | None, noise_input: bool, default_noise: float, max_noise: float
+) -> torch.Tensor:
     """The network's input rows (B, n_m [+ 1]): alpha (B, n_m), with the relative noise (B,) as the last
     column for a noise-aware network (``default_noise`` where ``noise`` is None), held to the trained
     range [0, ``max_noise``] (a level outside it would ask the network to extrapolate)."""
@@ -86,8 +87,10 @@ def normalization_rows(alpha: torch.Tensor, noise: torch.Tensor | None, noise_in
     if not noise_input:
         return alpha
     if noise is None or noise.shape != alpha.shape[:1]:
-        raise ValueError(f"a noise-aware network's input scaling needs the training noise levels (N,) = "
-                         f"({alpha.shape[0]},), got {None if noise is None else tuple(noise.shape)}")
+        raise ValueError(
+            f"a noise-aware network's input scaling needs the training noise levels (N,) = "
+            f"({alpha.shape[0]},), got {None if noise is None else tuple(noise.shape)}"
+        )
     return torch.cat([alpha, noise.to(alpha.dtype).reshape(-1, 1)], 1)
 
 
@@ -106,15 +109,24 @@ class FDIMLP(nn.Module):
         max_noise: largest relative noise the network was trained with; larger levels are held there.
     """
 
-    def __init__(self, n_inputs: int, n_hidden: int = 20, n_outputs: int = N_FAULTS, input_scaling: str = "minmax",
-                 n_layers: int = 1, noise_input: bool = False, default_noise: float = 0.01,
-                 max_noise: float = 0.1):
+    def __init__(
+        self,
+        n_inputs: int,
+        n_hidden: int = 20,
+        n_outputs: int = N_FAULTS,
+        input_scaling: str = "minmax",
+        n_layers: int = 1,
+        noise_input: bool = False,
+        default_noise: float = 0.01,
+        max_noise: float = 0.1,
+    ):
         super().__init__()
-        check_architecture(n_inputs=n_inputs, n_hidden=n_hidden, n_outputs=n_outputs, n_layers=n_layers,
-                           input_scaling=input_scaling)
+        check_architecture(
+            n_inputs=n_inputs, n_hidden=n_hidden, n_outputs=n_outputs, n_layers=n_layers, input_scaling=input_scaling
+        )
         self.input_scaling = input_scaling
         self.n_inputs, self.n_hidden, self.n_outputs, self.n_layers = n_inputs, n_hidden, n_outputs, n_layers
-        self.n_members = 1                  # the interface of FDIEnsemble: one network
+        self.n_members = 1  # the interface of FDIEnsemble: one network
         self.noise_input = check_noise_input(noise_input, default_noise, max_noise)
         width = n_inputs + int(noise_input)
         self.hidden = nn.Linear(width, n_hidden)
@@ -152,5 +164,7 @@ class FDIMLP(nn.Module):
         return self.preactivation(alpha, noise).clamp(0.0, 1.0)
 
     def extra_repr(self) -> str:
-        return (f"n_inputs={self.n_inputs}, n_hidden={self.n_hidden}, n_layers={self.n_layers}, "
-                f"n_outputs={self.n_outputs}, input_scaling={self.input_scaling}, noise_input={self.noise_input}")
+        return (
+            f"n_inputs={self.n_inputs}, n_hidden={self.n_hidden}, n_layers={self.n_layers}, "
+            f"n_outputs={self.n_outputs}, input_scaling={self.input_scaling}, noise_input={self.noise_input}"
+        )

@@ -60,9 +60,19 @@ class ForwardSurrogate(nn.Module):
 
     __constants__ = ("n_modes", "n_faults", "ecc_amplitude", "ecc_phase")
 
-    def __init__(self, n_modes: int, n_hidden: int = 64, n_layers: int = 2, nominal_eccentricity: float = 0.0,
-                 max_epochs: int = 600, patience: int = 60, lr: float = 3e-3, batch_size: int = 256,
-                 holdout: float = 0.1, seed: int = 0):
+    def __init__(
+        self,
+        n_modes: int,
+        n_hidden: int = 64,
+        n_layers: int = 2,
+        nominal_eccentricity: float = 0.0,
+        max_epochs: int = 600,
+        patience: int = 60,
+        lr: float = 3e-3,
+        batch_size: int = 256,
+        holdout: float = 0.1,
+        seed: int = 0,
+    ):
         super().__init__()
         self.n_modes = _positive_int(n_modes, "n_modes")
         self.n_hidden, self.n_layers = _positive_int(n_hidden, "n_hidden"), _positive_int(n_layers, "n_layers")
@@ -74,7 +84,11 @@ class ForwardSurrogate(nn.Module):
             raise ValueError(f"forward.holdout must be in (0, 0.5), got {holdout!r}")
         self.lr, self.holdout, self.seed = float(lr), float(holdout), int(seed)
         self.nominal_eccentricity = float(nominal_eccentricity)
-        self.n_faults, self.ecc_amplitude, self.ecc_phase = N_FAULTS, ECC_AMPLITUDE, ECC_PHASE   # TorchScript reads no globals
+        self.n_faults, self.ecc_amplitude, self.ecc_phase = (
+            N_FAULTS,
+            ECC_AMPLITUDE,
+            ECC_PHASE,
+        )  # TorchScript reads no globals
         n_in = N_FAULTS + 1
         layers: list[nn.Module] = []
         for i in range(self.n_layers):
@@ -92,16 +106,24 @@ class ForwardSurrogate(nn.Module):
 
     def get_params(self) -> dict[str, Any]:
         """Constructor arguments (JSON-able), as the bundle stores them."""
-        return {"n_modes": self.n_modes, "n_hidden": self.n_hidden, "n_layers": self.n_layers,
-                "nominal_eccentricity": self.nominal_eccentricity, "max_epochs": self.max_epochs,
-                "patience": self.patience, "lr": self.lr, "batch_size": self.batch_size, "holdout": self.holdout,
-                "seed": self.seed}
+        return {
+            "n_modes": self.n_modes,
+            "n_hidden": self.n_hidden,
+            "n_layers": self.n_layers,
+            "nominal_eccentricity": self.nominal_eccentricity,
+            "max_epochs": self.max_epochs,
+            "patience": self.patience,
+            "lr": self.lr,
+            "batch_size": self.batch_size,
+            "holdout": self.holdout,
+            "seed": self.seed,
+        }
 
     def features(self, k: torch.Tensor) -> torch.Tensor:
         """(B, 9) raw features of k (B, 8): k without k7, then the eccentricity offset times cos and sin 2 pi k7."""
         ecc = k[:, self.ecc_amplitude] - self.nominal_eccentricity
         angle = 2.0 * math.pi * k[:, self.ecc_phase]
-        rest = torch.cat([k[:, :self.ecc_phase], k[:, self.ecc_phase + 1:]], dim=1)
+        rest = torch.cat([k[:, : self.ecc_phase], k[:, self.ecc_phase + 1 :]], dim=1)
         return torch.cat([rest, (ecc * torch.cos(angle)).unsqueeze(1), (ecc * torch.sin(angle)).unsqueeze(1)], dim=1)
 
     def forward(self, k: torch.Tensor) -> torch.Tensor:
@@ -122,8 +144,10 @@ class ForwardSurrogate(nn.Module):
         RMS on an LF store: a few heavy shorts), so :func:`fit_forward_check` weighs each by 1 / its mean square:
         the loss is then the relative residual the consistency statistic measures, not the few largest records'."""
         if k.dim() != 2 or k.shape[1] != N_FAULTS or alpha.dim() != 2 or alpha.shape != (k.shape[0], self.n_modes):
-            raise ValueError(f"forward.fit: k must be (N, 8) and alpha (N, {self.n_modes}), got {tuple(k.shape)} "
-                             f"and {tuple(alpha.shape)}")
+            raise ValueError(
+                f"forward.fit: k must be (N, 8) and alpha (N, {self.n_modes}), got {tuple(k.shape)} "
+                f"and {tuple(alpha.shape)}"
+            )
         n = k.shape[0]
         n_hold = max(1, round(self.holdout * n))
         if n - n_hold < 2:
@@ -149,17 +173,21 @@ class ForwardSurrogate(nn.Module):
         weight = (weight / weight[rows].mean()).to(dtype)
         w = weight[rows].unsqueeze(1)
         self.alpha_mean_ = (w * alpha[rows]).sum(0) / w.sum()
-        self.alpha_scale_ = (w.squeeze(1) * (alpha[rows] - self.alpha_mean_).pow(2).sum(1)).mean().sqrt().clamp(min=1e-12)
+        self.alpha_scale_ = (
+            (w.squeeze(1) * (alpha[rows] - self.alpha_mean_).pow(2).sum(1)).mean().sqrt().clamp(min=1e-12)
+        )
         x = (feats - self.input_mean_) / self.input_std_
         target = (alpha - self.alpha_mean_) / self.alpha_scale_
         optimizer = torch.optim.Adam(self.net.parameters(), lr=self.lr)
-        scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(optimizer, factor=0.5, patience=max(1, self.patience // 3))
+        scheduler = torch.optim.lr_scheduler.ReduceLROnPlateau(
+            optimizer, factor=0.5, patience=max(1, self.patience // 3)
+        )
         best, best_state, best_epoch = float("inf"), None, -1
         for epoch in range(self.max_epochs):
             self.net.train()
             for batch in rows[torch.randperm(rows.numel(), generator=gen)].split(self.batch_size):
                 optimizer.zero_grad()
-                with torch.enable_grad():     # also under a caller's no_grad
+                with torch.enable_grad():  # also under a caller's no_grad
                     loss = (weight[batch] * (self.net(x[batch]) - target[batch]).pow(2).sum(1)).mean()
                     loss.backward()
                 optimizer.step()
@@ -181,16 +209,28 @@ class ForwardSurrogate(nn.Module):
     def summary(self) -> dict[str, float]:
         """Fit figures: held-out RMS coefficient error [A] and relative to the coefficients' spread, the residual
         floors, best epoch, rows fitted, wall time [s]."""
-        return {"error": float(self.error_), "relative_error": float(self.error_ / self.alpha_scale_),
-                "floor_full": float(self.floor_full_), "floor_samples": float(self.floor_samples_),
-                "best_epoch": self.best_epoch_, "n_fit": self.n_fit_, "fit_s": round(getattr(self, "fit_s_", 0.0), 2)}
+        return {
+            "error": float(self.error_),
+            "relative_error": float(self.error_ / self.alpha_scale_),
+            "floor_full": float(self.floor_full_),
+            "floor_samples": float(self.floor_samples_),
+            "best_epoch": self.best_epoch_,
+            "n_fit": self.n_fit_,
+            "fit_s": round(getattr(self, "fit_s_", 0.0), 2),
+        }
 
     def extra_repr(self) -> str:
         return f"n_modes={self.n_modes}, n_hidden={self.n_hidden}, n_layers={self.n_layers}"
 
 
-def consistency_statistic(y: torch.Tensor, mean: torch.Tensor, modes: torch.Tensor, alpha_pred: torch.Tensor,
-                          noise: torch.Tensor, floor: torch.Tensor) -> torch.Tensor:
+def consistency_statistic(
+    y: torch.Tensor,
+    mean: torch.Tensor,
+    modes: torch.Tensor,
+    alpha_pred: torch.Tensor,
+    noise: torch.Tensor,
+    floor: torch.Tensor,
+) -> torch.Tensor:
     """Normalised residual (B,) between measured records and the records their predicted coefficients give.
 
     Args:
@@ -214,13 +254,21 @@ def consistency_statistic(y: torch.Tensor, mean: torch.Tensor, modes: torch.Tens
     return torch.where(present.any(1), ratio / scale, torch.full_like(ratio, float("nan")))
 
 
-STRIDE = 16      # every 16th sample of a full record: 626 of 10,001, as FullSignalCheck's POD residual
+STRIDE = 16  # every 16th sample of a full record: 626 of 10,001, as FullSignalCheck's POD residual
 
 
 @torch.no_grad()
-def fit_forward_check(pod: nn.Module, gappy: nn.Module, network: nn.Module, k: torch.Tensor, current: torch.Tensor,
-                      nominal: torch.Tensor | None = None, seed: int = 0, block_rows: int = 2048,
-                      **params: Any) -> ForwardSurrogate:
+def fit_forward_check(
+    pod: nn.Module,
+    gappy: nn.Module,
+    network: nn.Module,
+    k: torch.Tensor,
+    current: torch.Tensor,
+    nominal: torch.Tensor | None = None,
+    seed: int = 0,
+    block_rows: int = 2048,
+    **params: Any,
+) -> ForwardSurrogate:
     """A forward surrogate fitted on a store's training records, with its residual floors.
 
     Args:
@@ -240,17 +288,23 @@ def fit_forward_check(pod: nn.Module, gappy: nn.Module, network: nn.Module, k: t
     if nominal is not None:
         params.setdefault("nominal_eccentricity", float(nominal[ECC_AMPLITUDE]))
     model = ForwardSurrogate(pod.n_modes, seed=seed, **params)
-    alpha = torch.cat([pod(current[i:i + block_rows].to(pod.mean_.dtype)) for i in range(0, len(current), block_rows)])
-    mean_square = torch.cat([current[i:i + block_rows].to(torch.float64).pow(2).mean(1)
-                             for i in range(0, len(current), block_rows)])
+    alpha = torch.cat(
+        [pod(current[i : i + block_rows].to(pod.mean_.dtype)) for i in range(0, len(current), block_rows)]
+    )
+    mean_square = torch.cat(
+        [current[i : i + block_rows].to(torch.float64).pow(2).mean(1) for i in range(0, len(current), block_rows)]
+    )
     model.fit(k, alpha.to(torch.float32), 1.0 / mean_square.clamp(min=1e-12))
     n_hold = max(1, round(model.holdout * len(k)))
-    hold = torch.randperm(len(k), generator=torch.Generator().manual_seed(seed))[:n_hold]    # fit's own draw
+    hold = torch.randperm(len(k), generator=torch.Generator().manual_seed(seed))[:n_hold]  # fit's own draw
     y = current[hold].to(pod.mean_.dtype)
     samples = gappy.select(y)
     a_hat, _ = gappy(samples)
-    k_hat = network(a_hat, torch.zeros(len(hold), dtype=a_hat.dtype)) if getattr(network, "noise_input", False) \
+    k_hat = (
+        network(a_hat, torch.zeros(len(hold), dtype=a_hat.dtype))
+        if getattr(network, "noise_input", False)
         else network(a_hat)
+    )
     pred = model(k_hat)
     zero, one = torch.zeros(len(hold)), torch.tensor(1.0)
     rows = torch.arange(0, pod.mean_.shape[0], STRIDE)

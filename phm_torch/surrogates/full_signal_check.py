@@ -45,17 +45,29 @@ class FullSignalCheck(nn.Module):
             as "on the plateau".
     """
 
-    def __init__(self, modes: torch.Tensor, mean: torch.Tensor, stride: int = 16,
-                 residual_threshold: float = float("inf"), roughness_threshold: float = 1.0,
-                 plateau_threshold: float = 0.005, plateau_tolerance: float = 1e-3):
+    def __init__(
+        self,
+        modes: torch.Tensor,
+        mean: torch.Tensor,
+        stride: int = 16,
+        residual_threshold: float = float("inf"),
+        roughness_threshold: float = 1.0,
+        plateau_threshold: float = 0.005,
+        plateau_tolerance: float = 1e-3,
+    ):
         super().__init__()
         if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
             raise ValueError(f"full_signal_check.stride must be an integer >= 1, got {stride!r}")
         if modes.dim() != 2 or mean.shape != modes.shape[:1]:
-            raise ValueError(f"modes (n_e, n_m) and mean (n_e,) expected, got {tuple(modes.shape)} and "
-                             f"{tuple(mean.shape)}")
-        for name, value in (("residual_threshold", residual_threshold), ("roughness_threshold", roughness_threshold),
-                            ("plateau_threshold", plateau_threshold), ("plateau_tolerance", plateau_tolerance)):
+            raise ValueError(
+                f"modes (n_e, n_m) and mean (n_e,) expected, got {tuple(modes.shape)} and {tuple(mean.shape)}"
+            )
+        for name, value in (
+            ("residual_threshold", residual_threshold),
+            ("roughness_threshold", roughness_threshold),
+            ("plateau_threshold", plateau_threshold),
+            ("plateau_tolerance", plateau_tolerance),
+        ):
             if not float(value) > 0:
                 raise ValueError(f"full_signal_check.{name} must be > 0, got {value!r}")
         rows = torch.arange(0, modes.shape[0], stride)
@@ -67,7 +79,7 @@ class FullSignalCheck(nn.Module):
         shape_rows = (rows + jitter).clamp(max=modes.shape[0] - 2)
         self.register_buffer("shape_rows", shape_rows)
         self.register_buffer("next_rows", shape_rows + 1)
-        self.register_buffer("basis", q.to(modes.dtype))                 # (n_e / stride, n_m), orthonormal
+        self.register_buffer("basis", q.to(modes.dtype))  # (n_e / stride, n_m), orthonormal
         self.register_buffer("mean_rows", mean[rows].to(modes.dtype))
         self.n_full = int(modes.shape[0])
         self.residual_threshold = float(residual_threshold)
@@ -114,6 +126,8 @@ class FullSignalCheck(nn.Module):
         A record with a non-finite sample compares False on every statistic: the pipeline's gappy checks
         (missing-sample count, residual) decide for it.
         """
-        return ((self.residual(signals) > self.residual_threshold)
-                | (self.roughness(signals) > self.roughness_threshold)
-                | (self.plateau(signals) > self.plateau_threshold))
+        return (
+            (self.residual(signals) > self.residual_threshold)
+            | (self.roughness(signals) > self.roughness_threshold)
+            | (self.plateau(signals) > self.plateau_threshold)
+        )

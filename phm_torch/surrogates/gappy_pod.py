@@ -67,15 +67,22 @@ class GappyPOD(nn.Module):
     ``gram_inverse`` (n_m, n_m), the inverse of the complete G.
     """
 
-    def __init__(self, modes: torch.Tensor, mean: torch.Tensor, indices: torch.Tensor | None = None,
-                 ridge: float = 0.0, noise_covariance: torch.Tensor | None = None,
-                 prior_variance: torch.Tensor | None = None):
+    def __init__(
+        self,
+        modes: torch.Tensor,
+        mean: torch.Tensor,
+        indices: torch.Tensor | None = None,
+        ridge: float = 0.0,
+        noise_covariance: torch.Tensor | None = None,
+        prior_variance: torch.Tensor | None = None,
+    ):
         super().__init__()
         if modes.ndim != 2:
             raise ValueError(f"modes must be (n_e, n_m), got shape {tuple(modes.shape)}")
         if mean.shape != modes.shape[:1]:
-            raise ValueError(f"mean must have shape ({modes.shape[0]},) like the modes' first axis, "
-                             f"got {tuple(mean.shape)}")
+            raise ValueError(
+                f"mean must have shape ({modes.shape[0]},) like the modes' first axis, got {tuple(mean.shape)}"
+            )
         if indices is None:
             indices = torch.arange(modes.shape[0])
         else:
@@ -92,8 +99,10 @@ class GappyPOD(nn.Module):
             raise ValueError("gappy POD: give both noise_covariance and prior_variance (Bayesian) or neither")
         self.bayesian = noise_covariance is not None
         if n_w < n_m and ridge == 0.0 and not self.bayesian:
-            raise ValueError(f"gappy POD needs at least as many samples as modes: n_points={n_w} < n_modes={n_m} "
-                             f"(or set a ridge > 0)")
+            raise ValueError(
+                f"gappy POD needs at least as many samples as modes: n_points={n_w} < n_modes={n_m} "
+                f"(or set a ridge > 0)"
+            )
         self.ridge = float(ridge)
         if noise_covariance is None or prior_variance is None:
             cov = torch.eye(n_w, dtype=torch.float64)
@@ -101,8 +110,10 @@ class GappyPOD(nn.Module):
         else:
             cov, lam = noise_covariance.detach().to(torch.float64), prior_variance.detach().to(torch.float64)
             if cov.shape != (n_w, n_w) or lam.shape != (n_m,):
-                raise ValueError(f"gappy POD: noise_covariance must be ({n_w}, {n_w}) and prior_variance ({n_m},), "
-                                 f"got {tuple(cov.shape)} and {tuple(lam.shape)}")
+                raise ValueError(
+                    f"gappy POD: noise_covariance must be ({n_w}, {n_w}) and prior_variance ({n_m},), "
+                    f"got {tuple(cov.shape)} and {tuple(lam.shape)}"
+                )
             if not bool((lam > 0).all()) or torch.linalg.cholesky_ex(cov)[1] != 0:
                 raise ValueError("gappy POD: prior_variance must be > 0 and noise_covariance positive definite")
             precision = 1.0 / lam + self.ridge
@@ -110,11 +121,13 @@ class GappyPOD(nn.Module):
         self.register_buffer("modes_hat", modes.detach().clone().contiguous())
         self.register_buffer("mean_hat", mean.detach().clone())
         # least squares needs no R: an (n_w, n_w) identity would be most of an exported pipeline at 1000 samples
-        self.register_buffer("noise_covariance", cov.to(modes.dtype).contiguous() if self.bayesian
-                             else torch.zeros(0, 0, dtype=modes.dtype))
+        self.register_buffer(
+            "noise_covariance",
+            cov.to(modes.dtype).contiguous() if self.bayesian else torch.zeros(0, 0, dtype=modes.dtype),
+        )
         self.register_buffer("prior_precision", precision.to(modes.dtype))
         v = modes.detach().to(torch.float64)
-        weighted = torch.linalg.solve(cov, v).T                                    # V_hat^T R^-1 (n_m, n_w)
+        weighted = torch.linalg.solve(cov, v).T  # V_hat^T R^-1 (n_m, n_w)
         gram = self._gram(v, weighted, precision)
         self.register_buffer("solve_matrix", torch.linalg.solve(gram, weighted).to(modes.dtype).contiguous())
         self.register_buffer("gram_inverse", torch.linalg.inv(gram).to(modes.dtype).contiguous())
@@ -153,7 +166,7 @@ class GappyPOD(nn.Module):
         valid = torch.isfinite(centred)
         if mask is not None:
             valid = valid & mask
-        if bool(valid.all()):   # the online fast path: few passes over the (B, n_w) samples
+        if bool(valid.all()):  # the online fast path: few passes over the (B, n_w) samples
             alpha = centred @ self.solve_matrix.T
             resid = torch.linalg.vector_norm(centred - alpha @ self.modes_hat.T, dim=-1)
             return alpha, resid / self.modes_hat.shape[0] ** 0.5
@@ -166,45 +179,50 @@ class GappyPOD(nn.Module):
             alpha, resid, accurate = self._woodbury(centred, missing, most, w, count)
             if bool(accurate.all()):
                 return alpha, resid
-        vm = self.modes_hat.unsqueeze(0) * w.unsqueeze(-1)                        # (B, n_w, n_m)
-        if self.bayesian:   # R restricted to the present samples (identity rows/columns for the missing),
+        vm = self.modes_hat.unsqueeze(0) * w.unsqueeze(-1)  # (B, n_w, n_m)
+        if self.bayesian:  # R restricted to the present samples (identity rows/columns for the missing),
             # factorised in float64: R's spread of scales (truncated modes + noise) can defeat float32
             w64 = w.to(torch.float64)
-            cov = self.noise_covariance.to(torch.float64) * (w64.unsqueeze(-1) * w64.unsqueeze(-2)) \
-                + torch.diag_embed(1.0 - w64)
+            cov = self.noise_covariance.to(torch.float64) * (w64.unsqueeze(-1) * w64.unsqueeze(-2)) + torch.diag_embed(
+                1.0 - w64
+            )
             weighted = torch.cholesky_solve(vm.to(torch.float64), torch.linalg.cholesky(cov))
-            weighted = weighted.transpose(1, 2).to(vm.dtype)                             # (B, n_m, n_w)
+            weighted = weighted.transpose(1, 2).to(vm.dtype)  # (B, n_m, n_w)
         else:
             weighted = vm.transpose(1, 2)
         gram = weighted @ vm + torch.diag(self.prior_precision)
         return self._solve(gram, weighted @ centred.unsqueeze(-1), centred, w, count)
 
-    def _woodbury(self, centred: torch.Tensor, missing: torch.Tensor, most: int, w: torch.Tensor,
-                  count: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _woodbury(
+        self, centred: torch.Tensor, missing: torch.Tensor, most: int, w: torch.Tensor, count: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Least squares without the (at most ``most``) missing samples of each signal, by the Woodbury
         identity on the complete G^-1 (module docstring); arguments as :meth:`_solve`. Returns alpha,
         residual and whether each signal's S is far enough from singular for the update to be accurate
         (its smallest eigenvalue, which G_s's conditioning divides, above ``WOODBURY_MIN_EIGENVALUE``);
         the caller solves the batch per signal otherwise, which also decides what is singular."""
-        rows = torch.topk(missing.to(centred.dtype), most, dim=-1).indices                 # (B, k)
+        rows = torch.topk(missing.to(centred.dtype), most, dim=-1).indices  # (B, k)
         u = self.modes_hat[rows] * missing.gather(-1, rows).to(centred.dtype).unsqueeze(-1)  # (B, k, n_m)
-        a0 = centred @ self.solve_matrix.T                                               # G^-1 rhs (B, n_m)
-        wu = u @ self.gram_inverse                                                       # U G^-1 (B, k, n_m)
+        a0 = centred @ self.solve_matrix.T  # G^-1 rhs (B, n_m)
+        wu = u @ self.gram_inverse  # U G^-1 (B, k, n_m)
         eye = torch.eye(most, dtype=centred.dtype, device=centred.device)
-        small = eye - wu @ u.transpose(1, 2)                                             # S (B, k, k)
+        small = eye - wu @ u.transpose(1, 2)  # S (B, k, k)
         factor, info = torch.linalg.cholesky_ex(small)
         # S's eigenvalues lie in (0, 1]; the squared smallest Cholesky pivot stands for the smallest
-        accurate = (info == 0) & (torch.diagonal(factor, dim1=-2, dim2=-1).amin(-1).pow(2) > self.woodbury_min_eigenvalue)
+        accurate = (info == 0) & (
+            torch.diagonal(factor, dim1=-2, dim2=-1).amin(-1).pow(2) > self.woodbury_min_eigenvalue
+        )
         if self.ridge == 0.0:
             accurate = accurate & (count >= self.modes_hat.shape[1])
-        chol = torch.where(accurate.reshape(-1, 1, 1), factor, eye)    # the others are solved per signal
-        c = torch.cholesky_solve(u @ a0.unsqueeze(-1), chol)                              # (B, k, 1)
+        chol = torch.where(accurate.reshape(-1, 1, 1), factor, eye)  # the others are solved per signal
+        c = torch.cholesky_solve(u @ a0.unsqueeze(-1), chol)  # (B, k, 1)
         alpha = a0 + (wu.transpose(1, 2) @ c).squeeze(-1)
         resid = (centred - alpha @ self.modes_hat.T) * w
         return alpha, (resid.pow(2).sum(-1) / count.clamp(min=1.0)).sqrt(), accurate
 
-    def _solve(self, gram: torch.Tensor, rhs: torch.Tensor, centred: torch.Tensor, w: torch.Tensor,
-               count: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _solve(
+        self, gram: torch.Tensor, rhs: torch.Tensor, centred: torch.Tensor, w: torch.Tensor, count: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """alpha (B, n_m) and residual (B,) from each signal's G (B, n_m, n_m) and right-hand side
         (B, n_m, 1); ``centred`` (B, n_w) samples minus the mean (0 where missing), ``w`` (B, n_w) 1 where
         present, ``count`` (B,) present samples."""
@@ -242,8 +260,14 @@ class GappyPOD(nn.Module):
 
 
 @torch.no_grad()
-def gappy_statistics(snapshots: torch.Tensor, modes: torch.Tensor, mean: torch.Tensor, indices: torch.Tensor,
-                     noise_std: float = 0.0, chunk: int = 2048) -> dict[str, torch.Tensor]:
+def gappy_statistics(
+    snapshots: torch.Tensor,
+    modes: torch.Tensor,
+    mean: torch.Tensor,
+    indices: torch.Tensor,
+    noise_std: float = 0.0,
+    chunk: int = 2048,
+) -> dict[str, torch.Tensor]:
     """The Bayesian gappy layer's statistics from training snapshots.
 
     Args:
@@ -259,12 +283,12 @@ def gappy_statistics(snapshots: torch.Tensor, modes: torch.Tensor, mean: torch.T
     v = modes.to(torch.float64)
     idx = torch.as_tensor(indices, dtype=torch.long)
     alphas, resids = [], []
-    for start in range(0, snapshots.shape[0], chunk):   # the records stay in their dtype; blocks in float64
-        c = snapshots[start:start + chunk].to(torch.float64) - mean.to(torch.float64)
+    for start in range(0, snapshots.shape[0], chunk):  # the records stay in their dtype; blocks in float64
+        c = snapshots[start : start + chunk].to(torch.float64) - mean.to(torch.float64)
         a = c @ v
         alphas.append(a)
         resids.append(c[:, idx] - a @ v[idx].T)
     alpha, resid = torch.cat(alphas), torch.cat(resids)
     cov = torch.cov(resid.T).reshape(idx.numel(), idx.numel())
-    cov = cov + noise_std ** 2 * torch.eye(idx.numel(), dtype=torch.float64)
+    cov = cov + noise_std**2 * torch.eye(idx.numel(), dtype=torch.float64)
     return {"noise_covariance": cov, "prior_variance": alpha.var(0)}

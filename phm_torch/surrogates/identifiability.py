@@ -21,9 +21,13 @@ import torch
 from .metrics import ECC_PHASE
 
 
-def signal_sensitivity(simulate: Callable[[torch.Tensor], torch.Tensor], k: torch.Tensor,
-                       steps: Sequence[float] = (1e-3, 1e-2, 1e-1), frozen: Sequence[int] = (ECC_PHASE,),
-                       seed: int = 0) -> dict[str, torch.Tensor]:
+def signal_sensitivity(
+    simulate: Callable[[torch.Tensor], torch.Tensor],
+    k: torch.Tensor,
+    steps: Sequence[float] = (1e-3, 1e-2, 1e-1),
+    frozen: Sequence[int] = (ECC_PHASE,),
+    seed: int = 0,
+) -> dict[str, torch.Tensor]:
     """RMS change of the signal after steps of each size in k.
 
     Each fault vector gets one random unit direction (the ``frozen`` columns, by default the
@@ -62,8 +66,12 @@ def signal_sensitivity(simulate: Callable[[torch.Tensor], torch.Tensor], k: torc
         signals = simulate(torch.cat([k, *moved]))
     n = k.shape[0]
     base, rest = signals[:n], signals[n:].reshape(len(steps), n, -1)
-    change = (rest - base).pow(2).mean(-1).sqrt().T                        # (n, len(steps))
+    change = (rest - base).pow(2).mean(-1).sqrt().T  # (n, len(steps))
     tiny = torch.finfo(torch.float64).tiny
     linearity = change[:, 0] / change[:, -1].clamp(min=tiny) * (steps[-1] / steps[0])
-    return {"rms_change": change, "signal_rms": base.pow(2).mean(-1).sqrt(),
-            "steps": torch.tensor(list(steps), dtype=torch.float64), "linearity": linearity}
+    return {
+        "rms_change": change,
+        "signal_rms": base.pow(2).mean(-1).sqrt(),
+        "steps": torch.tensor(list(steps), dtype=torch.float64),
+        "linearity": linearity,
+    }

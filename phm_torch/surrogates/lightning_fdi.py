@@ -27,8 +27,10 @@ from .metrics import err_k_weights
 from .trainlm import TrainLM
 
 OPTIMIZERS = ("adam", "lm")
-NOISE_INPUT_NEEDS = ("model.network.noise_input=true needs noisy training records: model.end_to_end=true with "
-                     "model.augment.noise > 0 (model=fdi_e2e)")
+NOISE_INPUT_NEEDS = (
+    "model.network.noise_input=true needs noisy training records: model.end_to_end=true with "
+    "model.augment.noise > 0 (model=fdi_e2e)"
+)
 WEIGHTINGS = ("uniform", "err_k")
 
 
@@ -45,9 +47,18 @@ class FDIModule(L.LightningModule):
         augment: corruption of the training samples (end to end only).
     """
 
-    def __init__(self, network: FDIMLP, optimizer: str = "adam", lr: float = 1e-3, weight_decay: float = 0.0,
-                 cosine: bool = True, loss_weighting: str = "err_k", lm: dict[str, Any] | None = None,
-                 gappy: GappyPOD | None = None, augment: SignalAugment | None = None):
+    def __init__(
+        self,
+        network: FDIMLP,
+        optimizer: str = "adam",
+        lr: float = 1e-3,
+        weight_decay: float = 0.0,
+        cosine: bool = True,
+        loss_weighting: str = "err_k",
+        lm: dict[str, Any] | None = None,
+        gappy: GappyPOD | None = None,
+        augment: SignalAugment | None = None,
+    ):
         super().__init__()
         if optimizer not in OPTIMIZERS:
             raise ValueError(f"model.optimizer must be one of {list(OPTIMIZERS)}, got {optimizer!r}")
@@ -56,8 +67,10 @@ class FDIModule(L.LightningModule):
         if not (lr > 0):
             raise ValueError(f"model.lr must be > 0, got {lr!r}")
         if optimizer == "lm" and network.n_members > 1:
-            raise ValueError(f"n_members={network.n_members}: an ensemble trains with model.optimizer=adam "
-                             f"(LM solves for one network's weights)")
+            raise ValueError(
+                f"n_members={network.n_members}: an ensemble trains with model.optimizer=adam "
+                f"(LM solves for one network's weights)"
+            )
         if optimizer == "lm" and gappy is not None:
             raise ValueError("model.end_to_end needs model.optimizer=adam (LM fits a fixed data set)")
         if augment is not None and gappy is None:
@@ -68,11 +81,18 @@ class FDIModule(L.LightningModule):
         self.optimizer_name, self.lr, self.weight_decay, self.cosine = optimizer, float(lr), float(weight_decay), cosine
         self.loss_weighting = loss_weighting
         # Plain values only: they identify the architecture when a checkpoint is resumed.
-        self.save_hyperparameters({"n_inputs": network.n_inputs, "n_hidden": network.n_hidden,
-                                   "n_layers": network.n_layers, "n_members": network.n_members,
-                                   "noise_input": network.noise_input,
-                                   "optimizer": optimizer, "end_to_end": gappy is not None,
-                                   "n_points": gappy.n_points if gappy is not None else None})
+        self.save_hyperparameters(
+            {
+                "n_inputs": network.n_inputs,
+                "n_hidden": network.n_hidden,
+                "n_layers": network.n_layers,
+                "n_members": network.n_members,
+                "noise_input": network.noise_input,
+                "optimizer": optimizer,
+                "end_to_end": gappy is not None,
+                "n_points": gappy.n_points if gappy is not None else None,
+            }
+        )
         if optimizer == "lm":
             self.automatic_optimization = False
             self.lm = TrainLM(network, forward_name="preactivation", **(lm or {}))
@@ -80,8 +100,9 @@ class FDIModule(L.LightningModule):
     def _weights(self, k: torch.Tensor) -> torch.Tensor:
         return err_k_weights(k) if self.loss_weighting == "err_k" else torch.ones_like(k)
 
-    def _inputs(self, batch: tuple[torch.Tensor, ...], train: bool
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    def _inputs(
+        self, batch: tuple[torch.Tensor, ...], train: bool
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """(alpha, k, noise) of a batch, corrupting and projecting the samples end to end; noise (B,) is the
         relative noise each record carries (zeros for clean ones), None when the network does not take it."""
         if self.gappy is None:
@@ -101,12 +122,17 @@ class FDIModule(L.LightningModule):
         w = self._weights(k)
         if self.optimizer_name == "lm":
             out = self.lm.step(alpha, k, w)
-            self.log_dict({"train_loss": out.perf, "lm_mu": out.mu, "lm_grad": out.grad_norm}, prog_bar=True,
-                          on_step=False, on_epoch=True, batch_size=k.shape[0])
+            self.log_dict(
+                {"train_loss": out.perf, "lm_mu": out.mu, "lm_grad": out.grad_norm},
+                prog_bar=True,
+                on_step=False,
+                on_epoch=True,
+                batch_size=k.shape[0],
+            )
             if out.stop:
                 self.trainer.should_stop = True
             return None
-        loss = (w * (self.network.member_preactivations(alpha, noise) - k).pow(2)).mean()   # each member on its own
+        loss = (w * (self.network.member_preactivations(alpha, noise) - k).pow(2)).mean()  # each member on its own
         self.log("train_loss", loss, prog_bar=True, on_step=False, on_epoch=True, batch_size=k.shape[0])
         return loss
 
@@ -116,16 +142,20 @@ class FDIModule(L.LightningModule):
     def validation_step(self, batch: tuple[torch.Tensor, ...], batch_idx: int) -> None:
         alpha, k, noise = self._inputs(batch, train=False)
         diff = self.network(alpha, noise) - k
-        self._val_sums += torch.stack([(err_k_weights(k) * diff.pow(2)).sum(), diff.abs().sum(),
-                                       torch.tensor(float(diff.numel()), device=diff.device)]).to(torch.float64)
+        self._val_sums += torch.stack(
+            [
+                (err_k_weights(k) * diff.pow(2)).sum(),
+                diff.abs().sum(),
+                torch.tensor(float(diff.numel()), device=diff.device),
+            ]
+        ).to(torch.float64)
 
     def on_validation_epoch_end(self) -> None:
         sums = self.all_gather(self._val_sums)
         sums = sums.reshape(-1, 3).sum(0)
         n = sums[2].clamp(min=1.0)
         # err_k of the whole validation set (the paper's metric) and the mean |k error|.
-        self.log_dict({"val_err_k": (sums[0] / n).sqrt().float(), "val_mae": (sums[1] / n).float()},
-                      prog_bar=True)
+        self.log_dict({"val_err_k": (sums[0] / n).sqrt().float(), "val_mae": (sums[1] / n).float()}, prog_bar=True)
 
     def configure_optimizers(self) -> Any:
         if self.optimizer_name == "lm":
@@ -141,8 +171,12 @@ class FDIModule(L.LightningModule):
             checkpoint["lm_mu"] = self.lm.mu
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
-        saved = {"n_layers": 1, "n_members": 1, "noise_input": False,             # older checkpoints
-                 **checkpoint.get("hyper_parameters", {})}
+        saved = {
+            "n_layers": 1,
+            "n_members": 1,
+            "noise_input": False,  # older checkpoints
+            **checkpoint.get("hyper_parameters", {}),
+        }
         mine = dict(self.hparams)
         diff = {k: (saved.get(k), v) for k, v in mine.items() if saved.get(k) != v}
         if diff:

@@ -21,8 +21,9 @@ ECC_AMPLITUDE, ECC_PHASE = 5, 6  # 0-based columns of k6 (eccentricity) and k7 (
 def err_alpha(alpha_gappy: torch.Tensor, alpha_full: torch.Tensor) -> torch.Tensor:
     """(B,) normalised RMS error of gappy coefficients (B, n_m) against the full projection (B, n_m)."""
     if alpha_gappy.shape != alpha_full.shape or alpha_full.ndim != 2:
-        raise ValueError(f"alpha_gappy {tuple(alpha_gappy.shape)} and alpha_full {tuple(alpha_full.shape)} "
-                         f"must both be (B, n_m)")
+        raise ValueError(
+            f"alpha_gappy {tuple(alpha_gappy.shape)} and alpha_full {tuple(alpha_full.shape)} must both be (B, n_m)"
+        )
     span = (alpha_full.amax(-1) - alpha_full.amin(-1)).clamp(min=torch.finfo(alpha_full.dtype).tiny)
     return (alpha_gappy - alpha_full).pow(2).mean(-1).sqrt() / span
 
@@ -51,8 +52,9 @@ def err_k_per_signal(k_est: torch.Tensor, k_act: torch.Tensor) -> torch.Tensor:
     return (err_k_weights(k_act) * (k_est - k_act).pow(2)).mean(-1).sqrt()
 
 
-def err_k_interval(k_est: torch.Tensor, k_act: torch.Tensor, level: float = 0.95, n_boot: int = 1000,
-                   seed: int = 0) -> tuple[float, float]:
+def err_k_interval(
+    k_est: torch.Tensor, k_act: torch.Tensor, level: float = 0.95, n_boot: int = 1000, seed: int = 0
+) -> tuple[float, float]:
     """Percentile-bootstrap interval of ``err_k`` over the signals (resampled with replacement).
 
     Most of err_k's squared error comes from the few signals with several large faults, so a 500-signal
@@ -101,11 +103,12 @@ def fault_count(k: torch.Tensor, nominal: torch.Tensor | None = None, level: flo
     """(B,) how many damage parameters of k (B, 8) exceed ``level``: |k - nominal| > level, the
     eccentricity phase k7 not counted (nominal None: k itself)."""
     damage = k if nominal is None else (k - torch.as_tensor(nominal, dtype=k.dtype, device=k.device)).abs()
-    return (torch.cat([damage[:, :ECC_PHASE], damage[:, ECC_PHASE + 1:]], 1) > level).sum(1)
+    return (torch.cat([damage[:, :ECC_PHASE], damage[:, ECC_PHASE + 1 :]], 1) > level).sum(1)
 
 
-def err_k_by_fault_count(k_est: torch.Tensor, k_act: torch.Tensor, nominal: torch.Tensor | None = None,
-                         level: float = 0.3) -> dict[str, dict[str, float]]:
+def err_k_by_fault_count(
+    k_est: torch.Tensor, k_act: torch.Tensor, nominal: torch.Tensor | None = None, level: float = 0.3
+) -> dict[str, dict[str, float]]:
     """err_k split by how many damage parameters are large at once: where the FDI fails.
 
     Counts, per signal, the parameters other than the eccentricity phase k7 whose damage
@@ -123,14 +126,19 @@ def err_k_by_fault_count(k_est: torch.Tensor, k_act: torch.Tensor, nominal: torc
         {group: {"n": signals, "share": fraction of the signals, "err_k": err_k of the group (NaN if empty),
         "share_of_squared_error": the group's part of the total squared error}}.
     """
-    squared = err_k_per_signal(k_est, k_act).pow(2)            # per-signal mean weighted squared error
+    squared = err_k_per_signal(k_est, k_act).pow(2)  # per-signal mean weighted squared error
     count = fault_count(k_act, nominal, level)
     total = float(squared.sum()) or 1.0
     groups = {"0": count == 0, "1": count == 1, "2": count == 2, "3+": count >= 3}
-    return {name: {"n": int(m.sum()), "share": float(m.double().mean()),
-                   "err_k": float(squared[m].mean().sqrt()) if bool(m.any()) else float("nan"),
-                   "share_of_squared_error": float(squared[m].sum()) / total}
-            for name, m in groups.items()}
+    return {
+        name: {
+            "n": int(m.sum()),
+            "share": float(m.double().mean()),
+            "err_k": float(squared[m].mean().sqrt()) if bool(m.any()) else float("nan"),
+            "share_of_squared_error": float(squared[m].sum()) / total,
+        }
+        for name, m in groups.items()
+    }
 
 
 def fdi_mae(k_est: torch.Tensor, k_act: torch.Tensor, weighted: bool = False) -> list[float]:
@@ -162,13 +170,21 @@ def fdi_identifiability(k_est: torch.Tensor, k_act: torch.Tensor) -> list[float]
 def confusion(predicted_healthy: torch.Tensor, healthy: torch.Tensor) -> dict[str, float | int]:
     """Confusion counts and rates of a health classifier; both arguments (B,) bool."""
     if predicted_healthy.shape != healthy.shape or healthy.ndim != 1:
-        raise ValueError(f"predicted {tuple(predicted_healthy.shape)} and actual {tuple(healthy.shape)} "
-                         f"labels must both be (B,)")
+        raise ValueError(
+            f"predicted {tuple(predicted_healthy.shape)} and actual {tuple(healthy.shape)} labels must both be (B,)"
+        )
     p, h = predicted_healthy.bool(), healthy.bool()
     tp, tn = int((p & h).sum()), int((~p & ~h).sum())
     missed, false_alarm = int((p & ~h).sum()), int((~p & h).sum())
     n_h, n_f = int(h.sum()), int((~h).sum())
-    return {"healthy_correct": tp, "faulty_correct": tn, "missed_faults": missed, "false_alarms": false_alarm,
-            "n_healthy": n_h, "n_faulty": n_f, "accuracy": (tp + tn) / max(h.numel(), 1),
-            "missed_fault_rate": missed / n_f if n_f else 0.0,
-            "false_alarm_rate": false_alarm / n_h if n_h else 0.0}
+    return {
+        "healthy_correct": tp,
+        "faulty_correct": tn,
+        "missed_faults": missed,
+        "false_alarms": false_alarm,
+        "n_healthy": n_h,
+        "n_faulty": n_f,
+        "accuracy": (tp + tn) / max(h.numel(), 1),
+        "missed_fault_rate": missed / n_f if n_f else 0.0,
+        "false_alarm_rate": false_alarm / n_h if n_h else 0.0,
+    }

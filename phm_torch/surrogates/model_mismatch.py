@@ -17,8 +17,9 @@ from .full_signal_check import FullSignalCheck
 from .metrics import confusion, err_k, fdi_mae
 
 
-def mismatch_metrics(bundle: SurrogateBundle, k: torch.Tensor, healthy: torch.Tensor, reference: torch.Tensor,
-                     signals: torch.Tensor) -> dict[str, float]:
+def mismatch_metrics(
+    bundle: SurrogateBundle, k: torch.Tensor, healthy: torch.Tensor, reference: torch.Tensor, signals: torch.Tensor
+) -> dict[str, float]:
     """The surrogates on ``signals``, records of the same fault vectors as ``reference`` from another model.
 
     Args:
@@ -39,8 +40,9 @@ def mismatch_metrics(bundle: SurrogateBundle, k: torch.Tensor, healthy: torch.Te
         pipeline runs it) and ``ood_rate`` (either); ``n`` records.
     """
     if reference.ndim != 2 or signals.shape != reference.shape:
-        raise ValueError(f"reference and signals must both be (B, n_e), got {tuple(reference.shape)} and "
-                         f"{tuple(signals.shape)}")
+        raise ValueError(
+            f"reference and signals must both be (B, n_e), got {tuple(reference.shape)} and {tuple(signals.shape)}"
+        )
     n = reference.shape[0]
     if k.shape != (n, 8):
         raise ValueError(f"k must be ({n}, 8), got {tuple(k.shape)}")
@@ -50,8 +52,9 @@ def mismatch_metrics(bundle: SurrogateBundle, k: torch.Tensor, healthy: torch.Te
     spread = (reference.amax(1) - reference.amin(1)).clamp(min=1e-12)
     nrmse = rms(signals - reference) / spread
     dtype = bundle.pod.mean_.dtype
-    check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_,
-                            residual_threshold=float(bundle.full_residual_threshold))
+    check = FullSignalCheck(
+        bundle.pod.modes_, bundle.pod.mean_, residual_threshold=float(bundle.full_residual_threshold)
+    )
     with torch.no_grad():
         # a noise-aware network is told each record's estimated noise, as the online pipeline does
         found = bundle.diagnose(bundle.compress(signals.to(dtype)), noise=noise_level(signals).to(dtype))
@@ -61,9 +64,15 @@ def mismatch_metrics(bundle: SurrogateBundle, k: torch.Tensor, healthy: torch.Te
     gappy_flag = found["out_of_distribution"]
     k = k.double()
     chain = confusion(verdict, healthy)
-    return {"n": n, "nrmse_median": float(nrmse.median()), "err_k": err_k(k_hat, k),
-            "fdi_mae_max": max(fdi_mae(k_hat, k, weighted=True)),
-            "chain_accuracy": chain["accuracy"], "chain_missed_fault_rate": chain["missed_fault_rate"],
-            "chain_false_alarm_rate": chain["false_alarm_rate"],
-            "ood_rate_gappy": float(gappy_flag.double().mean()), "ood_rate_full": float(full_flag.double().mean()),
-            "ood_rate": float((gappy_flag | full_flag).double().mean())}
+    return {
+        "n": n,
+        "nrmse_median": float(nrmse.median()),
+        "err_k": err_k(k_hat, k),
+        "fdi_mae_max": max(fdi_mae(k_hat, k, weighted=True)),
+        "chain_accuracy": chain["accuracy"],
+        "chain_missed_fault_rate": chain["missed_fault_rate"],
+        "chain_false_alarm_rate": chain["false_alarm_rate"],
+        "ood_rate_gappy": float(gappy_flag.double().mean()),
+        "ood_rate_full": float(full_flag.double().mean()),
+        "ood_rate": float((gappy_flag | full_flag).double().mean()),
+    }

@@ -15,8 +15,15 @@ from .full_signal_check import FullSignalCheck
 from .gappy_pod import GappyPOD
 
 
-def ood_thresholds(signals: torch.Tensor, gappy: GappyPOD, check: FullSignalCheck, noise: float,
-                   quantile: float, seed: int, block_rows: int = 2048) -> tuple[float, float]:
+def ood_thresholds(
+    signals: torch.Tensor,
+    gappy: GappyPOD,
+    check: FullSignalCheck,
+    noise: float,
+    quantile: float,
+    seed: int,
+    block_rows: int = 2048,
+) -> tuple[float, float]:
     """Gappy-residual and full-record-residual thresholds.
 
     Args:
@@ -36,9 +43,11 @@ def ood_thresholds(signals: torch.Tensor, gappy: GappyPOD, check: FullSignalChec
     gappy_resid, full_resid = [], []
     with torch.no_grad():
         for start in range(0, signals.shape[0], block_rows):
-            block = signals[start:start + block_rows]
+            block = signals[start : start + block_rows]
             noisy = add_noise(block, rms(block), noise, generator)
             gappy_resid.append(gappy(gappy.select(noisy))[1].to(torch.float64))
             full_resid.append(check.residual(noisy).to(torch.float64))
-    return (float(torch.quantile(torch.cat(gappy_resid), quantile)),
-            float(torch.quantile(torch.cat(full_resid), quantile)))
+    return (
+        float(torch.quantile(torch.cat(gappy_resid), quantile)),
+        float(torch.quantile(torch.cat(full_resid), quantile)),
+    )

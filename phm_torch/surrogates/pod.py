@@ -48,8 +48,15 @@ class POD(nn.Module):
         energy_: (n_spec,) energy fraction of each mode, s_i^2 / ||Y - y0||_F^2 (fractions).
     """
 
-    def __init__(self, n_modes: int, solver: str = "auto", n_spectrum: int | None = None, n_iter: int = 6,
-                 seed: int = 0, block_rows: int = 2048):
+    def __init__(
+        self,
+        n_modes: int,
+        solver: str = "auto",
+        n_spectrum: int | None = None,
+        n_iter: int = 6,
+        seed: int = 0,
+        block_rows: int = 2048,
+    ):
         super().__init__()
         if isinstance(n_modes, bool) or not isinstance(n_modes, int) or n_modes < 1:
             raise ValueError(f"n_modes must be a positive integer, got {n_modes!r}")
@@ -85,31 +92,34 @@ class POD(nn.Module):
         if n_s < 2:
             raise ValueError(f"POD needs at least 2 snapshots, got {n_s}")
         for start in range(0, n_s, self.block_rows):
-            if not torch.isfinite(snapshots[start:start + self.block_rows]).all():
+            if not torch.isfinite(snapshots[start : start + self.block_rows]).all():
                 raise ValueError("snapshots contain NaN or inf")
         max_modes = min(n_s - 1, n_e)  # centring removes one dimension
         if self.n_modes > max_modes:
-            raise ValueError(f"n_modes={self.n_modes} exceeds the rank of {n_s} centred snapshots of "
-                             f"{n_e} samples (at most {max_modes})")
+            raise ValueError(
+                f"n_modes={self.n_modes} exceeds the rank of {n_s} centred snapshots of "
+                f"{n_e} samples (at most {max_modes})"
+            )
         dtype = snapshots.dtype if snapshots.is_floating_point() else torch.float32
         n_spec = min(self.n_spectrum or max(self.n_modes, 100), max_modes)
         solver = self.solver
         if solver == "auto":
             solver = "snapshots" if n_s <= AUTO_SNAPSHOT_LIMIT else "randomized"
-        if solver == "randomized":    # streamed over row blocks: no float64 copy of the snapshots
+        if solver == "randomized":  # streamed over row blocks: no float64 copy of the snapshots
             mean, total = centred_mean_and_energy(snapshots, self.block_rows)
             with torch.random.fork_rng(devices=[]):
                 torch.manual_seed(self.seed)
-                s, v = randomized_svd_centred(snapshots, mean, min(n_spec + 20, max_modes), self.n_iter,
-                                              self.block_rows)
+                s, v = randomized_svd_centred(
+                    snapshots, mean, min(n_spec + 20, max_modes), self.n_iter, self.block_rows
+                )
             v, s = v[:, :n_spec], s[:n_spec]
         else:
-            yc = snapshots.to(torch.float64, copy=True)      # one float64 copy, centred in place
+            yc = snapshots.to(torch.float64, copy=True)  # one float64 copy, centred in place
             mean = yc.mean(0)
             yc -= mean
             total = float(torch.linalg.vector_norm(yc)) ** 2
             if solver == "snapshots":
-                evals, u = torch.linalg.eigh(yc @ yc.T)                        # ascending
+                evals, u = torch.linalg.eigh(yc @ yc.T)  # ascending
                 evals, u = evals.flip(0)[:n_spec], u.flip(1)[:, :n_spec]
                 s = evals.clamp(min=0.0).sqrt()
                 v = (yc.T @ u) / s.clamp(min=torch.finfo(torch.float64).tiny)
@@ -130,8 +140,9 @@ class POD(nn.Module):
         if not self.fitted:
             raise ValueError("POD is not fitted: call fit(snapshots) first")
         if x.shape[-1] != self.mean_.shape[0]:
-            raise ValueError(f"{name} must have {self.mean_.shape[0]} samples in the last axis, "
-                             f"got shape {list(x.shape)}")
+            raise ValueError(
+                f"{name} must have {self.mean_.shape[0]} samples in the last axis, got shape {list(x.shape)}"
+            )
 
     def forward(self, signals: torch.Tensor) -> torch.Tensor:
         """POD coefficients alpha (..., n_m) of full signals (..., n_e) (orthogonal projection)."""
@@ -152,8 +163,14 @@ class POD(nn.Module):
         """A copy that keeps only the first ``n_modes`` modes (same spectrum), for mode-count sweeps."""
         if not 1 <= n_modes <= self.n_modes:
             raise ValueError(f"n_modes must be in [1, {self.n_modes}], got {n_modes}")
-        out = POD(n_modes, self.solver, self.n_spectrum and max(self.n_spectrum, n_modes), self.n_iter, self.seed,
-                  self.block_rows)
+        out = POD(
+            n_modes,
+            self.solver,
+            self.n_spectrum and max(self.n_spectrum, n_modes),
+            self.n_iter,
+            self.seed,
+            self.block_rows,
+        )
         out.mean_, out.modes_ = self.mean_.clone(), self.modes_[:, :n_modes].clone()
         out.singular_values_, out.energy_ = self.singular_values_.clone(), self.energy_.clone()
         return out

@@ -17,7 +17,7 @@ F64 = torch.float64
 
 def _centred_blocks(y: torch.Tensor, mean: torch.Tensor, block_rows: int):
     for start in range(0, y.shape[0], block_rows):
-        block = y[start:start + block_rows].to(F64, copy=True)
+        block = y[start : start + block_rows].to(F64, copy=True)
         block -= mean
         yield start, block
 
@@ -26,14 +26,15 @@ def centred_mean_and_energy(y: torch.Tensor, block_rows: int) -> tuple[torch.Ten
     """Mean signal (n_e,) float64 and the squared Frobenius norm of Y - 1 y0^T, both over row blocks."""
     total = torch.zeros(y.shape[1], dtype=F64)
     for start in range(0, y.shape[0], block_rows):
-        total += y[start:start + block_rows].to(F64).sum(0)
+        total += y[start : start + block_rows].to(F64).sum(0)
     mean = total / y.shape[0]
     energy = sum(float(torch.linalg.vector_norm(b)) ** 2 for _, b in _centred_blocks(y, mean, block_rows))
     return mean, energy
 
 
-def randomized_svd_centred(y: torch.Tensor, mean: torch.Tensor, q: int, n_iter: int,
-                           block_rows: int = 2048) -> tuple[torch.Tensor, torch.Tensor]:
+def randomized_svd_centred(
+    y: torch.Tensor, mean: torch.Tensor, q: int, n_iter: int, block_rows: int = 2048
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Leading ``q`` singular values and right singular vectors of Y - 1 y0^T, streamed.
 
     Args:
@@ -49,16 +50,16 @@ def randomized_svd_centred(y: torch.Tensor, mean: torch.Tensor, q: int, n_iter: 
     """
     n_s, n_e = y.shape
 
-    def times(x: torch.Tensor) -> torch.Tensor:      # (Y - 1 y0^T) x, x (n_e, q) -> (n_s, q)
+    def times(x: torch.Tensor) -> torch.Tensor:  # (Y - 1 y0^T) x, x (n_e, q) -> (n_s, q)
         out = torch.empty(n_s, x.shape[1], dtype=F64)
         for start, block in _centred_blocks(y, mean, block_rows):
-            out[start:start + block.shape[0]] = block @ x
+            out[start : start + block.shape[0]] = block @ x
         return out
 
-    def times_t(z: torch.Tensor) -> torch.Tensor:    # (Y - 1 y0^T)^T z, z (n_s, q) -> (n_e, q)
+    def times_t(z: torch.Tensor) -> torch.Tensor:  # (Y - 1 y0^T)^T z, z (n_s, q) -> (n_e, q)
         out = torch.zeros(n_e, z.shape[1], dtype=F64)
         for start, block in _centred_blocks(y, mean, block_rows):
-            out += block.T @ z[start:start + block.shape[0]]
+            out += block.T @ z[start : start + block.shape[0]]
         return out
 
     # torch.svd_lowrank works on the tall orientation: A = Yc when n_s >= n_e, A = Yc^T otherwise
@@ -68,7 +69,7 @@ def randomized_svd_centred(y: torch.Tensor, mean: torch.Tensor, q: int, n_iter: 
     for _ in range(n_iter):
         basis = torch.linalg.qr(a_t(basis)).Q
         basis = torch.linalg.qr(a(basis)).Q
-    b = a_t(basis).T                                  # Q^T A: (q, n) with n the short side
+    b = a_t(basis).T  # Q^T A: (q, n) with n the short side
     u, s, vh = torch.linalg.svd(b, full_matrices=False)
     v = vh.T if tall else basis @ u
     return s, v

@@ -49,11 +49,22 @@ class TrainLM:
         forward_name: name of the model method mapping a batch of inputs to outputs.
     """
 
-    def __init__(self, model: nn.Module, mu: float = 1e-3, mu_dec: float = 0.1, mu_inc: float = 10.0,
-                 mu_max: float = 1e10, min_grad: float = 1e-7, chunk: int = 1024, forward_name: str = "forward"):
+    def __init__(
+        self,
+        model: nn.Module,
+        mu: float = 1e-3,
+        mu_dec: float = 0.1,
+        mu_inc: float = 10.0,
+        mu_max: float = 1e10,
+        min_grad: float = 1e-7,
+        chunk: int = 1024,
+        forward_name: str = "forward",
+    ):
         if not (mu > 0 and 0 < mu_dec < 1 < mu_inc and mu_max > mu):
-            raise ValueError(f"lm: need mu > 0, 0 < mu_dec < 1 < mu_inc, mu_max > mu; got mu={mu}, "
-                             f"mu_dec={mu_dec}, mu_inc={mu_inc}, mu_max={mu_max}")
+            raise ValueError(
+                f"lm: need mu > 0, 0 < mu_dec < 1 < mu_inc, mu_max > mu; got mu={mu}, "
+                f"mu_dec={mu_dec}, mu_inc={mu_inc}, mu_max={mu_max}"
+            )
         self.model = model
         self.mu, self.mu_dec, self.mu_inc, self.mu_max = float(mu), float(mu_dec), float(mu_inc), float(mu_max)
         self.min_grad = float(min_grad)
@@ -89,8 +100,9 @@ class TrainLM:
             self._buffers = {k: v.to(torch.float64) for k, v in self.model.named_buffers()}
         return float((w * (self._apply(flat, x) - y).pow(2)).mean())
 
-    def _normal_equations(self, flat: torch.Tensor, x: torch.Tensor, y: torch.Tensor,
-                          w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, float]:
+    def _normal_equations(
+        self, flat: torch.Tensor, x: torch.Tensor, y: torch.Tensor, w: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, float]:
         """J^T J (P, P), J^T e (P,) of the weighted residuals and perf at ``flat``."""
         p = flat.numel()
         jtj = torch.zeros(p, p, dtype=torch.float64, device=flat.device)
@@ -103,7 +115,7 @@ class TrainLM:
         jac_fn = vmap(jacrev(single), in_dims=(None, 0))
         for xs, ys, ws in zip(x.split(self.chunk), y.split(self.chunk), w.split(self.chunk)):
             sw = ws.sqrt()
-            e = (self._apply(flat, xs) - ys) * sw                       # (c, n_out)
+            e = (self._apply(flat, xs) - ys) * sw  # (c, n_out)
             jac = (jac_fn(flat, xs) * sw.unsqueeze(-1)).reshape(-1, p)  # (c * n_out, P)
             jtj += jac.T @ jac
             jte += jac.T @ e.reshape(-1)
@@ -143,9 +155,17 @@ class TrainLM:
         for n, v in self._unflat(flat).items():
             params[n].data.copy_(v.to(params[n].dtype))
 
-    def fit(self, x: torch.Tensor, y: torch.Tensor, w: torch.Tensor | None = None, epochs: int = 1000,
-            x_val: torch.Tensor | None = None, y_val: torch.Tensor | None = None, w_val: torch.Tensor | None = None,
-            max_fail: int = 6) -> list[dict[str, float]]:
+    def fit(
+        self,
+        x: torch.Tensor,
+        y: torch.Tensor,
+        w: torch.Tensor | None = None,
+        epochs: int = 1000,
+        x_val: torch.Tensor | None = None,
+        y_val: torch.Tensor | None = None,
+        w_val: torch.Tensor | None = None,
+        max_fail: int = 6,
+    ) -> list[dict[str, float]]:
         """Plain trainlm loop (no Lightning): epochs, min_grad, mu_max and max_fail validation stops; the
         weights of the best validation epoch are restored. Returns the per-epoch history."""
         history: list[dict[str, float]] = []

@@ -21,12 +21,18 @@ from .augment import add_noise
 from .classifiers.base import HealthClassifier
 
 Estimator = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
-BLOCK_ROWS = 8192    # records per FDI call: the network's hidden activations of a block stay small
+BLOCK_ROWS = 8192  # records per FDI call: the network's hidden activations of a block stay small
 
 
 @torch.no_grad()
-def noisy_estimates(estimate: Estimator, samples: torch.Tensor, scale: torch.Tensor, noise: float,
-                    seed: int, block_rows: int = BLOCK_ROWS) -> torch.Tensor:
+def noisy_estimates(
+    estimate: Estimator,
+    samples: torch.Tensor,
+    scale: torch.Tensor,
+    noise: float,
+    seed: int,
+    block_rows: int = BLOCK_ROWS,
+) -> torch.Tensor:
     """FDI estimates k_hat (N, 8) float64 of records whose selected samples get white noise.
 
     Args:
@@ -40,8 +46,10 @@ def noisy_estimates(estimate: Estimator, samples: torch.Tensor, scale: torch.Ten
     if not noise >= 0.0:
         raise ValueError(f"verdict classifier: noise must be >= 0, got {noise!r}")
     if samples.ndim != 2 or scale.shape != samples.shape[:1]:
-        raise ValueError(f"verdict classifier: samples must be (N, n_w) and scale (N,), got "
-                         f"{tuple(samples.shape)} and {tuple(scale.shape)}")
+        raise ValueError(
+            f"verdict classifier: samples must be (N, n_w) and scale (N,), got "
+            f"{tuple(samples.shape)} and {tuple(scale.shape)}"
+        )
     gen = torch.Generator().manual_seed(seed)
     out = []
     for rows, sc in zip(samples.split(block_rows), scale.split(block_rows), strict=True):
@@ -51,9 +59,16 @@ def noisy_estimates(estimate: Estimator, samples: torch.Tensor, scale: torch.Ten
     return torch.cat(out) if out else torch.zeros(0, 8, dtype=torch.float64)
 
 
-def fit_verdict_classifier(classifier: HealthClassifier, estimate: Estimator, samples: torch.Tensor,
-                           scale: torch.Tensor, healthy: torch.Tensor, noise: float, seed: int,
-                           max_missed_fault_rate: float | None = None) -> HealthClassifier:
+def fit_verdict_classifier(
+    classifier: HealthClassifier,
+    estimate: Estimator,
+    samples: torch.Tensor,
+    scale: torch.Tensor,
+    healthy: torch.Tensor,
+    noise: float,
+    seed: int,
+    max_missed_fault_rate: float | None = None,
+) -> HealthClassifier:
     """Fit ``classifier`` (unfitted) on the estimates of the training records and their true labels.
 
     Args as :func:`noisy_estimates`; ``healthy`` (N,) bool, the records' assessed health;

@@ -9,5 +9,15 @@ from .index import Inspection, read_index
 from .particle_filter import Posterior, Tracker, TrackerSettings
 from .particle_rul import ParticleRUL
 
-__all__ = ["DamageLaw", "Inspection", "ParticleRUL", "Posterior", "Tracker", "TrackerSettings", "build_tracker",
-           "fleet_list", "read_index", "track_fleet"]
+__all__ = [
+    "DamageLaw",
+    "Inspection",
+    "ParticleRUL",
+    "Posterior",
+    "Tracker",
+    "TrackerSettings",
+    "build_tracker",
+    "fleet_list",
+    "read_index",
+    "track_fleet",
+]

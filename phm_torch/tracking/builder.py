@@ -15,8 +15,13 @@ from .particle_rul import ParticleRUL, eps_log_sigmas
 log = logging.getLogger(__name__)
 
 
-def build_tracker(model: Any, metadata: Mapping[str, Any], fallback_damage: Mapping[str, Any] | None,
-                  settings: TrackerSettings, source: str) -> tuple[Tracker, dict[str, Any]]:
+def build_tracker(
+    model: Any,
+    metadata: Mapping[str, Any],
+    fallback_damage: Mapping[str, Any] | None,
+    settings: TrackerSettings,
+    source: str,
+) -> tuple[Tracker, dict[str, Any]]:
     """(tracker, description) for the pipeline ``model`` with metadata ``metadata`` (:func:`read_metadata`).
 
     The pipeline's own RUL band (``rate_scales``) is the future-eps spread. Whether that band already holds the
@@ -31,14 +36,21 @@ def build_tracker(model: Any, metadata: Mapping[str, Any], fallback_damage: Mapp
     damage, where = damage_config(metadata, fallback_damage, source)
     calibrated_sigma = damage.get("rate_scale_sigma")
     if calibrated_sigma is None and fallback_damage is not None and fallback_damage.get("rate_scale_sigma"):
-        log.warning("%s: its damage config predates the wear-rate scale; s is tracked with the composed "
-                    "conf/damage's prior (rate_scale_sigma %s), its RUL band read as eps alone", source,
-                    fallback_damage["rate_scale_sigma"])
+        log.warning(
+            "%s: its damage config predates the wear-rate scale; s is tracked with the composed "
+            "conf/damage's prior (rate_scale_sigma %s), its RUL band read as eps alone",
+            source,
+            fallback_damage["rate_scale_sigma"],
+        )
         damage = {**damage, "rate_scale_sigma": fallback_damage["rate_scale_sigma"]}
     law = DamageLaw.from_config(damage, model, where)
     with_s = where.endswith("metadata") and bool(calibrated_sigma) and float(calibrated_sigma) > 0
     eps = eps_log_sigmas(model, law, with_s)
     rul = ParticleRUL(model, law, settings.max_rate_scale, settings.bisections, eps)
-    return Tracker(law, rul, settings), {"damage": damage, "damage_source": where,
-                                         "rate_scale_sigma": law.rate_scale_sigma,
-                                         "eps_log_sigmas": list(eps), "band_included_rate_scale": with_s}
+    return Tracker(law, rul, settings), {
+        "damage": damage,
+        "damage_source": where,
+        "rate_scale_sigma": law.rate_scale_sigma,
+        "eps_log_sigmas": list(eps),
+        "band_included_rate_scale": with_s,
+    }

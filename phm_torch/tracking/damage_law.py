@@ -28,9 +28,9 @@ from ..faults import N_FAULTS
 
 log = logging.getLogger(__name__)
 
-TAYLOR_NORM = 1.0 / 64   # ||r F|| of the short Taylor step: 7 terms reach 1e-16 of the vector
+TAYLOR_NORM = 1.0 / 64  # ||r F|| of the short Taylor step: 7 terms reach 1e-16 of the vector
 TAYLOR_TERMS = 7
-TABLE_MAX = 1 << 15      # entries of the expm(j h F) table (beyond it: more short sub-steps)
+TABLE_MAX = 1 << 15  # entries of the expm(j h F) table (beyond it: more short sub-steps)
 
 
 @dataclass(frozen=True)
@@ -77,13 +77,19 @@ class DamageLaw:
             raise ValueError(f"damage config ({source}) lacks {missing}")
         sigma = damage.get("rate_scale_sigma")
         if sigma is None:
-            log.warning("damage config (%s) has no rate_scale_sigma: the wear-rate scale s is held at 1 (the "
-                        "law before the rate scale existed)", source)
-        law = cls(torch.tensor(damage["rate"], dtype=torch.float64),
-                  model.nominal.detach().to(torch.float64).clone(),
-                  torch.tensor(damage["noise_std"], dtype=torch.float64),
-                  float(damage["noise_correlation_hours"]), 0.0 if sigma is None else float(sigma),
-                  float(model.times[-1]))
+            log.warning(
+                "damage config (%s) has no rate_scale_sigma: the wear-rate scale s is held at 1 (the "
+                "law before the rate scale existed)",
+                source,
+            )
+        law = cls(
+            torch.tensor(damage["rate"], dtype=torch.float64),
+            model.nominal.detach().to(torch.float64).clone(),
+            torch.tensor(damage["noise_std"], dtype=torch.float64),
+            float(damage["noise_correlation_hours"]),
+            0.0 if sigma is None else float(sigma),
+            float(model.times[-1]),
+        )
         law.check_pipeline(model, source)
         return law
 
@@ -94,9 +100,11 @@ class DamageLaw:
         expected = torch.linalg.matrix_exp(self.rate * step)
         err = float((props[1] - expected).abs().max())
         if err > 1e-5:
-            raise ValueError(f"damage config ({source}): its rate F does not match the pipeline's propagators "
-                             f"(max |expm(F {step:g} h) - propagator| = {err:.3g}); give the damage config the "
-                             f"pipeline was exported with")
+            raise ValueError(
+                f"damage config ({source}): its rate F does not match the pipeline's propagators "
+                f"(max |expm(F {step:g} h) - propagator| = {err:.3g}); give the damage config the "
+                f"pipeline was exported with"
+            )
 
     @functools.cached_property
     def _norm(self) -> float:
@@ -116,7 +124,7 @@ class DamageLaw:
             size = min(size, TABLE_MAX)
             j = torch.arange(size, dtype=torch.float64) * self._table_step
             table = torch.linalg.matrix_exp(self.rate * j.view(-1, 1, 1))
-            self.__dict__["_expm_table"] = table       # a cache of the frozen law (not a field)
+            self.__dict__["_expm_table"] = table  # a cache of the frozen law (not a field)
         return table
 
     def propagate(self, dk: torch.Tensor, tau: torch.Tensor) -> torch.Tensor:
@@ -156,8 +164,8 @@ class DamageLaw:
         rest = tau - j.to(tau) * self._table_step
         steps = max(1, math.ceil(float(rest.abs().max()) * self._norm / TAYLOR_NORM - 1e-9))
         h = rest / steps
-        powers = self._powers                                                      # (T + 1, 8, 8): F^n / n!
-        coef = h.unsqueeze(-1) ** torch.arange(TAYLOR_TERMS + 1, dtype=torch.float64)    # (N, T + 1)
+        powers = self._powers  # (T + 1, 8, 8): F^n / n!
+        coef = h.unsqueeze(-1) ** torch.arange(TAYLOR_TERMS + 1, dtype=torch.float64)  # (N, T + 1)
         step = (coef @ powers.reshape(TAYLOR_TERMS + 1, -1)).reshape(-1, n, n)
         out = step
         for _ in range(steps - 1):
@@ -175,20 +183,23 @@ class DamageLaw:
         """Std (N, 8) [-] of int eps over intervals dt (N,) [h] (random block phase; module docstring)."""
         tc = self.noise_correlation_hours
         dt = dt.to(torch.float64).clamp(min=0.0).unsqueeze(-1)
-        var = torch.where(dt <= tc, dt ** 2 - dt ** 3 / (3.0 * tc), dt * tc - tc ** 2 / 3.0)
+        var = torch.where(dt <= tc, dt**2 - dt**3 / (3.0 * tc), dt * tc - tc**2 / 3.0)
         return self.noise_std.to(dt) * var.clamp(min=0.0).sqrt()
 
 
-def damage_config(metadata: Mapping[str, Any], fallback: Mapping[str, Any] | None, source: str
-                  ) -> tuple[dict[str, Any], str]:
+def damage_config(
+    metadata: Mapping[str, Any], fallback: Mapping[str, Any] | None, source: str
+) -> tuple[dict[str, Any], str]:
     """The damage config of an exported pipeline: its metadata's ``damage`` (written by phm-export since the
     tracker exists), else ``fallback`` (the composed ``conf/damage``) with a warning; (config, where from)."""
     damage = metadata.get("damage")
     if isinstance(damage, Mapping):
         return dict(damage), f"{source} metadata"
     if fallback is None:
-        raise ValueError(f"{source} carries no damage config (exported before phm-export wrote it) and none "
-                         f"was given")
-    log.warning("%s carries no damage config (exported before phm-export wrote it): using the composed "
-                "conf/damage; check it is the one the pipeline was exported with", source)
+        raise ValueError(f"{source} carries no damage config (exported before phm-export wrote it) and none was given")
+    log.warning(
+        "%s carries no damage config (exported before phm-export wrote it): using the composed "
+        "conf/damage; check it is the one the pipeline was exported with",
+        source,
+    )
     return dict(fallback), "conf/damage"

@@ -29,8 +29,9 @@ log = logging.getLogger(__name__)
 Diagnose = Callable[[Sequence[Inspection]], list[dict[str, Any]]]
 
 
-def _healthy(diagnosis: Mapping[str, Any], rul: Mapping[str, float | None] | None, fused: bool,
-             record_verdict: bool) -> bool:
+def _healthy(
+    diagnosis: Mapping[str, Any], rul: Mapping[str, float | None] | None, fused: bool, record_verdict: bool
+) -> bool:
     """The tracker's verdict: faulty wherever the posterior's median RUL is 0 (most of its probability past the
     health classifier's boundary); with ``record_verdict`` also wherever a fused inspection's own (phm-predict's)
     verdict is faulty. Before a track, the record's own verdict."""
@@ -40,33 +41,50 @@ def _healthy(diagnosis: Mapping[str, Any], rul: Mapping[str, float | None] | Non
     return (bool(diagnosis["healthy"]) or not fused or not record_verdict) and not past
 
 
-def inspection_record(row: Inspection, diagnosis: Mapping[str, Any], post: Posterior, i: int, fused: bool,
-                      horizon: float, record_verdict: bool = False) -> dict[str, Any]:
+def inspection_record(
+    row: Inspection,
+    diagnosis: Mapping[str, Any],
+    post: Posterior,
+    i: int,
+    fused: bool,
+    horizon: float,
+    record_verdict: bool = False,
+) -> dict[str, Any]:
     """One inspection of ``track.json`` (row ``i`` of the batch summary ``post``)."""
     tracked = bool(post.tracked[i])
     rul, rul_censored = censor(post.rul[i].tolist(), horizon) if tracked else (None, False)
     snap = diagnosis.get("rul_hours")
     snapshot, snap_censored = censor([snap[q] for q in QUANTILES], horizon) if snap is not None else (None, False)
     return {
-        "hours": row.hours, "file": row.file, "event": row.event or None,
+        "hours": row.hours,
+        "file": row.file,
+        "event": row.event or None,
         "k_hat": dict(diagnosis["k_hat"]),
         "k_interval": diagnosis.get("k_interval"),
         "k_filtered": dict(zip(FAULT_NAMES, post.k_mean[i].tolist())) if tracked else None,
-        "k_filtered_interval": {n: [lo, hi] for n, lo, hi in zip(FAULT_NAMES, post.k_low[i].tolist(),
-                                                                 post.k_high[i].tolist())} if tracked else None,
+        "k_filtered_interval": {
+            n: [lo, hi] for n, lo, hi in zip(FAULT_NAMES, post.k_low[i].tolist(), post.k_high[i].tolist())
+        }
+        if tracked
+        else None,
         "rate_scale": dict(zip(QUANTILES, post.rate_scale[i].tolist())) if tracked else None,
-        "p_faulty": diagnosis.get("p_faulty"), "healthy": _healthy(diagnosis, rul, fused, record_verdict),
+        "p_faulty": diagnosis.get("p_faulty"),
+        "healthy": _healthy(diagnosis, rul, fused, record_verdict),
         "snapshot_healthy": bool(diagnosis["healthy"]),
-        "rul_hours": rul, "rul_censored": rul_censored,
+        "rul_hours": rul,
+        "rul_censored": rul_censored,
         "out_of_distribution": bool(diagnosis["out_of_distribution"]),
-        "ood_reasons": list(diagnosis.get("ood_reasons", [])), "fused": fused,
-        "snapshot_rul_hours": snapshot, "snapshot_rul_censored": snap_censored,
+        "ood_reasons": list(diagnosis.get("ood_reasons", [])),
+        "fused": fused,
+        "snapshot_rul_hours": snapshot,
+        "snapshot_rul_censored": snap_censored,
         "noise": diagnosis.get("noise"),
     }
 
 
-def _run_chunk(tracker: Tracker, model: Any, rows: Mapping[str, list[Inspection]], diagnose: Diagnose
-               ) -> dict[str, list[dict[str, Any]]]:
+def _run_chunk(
+    tracker: Tracker, model: Any, rows: Mapping[str, list[Inspection]], diagnose: Diagnose
+) -> dict[str, list[dict[str, Any]]]:
     """Diagnose and filter the inspections of a few actuators; {actuator: inspection records}."""
     flat = [row for actuator_rows in rows.values() for row in actuator_rows]
     found = diagnose(flat)
@@ -85,17 +103,33 @@ def _run_chunk(tracker: Tracker, model: Any, rows: Mapping[str, list[Inspection]
         record_verdict = tracker.settings.verdict == "record"
         faulty = torch.tensor([not d["healthy"] and record_verdict for d in diag])
         restart = torch.tensor([row.event == "maintenance" for row in batch])
-        post = tracker.update([row.actuator for row in batch], torch.tensor([row.hours for row in batch]),
-                              k_hat, scale, fuse, faulty, restart)
+        post = tracker.update(
+            [row.actuator for row in batch],
+            torch.tensor([row.hours for row in batch]),
+            k_hat,
+            scale,
+            fuse,
+            faulty,
+            restart,
+        )
         for i, (row, d) in enumerate(zip(batch, diag)):
-            out[row.actuator].append(inspection_record(row, d, post, i, bool(fuse[i]) and bool(post.tracked[i]),
-                                                       tracker.law.horizon_hours, record_verdict))
+            out[row.actuator].append(
+                inspection_record(
+                    row, d, post, i, bool(fuse[i]) and bool(post.tracked[i]), tracker.law.horizon_hours, record_verdict
+                )
+            )
     return out
 
 
-def track_fleet(index: Mapping[str, list[Inspection]], tracker: Tracker, model: Any, diagnose: Diagnose,
-                state_dir: str | os.PathLike | None = None, run_key: Any = None, chunk_size: int = 64
-                ) -> dict[str, dict[str, Any]]:
+def track_fleet(
+    index: Mapping[str, list[Inspection]],
+    tracker: Tracker,
+    model: Any,
+    diagnose: Diagnose,
+    state_dir: str | os.PathLike | None = None,
+    run_key: Any = None,
+    chunk_size: int = 64,
+) -> dict[str, dict[str, Any]]:
     """Track every actuator of ``index`` ({actuator: inspections in time order}, :func:`~.index.read_index`).
 
     Args:
@@ -115,7 +149,7 @@ def track_fleet(index: Mapping[str, list[Inspection]], tracker: Tracker, model: 
     result: dict[str, dict[str, Any]] = {}
     resumed = 0
     for start in range(0, len(actuators), chunk_size):
-        chunk = actuators[start:start + chunk_size]
+        chunk = actuators[start : start + chunk_size]
         keys = {a: fingerprint([run_key, [(r.hours, r.file, r.event) for r in index[a]]]) for a in chunk}
         stored = {a: load_state(state_dir, a, keys[a]) for a in chunk} if state_dir is not None else {}
         if state_dir is not None and all(v is not None for v in stored.values()):
@@ -142,8 +176,16 @@ def fleet_list(actuators: Mapping[str, dict[str, Any]]) -> list[dict[str, Any]]:
         if not track["inspections"]:
             continue
         last = track["inspections"][-1]
-        rows.append({"actuator": a, "hours": last["hours"], "rul_hours": last["rul_hours"],
-                     "rul_censored": last["rul_censored"], "healthy": last["healthy"], "p_faulty": last["p_faulty"]})
+        rows.append(
+            {
+                "actuator": a,
+                "hours": last["hours"],
+                "rul_hours": last["rul_hours"],
+                "rul_censored": last["rul_censored"],
+                "healthy": last["healthy"],
+                "p_faulty": last["p_faulty"],
+            }
+        )
 
     def key(row: dict[str, Any]) -> tuple[int, float, str]:
         p5 = (row["rul_hours"] or {}).get("p5")

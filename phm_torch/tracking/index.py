@@ -43,8 +43,9 @@ def read_index(path: str | os.PathLike, check_files: bool = True) -> dict[str, l
     header = [h.strip() for h in rows[0]]
     missing = [c for c in REQUIRED if c not in header]
     if missing:
-        raise ValueError(f"{path}: missing column(s) {missing} (header {header}; expected {list(REQUIRED)} "
-                         f"and optionally 'event')")
+        raise ValueError(
+            f"{path}: missing column(s) {missing} (header {header}; expected {list(REQUIRED)} and optionally 'event')"
+        )
     col = {name: header.index(name) for name in header}
     out: dict[str, list[Inspection]] = {}
     seen: dict[tuple[str, float], int] = {}
@@ -65,21 +66,27 @@ def read_index(path: str | os.PathLike, check_files: bool = True) -> dict[str, l
             raise ValueError(f"{path} line {line} (actuator {actuator}): hours {text!r} must be finite and >= 0")
         event = row[col["event"]].strip() if "event" in col else ""
         if event not in EVENTS:
-            raise ValueError(f"{path} line {line} (actuator {actuator}): unknown event {event!r} (known: "
-                             f"'maintenance', or empty)")
+            raise ValueError(
+                f"{path} line {line} (actuator {actuator}): unknown event {event!r} (known: 'maintenance', or empty)"
+            )
         if (actuator, hours) in seen:
-            raise ValueError(f"{path} line {line} (actuator {actuator}): duplicate hours {hours:g} (line "
-                             f"{seen[(actuator, hours)]})")
+            raise ValueError(
+                f"{path} line {line} (actuator {actuator}): duplicate hours {hours:g} (line {seen[(actuator, hours)]})"
+            )
         seen[(actuator, hours)] = line
         previous = out.get(actuator, [])
         if previous and hours <= previous[-1].hours:
-            raise ValueError(f"{path} line {line} (actuator {actuator}): hours {hours:g} not after the previous "
-                             f"inspection's {previous[-1].hours:g} (line {previous[-1].line})")
+            raise ValueError(
+                f"{path} line {line} (actuator {actuator}): hours {hours:g} not after the previous "
+                f"inspection's {previous[-1].hours:g} (line {previous[-1].line})"
+            )
         name = row[col["file"]].strip()
         record = (path.parent / name) if name else path.parent
         if check_files and not (name and record.is_file()):
-            raise ValueError(f"{path} line {line} (actuator {actuator}): no such file {name!r} "
-                             f"(paths are relative to the index's folder {str(path.parent)!r})")
+            raise ValueError(
+                f"{path} line {line} (actuator {actuator}): no such file {name!r} "
+                f"(paths are relative to the index's folder {str(path.parent)!r})"
+            )
         out.setdefault(actuator, []).append(Inspection(actuator, hours, name, record, event, line))
     if not out:
         raise ValueError(f"{path}: no inspections")

@@ -25,9 +25,11 @@ def require_calibrated(model: Any, source: str) -> None:
     """A pipeline whose k_hat intervals are NaN (not calibrated by phm-evaluate) cannot weigh its estimates."""
     widths = getattr(model, "k_half_widths", None)
     if widths is None or not hasattr(model, "k_interval") or not bool(torch.isfinite(widths).all()):
-        raise ValueError(f"pipeline {source}: no calibrated k_hat intervals (k_half_widths NaN or absent), so the "
-                         f"tracker cannot weigh its estimates; export it with a rul_calibration.json written by "
-                         f"phm-evaluate")
+        raise ValueError(
+            f"pipeline {source}: no calibrated k_hat intervals (k_half_widths NaN or absent), so the "
+            f"tracker cannot weigh its estimates; export it with a rul_calibration.json written by "
+            f"phm-evaluate"
+        )
 
 
 def inspect_record(model: Any, record: Record, contract: InputContract) -> dict[str, Any]:
@@ -57,13 +59,21 @@ def inspect_currents(model: Any, currents: torch.Tensor, contract: InputContract
         reasons += [r for r in contract.current_reasons(model, x[i], noise_list[i], k_hat[i]) if r not in reasons]
         bad = bool(reasons)
         r = rul_list[i]
-        out.append({"k_hat": dict(zip(FAULT_NAMES, k_list[i])),
-                    "k_interval": None if bad else {n: [a, b] for n, a, b in zip(FAULT_NAMES, lo_list[i], hi_list[i])},
-                    "health_score": score_list[i], "healthy": score_list[i] > 0,
-                    "p_faulty": None if bad or math.isnan(p_list[i]) else p_list[i],
-                    "rul_hours": None if bad or any(math.isnan(v) for v in r) else dict(zip(("p5", "p50", "p95"), r)),
-                    "out_of_distribution": bad, "ood_reasons": reasons, "checks_skipped": ["command", "tracking"],
-                    "noise": noise_list[i], "noise_above_calibration": noise_list[i] > noise_max})
+        out.append(
+            {
+                "k_hat": dict(zip(FAULT_NAMES, k_list[i])),
+                "k_interval": None if bad else {n: [a, b] for n, a, b in zip(FAULT_NAMES, lo_list[i], hi_list[i])},
+                "health_score": score_list[i],
+                "healthy": score_list[i] > 0,
+                "p_faulty": None if bad or math.isnan(p_list[i]) else p_list[i],
+                "rul_hours": None if bad or any(math.isnan(v) for v in r) else dict(zip(("p5", "p50", "p95"), r)),
+                "out_of_distribution": bad,
+                "ood_reasons": reasons,
+                "checks_skipped": ["command", "tracking"],
+                "noise": noise_list[i],
+                "noise_above_calibration": noise_list[i] > noise_max,
+            }
+        )
     return out
 
 

@@ -24,24 +24,26 @@ import torch
 from ..faults import N_FAULTS
 from .damage_law import DamageLaw
 
-BOUND = 1e-9                 # an estimate within this of 0 or 1 sits at the clamp
+BOUND = 1e-9  # an estimate within this of 0 or 1 sits at the clamp
 LOG_2PI = math.log(2.0 * math.pi)
 
 
-def predict(law: DamageLaw, m: torch.Tensor, c: torch.Tensor, s: torch.Tensor, dt: torch.Tensor
-            ) -> tuple[torch.Tensor, torch.Tensor]:
+def predict(
+    law: DamageLaw, m: torch.Tensor, c: torch.Tensor, s: torch.Tensor, dt: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Means m (B, P, 8) and covariances c (B, P, 8, 8) moved by dt (B,) [h] at rates s (B, P)."""
     b, p, n = m.shape
-    a = law.expm((s * dt.unsqueeze(1)).reshape(-1)).reshape(b, p, n, n)             # expm(s F dt)
+    a = law.expm((s * dt.unsqueeze(1)).reshape(-1)).reshape(b, p, n, n)  # expm(s F dt)
     k0 = law.nominal.to(m)
     m = k0 + (a @ (m - k0).unsqueeze(-1)).squeeze(-1)
-    q = law.noise_std_over(dt) ** 2                                                  # (B, 8)
+    q = law.noise_std_over(dt) ** 2  # (B, 8)
     c = a @ c @ a.transpose(-1, -2) + torch.diag_embed(q).unsqueeze(1)
     return m, 0.5 * (c + c.transpose(-1, -2))
 
 
-def update(m: torch.Tensor, c: torch.Tensor, k_hat: torch.Tensor, scale: torch.Tensor
-           ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def update(
+    m: torch.Tensor, c: torch.Tensor, k_hat: torch.Tensor, scale: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Kalman update with the estimates k_hat (B, 8) of error scales (B, 8): (m, c, log-likelihood (B, P) up to a
     constant per row).
 
@@ -52,31 +54,31 @@ def update(m: torch.Tensor, c: torch.Tensor, k_hat: torch.Tensor, scale: torch.T
     value mu + (E[u | cut] - mu) / (1 - ratio), variance var / (1 - ratio) - c_jj, ratio = Var[u | cut] / var),
     with log Phi of the bound in the log-likelihood."""
     b, p, n = m.shape
-    r = (scale.to(m) ** 2).unsqueeze(1).expand(b, p, n)                              # (B, P, 8)
+    r = (scale.to(m) ** 2).unsqueeze(1).expand(b, p, n)  # (B, P, 8)
     low, high = (k_hat <= BOUND).unsqueeze(1), (k_hat >= 1.0 - BOUND).unsqueeze(1)
     y_all = k_hat.unsqueeze(1).to(m).expand(b, p, n)
     loglik = torch.zeros(b, p, dtype=m.dtype)
-    c = c.reshape(b * p, n, n).clone()                                               # updated in place
+    c = c.reshape(b * p, n, n).clone()  # updated in place
     for j in range(n):
-        cj = c[:, :, j].reshape(b, p, n).clone()                                      # (B, P, 8)
+        cj = c[:, :, j].reshape(b, p, n).clone()  # (B, P, 8)
         mu, cjj, rj = m[..., j], cj[..., j], r[..., j]
         var = cjj + rj
-        lo_j, cut = low[..., j], low[..., j] | high[..., j]                           # (B, 1)
+        lo_j, cut = low[..., j], low[..., j] | high[..., j]  # (B, 1)
         d = y_all[..., j] - mu
         ll = -0.5 * d * d / var - 0.5 * var.log()
         s_eff = var
         if bool(cut.any()):
             sd = var.sqrt()
-            a = torch.where(lo_j, -mu / sd, (mu - 1.0) / sd)                          # P(cut) = Phi(a)
+            a = torch.where(lo_j, -mu / sd, (mu - 1.0) / sd)  # P(cut) = Phi(a)
             log_cut = torch.special.log_ndtr(a)
-            lam = torch.exp(-0.5 * a * a - 0.5 * LOG_2PI - log_cut)                   # phi(a) / Phi(a)
-            keep = (a * lam + lam * lam).clamp(1e-12, 1.0)                            # 1 - Var[u | cut] / var
+            lam = torch.exp(-0.5 * a * a - 0.5 * LOG_2PI - log_cut)  # phi(a) / Phi(a)
+            keep = (a * lam + lam * lam).clamp(1e-12, 1.0)  # 1 - Var[u | cut] / var
             shift = torch.where(lo_j, -sd * lam, sd * lam) / keep
             d, s_eff, ll = torch.where(cut, shift, d), torch.where(cut, var / keep, var), torch.where(cut, log_cut, ll)
         loglik = loglik + ll
-        g = cj / s_eff.unsqueeze(-1)                                                 # gain (B, P, 8)
+        g = cj / s_eff.unsqueeze(-1)  # gain (B, P, 8)
         m = m + g * d.unsqueeze(-1)
-        c.addcmul_(g.reshape(-1, n, 1), cj.reshape(-1, 1, n), value=-1.0)              # c - g cj'
+        c.addcmul_(g.reshape(-1, n, 1), cj.reshape(-1, 1, n), value=-1.0)  # c - g cj'
     c = c.reshape(b, p, n, n)
     return m, 0.5 * (c + c.transpose(-1, -2)), loglik
 

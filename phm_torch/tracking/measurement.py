@@ -12,8 +12,8 @@ import math
 import torch
 from scipy import stats
 
-Z95 = 1.6448536269514722      # the standard normal's 95 % quantile
-MIN_SCALE = 1e-4               # [k units]: a zero-width interval (a clamped bound) is not a perfect measurement
+Z95 = 1.6448536269514722  # the standard normal's 95 % quantile
+MIN_SCALE = 1e-4  # [k units]: a zero-width interval (a clamped bound) is not a perfect measurement
 
 
 def t_quantile_95(dof: float) -> float:

@@ -74,13 +74,18 @@ class TrackerSettings:
     def __post_init__(self) -> None:
         for name in ("n_particles", "rul_particles", "seed", "bisections"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name in ("seed", "bisections")
-                                                                                  else 2):
-                raise ValueError(f"tracker.{name} must be an integer >= {0 if name in ('seed', 'bisections') else 2}"
-                                 f", got {value!r}")
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, int)
+                or value < (0 if name in ("seed", "bisections") else 2)
+            ):
+                raise ValueError(
+                    f"tracker.{name} must be an integer >= {0 if name in ('seed', 'bisections') else 2}, got {value!r}"
+                )
         if self.rul_particles > self.n_particles:
-            raise ValueError(f"tracker.rul_particles ({self.rul_particles}) must be <= tracker.n_particles "
-                             f"({self.n_particles})")
+            raise ValueError(
+                f"tracker.rul_particles ({self.rul_particles}) must be <= tracker.n_particles ({self.n_particles})"
+            )
         if not 0.0 <= float(self.resample_ess) <= 1.0:
             raise ValueError(f"tracker.resample_ess must be in [0, 1], got {self.resample_ess!r}")
         if self.verdict not in ("posterior", "record"):
@@ -150,11 +155,17 @@ class Tracker:
 
     def _blank(self, n: int) -> dict[str, torch.Tensor]:
         p, f64 = self.settings.n_particles, torch.float64
-        return {"k": torch.zeros(n, p, N_FAULTS, dtype=f64), "k_cov": torch.zeros(n, p, N_FAULTS, N_FAULTS, dtype=f64),
-                "log_s": torch.zeros(n, p, dtype=f64), "log_w": torch.full((n, p), -math.log(p), dtype=f64),
-                "z_k": torch.zeros(n, p, N_FAULTS, dtype=f64), "tau": torch.full((n, p), float("nan"), dtype=f64),
-                "hours": torch.zeros(n, dtype=f64), "steps": torch.zeros(n, dtype=torch.int64),
-                "tracked": torch.zeros(n, dtype=torch.bool)}
+        return {
+            "k": torch.zeros(n, p, N_FAULTS, dtype=f64),
+            "k_cov": torch.zeros(n, p, N_FAULTS, N_FAULTS, dtype=f64),
+            "log_s": torch.zeros(n, p, dtype=f64),
+            "log_w": torch.full((n, p), -math.log(p), dtype=f64),
+            "z_k": torch.zeros(n, p, N_FAULTS, dtype=f64),
+            "tau": torch.full((n, p), float("nan"), dtype=f64),
+            "hours": torch.zeros(n, dtype=f64),
+            "steps": torch.zeros(n, dtype=torch.int64),
+            "tracked": torch.zeros(n, dtype=torch.bool),
+        }
 
     # ---- state of one actuator ------------------------------------------------------------------------
     def reserve(self, actuators: Sequence[str]) -> None:
@@ -175,8 +186,10 @@ class Tracker:
     def load_state(self, actuator: str, state: dict[str, torch.Tensor]) -> None:
         """Restore one actuator's state written by :meth:`state`."""
         if tuple(state["k"].shape) != tuple(self.k.shape[1:]) or set(state) != set(self.FIELDS):
-            raise ValueError(f"state of {actuator!r}: particles {tuple(state['k'].shape)} with {sorted(state)}, the "
-                             f"tracker has {tuple(self.k.shape[1:])} with {sorted(self.FIELDS)}")
+            raise ValueError(
+                f"state of {actuator!r}: particles {tuple(state['k'].shape)} with {sorted(state)}, the "
+                f"tracker has {tuple(self.k.shape[1:])} with {sorted(self.FIELDS)}"
+            )
         self.reserve([actuator])
         r = self.rows[actuator]
         for name in self.FIELDS:
@@ -195,9 +208,16 @@ class Tracker:
             out[i] = torch.randn(out.shape[1:], generator=g, dtype=torch.float64)
         return out
 
-    def update(self, actuators: Sequence[str], hours: torch.Tensor, k_hat: torch.Tensor, scale: torch.Tensor,
-               fuse: torch.Tensor, faulty: torch.Tensor | None = None, restart: torch.Tensor | None = None
-               ) -> Posterior:
+    def update(
+        self,
+        actuators: Sequence[str],
+        hours: torch.Tensor,
+        k_hat: torch.Tensor,
+        scale: torch.Tensor,
+        fuse: torch.Tensor,
+        faulty: torch.Tensor | None = None,
+        restart: torch.Tensor | None = None,
+    ) -> Posterior:
         """One inspection of each of ``actuators`` (distinct ids).
 
         Args:
@@ -254,13 +274,19 @@ class Tracker:
         self.steps[rows] += 1
         return post
 
-    def _fuse(self, st: dict[str, torch.Tensor], k_hat: torch.Tensor, scale: torch.Tensor, z: torch.Tensor,
-              rows: torch.Tensor, cap: float) -> None:
+    def _fuse(
+        self,
+        st: dict[str, torch.Tensor],
+        k_hat: torch.Tensor,
+        scale: torch.Tensor,
+        z: torch.Tensor,
+        rows: torch.Tensor,
+        cap: float,
+    ) -> None:
         """Kalman-update and reweight the particles of ``rows`` (B,) bool in ``st`` (in place); resample and move
         those whose ESS fell below the threshold."""
         idx = rows.nonzero().flatten()
-        st["k"][idx], st["k_cov"][idx], loglik = kalman.update(st["k"][idx], st["k_cov"][idx], k_hat[idx],
-                                                               scale[idx])
+        st["k"][idx], st["k_cov"][idx], loglik = kalman.update(st["k"][idx], st["k_cov"][idx], k_hat[idx], scale[idx])
         log_w = st["log_w"][idx] + loglik
         log_w = log_w - torch.logsumexp(log_w, dim=1, keepdim=True)
         st["log_w"][idx] = log_w
@@ -270,7 +296,7 @@ class Tracker:
             return
         idx, log_w = idx[low], log_w[low]
         p = log_w.shape[1]
-        u = torch.special.ndtr(z[idx, 0, N_FAULTS + 2])        # one uniform per row for the systematic comb
+        u = torch.special.ndtr(z[idx, 0, N_FAULTS + 2])  # one uniform per row for the systematic comb
         anc = systematic_indices(log_w, u)
         # the copies are exchangeable: put those whose ancestor has a known crossing first (random order), so
         # the RUL subset (the first rul_particles) keeps its warm starts
@@ -281,19 +307,20 @@ class Tracker:
             v = st[name][idx]
             shape = anc.shape + (1,) * (v.dim() - 2)
             st[name][idx] = v.gather(1, anc.reshape(shape).expand_as(v))
-        log_s = liu_west(st["log_s"][idx].unsqueeze(-1), z[idx, :, N_FAULTS + 1:N_FAULTS + 2], self.settings.shrink)
+        log_s = liu_west(st["log_s"][idx].unsqueeze(-1), z[idx, :, N_FAULTS + 1 : N_FAULTS + 2], self.settings.shrink)
         st["log_s"][idx] = log_s.squeeze(-1).clamp(-cap, cap)
         st["log_w"][idx] = -math.log(p)
 
-    def _summary(self, st: dict[str, torch.Tensor], tracked: torch.Tensor, z_eps: torch.Tensor,
-                 faulty: torch.Tensor) -> Posterior:
+    def _summary(
+        self, st: dict[str, torch.Tensor], tracked: torch.Tensor, z_eps: torch.Tensor, faulty: torch.Tensor
+    ) -> Posterior:
         """Weighted summaries of the batch; refreshes ``st["tau"]`` of the RUL subset."""
         k_mean_p, log_s = st["k"], st["log_s"]
         b = k_mean_p.shape[0]
         w = torch.softmax(st["log_w"], dim=1)
-        k = kalman.sample(k_mean_p, st["k_cov"], st["z_k"]).clamp(0.0, 1.0)           # one k per particle
-        k_q = weighted_quantiles(k, w, (0.05, 0.95))                                     # (B, 2, 8)
-        s_q = weighted_quantiles(log_s.exp(), w, (0.05, 0.5, 0.95))                      # (B, 3)
+        k = kalman.sample(k_mean_p, st["k_cov"], st["z_k"]).clamp(0.0, 1.0)  # one k per particle
+        k_q = weighted_quantiles(k, w, (0.05, 0.95))  # (B, 2, 8)
+        s_q = weighted_quantiles(log_s.exp(), w, (0.05, 0.5, 0.95))  # (B, 3)
         rul = torch.full((b, 3), float("nan"), dtype=torch.float64)
         censored = torch.zeros(b, 3, dtype=torch.bool)
         if self.rul_model is not None and bool(tracked.any()):
@@ -309,6 +336,12 @@ class Tracker:
         censored = censored & ~stop
         nan = ~tracked.view(-1, 1)
         k_mean = (w.unsqueeze(-1) * k_mean_p).sum(1).clamp(0.0, 1.0)
-        return Posterior(k_mean.masked_fill(nan, float("nan")), k_q[:, 0].masked_fill(nan, float("nan")),
-                         k_q[:, 1].masked_fill(nan, float("nan")), s_q.masked_fill(nan, float("nan")), rul, censored,
-                         tracked.clone())
+        return Posterior(
+            k_mean.masked_fill(nan, float("nan")),
+            k_q[:, 0].masked_fill(nan, float("nan")),
+            k_q[:, 1].masked_fill(nan, float("nan")),
+            s_q.masked_fill(nan, float("nan")),
+            rul,
+            censored,
+            tracked.clone(),
+        )

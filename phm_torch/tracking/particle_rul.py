@@ -31,9 +31,9 @@ from .measurement import Z95
 
 log = logging.getLogger(__name__)
 
-HUGE = 1e30     # the RUL of a particle still healthy at the end of its search (censored)
-WARM_WIDTH = 0.1   # relative half-width of the warm bracket (at least one grid step)
-REFINE = 2         # Illinois steps in a warm bracket
+HUGE = 1e30  # the RUL of a particle still healthy at the end of its search (censored)
+WARM_WIDTH = 0.1  # relative half-width of the warm bracket (at least one grid step)
+REFINE = 2  # Illinois steps in a warm bracket
 
 
 def eps_log_sigmas(model: Any, law: DamageLaw, band_includes_rate_scale: bool) -> tuple[float, float]:
@@ -47,8 +47,13 @@ def eps_log_sigmas(model: Any, law: DamageLaw, band_includes_rate_scale: bool) -
     if band_includes_rate_scale:
         s = law.rate_scale_sigma
         if min(hi, lo) < s:
-            log.warning("the pipeline's RUL band (log-std %.3g / %.3g) is narrower than the wear-rate scale's "
-                        "spread (%.3g) it is said to include: read as eps alone", lo, hi, s)
+            log.warning(
+                "the pipeline's RUL band (log-std %.3g / %.3g) is narrower than the wear-rate scale's "
+                "spread (%.3g) it is said to include: read as eps alone",
+                lo,
+                hi,
+                s,
+            )
         else:
             hi, lo = math.sqrt(hi * hi - s * s), math.sqrt(lo * lo - s * s)
     return lo, hi
@@ -65,8 +70,14 @@ class ParticleRUL:
         eps_sigmas: (low, high) log-std of the future-eps factor r (:func:`eps_log_sigmas`); (0, 0): none.
     """
 
-    def __init__(self, model: Any, law: DamageLaw, max_rate_scale: float = 8.0, bisections: int = 6,
-                 eps_sigmas: tuple[float, float] = (0.0, 0.0)):
+    def __init__(
+        self,
+        model: Any,
+        law: DamageLaw,
+        max_rate_scale: float = 8.0,
+        bisections: int = 6,
+        eps_sigmas: tuple[float, float] = (0.0, 0.0),
+    ):
         if not max_rate_scale >= 1.0:
             raise ValueError(f"max_rate_scale must be >= 1, got {max_rate_scale!r}")
         self.model, self.law = model, law
@@ -74,7 +85,7 @@ class ParticleRUL:
         self.horizon = law.horizon_hours
         n = math.ceil(self.horizon * max_rate_scale / self.step)
         t = torch.arange(n + 1, dtype=torch.float64) * self.step
-        self.propagators = torch.linalg.matrix_exp(law.rate * t.view(-1, 1, 1))        # (n + 1, 8, 8)
+        self.propagators = torch.linalg.matrix_exp(law.rate * t.view(-1, 1, 1))  # (n + 1, 8, 8)
         self.bisections = int(bisections)
         self.eps_sigmas = (float(eps_sigmas[0]), float(eps_sigmas[1]))
         self.threshold = model.classifier.threshold
@@ -100,7 +111,7 @@ class ParticleRUL:
         dk = (k - self.law.nominal).to(torch.float64)
         out = torch.full_like(guess, float("nan"))
         far = guess >= HUGE
-        if bool(far.any()):         # still healthy at the end of its own search: 1 row
+        if bool(far.any()):  # still healthy at the end of its own search: 1 row
             i = far.nonzero().flatten()
             healthy = self.score(self._at(dk[i], tau_max[i])) > 0
             out[i[healthy]] = HUGE
@@ -111,8 +122,8 @@ class ParticleRUL:
             width = (WARM_WIDTH * g).clamp(min=self.step)
             lo, hi = (g - width).clamp(min=0.0), torch.minimum(g + width, tau_max[i])
             both = self.score(self._at(dk[i].repeat(2, 1), torch.cat([lo, hi])))
-            s0, s1 = both[:i.numel()], both[i.numel():]
-            done = (lo <= 0) & (s0 <= 0)                        # already faulty
+            s0, s1 = both[: i.numel()], both[i.numel() :]
+            done = (lo <= 0) & (s0 <= 0)  # already faulty
             out[i[done]] = 0.0
             ok = (s0 > 0) & (s1 <= 0)
             if bool(ok.any()):
@@ -124,8 +135,9 @@ class ParticleRUL:
             out[i] = self.wear_clock_crossing(k[i], float(tau_max[i].max()))
         return out
 
-    def _refine(self, dk: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, s0: torch.Tensor, s1: torch.Tensor,
-                steps: int) -> torch.Tensor:
+    def _refine(
+        self, dk: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, s0: torch.Tensor, s1: torch.Tensor, steps: int
+    ) -> torch.Tensor:
         """Zero of the score between lo (healthy, s0 > 0) and hi (faulty, s1 <= 0): Illinois regula falsi (the
         kept end's score halved when the same end is kept twice, so a curved score still converges from both
         sides), then the linear interpolation of the last bracket."""
@@ -135,7 +147,7 @@ class ParticleRUL:
             mid = lo + frac * (hi - lo)
             s_mid = self.score(self._at(dk, mid))
             bad = s_mid <= 0
-            s0 = torch.where(bad & (side < 0), 0.5 * s0, s0)          # hi moved twice: halve lo's score
+            s0 = torch.where(bad & (side < 0), 0.5 * s0, s0)  # hi moved twice: halve lo's score
             s1 = torch.where(~bad & (side > 0), 0.5 * s1, s1)
             hi, s1 = torch.where(bad, mid, hi), torch.where(bad, s_mid, s1)
             lo, s0 = torch.where(bad, lo, mid), torch.where(bad, s0, s_mid)
@@ -148,10 +160,10 @@ class ParticleRUL:
         ``HUGE`` if still healthy at ``tau_max``."""
         n_grid = self.propagators.shape[0] - 1
         last = min(n_grid, math.ceil(tau_max / self.step))
-        idx = [0] + [2 ** i for i in range(max(1, math.ceil(math.log2(max(last, 1)))) + 1) if 2 ** i < last] + [last]
+        idx = [0] + [2**i for i in range(max(1, math.ceil(math.log2(max(last, 1)))) + 1) if 2**i < last] + [last]
         idx = torch.tensor(sorted(set(idx)))
         dk = (k - self.law.nominal).to(torch.float64)
-        traj = self.law.nominal + torch.einsum("tij,nj->tni", self.propagators[idx], dk)   # (C, N, 8)
+        traj = self.law.nominal + torch.einsum("tij,nj->tni", self.propagators[idx], dk)  # (C, N, 8)
         c, n = traj.shape[0], k.shape[0]
         score = self.score(traj.reshape(-1, 8)).reshape(c, n)
         faulty = score <= 0
@@ -171,9 +183,14 @@ class ParticleRUL:
         crossing = torch.where(first > 0, lo + frac * (hi - lo), torch.zeros_like(lo))
         return torch.where(any_faulty, crossing, torch.full_like(crossing, HUGE))
 
-    def __call__(self, k: torch.Tensor, s: torch.Tensor, z_eps: torch.Tensor | None = None,
-                 weights: torch.Tensor | None = None, guess: torch.Tensor | None = None
-                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def __call__(
+        self,
+        k: torch.Tensor,
+        s: torch.Tensor,
+        z_eps: torch.Tensor | None = None,
+        weights: torch.Tensor | None = None,
+        guess: torch.Tensor | None = None,
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """RUL 5/50/95 % of particle clouds: k (B, M, 8), s (B, M), standard normals z_eps (B, M) for the
         future-eps factor (None: none), normalised weights (B, M) (None: equal), the particles' previous
         wear-clock crossings moved to now (B, M) (None or NaN: unknown, cold search).
@@ -186,7 +203,7 @@ class ParticleRUL:
         tau = self.warm_crossing(k.reshape(-1, 8), guess.to(torch.float64), tau_max).reshape(b, m)
         rul = torch.where(tau >= HUGE, torch.full_like(tau, HUGE), tau / speed)
         w = torch.full_like(rul, 1.0 / m) if weights is None else weights.to(rul)
-        q = weighted_quantiles(rul, w, (0.05, 0.5, 0.95))                             # (B, 3)
+        q = weighted_quantiles(rul, w, (0.05, 0.5, 0.95))  # (B, 3)
         censored = q >= self.horizon
         return torch.where(censored, torch.full_like(q, float("nan")), q), censored, tau
 
@@ -200,8 +217,11 @@ def weighted_quantiles(x: torch.Tensor, w: torch.Tensor, q: tuple[float, ...]) -
     ww = w.reshape(w.shape + (1,) * (x.dim() - 2)).expand_as(x)
     cdf = torch.gather(ww, 1, order).cumsum(1)
     cdf = cdf / cdf[:, -1:].clamp(min=1e-300)
-    probs = torch.tensor(q, dtype=cdf.dtype).reshape((1, -1) + (1,) * (x.dim() - 2)).expand(
-        (x.shape[0], len(q)) + tuple(x.shape[2:]))
+    probs = (
+        torch.tensor(q, dtype=cdf.dtype)
+        .reshape((1, -1) + (1,) * (x.dim() - 2))
+        .expand((x.shape[0], len(q)) + tuple(x.shape[2:]))
+    )
     idx = torch.searchsorted(cdf.movedim(1, -1).contiguous(), probs.movedim(1, -1).contiguous() - 1e-12)
     idx = idx.clamp(max=x.shape[1] - 1).movedim(-1, 1)
     return torch.gather(values, 1, idx)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-JITTER = 1e-12     # added to the covariance's diagonal: a component every particle agrees on (a clamped 0)
+JITTER = 1e-12  # added to the covariance's diagonal: a component every particle agrees on (a clamped 0)
 
 
 def systematic_indices(log_w: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
@@ -19,7 +19,7 @@ def systematic_indices(log_w: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     w = torch.softmax(log_w, dim=-1)
     p = w.shape[-1]
     cdf = w.cumsum(-1)
-    cdf[:, -1] = 1.0                      # rounding: the last edge closes the interval
+    cdf[:, -1] = 1.0  # rounding: the last edge closes the interval
     positions = (u.unsqueeze(-1) + torch.arange(p, dtype=w.dtype, device=w.device)) / p
     return torch.searchsorted(cdf, positions.contiguous()).clamp(max=p - 1)
 
@@ -34,7 +34,7 @@ def liu_west(x: torch.Tensor, z: torch.Tensor, shrink: float) -> torch.Tensor:
     cov = dev.transpose(1, 2) @ dev / x.shape[1]
     eye = torch.eye(x.shape[-1], dtype=x.dtype, device=x.device)
     chol, info = torch.linalg.cholesky_ex(cov + JITTER * eye)
-    if bool((info > 0).any()):      # a degenerate cloud: its own spread per component
+    if bool((info > 0).any()):  # a degenerate cloud: its own spread per component
         diag = torch.diag_embed(cov.diagonal(dim1=1, dim2=2).clamp(min=0).sqrt())
         chol = torch.where((info > 0).view(-1, 1, 1), diag, chol)
     h = (1.0 - shrink * shrink) ** 0.5

@@ -36,28 +36,39 @@ def state_path(state_dir: str | os.PathLike, actuator: str) -> Path:
     return Path(state_dir) / f"{safe}.pt"
 
 
-def save_state(state_dir: str | os.PathLike, actuator: str, key: str, particles: dict[str, torch.Tensor],
-               inspections: list[dict[str, Any]]) -> Path:
+def save_state(
+    state_dir: str | os.PathLike,
+    actuator: str,
+    key: str,
+    particles: dict[str, torch.Tensor],
+    inspections: list[dict[str, Any]],
+) -> Path:
     """Write one actuator's state atomically."""
     path = state_path(state_dir, actuator)
-    payload = {"actuator": actuator, "fingerprint": key, "inspections": json.dumps(inspections),
-               **{f"particles.{name}": t for name, t in particles.items()}}
+    payload = {
+        "actuator": actuator,
+        "fingerprint": key,
+        "inspections": json.dumps(inspections),
+        **{f"particles.{name}": t for name, t in particles.items()},
+    }
     with atomic_open(path, "wb") as fh:
         torch.save(payload, fh)
     return path
 
 
-def load_state(state_dir: str | os.PathLike, actuator: str, key: str
-               ) -> tuple[dict[str, torch.Tensor], list[dict[str, Any]]] | None:
+def load_state(
+    state_dir: str | os.PathLike, actuator: str, key: str
+) -> tuple[dict[str, torch.Tensor], list[dict[str, Any]]] | None:
     """(particles, inspections) of one actuator if its file exists and has fingerprint ``key``; else None."""
     path = state_path(state_dir, actuator)
     if not path.is_file():
         return None
     try:
         payload = torch.load(path, weights_only=True)
-    except Exception as e:      # a foreign or damaged file: recomputed, never trusted  # noqa: BLE001
-        raise ValueError(f"{path}: not a tracker state file ({type(e).__name__}: {e}); delete it to recompute") \
-            from None
+    except Exception as e:  # a foreign or damaged file: recomputed, never trusted  # noqa: BLE001
+        raise ValueError(
+            f"{path}: not a tracker state file ({type(e).__name__}: {e}); delete it to recompute"
+        ) from None
     if payload.get("fingerprint") != key or payload.get("actuator") != actuator:
         return None
     particles = {name.split(".", 1)[1]: t for name, t in payload.items() if name.startswith("particles.")}

@@ -25,7 +25,7 @@ from .parameters import ParameterSpace
 
 log = logging.getLogger(__name__)
 MIN_RELATIVE_NOISE = 1e-6  # sigma floor as a fraction of the channel range (noise-free data)
-_LM = inspect.signature(fit).parameters   # FitSettings' defaults: the solver's own (phm_torch.fitting.fit)
+_LM = inspect.signature(fit).parameters  # FitSettings' defaults: the solver's own (phm_torch.fitting.fit)
 
 
 @dataclass(frozen=True)
@@ -48,11 +48,13 @@ class FitSettings:
     tol_rel: float = _LM["tol_rel"].default
 
     def __post_init__(self) -> None:
-        values = {"max_iter": checks.integer(self.max_iter, "max_iter", 1),
-                  "lambdas": checks.numbers(self.lambdas, "lambdas", 0.0, True),
-                  "damping": checks.number(self.damping, "damping", 0.0, True),
-                  "tol_abs": checks.number(self.tol_abs, "tol_abs", 0.0),
-                  "tol_rel": checks.number(self.tol_rel, "tol_rel", 0.0)}
+        values = {
+            "max_iter": checks.integer(self.max_iter, "max_iter", 1),
+            "lambdas": checks.numbers(self.lambdas, "lambdas", 0.0, True),
+            "damping": checks.number(self.damping, "damping", 0.0, True),
+            "tol_abs": checks.number(self.tol_abs, "tol_abs", 0.0),
+            "tol_rel": checks.number(self.tol_rel, "tol_rel", 0.0),
+        }
         for key, value in values.items():
             object.__setattr__(self, key, value)
 
@@ -102,16 +104,19 @@ class Calibration:
 
     def errors(self) -> list[dict[str, np.ndarray]]:
         """Per record {channel: simulated - measured (n,)} in channel units."""
-        return [{c: (self.simulated[i][c] - rec.measured[c]).numpy() for c in self.evaluator.channels}
-                for i, rec in enumerate(self.evaluator.records)]
+        return [
+            {c: (self.simulated[i][c] - rec.measured[c]).numpy() for c in self.evaluator.channels}
+            for i, rec in enumerate(self.evaluator.records)
+        ]
 
     def normalised(self) -> list[dict[str, np.ndarray]]:
         """Per record {channel: (simulated - measured) / sigma}."""
         return [{c: e[c] / self.sigma[i][c] for c in e} for i, e in enumerate(self.errors())]
 
 
-def estimate_sigma(evaluator: Evaluator, simulated: Sequence[dict[str, torch.Tensor]],
-                   noise: Callable[[np.ndarray, float], float]) -> list[dict[str, float]]:
+def estimate_sigma(
+    evaluator: Evaluator, simulated: Sequence[dict[str, torch.Tensor]], noise: Callable[[np.ndarray, float], float]
+) -> list[dict[str, float]]:
     """Noise std per record and channel from the residual's high band (floored at 1e-6 of the range)."""
     out = []
     for i, rec in enumerate(evaluator.records):
@@ -129,10 +134,16 @@ def problem_of(space: ParameterSpace, x0: torch.Tensor | None = None, prior: tor
     return Problem(torch.minimum(torch.maximum(x, lo), hi), lo, hi, space.vector("step"), prior)
 
 
-def fit_models(evaluator: Evaluator, spaces: Sequence[ParameterSpace], starts: Sequence[torch.Tensor | None],
-               sigma: Sequence[dict[str, float]] | None, noise: Callable[[np.ndarray, float], float],
-               settings: FitSettings, priors: Sequence[torch.Tensor | None] | None = None,
-               on_iteration: Callable[[int, list[float]], None] | None = None) -> list[Calibration]:
+def fit_models(
+    evaluator: Evaluator,
+    spaces: Sequence[ParameterSpace],
+    starts: Sequence[torch.Tensor | None],
+    sigma: Sequence[dict[str, float]] | None,
+    noise: Callable[[np.ndarray, float], float],
+    settings: FitSettings,
+    priors: Sequence[torch.Tensor | None] | None = None,
+    on_iteration: Callable[[int, list[float]], None] | None = None,
+) -> list[Calibration]:
     """Fit several models together (one simulator call per iteration for all of them).
 
     Args:
@@ -151,10 +162,20 @@ def fit_models(evaluator: Evaluator, spaces: Sequence[ParameterSpace], starts: S
             state["sigma"] = estimate_sigma(evaluator, outs[0].row(0), noise)
         return [(evaluator.residuals(o, state["sigma"]), _Rows(o)) for o in outs]
 
-    results = fit(evaluate, problems, settings.max_iter, settings.lambdas, settings.damping, settings.tol_abs,
-                  settings.tol_rel, on_iteration=on_iteration)
-    return [Calibration(s, r, p, state["sigma"], r.payload, evaluator)
-            for s, r, p in zip(spaces, results, problems, strict=True)]
+    results = fit(
+        evaluate,
+        problems,
+        settings.max_iter,
+        settings.lambdas,
+        settings.damping,
+        settings.tol_abs,
+        settings.tol_rel,
+        on_iteration=on_iteration,
+    )
+    return [
+        Calibration(s, r, p, state["sigma"], r.payload, evaluator)
+        for s, r, p in zip(spaces, results, problems, strict=True)
+    ]
 
 
 class _Rows:

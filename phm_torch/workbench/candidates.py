@@ -40,20 +40,20 @@ from .parameters import effect_defaults
 @dataclass(frozen=True)
 class ScoreSettings:
     """Attributes:
-        step: strength of the probe rows, as a fraction of the parameter's declared scale.
-        hac_lags: Bartlett window of the Newey-West variance [samples].
-        alpha: family-wise significance level (Bonferroni over the candidates tested).
-        grid: {effect: {shape parameter: [values]}} probed besides the defaults (directions of the test).
-        alias_ratio: candidates whose signature keeps less than this fraction of its energy after projecting
-            off the free parameters are reported as aliased (not testable with these free parameters).
-        rank_tol: directions of a candidate whose information is below this fraction of its largest are
-            dropped (grid points that span the same signatures); the test's dof is the rank kept.
-        min_gain: practical significance: the share of the residual sum of squares a candidate must explain
-            (one-step estimate here, the actual reduction once refitted). With tens of thousands of samples a
-            test detects immaterial structure (e.g. LF-vs-HF model error); an unmodelled effect of RMS
-            0.66 sigma, the size at which the NRMSE reaches 1.2x the noise floor, explains 30 %.
-        data_orders: how many of the residual's strongest rotor-angle orders are proposed as the ``order`` of
-            candidates that have one (``torque_ripple``), unless ``grid`` gives their orders.
+    step: strength of the probe rows, as a fraction of the parameter's declared scale.
+    hac_lags: Bartlett window of the Newey-West variance [samples].
+    alpha: family-wise significance level (Bonferroni over the candidates tested).
+    grid: {effect: {shape parameter: [values]}} probed besides the defaults (directions of the test).
+    alias_ratio: candidates whose signature keeps less than this fraction of its energy after projecting
+        off the free parameters are reported as aliased (not testable with these free parameters).
+    rank_tol: directions of a candidate whose information is below this fraction of its largest are
+        dropped (grid points that span the same signatures); the test's dof is the rank kept.
+    min_gain: practical significance: the share of the residual sum of squares a candidate must explain
+        (one-step estimate here, the actual reduction once refitted). With tens of thousands of samples a
+        test detects immaterial structure (e.g. LF-vs-HF model error); an unmodelled effect of RMS
+        0.66 sigma, the size at which the NRMSE reaches 1.2x the noise floor, explains 30 %.
+    data_orders: how many of the residual's strongest rotor-angle orders are proposed as the ``order`` of
+        candidates that have one (``torque_ripple``), unless ``grid`` gives their orders.
     """
 
     step: float = 0.1
@@ -83,12 +83,16 @@ class ScoreSettings:
                 if not vals:
                     raise ValueError(f"score.grid.{name}.{key}: empty list of values")
                 grid[name][key] = checks.numbers(vals, f"score.grid.{name}.{key}")
-        values = {"step": step, "alpha": alpha, "grid": grid,
-                  "hac_lags": checks.integer(self.hac_lags, "score.hac_lags", 0),
-                  "alias_ratio": checks.number(self.alias_ratio, "score.alias_ratio", 0.0),
-                  "rank_tol": checks.number(self.rank_tol, "score.rank_tol", 0.0),
-                  "min_gain": checks.number(self.min_gain, "score.min_gain", 0.0),
-                  "data_orders": checks.integer(self.data_orders, "score.data_orders", 0)}
+        values = {
+            "step": step,
+            "alpha": alpha,
+            "grid": grid,
+            "hac_lags": checks.integer(self.hac_lags, "score.hac_lags", 0),
+            "alias_ratio": checks.number(self.alias_ratio, "score.alias_ratio", 0.0),
+            "rank_tol": checks.number(self.rank_tol, "score.rank_tol", 0.0),
+            "min_gain": checks.number(self.min_gain, "score.min_gain", 0.0),
+            "data_orders": checks.integer(self.data_orders, "score.data_orders", 0),
+        }
         if not values["min_gain"] < 1:
             raise ValueError(f"score.min_gain must be in [0, 1), got {self.min_gain!r}")
         for key, value in values.items():
@@ -143,8 +147,10 @@ def directions(names: Sequence[str], settings: ScoreSettings) -> list[Direction]
         for combo in itertools.product(*[list(grid[k]) for k in keys]) if keys else [()]:
             base = effect_defaults(name, dict(zip(keys, combo)))
             for s in cls.STRENGTH:
-                vals = {k: (settings.step * cls.PARAMS[k].scale if k == s else 0.0) if k in cls.STRENGTH else v
-                        for k, v in base.items()}
+                vals = {
+                    k: (settings.step * cls.PARAMS[k].scale if k == s else 0.0) if k in cls.STRENGTH else v
+                    for k, v in base.items()
+                }
                 out.append(Direction(name, s, vals))
     return out
 
@@ -158,8 +164,9 @@ def newey_west(g: np.ndarray, lags: int) -> np.ndarray:
     return v
 
 
-def score_tests(cal: Calibration, names: Sequence[str], settings: ScoreSettings,
-                given: Mapping[str, Sequence[str]] | None = None) -> list[Candidate]:
+def score_tests(
+    cal: Calibration, names: Sequence[str], settings: ScoreSettings, given: Mapping[str, Sequence[str]] | None = None
+) -> list[Candidate]:
     """Score-test every effect in ``names`` against the calibrated model (one simulator call).
 
     Args:
@@ -204,8 +211,17 @@ def _span(s: torch.Tensor, tol: float) -> torch.Tensor:
     return u[:, sv > tol * sv.max()] if sv.numel() and float(sv.max()) > 0 else s[:, :0]
 
 
-def _test(name: str, dirs: list[Direction], raw: torch.Tensor, eff: torch.Tensor, r: torch.Tensor,
-          jac: torch.Tensor, cal: Calibration, settings: ScoreSettings, rr: float | None = None) -> Candidate:
+def _test(
+    name: str,
+    dirs: list[Direction],
+    raw: torch.Tensor,
+    eff: torch.Tensor,
+    r: torch.Tensor,
+    jac: torch.Tensor,
+    cal: Calibration,
+    settings: ScoreSettings,
+    rr: float | None = None,
+) -> Candidate:
     """One candidate's test; ``rr``: the residual sum of squares its explained fraction is a share of
     (default ``r @ r``; the full residual's when ``r`` is conditioned on other candidates)."""
     cls = EFFECTS[name]
@@ -213,8 +229,9 @@ def _test(name: str, dirs: list[Direction], raw: torch.Tensor, eff: torch.Tensor
     raw_energy = (raw * raw).sum(0).numpy()
     kept = np.diag(a) / np.maximum(raw_energy, 1e-300)
     if raw_energy.max() <= 0 or kept.max() < settings.alias_ratio:
-        return Candidate(name, 0.0, 0, 1.0, 0.0, aliased_with=_aliases(raw[:, int(np.argmax(raw_energy))], jac,
-                                                                     cal.space.names()))
+        return Candidate(
+            name, 0.0, 0, 1.0, 0.0, aliased_with=_aliases(raw[:, int(np.argmax(raw_energy))], jac, cal.space.names())
+        )
     u = (eff.T @ r).numpy()
     w, vecs = np.linalg.eigh(a)
     keep = w > settings.rank_tol * w.max()
@@ -233,13 +250,12 @@ def _test(name: str, dirs: list[Direction], raw: torch.Tensor, eff: torch.Tensor
     # few samples (e.g. at current zero crossings) and could understate it.
     s2 = float(r_alt @ r_alt) / max(len(r_alt) - jac.shape[1] - basis.shape[1], 1)
     ub = basis.T @ u
-    stat, vb = min(((_quad(ub, m), m) for m in (basis.T @ v @ basis, s2 * (basis.T @ a @ basis))),
-                   key=lambda t: t[0])
+    stat, vb = min(((_quad(ub, m), m) for m in (basis.T @ v @ basis, s2 * (basis.T @ a @ basis))), key=lambda t: t[0])
     dof = int(keep.sum())
     # one-step estimate along each single direction: theta_j = -u_j / a_jj (residual change theta * eff_j)
     theta = -u / np.maximum(np.diag(a), 1e-300)
     minimum = [cls.PARAMS[d.strength].minimum for d in dirs]
-    gain = np.where([(mn is not None and mn >= 0 and t < 0) for mn, t in zip(minimum, theta)], 0.0, u ** 2 / np.diag(a))
+    gain = np.where([(mn is not None and mn >= 0 and t < 0) for mn, t in zip(minimum, theta)], 0.0, u**2 / np.diag(a))
     best = int(np.argmax(gain))
     one_sided = len(dirs) == 1 and minimum[0] is not None and minimum[0] >= 0
     if one_sided:
@@ -252,13 +268,22 @@ def _test(name: str, dirs: list[Direction], raw: torch.Tensor, eff: torch.Tensor
     explained = float(u @ np.linalg.pinv(a, rcond=1e-10, hermitian=True) @ u) / rr if rr > 0 else 0.0
     d = dirs[best]
     start = dict(d.values)
-    start[d.strength] = max(float(theta[best]), 0.0 if minimum[best] is not None else -math.inf) * \
-        cls.PARAMS[d.strength].scale
+    start[d.strength] = (
+        max(float(theta[best]), 0.0 if minimum[best] is not None else -math.inf) * cls.PARAMS[d.strength].scale
+    )
     if minimum[best] is not None:
         start[d.strength] = max(start[d.strength], minimum[best])
     contribution = float(theta[best]) * eff[:, best] if gain[best] > 0 else torch.zeros_like(r)
-    return Candidate(name, stat, dof, math.exp(log_p), log_p / math.log(10.0), explained_fraction=explained,
-                     start=start, contribution=contribution)
+    return Candidate(
+        name,
+        stat,
+        dof,
+        math.exp(log_p),
+        log_p / math.log(10.0),
+        explained_fraction=explained,
+        start=start,
+        contribution=contribution,
+    )
 
 
 def _quad(u: np.ndarray, v: np.ndarray) -> float:

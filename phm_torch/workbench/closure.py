@@ -35,7 +35,7 @@ from .model import threads
 from .parameters import FreeParameter, ParameterSpace
 
 log = logging.getLogger(__name__)
-_NET = inspect.signature(ClosureNet).parameters   # equation, output_scale, seed: the network's own defaults
+_NET = inspect.signature(ClosureNet).parameters  # equation, output_scale, seed: the network's own defaults
 
 
 @dataclass
@@ -63,6 +63,7 @@ def attribute(net: ClosureNet, weights: torch.Tensor, feats: torch.Tensor) -> At
 
 def scales_from(simulated: Sequence[dict[str, torch.Tensor]]) -> tuple[float, float, float]:
     """Input normalisers (max |speed|, max |current|, max |surface angle|) from simulated records."""
+
     def top(c: str) -> float:
         return max(float(np.max(np.abs(s[c].numpy()))) for s in simulated) or 1.0
 
@@ -102,18 +103,21 @@ class ClosureSettings:
             raise ValueError(f"closure.equation must be one of {list(EQUATIONS)}, got {self.equation!r}")
         if not isinstance(self.fit, FitSettings):
             raise ValueError(f"closure.fit must be FitSettings, got {self.fit!r}")
-        values = {"data_orders": checks.integer(self.data_orders, "closure.data_orders", 0),
-                  "hidden": checks.integer(self.hidden, "closure.hidden", 0),
-                  "output_scale": checks.number(self.output_scale, "closure.output_scale", 0.0, True),
-                  "ridge": checks.number(self.ridge, "closure.ridge", 0.0),
-                  "fd_step": checks.number(self.fd_step, "closure.fd_step", 0.0, True),
-                  "ratio": checks.number(self.ratio, "closure.ratio", 0.0, True),
-                  "seed": checks.integer(self.seed, "closure.seed", 0)}
-        if self.harmonics is not None:   # None: from the actuator's orders and the residual's
+        values = {
+            "data_orders": checks.integer(self.data_orders, "closure.data_orders", 0),
+            "hidden": checks.integer(self.hidden, "closure.hidden", 0),
+            "output_scale": checks.number(self.output_scale, "closure.output_scale", 0.0, True),
+            "ridge": checks.number(self.ridge, "closure.ridge", 0.0),
+            "fd_step": checks.number(self.fd_step, "closure.fd_step", 0.0, True),
+            "ratio": checks.number(self.ratio, "closure.ratio", 0.0, True),
+            "seed": checks.integer(self.seed, "closure.seed", 0),
+        }
+        if self.harmonics is not None:  # None: from the actuator's orders and the residual's
             if isinstance(self.harmonics, (str, bytes)) or not hasattr(self.harmonics, "__iter__"):
                 raise ValueError(f"closure.harmonics must be null or a list of orders, got {self.harmonics!r}")
-            values["harmonics"] = tuple(checks.integer(h, f"closure.harmonics[{i}]", 1)
-                                        for i, h in enumerate(self.harmonics))
+            values["harmonics"] = tuple(
+                checks.integer(h, f"closure.harmonics[{i}]", 1) for i, h in enumerate(self.harmonics)
+            )
         for key, value in values.items():
             object.__setattr__(self, key, value)
 
@@ -127,8 +131,14 @@ class ClosureResult:
     harmonics: tuple[int, ...] = ()
 
 
-def fit_closure(cal: Calibration, cs: ClosureSettings, noise: Callable[[np.ndarray, float], float], fidelity: str,
-                device: str | torch.device = "cpu", harmonics: Sequence[int] | None = None) -> ClosureResult:
+def fit_closure(
+    cal: Calibration,
+    cs: ClosureSettings,
+    noise: Callable[[np.ndarray, float], float],
+    fidelity: str,
+    device: str | torch.device = "cpu",
+    harmonics: Sequence[int] | None = None,
+) -> ClosureResult:
     """Fit a closure on top of ``cal``'s calibrated model and attribute it.
 
     The calibrated parameters are frozen at their values (they become part of the fixed model) and only the
@@ -139,11 +149,19 @@ def fit_closure(cal: Calibration, cs: ClosureSettings, noise: Callable[[np.ndarr
     harmonics = cs.harmonics if harmonics is None else harmonics
     if harmonics is None:
         raise ValueError("closure.harmonics: no orders given (the workbench derives them from the actuator)")
-    net = ClosureNet(harmonics, cs.hidden, *scales_from(cal.simulated), equation=cs.equation,
-                     output_scale=cs.output_scale, seed=cs.seed)
+    net = ClosureNet(
+        harmonics,
+        cs.hidden,
+        *scales_from(cal.simulated),
+        equation=cs.equation,
+        output_scale=cs.output_scale,
+        seed=cs.seed,
+    )
     unit = "N m" if cs.equation == "torque" else "V"
-    weights = tuple(FreeParameter(f"closure.w{i}", "closure", (i,), 0.0, -1e3, 1e3, cs.fd_step, unit,
-                                  factor=cs.output_scale) for i in range(net.n_weights))
+    weights = tuple(
+        FreeParameter(f"closure.w{i}", "closure", (i,), 0.0, -1e3, 1e3, cs.fd_step, unit, factor=cs.output_scale)
+        for i in range(net.n_weights)
+    )
     base = freeze(cal)
     sp = replace(base, closure=net, free=weights, label=f"{cal.label} + closure")
     prior = torch.full((net.n_weights,), math.sqrt(cs.ridge), dtype=torch.float64)
@@ -151,8 +169,7 @@ def fit_closure(cal: Calibration, cs: ClosureSettings, noise: Callable[[np.ndarr
     def progress(it: int, costs: list[float]) -> None:
         log.info("closure: iteration %d, chi2/2 + prior %.1f", it, costs[0])
 
-    fitted = fit_models(cal.evaluator, [sp], [None], cal.sigma, noise, cs.fit, priors=[prior],
-                        on_iteration=progress)[0]
+    fitted = fit_models(cal.evaluator, [sp], [None], cal.sigma, noise, cs.fit, priors=[prior], on_iteration=progress)[0]
     feats = trace_features(fitted, net, fidelity, device)
     return ClosureResult(fitted, attribute(net, fitted.x, feats), tuple(net.harmonics))
 
@@ -160,14 +177,16 @@ def fit_closure(cal: Calibration, cs: ClosureSettings, noise: Callable[[np.ndarr
 def freeze(cal: Calibration) -> ParameterSpace:
     """``cal``'s model with its free parameters fixed at the fitted values (no free parameter left)."""
     k, scales, eff, _ = cal.space.settings(cal.x.reshape(1, -1))
-    params = cal.space.params.replace(**{f: float(getattr(cal.space.params, f)) * float(v[0])
-                                         for f, v in scales.items()})
+    params = cal.space.params.replace(
+        **{f: float(getattr(cal.space.params, f)) * float(v[0]) for f, v in scales.items()}
+    )
     effects = {n: {key: float(v[0]) for key, v in vals.items()} for n, vals in eff.items()}
     return replace(cal.space, params=params, faults=tuple(float(v) for v in k[0]), effects=effects, free=())
 
 
-def trace_features(cal: Calibration, net: ClosureNet, fidelity: str, device: str | torch.device = "cpu"
-                   ) -> torch.Tensor:
+def trace_features(
+    cal: Calibration, net: ClosureNet, fidelity: str, device: str | torch.device = "cpu"
+) -> torch.Tensor:
     """Closure input features along the fitted trajectory of the first record, (T, d) (one short B = 1 run)."""
     rec = cal.evaluator.records[0]
     k, scales, eff, w = cal.space.settings(cal.x.reshape(1, -1))

@@ -20,9 +20,9 @@ from ..params import ActuatorParams
 
 # Channels the workbench can compare with a simulation (the simulator's names).
 COMPARABLE = ("position", "current", "speed", "motor_angle", "user_angle", "ia", "ib", "ic")
-MIN_DURATION = 0.01        # [s] shortest record worth fitting (diagnostic windows need a few ms)
-START_TOLERANCE = 0.05     # initial position allowed, as a fraction of the largest |command|
-START_SAMPLES = 20         # samples averaged to read the initial position (averages the noise out)
+MIN_DURATION = 0.01  # [s] shortest record worth fitting (diagnostic windows need a few ms)
+START_TOLERANCE = 0.05  # initial position allowed, as a fraction of the largest |command|
+START_SAMPLES = 20  # samples averaged to read the initial position (averages the noise out)
 
 
 @dataclass
@@ -59,8 +59,14 @@ class Record:
         return float(x.max() - x.min())
 
 
-def record_from_measurement(m: Measurement, params: ActuatorParams, channels: Sequence[str], name: str = "record",
-                            path: Path | None = None, dtype: torch.dtype = torch.float64) -> Record:
+def record_from_measurement(
+    m: Measurement,
+    params: ActuatorParams,
+    channels: Sequence[str],
+    name: str = "record",
+    path: Path | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> Record:
     """Check that a measurement can be compared with the model and convert it to a :class:`Record`.
 
     Args:
@@ -76,43 +82,54 @@ def record_from_measurement(m: Measurement, params: ActuatorParams, channels: Se
     where = str(path) if path is not None else name
     rate = float(m.sample_rate)
     if abs(rate - params.sample_rate) > 1e-4 * params.sample_rate:
-        raise ValueError(f"{where}: sample rate {rate:.6g} Hz differs from the model's acquisition rate "
-                         f"actuator.sample_rate={params.sample_rate:.6g} Hz (read with resample=true to interpolate)")
+        raise ValueError(
+            f"{where}: sample rate {rate:.6g} Hz differs from the model's acquisition rate "
+            f"actuator.sample_rate={params.sample_rate:.6g} Hz (read with resample=true to interpolate)"
+        )
     unknown = [c for c in channels if c not in COMPARABLE]
     if unknown:
         raise ValueError(f"channels: {unknown} cannot be compared with a simulation; choose from {list(COMPARABLE)}")
     missing = [c for c in channels if c not in m.channels]
     if missing:
-        raise ValueError(f"{where}: channel(s) {missing} requested by channels= are not in the file; "
-                         f"columns: {['time', *m.channels]}")
+        raise ValueError(
+            f"{where}: channel(s) {missing} requested by channels= are not in the file; "
+            f"columns: {['time', *m.channels]}"
+        )
     n = len(m)
     if (n - 1) / rate < MIN_DURATION:
-        raise ValueError(f"{where}: {n} samples ({(n - 1) / rate:.4g} s) is too short; need at least "
-                         f"{MIN_DURATION} s")
+        raise ValueError(f"{where}: {n} samples ({(n - 1) / rate:.4g} s) is too short; need at least {MIN_DURATION} s")
     for c in channels:
         if float(np.ptp(m[c])) <= 0.0:
             raise ValueError(f"{where}: column {c!r} is constant ({m[c][0]!r}); nothing to compare")
     cmd = m.command
     i_max = int(np.argmax(np.abs(cmd)))
     if abs(cmd[i_max]) > params.end_stop_angle:
-        raise ValueError(f"{where}: column 'command' = {cmd[i_max]:.6g} rad at line {i_max + 2} (t = "
-                         f"{m.time[i_max]:.6g} s) is beyond the model's end stops "
-                         f"actuator.end_stop_angle=±{params.end_stop_angle:g} rad")
+        raise ValueError(
+            f"{where}: column 'command' = {cmd[i_max]:.6g} rad at line {i_max + 2} (t = "
+            f"{m.time[i_max]:.6g} s) is beyond the model's end stops "
+            f"actuator.end_stop_angle=±{params.end_stop_angle:g} rad"
+        )
     amp = float(np.abs(cmd).max())
     start = float(np.mean(m.position[:START_SAMPLES]))
     tol = START_TOLERANCE * amp if amp > 0 else 1e-4
     if abs(start) > tol:
-        raise ValueError(f"{where}: column 'position' starts at {start:.6g} rad (mean of the first {START_SAMPLES} "
-                         f"samples) but the model starts at rest at 0 rad (tolerance {tol:.3g} rad); the record "
-                         "must begin with the actuator at rest at zero")
+        raise ValueError(
+            f"{where}: column 'position' starts at {start:.6g} rad (mean of the first {START_SAMPLES} "
+            f"samples) but the model starts at rest at 0 rad (tolerance {tol:.3g} rad); the record "
+            "must begin with the actuator at rest at zero"
+        )
     t = torch.as_tensor(m.time - m.time[0], dtype=dtype)
     to_t = {c: torch.as_tensor(m[c], dtype=dtype) for c in channels}
     extra = {c: torch.as_tensor(v, dtype=dtype) for c, v in m.channels.items() if c not in to_t and c != "command"}
     return Record(name, t, torch.as_tensor(cmd, dtype=dtype), to_t, rate, path, float(m.time[0]), extra)
 
 
-def load_records(paths: str | os.PathLike | Sequence[str | os.PathLike], params: ActuatorParams,
-                 channels: Sequence[str], resample: bool = False) -> list[Record]:
+def load_records(
+    paths: str | os.PathLike | Sequence[str | os.PathLike],
+    params: ActuatorParams,
+    channels: Sequence[str],
+    resample: bool = False,
+) -> list[Record]:
     """Read and validate one or several measurement CSV files.
 
     Args:

@@ -35,15 +35,15 @@ from .synthetic import Case, synthesize
 SNR_CHANNELS = ("current", "position")
 
 
-def _clean(params: ActuatorParams, cases: Sequence[Case], command: object, duration: float,
-           fidelity: str) -> list[dict[str, np.ndarray]]:
+def _clean(
+    params: ActuatorParams, cases: Sequence[Case], command: object, duration: float, fidelity: str
+) -> list[dict[str, np.ndarray]]:
     """Noise-free {channel: (n,)} of every case, in one batched simulation."""
     ms = synthesize(params, [replace(c, noise={}) for c in cases], command, duration, fidelity=fidelity)
     return [{"current": m.current, "position": m.position} for m in ms]
 
 
-def _snr(with_: dict[str, np.ndarray], without: dict[str, np.ndarray], case: Case,
-         channels: Sequence[str]) -> float:
+def _snr(with_: dict[str, np.ndarray], without: dict[str, np.ndarray], case: Case, channels: Sequence[str]) -> float:
     terms = []
     for ch in channels:
         sigma = float(case.noise.get(ch, 0.0))
@@ -53,8 +53,14 @@ def _snr(with_: dict[str, np.ndarray], without: dict[str, np.ndarray], case: Cas
     return math.sqrt(sum(terms) / len(terms))
 
 
-def signature_snr(params: ActuatorParams, cases: Sequence[Case], command: object, duration: float,
-                  fidelity: str = "lf", channels: Sequence[str] = SNR_CHANNELS) -> list[float]:
+def signature_snr(
+    params: ActuatorParams,
+    cases: Sequence[Case],
+    command: object,
+    duration: float,
+    fidelity: str = "lf",
+    channels: Sequence[str] = SNR_CHANNELS,
+) -> list[float]:
     """Signature SNR [-] of each case's hidden effects (0 for a case without effects).
 
     Args:
@@ -80,9 +86,16 @@ def scaled(case: Case, factor: float) -> Case:
     return replace(case, effects=effects)
 
 
-def scale_to_snr(params: ActuatorParams, cases: Sequence[Case], targets: Sequence[float | None], command: object,
-                 duration: float, fidelity: str = "lf", tolerance: float = 0.2,
-                 channels: Sequence[str] = SNR_CHANNELS) -> tuple[list[Case], list[dict]]:
+def scale_to_snr(
+    params: ActuatorParams,
+    cases: Sequence[Case],
+    targets: Sequence[float | None],
+    command: object,
+    duration: float,
+    fidelity: str = "lf",
+    tolerance: float = 0.2,
+    channels: Sequence[str] = SNR_CHANNELS,
+) -> tuple[list[Case], list[dict]]:
     """Scale each case's hidden strengths so that its signature SNR equals ``targets[i]``.
 
     Cases without effects, or with target ``None``, are returned unchanged. Two or three batched
@@ -110,15 +123,18 @@ def scale_to_snr(params: ActuatorParams, cases: Sequence[Case], targets: Sequenc
     if not todo:
         return out, info
     n = len(todo)
-    sims = _clean(params, [cases[i] for i in todo] + [replace(cases[i], effects={}) for i in todo],
-                  command, duration, fidelity)
+    sims = _clean(
+        params, [cases[i] for i in todo] + [replace(cases[i], effects={}) for i in todo], command, duration, fidelity
+    )
     without = sims[n:]
     factors = {}
     for j, i in enumerate(todo):
         probe = _snr(sims[j], without[j], cases[i], channels)
         if not (math.isfinite(probe) and probe > 0):
-            raise ValueError(f"effects {sorted(cases[i].effects)} of case {i}: probe signature SNR is {probe!r}, "
-                             "cannot scale it to a target")
+            raise ValueError(
+                f"effects {sorted(cases[i].effects)} of case {i}: probe signature SNR is {probe!r}, "
+                "cannot scale it to a target"
+            )
         factors[i] = targets[i] / probe
         info[i] = {"probe_snr": probe, "factor": factors[i], "corrected": False}
 
@@ -128,8 +144,10 @@ def scale_to_snr(params: ActuatorParams, cases: Sequence[Case], targets: Sequenc
         for i, g in zip(idx, got):
             s = _snr(g, without[todo.index(i)], cases[i], channels)
             if not math.isfinite(s):
-                raise ValueError(f"effects {sorted(cases[i].effects)} of case {i}: scaled by {factors[i]:.3g} the "
-                                 "simulation is not finite")
+                raise ValueError(
+                    f"effects {sorted(cases[i].effects)} of case {i}: scaled by {factors[i]:.3g} the "
+                    "simulation is not finite"
+                )
             res[i] = s
         return res
 

@@ -84,8 +84,9 @@ def error_metrics(errors: PerRecord, measured: PerRecord, sigma: Sequence[Mappin
     return out
 
 
-def worst_windows(errors: PerRecord, measured: PerRecord, names: Sequence[str], sample_rate: float,
-                  window: float, count: int) -> list[dict]:
+def worst_windows(
+    errors: PerRecord, measured: PerRecord, names: Sequence[str], sample_rate: float, window: float, count: int
+) -> list[dict]:
     """The ``count`` non-overlapping windows of largest NRMSE (RMS over the window / record range, total over
     channels), each {record, t_start, t_end, nrmse, channels: {ch: nrmse}}, worst first."""
     width = max(2, round(window * sample_rate))
@@ -95,7 +96,7 @@ def worst_windows(errors: PerRecord, measured: PerRecord, names: Sequence[str], 
         n = len(next(iter(err.values())))
         per = {}
         for c, e in err.items():
-            csum = np.concatenate([[0.0], np.cumsum(e ** 2)])
+            csum = np.concatenate([[0.0], np.cumsum(e**2)])
             starts = np.arange(0, max(n - width, 0) + 1, hop)
             per[c] = np.sqrt((csum[np.minimum(starts + width, n)] - csum[starts]) / width) / np.ptp(meas[c])
         total = np.sqrt(np.mean(np.stack(list(per.values())) ** 2, axis=0))
@@ -108,8 +109,16 @@ def worst_windows(errors: PerRecord, measured: PerRecord, names: Sequence[str], 
             chosen.append(cand)
         if len(chosen) == count:
             break
-    return [{"record": names[i], "t_start": s / sample_rate, "t_end": (s + width - 1) / sample_rate, "nrmse": v,
-             "channels": ch} for v, i, s, ch in chosen]
+    return [
+        {
+            "record": names[i],
+            "t_start": s / sample_rate,
+            "t_end": (s + width - 1) / sample_rate,
+            "nrmse": v,
+            "channels": ch,
+        }
+        for v, i, s, ch in chosen
+    ]
 
 
 def _binned(x: np.ndarray, y: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -122,7 +131,7 @@ def _binned(x: np.ndarray, y: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray
     s2 = np.bincount(idx[inside], y[inside] ** 2, minlength=k)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(cnt > 0, s1 / np.maximum(cnt, 1), np.nan)
-        var = np.where(cnt > 1, (s2 - cnt * mean ** 2) / np.maximum(cnt - 1, 1), np.nan)
+        var = np.where(cnt > 1, (s2 - cnt * mean**2) / np.maximum(cnt - 1, 1), np.nan)
         se = np.sqrt(np.maximum(var, 0) / np.maximum(cnt, 1))
     return mean, se, cnt
 
@@ -156,8 +165,9 @@ class Coordinates:
         return values * self.torque_sign if channel == "current" else values
 
 
-def profiles(values: PerRecord, coords: Sequence[Coordinates], settings: DiagnosticSettings, pole_pairs: int,
-             sample_rate: float) -> dict[str, dict]:
+def profiles(
+    values: PerRecord, coords: Sequence[Coordinates], settings: DiagnosticSettings, pole_pairs: int, sample_rate: float
+) -> dict[str, dict]:
     """Binned maps of per-record signals {channel: (n,)} (e.g. normalised residuals).
 
     Returns {map: {"x": bin centres, "unit": ..., channel: {"mean", "se", "count"} or per-branch dicts}} for
@@ -194,7 +204,7 @@ def profiles(values: PerRecord, coords: Sequence[Coordinates], settings: Diagnos
             for v, k in zip(values, coords, strict=True):
                 for i in reversals(k.speed, thr)[pick]:
                     if i - half >= 0 and i + half < len(k.speed):
-                        segs.append(v[c][i - half:i + half + 1])
+                        segs.append(v[c][i - half : i + half + 1])
             if segs:
                 per_lag = np.stack(segs).mean(0)
                 mean = np.bincount(lag_bin, per_lag, minlength=2 * b) / np.bincount(lag_bin, minlength=2 * b)
@@ -202,8 +212,10 @@ def profiles(values: PerRecord, coords: Sequence[Coordinates], settings: Diagnos
                 mean = np.full(2 * b, np.nan)
             out["reversal"][c][branch] = {"mean": mean, "count": np.full(2 * b, float(len(segs)))}
     two_pi = 2 * math.pi
-    for name, theta, lo in (("mechanical_angle", np.mod(ang + math.pi, two_pi) - math.pi, -math.pi),
-                            ("electrical_angle", np.mod(pole_pairs * ang, two_pi), 0.0)):
+    for name, theta, lo in (
+        ("mechanical_angle", np.mod(ang + math.pi, two_pi) - math.pi, -math.pi),
+        ("electrical_angle", np.mod(pole_pairs * ang, two_pi), 0.0),
+    ):
         edges = np.linspace(lo, lo + two_pi, 4 * b + 1)
         out[name] = {"x": 0.5 * (edges[1:] + edges[:-1]), "unit": "rad"}
         for c in chans:
@@ -264,7 +276,7 @@ def autocorrelation(x: np.ndarray, max_lag: int) -> np.ndarray:
     d = float(x @ x)
     n = len(x)
     f = np.fft.rfft(x, 2 * n)
-    ac = np.fft.irfft(f * np.conj(f))[:max_lag + 1]
+    ac = np.fft.irfft(f * np.conj(f))[: max_lag + 1]
     return ac / d if d > 0 else np.zeros(max_lag + 1)
 
 
@@ -280,15 +292,22 @@ def whiteness(values: PerRecord, settings: DiagnosticSettings) -> dict[str, dict
             n = len(x)
             rho = autocorrelation(x, max(settings.max_lag, lag))
             k = np.arange(1, lag + 1)
-            q += n * (n + 2) * float(np.sum(rho[1:lag + 1] ** 2 / (n - k)))
+            q += n * (n + 2) * float(np.sum(rho[1 : lag + 1] ** 2 / (n - k)))
             n_tot += n
-            acs.append(rho[:settings.max_lag + 1] * n)
+            acs.append(rho[: settings.max_lag + 1] * n)
         rho = np.sum(acs, axis=0) / n_tot
         dof = lag * len(values)
         p = float(stats.chi2.sf(q, dof))
         band = z / math.sqrt(n_tot)
-        out[c] = {"q": q, "dof": dof, "p_value": p, "white": bool(p >= settings.alpha), "band": band,
-                  "outside_fraction": float(np.mean(np.abs(rho[1:]) > band)), "autocorrelation": rho}
+        out[c] = {
+            "q": q,
+            "dof": dof,
+            "p_value": p,
+            "white": bool(p >= settings.alpha),
+            "band": band,
+            "outside_fraction": float(np.mean(np.abs(rho[1:]) > band)),
+            "autocorrelation": rho,
+        }
     return out
 
 
@@ -304,15 +323,21 @@ def cross_correlation(values: PerRecord, inputs: Sequence[np.ndarray], settings:
             r = v[c] - v[c].mean()
             w = u - u.mean()
             n = len(r)
-            full = np.correlate(r, w, mode="full")[n - 1 - lag:n + lag]  # lags -L..L of sum r_t w_{t-k}
+            full = np.correlate(r, w, mode="full")[n - 1 - lag : n + lag]  # lags -L..L of sum r_t w_{t-k}
             den = math.sqrt(float(r @ r) * float(w @ w))
             acc += n * (full / den if den > 0 else 0.0)
             n_tot += n
         rho = acc / n_tot
-        stat = n_tot * float(np.sum(rho ** 2))
+        stat = n_tot * float(np.sum(rho**2))
         p = float(stats.chi2.sf(stat, 2 * lag + 1))
         band = z / math.sqrt(n_tot)
-        out[c] = {"lags": np.arange(-lag, lag + 1), "correlation": rho, "band": band, "statistic": stat,
-                  "p_value": p, "uncorrelated": bool(p >= settings.alpha),
-                  "outside_fraction": float(np.mean(np.abs(rho) > band))}
+        out[c] = {
+            "lags": np.arange(-lag, lag + 1),
+            "correlation": rho,
+            "band": band,
+            "statistic": stat,
+            "p_value": p,
+            "uncorrelated": bool(p >= settings.alpha),
+            "outside_fraction": float(np.mean(np.abs(rho) > band)),
+        }
     return out

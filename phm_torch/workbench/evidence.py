@@ -26,9 +26,14 @@ import numpy as np
 from ..effects import EFFECTS
 from .diagnostics import Coordinates, PerRecord, reversals
 
-LABELS = {"speed": "motor speed (signed)", "reversal": "velocity reversals", "position": "surface position",
-          "electrical_angle": "rotor electrical angle", "current": "current magnitude",
-          "harmonic": "rotor mechanical angle"}
+LABELS = {
+    "speed": "motor speed (signed)",
+    "reversal": "velocity reversals",
+    "position": "surface position",
+    "electrical_angle": "rotor electrical angle",
+    "current": "current magnitude",
+    "harmonic": "rotor mechanical angle",
+}
 
 
 @dataclass
@@ -41,8 +46,15 @@ class Groups:
     torque_sign: np.ndarray
 
 
-def groups(coords: Sequence[Coordinates], user_angle: Sequence[np.ndarray], bins: int, pole_pairs: int,
-           sample_rate: float, reversal_window: float, slots: int) -> Groups:
+def groups(
+    coords: Sequence[Coordinates],
+    user_angle: Sequence[np.ndarray],
+    bins: int,
+    pole_pairs: int,
+    sample_rate: float,
+    reversal_window: float,
+    slots: int,
+) -> Groups:
     """Bin indices (``bins`` bins per coordinate) of every sample for the evidence maps.
 
     The surface-position bins are never finer than one slot pitch 2 pi / ``slots`` of rotor travel: the rotor
@@ -59,10 +71,12 @@ def groups(coords: Sequence[Coordinates], user_angle: Sequence[np.ndarray], bins
 
     travel = float(ang.max() - ang.min())
     pos_bins = max(3, min(bins, int(travel * slots / (2 * math.pi))))
-    idx = {"speed": uniform(spd, float(spd.min()), float(spd.max())),
-           "position": uniform(pos, float(pos.min()), float(pos.max()), pos_bins),
-           "electrical_angle": uniform(np.mod(pole_pairs * ang, 2 * math.pi), 0.0, 2 * math.pi),
-           "current": uniform(cur, float(cur.min()), float(cur.max()))}
+    idx = {
+        "speed": uniform(spd, float(spd.min()), float(spd.max())),
+        "position": uniform(pos, float(pos.min()), float(pos.max()), pos_bins),
+        "electrical_angle": uniform(np.mod(pole_pairs * ang, 2 * math.pi), 0.0, 2 * math.pi),
+        "current": uniform(cur, float(cur.min()), float(cur.max())),
+    }
     half = max(1, round(reversal_window * sample_rate))
     rev = []
     for k in coords:
@@ -75,8 +89,9 @@ def groups(coords: Sequence[Coordinates], user_angle: Sequence[np.ndarray], bins
                 lag[lo:hi] = branch * bins + uniform(rel.astype(float), -half, half)
         rev.append(lag)
     idx["reversal"] = np.concatenate(rev)
-    return Groups(idx, {k: int(v.max()) + 1 for k, v in idx.items()}, ang,
-                  np.concatenate([k.torque_sign for k in coords]))
+    return Groups(
+        idx, {k: int(v.max()) + 1 for k, v in idx.items()}, ang, np.concatenate([k.torque_sign for k in coords])
+    )
 
 
 def eta_squared(y: np.ndarray, index: np.ndarray, count: int) -> tuple[float, np.ndarray, np.ndarray]:
@@ -114,8 +129,9 @@ def weighted_corr(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> float:
     return float(np.average(a * b, weights=w) / den) if den > 0 else float("nan")
 
 
-def evidence(name: str, explained: PerRecord, residual: PerRecord, grp: Groups, max_order: int,
-             pole_pairs: int) -> dict:
+def evidence(
+    name: str, explained: PerRecord, residual: PerRecord, grp: Groups, max_order: int, pole_pairs: int
+) -> dict:
     """Evidence dict of one candidate.
 
     Args:
@@ -146,10 +162,23 @@ def evidence(name: str, explained: PerRecord, residual: PerRecord, grp: Groups, 
         fits = [a @ np.linalg.lstsq(a, v * flip, rcond=None)[0] for v in (r, y)]
         corr["harmonic"] = float(np.corrcoef(fits[0], fits[1])[0, 1])
     best = max(shares, key=shares.get)
-    detail = f", harmonic {order} per revolution ({order / pole_pairs:g} per electrical period)" \
-        if best == "harmonic" else ""
+    detail = (
+        f", harmonic {order} per revolution ({order / pole_pairs:g} per electrical period)"
+        if best == "harmonic"
+        else ""
+    )
     c = corr.get(best, float("nan"))
-    summary = (f"{ch} residual pattern vs {LABELS[best]}{detail}: {100 * shares[best]:.0f} % of the effect's "
-               f"signature is a function of it; binned correlation with the residual r = {c:.2f}")
-    return {"channel": ch, "pattern": best, "share": shares[best], "correlation": c, "shares": shares,
-            "harmonic": order, "summary": summary, "explains": EFFECTS[name].explains if name in EFFECTS else ""}
+    summary = (
+        f"{ch} residual pattern vs {LABELS[best]}{detail}: {100 * shares[best]:.0f} % of the effect's "
+        f"signature is a function of it; binned correlation with the residual r = {c:.2f}"
+    )
+    return {
+        "channel": ch,
+        "pattern": best,
+        "share": shares[best],
+        "correlation": c,
+        "shares": shares,
+        "harmonic": order,
+        "summary": summary,
+        "explains": EFFECTS[name].explains if name in EFFECTS else "",
+    }

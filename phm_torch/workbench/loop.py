@@ -104,12 +104,22 @@ class Workbench:
         actuator: the actuator's config name, for the report's provenance record.
     """
 
-    def __init__(self, params: ActuatorParams, fidelity: str = "lf", effects: Mapping[str, Mapping | None] | None = None,
-                 free: Sequence[str] = DEFAULT_FREE, groups: Mapping[str, Sequence[str]] | None = DEFAULT_GROUPS,
-                 faults: Sequence[float] | None = None, channels: Sequence[str] = ("position", "current"),
-                 settings: WorkbenchSettings | None = None, noise: Callable[[np.ndarray, float], float] | None = None,
-                 scale_bounds: tuple[float, float] = (0.2, 5.0), device: str | torch.device = "cpu",
-                 threads: int | None = 1, actuator: str = "unnamed"):
+    def __init__(
+        self,
+        params: ActuatorParams,
+        fidelity: str = "lf",
+        effects: Mapping[str, Mapping | None] | None = None,
+        free: Sequence[str] = DEFAULT_FREE,
+        groups: Mapping[str, Sequence[str]] | None = DEFAULT_GROUPS,
+        faults: Sequence[float] | None = None,
+        channels: Sequence[str] = ("position", "current"),
+        settings: WorkbenchSettings | None = None,
+        noise: Callable[[np.ndarray, float], float] | None = None,
+        scale_bounds: tuple[float, float] = (0.2, 5.0),
+        device: str | torch.device = "cpu",
+        threads: int | None = 1,
+        actuator: str = "unnamed",
+    ):
         self.params, self.fidelity, self.actuator = params, fidelity, str(actuator)
         self.effects = {k: dict(v or {}) for k, v in (effects or {}).items()}
         self.free, self.groups = list(free), dict(DEFAULT_GROUPS if groups is None else groups)
@@ -149,8 +159,9 @@ class Workbench:
         effects = self.effects if effects is None else effects
         free = [f for f in self.free if "." not in f or f.split(".", 1)[0] in effects]
         extra = {n: self.settings.refit_free.get(n, EFFECTS[n].STRENGTH) for n in effects if n in EFFECTS}
-        return build_space(self.params, free, self.groups, self.faults, effects, extra, self.scale_bounds,
-                           self.settings.fd_step, label)
+        return build_space(
+            self.params, free, self.groups, self.faults, effects, extra, self.scale_bounds, self.settings.fd_step, label
+        )
 
     def load(self, paths: Any, resample: bool = False) -> list[Record]:
         return load_records(paths, self.params, self.channels, resample)
@@ -158,11 +169,19 @@ class Workbench:
     def evaluator(self, records: Sequence[Record]) -> Evaluator:
         return Evaluator(self.params, self.fidelity, records, self.channels, self.device, self.threads)
 
-    def calibrate(self, ev: Evaluator, space: ParameterSpace | None = None,
-                  sigma: Sequence[dict[str, float]] | None = None) -> Calibration:
+    def calibrate(
+        self, ev: Evaluator, space: ParameterSpace | None = None, sigma: Sequence[dict[str, float]] | None = None
+    ) -> Calibration:
         """Fit the free parameters of ``space`` (default: the configured model)."""
-        return fit_models(ev, [space or self.space()], [None], sigma, self.noise, self.settings.calibration,
-                          on_iteration=_progress("calibrate"))[0]
+        return fit_models(
+            ev,
+            [space or self.space()],
+            [None],
+            sigma,
+            self.noise,
+            self.settings.calibration,
+            on_iteration=_progress("calibrate"),
+        )[0]
 
     def library(self, cal: Calibration) -> list[str]:
         names = self.settings.library if self.settings.library is not None else sorted(EFFECTS)
@@ -178,17 +197,32 @@ class Workbench:
         given = {n: list(NAMED_ORDERS) for n in names if "order" in EFFECTS[n].PARAMS}
         cands = score_tests(cal, names, sc, given)
         ds, p = self.settings.diagnostics, self.params
-        grp = groups(coordinates(cal), [s["user_angle"].numpy() for s in cal.simulated], 2 * ds.bins,
-                     p.pole_pairs, p.sample_rate, ds.reversal_window, p.stator_slots)
+        grp = groups(
+            coordinates(cal),
+            [s["user_angle"].numpy() for s in cal.simulated],
+            2 * ds.bins,
+            p.pole_pairs,
+            p.sample_rate,
+            ds.reversal_window,
+            p.stator_slots,
+        )
         normed = cal.normalised()
         for c in cands:
             if c.aliased_with is not None:
-                c.evidence = {"summary": f"not testable: its signature is a combination of the free parameters "
-                                         f"({c.aliased_with})", "pattern": None, "explains": EFFECTS[c.effect].explains}
+                c.evidence = {
+                    "summary": f"not testable: its signature is a combination of the free parameters "
+                    f"({c.aliased_with})",
+                    "pattern": None,
+                    "explains": EFFECTS[c.effect].explains,
+                }
                 continue
             if not bool(c.contribution.abs().max() > 0):
-                c.evidence = {"summary": "explains nothing: the residual asks for a negative strength, which this "
-                                         "effect cannot have", "pattern": None, "explains": EFFECTS[c.effect].explains}
+                c.evidence = {
+                    "summary": "explains nothing: the residual asks for a negative strength, which this "
+                    "effect cannot have",
+                    "pattern": None,
+                    "explains": EFFECTS[c.effect].explains,
+                }
                 continue
             parts = cal.evaluator.split((-c.contribution).unsqueeze(0))
             explained = [{ch: v[0].numpy() for ch, v in part.items()} for part in parts]
@@ -199,7 +233,7 @@ class Workbench:
         """Refit the model with each of the top ``refit_top`` testable candidates (together), set their
         ΔBIC, keep ``significant`` only where the refit lowers the BIC and the residual sum of squares by
         ``score.min_gain``, and reorder best first."""
-        top = [c for c in cands if c.aliased_with is None][:self.settings.refit_top]
+        top = [c for c in cands if c.aliased_with is None][: self.settings.refit_top]
         if top:
             spaces, starts = [], []
             for c in top:
@@ -207,8 +241,15 @@ class Workbench:
                 sp, x0 = cal.space.with_effect(c.effect, c.start, list(keys), cal.x, self.settings.fd_step)
                 spaces.append(sp)
                 starts.append(x0)
-            refits = fit_models(cal.evaluator, spaces, starts, cal.sigma, self.noise, self.settings.refit,
-                                on_iteration=_progress("refit"))
+            refits = fit_models(
+                cal.evaluator,
+                spaces,
+                starts,
+                cal.sigma,
+                self.noise,
+                self.settings.refit,
+                on_iteration=_progress("refit"),
+            )
             for c, rf in zip(top, refits, strict=True):
                 c.refit, c.delta_bic = rf, rf.bic - cal.bic
                 gain = (cal.chi2 - rf.chi2) / cal.chi2
@@ -219,8 +260,9 @@ class Workbench:
         """Refit ``cal``'s model with effect ``name`` added (its strength and ``refit_free`` parameters free)."""
         keys = self.settings.refit_free.get(name, EFFECTS[name].STRENGTH)
         sp, x0 = cal.space.with_effect(name, dict(values or {}), list(keys), cal.x, self.settings.fd_step)
-        return fit_models(cal.evaluator, [sp], [x0], cal.sigma, self.noise, self.settings.refit,
-                          on_iteration=_progress(f"add {name}"))[0]
+        return fit_models(
+            cal.evaluator, [sp], [x0], cal.sigma, self.noise, self.settings.refit, on_iteration=_progress(f"add {name}")
+        )[0]
 
     def fit_closure(self, cal: Calibration) -> ClosureResult:
         """Fit a neural closure on top of ``cal``'s calibrated model (frozen) and attribute it to its inputs."""
@@ -235,13 +277,16 @@ class Workbench:
         errors, normed = cal.errors(), cal.normalised()
         coords = coordinates(cal)
         measured = [{c: r.measured[c].numpy() for c in self.channels} for r in recs]
-        return {"worst_windows": worst_windows(errors, measured, [r.name for r in recs], p.sample_rate, ds.window,
-                                               ds.worst),
-                "profiles": profiles(normed, coords, ds, p.pole_pairs, p.sample_rate),
-                "harmonics": harmonics(normed, coords, self.max_order),
-                "spectrum": spectrum(errors, p.sample_rate),
-                "whiteness": whiteness(normed, ds),
-                "cross_correlation": cross_correlation(normed, [r.command.numpy() for r in recs], ds)}
+        return {
+            "worst_windows": worst_windows(
+                errors, measured, [r.name for r in recs], p.sample_rate, ds.window, ds.worst
+            ),
+            "profiles": profiles(normed, coords, ds, p.pole_pairs, p.sample_rate),
+            "harmonics": harmonics(normed, coords, self.max_order),
+            "spectrum": spectrum(errors, p.sample_rate),
+            "whiteness": whiteness(normed, ds),
+            "cross_correlation": cross_correlation(normed, [r.command.numpy() for r in recs], ds),
+        }
 
     def metrics(self, cal: Calibration, sigma: Sequence[dict[str, float]]) -> dict:
         measured = [{c: r.measured[c].numpy() for c in self.channels} for r in cal.evaluator.records]
@@ -296,11 +341,28 @@ class Workbench:
         timing["total_s"] = time.perf_counter() - t0
         timing["total_cpu_s"] = time.process_time() - c0
         timing["simulator_calls"] = float(ev.calls)
-        orders = {"actuator": actuator_orders(self.params), "max_order": self.max_order,
-                  "residual": self.residual_orders(model, max(s.score.data_orders, s.closure.data_orders, 3)),
-                  "closure": list(closure.harmonics) if closure is not None else None}
-        return WorkbenchResult(list(records), model, current, rounds, before_after, closure, diags, metrics, noise,
-                               timing, s, self.fidelity, self.actuator, orders)
+        orders = {
+            "actuator": actuator_orders(self.params),
+            "max_order": self.max_order,
+            "residual": self.residual_orders(model, max(s.score.data_orders, s.closure.data_orders, 3)),
+            "closure": list(closure.harmonics) if closure is not None else None,
+        }
+        return WorkbenchResult(
+            list(records),
+            model,
+            current,
+            rounds,
+            before_after,
+            closure,
+            diags,
+            metrics,
+            noise,
+            timing,
+            s,
+            self.fidelity,
+            self.actuator,
+            orders,
+        )
 
     def _wants_closure(self, cal: Calibration, rounds: list[Round], noise: list[dict[str, float]]) -> bool:
         mode = self.settings.closure.enabled
@@ -328,8 +390,9 @@ def coordinates(cal: Calibration) -> list[Coordinates]:
     for s, rec in zip(cal.simulated, cal.evaluator.records, strict=True):
         w, th, thu = (s[c].numpy() for c in ("speed", "motor_angle", "user_angle"))
         torque = jm * np.gradient(w) * rec.sample_rate + cm * w + tc * np.sign(w) + kt * (th / n - thu) / n
-        out.append(Coordinates(w, th, rec.measured.get("current", s["current"]).numpy(),
-                               np.where(torque >= 0, 1.0, -1.0)))
+        out.append(
+            Coordinates(w, th, rec.measured.get("current", s["current"]).numpy(), np.where(torque >= 0, 1.0, -1.0))
+        )
     return out
 
 

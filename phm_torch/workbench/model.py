@@ -64,8 +64,15 @@ class Evaluator:
         threads: intra-op threads during simulations (see :func:`threads`; ``None`` leaves torch's setting).
     """
 
-    def __init__(self, params: ActuatorParams, fidelity: str, records: Sequence[Record], channels: Sequence[str],
-                 device: str | torch.device = "cpu", threads: int | None = 1):
+    def __init__(
+        self,
+        params: ActuatorParams,
+        fidelity: str,
+        records: Sequence[Record],
+        channels: Sequence[str],
+        device: str | torch.device = "cpu",
+        threads: int | None = 1,
+    ):
         if not records:
             raise ValueError("the workbench needs at least one measurement record")
         self.params, self.fidelity, self.records = params, fidelity, list(records)
@@ -74,12 +81,19 @@ class Evaluator:
         if fidelity not in MOTORS:
             raise ValueError(f"fidelity must be one of {sorted(MOTORS)}, got {fidelity!r}")
         # a motor's own channels (the HF phase currents) exist in that fidelity only
-        theirs = [c for c in self.channels if c not in SHARED_CHANNELS and c not in MOTORS[fidelity].channels
-                  and any(c in m.channels for m in MOTORS.values())]
+        theirs = [
+            c
+            for c in self.channels
+            if c not in SHARED_CHANNELS
+            and c not in MOTORS[fidelity].channels
+            and any(c in m.channels for m in MOTORS.values())
+        ]
         if theirs:
             owners = sorted(f for f, m in MOTORS.items() if set(theirs) & set(m.channels))
-            raise ValueError(f"channels {theirs} exist only in the {'/'.join(f.upper() for f in owners)} model; "
-                             f"use fidelity={owners[0]} or drop them")
+            raise ValueError(
+                f"channels {theirs} exist only in the {'/'.join(f.upper() for f in owners)} model; "
+                f"use fidelity={owners[0]} or drop them"
+            )
         self.sim_channels = tuple(dict.fromkeys((*STATE_CHANNELS, *self.channels)))
         groups: dict[int, list[int]] = {}
         for i, rec in enumerate(self.records):
@@ -116,12 +130,12 @@ class Evaluator:
             k, sc, eff, w = space.settings(x)
             faults.append(k)
             for f, v in sc.items():
-                scales.setdefault(f, torch.ones(total, dtype=torch.float64))[offset:offset + p] = v
+                scales.setdefault(f, torch.ones(total, dtype=torch.float64))[offset : offset + p] = v
             for name in names:
                 vals = eff.get(name) or _off(name, p)
                 dest = effects.setdefault(name, {})
                 for key, v in vals.items():
-                    dest.setdefault(key, torch.zeros(total, dtype=torch.float64))[offset:offset + p] = v
+                    dest.setdefault(key, torch.zeros(total, dtype=torch.float64))[offset : offset + p] = v
             if closure_net is not None:
                 closures.append(w if w is not None else torch.zeros(p, closure_net.n_weights, dtype=torch.float64))
             offset += p
@@ -136,15 +150,20 @@ class Evaluator:
             cmd = torch.cat([self.records[i].command.to(self.device).expand(total, -1) for i in group])
             rec0 = self.records[group[0]]
             with torch.no_grad(), threads(self.threads):
-                sig = sim.run(k_all.repeat(reps, 1), cmd, rec0.duration,
-                              scales={f: v.repeat(reps) for f, v in scales.items()}, channels=self.sim_channels)
+                sig = sim.run(
+                    k_all.repeat(reps, 1),
+                    cmd,
+                    rec0.duration,
+                    scales={f: v.repeat(reps) for f, v in scales.items()},
+                    channels=self.sim_channels,
+                )
             self.calls += 1
             self.simulated_rows += total * reps
             for g, i in enumerate(group):
                 start = g * total
                 off = 0
                 for b, p in enumerate(sizes):
-                    outputs[b].channels[i] = {c: sig[c][start + off:start + off + p].cpu() for c in self.sim_channels}
+                    outputs[b].channels[i] = {c: sig[c][start + off : start + off + p].cpu() for c in self.sim_channels}
                     off += p
         return outputs
 
@@ -162,7 +181,7 @@ class Evaluator:
         for rec in self.records:
             d = {}
             for c in self.channels:
-                d[c] = r[..., pos:pos + len(rec)]
+                d[c] = r[..., pos : pos + len(rec)]
                 pos += len(rec)
             out.append(d)
         return out

@@ -32,8 +32,9 @@ class HighBandNoise:
     def __post_init__(self) -> None:
         band = checks.numbers(self.band, "noise.band")
         if len(band) != 2 or not 0.0 <= band[0] < band[1] <= 0.5:
-            raise ValueError(f"noise.band must be [low, high] with 0 <= low < high <= 0.5 (fractions of f_s), "
-                             f"got {list(band)}")
+            raise ValueError(
+                f"noise.band must be [low, high] with 0 <= low < high <= 0.5 (fractions of f_s), got {list(band)}"
+            )
         object.__setattr__(self, "band", band)
         object.__setattr__(self, "segment", checks.integer(self.segment, "noise.segment", 16))
 

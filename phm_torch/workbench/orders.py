@@ -82,8 +82,14 @@ def order_power(values: PerRecord, coords: Sequence[Coordinates], top: int) -> n
     return power
 
 
-def residual_orders(values: PerRecord, coords: Sequence[Coordinates], top: int, count: int,
-                    exclude: Iterable[int] = (), min_periods: float = 2.0) -> list[int]:
+def residual_orders(
+    values: PerRecord,
+    coords: Sequence[Coordinates],
+    top: int,
+    count: int,
+    exclude: Iterable[int] = (),
+    min_periods: float = 2.0,
+) -> list[int]:
     """The residual's ``count`` strongest rotor-angle orders, strongest first.
 
     Args:

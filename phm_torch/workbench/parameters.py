@@ -100,8 +100,9 @@ class ParameterSpace:
     def names(self) -> list[str]:
         return [p.name for p in self.free]
 
-    def settings(self, x: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor],
-                                                  dict[str, dict[str, torch.Tensor]], torch.Tensor | None]:
+    def settings(
+        self, x: torch.Tensor
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor], dict[str, dict[str, torch.Tensor]], torch.Tensor | None]:
         """Simulator inputs of a batch of parameter vectors.
 
         Args:
@@ -116,8 +117,10 @@ class ParameterSpace:
         x = x.to(torch.float64)
         faults = torch.tensor(self.faults, dtype=torch.float64).expand(p, N_FAULTS).clone()
         scales: dict[str, torch.Tensor] = {}
-        effects = {name: {k: torch.full((p,), float(v), dtype=torch.float64) for k, v in vals.items()}
-                   for name, vals in self.effects.items()}
+        effects = {
+            name: {k: torch.full((p,), float(v), dtype=torch.float64) for k, v in vals.items()}
+            for name, vals in self.effects.items()
+        }
         weights = None
         if self.closure is not None:
             weights = torch.zeros(p, self.closure.n_weights, dtype=torch.float64)
@@ -139,8 +142,15 @@ class ParameterSpace:
         _, _, eff, _ = self.settings(x.reshape(1, -1))
         return {name: {k: float(v[0]) for k, v in vals.items()} for name, vals in eff.items()}
 
-    def with_effect(self, name: str, values: Mapping[str, float], free: Sequence[str], x: torch.Tensor,
-                    fd_step: float, label: str | None = None) -> tuple[ParameterSpace, torch.Tensor]:
+    def with_effect(
+        self,
+        name: str,
+        values: Mapping[str, float],
+        free: Sequence[str],
+        x: torch.Tensor,
+        fd_step: float,
+        label: str | None = None,
+    ) -> tuple[ParameterSpace, torch.Tensor]:
         """This model plus effect ``name`` (its parameters ``free`` fitted, the others fixed at ``values``).
 
         Args:
@@ -154,8 +164,12 @@ class ParameterSpace:
             raise ValueError(f"effect {name!r} is already in the model")
         full = effect_defaults(name, values)
         new_free = [effect_parameter(name, key, full[key], fd_step) for key in free]
-        space = replace(self, effects={**self.effects, name: full}, free=(*self.free, *new_free),
-                        label=label or f"{self.label} + {name}")
+        space = replace(
+            self,
+            effects={**self.effects, name: full},
+            free=(*self.free, *new_free),
+            label=label or f"{self.label} + {name}",
+        )
         x_new = torch.cat([x.to(torch.float64), torch.tensor([p.x0 for p in new_free], dtype=torch.float64)])
         return space, x_new
 
@@ -197,14 +211,22 @@ def effect_parameter(name: str, key: str, value: float, fd_step: float) -> FreeP
     spec = cls.PARAMS[key]
     lower = -EFFECT_BOUND if spec.minimum is None else spec.minimum / spec.scale
     x0 = min(max(value / spec.scale, lower), EFFECT_BOUND)
-    return FreeParameter(f"{name}.{key}", "effect", (name, key), x0, lower, EFFECT_BOUND, fd_step, spec.unit,
-                         factor=spec.scale)
+    return FreeParameter(
+        f"{name}.{key}", "effect", (name, key), x0, lower, EFFECT_BOUND, fd_step, spec.unit, factor=spec.scale
+    )
 
 
-def build_space(params: ActuatorParams, free: Sequence[str], groups: Mapping[str, Sequence[str]] | None = None,
-                faults: Sequence[float] | None = None, effects: Mapping[str, Mapping[str, Any] | None] | None = None,
-                effect_free: Mapping[str, Sequence[str]] | None = None, scale_bounds: tuple[float, float] = (0.2, 5.0),
-                fd_step: float = 1e-2, label: str = "model") -> ParameterSpace:
+def build_space(
+    params: ActuatorParams,
+    free: Sequence[str],
+    groups: Mapping[str, Sequence[str]] | None = None,
+    faults: Sequence[float] | None = None,
+    effects: Mapping[str, Mapping[str, Any] | None] | None = None,
+    effect_free: Mapping[str, Sequence[str]] | None = None,
+    scale_bounds: tuple[float, float] = (0.2, 5.0),
+    fd_step: float = 1e-2,
+    label: str = "model",
+) -> ParameterSpace:
     """The model to calibrate.
 
     Args:
@@ -230,8 +252,9 @@ def build_space(params: ActuatorParams, free: Sequence[str], groups: Mapping[str
             raise ValueError(f"groups.{gname}: a group may not be named like a datasheet field")
         bad = [f for f in fields_ or [] if f not in TENSOR_FIELDS]
         if bad or not fields_:
-            raise ValueError(f"groups.{gname}: unknown or missing datasheet field(s) {bad or fields_}; "
-                             f"known: {list(TENSOR_FIELDS)}")
+            raise ValueError(
+                f"groups.{gname}: unknown or missing datasheet field(s) {bad or fields_}; known: {list(TENSOR_FIELDS)}"
+            )
     base_faults = tuple(float(v) for v in (faults if faults is not None else params.nominal_faults))
     model_effects = {name: effect_defaults(name, vals) for name, vals in (effects or {}).items()}
     out: list[FreeParameter] = []
@@ -241,20 +264,27 @@ def build_space(params: ActuatorParams, free: Sequence[str], groups: Mapping[str
         m = _FAULT_KEY.match(name)
         if m:
             i = int(m.group(1)) - 1
-            out.append(FreeParameter(f"k{i + 1}", "fault", (i,), base_faults[i], 0.0, 1.0, fd_step,
-                                     f"- ({FAULT_NAMES[i]})"))
+            out.append(
+                FreeParameter(f"k{i + 1}", "fault", (i,), base_faults[i], 0.0, 1.0, fd_step, f"- ({FAULT_NAMES[i]})")
+            )
         elif name in groups:
-            out.append(FreeParameter(name, "scale", tuple(groups[name]), 0.0, math.log(lo), math.log(hi), fd_step,
-                                     "x nominal"))
+            out.append(
+                FreeParameter(name, "scale", tuple(groups[name]), 0.0, math.log(lo), math.log(hi), fd_step, "x nominal")
+            )
         elif name in TENSOR_FIELDS:
-            out.append(FreeParameter(name, "scale", (name,), 0.0, math.log(lo), math.log(hi), fd_step, "",
-                                     float(getattr(params, name))))
+            out.append(
+                FreeParameter(
+                    name, "scale", (name,), 0.0, math.log(lo), math.log(hi), fd_step, "", float(getattr(params, name))
+                )
+            )
         elif "." in name and name.split(".", 1)[0] in model_effects:
             eff, key = name.split(".", 1)
             out.append(effect_parameter(eff, key, model_effects[eff].get(key, math.nan), fd_step))
         else:
-            raise ValueError(f"free: unknown parameter {name!r}; use a datasheet field {list(TENSOR_FIELDS)}, "
-                             f"a group {sorted(groups)}, k1..k8, or EFFECT.PARAM of a model effect")
+            raise ValueError(
+                f"free: unknown parameter {name!r}; use a datasheet field {list(TENSOR_FIELDS)}, "
+                f"a group {sorted(groups)}, k1..k8, or EFFECT.PARAM of a model effect"
+            )
     for eff in model_effects:
         keys = (effect_free or {}).get(eff, EFFECTS[eff].STRENGTH)
         for key in keys:

@@ -13,11 +13,23 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-SCALE = {"position": (1e3, "mrad"), "user_angle": (1e3, "mrad"), "current": (1.0, "A"), "speed": (1.0, "rad/s"),
-         "motor_angle": (1.0, "rad"), "ia": (1.0, "A"), "ib": (1.0, "A"), "ic": (1.0, "A")}
-MAPS = (("speed", "motor speed |ω| [rad/s]"), ("reversal", "time from reversal [ms]"),
-        ("mechanical_angle", "θ_m (wrapped to ±π) [rad]"), ("electrical_angle", "θ_e mod 2π [rad]"),
-        ("current", "|current| [A]"))
+SCALE = {
+    "position": (1e3, "mrad"),
+    "user_angle": (1e3, "mrad"),
+    "current": (1.0, "A"),
+    "speed": (1.0, "rad/s"),
+    "motor_angle": (1.0, "rad"),
+    "ia": (1.0, "A"),
+    "ib": (1.0, "A"),
+    "ic": (1.0, "A"),
+}
+MAPS = (
+    ("speed", "motor speed |ω| [rad/s]"),
+    ("reversal", "time from reversal [ms]"),
+    ("mechanical_angle", "θ_m (wrapped to ±π) [rad]"),
+    ("electrical_angle", "θ_e mod 2π [rad]"),
+    ("current", "|current| [A]"),
+)
 
 
 def _png(fig: Any) -> bytes:
@@ -28,8 +40,14 @@ def _png(fig: Any) -> bytes:
     return buf.getvalue()
 
 
-def overlay(time: np.ndarray, measured: Mapping[str, np.ndarray], models: Mapping[str, Mapping[str, np.ndarray]],
-            sigma: Mapping[str, float], windows: Sequence[Mapping[str, float]], title: str) -> bytes:
+def overlay(
+    time: np.ndarray,
+    measured: Mapping[str, np.ndarray],
+    models: Mapping[str, Mapping[str, np.ndarray]],
+    sigma: Mapping[str, float],
+    windows: Sequence[Mapping[str, float]],
+    title: str,
+) -> bytes:
     """Measured vs simulated channels of one record, and the errors of each model with the +-2 sigma band;
     the worst windows shaded."""
     chans = list(measured)
@@ -84,8 +102,9 @@ def maps(profiles: Mapping[str, Mapping[str, dict]], channels: Sequence[str]) ->
     return _png(fig)
 
 
-def harmonic_bars(harmonics: Mapping[str, Mapping[str, np.ndarray]], channels: Sequence[str], pole_pairs: int,
-                  slots: int) -> bytes:
+def harmonic_bars(
+    harmonics: Mapping[str, Mapping[str, np.ndarray]], channels: Sequence[str], pole_pairs: int, slots: int
+) -> bytes:
     """Harmonic content of the normalised residual vs mechanical order of the rotor angle."""
     fig, axes = plt.subplots(len(channels), 1, figsize=(10, 2.4 * len(channels)), squeeze=False)
     n = len(harmonics)
@@ -123,8 +142,9 @@ def spectra(spec: Mapping[str, Mapping[str, np.ndarray]], sigma: Mapping[str, fl
     return _png(fig)
 
 
-def correlations(white: Mapping[str, Mapping[str, dict]], cross: Mapping[str, Mapping[str, dict]],
-                 sample_rate: float) -> bytes:
+def correlations(
+    white: Mapping[str, Mapping[str, dict]], cross: Mapping[str, Mapping[str, dict]], sample_rate: float
+) -> bytes:
     """Residual autocorrelation and residual-command cross-correlation with their significance bands."""
     chans = list(next(iter(white.values())))
     fig, axes = plt.subplots(len(chans), 2, figsize=(11, 2.6 * len(chans)), squeeze=False)
@@ -132,10 +152,20 @@ def correlations(white: Mapping[str, Mapping[str, dict]], cross: Mapping[str, Ma
         for row, c in enumerate(chans):
             w, x = white[label][c], cross[label][c]
             lags = np.arange(len(w["autocorrelation"])) / sample_rate * 1e3
-            axes[row, 0].plot(lags[1:], w["autocorrelation"][1:], color=f"C{i}", lw=0.9,
-                              label=f"{label} (Ljung-Box p={w['p_value']:.2g})")
-            axes[row, 1].plot(np.asarray(x["lags"]) / sample_rate * 1e3, x["correlation"], color=f"C{i}", lw=0.9,
-                              label=f"{label} (p={x['p_value']:.2g})")
+            axes[row, 0].plot(
+                lags[1:],
+                w["autocorrelation"][1:],
+                color=f"C{i}",
+                lw=0.9,
+                label=f"{label} (Ljung-Box p={w['p_value']:.2g})",
+            )
+            axes[row, 1].plot(
+                np.asarray(x["lags"]) / sample_rate * 1e3,
+                x["correlation"],
+                color=f"C{i}",
+                lw=0.9,
+                label=f"{label} (p={x['p_value']:.2g})",
+            )
             for col, band in ((0, w["band"]), (1, x["band"])):
                 axes[row, col].axhspan(-band, band, color="k", alpha=0.1)
     for row, c in enumerate(chans):
@@ -172,11 +202,17 @@ def before_after(rows: Sequence[Mapping[str, Any]], floor: Mapping[str, float]) 
     n = len(rows)
     x = np.arange(len(chans))
     for i, r in enumerate(rows):
-        ax.bar(x + (i - (n - 1) / 2) * 0.8 / n, [100 * r["nrmse"][c] for c in chans], width=0.8 / n, color=f"C{i}",
-               label=r["model"])
+        ax.bar(
+            x + (i - (n - 1) / 2) * 0.8 / n,
+            [100 * r["nrmse"][c] for c in chans],
+            width=0.8 / n,
+            color=f"C{i}",
+            label=r["model"],
+        )
     for j, c in enumerate(chans):
-        ax.hlines(100 * floor[c], j - 0.45, j + 0.45, color="k", ls="--", lw=1.0,
-                  label="noise floor" if j == 0 else None)
+        ax.hlines(
+            100 * floor[c], j - 0.45, j + 0.45, color="k", ls="--", lw=1.0, label="noise floor" if j == 0 else None
+        )
     ax.set_xticks(x, chans)
     ax.set_ylabel("NRMSE [%]")
     ax.legend(fontsize="small")

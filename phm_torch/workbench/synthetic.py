@@ -40,8 +40,9 @@ class Case:
     seed: int = 0
 
 
-def synthesize(params: ActuatorParams, cases: Sequence[Case], command: torch.Tensor | object, duration: float,
-               fidelity: str = "lf") -> list[Measurement]:
+def synthesize(
+    params: ActuatorParams, cases: Sequence[Case], command: torch.Tensor | object, duration: float, fidelity: str = "lf"
+) -> list[Measurement]:
     """Simulate every case in one call and return noisy measurements.
 
     Args:
@@ -59,8 +60,9 @@ def synthesize(params: ActuatorParams, cases: Sequence[Case], command: torch.Ten
                 off = name not in c.effects and k in cls.STRENGTH
                 cols[k].append(0.0 if off else vals[k])
         spec[name] = {k: torch.tensor(v, dtype=torch.float64) for k, v in cols.items()}
-    faults = torch.tensor([list(c.faults) if c.faults is not None else list(params.nominal_faults) for c in cases],
-                          dtype=torch.float64)
+    faults = torch.tensor(
+        [list(c.faults) if c.faults is not None else list(params.nominal_faults) for c in cases], dtype=torch.float64
+    )
     fields_ = sorted({f for c in cases for f in c.scales})
     scales = {f: torch.tensor([float(c.scales.get(f, 1.0)) for c in cases], dtype=torch.float64) for f in fields_}
     sim = EMASimulator(params, fidelity, effects=spec)
@@ -71,6 +73,14 @@ def synthesize(params: ActuatorParams, cases: Sequence[Case], command: torch.Ten
         clean = {k: sig[k][i].clone() for k in (*CSV_CHANNELS, "command")}
         chans = add_sensor_noise(clean, {k: float(v) for k, v in c.noise.items()}, int(c.seed))
         np_ = {k: v.numpy() for k, v in chans.items()}
-        out.append(Measurement(sig.time.numpy().copy(), np_["command"], np_["position"], np_["current"],
-                               {k: np_[k] for k in ("speed", "motor_angle")}, float(params.sample_rate)))
+        out.append(
+            Measurement(
+                sig.time.numpy().copy(),
+                np_["command"],
+                np_["position"],
+                np_["current"],
+                {k: np_[k] for k in ("speed", "motor_angle")},
+                float(params.sample_rate),
+            )
+        )
     return out

@@ -24,7 +24,7 @@ from torch import nn
 from ...faults import N_FAULTS
 
 WARPS = ("none", "sqrt")
-WARP_EPS = 1e-4     # sqrt warp offset: sqrt(1e-4) = 0.01, small against the typical sqrt(k) ~ 0.2
+WARP_EPS = 1e-4  # sqrt warp offset: sqrt(1e-4) = 0.01, small against the typical sqrt(k) ~ 0.2
 
 
 def check_warp(warp: str) -> str:
@@ -52,8 +52,9 @@ def check_training_set(k: torch.Tensor, healthy: torch.Tensor) -> tuple[torch.Te
         raise ValueError("classifier: k contains NaN or inf")
     h = healthy.bool()
     if bool(h.all()) or not bool(h.any()):
-        raise ValueError(f"classifier: the training labels must contain both classes, got {int(h.sum())} healthy "
-                         f"of {h.numel()}")
+        raise ValueError(
+            f"classifier: the training labels must contain both classes, got {int(h.sum())} healthy of {h.numel()}"
+        )
     return k.to(torch.float64), torch.where(h, 1.0, -1.0).to(torch.float64)
 
 
@@ -118,8 +119,9 @@ class FeatureMapSVM(HealthClassifier):
     def _fit_linear(self, k64: torch.Tensor, y: torch.Tensor) -> None:
         from .training import fit_squared_hinge, sample_weights
 
-        beta, bias, n_iter = fit_squared_hinge(self.features(k64), y, self.C, sample_weights(y, self.class_weight),
-                                               self.max_iter, self.tol)
+        beta, bias, n_iter = fit_squared_hinge(
+            self.features(k64), y, self.C, sample_weights(y, self.class_weight), self.max_iter, self.tol
+        )
         self.beta, self.bias = beta, bias
         self.n_iter_ = n_iter
 

@@ -58,7 +58,7 @@ def mlp_forward(z: torch.Tensor, flat: torch.Tensor, layout: list[tuple[int, int
     for i, spec in enumerate(layout):
         offset, n_out, n_in = spec
         end = offset + n_out * n_in
-        h = F.linear(h, flat[offset:end].view(n_out, n_in), flat[end:end + n_out])
+        h = F.linear(h, flat[offset:end].view(n_out, n_in), flat[end : end + n_out])
         if i < last:
             h = torch.tanh(h)
     return h.squeeze(1)
@@ -69,7 +69,7 @@ def glorot_init(layout: list[tuple[int, int, int]], generator: torch.Generator, 
     flat = torch.zeros(n_weights(layout), dtype=dtype)
     for offset, n_out, n_in in layout:
         bound = math.sqrt(6.0 / (n_in + n_out))
-        flat[offset:offset + n_out * n_in].uniform_(-bound, bound, generator=generator)
+        flat[offset : offset + n_out * n_in].uniform_(-bound, bound, generator=generator)
     return flat
 
 
@@ -101,12 +101,26 @@ class MLPClassifier(HealthClassifier):
 
     name = "mlp"
 
-    def __init__(self, hidden: Sequence[int] = (64, 64, 64), warp: str = "sqrt", epochs: int = 150,
-                 batch_size: int = 512, lr: float = 1e-3, weight_decay: float = 0.0, schedule: str = "cosine",
-                 class_weight: str | None = None, seed: int = 0, dtype: str = "float32"):
+    def __init__(
+        self,
+        hidden: Sequence[int] = (64, 64, 64),
+        warp: str = "sqrt",
+        epochs: int = 150,
+        batch_size: int = 512,
+        lr: float = 1e-3,
+        weight_decay: float = 0.0,
+        schedule: str = "cosine",
+        class_weight: str | None = None,
+        seed: int = 0,
+        dtype: str = "float32",
+    ):
         super().__init__()
-        if isinstance(hidden, (str, bytes)) or not isinstance(hidden, Sequence) or len(hidden) == 0 or any(
-                isinstance(h, bool) or not isinstance(h, int) or h < 1 for h in hidden):
+        if (
+            isinstance(hidden, (str, bytes))
+            or not isinstance(hidden, Sequence)
+            or len(hidden) == 0
+            or any(isinstance(h, bool) or not isinstance(h, int) or h < 1 for h in hidden)
+        ):
             raise ValueError(f"classifier.hidden must be a non-empty list of positive integers, got {hidden!r}")
         self.hidden = [int(h) for h in hidden]
         self.warp = check_warp(warp)
@@ -114,8 +128,11 @@ class MLPClassifier(HealthClassifier):
         self.batch_size = _positive_int(batch_size, "batch_size")
         if isinstance(lr, bool) or not isinstance(lr, (int, float)) or not (math.isfinite(lr) and lr > 0):
             raise ValueError(f"classifier.lr must be > 0, got {lr!r}")
-        if isinstance(weight_decay, bool) or not isinstance(weight_decay, (int, float)) or not (
-                math.isfinite(weight_decay) and weight_decay >= 0):
+        if (
+            isinstance(weight_decay, bool)
+            or not isinstance(weight_decay, (int, float))
+            or not (math.isfinite(weight_decay) and weight_decay >= 0)
+        ):
             raise ValueError(f"classifier.weight_decay must be >= 0, got {weight_decay!r}")
         if schedule not in SCHEDULES:
             raise ValueError(f"classifier.schedule must be one of {list(SCHEDULES)}, got {schedule!r}")
@@ -160,9 +177,10 @@ class MLPClassifier(HealthClassifier):
                 order = torch.randperm(n, generator=gen)
                 total = 0.0
                 for start in range(0, n, self.batch_size):
-                    idx = order[start:start + self.batch_size]
-                    loss = F.binary_cross_entropy_with_logits(mlp_forward(z[idx], flat, self.layout), target[idx],
-                                                              weight=weight[idx])
+                    idx = order[start : start + self.batch_size]
+                    loss = F.binary_cross_entropy_with_logits(
+                        mlp_forward(z[idx], flat, self.layout), target[idx], weight=weight[idx]
+                    )
                     opt.zero_grad(set_to_none=True)
                     loss.backward()
                     opt.step()
@@ -175,6 +193,15 @@ class MLPClassifier(HealthClassifier):
         return self
 
     def get_params(self) -> dict[str, Any]:
-        return {"hidden": list(self.hidden), "warp": self.warp, "epochs": self.epochs, "batch_size": self.batch_size,
-                "lr": self.lr, "weight_decay": self.weight_decay, "schedule": self.schedule,
-                "class_weight": self.class_weight, "seed": self.seed, "dtype": self.dtype}
+        return {
+            "hidden": list(self.hidden),
+            "warp": self.warp,
+            "epochs": self.epochs,
+            "batch_size": self.batch_size,
+            "lr": self.lr,
+            "weight_decay": self.weight_decay,
+            "schedule": self.schedule,
+            "class_weight": self.class_weight,
+            "seed": self.seed,
+            "dtype": self.dtype,
+        }

@@ -35,7 +35,7 @@ def monomial_map(n: int, degree: int, gamma: float, coef0: float) -> tuple[torch
         counts = [combo.count(j) for j in set(combo)]
         multinomial = math.factorial(degree) / math.prod(math.factorial(m) for m in counts)
         zeros = combo.count(0)
-        scale = coef0 ** zeros * gamma ** (degree - zeros)
+        scale = coef0**zeros * gamma ** (degree - zeros)
         if scale == 0.0:
             continue
         idx.append(combo)
@@ -61,9 +61,18 @@ class PolynomialSVM(FeatureMapSVM):
 
     name = "poly_svm"
 
-    def __init__(self, degree: int = 3, coef0: float = 1.0, gamma: float | None = None, C: float = 1.0,
-                 class_weight: str | None = None, standardize: bool = True, max_iter: int = 500, tol: float = 1e-9,
-                 warp: str = "none"):
+    def __init__(
+        self,
+        degree: int = 3,
+        coef0: float = 1.0,
+        gamma: float | None = None,
+        C: float = 1.0,
+        class_weight: str | None = None,
+        standardize: bool = True,
+        max_iter: int = 500,
+        tol: float = 1e-9,
+        warp: str = "none",
+    ):
         super().__init__()
         if isinstance(degree, bool) or not isinstance(degree, int) or not 1 <= degree <= 6:
             raise ValueError(f"classifier.degree must be an integer in [1, 6], got {degree!r}")
@@ -89,7 +98,7 @@ class PolynomialSVM(FeatureMapSVM):
     def features(self, k: torch.Tensor) -> torch.Tensor:
         """phi(z(k)) (B, F) of fault vectors (B, 8)."""
         z = (warp_inputs(k.to(self.k_mean.dtype), self.warp) - self.k_mean) / self.k_std
-        u = torch.cat([torch.ones_like(z[:, :1]), z], dim=1)         # the 1 carries sqrt(coef0) in coef
+        u = torch.cat([torch.ones_like(z[:, :1]), z], dim=1)  # the 1 carries sqrt(coef0) in coef
         return self.feature_coef * u[:, self.feature_index].prod(-1)
 
     def forward(self, k: torch.Tensor) -> torch.Tensor:
@@ -102,7 +111,7 @@ class PolynomialSVM(FeatureMapSVM):
         """
         self.check_input(k)
         z = (warp_inputs(k.to(self.k_mean.dtype), self.warp) - self.k_mean) / self.k_std
-        u = torch.cat([torch.ones_like(z[:, :1]), z], dim=1)                       # (B, n+1)
+        u = torch.cat([torch.ones_like(z[:, :1]), z], dim=1)  # (B, n+1)
         n1 = u.shape[1]
         flat = torch.zeros(1, dtype=torch.long, device=u.device)
         size = 1
@@ -111,7 +120,7 @@ class PolynomialSVM(FeatureMapSVM):
             size *= n1
         t = torch.zeros(size, dtype=u.dtype, device=u.device)
         t = t.index_add(0, flat, self.feature_coef * self.beta)
-        y = u @ t.view(n1, -1)                                                     # (B, n1^(d-1))
+        y = u @ t.view(n1, -1)  # (B, n1^(d-1))
         for _ in range(self.degree - 1):
             y = (y.view(y.shape[0], -1, n1) * u.unsqueeze(1)).sum(-1)
         return y.squeeze(-1) + self.bias
@@ -126,6 +135,14 @@ class PolynomialSVM(FeatureMapSVM):
         return self
 
     def get_params(self) -> dict[str, Any]:
-        return {"degree": self.degree, "coef0": self.coef0, "gamma": self.gamma, "C": self.C,
-                "class_weight": self.class_weight, "standardize": self.standardize, "max_iter": self.max_iter,
-                "tol": self.tol, "warp": self.warp}
+        return {
+            "degree": self.degree,
+            "coef0": self.coef0,
+            "gamma": self.gamma,
+            "C": self.C,
+            "class_weight": self.class_weight,
+            "standardize": self.standardize,
+            "max_iter": self.max_iter,
+            "tol": self.tol,
+            "warp": self.warp,
+        }

@@ -33,9 +33,17 @@ class RBFSVM(FeatureMapSVM):
 
     name = "rbf_svm"
 
-    def __init__(self, n_landmarks: int = 300, gamma: float | None = None, C: float = 1.0,
-                 class_weight: str | None = None, seed: int = 0, max_iter: int = 500, tol: float = 1e-9,
-                 warp: str = "none"):
+    def __init__(
+        self,
+        n_landmarks: int = 300,
+        gamma: float | None = None,
+        C: float = 1.0,
+        class_weight: str | None = None,
+        seed: int = 0,
+        max_iter: int = 500,
+        tol: float = 1e-9,
+        warp: str = "none",
+    ):
         super().__init__()
         if isinstance(n_landmarks, bool) or not isinstance(n_landmarks, int) or n_landmarks < 2:
             raise ValueError(f"classifier.n_landmarks must be an integer >= 2, got {n_landmarks!r}")
@@ -74,11 +82,19 @@ class RBFSVM(FeatureMapSVM):
         pick = torch.randperm(z.shape[0], generator=torch.Generator().manual_seed(self.seed))[:m]
         self.landmarks = z[pick]
         evals, evecs = torch.linalg.eigh(self._kernel(self.landmarks, self.landmarks))
-        keep = evals > evals.max() * 1e-10                               # drop the numerically null part
+        keep = evals > evals.max() * 1e-10  # drop the numerically null part
         self.whitening = evecs[:, keep] / evals[keep].sqrt()
         self._fit_linear(k64, y)
         return self
 
     def get_params(self) -> dict[str, Any]:
-        return {"n_landmarks": self.n_landmarks, "gamma": self.gamma, "C": self.C, "class_weight": self.class_weight,
-                "seed": self.seed, "max_iter": self.max_iter, "tol": self.tol, "warp": self.warp}
+        return {
+            "n_landmarks": self.n_landmarks,
+            "gamma": self.gamma,
+            "C": self.C,
+            "class_weight": self.class_weight,
+            "seed": self.seed,
+            "max_iter": self.max_iter,
+            "tol": self.tol,
+            "warp": self.warp,
+        }

@@ -36,8 +36,8 @@ import torch
 from ...io.atomic import atomic_open
 from .base import HealthClassifier
 
-Sampler = Callable[[int, int], np.ndarray]           # (n, round) -> K (n, 8) float64
-Assessor = Callable[[np.ndarray], np.ndarray]         # K (n, 8) -> healthy (n,) bool
+Sampler = Callable[[int, int], np.ndarray]  # (n, round) -> K (n, 8) float64
+Assessor = Callable[[np.ndarray], np.ndarray]  # K (n, 8) -> healthy (n,) bool
 
 
 @dataclass(frozen=True)
@@ -68,12 +68,30 @@ class BoundaryRefinement:
         return max(1, round(self.labels_per_round * n_initial))
 
 
-def _cache_key(settings: BoundaryRefinement, r: int, seed: int, classifier: HealthClassifier,
-               k: torch.Tensor, healthy: torch.Tensor, context: Mapping[str, Any]) -> str:
+def _cache_key(
+    settings: BoundaryRefinement,
+    r: int,
+    seed: int,
+    classifier: HealthClassifier,
+    k: torch.Tensor,
+    healthy: torch.Tensor,
+    context: Mapping[str, Any],
+) -> str:
     """Digest of everything that determines round r's labels (the initial set through its bytes)."""
-    h = hashlib.sha256(json.dumps({"settings": vars(settings), "round": r, "seed": seed, "name": classifier.name,
-                                   "params": classifier.get_params(), "context": dict(context)},
-                                  sort_keys=True, default=str).encode())
+    h = hashlib.sha256(
+        json.dumps(
+            {
+                "settings": vars(settings),
+                "round": r,
+                "seed": seed,
+                "name": classifier.name,
+                "params": classifier.get_params(),
+                "context": dict(context),
+            },
+            sort_keys=True,
+            default=str,
+        ).encode()
+    )
     h.update(k.to(torch.float64).numpy().tobytes())
     h.update(healthy.to(torch.uint8).numpy().tobytes())
     return h.hexdigest()
@@ -93,9 +111,17 @@ def _save_round(path: Path, key: str, k: np.ndarray, healthy: np.ndarray) -> Non
         np.savez(fh, key=np.array(key), K=k, healthy=healthy.astype(np.uint8))
 
 
-def refine_classifier(classifier: HealthClassifier, k: torch.Tensor, healthy: torch.Tensor, sample: Sampler,
-                      assess: Assessor, settings: BoundaryRefinement, seed: int, cache_dir: Path | None = None,
-                      context: Mapping[str, Any] | None = None) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
+def refine_classifier(
+    classifier: HealthClassifier,
+    k: torch.Tensor,
+    healthy: torch.Tensor,
+    sample: Sampler,
+    assess: Assessor,
+    settings: BoundaryRefinement,
+    seed: int,
+    cache_dir: Path | None = None,
+    context: Mapping[str, Any] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
     """Fit ``classifier`` on (k, healthy), then refine it for ``settings.rounds`` rounds (see the module).
 
     Args:
@@ -115,8 +141,15 @@ def refine_classifier(classifier: HealthClassifier, k: torch.Tensor, healthy: to
     """
     k_all, h_all = k.to(torch.float64), healthy.bool()
     n_new = settings.n_labels(len(h_all))
-    info: dict[str, Any] = {"rounds": settings.rounds, "labels_per_round": n_new, "added": 0,
-                            "boundary_accuracy": [], "healthy_fraction": [], "cached": [], "assess_s": 0.0}
+    info: dict[str, Any] = {
+        "rounds": settings.rounds,
+        "labels_per_round": n_new,
+        "added": 0,
+        "boundary_accuracy": [],
+        "healthy_fraction": [],
+        "cached": [],
+        "assess_s": 0.0,
+    }
     classifier.fit(k_all, h_all)
     for r in range(settings.rounds):
         key = _cache_key(settings, r, seed, classifier, k, healthy, context or {})
@@ -135,8 +168,9 @@ def refine_classifier(classifier: HealthClassifier, k: torch.Tensor, healthy: to
             h_new = np.asarray(assess(k_new), dtype=bool)
             info["assess_s"] += time.perf_counter() - t0
             if h_new.shape != (len(k_new),):
-                raise ValueError(f"classifier_refine: the assessment returned shape {h_new.shape} for "
-                                 f"{len(k_new)} vectors")
+                raise ValueError(
+                    f"classifier_refine: the assessment returned shape {h_new.shape} for {len(k_new)} vectors"
+                )
             if path is not None:
                 _save_round(path, key, k_new, h_new)
         info["boundary_accuracy"].append(float(((score[pick] > 0).numpy() == h_new).mean()))

@@ -23,13 +23,21 @@ def sample_weights(y: torch.Tensor, class_weight: str | None) -> torch.Tensor:
     return torch.where(y > 0, n / (2.0 * pos), n / (2.0 * (n - pos)))
 
 
-def fit_squared_hinge(features: torch.Tensor, y: torch.Tensor, c: float, weights: torch.Tensor,
-                      max_iter: int, tol: float) -> tuple[torch.Tensor, torch.Tensor, int]:
+def fit_squared_hinge(
+    features: torch.Tensor, y: torch.Tensor, c: float, weights: torch.Tensor, max_iter: int, tol: float
+) -> tuple[torch.Tensor, torch.Tensor, int]:
     """(beta (F,), b (), iterations) for features (N, F) float64 and labels y (N,) in {-1, +1}."""
     beta = torch.zeros(features.shape[1], dtype=torch.float64, requires_grad=True)
     bias = torch.zeros((), dtype=torch.float64, requires_grad=True)
-    opt = torch.optim.LBFGS([beta, bias], lr=1.0, max_iter=max_iter, tolerance_grad=tol, tolerance_change=1e-14,
-                            history_size=20, line_search_fn="strong_wolfe")
+    opt = torch.optim.LBFGS(
+        [beta, bias],
+        lr=1.0,
+        max_iter=max_iter,
+        tolerance_grad=tol,
+        tolerance_change=1e-14,
+        history_size=20,
+        line_search_fn="strong_wolfe",
+    )
 
     def closure() -> torch.Tensor:
         opt.zero_grad()

@@ -9,5 +9,15 @@ from .registry import SELECTORS, build_selector
 from .som import SOMSelector
 from .uniform import UniformSelector
 
-__all__ = ["SELECTORS", "GreedySelector", "MinErrorSelector", "QDEIMSelector", "RandomSelector", "SOMSelector", "Selector",
-           "UniformSelector", "build_selector", "qr_pivots"]
+__all__ = [
+    "SELECTORS",
+    "GreedySelector",
+    "MinErrorSelector",
+    "QDEIMSelector",
+    "RandomSelector",
+    "SOMSelector",
+    "Selector",
+    "UniformSelector",
+    "build_selector",
+    "qr_pivots",
+]

@@ -51,8 +51,10 @@ class Selector(abc.ABC):
         idx = self._select(modes.detach().to(torch.float64).cpu(), time.detach().to(torch.float64).cpu())
         idx = torch.as_tensor(idx, dtype=torch.long).flatten()
         if idx.numel() != self.n_points or idx.unique().numel() != self.n_points:
-            raise RuntimeError(f"selector {self.name} returned {idx.numel()} indices "
-                               f"({idx.unique().numel()} distinct), expected {self.n_points}")
+            raise RuntimeError(
+                f"selector {self.name} returned {idx.numel()} indices "
+                f"({idx.unique().numel()} distinct), expected {self.n_points}"
+            )
         self.indices_ = torch.sort(idx).values
         return self
 

@@ -58,11 +58,11 @@ class GreedySelector(Selector):
     def _scores(self, modes: torch.Tensor, gram: torch.Tensor) -> torch.Tensor:
         """(n_e,) value of the criterion after adding each sample."""
         if self.criterion == "d_optimal":
-            sol = torch.linalg.solve(gram, modes.T)             # G^-1 v for every candidate, (n_m, n_e)
+            sol = torch.linalg.solve(gram, modes.T)  # G^-1 v for every candidate, (n_m, n_e)
             return (modes.T * sol).sum(0)
         out = []
         for rows in modes.split(self.chunk):
-            updated = gram + rows.unsqueeze(-1) * rows.unsqueeze(-2)   # (c, n_m, n_m)
+            updated = gram + rows.unsqueeze(-1) * rows.unsqueeze(-2)  # (c, n_m, n_m)
             out.append(torch.linalg.eigvalsh(updated)[:, 0])
         return torch.cat(out)
 

@@ -44,19 +44,19 @@ class MinErrorSelector(Selector):
             return torch.tensor(chosen)
         snap = self._snapshots
         centred = snap - snap.mean(0) if self._mean is None else snap - self._mean
-        coef = centred @ modes                                           # (n_sig, n_m)
-        resid = (centred - coef @ modes.T).T.contiguous()                # (n_e, n_sig)
+        coef = centred @ modes  # (n_sig, n_m)
+        resid = (centred - coef @ modes.T).T.contiguous()  # (n_e, n_sig)
         weight = 1.0 / (coef.amax(1) - coef.amin(1)).clamp(min=torch.finfo(coef.dtype).tiny) ** 2
         free = torch.ones(n_e, dtype=torch.bool)
         free[chosen] = False
         for _ in range(self.n_points - len(chosen)):
             rows = modes[chosen]
             ginv = torch.linalg.inv(rows.T @ rows)
-            err = ginv @ (rows.T @ resid[chosen])                        # (n_m, n_sig) current errors
-            u = ginv @ modes.T                                           # (n_m, n_e)
-            denom = 1.0 + (modes.T * u).sum(0)                           # (n_e,)
-            step = (resid - modes @ err) / denom.unsqueeze(-1)           # (n_e, n_sig)
-            cross = u.T @ err                                            # (n_e, n_sig)
+            err = ginv @ (rows.T @ resid[chosen])  # (n_m, n_sig) current errors
+            u = ginv @ modes.T  # (n_m, n_e)
+            denom = 1.0 + (modes.T * u).sum(0)  # (n_e,)
+            step = (resid - modes @ err) / denom.unsqueeze(-1)  # (n_e, n_sig)
+            cross = u.T @ err  # (n_e, n_sig)
             change = 2.0 * (step * cross) @ weight + u.pow(2).sum(0) * (step.pow(2) @ weight)
             change[~free] = torch.inf
             best = int(torch.argmin(change))
@@ -64,15 +64,20 @@ class MinErrorSelector(Selector):
             free[best] = False
         return torch.tensor(chosen)
 
-    def fit(self, modes: torch.Tensor, time: torch.Tensor | None = None, snapshots: torch.Tensor | None = None,
-            mean: torch.Tensor | None = None) -> MinErrorSelector:
+    def fit(
+        self,
+        modes: torch.Tensor,
+        time: torch.Tensor | None = None,
+        snapshots: torch.Tensor | None = None,
+        mean: torch.Tensor | None = None,
+    ) -> MinErrorSelector:
         """As :meth:`Selector.fit`, with the training snapshots (n_s, n_e) [A] and optionally the POD mean
         signal (n_e,) (default: the snapshots' mean)."""
         if snapshots is None:
             raise ValueError("selector min_error needs the training snapshots: fit(modes, time, snapshots=Y)")
         if snapshots.ndim != 2 or snapshots.shape[1] != modes.shape[0]:
             raise ValueError(f"snapshots must be (n_s, {modes.shape[0]}), got {tuple(snapshots.shape)}")
-        self._snapshots = snapshots[: self.n_signals].detach().to(torch.float64).cpu()   # only these are used
+        self._snapshots = snapshots[: self.n_signals].detach().to(torch.float64).cpu()  # only these are used
         self._mean = None if mean is None else mean.detach().to(torch.float64).cpu()
         try:
             return super().fit(modes, time)

@@ -12,9 +12,10 @@ from .random import RandomSelector
 from .som import SOMSelector
 from .uniform import UniformSelector
 
-SELECTORS: dict[str, type[Selector]] = {cls.name: cls for cls in
-                                        (SOMSelector, QDEIMSelector, GreedySelector, MinErrorSelector, UniformSelector,
-                                         RandomSelector)}
+SELECTORS: dict[str, type[Selector]] = {
+    cls.name: cls
+    for cls in (SOMSelector, QDEIMSelector, GreedySelector, MinErrorSelector, UniformSelector, RandomSelector)
+}
 
 
 def build_selector(name: str, **params: Any) -> Selector:

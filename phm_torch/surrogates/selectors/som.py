@@ -45,9 +45,16 @@ class SOMSelector(Selector):
 
     name = "som"
 
-    def __init__(self, n_points: int, map_shape: tuple[int, int] | list[int] | None = None, time_weight: float = 1.0,
-                 column_scaling: str = "maxabs", epochs: int = 100, sigma_start: float | None = None,
-                 sigma_end: float = 0.5):
+    def __init__(
+        self,
+        n_points: int,
+        map_shape: tuple[int, int] | list[int] | None = None,
+        time_weight: float = 1.0,
+        column_scaling: str = "maxabs",
+        epochs: int = 100,
+        sigma_start: float | None = None,
+        sigma_end: float = 0.5,
+    ):
         super().__init__(n_points)
         if map_shape is None:
             map_shape = (1, n_points)
@@ -55,17 +62,25 @@ class SOMSelector(Selector):
         if len(shape) != 2 or any(isinstance(s, bool) or not isinstance(s, int) or s < 1 for s in shape):
             raise ValueError(f"selector.map_shape must be two positive integers (rows, cols), got {map_shape!r}")
         if shape[0] * shape[1] != n_points:
-            raise ValueError(f"selector.map_shape {list(shape)} has {shape[0] * shape[1]} neurons but "
-                             f"n_points={n_points}: rows * cols must equal n_points")
+            raise ValueError(
+                f"selector.map_shape {list(shape)} has {shape[0] * shape[1]} neurons but "
+                f"n_points={n_points}: rows * cols must equal n_points"
+            )
         if not (isinstance(time_weight, (int, float)) and math.isfinite(time_weight) and time_weight > 0):
             raise ValueError(f"selector.time_weight must be a positive number, got {time_weight!r}")
         if column_scaling not in SCALINGS:
             raise ValueError(f"selector.column_scaling must be one of {list(SCALINGS)}, got {column_scaling!r}")
         sigma0 = max(max(shape) / 4.0, 1.0) if sigma_start is None else sigma_start
-        if not (isinstance(sigma0, (int, float)) and isinstance(sigma_end, (int, float))
-                and 0 < sigma_end <= sigma0 and math.isfinite(sigma0)):
-            raise ValueError(f"selector.sigma_start and sigma_end must satisfy 0 < sigma_end <= sigma_start, "
-                             f"got sigma_start={sigma_start!r}, sigma_end={sigma_end!r}")
+        if not (
+            isinstance(sigma0, (int, float))
+            and isinstance(sigma_end, (int, float))
+            and 0 < sigma_end <= sigma0
+            and math.isfinite(sigma0)
+        ):
+            raise ValueError(
+                f"selector.sigma_start and sigma_end must satisfy 0 < sigma_end <= sigma_start, "
+                f"got sigma_start={sigma_start!r}, sigma_end={sigma_end!r}"
+            )
         self.map_shape = shape
         self.time_weight = float(time_weight)
         self.column_scaling = column_scaling
@@ -86,19 +101,21 @@ class SOMSelector(Selector):
     def train_map(self, data: torch.Tensor) -> torch.Tensor:
         """Batch-SOM weights (n_points, d) trained on ``data`` (n_e, d)."""
         rows, cols = self.map_shape
-        grid = torch.stack(torch.meshgrid(torch.arange(rows, dtype=data.dtype), torch.arange(cols, dtype=data.dtype),
-                                          indexing="ij"), -1).reshape(-1, 2)
-        grid_d2 = torch.cdist(grid, grid).pow(2)                      # (n_w, n_w) squared map distances
+        grid = torch.stack(
+            torch.meshgrid(torch.arange(rows, dtype=data.dtype), torch.arange(cols, dtype=data.dtype), indexing="ij"),
+            -1,
+        ).reshape(-1, 2)
+        grid_d2 = torch.cdist(grid, grid).pow(2)  # (n_w, n_w) squared map distances
         # Initial neurons: the rows at evenly spaced samples, in map (row-major) order.
         start = torch.linspace(0, data.shape[0] - 1, self.n_points, dtype=torch.float64).round().long()
         weights = data[start].clone()
         ratio = self.sigma_end / self._sigma0
         for epoch in range(self.epochs):
             sigma = self._sigma0 * ratio ** (epoch / max(self.epochs - 1, 1))
-            bmu = torch.cdist(data, weights).argmin(1)                # (n_e,) best-matching neuron
+            bmu = torch.cdist(data, weights).argmin(1)  # (n_e,) best-matching neuron
             counts = torch.bincount(bmu, minlength=self.n_points).to(data.dtype)
             sums = torch.zeros_like(weights).index_add_(0, bmu, data)
-            h = torch.exp(-grid_d2 / (2.0 * sigma * sigma))            # (n_w, n_w), symmetric
+            h = torch.exp(-grid_d2 / (2.0 * sigma * sigma))  # (n_w, n_w), symmetric
             weights = (h @ sums) / (h @ counts).clamp(min=torch.finfo(data.dtype).tiny).unsqueeze(-1)
         return weights
 
@@ -119,6 +136,12 @@ class SOMSelector(Selector):
         return torch.tensor(chosen)
 
     def get_params(self) -> dict[str, object]:
-        return {**super().get_params(), "map_shape": list(self.map_shape), "time_weight": self.time_weight,
-                "column_scaling": self.column_scaling, "epochs": self.epochs, "sigma_start": self.sigma_start,
-                "sigma_end": self.sigma_end}
+        return {
+            **super().get_params(),
+            "map_shape": list(self.map_shape),
+            "time_weight": self.time_weight,
+            "column_scaling": self.column_scaling,
+            "epochs": self.epochs,
+            "sigma_start": self.sigma_start,
+            "sigma_end": self.sigma_end,
+        }
