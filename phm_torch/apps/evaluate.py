@@ -97,7 +97,7 @@ def _fdi_band(cfg: DictConfig, pipeline: OnlinePipeline, signals: torch.Tensor, 
 
 
 def _verdict_prior(cfg: DictConfig) -> float | None:
-    prior = cfg.get("verdict", {}).get("prior_faulty")
+    prior = cfg.verdict.prior_faulty
     if prior is None:
         return None
     prior = common.number(prior, "verdict.prior_faulty", 0.0, strict=True)
@@ -254,7 +254,7 @@ def evaluate_rul(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     common.set_threads(cfg)
     prior = _verdict_prior(cfg)
     interval_settings = _interval_settings(cfg)
-    formats = check_formats(common.plain(cfg.get("export_formats", "torchscript"))) if cfg.export else []
+    formats = check_formats(common.plain(cfg.export_formats)) if cfg.export else []
     with DatasetStore(cfg.data_dir) as store:
         prov = common.reconcile_provenance(cfg, store.provenance, f"store {cfg.data_dir}")
         assessment = (

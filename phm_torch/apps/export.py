@@ -107,7 +107,7 @@ def _damage(cal: dict[str, Any], cfg: DictConfig, path: Path) -> dict[str, Any]:
 
 def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Build the pipeline from the bundle, the damage model and the RUL calibration; write and re-check it."""
-    formats = check_formats(common.plain(cfg.get("format", "torchscript")))
+    formats = check_formats(common.plain(cfg.format))
     bundle = SurrogateBundle.load(cfg.bundle)
     cal_path = Path(cfg.calibration)
     if not cal_path.is_file():
