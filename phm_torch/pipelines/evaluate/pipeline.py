@@ -1,0 +1,318 @@
+"""The evaluation pipeline: RUL on the evaluated split from the true k and from the full online flow against
+the physics reference, and the calibration of the exported pipeline's uncertainty on the held-out split.
+
+:func:`evaluate_rul` is a plain function of :class:`~.settings.EvaluateSettings`; ``phm-evaluate``
+(:mod:`phm_torch.apps.evaluate`) composes the settings, calls it and writes what it returns.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from ... import provenance
+from ...checks import build
+from ...data.store import DatasetStore
+from ...faults import FAULT_NAMES
+from ...io.atomic import write_json
+from ...online import OnlinePipeline
+from ...online.consistency import calibrate_consistency
+from ...online.fdi_interval import interval_quality
+from ...online.noise_threshold import calibrate_gappy_residual
+from ...online.verdict import verdict_quality
+from ...params import ActuatorParams
+from ...prognostics import DeterministicRUL, RULEstimator
+from ...prognostics.evaluation import RULComparison
+from ...prognostics.plots import error_panels, rul_vs_expected
+from ...prognostics.reference import margin_score, reference_rul
+from ...prognostics.rul import VARIANTS
+from ...surrogates.bundle import SurrogateBundle
+from ...surrogates.metrics import IDENTIFIED_R2
+from .calibration import fdi_band, fdi_intervals, identifiability, noisy, tracking_ranges, verdict_scaling
+from .settings import EvaluateSettings
+
+
+def reference_ruls(
+    settings: EvaluateSettings,
+    assessment: Any,
+    params: ActuatorParams,
+    damage: Any,
+    k: torch.Tensor,
+    deltas: torch.Tensor,
+    cache: Path,
+) -> torch.Tensor:
+    """Reference RULs, cached in ``cache`` under a key of everything they depend on."""
+    key_data = {
+        "damage": dict(settings.damage),
+        "assessment": assessment,
+        "actuator": provenance.actuator_values(params),
+        "reference": settings.reference.as_dict(),
+        "deltas": [round(float(d), 12) for d in deltas],
+        "k": hashlib.sha256(k.numpy().tobytes()).hexdigest(),
+    }
+    key = hashlib.sha256(json.dumps(key_data, sort_keys=True).encode()).hexdigest()
+    if cache.is_file():
+        stored = json.loads(cache.read_text())
+        if stored.get("key") == key:
+            return torch.tensor(stored["rul"], dtype=torch.float64)
+    assess = build(assessment, "assessment", params=params)
+    ref = reference_rul(
+        damage,
+        margin_score(assess),
+        k,
+        deltas,
+        settings.reference.step_hours,
+        settings.reference.refine_iterations,
+    )
+    write_json(cache, {"key": key, "rul": ref.tolist()})
+    return ref
+
+
+def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Evaluate the RUL estimation (see :mod:`phm_torch.prognostics.evaluation` for the definitions) and
+    calibrate the online pipeline's uncertainty on the held-out split.
+
+    Returns:
+        ``metrics`` and ``objects``: ``pipeline`` (the calibrated :class:`OnlinePipeline`), ``comparison``,
+        ``figures`` (written under ``out_dir``), ``reference``, ``calibration`` (rul_calibration.json's
+        content), ``predictions`` (rul_predictions.json's), ``provenance``, ``export_metadata`` (what the
+        exported files carry besides the pipeline) and ``probe`` (records the exported files are checked on).
+    """
+    cal = settings.calibration
+    with DatasetStore(settings.data_dir) as store:
+        prov = {
+            key: provenance.reconcile(
+                (store.provenance or {}).get(key),
+                settings.requested_provenance[key],
+                key in settings.explicit,
+                key,
+                f"store {settings.data_dir}",
+            )
+            for key in provenance.KEYS
+        }
+        assessment = (
+            dict(settings.assessment)
+            if settings.assessment is not None
+            else (store.metadata.get("config") or {}).get("assessment")
+        )
+    if assessment is None:
+        raise ValueError(
+            f"assessment: store {settings.data_dir} records no assessment config; choose one with "
+            "assessment=frequency_response"
+        )
+    params = _actuator(prov["actuator"], settings.fallback_actuator)
+    damage = build(dict(settings.damage), "damage", nominal=list(params.nominal_faults))
+    out_dir = settings.out_dir
+    out_dir.mkdir(parents=True, exist_ok=True)
+    bundle = SurrogateBundle.load(settings.bundle)
+    provenance.require_same(bundle.provenance, prov, f"bundle {settings.bundle}")  # trained on a store of the same
+    with DatasetStore(settings.data_dir) as store:
+        view = store.split(settings.split)
+        k = torch.as_tensor(view.K[()], dtype=torch.float64)
+        signals = torch.as_tensor(view.current[()], dtype=torch.float64)
+        band_view = store.split(cal.split)
+        band_k = torch.as_tensor(band_view.K[()], dtype=torch.float64)
+        band_clean = torch.as_tensor(band_view.current[()], dtype=torch.float64)
+        band_signals = noisy(band_clean, cal.noise, settings.seed)
+        band_healthy = torch.as_tensor(band_view.healthy[()]).bool()
+        healthy = torch.as_tensor(view.healthy[()]).bool()
+        tracking, tracking_healthy = tracking_ranges(store)
+    if k.shape[0] == 0:
+        raise ValueError(f"split {settings.split!r} of {settings.data_dir} is empty")
+    t0 = time.perf_counter()
+    est = RULEstimator(damage, bundle.health_score, settings.rul.n_samples, settings.rul.refine_iterations)
+    det = DeterministicRUL(est, settings.rul.band)
+    deltas = det.calibrate(k, torch.Generator().manual_seed(settings.seed), bracket=settings.rul.delta_bracket)
+    mc = est.estimate(k, torch.Generator().manual_seed(settings.seed + 1))
+    min_present = settings.min_present
+    pipelines = {}
+    for variant in VARIANTS:  # the configured band is exported; the other one is reported
+        pipe_deltas, scales = det.pipeline_parameters(variant)
+        pipelines[variant] = OnlinePipeline.from_bundle(
+            bundle, damage, pipe_deltas, det.direction, min_present, rate_scales=scales
+        ).eval()
+    pipeline = pipelines[det.variant]
+    with torch.no_grad():  # k_hat does not depend on the band: what the command identifies, first
+        band_k_hat, _, _, band_ood, _ = pipeline(band_signals.to(pipeline.times.dtype))
+    r2 = identifiability(band_k_hat, band_k, band_ood)
+    unidentified = [FAULT_NAMES.index(name) for name, value in r2.items() if not value >= IDENTIFIED_R2]
+    pipeline.set_unidentified(unidentified)
+    band = fdi_band(pipeline, band_signals, band_k, cal.correct_median)
+    if band is not None:
+        pipeline.fdi_deltas.copy_(band.deltas.to(pipeline.fdi_deltas))
+        pipeline.fdi_direction.copy_(band.direction.to(pipeline.fdi_direction))
+        pipeline.set_health_stop(band.health_stop)
+    with torch.no_grad():
+        band_k_hat, band_score, _, band_ood, _ = pipeline(band_signals.to(pipeline.times.dtype))
+    verdict = verdict_scaling(cal.prior_faulty, band_score, band_ood, band_healthy)
+    if verdict is not None:
+        pipeline.verdict_scale.fill_(verdict[0])
+        pipeline.verdict_offset.fill_(verdict[1])
+    calibration_noise = cal.noise  # the band signals' own
+    pipeline.calibration_noise.fill_(calibration_noise)
+    interval, noise_levels = fdi_intervals(cal, pipeline, band_k_hat, band_ood, band_clean, band_k, settings.seed)
+    levels = list(cal.noise_levels)
+    gappy_residual = calibrate_gappy_residual(pipeline, band_clean, levels, settings.seed, cal.ood_quantile)
+    consistency = (
+        calibrate_consistency(pipeline, band_clean, levels, settings.seed, cal.consistency_quantile)
+        if pipeline.has_consistency
+        else None
+    )
+    with torch.no_grad():
+        true_k = pipeline.rul(k.to(pipeline.times.dtype)).to(torch.float64)
+        true_k_by_band = {v: p.rul(k.to(p.times.dtype)).to(torch.float64) for v, p in pipelines.items()}
+        k_hat, score, full_flow, ood, _ = pipeline(signals)
+        p_faulty = pipeline.faulty_probability(score)
+        k_lower, k_upper = pipeline.k_interval(k_hat, pipeline.noise_level(signals))
+        physics_only = pipeline.rul(k_hat).to(torch.float64)
+        physics_only = torch.where(ood.unsqueeze(1), torch.full_like(physics_only, float("nan")), physics_only)
+    t_est = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    reference = reference_ruls(
+        settings,
+        assessment,
+        params,
+        damage,
+        k,
+        deltas,
+        Path(settings.data_dir) / f"rul_reference_{settings.split}.json",
+    )
+    t_ref = time.perf_counter() - t0
+    comparison = RULComparison(reference, true_k, full_flow.to(torch.float64))
+    metrics: dict[str, Any] = comparison.metrics()
+    gauss = RULComparison(reference, mc.gaussian, full_flow.to(torch.float64)).metrics()
+    physics = RULComparison(reference, true_k, physics_only).metrics()
+    usable = reference[:, 1] > 0
+    ff = full_flow.to(torch.float64)[usable]
+    finite = torch.isfinite(ff[:, 1]) & (ff[:, 1] > 0)
+    metrics.update(
+        rul_uncertainty_median_full_flow=float(((ff[:, 2] - ff[:, 0]) / ff[:, 1])[finite].median())
+        if finite.any()
+        else float("nan"),
+        rul_band_coverage_full_flow_physics_only=physics["rul_band_coverage_full_flow"],
+        rul_err_median_full_flow_physics_only=physics["rul_err_median_full_flow"],
+        rul_band=det.variant,
+        rate_scales=det.scales_.tolist(),
+        **{
+            f"rul_band_coverage_true_k_{v}": RULComparison(reference, b, full_flow.to(torch.float64)).metrics()[
+                "rul_band_coverage_true_k"
+            ]
+            for v, b in true_k_by_band.items()
+        },
+        fdi_band_split=cal.split,
+        fdi_band_n_used=band.n_used if band else 0,
+        fdi_band_deltas=pipeline.fdi_deltas.tolist() if band else None,  # as the pipeline holds them
+        fdi_band_direction=pipeline.fdi_direction.tolist() if band else None,
+        fdi_band_saturated=band.saturated if band else None,
+        fdi_band_health_stop=band.health_stop if band else None,
+        fdi_identifiability=r2,
+        fdi_not_identified=[name for name, value in r2.items() if not value >= IDENTIFIED_R2],
+        verdict_calibration=list(verdict[:2]) if verdict else None,
+        verdict_prior_faulty=verdict[2] if verdict else None,
+        **(
+            {f"verdict_{key}": value for key, value in verdict_quality(p_faulty[~ood], ~healthy[~ood]).items()}
+            if verdict and bool((~ood).any())
+            else {}
+        ),
+        fdi_interval_half_widths=interval.half_widths.tolist() if interval else None,
+        fdi_interval_half_widths_by_noise=pipeline.k_half_widths.tolist() if interval else None,
+        fdi_interval_noise_levels=noise_levels if interval else None,
+        fdi_interval_counts=interval.counts if interval else None,
+        **(
+            {
+                f"fdi_interval_{key}": value
+                for key, value in interval_quality(k_lower[~ood], k_upper[~ood], k[~ood].to(k_lower.dtype)).items()
+            }
+            if interval and bool((~ood).any())
+            else {}
+        ),
+    )
+    metrics.update(
+        rul_err_median_true_k_monte_carlo=gauss["rul_err_median_true_k"],
+        rul_band_coverage_true_k_monte_carlo=gauss["rul_band_coverage_true_k"],
+        deltas=deltas.tolist(),
+        deltas_saturated=det.saturated_,
+        estimate_wall_s=round(t_est, 3),
+        reference_wall_s=round(t_ref, 3),
+        ood_fraction=float(ood.double().mean()),
+        consistency=consistency,
+        gappy_residual=gappy_residual,
+    )
+    figures = {
+        "rul_vs_expected": rul_vs_expected(
+            reference,
+            {"RUL from true k": true_k, "full online flow": full_flow.to(torch.float64)},
+            out_dir / "rul_vs_expected.png",
+        ),
+        "rul_errors": error_panels(reference, true_k, full_flow.to(torch.float64), out_dir / "rul_errors.png"),
+    }
+    calibration = {
+        "band": det.variant,
+        "deltas": pipeline.deltas.tolist(),
+        "direction": det.direction.tolist(),
+        "rate_scales": pipeline.rate_scales.tolist(),
+        "initial_state_deltas": deltas.tolist(),
+        "fdi_deltas": pipeline.fdi_deltas.tolist(),
+        "fdi_direction": pipeline.fdi_direction.tolist(),
+        "fdi_health_stop": pipeline.health_stop_index.tolist(),
+        "identifiability": r2,
+        "fdi_unidentified": unidentified,
+        "verdict": list(verdict[:2]) if verdict else None,
+        "verdict_prior_faulty": verdict[2] if verdict else None,
+        "fdi_interval": {
+            "half_widths": pipeline.k_half_widths.tolist(),
+            "noise_levels": noise_levels,
+            "level": interval.level,
+            "coverage": interval.coverage,
+        }
+        if interval
+        else None,
+        "calibration_noise": calibration_noise,
+        "tracking_nrmse": tracking,
+        "tracking_nrmse_healthy": tracking_healthy,
+        "consistency": consistency,
+        "gappy_residual": gappy_residual,
+        "damage": dict(settings.damage),
+        "provenance": prov,
+    }
+    predictions = {
+        "k": k.tolist(),
+        "k_hat": k_hat.tolist(),
+        "reference": reference.tolist(),
+        "true_k": true_k.tolist(),
+        "full_flow": torch.nan_to_num(full_flow, nan=-1.0).tolist(),
+        "out_of_distribution": ood.tolist(),
+    }
+    metrics.update(actuator=provenance.describe(prov["actuator"]), command=provenance.describe(prov["command"]))
+    export_metadata = {
+        "provenance": prov,
+        "tracking_nrmse": tracking,
+        "tracking_nrmse_healthy": tracking_healthy,
+        "identifiability": r2,
+        "damage": dict(settings.damage),  # phm-track's process model
+    }
+    return metrics, {
+        "pipeline": pipeline,
+        "comparison": comparison,
+        "figures": figures,
+        "reference": reference,
+        "calibration": calibration,
+        "predictions": predictions,
+        "provenance": prov,
+        "export_metadata": export_metadata,
+        "probe": signals[:8],
+    }
+
+
+def _actuator(record: Any, fallback: ActuatorParams | None) -> ActuatorParams:
+    """The actuator of a provenance record, or the configured one for a store that records none."""
+    if record is not None:
+        return ActuatorParams.from_mapping(record["values"])
+    if fallback is None:
+        raise ValueError("actuator: the artefact records no actuator; choose one with actuator=<name>")
+    return fallback
