@@ -11,6 +11,7 @@ import hashlib
 import json
 import time
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import torch
@@ -84,46 +85,11 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
         exported files carry besides the pipeline) and ``probe`` (records the exported files are checked on).
     """
     cal = settings.calibration
-    with DatasetStore(settings.data_dir) as store:
-        prov = {
-            key: provenance.reconcile(
-                (store.provenance or {}).get(key),
-                settings.requested_provenance[key],
-                key in settings.explicit,
-                key,
-                f"store {settings.data_dir}",
-            )
-            for key in provenance.KEYS
-        }
-        assessment = (
-            dict(settings.assessment)
-            if settings.assessment is not None
-            else (store.metadata.get("config") or {}).get("assessment")
-        )
-    if assessment is None:
-        raise ValueError(
-            f"assessment: store {settings.data_dir} records no assessment config; choose one with "
-            "assessment=frequency_response"
-        )
-    params = _actuator(prov["actuator"], settings.fallback_actuator)
-    damage = build(dict(settings.damage), "damage", nominal=list(params.nominal_faults))
+    inp = _inputs(settings)
     out_dir = settings.out_dir
     out_dir.mkdir(parents=True, exist_ok=True)
-    bundle = SurrogateBundle.load(settings.bundle)
-    provenance.require_same(bundle.provenance, prov, f"bundle {settings.bundle}")  # trained on a store of the same
-    with DatasetStore(settings.data_dir) as store:
-        view = store.split(settings.split)
-        k = torch.as_tensor(view.K[()], dtype=torch.float64)
-        signals = torch.as_tensor(view.current[()], dtype=torch.float64)
-        band_view = store.split(cal.split)
-        band_k = torch.as_tensor(band_view.K[()], dtype=torch.float64)
-        band_clean = torch.as_tensor(band_view.current[()], dtype=torch.float64)
-        band_signals = noisy(band_clean, cal.noise, settings.seed)
-        band_healthy = torch.as_tensor(band_view.healthy[()]).bool()
-        healthy = torch.as_tensor(view.healthy[()]).bool()
-        tracking, tracking_healthy = tracking_ranges(store)
-    if k.shape[0] == 0:
-        raise ValueError(f"split {settings.split!r} of {settings.data_dir} is empty")
+    prov, assessment, params, damage, bundle = inp.prov, inp.assessment, inp.params, inp.damage, inp.bundle
+    k, signals, healthy = inp.k, inp.signals, inp.healthy
     t0 = time.perf_counter()
     est = RULEstimator(damage, bundle.health_score, settings.rul.n_samples, settings.rul.refine_iterations)
     det = DeterministicRUL(est, settings.rul.band)
@@ -137,32 +103,7 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
             bundle, damage, pipe_deltas, det.direction, min_present, rate_scales=scales
         ).eval()
     pipeline = pipelines[det.variant]
-    with torch.no_grad():  # k_hat does not depend on the band: what the command identifies, first
-        band_k_hat, _, _, band_ood, _ = pipeline(band_signals.to(pipeline.times.dtype))
-    r2 = identifiability(band_k_hat, band_k, band_ood)
-    unidentified = [FAULT_NAMES.index(name) for name, value in r2.items() if not value >= IDENTIFIED_R2]
-    pipeline.set_unidentified(unidentified)
-    band = fdi_band(pipeline, band_signals, band_k, cal.correct_median)
-    if band is not None:
-        pipeline.fdi_deltas.copy_(band.deltas.to(pipeline.fdi_deltas))
-        pipeline.fdi_direction.copy_(band.direction.to(pipeline.fdi_direction))
-        pipeline.set_health_stop(band.health_stop)
-    with torch.no_grad():
-        band_k_hat, band_score, _, band_ood, _ = pipeline(band_signals.to(pipeline.times.dtype))
-    verdict = verdict_scaling(cal.prior_faulty, band_score, band_ood, band_healthy)
-    if verdict is not None:
-        pipeline.verdict_scale.fill_(verdict[0])
-        pipeline.verdict_offset.fill_(verdict[1])
-    calibration_noise = cal.noise  # the band signals' own
-    pipeline.calibration_noise.fill_(calibration_noise)
-    interval, noise_levels = fdi_intervals(cal, pipeline, band_k_hat, band_ood, band_clean, band_k, settings.seed)
-    levels = list(cal.noise_levels)
-    gappy_residual = calibrate_gappy_residual(pipeline, band_clean, levels, settings.seed, cal.ood_quantile)
-    consistency = (
-        calibrate_consistency(pipeline, band_clean, levels, settings.seed, cal.consistency_quantile)
-        if pipeline.has_consistency
-        else None
-    )
+    c = _calibrate(settings, pipeline, inp)
     with torch.no_grad():
         true_k = pipeline.rul(k.to(pipeline.times.dtype)).to(torch.float64)
         true_k_by_band = {v: p.rul(k.to(p.times.dtype)).to(torch.float64) for v, p in pipelines.items()}
@@ -204,7 +145,179 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
             ]
             for v, b in true_k_by_band.items()
         },
-        fdi_band_split=cal.split,
+        **_uncertainty_metrics(pipeline, c, cal.split, p_faulty, ood, healthy, k_lower, k_upper, k),
+    )
+    metrics.update(
+        rul_err_median_true_k_monte_carlo=gauss["rul_err_median_true_k"],
+        rul_band_coverage_true_k_monte_carlo=gauss["rul_band_coverage_true_k"],
+        deltas=deltas.tolist(),
+        deltas_saturated=det.saturated_,
+        estimate_wall_s=round(t_est, 3),
+        reference_wall_s=round(t_ref, 3),
+        ood_fraction=float(ood.double().mean()),
+        consistency=c.consistency,
+        gappy_residual=c.gappy_residual,
+    )
+    figures = {
+        "rul_vs_expected": rul_vs_expected(
+            reference,
+            {"RUL from true k": true_k, "full online flow": full_flow.to(torch.float64)},
+            out_dir / "rul_vs_expected.png",
+        ),
+        "rul_errors": error_panels(reference, true_k, full_flow.to(torch.float64), out_dir / "rul_errors.png"),
+    }
+    calibration = _calibration_record(settings, pipeline, det, deltas, c, inp)
+    predictions = {
+        "k": k.tolist(),
+        "k_hat": k_hat.tolist(),
+        "reference": reference.tolist(),
+        "true_k": true_k.tolist(),
+        "full_flow": torch.nan_to_num(full_flow, nan=-1.0).tolist(),
+        "out_of_distribution": ood.tolist(),
+    }
+    metrics.update(actuator=provenance.describe(prov["actuator"]), command=provenance.describe(prov["command"]))
+    export_metadata = {
+        "provenance": prov,
+        "tracking_nrmse": inp.tracking,
+        "tracking_nrmse_healthy": inp.tracking_healthy,
+        "identifiability": c.r2,
+        "damage": dict(settings.damage),  # phm-track's process model
+    }
+    return metrics, {
+        "pipeline": pipeline,
+        "comparison": comparison,
+        "figures": figures,
+        "reference": reference,
+        "calibration": calibration,
+        "predictions": predictions,
+        "provenance": prov,
+        "export_metadata": export_metadata,
+        "probe": signals[:8],
+    }
+
+
+def _inputs(settings: EvaluateSettings) -> SimpleNamespace:
+    """Everything the evaluation reads: provenance (reconciled with the config), assessment config, actuator, damage
+    model, bundle, the evaluated split (k, signals, healthy), the calibration split (k, clean and noisy signals,
+    healthy) and the tracking ranges of every split."""
+    cal = settings.calibration
+    with DatasetStore(settings.data_dir) as store:
+        prov = {
+            key: provenance.reconcile(
+                (store.provenance or {}).get(key),
+                settings.requested_provenance[key],
+                key in settings.explicit,
+                key,
+                f"store {settings.data_dir}",
+            )
+            for key in provenance.KEYS
+        }
+        assessment = (
+            dict(settings.assessment)
+            if settings.assessment is not None
+            else (store.metadata.get("config") or {}).get("assessment")
+        )
+    if assessment is None:
+        raise ValueError(
+            f"assessment: store {settings.data_dir} records no assessment config; choose one with "
+            "assessment=frequency_response"
+        )
+    params = _actuator(prov["actuator"], settings.fallback_actuator)
+    damage = build(dict(settings.damage), "damage", nominal=list(params.nominal_faults))
+    bundle = SurrogateBundle.load(settings.bundle)
+    provenance.require_same(bundle.provenance, prov, f"bundle {settings.bundle}")  # trained on a store of the same
+    with DatasetStore(settings.data_dir) as store:
+        view = store.split(settings.split)
+        k = torch.as_tensor(view.K[()], dtype=torch.float64)
+        signals = torch.as_tensor(view.current[()], dtype=torch.float64)
+        band_view = store.split(cal.split)
+        band_k = torch.as_tensor(band_view.K[()], dtype=torch.float64)
+        band_clean = torch.as_tensor(band_view.current[()], dtype=torch.float64)
+        band_signals = noisy(band_clean, cal.noise, settings.seed)
+        band_healthy = torch.as_tensor(band_view.healthy[()]).bool()
+        healthy = torch.as_tensor(view.healthy[()]).bool()
+        tracking, tracking_healthy = tracking_ranges(store)
+    if k.shape[0] == 0:
+        raise ValueError(f"split {settings.split!r} of {settings.data_dir} is empty")
+    return SimpleNamespace(
+        prov=prov,
+        assessment=assessment,
+        params=params,
+        damage=damage,
+        bundle=bundle,
+        k=k,
+        signals=signals,
+        healthy=healthy,
+        band_k=band_k,
+        band_clean=band_clean,
+        band_signals=band_signals,
+        band_healthy=band_healthy,
+        tracking=tracking,
+        tracking_healthy=tracking_healthy,
+    )
+
+
+def _calibrate(settings: EvaluateSettings, pipeline: OnlinePipeline, inp: SimpleNamespace) -> SimpleNamespace:
+    """Calibrate the exported pipeline's uncertainty in place on the held-out split, in order: identifiability (the
+    95 % start of unidentified components), the FDI band, P(faulty), the k_hat intervals per noise level, the gappy
+    residual and consistency thresholds."""
+    cal = settings.calibration
+    band_signals, band_k, band_clean, band_healthy = inp.band_signals, inp.band_k, inp.band_clean, inp.band_healthy
+    with torch.no_grad():  # k_hat does not depend on the band: what the command identifies, first
+        band_k_hat, _, _, band_ood, _ = pipeline(band_signals.to(pipeline.times.dtype))
+    r2 = identifiability(band_k_hat, band_k, band_ood)
+    unidentified = [FAULT_NAMES.index(name) for name, value in r2.items() if not value >= IDENTIFIED_R2]
+    pipeline.set_unidentified(unidentified)
+    band = fdi_band(pipeline, band_signals, band_k, cal.correct_median)
+    if band is not None:
+        pipeline.fdi_deltas.copy_(band.deltas.to(pipeline.fdi_deltas))
+        pipeline.fdi_direction.copy_(band.direction.to(pipeline.fdi_direction))
+        pipeline.set_health_stop(band.health_stop)
+    with torch.no_grad():
+        band_k_hat, band_score, _, band_ood, _ = pipeline(band_signals.to(pipeline.times.dtype))
+    verdict = verdict_scaling(cal.prior_faulty, band_score, band_ood, band_healthy)
+    if verdict is not None:
+        pipeline.verdict_scale.fill_(verdict[0])
+        pipeline.verdict_offset.fill_(verdict[1])
+    calibration_noise = cal.noise  # the band signals' own
+    pipeline.calibration_noise.fill_(calibration_noise)
+    interval, noise_levels = fdi_intervals(cal, pipeline, band_k_hat, band_ood, band_clean, band_k, settings.seed)
+    levels = list(cal.noise_levels)
+    gappy_residual = calibrate_gappy_residual(pipeline, band_clean, levels, settings.seed, cal.ood_quantile)
+    consistency = (
+        calibrate_consistency(pipeline, band_clean, levels, settings.seed, cal.consistency_quantile)
+        if pipeline.has_consistency
+        else None
+    )
+    return SimpleNamespace(
+        r2=r2,
+        unidentified=unidentified,
+        band=band,
+        verdict=verdict,
+        calibration_noise=calibration_noise,
+        interval=interval,
+        noise_levels=noise_levels,
+        gappy_residual=gappy_residual,
+        consistency=consistency,
+    )
+
+
+def _uncertainty_metrics(
+    pipeline: OnlinePipeline,
+    c: SimpleNamespace,
+    split: str,
+    p_faulty: torch.Tensor,
+    ood: torch.Tensor,
+    healthy: torch.Tensor,
+    k_lower: torch.Tensor,
+    k_upper: torch.Tensor,
+    k: torch.Tensor,
+) -> dict[str, Any]:
+    """The calibration's metrics: the FDI band, identifiability, P(faulty) and the k_hat intervals (their quality
+    on the evaluated split's in-distribution records)."""
+    band, verdict, interval, r2, noise_levels = c.band, c.verdict, c.interval, c.r2, c.noise_levels
+    return dict(
+        fdi_band_split=split,
         fdi_band_n_used=band.n_used if band else 0,
         fdi_band_deltas=pipeline.fdi_deltas.tolist() if band else None,  # as the pipeline holds them
         fdi_band_direction=pipeline.fdi_direction.tolist() if band else None,
@@ -232,26 +345,19 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
             else {}
         ),
     )
-    metrics.update(
-        rul_err_median_true_k_monte_carlo=gauss["rul_err_median_true_k"],
-        rul_band_coverage_true_k_monte_carlo=gauss["rul_band_coverage_true_k"],
-        deltas=deltas.tolist(),
-        deltas_saturated=det.saturated_,
-        estimate_wall_s=round(t_est, 3),
-        reference_wall_s=round(t_ref, 3),
-        ood_fraction=float(ood.double().mean()),
-        consistency=consistency,
-        gappy_residual=gappy_residual,
-    )
-    figures = {
-        "rul_vs_expected": rul_vs_expected(
-            reference,
-            {"RUL from true k": true_k, "full online flow": full_flow.to(torch.float64)},
-            out_dir / "rul_vs_expected.png",
-        ),
-        "rul_errors": error_panels(reference, true_k, full_flow.to(torch.float64), out_dir / "rul_errors.png"),
-    }
-    calibration = {
+
+
+def _calibration_record(
+    settings: EvaluateSettings,
+    pipeline: OnlinePipeline,
+    det: DeterministicRUL,
+    deltas: torch.Tensor,
+    c: SimpleNamespace,
+    inp: SimpleNamespace,
+) -> dict[str, Any]:
+    """rul_calibration.json: what phm-export needs to rebuild the calibrated pipeline from the bundle."""
+    interval = c.interval
+    return {
         "band": det.variant,
         "deltas": pipeline.deltas.tolist(),
         "direction": det.direction.tolist(),
@@ -260,52 +366,25 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
         "fdi_deltas": pipeline.fdi_deltas.tolist(),
         "fdi_direction": pipeline.fdi_direction.tolist(),
         "fdi_health_stop": pipeline.health_stop_index.tolist(),
-        "identifiability": r2,
-        "fdi_unidentified": unidentified,
-        "verdict": list(verdict[:2]) if verdict else None,
-        "verdict_prior_faulty": verdict[2] if verdict else None,
+        "identifiability": c.r2,
+        "fdi_unidentified": c.unidentified,
+        "verdict": list(c.verdict[:2]) if c.verdict else None,
+        "verdict_prior_faulty": c.verdict[2] if c.verdict else None,
         "fdi_interval": {
             "half_widths": pipeline.k_half_widths.tolist(),
-            "noise_levels": noise_levels,
+            "noise_levels": c.noise_levels,
             "level": interval.level,
             "coverage": interval.coverage,
         }
         if interval
         else None,
-        "calibration_noise": calibration_noise,
-        "tracking_nrmse": tracking,
-        "tracking_nrmse_healthy": tracking_healthy,
-        "consistency": consistency,
-        "gappy_residual": gappy_residual,
+        "calibration_noise": c.calibration_noise,
+        "tracking_nrmse": inp.tracking,
+        "tracking_nrmse_healthy": inp.tracking_healthy,
+        "consistency": c.consistency,
+        "gappy_residual": c.gappy_residual,
         "damage": dict(settings.damage),
-        "provenance": prov,
-    }
-    predictions = {
-        "k": k.tolist(),
-        "k_hat": k_hat.tolist(),
-        "reference": reference.tolist(),
-        "true_k": true_k.tolist(),
-        "full_flow": torch.nan_to_num(full_flow, nan=-1.0).tolist(),
-        "out_of_distribution": ood.tolist(),
-    }
-    metrics.update(actuator=provenance.describe(prov["actuator"]), command=provenance.describe(prov["command"]))
-    export_metadata = {
-        "provenance": prov,
-        "tracking_nrmse": tracking,
-        "tracking_nrmse_healthy": tracking_healthy,
-        "identifiability": r2,
-        "damage": dict(settings.damage),  # phm-track's process model
-    }
-    return metrics, {
-        "pipeline": pipeline,
-        "comparison": comparison,
-        "figures": figures,
-        "reference": reference,
-        "calibration": calibration,
-        "predictions": predictions,
-        "provenance": prov,
-        "export_metadata": export_metadata,
-        "probe": signals[:8],
+        "provenance": inp.prov,
     }
 
 
