@@ -30,7 +30,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from corruption_suite import CACHE, PIPELINE, _truth, contract_of, judgement, pipeline_conditions
 
 from phm_torch import provenance
 from phm_torch.data.sampling import ImportanceSampler
@@ -38,6 +37,8 @@ from phm_torch.effects import EFFECTS
 from phm_torch.faults import FAULT_NAMES
 from phm_torch.io.atomic import atomic_open
 from phm_torch.online.bench_check import check_bench
+from phm_torch.online.corruption_suite import CACHE, PIPELINE, contract_of, judgement, pipeline_conditions
+from phm_torch.online.corruption_suite import truth_healthy as _truth
 from phm_torch.online.corruptions import Record
 from phm_torch.online.diagnosis import diagnose
 from phm_torch.online.export import read_metadata

@@ -3,12 +3,10 @@ that caught it named in ``ood_reasons``) or still right, except the blind spots 
 functions are pure; a current-only CSV skips the command and tracking checks and says so.
 
 The records (nominal and dry friction x1.6 of the reference actuator, 1 % noise) are simulated once by
-``scripts/corruption_suite.py`` and cached under /tmp (~1 min the first time, then ~10 s)."""
+``phm_torch/online/corruption_suite.py`` and cached under /tmp (~1 min the first time, then ~10 s)."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,13 +14,13 @@ import pytest
 import torch
 
 from phm_torch.apps.predict import predict
+from phm_torch.online import corruption_suite
 from phm_torch.online.corruptions import CORRUPTIONS, Record, corrupt
 from phm_torch.online.input_contract import PIPELINE_CHECKS, pipeline_reasons
 
 pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "scripts" / "corruption_suite.py"
 PIPELINE = ROOT / "pretrained" / "online_surrogates_best.pt"
 
 # Kinds with an unflagged wrong answer at some severity (nominal and friction records, the suite's seed;
@@ -66,11 +64,7 @@ BLIND_SPOTS = {
 
 
 def _suite():
-    spec = importlib.util.spec_from_file_location("corruption_suite", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["corruption_suite"] = module
-    spec.loader.exec_module(module)
-    return module
+    return corruption_suite
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,7 @@ are written here. ``CORRUPTIONS`` maps each kind's name to a :class:`Corruption`
 mildest first) and the unit; :func:`corrupt` applies one by name.
 
 Kinds that need another simulation (another actuator's record, a wrong command amplitude or frequency) are
-not record functions; ``scripts/corruption_suite.py`` simulates those.
+not record functions; :mod:`phm_torch.online.corruption_suite` simulates those.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """One record through an exported online pipeline and its input contract: the JSON record of ``phm-predict``.
 
 ``phm-predict`` reads each CSV into a :class:`~phm_torch.online.corruptions.Record` and calls
-:func:`diagnose`; the corruption suite (``scripts/corruption_suite.py``) calls it on records in memory, so both
+:func:`diagnose`; the corruption suite (:mod:`phm_torch.online.corruption_suite`) calls it on records in memory, so both
 take the same path. The record's fields are described in :mod:`phm_torch.apps.predict`.
 """
 
