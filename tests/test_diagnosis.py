@@ -59,3 +59,15 @@ def test_the_predict_record_names_unidentified_components_and_censors_a_bound_pa
     assert record["rul_censored"] and record["rul_hours"]["p95"] is None
     expected_p50 = None if raw[1] >= model.horizon_hours else pytest.approx(raw[1])
     assert record["rul_hours"]["p50"] == expected_p50
+
+
+def test_tracking_nrmse_is_the_library_nrmse_and_undefined_for_a_constant_command():
+    from phm_torch.metrics import nrmse
+    from phm_torch.online.input_contract import tracking_nrmse, tracking_range
+
+    t = torch.linspace(0, 1, 501, dtype=torch.float64)
+    cmd = 0.01 * torch.sin(6.0 * t)
+    pos = 0.9 * cmd
+    assert tracking_nrmse(cmd, pos) == pytest.approx(float(nrmse(pos, cmd)))
+    assert tracking_range(cmd, torch.stack([pos, cmd])) == pytest.approx([0.0, float(nrmse(pos, cmd))])
+    assert math.isnan(tracking_nrmse(torch.zeros(501, dtype=torch.float64), pos))

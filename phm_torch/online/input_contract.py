@@ -54,6 +54,7 @@ from typing import Any
 
 import torch
 
+from ..metrics import nrmse
 from .command_check import CommandCheck, check_command
 from .corruptions import Record
 
@@ -147,8 +148,7 @@ def pipeline_reasons(model: Any, x: torch.Tensor) -> list[list[str]] | None:
 
 def tracking_nrmse(command: torch.Tensor, position: torch.Tensor) -> float:
     """RMS of (position - command) over the command's range: how closely the position follows the command."""
-    command, position = command.double().flatten(), position.double().flatten()
-    return float((position - command).pow(2).mean().sqrt()) / float(command.max() - command.min())
+    return float(nrmse(position.double().flatten(), command.double().flatten()))  # NaN for a constant command
 
 
 def tracking_range(command: torch.Tensor, positions: torch.Tensor) -> list[float]:
@@ -157,8 +157,8 @@ def tracking_range(command: torch.Tensor, positions: torch.Tensor) -> list[float
     command, positions = command.double().flatten(), positions.double()
     if positions.dim() != 2 or positions.shape[1] != command.numel() or positions.shape[0] == 0:
         raise ValueError(f"tracking_range: positions must be (B, {command.numel()}), got {tuple(positions.shape)}")
-    nrmse = (positions - command).pow(2).mean(1).sqrt() / float(command.max() - command.min())
-    return [float(nrmse.min()), float(nrmse.max())]
+    values = nrmse(positions.double(), command.double().expand_as(positions))
+    return [float(values.min()), float(values.max())]
 
 
 def _range(metadata: Mapping[str, Any], key: str) -> tuple[float, float] | None:
@@ -204,20 +204,21 @@ class InputContract:
 
     def _tracking(self, record: Record, healthy: bool | None = None) -> dict[str, Any]:
         cmd, pos = record.command, record.position
-        nrmse = tracking_nrmse(cmd, pos)
-        gain = float(pos.max() - pos.min()) / float(cmd.max() - cmd.min())
+        error = tracking_nrmse(cmd, pos)
+        span = float(cmd.max() - cmd.min())
+        gain = float(pos.max() - pos.min()) / span if span > 0 else math.nan
         corr = float(torch.corrcoef(torch.stack([pos.double().flatten(), cmd.double().flatten()]))[0, 1])
         known = (
             self.tracking_range_healthy if healthy and self.tracking_range_healthy is not None else self.tracking_range
         )
         if known is not None:
             low, high = known[0] / TRACKING_MARGIN, known[1] * TRACKING_MARGIN
-            ok = low <= nrmse <= high
+            ok = low <= error <= high
         else:
             low, high = 0.0, TRACKING_NRMSE_MAX
-            ok = nrmse <= high and gain <= POSITION_GAIN
+            ok = error <= high and gain <= POSITION_GAIN
         ok = ok and not corr < REVERSED_CORRELATION  # NaN (a constant position) is not reversed
-        return {"nrmse": nrmse, "range": [low, high], "position_gain": gain, "correlation": corr, "ok": bool(ok)}
+        return {"nrmse": error, "range": [low, high], "position_gain": gain, "correlation": corr, "ok": bool(ok)}
 
     def current_reasons(
         self, model: Any, current: torch.Tensor, noise: float, k_hat: torch.Tensor | None = None
