@@ -1,5 +1,7 @@
 """``phm-export``: the online pipeline in one or several deployment formats (``format=torchscript`` by default,
-``format=[torchscript,export,aoti]``; see :mod:`phm_torch.online.formats`), each reloaded and compared with eager."""
+``format=[torchscript,export,aoti]``; see :mod:`phm_torch.online.formats`), each reloaded and compared with eager.
+Built from a surrogate bundle and its RUL calibration, or (``pipeline=<file.pt>``) rewritten from a TorchScript
+pipeline file (:mod:`phm_torch.online.from_torchscript`)."""
 
 from __future__ import annotations
 
@@ -14,7 +16,9 @@ from omegaconf import DictConfig
 
 from .. import provenance
 from ..online import OnlinePipeline
+from ..online.export import read_metadata
 from ..online.formats import check_formats, write_checked
+from ..online.from_torchscript import rewrite_pipeline
 from ..surrogates.bundle import SurrogateBundle
 from . import common
 
@@ -105,9 +109,34 @@ def _damage(cal: dict[str, Any], cfg: DictConfig, path: Path) -> dict[str, Any]:
     return damage
 
 
+def _rewrite(cfg: DictConfig, formats: list[str]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``pipeline=<file.pt>``: the TorchScript file's pipeline in ``formats``, its metadata kept (an explicit
+    ``actuator=``/``command=`` must match its provenance); bundle, calibration, damage and min_present unused."""
+    source = Path(cfg.pipeline)
+    recorded = read_metadata(source) if source.is_file() else {}
+    prov = common.reconcile_provenance(cfg, recorded.get("provenance"), f"pipeline {source}")
+    done = rewrite_pipeline(source, cfg.out, formats, {"provenance": prov} if any(prov.values()) else None)
+    by_format = done["max_abs_diff_by_format"]
+    return {
+        "out": next(iter(done["files"].values())),
+        "files": done["files"],
+        "source": str(source),
+        "max_abs_diff_input": done["max_abs_diff_input"],
+        "max_scaled_diff_input": done["max_scaled_diff_input"],
+        "max_abs_diff_reloaded": max(by_format.values()),
+        "max_abs_diff_by_format": by_format,
+        "derived": done["derived"],
+        "actuator": provenance.describe(prov["actuator"]) if prov["actuator"] else None,
+        "command": provenance.describe(prov["command"]) if prov["command"] else None,
+    }, {}
+
+
 def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
-    """Build the pipeline from the bundle, the damage model and the RUL calibration; write and re-check it."""
+    """Build the pipeline from the bundle, the damage model and the RUL calibration (or rewrite the TorchScript
+    ``pipeline``); write and re-check it."""
     formats = check_formats(common.plain(cfg.format))
+    if cfg.get("pipeline") is not None:
+        return _rewrite(cfg, formats)
     bundle = SurrogateBundle.load(cfg.bundle)
     cal_path = Path(cfg.calibration)
     if not cal_path.is_file():

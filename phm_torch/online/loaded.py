@@ -14,6 +14,7 @@ is the one the file's metadata names, else its suffix; a ``format`` given that t
 from __future__ import annotations
 
 import abc
+import inspect
 import math
 import os
 import warnings
@@ -124,10 +125,12 @@ class TorchScriptPipeline(LoadedPipeline):
             k_hat, score, rul, ood, residual = m(current)
             p_faulty = m.faulty_probability(score) if self.calibrated else nan
             lower = upper = None
-            if hasattr(m, "k_interval"):  # widths follow the noise where the file's method takes it
+            if hasattr(m, "k_interval"):  # widths follow the noise where the file's (or eager) method takes it
+                method = m.k_interval
+                schema = method.schema if hasattr(method, "schema") else inspect.signature(method)
                 lower, upper = (
                     m.k_interval(k_hat, noise.to(k_hat.dtype))
-                    if noise_known and "noise" in str(m.k_interval.schema)
+                    if noise_known and "noise" in str(schema)
                     else m.k_interval(k_hat)
                 )
         return StepResult(k_hat, lower, upper, score, p_faulty, rul, ood, residual, noise, current)
