@@ -23,6 +23,12 @@ import torch
 from ..prognostics.damage import DamageModel
 
 SCORE_BLOCK = 4096  # rows per classifier call in the RUL search
+# scan intervals of the default event search: 5 scan points + 7 bisections on the 401-point grid, 12 classifier
+# rows per trajectory (25-step scan: 17 + 5 = 22). Over the 18,000 propagations of 6,000 paper-store training
+# records' estimates and 31,800 of known vectors both searches gave the same RUL (to 3e-4 h): the score turns
+# faulty once along a growing trajectory. Only verdict scores of true vectors, which that classifier never saw,
+# turned back healthy between scan points (8 of 31,800; 25-step scan: 0).
+SCAN_INTERVALS = 4
 
 
 class RULPropagation:
@@ -36,7 +42,7 @@ class RULPropagation:
         rate_scales: torch.Tensor | None,
         fdi_deltas: torch.Tensor | None,
         fdi_direction: torch.Tensor | None,
-        coarse: int,
+        coarse: int | None,
         dtype: torch.dtype,
     ) -> None:
         """Register the RUL buffers (arguments as :class:`~phm_torch.online.pipeline.OnlinePipeline`'s)."""
@@ -61,12 +67,12 @@ class RULPropagation:
             if fdi_direction is None
             else torch.as_tensor(fdi_direction, dtype=dtype).reshape(8),
         )
-        self.coarse = int(coarse)
-        if self.coarse < 1:
-            raise ValueError(f"online.coarse must be >= 1, got {coarse}")
+        n_t = int(t.shape[0])
+        if coarse is not None and (isinstance(coarse, bool) or not isinstance(coarse, int) or coarse < 1):
+            raise ValueError(f"online.coarse must be an integer >= 1 or None, got {coarse!r}")
+        self.coarse = max(1, -(-(n_t - 1) // SCAN_INTERVALS)) if coarse is None else int(coarse)
         self.score_block = SCORE_BLOCK
         self.bisections = max(0, (self.coarse - 1).bit_length())  # down to one grid step
-        n_t = int(t.shape[0])
         coarse_index = list(range(0, n_t, self.coarse))
         coarse_index += [] if coarse_index[-1] == n_t - 1 else [n_t - 1]
         self.register_buffer("coarse_index", torch.tensor(coarse_index, dtype=torch.long))
@@ -181,7 +187,10 @@ class RULPropagation:
         coarse = self.coarse_index
         traj = self.nominal + torch.einsum("tij,bqj->tbqi", self.propagators[coarse], dk)  # (Tc, B, 3, 8)
         n_c = traj.shape[0]
-        score = self._stop_scores(traj.reshape(-1, 3, 8), measured, blocked).reshape(n_c, b, 3)
+        if blocked:
+            score = self._stop_scores(traj.reshape(-1, 3, 8), measured, blocked).reshape(n_c, b, 3)
+        else:  # one call per scan point (a constant count, so traceable): a batch's rows stay in cache
+            score = torch.stack([self._stop_scores(traj[i], measured, blocked) for i in range(n_c)])
         faulty = score <= 0
         any_faulty = faulty.any(0)
         first = torch.argmax(faulty.to(torch.int64), dim=0)  # (B, 3)

@@ -148,7 +148,7 @@ class OnlineStep(nn.Module):
         false = torch.zeros(b, dtype=torch.bool, device=x.device)
         nan = torch.full((b,), float("nan"), dtype=dtype, device=x.device)
         x = x.to(dtype)
-        measured = noise_level(x) if self.full else nan
+        measured = noise_level(x, p.noise_window) if self.full else nan  # as the pipeline's noise_level
         x = x - offset.to(dtype)
         noise = noise_level(x, p.noise_window) if self.estimate_noise else None
         samples = x.index_select(1, p.gappy.indices) if self.full else x
@@ -165,15 +165,13 @@ class OnlineStep(nn.Module):
         k_hat = p.fdi(alpha, noise) if p.noise_aware else p.fdi(alpha)
         score = self._score(k_hat)
         check = p.full_check if self.full and p.has_full_check else None
-        pod, rough, plateau = (
-            (false, false, false)
-            if check is None
-            else (
-                check.residual(x) > check.residual_threshold,
-                check.roughness(x) > check.roughness_threshold,
-                check.plateau(x) > check.plateau_threshold,
-            )
-        )
+        if check is None:
+            pod, rough, plateau = false, false, false
+        else:
+            stats = check.statistics(x)
+            pod = stats[0] > check.residual_threshold
+            rough = stats[1] > check.roughness_threshold
+            plateau = stats[2] > check.plateau_threshold
         gappy_flag = (residual > p._limit(noise, residual)) | ~torch.isfinite(residual)
         consistency = p.consistency_check(x, k_hat, noise) if p.has_consistency else nan
         inconsistent = consistency > 1.0  # NaN (no finite sample, or no check) compares False

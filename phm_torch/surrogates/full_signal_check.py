@@ -91,14 +91,33 @@ class FullSignalCheck(nn.Module):
         if signals.dim() != 2 or signals.shape[1] != self.n_full:
             raise ValueError(f"full_signal_check: records must be (B, {self.n_full})")
 
+    @torch.jit.export
+    def statistics(self, signals: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(POD residual, roughness, plateau), each (B,), of full records (B, n_e) [A] from one gather of the
+        samples the three read: a batch of full records does not fit in cache, so each separate gather was a
+        pass over memory (three of the step's four passes)."""
+        self._check(signals)
+        n = self.rows.shape[0]
+        cols = signals.index_select(1, torch.cat([self.rows, self.shape_rows, self.next_rows])).to(self.basis.dtype)
+        return (
+            self._residual(cols[:, :n]),
+            self._roughness(cols[:, n : 2 * n], cols[:, 2 * n :]),
+            self._plateau(cols[:, n : 2 * n]),
+        )
+
+    @torch.jit.export
     def residual(self, signals: torch.Tensor) -> torch.Tensor:
         """POD residual r (B,) in [0, 1] of full records (B, n_e) [A]; NaN where a used sample is not finite."""
         self._check(signals)
-        d = signals.index_select(1, self.rows).to(self.basis.dtype) - self.mean_rows
+        return self._residual(signals.index_select(1, self.rows).to(self.basis.dtype))
+
+    def _residual(self, x: torch.Tensor) -> torch.Tensor:
+        d = x - self.mean_rows
         energy = d.pow(2).sum(1)
         explained = (d @ self.basis).pow(2).sum(1)
         return ((energy - explained).clamp(min=0.0) / energy.clamp(min=1e-30)).sqrt()
 
+    @torch.jit.export
     def roughness(self, signals: torch.Tensor) -> torch.Tensor:
         """RMS(diff) / RMS(about the mean), (B,); NaN for a flat record (its plateau is 1) or a non-finite one.
 
@@ -106,16 +125,21 @@ class FullSignalCheck(nn.Module):
         the full-rate one): a full pass over every sample would halve the batched throughput."""
         self._check(signals)
         x = signals.index_select(1, self.shape_rows).to(self.basis.dtype)
-        after = signals.index_select(1, self.next_rows).to(self.basis.dtype)
+        return self._roughness(x, signals.index_select(1, self.next_rows).to(self.basis.dtype))
+
+    def _roughness(self, x: torch.Tensor, after: torch.Tensor) -> torch.Tensor:
         step = (after - x).pow(2).mean(1).sqrt()
         spread = (x - x.mean(1, keepdim=True)).pow(2).mean(1).sqrt()
         return step / spread
 
+    @torch.jit.export
     def plateau(self, signals: torch.Tensor) -> torch.Tensor:
         """Fraction (B,) of the (jittered) ``stride``-th samples within ``plateau_tolerance`` x range of their
         maximum."""
         self._check(signals)
-        x = signals.index_select(1, self.shape_rows).to(self.basis.dtype)
+        return self._plateau(signals.index_select(1, self.shape_rows).to(self.basis.dtype))
+
+    def _plateau(self, x: torch.Tensor) -> torch.Tensor:
         top = x.amax(1, keepdim=True)
         span = top - x.amin(1, keepdim=True)
         return (x >= top - self.plateau_tolerance * span).to(x.dtype).mean(1)
@@ -126,8 +150,9 @@ class FullSignalCheck(nn.Module):
         A record with a non-finite sample compares False on every statistic: the pipeline's gappy checks
         (missing-sample count, residual) decide for it.
         """
+        residual, roughness, plateau = self.statistics(signals)
         return (
-            (self.residual(signals) > self.residual_threshold)
-            | (self.roughness(signals) > self.roughness_threshold)
-            | (self.plateau(signals) > self.plateau_threshold)
+            (residual > self.residual_threshold)
+            | (roughness > self.roughness_threshold)
+            | (plateau > self.plateau_threshold)
         )
