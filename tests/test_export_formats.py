@@ -141,6 +141,24 @@ def test_step_equals_the_eager_pipeline_and_its_reasons(pipeline):
     assert torch.isfinite(ref["p_faulty"]).all() and torch.isfinite(ref["k_lower"]).all()
 
 
+def test_step_with_a_bench_offset_equals_the_pipeline_on_the_rebased_records(pipeline):
+    """The step subtracts the offset from the samples it reads only: the same as the pipeline on rebased records,
+    with the noise as measured (before the offset)."""
+    x = records(pipeline, 6)
+    g = torch.Generator().manual_seed(5)
+    bench = pipeline.nominal_record + 0.05 * torch.sin(torch.linspace(0, 40, N_FULL)) + 0.003 * torch.randn(
+        N_FULL, generator=g
+    )
+    offset = bench - pipeline.nominal_record
+    with torch.no_grad():
+        got = dict(zip(STEP_OUTPUTS, OnlineStep(pipeline, True)(x, offset)))
+        ref = eager(pipeline, pipeline.rebase(x, bench))
+        ref["noise"] = pipeline.noise_level(x)
+        ref["k_lower"], ref["k_upper"] = pipeline.k_interval(ref["k_hat"], ref["noise"])
+    assert_equal_outputs(got, ref)
+    assert float((ref["noise"] - pipeline.noise_level(pipeline.rebase(x, bench))).abs().max()) > 1e-4  # it matters
+
+
 @pytest.mark.parametrize("batch", [1, 256])
 @pytest.mark.parametrize("full", [True, False])
 def test_every_format_equals_eager(pipeline, loaded, batch, full):

@@ -98,14 +98,18 @@ class ConsistencyCheck(nn.Module):
     def statistic(self, x: torch.Tensor, k_hat: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """Statistic (B,) of full records (B, n_full) or selected samples (B, n_points) [A] at the FDI's
         estimates k_hat (B, 8), the records' relative noise (B,) given."""
-        alpha = self.model(k_hat)
         if x.shape[1] == self.n_full:
             # a strided slice, not index_select on dim 1: the same rows (arange(0, n, STRIDE)) at ~2/3 of the cost
-            y = x[:, :: self.stride].to(self.mean_rows.dtype)
-            return consistency_statistic(y, self.mean_rows, self.modes_rows, alpha, noise, self.floors[0])
+            return self.rows_statistic(x[:, :: self.stride], k_hat, noise)
         return consistency_statistic(
-            x.to(self.mean_hat.dtype), self.mean_hat, self.modes_hat, alpha, noise, self.floors[1]
+            x.to(self.mean_hat.dtype), self.mean_hat, self.modes_hat, self.model(k_hat), noise, self.floors[1]
         )
+
+    def rows_statistic(self, y: torch.Tensor, k_hat: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """The full-record statistic (B,) from the records' samples at ``rows`` (B, n_full / STRIDE) [A], gathered
+        by the caller (:class:`~phm_torch.online.step.OnlineStep` reads each record once for every check)."""
+        y = y.to(self.mean_rows.dtype)
+        return consistency_statistic(y, self.mean_rows, self.modes_rows, self.model(k_hat), noise, self.floors[0])
 
     def threshold(self, noise: torch.Tensor, full: bool) -> torch.Tensor:
         """Threshold (B,) at relative noise levels (B,), linear between the calibrated levels."""

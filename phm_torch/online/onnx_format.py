@@ -55,6 +55,10 @@ def onnx_bytes(program: torch.export.ExportedProgram, metadata: str) -> bytes:
             input_names=["x", "offset"],
             output_names=list(STEP_OUTPUTS),
             verbose=False,
+            # the exporter's own graph optimiser left Clip nodes reading bound constants it had removed, on the
+            # paper-scale step (ONNX Runtime: "Node input 'div_11_min_1' is not a graph input"); ONNX Runtime
+            # optimises the graph itself when it loads it
+            optimize=False,
         )
     finally:
         quiet.setLevel(level)
@@ -64,6 +68,11 @@ def onnx_bytes(program: torch.export.ExportedProgram, metadata: str) -> bytes:
         import onnx
 
         model = onnx.load(str(path))
+    # unoptimised, the exporter leaves the graph's outputs under their node names: name them as STEP_OUTPUTS
+    for out, name in zip(model.graph.output, STEP_OUTPUTS):
+        if out.name != name:
+            model.graph.node.append(onnx.helper.make_node("Identity", [out.name], [name]))
+            out.name = name
     entry = model.metadata_props.add()
     entry.key, entry.value = METADATA_FILE, metadata
     return model.SerializeToString()

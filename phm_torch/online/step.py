@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
-from ..surrogates.augment import noise_level
+from ..surrogates.augment import noise_from_parts, noise_spacing
 from .input_contract import PIPELINE_CHECKS
 from .pipeline import OnlinePipeline
 
@@ -104,6 +104,28 @@ class OnlineStep(nn.Module):
         self.length = pipeline.n_full if full else pipeline.n_points
         self.register_buffer("phases", torch.arange(3) < 2)  # RUL 5 and 50 % of a faulty verdict
         self.estimate_noise = self.full and (pipeline.noise_aware or pipeline.residual_limit.levels.shape[0] > 1)
+        self._gather_plan(pipeline)
+
+    def _gather_plan(self, p: OnlinePipeline) -> None:
+        """How the step reads a full record: each check's samples once, as strided slices where they are regular
+        (the noise estimate's window and spacing, the residual and consistency rows: a compiled program loads a
+        slice in vector steps, an index one sample at a time) and the full-record check's jittered pairs in one
+        gather; the bench offset is subtracted from these reads only, not from the whole record."""
+        n = p.n_full
+        self.head = min(p.noise_window + 2, n)
+        self.spacing = noise_spacing(n, p.noise_window)
+        self.check_stride = 0
+        pairs = torch.zeros(0, dtype=torch.long)
+        if p.has_full_check:
+            c = p.full_check
+            stride = int(c.rows[1] - c.rows[0]) if c.rows.numel() > 1 else n
+            if not torch.equal(c.rows.cpu(), torch.arange(0, n, stride)):
+                raise ValueError("OnlineStep: the full-record check's rows must be every stride-th sample")
+            self.check_stride = stride
+            pairs = torch.stack([c.shape_rows, c.next_rows], 1).reshape(-1).cpu()
+        self.register_buffer("pair_cols", pairs.to(p.gappy.indices.device))
+        # the consistency check estimates a full record's noise over its own window: the same reads if equal
+        self.shared_noise = not p.has_consistency or p.consistency_check.noise_window == p.noise_window
 
     def _score(self, k: torch.Tensor) -> torch.Tensor:
         """Verdict score minus threshold (N,) of fault vectors k (N, 8), all rows at once."""
@@ -148,10 +170,20 @@ class OnlineStep(nn.Module):
         false = torch.zeros(b, dtype=torch.bool, device=x.device)
         nan = torch.full((b,), float("nan"), dtype=dtype, device=x.device)
         x = x.to(dtype)
-        measured = noise_level(x, p.noise_window) if self.full else nan  # as the pipeline's noise_level
-        x = x - offset.to(dtype)
-        noise = noise_level(x, p.noise_window) if self.estimate_noise else None
-        samples = x.index_select(1, p.gappy.indices) if self.full else x
+        if self.full:  # the records' reads (see _gather_plan); measured = the pipeline's noise_level
+            offset = offset.to(dtype)
+            head, spaced = x[:, : self.head], x[:, :: self.spacing]
+            measured = noise_from_parts(head, spaced)
+            estimate = noise_from_parts(head - offset[: self.head], spaced - offset[:: self.spacing])
+            noise = estimate if self.estimate_noise else None
+            idx = p.gappy.indices
+            samples = x.index_select(1, idx) - offset.index_select(0, idx)
+        else:
+            estimate = None
+            measured = nan
+            x = x - offset.to(dtype)
+            noise = None
+            samples = x
         samples = samples.to(p.gappy.modes_hat.dtype)
         if self.complete_only:  # the caller guarantees every sample present (no linear solve in the graph)
             alpha, residual, enough, flat = self._complete(samples)
@@ -164,16 +196,27 @@ class OnlineStep(nn.Module):
             )
         k_hat = p.fdi(alpha, noise) if p.noise_aware else p.fdi(alpha)
         score = self._score(k_hat)
-        check = p.full_check if self.full and p.has_full_check else None
-        if check is None:
-            pod, rough, plateau = false, false, false
+        if self.full and p.has_full_check:
+            check = p.full_check
+            rows = (x[:, :: self.check_stride] - offset[:: self.check_stride]).to(check.basis.dtype)
+            both = (x.index_select(1, self.pair_cols) - offset.index_select(0, self.pair_cols)).to(check.basis.dtype)
+            both = both.reshape(b, -1, 2)
+            shape = both[:, :, 0]
+            pod = check._residual(rows) > check.residual_threshold
+            rough = check._roughness(shape, both[:, :, 1]) > check.roughness_threshold
+            plateau = check._plateau(shape) > check.plateau_threshold
         else:
-            stats = check.statistics(x)
-            pod = stats[0] > check.residual_threshold
-            rough = stats[1] > check.roughness_threshold
-            plateau = stats[2] > check.plateau_threshold
+            pod, rough, plateau = false, false, false
         gappy_flag = (residual > p._limit(noise, residual)) | ~torch.isfinite(residual)
-        consistency = p.consistency_check(x, k_hat, noise) if p.has_consistency else nan
+        if not p.has_consistency:
+            consistency = nan
+        elif self.full and estimate is not None and self.shared_noise:
+            c = p.consistency_check
+            level = estimate.to(c.mean_rows.dtype)
+            y = x[:, :: c.stride] - offset[:: c.stride]
+            consistency = c.rows_statistic(y, k_hat, level) / c.threshold(level, True)
+        else:  # another noise window: the check reads the records itself
+            consistency = p.consistency_check(x - offset if self.full else x, k_hat, noise)
         inconsistent = consistency > 1.0  # NaN (no finite sample, or no check) compares False
         flags = {
             "missing": ~enough,

@@ -42,6 +42,19 @@ def noise_level(x: torch.Tensor, window: int = 0) -> torch.Tensor:
     """
     n = x.shape[1]
     w = x if window <= 0 else x[:, : window + 2]
+    xs = x if window <= 0 else x[:, :: noise_spacing(n, window)]  # a quarter as many: cache lines skipped
+    return noise_from_parts(w, xs)
+
+
+def noise_spacing(n: int, window: int) -> int:
+    """Spacing of the samples :func:`noise_level` (``window`` > 0) takes the RMS of, for records of n samples."""
+    return max(1, 4 * n // window)
+
+
+def noise_from_parts(w: torch.Tensor, xs: torch.Tensor) -> torch.Tensor:
+    """:func:`noise_level` from its two reads of the records: the consecutive samples ``w`` (B, m) the second
+    differences come from and the samples ``xs`` (B, p) the RMS comes from (a caller that gathers them itself,
+    e.g. with the other columns a step reads, passes them here)."""
     d2 = (w[:, 2:] - 2.0 * w[:, 1:-1] + w[:, :-2]).abs()
     present = torch.isfinite(d2)
     d2 = torch.where(present, d2, torch.zeros_like(d2))
@@ -49,7 +62,6 @@ def noise_level(x: torch.Tensor, window: int = 0) -> torch.Tensor:
     m = d2.sum(1) / count
     for _ in range(2):  # literals: TorchScript reads no Python globals
         m = torch.minimum(d2, 3.0 * m.unsqueeze(1)).sum(1) / count
-    xs = x if window <= 0 else x[:, :: max(1, 4 * n // window)]  # a quarter as many: cache lines skipped
     finite = torch.isfinite(xs)
     level = torch.where(finite, xs, torch.zeros_like(xs)).pow(2).sum(1) / finite.sum(1).clamp(min=1)
     return m / 1.9401301101495292 / level.sqrt().clamp(min=1e-12)
