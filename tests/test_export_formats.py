@@ -146,8 +146,10 @@ def test_step_with_a_bench_offset_equals_the_pipeline_on_the_rebased_records(pip
     with the noise as measured (before the offset)."""
     x = records(pipeline, 6)
     g = torch.Generator().manual_seed(5)
-    bench = pipeline.nominal_record + 0.05 * torch.sin(torch.linspace(0, 40, N_FULL)) + 0.003 * torch.randn(
-        N_FULL, generator=g
+    bench = (
+        pipeline.nominal_record
+        + 0.05 * torch.sin(torch.linspace(0, 40, N_FULL))
+        + 0.003 * torch.randn(N_FULL, generator=g)
     )
     offset = bench - pipeline.nominal_record
     with torch.no_grad():
