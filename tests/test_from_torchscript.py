@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import json
 import re
+from pathlib import Path
 
 import pytest
 import torch
@@ -36,6 +37,9 @@ pytestmark = pytest.mark.torchscript  # loads TorchScript on purpose
 
 PRETRAINED = CONF_DIR.parent / "pretrained"
 PT, PT2 = PRETRAINED / "online_surrogates_best.pt", PRETRAINED / "online_surrogates_best.pt2"
+# the pretrained pipeline as an older phm_torch wrote it (the shipped files are its conversion, pretrained/README.md):
+# the conversion of a file that lacks the newer parts
+OLD = Path(__file__).parent / "data" / "pretrained_v0.pt"
 EXACT = 1e-6  # float32 pipeline: the same arithmetic gives the same numbers (measured: 0)
 # Records with missing samples: the gappy layer's Woodbury path now starts from its solve matrix (centred @ G^-1 V^T)
 # where the pretrained file multiplies by V and G^-1 in turn; the same least squares, rounded otherwise in float32:
@@ -149,8 +153,8 @@ def rich_pipeline() -> OnlinePipeline:
 @pytest.fixture(scope="module")
 def pretrained():
     torch.set_num_threads(1)
-    module = load_scripted(PT)
-    pipeline, derived = convert_scripted(module, PT)
+    module = load_scripted(OLD)
+    pipeline, derived = convert_scripted(module, OLD)
     return module, pipeline, derived
 
 
@@ -197,9 +201,9 @@ def test_pretrained_file_converts_with_the_absent_parts_as_the_constructor_sets_
         assert getattr(pipe, name) == getattr(module, name), name
     assert type(pipe.fdi).__name__ == "FDIEnsemble" and pipe.noise_aware and pipe.fdi.noise_input
     assert pipe.verdict_classifier is not pipe.classifier  # the file's two classifiers differ
-    converted, metadata = pipeline_from_torchscript(PT)
+    converted, metadata = pipeline_from_torchscript(OLD)
     assert_same_outputs(converted, pipe, pipe.nominal_record.unsqueeze(0))
-    assert metadata == read_metadata(PT) and metadata["provenance"]["actuator"]["name"] == "ema_reference"
+    assert metadata == read_metadata(OLD) and metadata["provenance"]["actuator"]["name"] == "ema_reference"
 
 
 def test_pretrained_conversion_sets_every_part_the_current_classes_have(pretrained):
@@ -240,7 +244,7 @@ def test_pretrained_conversion_with_missing_samples_differs_only_by_the_gappy_ro
             assert bool(got[3][-1]) == (inputs.shape[1] == pipe.n_full)  # the full-record check flags the foreign one
             assert float((got[0] - ref[0]).abs().max()) > 0.0  # the rounding is there (else tighten the bound)
         # with the file's own gappy layer, the rest of the converted pipeline gives the file's numbers
-        own, _ = convert_scripted(module, PT)
+        own, _ = convert_scripted(module, OLD)
         own.gappy = module.gappy
         for inputs in (x, x.index_select(1, pipe.gappy.indices)):
             assert_same_outputs(own, module, inputs, file_noise=True)

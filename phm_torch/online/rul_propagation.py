@@ -187,10 +187,9 @@ class RULPropagation:
         coarse = self.coarse_index
         traj = self.nominal + torch.einsum("tij,bqj->tbqi", self.propagators[coarse], dk)  # (Tc, B, 3, 8)
         n_c = traj.shape[0]
-        if blocked:
-            score = self._stop_scores(traj.reshape(-1, 3, 8), measured, blocked).reshape(n_c, b, 3)
-        else:  # one call per scan point (a constant count, so traceable): a batch's rows stay in cache
-            score = torch.stack([self._stop_scores(traj[i], measured, blocked) for i in range(n_c)])
+        # one call for every scan point (a compiled step took 43 us less for one record so, 5 us more per record in a
+        # batch of 4,096 than with a call per scan point)
+        score = self._stop_scores(traj.reshape(-1, 3, 8), measured, blocked).reshape(n_c, b, 3)
         faulty = score <= 0
         any_faulty = faulty.any(0)
         first = torch.argmax(faulty.to(torch.int64), dim=0)  # (B, 3)
