@@ -20,7 +20,7 @@ Each record holds:
   intervals above their highest calibrated level; ``null`` when the pipeline does not know that level);
 * ``ood_reasons``, every check of the input contract that fired (:mod:`phm_torch.online.input_contract`:
   the pipeline's own checks by name, ``command``, ``tracking``, ``sign``, ``offset``, ``shape``, ``noise``,
-  ``spikes``, ``bench``), ``checks_skipped`` (``command`` and ``tracking`` for a CSV without command or position
+  ``spikes``, ``gap``, ``stuck``, ``held``, ``bench``), ``checks_skipped`` (``command`` and ``tracking`` for a CSV without command or position
   columns, a current-only record), ``command_check``, ``tracking_check`` and ``messages`` (one line per failed
   check). The record is computed by :func:`phm_torch.online.diagnosis.diagnose`.
 

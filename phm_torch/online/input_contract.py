@@ -28,6 +28,17 @@ From the current, against the noise calibration and the training model's nominal
 * ``noise`` - the estimated noise above ``NOISE_MARGIN`` x the highest level the intervals were calibrated at;
 * ``sign`` - the record's mean current has the other sign than the nominal record's (a probe the wrong way
   round; the envelope current of any fault vector keeps its sign);
+* ``stuck`` - the current holds one exact value for ``STUCK_RUN`` of the record or longer (a stuck sensor, a burst
+  of zeros) while it moves everywhere else (at most ``MOVING_SHARE`` equal neighbours outside that run), a
+  leading run (an actuator at rest before the recorder's trigger) aside;
+* ``gap`` - ``STUCK_RUN`` of the record or more missing in one stretch (a logger's dropout): the FDI and its
+  intervals were trained and calibrated with a few scattered missing samples, and a gap takes out a whole stretch
+  of the chirp (5 % gaps moved k_hat out of its interval on 4 of 8 corrupted records, unflagged);
+* ``held`` - ``HELD_SHARE`` or more of its consecutive samples are equal and nearly all its changes fall every
+  k-th sample (data decimated by k and held). Over 2,500 noise-free HF records of the paper store the longest run
+  of equal samples is 4 and the share of equal neighbours at most 0.08 %; written at a resolution of 0.1-10 mA
+  they repeat values everywhere, and a noisy record read by a coarse ADC does too: neither is flagged (their
+  changes fall anywhere, and no single run stands out);
 * and, for a record whose estimate k_hat is near nominal (the checks a near-nominal answer must pass: its
   record must look like the nominal one), counted in large faults as the intervals count them
   (``|k_hat - k_0| > interval_level``, the phase k7 left out):
@@ -77,6 +88,12 @@ NOISE_MAX = 0.1  # relative noise limit of a pipeline that does not record its c
 NOISE_MARGIN = 1.5  # the intervals are held at their highest calibrated level up to this factor above it
 SPIKE_SIGMA = 12.0  # a spike: a second difference above this many noise std of a second difference...
 SPIKE_STEP = 0.8  # ... and above this fraction of the nominal RMS current (the current's own steps)
+STUCK_RUN = 0.005  # of the record (50 samples, 2.5 ms of the chirp): 12 x the longest run of a clean HF record
+MOVING_SHARE = 0.01  # ... in a record whose other neighbours are equal at most this often (noisy data: ~0)
+HELD_SHARE = 0.4  # held data: equal neighbours (held x2: 50 %)...
+HELD_ALIGNED = 0.9  # ... and this share of its changes on one residue of a period k (quantised data: ~1 / k)
+HELD_MAX_PERIOD = 64
+HELD_MIN_CHANGES = 10
 
 
 @dataclass(frozen=True)
@@ -228,6 +245,8 @@ class InputContract:
         reasons = []
         if not math.isnan(noise) and noise > self.noise_max:
             reasons.append("noise")
+        if current.numel() == int(getattr(model, "n_full", current.numel())):  # runs of a full record's samples
+            reasons += run_reasons(current)
         nominal, x = self.nominal, current.double()
         if nominal is None or nominal.shape != x.shape:
             return reasons
@@ -305,3 +324,38 @@ class InputContract:
             skipped.append("tracking")
         reasons += [r for r in self.current_reasons(model, current, noise, k_hat) if r not in reasons]
         return ContractChecks(reasons, skipped, command, tracking, messages)
+
+
+def run_reasons(current: torch.Tensor) -> list[str]:
+    """``gap``, ``stuck`` and ``held`` (module docstring) of a current record (n,) [A]; a missing (NaN) sample ends
+    a run of equal samples.
+
+    A record that repeats values everywhere (noise-free data written at a CSV's resolution, a coarse ADC) is
+    neither: its long runs are its resolution, and its changes fall anywhere, not on every k-th sample."""
+    x = current.double()
+    same = x[1:] == x[:-1]  # NaN compares unequal
+    pairs = same.numel()
+    if pairs < 2:
+        return []
+    change = torch.nonzero(~same).flatten()  # x[i + 1] != x[i]
+    edges = torch.cat([torch.tensor([-1]), change, torch.tensor([pairs])])
+    lengths = edges[1:] - edges[:-1] - 1  # runs of equal neighbours between changes; the first one is leading
+    longest = int(lengths[1:].max()) if lengths.numel() > 1 else 0
+    repeats = int(same.sum())
+    reasons = []
+    missing = (~torch.isfinite(x)).to(torch.int64)
+    if bool(missing.any()):  # the longest gap: the running count of missing samples, reset at every present one
+        filled = torch.cumsum(missing, 0)
+        gap = filled - torch.cummax(torch.where(missing == 0, filled, torch.zeros_like(filled)), 0).values
+        if int(gap.max()) >= STUCK_RUN * x.numel():
+            reasons.append("gap")
+    moving = (repeats - longest) <= MOVING_SHARE * max(1, pairs - longest)  # the rest of the record moves
+    if longest + 1 >= STUCK_RUN * x.numel() and moving:  # a run of m equal neighbours holds m + 1 samples
+        reasons.append("stuck")
+    if repeats >= HELD_SHARE * pairs and change.numel() >= HELD_MIN_CHANGES:
+        starts = change + 1  # where a new value starts: every k-th sample for data held k times
+        for k in range(2, HELD_MAX_PERIOD + 1):
+            if int(torch.bincount(starts % k, minlength=k).max()) >= HELD_ALIGNED * change.numel():
+                reasons.append("held")
+                break
+    return reasons
