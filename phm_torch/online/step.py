@@ -22,8 +22,11 @@ What the eager pipeline decides with Python control flow on data, the step decid
 
 from __future__ import annotations
 
+from typing import Any
+
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 from ..surrogates.augment import noise_from_parts, noise_spacing
 from .input_contract import PIPELINE_CHECKS
@@ -52,8 +55,8 @@ def masked_gappy(gappy: nn.Module, samples: torch.Tensor, mask: torch.Tensor) ->
     centred = samples - gappy.mean_hat
     valid = torch.isfinite(centred) & mask
     n_w = gappy.modes_hat.shape[0]
-    fast = centred @ gappy.solve_matrix.T
-    fast_resid = torch.linalg.vector_norm(centred - fast @ gappy.modes_hat.T, dim=-1) / n_w**0.5
+    fast = F.linear(centred, gappy.solve_matrix)
+    fast_resid = torch.linalg.vector_norm(centred - F.linear(fast, gappy.modes_hat), dim=-1) / n_w**0.5
     centred = torch.where(valid, centred, torch.zeros_like(centred))
     w = valid.to(samples.dtype)
     count = w.sum(-1)
@@ -78,6 +81,32 @@ def masked_gappy(gappy: nn.Module, samples: torch.Tensor, mask: torch.Tensor) ->
         alpha, resid = torch.where(use, w_alpha, alpha), torch.where(use, w_resid, resid)
     complete = valid.all()
     return torch.where(complete, fast, alpha), torch.where(complete, fast_resid, resid)
+
+
+class _GappyBuffers:
+    """A ``GappyPOD`` (non-Bayesian) whose buffers are the given tensors: its least-squares methods run on the
+    operands of a ``torch.cond`` branch instead of lifting the module's buffers."""
+
+    def __init__(
+        self,
+        layer: nn.Module,
+        mean: torch.Tensor,
+        modes: torch.Tensor,
+        solve: torch.Tensor,
+        gram_inverse: torch.Tensor,
+        prior: torch.Tensor,
+    ):
+        self.mean_hat, self.modes_hat, self.solve_matrix = mean, modes, solve
+        self.gram_inverse, self.prior_precision = gram_inverse, prior
+        self.bayesian, self.ridge = False, float(layer.ridge)
+        self.woodbury_max, self.woodbury_min_eigenvalue = int(layer.woodbury_max), float(layer.woodbury_min_eigenvalue)
+        self._layer = type(layer)
+
+    def _solve(self, *args: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self._layer._solve(self, *args)
+
+    def _woodbury(self, *args: Any) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        return self._layer._woodbury(self, *args)
 
 
 class OnlineStep(nn.Module):
@@ -136,19 +165,41 @@ class OnlineStep(nn.Module):
         """The pipeline's path for a batch with every sample present: (alpha, residual, enough, flat)."""
         g = self.pipeline.gappy
         centred = samples - g.mean_hat
-        alpha = centred @ g.solve_matrix.T
-        resid = torch.linalg.vector_norm(centred - alpha @ g.modes_hat.T, dim=-1) / g.modes_hat.shape[0] ** 0.5
+        alpha = F.linear(centred, g.solve_matrix)
+        resid = torch.linalg.vector_norm(centred - F.linear(alpha, g.modes_hat), dim=-1) / g.modes_hat.shape[0] ** 0.5
         low, high = torch.aminmax(samples, dim=1)
         return alpha, resid, torch.ones_like(resid, dtype=torch.bool), (high - low) < 1e-6
 
-    def _gappy(self, samples: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The pipeline's path for a batch with missing samples: (alpha, residual, enough, flat)."""
+    def _complete_of(
+        self, samples: torch.Tensor, *buffers: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`_complete` on the gappy layer's buffers given as operands (a ``torch.cond`` branch)."""
+        layer = _GappyBuffers(self.pipeline.gappy, *buffers)
+        centred = samples - layer.mean_hat
+        alpha = F.linear(centred, layer.solve_matrix)
+        resid = torch.linalg.vector_norm(centred - F.linear(alpha, layer.modes_hat), dim=-1)
+        low, high = torch.aminmax(samples, dim=1)
+        resid = resid / layer.modes_hat.shape[0] ** 0.5
+        return alpha, resid, torch.ones_like(resid, dtype=torch.bool), (high - low) < 1e-6
+
+    def _gappy_of(
+        self, samples: torch.Tensor, *buffers: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`_gappy` on the gappy layer's buffers given as operands (a ``torch.cond`` branch)."""
+        return self._gappy(samples, _GappyBuffers(self.pipeline.gappy, *buffers))
+
+    def _gappy(
+        self, samples: torch.Tensor, layer: Any = None
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The pipeline's path for a batch with missing samples: (alpha, residual, enough, flat); ``layer``: the
+        gappy layer or its :class:`_GappyBuffers` (None: the pipeline's)."""
         p = self.pipeline
+        layer = p.gappy if layer is None else layer
         valid = torch.isfinite(samples)
         enough = valid.sum(1) >= p.min_count
-        filled = torch.where(enough.unsqueeze(1) & valid, samples, p.gappy.mean_hat.expand_as(samples))
+        filled = torch.where(enough.unsqueeze(1) & valid, samples, layer.mean_hat.expand_as(samples))
         mask = torch.where(enough.unsqueeze(1), valid, torch.ones_like(valid))
-        alpha, resid = masked_gappy(p.gappy, filled, mask)
+        alpha, resid = masked_gappy(layer, filled, mask)
         flat = torch.where(valid, samples, torch.zeros_like(samples)).std(1) < 1e-6
         return alpha, resid, enough, flat
 
@@ -187,13 +238,26 @@ class OnlineStep(nn.Module):
         samples = samples.to(p.gappy.modes_hat.dtype)
         if self.complete_only:  # the caller guarantees every sample present (no linear solve in the graph)
             alpha, residual, enough, flat = self._complete(samples)
-        else:
-            alpha, residual, enough, flat = self._gappy(samples)
-        if p.n_points >= p.min_count and not self.complete_only:  # both paths, the pipeline's choice selected
-            complete = torch.isfinite(samples).all()
-            alpha, residual, enough, flat = (
-                torch.where(complete, a, b) for a, b in zip(self._complete(samples), (alpha, residual, enough, flat))
+        elif p.n_points >= p.min_count and not p.gappy.bayesian:
+            # the pipeline's choice as a graph branch: a complete batch never builds the masked least squares
+            # (B, n_w, n_m). The layer's buffers go in as operands (a branch that lifts module buffers fails in
+            # AOTInductor), and no transposed view of them is taken (torch.export hoists it out as an aliasing
+            # operand): F.linear
+            g = p.gappy
+            alpha, residual, enough, flat = torch.cond(
+                torch.isfinite(samples).all(),
+                self._complete_of,
+                self._gappy_of,
+                (samples, g.mean_hat, g.modes_hat, g.solve_matrix, g.gram_inverse, g.prior_precision),
             )
+        else:  # both paths, the pipeline's choice selected
+            alpha, residual, enough, flat = self._gappy(samples)
+            if p.n_points >= p.min_count:
+                complete = torch.isfinite(samples).all()
+                alpha, residual, enough, flat = (
+                    torch.where(complete, a, b)
+                    for a, b in zip(self._complete(samples), (alpha, residual, enough, flat))
+                )
         k_hat = p.fdi(alpha, noise) if p.noise_aware else p.fdi(alpha)
         score = self._score(k_hat)
         if self.full and p.has_full_check:

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+from torch.nn import functional as F
 
 # most missing samples per signal solved by the Woodbury identity (k x k systems); more: a G per signal
 WOODBURY_MAX = 8
@@ -167,8 +168,8 @@ class GappyPOD(nn.Module):
         if mask is not None:
             valid = valid & mask
         if bool(valid.all()):  # the online fast path: few passes over the (B, n_w) samples
-            alpha = centred @ self.solve_matrix.T
-            resid = torch.linalg.vector_norm(centred - alpha @ self.modes_hat.T, dim=-1)
+            alpha = F.linear(centred, self.solve_matrix)
+            resid = torch.linalg.vector_norm(centred - F.linear(alpha, self.modes_hat), dim=-1)
             return alpha, resid / self.modes_hat.shape[0] ** 0.5
         centred = torch.where(valid, centred, torch.zeros_like(centred))
         w = valid.to(samples.dtype)
@@ -203,7 +204,7 @@ class GappyPOD(nn.Module):
         the caller solves the batch per signal otherwise, which also decides what is singular."""
         rows = torch.topk(missing.to(centred.dtype), most, dim=-1).indices  # (B, k)
         u = self.modes_hat[rows] * missing.gather(-1, rows).to(centred.dtype).unsqueeze(-1)  # (B, k, n_m)
-        a0 = centred @ self.solve_matrix.T  # G^-1 rhs (B, n_m)
+        a0 = F.linear(centred, self.solve_matrix)  # G^-1 rhs (B, n_m)
         wu = u @ self.gram_inverse  # U G^-1 (B, k, n_m)
         eye = torch.eye(most, dtype=centred.dtype, device=centred.device)
         small = eye - wu @ u.transpose(1, 2)  # S (B, k, k)
@@ -217,7 +218,7 @@ class GappyPOD(nn.Module):
         chol = torch.where(accurate.reshape(-1, 1, 1), factor, eye)  # the others are solved per signal
         c = torch.cholesky_solve(u @ a0.unsqueeze(-1), chol)  # (B, k, 1)
         alpha = a0 + (wu.transpose(1, 2) @ c).squeeze(-1)
-        resid = (centred - alpha @ self.modes_hat.T) * w
+        resid = (centred - F.linear(alpha, self.modes_hat)) * w
         return alpha, (resid.pow(2).sum(-1) / count.clamp(min=1.0)).sqrt(), accurate
 
     def _solve(
@@ -237,9 +238,11 @@ class GappyPOD(nn.Module):
         # A signal whose present samples cannot determine the modes gets NaN coefficients and an infinite
         # residual (flagged out of distribution) instead of failing the batch; its system is replaced by
         # the identity so that no NaN reaches the gradients of the others.
-        chol = torch.linalg.cholesky(torch.where(ok.reshape(-1, 1, 1), gram, eye))
+        # cholesky_ex: the systems left are positive definite (ok includes the factorisation's info), and it has
+        # no error check for a compiled program to call back into Python for (AOTInductor's proxy executor)
+        chol = torch.linalg.cholesky_ex(torch.where(ok.reshape(-1, 1, 1), gram, eye))[0]
         alpha = torch.cholesky_solve(rhs, chol).squeeze(-1)
-        resid = (centred - alpha @ self.modes_hat.T) * w
+        resid = (centred - F.linear(alpha, self.modes_hat)) * w
         resid = (resid.pow(2).sum(-1) / count.clamp(min=1.0)).sqrt()
         alpha = torch.where(ok.unsqueeze(-1), alpha, torch.full_like(alpha, float("nan")))
         return alpha, torch.where(ok, resid, torch.full_like(resid, float("inf")))
