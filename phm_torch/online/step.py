@@ -8,11 +8,12 @@ reasons of :func:`~phm_torch.online.input_contract.pipeline_reasons` (no submodu
 
 What the eager pipeline decides with Python control flow on data, the step decides with tensors:
 
-* the complete-record fast path of the gappy layer against its masked least squares: both are computed and
-  the one the pipeline takes ("every sample present" in the batch) is selected with ``torch.where``
-  (:func:`masked_gappy` replays ``GappyPOD.forward``'s choice between the Woodbury update, at a fixed
-  ``WOODBURY_MAX`` rows, and the per-signal Cholesky solve). ``torch.cond`` would skip the unused path, but it
-  refuses the aliased buffers of the layers, and ONNX / ExecuTorch runtimes serve straight-line graphs best;
+* the complete-record fast path of the gappy layer against its masked least squares ("every sample present" in
+  the batch): a ``torch.cond`` whose branches take the layer's buffers as operands (:class:`_GappyBuffers`), so a
+  complete batch never builds the masked system (:func:`masked_gappy` replays ``GappyPOD.forward``'s choice
+  between the Woodbury update, at a fixed ``WOODBURY_MAX`` rows, and the per-signal Cholesky solve). A Bayesian
+  layer, and the complete-record-only programs of ONNX and ExecuTorch, keep straight-line graphs (both paths
+  selected with ``torch.where``, or the complete one alone);
 * the RUL event search is the pipeline's own (:meth:`OnlinePipeline.rul_shifted`: a constant coarse grid and
   bisection count), called with ``blocked=False`` so that the classifier scores every row at once (the
   pipeline's ``SCORE_BLOCK`` split is a cache optimisation that gives the same scores; a split into a
