@@ -165,11 +165,7 @@ class OnlineStep(nn.Module):
     def _complete(self, samples: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """The pipeline's path for a batch with every sample present: (alpha, residual, enough, flat)."""
         g = self.pipeline.gappy
-        centred = samples - g.mean_hat
-        alpha = F.linear(centred, g.solve_matrix)
-        resid = torch.linalg.vector_norm(centred - F.linear(alpha, g.modes_hat), dim=-1) / g.modes_hat.shape[0] ** 0.5
-        low, high = torch.aminmax(samples, dim=1)
-        return alpha, resid, torch.ones_like(resid, dtype=torch.bool), (high - low) < 1e-6
+        return self._complete_of(samples, g.mean_hat, g.modes_hat, g.solve_matrix, g.gram_inverse, g.prior_precision)
 
     def _complete_of(
         self, samples: torch.Tensor, *buffers: torch.Tensor
