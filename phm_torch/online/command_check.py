@@ -74,3 +74,43 @@ def check_command(
         if err < best[0]:
             best = (err, lag, gain)
     return CommandCheck(nrmse, best[1] / sample_rate, best[2], False)
+
+
+def command_lag(recorded: torch.Tensor, expected: torch.Tensor, max_lag: int) -> int:
+    """The shift (samples, |lag| <= ``max_lag``) with ``recorded[i] ~ g expected[i - lag]`` in least squares over
+    the overlap (any gain g), found for every lag at once by FFT correlation: positive when the record lags the
+    test command (its acquisition triggered early or its clock started late).
+
+    Args:
+        recorded: (n,) the record's command column [rad].  expected: (n,) the test command at the record's times.
+        max_lag: the largest shift searched, in samples (>= 0).
+    """
+    r, e = recorded.double().flatten(), expected.double().flatten()
+    n = r.numel()
+    max_lag = max(0, min(int(max_lag), n // 4))
+    size = 1 << (2 * n - 1).bit_length()
+    corr = torch.fft.irfft(torch.fft.rfft(r, size) * torch.fft.rfft(e, size).conj(), size)
+    lags = torch.arange(-max_lag, max_lag + 1)
+    cross = corr[lags % size]  # sum_i r[i] e[i - lag]
+    r2 = torch.cat([torch.zeros(1, dtype=r.dtype), torch.cumsum(r * r, 0)])
+    e2 = torch.cat([torch.zeros(1, dtype=e.dtype), torch.cumsum(e * e, 0)])
+    start, stop = lags.clamp(min=0), n + lags.clamp(max=0)  # the overlap, in the record's samples
+    r_energy = r2[stop] - r2[start]
+    e_energy = e2[stop - lags] - e2[start - lags]
+    residual = (r_energy - cross.pow(2) / e_energy.clamp_min(1e-300)) / (stop - start)
+    return int(lags[int(torch.argmin(residual))])
+
+
+def shifted(x: torch.Tensor | None, lag: int) -> torch.Tensor | None:
+    """``x[i + lag]`` (n,) with NaN where that falls outside the record: a record lagging the test command by
+    ``lag`` samples (:func:`command_lag`) moved back onto its time grid, its unseen part missing."""
+    if x is None or lag == 0:
+        return x
+    out = torch.full_like(x, float("nan"))
+    n = x.numel()
+    if abs(lag) < n:
+        if lag > 0:
+            out[: n - lag] = x[lag:]
+        else:
+            out[-lag:] = x[: n + lag]
+    return out

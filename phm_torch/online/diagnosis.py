@@ -8,7 +8,7 @@ take the same path. The record's fields are described in :mod:`phm_torch.apps.pr
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import torch
@@ -16,6 +16,7 @@ import torch
 from ..faults import FAULT_NAMES
 from ..surrogates.metrics import IDENTIFIED_R2
 from .bench_check import BenchCheck
+from .command_check import MAX_LAG_S, NRMSE_TOLERANCE, command_lag, shifted
 from .corruptions import Record
 from .input_contract import InputContract
 from .loaded import as_loaded
@@ -44,6 +45,47 @@ def not_identified(metadata: Mapping[str, Any]) -> list[str]:
     return [name for name in FAULT_NAMES if name in r2 and not (r2[name] is not None and r2[name] >= IDENTIFIED_R2)]
 
 
+def align_trigger(
+    record: Record, command: Callable[[torch.Tensor], torch.Tensor] | None
+) -> tuple[Record, float | None]:
+    """The record moved onto the test command's time grid, and the shift [s] it needed (None: no command column or
+    no test command to align on; 0.0: already aligned).
+
+    A trigger offset shifts every channel against the test command: the FDI then reads the current's timing as
+    faults (0.5 ms moved err_k as much as a real fault and no check saw it). The record's own command column
+    tells the shift (:func:`~.command_check.command_lag`); the shifted record's unseen end is missing (NaN),
+    which the gappy layer and the checks handle. It is applied only when the shifted command matches the test
+    command within the command check's tolerance and better than unshifted: another command is left for the
+    command check to refuse."""
+    cmd = record.command
+    if cmd is None or command is None or cmd.numel() < 4 or not bool(torch.isfinite(cmd).all()):
+        return record, None
+    t = (record.time - record.time[0]).double()
+    rate = (t.numel() - 1) / float(t[-1])
+    expected = command(t)
+    lag = command_lag(cmd, expected, round(MAX_LAG_S * rate))
+    if lag == 0:
+        return record, 0.0
+    span = float(expected.max() - expected.min())
+    moved = shifted(cmd.double(), lag)
+    seen = torch.isfinite(moved)
+    before = float((cmd.double() - expected).pow(2).mean().sqrt()) / span
+    after = float((moved[seen] - expected[seen]).pow(2).mean().sqrt()) / span
+    if not (after <= NRMSE_TOLERANCE and after < before):
+        return record, 0.0
+    # one trigger moves every channel: the position still follows its command column, never leads it; a
+    # command column shifted alone (another logger) is left for the command check to refuse
+    position = record.position
+    if (
+        position is not None
+        and bool(torch.isfinite(position).all())
+        and command_lag(position, cmd, round(MAX_LAG_S * rate)) < 0
+    ):
+        return record, 0.0
+    aligned = Record(record.time, shifted(cmd, lag), shifted(record.position, lag), shifted(record.current, lag))
+    return aligned, lag / rate
+
+
 def diagnose(
     model: Any,
     record: Record,
@@ -64,6 +106,8 @@ def diagnose(
             the training model makes the record out of distribution with the reason ``bench``.
     """
     model = as_loaded(model)
+    measured = record.current
+    record, trigger_lag = align_trigger(record, contract.command)
     current = torch.as_tensor(record.current, dtype=model.dtype).reshape(1, -1)
     step = model.run(current, bench_nominal)
     k_hat, score, rul, ood, resid, current = step.k_hat, step.score, step.rul, step.ood, step.residual, step.current
@@ -71,7 +115,15 @@ def diagnose(
     bounds = None if step.k_lower is None else torch.stack([step.k_lower, step.k_upper], -1)[0]
     reference = float(getattr(model, "calibration_noise", float("nan")))
     noisy = None if math.isnan(reference) or math.isnan(noise) else noise > max(2.0 * reference, NOISE_FLOOR)
-    checks = contract.check(model, record, current[0], noise, bool(ood[0]), k_hat[0], bool(score[0] > 0))
+    checks = contract.check(model, record, current[0], noise, bool(ood[0]), k_hat[0], bool(score[0] > 0), measured)
+    if trigger_lag:
+        checks.messages.append(
+            f"the record lagged the test command by {1000 * trigger_lag:.2f} ms (a trigger offset): every channel "
+            f"was moved back onto the test command's time grid, its last {1000 * abs(trigger_lag):.2f} ms missing"
+            if trigger_lag > 0
+            else f"the record led the test command by {-1000 * trigger_lag:.2f} ms (a trigger offset): every "
+            f"channel was moved onto the test command's time grid, its first {-1000 * trigger_lag:.2f} ms missing"
+        )
     if bench is not None and not bench.ok:
         checks.reasons.append("bench")
         checks.messages.append(bench.message())
@@ -98,6 +150,7 @@ def diagnose(
         if command is None
         else {"nrmse": command.nrmse, "best_lag_s": command.best_lag_s, "gain": command.gain, "ok": command.ok},
         "tracking_check": checks.tracking,
+        "trigger_offset_s": trigger_lag,
         "noise": None if math.isnan(noise) else noise,
         "noise_above_calibration": noisy,
         "messages": checks.messages,

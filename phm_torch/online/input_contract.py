@@ -94,6 +94,7 @@ HELD_SHARE = 0.4  # held data: equal neighbours (held x2: 50 %)...
 HELD_ALIGNED = 0.9  # ... and this share of its changes on one residue of a period k (quantised data: ~1 / k)
 HELD_MAX_PERIOD = 64
 HELD_MIN_CHANGES = 10
+MIN_PRESENT = 0.9  # a command or position column is checked on its finite samples if at least this share is finite
 
 
 @dataclass(frozen=True)
@@ -238,15 +239,23 @@ class InputContract:
         return {"nrmse": error, "range": [low, high], "position_gain": gain, "correlation": corr, "ok": bool(ok)}
 
     def current_reasons(
-        self, model: Any, current: torch.Tensor, noise: float, k_hat: torch.Tensor | None = None
+        self,
+        model: Any,
+        current: torch.Tensor,
+        noise: float,
+        k_hat: torch.Tensor | None = None,
+        measured: torch.Tensor | None = None,
     ) -> list[str]:
         """The checks of the current (n_full,) [A] against the noise calibration and the nominal record, those
-        of a near-nominal answer given its estimate k_hat (8,) (None: skipped)."""
+        of a near-nominal answer given its estimate k_hat (8,) (None: skipped); the run checks read ``measured``,
+        the current as recorded (None: ``current``), so that the missing end of a record aligned on its trigger
+        is no gap."""
         reasons = []
         if not math.isnan(noise) and noise > self.noise_max:
             reasons.append("noise")
-        if current.numel() == int(getattr(model, "n_full", current.numel())):  # runs of a full record's samples
-            reasons += run_reasons(current)
+        runs = current if measured is None else measured
+        if runs.numel() == int(getattr(model, "n_full", runs.numel())):  # runs of a full record's samples
+            reasons += run_reasons(runs)
         nominal, x = self.nominal, current.double()
         if nominal is None or nominal.shape != x.shape:
             return reasons
@@ -287,31 +296,38 @@ class InputContract:
         ood: bool,
         k_hat: torch.Tensor | None = None,
         healthy: bool | None = None,
+        measured: torch.Tensor | None = None,
     ) -> ContractChecks:
         """Every check of one record: ``current`` (n_full,) [A] as the pipeline saw it (after any rebase),
         ``noise`` its estimated relative noise (as measured), ``ood`` the pipeline's own flag, ``k_hat`` (8,) its
         estimate (None: the checks of a near-nominal answer are skipped), ``healthy`` its verdict (True: the
         position must follow the command as the healthy training records do, a dead or reversed sensor on a
-        healthy actuator; None or False: as any training record does)."""
+        healthy actuator; None or False: as any training record does), ``measured`` the current as recorded
+        (:meth:`current_reasons`)."""
         reasons, skipped, messages = [], [], []
         if ood:
             found = pipeline_reasons(model, current.unsqueeze(0))
             reasons += found[0] if found and found[0] else ["pipeline"]
         command = tracking = None
-        has_command = record.command is not None and bool(torch.isfinite(record.command).all())
-        has_position = record.position is not None and bool(torch.isfinite(record.position).all())
+        # a column is checked on its finite samples (a record aligned on its trigger misses its ends)
+        command_seen, position_seen = _present(record.command), _present(record.position)
+        has_command, has_position = command_seen is not None, position_seen is not None
         if has_command and self.command is not None:
             n = min(record.command.numel(), current.numel())
             t = (record.time[:n] - record.time[0]).double()
             rate = (record.time.numel() - 1) / float(record.time[-1] - record.time[0])
-            command = check_command(record.command[:n], self.command(t), rate)
+            seen = command_seen[:n]
+            command = check_command(record.command[:n][seen], self.command(t)[seen], rate)
             if not command.ok:
                 reasons.append("command")
                 messages.append(command.reason())
         elif not has_command:
             skipped.append("command")
-        if has_command and has_position and float(record.command.max() - record.command.min()) > 0:
-            tracking = self._tracking(record, healthy)
+        both = command_seen & position_seen if has_command and has_position else None
+        if both is not None and float(record.command[both].max() - record.command[both].min()) > 0:
+            tracking = self._tracking(
+                Record(record.time[both], record.command[both], record.position[both], record.current), healthy
+            )
             if not tracking["ok"]:
                 reasons.append("tracking")
                 messages.append(
@@ -322,8 +338,17 @@ class InputContract:
                 )
         else:  # no command or position column, or a constant command: nothing to follow
             skipped.append("tracking")
-        reasons += [r for r in self.current_reasons(model, current, noise, k_hat) if r not in reasons]
+        reasons += [r for r in self.current_reasons(model, current, noise, k_hat, measured) if r not in reasons]
         return ContractChecks(reasons, skipped, command, tracking, messages)
+
+
+def _present(x: torch.Tensor | None) -> torch.Tensor | None:
+    """(n,) bool mask of the finite samples of a record's column; None where it is absent or less than
+    ``MIN_PRESENT`` of it is finite."""
+    if x is None:
+        return None
+    seen = torch.isfinite(x)
+    return seen if float(seen.double().mean()) >= MIN_PRESENT else None
 
 
 def run_reasons(current: torch.Tensor) -> list[str]:
