@@ -8,7 +8,7 @@ import math
 import pytest
 import torch
 
-from phm_torch.online.input_contract import run_reasons
+from phm_torch.online.run_checks import run_reasons
 
 N = 10001
 

@@ -99,6 +99,8 @@ def settings_from_config(cfg: DictConfig) -> TrainSettings:
         ckpt_path=None if cfg.ckpt_path is None else str(cfg.ckpt_path),
         requested_provenance=common.requested_provenance(cfg),
         explicit_provenance=frozenset(k for k in provenance.KEYS if cfg.get(k) is not None),
+        drive_range=cfg.drive_range,
+        fit_within_drive_range=bool(cfg.fit_within_drive_range),
     )
 
 

@@ -28,6 +28,8 @@ From the current, against the noise calibration and the training model's nominal
 * ``noise`` - the estimated noise above ``NOISE_MARGIN`` x the highest level the intervals were calibrated at;
 * ``sign`` - the record's mean current has the other sign than the nominal record's (a probe the wrong way
   round; the envelope current of any fault vector keeps its sign);
+* ``overcurrent`` - the current exceeds the drive range the FDI was trained within (``current_bound``): a record a
+  protected drive would not have finished (two nearly shorted phases), or a probe scaled wrong;
 * ``stuck`` - the current holds one exact value for ``STUCK_RUN`` of the record or longer (a stuck sensor, a burst
   of zeros) while it moves everywhere else (at most ``MOVING_SHARE`` equal neighbours outside that run), a
   leading run (an actuator at rest before the recorder's trigger) aside;
@@ -68,6 +70,7 @@ import torch
 from ..metrics import nrmse
 from .command_check import CommandCheck, check_command
 from .corruptions import Record
+from .run_checks import run_reasons
 
 PIPELINE_CHECKS = ("missing", "flat", "gappy_residual", "pod_residual", "roughness", "plateau", "inconsistent")
 # a position anti-correlated with its command is a reversed sensor; a stalled actuator (a double short stops it)
@@ -88,12 +91,6 @@ NOISE_MAX = 0.1  # relative noise limit of a pipeline that does not record its c
 NOISE_MARGIN = 1.5  # the intervals are held at their highest calibrated level up to this factor above it
 SPIKE_SIGMA = 12.0  # a spike: a second difference above this many noise std of a second difference...
 SPIKE_STEP = 0.8  # ... and above this fraction of the nominal RMS current (the current's own steps)
-STUCK_RUN = 0.005  # of the record (50 samples, 2.5 ms of the chirp): 12 x the longest run of a clean HF record
-MOVING_SHARE = 0.01  # ... in a record whose other neighbours are equal at most this often (noisy data: ~0)
-HELD_SHARE = 0.4  # held data: equal neighbours (held x2: 50 %)...
-HELD_ALIGNED = 0.9  # ... and this share of its changes on one residue of a period k (quantised data: ~1 / k)
-HELD_MAX_PERIOD = 64
-HELD_MIN_CHANGES = 10
 MIN_PRESENT = 0.9  # a command or position column is checked on its finite samples if at least this share is finite
 
 
@@ -200,6 +197,10 @@ class InputContract:
         nominal: the pipeline's nominal record (n_full,) [A] (None: the checks against it are skipped).
         tracking_range_healthy: (low, high) tracking NRMSE of the healthy training records, for a record the
             pipeline calls healthy (None: ``tracking_range``).
+        current_bound: [A] the drive range the pipeline's FDI was trained within (metadata ``drive_current_bound``:
+            phm-train's ``drive_range`` x the actuator's current limit). A record whose current exceeds it is
+            ``overcurrent``: a protected drive would have tripped, and the FDI never saw such a record (None: the
+            check is skipped, as for a pipeline trained before it).
     """
 
     command: Callable[[torch.Tensor], torch.Tensor] | None = None
@@ -207,6 +208,7 @@ class InputContract:
     noise_max: float = NOISE_MAX
     nominal: torch.Tensor | None = None  # the pipeline's nominal record (n_full,) [A], float64; None: unknown
     tracking_range_healthy: tuple[float, float] | None = None  # that of the healthy training records
+    current_bound: float | None = None  # [A] the drive range the FDI was trained within (None: unchecked)
 
     @classmethod
     def of(
@@ -218,7 +220,15 @@ class InputContract:
         noise_max = NOISE_MAX if levels is None or levels.numel() < 2 else NOISE_MARGIN * float(levels[-1])
         nominal = getattr(model, "nominal_record", None)
         usable = nominal is not None and bool(torch.isfinite(nominal).all()) and float(nominal.abs().max()) > 0
-        return cls(command, tracking, noise_max, nominal.double() if usable else None, healthy)
+        bound = metadata.get("drive_current_bound")
+        return cls(
+            command,
+            tracking,
+            noise_max,
+            nominal.double() if usable else None,
+            healthy,
+            None if bound is None else float(bound),
+        )
 
     def _tracking(self, record: Record, healthy: bool | None = None) -> dict[str, Any]:
         cmd, pos = record.command, record.position
@@ -253,6 +263,8 @@ class InputContract:
         reasons = []
         if not math.isnan(noise) and noise > self.noise_max:
             reasons.append("noise")
+        if self.current_bound is not None and float(current.double().nan_to_num(0.0).abs().max()) > self.current_bound:
+            reasons.append("overcurrent")
         runs = current if measured is None else measured
         if runs.numel() == int(getattr(model, "n_full", runs.numel())):  # runs of a full record's samples
             reasons += run_reasons(runs)
@@ -349,38 +361,3 @@ def _present(x: torch.Tensor | None) -> torch.Tensor | None:
         return None
     seen = torch.isfinite(x)
     return seen if float(seen.double().mean()) >= MIN_PRESENT else None
-
-
-def run_reasons(current: torch.Tensor) -> list[str]:
-    """``gap``, ``stuck`` and ``held`` (module docstring) of a current record (n,) [A]; a missing (NaN) sample ends
-    a run of equal samples.
-
-    A record that repeats values everywhere (noise-free data written at a CSV's resolution, a coarse ADC) is
-    neither: its long runs are its resolution, and its changes fall anywhere, not on every k-th sample."""
-    x = current.double()
-    same = x[1:] == x[:-1]  # NaN compares unequal
-    pairs = same.numel()
-    if pairs < 2:
-        return []
-    change = torch.nonzero(~same).flatten()  # x[i + 1] != x[i]
-    edges = torch.cat([torch.tensor([-1]), change, torch.tensor([pairs])])
-    lengths = edges[1:] - edges[:-1] - 1  # runs of equal neighbours between changes; the first one is leading
-    longest = int(lengths[1:].max()) if lengths.numel() > 1 else 0
-    repeats = int(same.sum())
-    reasons = []
-    missing = (~torch.isfinite(x)).to(torch.int64)
-    if bool(missing.any()):  # the longest gap: the running count of missing samples, reset at every present one
-        filled = torch.cumsum(missing, 0)
-        gap = filled - torch.cummax(torch.where(missing == 0, filled, torch.zeros_like(filled)), 0).values
-        if int(gap.max()) >= STUCK_RUN * x.numel():
-            reasons.append("gap")
-    moving = (repeats - longest) <= MOVING_SHARE * max(1, pairs - longest)  # the rest of the record moves
-    if longest + 1 >= STUCK_RUN * x.numel() and moving:  # a run of m equal neighbours holds m + 1 samples
-        reasons.append("stuck")
-    if repeats >= HELD_SHARE * pairs and change.numel() >= HELD_MIN_CHANGES:
-        starts = change + 1  # where a new value starts: every k-th sample for data held k times
-        for k in range(2, HELD_MAX_PERIOD + 1):
-            if int(torch.bincount(starts % k, minlength=k).max()) >= HELD_ALIGNED * change.numel():
-                reasons.append("held")
-                break
-    return reasons

@@ -36,6 +36,14 @@ class SplitData:
     def __len__(self) -> int:
         return int(self.k.shape[0])
 
+    def rows(self, keep: torch.Tensor) -> SplitData:
+        """The split restricted to the rows where ``keep`` (n,) bool is True."""
+        return SplitData(self.name, self.k[keep], self.current[keep], self.healthy[keep])
+
+    def peak_current(self) -> torch.Tensor:
+        """(n,) the largest |envelope current| of each record [A] (NaN samples ignored)."""
+        return self.current.nan_to_num(0.0).abs().amax(1)
+
 
 def read_split(store: DatasetStore, name: str, n_samples: int, limit: int | None = None) -> SplitData:
     """Read split ``name`` (its first ``limit`` rows if given) and check its shapes and values."""

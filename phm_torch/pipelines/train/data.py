@@ -3,6 +3,7 @@ and command), the POD of the training currents, the selected samples and the gap
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -17,11 +18,15 @@ from ...surrogates.gappy_pod import gappy_statistics
 from ...surrogates.selectors.base import Selector
 from .settings import TrainSettings
 
+log = logging.getLogger(__name__)
+BEYOND_WARNING = 0.2  # warn when more than this share of the training records is beyond the drive range
+
 
 @dataclass
 class StoreData:
     """The store's train and val splits, its time grid (n_e,) [s] and sample rate [Hz], ``info`` (manifest,
-    metadata, nominal record) and the actuator/command provenance records the run uses."""
+    metadata, nominal record) and the actuator/command provenance records the run uses; ``current_bound`` [A]
+    the drive range (None: none) and ``inside`` (n_train,) bool, the training records within it (None: all)."""
 
     train: SplitData
     val: SplitData
@@ -29,6 +34,28 @@ class StoreData:
     sample_rate: float
     info: dict[str, Any]
     provenance: dict[str, Any]
+    current_bound: float | None = None
+    inside: torch.Tensor | None = None
+
+    @property
+    def beyond_range(self) -> int:
+        """Training records beyond the drive range (0 without one, or when they were left out of the fits)."""
+        return 0 if self.inside is None else int((~self.inside).sum())
+
+
+def drive_bound(actuator: dict[str, Any] | None, drive_range: float | None) -> float | None:
+    """``drive_range`` x the actuator's ``current_limit`` [A]; None where either is unknown.
+
+    A record beyond it is one a drive with overcurrent protection would not have finished: at k near 1 in two
+    phases the shorted pair's inductance is ~(1 - s)^2 of nominal, the current loop becomes unstable at the PWM
+    rate and the simulated envelope current swings through kiloamperes (8 % of the 270 V rudder actuator's
+    importance-sampled records above twice its 20 A limit, 0.2 % of the reference's). Such records carry most
+    of the training set's POD energy and inflated the out-of-distribution thresholds calibrated on it (the
+    rudder actuator's gappy-residual limit 3.8 -> 28 A)."""
+    if drive_range is None or not actuator:
+        return None
+    limit = (actuator.get("values") or {}).get("current_limit")
+    return None if limit is None else float(drive_range) * float(limit)
 
 
 @dataclass
@@ -62,13 +89,39 @@ def load_data(settings: TrainSettings, timing: dict[str, float]) -> StoreData:
     dt = torch.diff(grid)
     if not bool((dt > 0).all()) or float(dt.max() - dt.min()) > 1e-6 * float(dt.mean()):
         raise ValueError(f"store {settings.data_dir!r}: time grid is not uniform")
-    if len(data["train"]) <= settings.n_modes:
+    if len(data["train"]) <= settings.n_modes:  # (checked again below on the records within the drive range)
         raise ValueError(
             f"n_modes={settings.n_modes} needs more than {settings.n_modes} training signals, "
             f"the store has {len(data['train'])}"
         )
+    train, bound = data["train"], drive_bound(prov.get("actuator"), settings.drive_range)
+    inside = None if bound is None else train.peak_current() <= bound
+    if inside is not None:
+        beyond, fitted = int((~inside).sum()), "left out of every fit" if settings.fit_within_drive_range else "kept"
+        if int(inside.sum()) <= settings.n_modes:
+            raise ValueError(
+                f"drive_range={settings.drive_range}: only {int(inside.sum())} training signals stay within "
+                f"{bound:g} A, n_modes={settings.n_modes} needs more (raise drive_range or set it to null)"
+            )
+        share = beyond / len(train)
+        (log.warning if share > BEYOND_WARNING else log.info)(
+            "store %s: %d of %d training records (%.1f %%) exceed the drive range, %g A (drive_range %g x the "
+            "current limit): not used to calibrate the out-of-distribution thresholds, %s in the fits%s",
+            settings.data_dir,
+            beyond,
+            len(train),
+            100 * share,
+            bound,
+            settings.drive_range,
+            fitted,
+            "; is current_limit the drive's limit? (drive_range=null: no drive range)"
+            if share > BEYOND_WARNING
+            else "",
+        )
+        if settings.fit_within_drive_range:
+            train, inside = train.rows(inside), torch.ones(len(train) - beyond, dtype=torch.bool)
     timing["load_s"] = time.perf_counter() - t0
-    return StoreData(data["train"], data["val"], grid, 1.0 / float(dt.mean()), info, prov)
+    return StoreData(train, data["val"], grid, 1.0 / float(dt.mean()), info, prov, bound, inside)
 
 
 def fit_reduction(settings: TrainSettings, selector: Selector, data: StoreData, timing: dict[str, float]) -> Reduction:

@@ -26,6 +26,7 @@ from ...surrogates.classifiers.base import HealthClassifier
 from ...surrogates.evaluate import evaluate_classifier, evaluate_fdi, measure_latency, quartiles
 from ...surrogates.forward import fit_forward_check
 from ...surrogates.full_signal_check import FullSignalCheck
+from ...surrogates.metrics import err_k
 from ...surrogates.ood_calibration import ood_thresholds
 from ...surrogates.selectors.base import Selector
 from .classifiers import fit_classifiers, store_labeller
@@ -59,14 +60,19 @@ def evaluate(
         else None
     )
     metrics, arrays = evaluate_fdi(pod, gappy, network, val.current, val.k, ev.noise, ev.missing, seed, nominal)
+    if data.current_bound is not None:  # err_k of the val records a protected drive would have finished
+        inside = val.peak_current() <= data.current_bound
+        metrics["val_beyond_drive_range"] = int((~inside).sum())
+        metrics["err_k_in_drive_range"] = err_k(arrays["k_hat"][inside], val.k[inside]) if bool(inside.any()) else None
     t0 = time.perf_counter()
     with torch.no_grad():
         network(gappy(red.samples_va)[0])
     timing["fdi_eval_per_signal_us"] = (time.perf_counter() - t0) / max(len(val), 1) * 1e6
     metrics.update(evaluate_classifier(classifier, val.k, val.healthy, arrays["k_hat"], verdict))
     metrics.update(measure_latency(gappy, network, classifier, red.samples_va, ev.latency_repeats))
+    calibrating = data.train.current if data.inside is None else data.train.current[data.inside]
     threshold, full_threshold = ood_thresholds(
-        data.train.current, gappy, FullSignalCheck(pod.modes_, pod.mean_), ev.noise, ev.ood_quantile, seed + 7
+        calibrating, gappy, FullSignalCheck(pod.modes_, pod.mean_), ev.noise, ev.ood_quantile, seed + 7
     )
     with torch.no_grad():  # the shape statistics have physical thresholds: report how much of val they reject
         full_ood_val = (
@@ -114,6 +120,7 @@ def make_bundle(
             "model": model_name,
             "n_train": len(data.train),
             "provenance": data.provenance,
+            "drive_current_bound": data.current_bound,
         },
         full_residual_threshold=ood["ood_full_residual_threshold"],
         gappy_statistics=red.statistics,
@@ -159,6 +166,8 @@ def train_surrogates(
     model_name = module.optimizer_name + ("_e2e" if settings.model.end_to_end else "")
     metrics.update(
         n_train=len(data.train),
+        drive_current_bound=data.current_bound,
+        n_train_beyond_drive_range=data.beyond_range,
         n_fdi_fit=len(fdi.fit_rows),
         n_fdi_monitor=0 if fdi.monitor_rows is None else len(fdi.monitor_rows),
         n_val=len(data.val),

@@ -155,6 +155,9 @@ class TrainSettings:
         ckpt_path: resume the FDI training from this checkpoint (None: from scratch).
         requested_provenance: ``{"actuator", "command"}`` records the config asks for (None where it asks none).
         explicit_provenance: the keys the user chose (``actuator=<name>``), which the store must match.
+        drive_range: the drive's current range, this multiple of the actuator's ``current_limit`` (None: none):
+            records beyond it calibrate no out-of-distribution threshold, and the exported pipeline calls them
+            ``overcurrent``; see ``conf/train.yaml``.  fit_within_drive_range: also leave them out of every fit.
     """
 
     data_dir: str
@@ -183,6 +186,8 @@ class TrainSettings:
     ckpt_path: str | None
     requested_provenance: Mapping[str, Any]
     explicit_provenance: frozenset[str]
+    drive_range: float | None = None
+    fit_within_drive_range: bool = False
 
     def __post_init__(self) -> None:
         _set(self, "seed", integer(self.seed, "seed", 0))
@@ -203,6 +208,8 @@ class TrainSettings:
                 "max_missed_fault_rate",
                 number(self.max_missed_fault_rate, "calibration.max_missed_fault_rate", 0.0),
             )
+        if self.drive_range is not None:
+            _set(self, "drive_range", number(self.drive_range, "drive_range", 1.0))
         fraction = number(self.monitor_fraction, "monitor_fraction", 0.0)
         if fraction >= 0.5:
             raise ValueError(f"monitor_fraction must be < 0.5 (a fraction of the training signals), got {fraction!r}")
