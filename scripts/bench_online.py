@@ -11,7 +11,8 @@ alternating order (round-robin over the formats, ``--rounds`` rounds, medians ov
   methods (:meth:`TorchScriptPipeline.run`), one program call for the others;
 * ``forward_full`` p50/p99 (TorchScript only): its ``forward`` alone, the figure this script reported before;
 * ``step_samples`` p50/p99: one record of selected samples;
-* ``fdi`` p50/p99 (TorchScript only, its submodules): selected samples -> gappy POD -> MLP -> k_hat;
+* ``fdi`` p50/p99 (TorchScript only): selected samples -> gappy POD -> MLP -> k_hat, one call of
+  ``k_hat_of_samples`` (the gappy least squares folded into the first layer; older files: the two submodules);
 * ``records_per_s_256`` / ``records_per_s_4096``: batched throughput of the full step;
 * ``load_s`` (median of 3 loads) and ``file_bytes``.
 
@@ -89,7 +90,9 @@ def main() -> None:
                     t.setdefault("forward_full", []).extend(call_times_us(lambda m=m: m(one), args.repeats))
 
                     def fdi(m=m):
-                        alpha, _ = m.gappy(samples, None)
+                        if hasattr(m, "k_hat_of_samples"):  # the FDI alone, folded (online/sample_fdi.py)
+                            return m.k_hat_of_samples(samples)
+                        alpha, _ = m.gappy(samples, None)  # a pipeline exported before it: the two layers
                         return m.fdi(alpha)
 
                     t.setdefault("fdi", []).extend(call_times_us(fdi, args.repeats))

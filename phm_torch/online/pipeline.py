@@ -30,6 +30,7 @@ from .consistency import ConsistencyCheck
 from .fdi_interval import DEFAULT_CLASSES, DEFAULT_LEVEL
 from .noise_threshold import NoiseScaledThreshold
 from .rul_propagation import RULPropagation
+from .sample_fdi import SampleFDI
 
 NOISE_WINDOW, NOISE_ROWS = 1024, 64  # the noise estimate of a noise-aware FDI: samples, rows per block
 
@@ -121,6 +122,7 @@ class OnlinePipeline(nn.Module, RULPropagation):
         if not residual_threshold > 0:
             raise ValueError(f"online.residual_threshold must be > 0, got {residual_threshold}")
         self.gappy, self.fdi, self.classifier = gappy, fdi, classifier
+        self.sample_fdi = SampleFDI(gappy, fdi)  # the FDI alone (:meth:`k_hat_of_samples`), derived: no state
         self.verdict_classifier = classifier if verdict_classifier is None else verdict_classifier
         # selected samples alone carry no noise estimate: the network's default level is used then
         self.noise_aware = bool(getattr(fdi, "noise_input", False))
@@ -247,6 +249,12 @@ class OnlinePipeline(nn.Module, RULPropagation):
             fdi_health_stop=fdi_health_stop,
             unidentified=unidentified,
         )
+
+    @torch.jit.export
+    def k_hat_of_samples(self, samples: torch.Tensor) -> torch.Tensor:
+        """The FDI alone: k_hat (B, 8) from the samples (B, n_points) [A] at the selected times (NaN = missing), the
+        gappy least squares folded into the network's first layer for a complete record (:mod:`.sample_fdi`)."""
+        return self.sample_fdi(samples)
 
     @torch.jit.export
     def noise_level(self, x: torch.Tensor) -> torch.Tensor:
