@@ -73,7 +73,7 @@ CLASSES: dict[str, type[nn.Module]] = {
 }
 # the pipeline's submodules: restored from the file and passed to the constructor, or (residual_limit) built by it
 PIPELINE_CHILDREN = ("gappy", "fdi", "classifier", "verdict_classifier", "full_check", "consistency_check")
-BUILT_CHILDREN = ("residual_limit",)
+BUILT_CHILDREN = ("residual_limit", "folded_fdi")  # derived by the constructor
 MODULE_INTERNALS = ("training", "_is_full_backward_hook")  # declared by every scripted module, not its state
 # largest |converted - file| / max(1, |file|) of any output rewrite_pipeline accepts: a float32 pipeline's rounding
 # (records with missing samples: the gappy layer's Woodbury path now starts from its solve matrix, 1e-5 of k_hat)
@@ -242,7 +242,8 @@ def convert_scripted(module: torch.jit.ScriptModule, path: str | os.PathLike) ->
         # the file's event-search grid (its RUL numbers), else the constructor's default
         **{key: attrs[key] for key in ("sample_rate", "coarse") if key in attrs},
     )
-    stored = module.state_dict()
+    # a scripted module lists its derived (non-persistent) buffers too: the constructor made them from the restored parts
+    stored = {k: v for k, v in module.state_dict().items() if k.split(".")[0] not in BUILT_CHILDREN[1:]}
     result = pipeline.load_state_dict(stored, strict=False)  # the file's tensors, every one (checked below)
     if result.unexpected_keys:
         raise ValueError(

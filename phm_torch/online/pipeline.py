@@ -30,7 +30,7 @@ from .consistency import ConsistencyCheck
 from .fdi_interval import DEFAULT_CLASSES, DEFAULT_LEVEL
 from .noise_threshold import NoiseScaledThreshold
 from .rul_propagation import RULPropagation
-from .sample_fdi import SampleFDI
+from .sample_fdi import FoldedFDI
 
 NOISE_WINDOW, NOISE_ROWS = 1024, 64  # the noise estimate of a noise-aware FDI: samples, rows per block
 
@@ -85,7 +85,7 @@ class OnlinePipeline(nn.Module, RULPropagation):
         unidentified: indices of the components the test command does not identify (:meth:`set_unidentified`).
     """
 
-    __constants__ = ("noise_aware", "has_consistency")  # TorchScript compiles only the FDI call that applies
+    __constants__ = ("noise_aware", "has_consistency", "fdi_folded")  # TorchScript compiles the FDI call that applies
 
     def __init__(
         self,
@@ -122,7 +122,8 @@ class OnlinePipeline(nn.Module, RULPropagation):
         if not residual_threshold > 0:
             raise ValueError(f"online.residual_threshold must be > 0, got {residual_threshold}")
         self.gappy, self.fdi, self.classifier = gappy, fdi, classifier
-        self.sample_fdi = SampleFDI(gappy, fdi)  # the FDI alone (:meth:`k_hat_of_samples`), derived: no state
+        self.folded_fdi = FoldedFDI(gappy, fdi)  # the FDI alone (:meth:`k_hat_of_samples`), derived: no state
+        self.fdi_folded = bool(self.folded_fdi.folded)
         self.verdict_classifier = classifier if verdict_classifier is None else verdict_classifier
         # selected samples alone carry no noise estimate: the network's default level is used then
         self.noise_aware = bool(getattr(fdi, "noise_input", False))
@@ -254,16 +255,18 @@ class OnlinePipeline(nn.Module, RULPropagation):
     def k_hat_of_samples(self, samples: torch.Tensor) -> torch.Tensor:
         """The FDI alone: k_hat (B, 8) from the samples (B, n_points) [A] at the selected times (NaN = missing), the
         gappy least squares folded into the network's first layer for a complete record (:mod:`.sample_fdi`)."""
-        return self.sample_fdi(samples)
+        samples = samples.to(self.gappy.modes_hat.dtype)
+        if self.fdi_folded and bool(torch.isfinite(samples).all()):
+            return self.folded_fdi(samples)
+        alpha, _ = self.gappy(samples)
+        return self.fdi(alpha, None) if self.noise_aware else self.fdi(alpha)
 
     @torch.jit.export
     def noise_level(self, x: torch.Tensor) -> torch.Tensor:
-        """Relative white-noise level (B,) of full records x (B, n_full) [A]
-        (:func:`phm_torch.surrogates.augment.noise_level` on the first ``noise_window`` samples): the level the
-        noise-aware network is told, the k_hat intervals are read at and phm-predict reports. Compare with
-        ``calibration_noise``: the uncertainty outputs were calibrated at that level and are too narrow well
-        above it. (The whole record's estimate cost 14 times as much, half of a batched TorchScript step, and
-        agrees with it within 5 % for a stationary noise.)"""
+        """Relative white-noise level (B,) of full records x (B, n_full) [A] on their first ``noise_window``
+        samples (:func:`phm_torch.surrogates.augment.noise_level`; the whole record cost 14 times as much): the
+        level the noise-aware network is told, the intervals are read at and phm-predict reports; the uncertainty
+        outputs are too narrow well above ``calibration_noise``."""
         if x.dim() != 2 or x.shape[1] != self.n_full:
             raise ValueError("noise_level: x must be (B, n_full)")
         return self._estimated_noise(x)

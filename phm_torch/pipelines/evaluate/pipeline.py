@@ -176,6 +176,7 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
         "out_of_distribution": ood.tolist(),
     }
     metrics.update(actuator=provenance.describe(prov["actuator"]), command=provenance.describe(prov["command"]))
+    metrics["calibration_beyond_drive_range"] = inp.band_beyond_drive_range  # left out of every calibration
     export_metadata = {
         "provenance": prov,
         "tracking_nrmse": inp.tracking,
@@ -234,13 +235,18 @@ def _inputs(settings: EvaluateSettings) -> SimpleNamespace:
         band_view = store.split(cal.split)
         band_k = torch.as_tensor(band_view.K[()], dtype=torch.float64)
         band_clean = torch.as_tensor(band_view.current[()], dtype=torch.float64)
-        band_signals = noisy(band_clean, cal.noise, settings.seed)
         band_healthy = torch.as_tensor(band_view.healthy[()]).bool()
         healthy = torch.as_tensor(view.healthy[()]).bool()
         tracking, tracking_healthy = tracking_ranges(store)
     if k.shape[0] == 0:
         raise ValueError(f"split {settings.split!r} of {settings.data_dir} is empty")
+    bound = bundle.extra.get("drive_current_bound")
+    inside = None if bound is None else band_clean.abs().amax(1) <= float(bound)
+    if inside is not None:  # the pipeline answers overcurrent beyond its drive range: nothing to calibrate there
+        band_k, band_clean, band_healthy = band_k[inside], band_clean[inside], band_healthy[inside]
+    band_signals = noisy(band_clean, cal.noise, settings.seed)
     return SimpleNamespace(
+        band_beyond_drive_range=0 if inside is None else int((~inside).sum()),
         prov=prov,
         assessment=assessment,
         params=params,
