@@ -1,0 +1,127 @@
+"""Give an exported TorchScript pipeline the health classifier of the assessment function its actuator ships now.
+
+A pipeline's health classifier learns phi_a's labels, and its verdict classifier learns them from the FDI's estimates.
+When phi_a changes (the sweep derived from the actuator replaced the hand-tuned one), the shipped pipeline keeps the
+old boundary. Its FDI is unaffected, but every verdict and RUL event is judged by a boundary the new labels do not
+share. This script keeps the FDI and everything calibrated on it, and changes three things:
+- the health classifier is taken from a bundle trained on a store labelled by the current phi_a
+  (``phm-train``'s, boundary refinement included);
+- with ``--refit-verdict``, the verdict classifier is refit on the pipeline's own estimates of that store's training
+  records (1 % current noise), with their labels, as phm-train fits it (on fewer records than the pipeline's own
+  it can lose more near nominal than it gains: pretrained/README.md);
+- the two calibrations that read the classifiers are redone on the store's val split, as phm-evaluate does them:
+  the FDI band of the full-flow RUL, and P(faulty)'s Platt scaling.
+The file's metadata is kept.
+
+    python scripts/refit_pipeline_classifiers.py --pipeline tests/data/pretrained_v0.pt --data-dir data/paper \
+        --bundle results/train/surrogates.pt --out /tmp/p/online.pt
+    phm-export pipeline=/tmp/p/online.pt format=[torchscript,export] out=/tmp/p2/online_surrogates_best.pt
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from phm_torch import provenance
+from phm_torch.data import DatasetStore
+from phm_torch.online.export import export_torchscript
+from phm_torch.online.from_torchscript import pipeline_from_torchscript
+from phm_torch.pipelines.evaluate.calibration import fdi_band, noisy, verdict_scaling
+from phm_torch.surrogates import SurrogateBundle
+from phm_torch.surrogates.classifiers import MLPClassifier
+
+NOISE = (
+    0.01  # relative current noise of the verdict classifier's training records and the band's (as phm-train/-evaluate)
+)
+BATCH = 1024
+
+
+def _split(store: DatasetStore, name: str) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    view = store.split(name)
+    k = torch.as_tensor(np.asarray(view.K), dtype=torch.float64)
+    return (
+        k,
+        torch.as_tensor(np.asarray(view.current), dtype=torch.float64),
+        torch.as_tensor(np.asarray(view.healthy)).bool(),
+    )
+
+
+def _rates(score: torch.Tensor, healthy: torch.Tensor) -> dict[str, float]:
+    said = score > 0
+    return {
+        "accuracy": float((said == healthy).double().mean()),
+        "missed_fault_rate": float((said & ~healthy).double().sum() / max(1, int((~healthy).sum()))),
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--pipeline", required=True, help="the TorchScript pipeline file to refit")
+    ap.add_argument("--data-dir", required=True, help="a store of the pipeline's actuator and command, current phi_a")
+    ap.add_argument("--bundle", required=True, help="a phm-train bundle on that store: its health classifier is taken")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--refit-verdict",
+        action="store_true",
+        help="also refit the verdict classifier on the store's training records (fewer than the pipeline's own)",
+    )
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    pipe, metadata = pipeline_from_torchscript(args.pipeline)
+    bundle = SurrogateBundle.load(args.bundle)
+    with DatasetStore(args.data_dir) as store:
+        recorded = store.provenance or {}
+        # the store and the bundle must be of the pipeline's actuator and command
+        provenance.require_same(recorded, metadata.get("provenance") or {}, f"store {args.data_dir}")
+        provenance.require_same(bundle.provenance, recorded, f"bundle {args.bundle}")
+        _, train_x, train_h = _split(store, "train")
+        val_k, val_x, val_h = _split(store, "val")
+    dtype = pipe.times.dtype
+    before = {}
+    with torch.no_grad():
+        before["verdict_val"] = _rates(pipe(val_x.to(dtype))[1], val_h)
+        before["health_val"] = _rates(pipe.classifier(val_k.to(dtype)) - pipe.classifier.threshold, val_h)
+        if args.refit_verdict:
+            noisy_train = noisy(train_x, NOISE, args.seed).to(dtype)
+            k_hat = torch.cat([pipe(noisy_train[i : i + BATCH])[0] for i in range(0, len(noisy_train), BATCH)])
+    weights = pipe.classifier.threshold.dtype  # the classifiers' own dtype (the pipeline's may differ)
+    pipe.classifier = bundle.classifier.to(weights)
+    if args.refit_verdict:
+        pipe.verdict_classifier = MLPClassifier(seed=args.seed).fit(k_hat.double(), train_h).to(weights)
+    band_signals = noisy(val_x, NOISE, args.seed)
+    band = fdi_band(pipe, band_signals, val_k, False)
+    if band is not None:
+        pipe.fdi_deltas.copy_(band.deltas.to(pipe.fdi_deltas))
+        pipe.fdi_direction.copy_(band.direction.to(pipe.fdi_direction))
+        pipe.set_health_stop(band.health_stop)
+    with torch.no_grad():
+        _, score, _, ood, _ = pipe(band_signals.to(dtype))
+    platt = verdict_scaling(None, score, ood, val_h)
+    if platt is not None:
+        pipe.verdict_scale.fill_(platt[0])
+        pipe.verdict_offset.fill_(platt[1])
+    with torch.no_grad():
+        after = {
+            "verdict_val": _rates(pipe(val_x.to(dtype))[1], val_h),
+            "health_val": _rates(pipe.classifier(val_k.to(dtype)) - pipe.classifier.threshold, val_h),
+        }
+    export_torchscript(pipe, args.out, metadata)
+    report = {
+        "out": args.out,
+        "before": before,
+        "after": after,
+        "fdi_band_deltas": None if band is None else band.deltas.tolist(),
+        "verdict_platt": None if platt is None else list(platt[:2]),
+    }
+    Path(args.out).with_suffix(".refit.json").write_text(json.dumps(report, indent=2))
+    print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()
