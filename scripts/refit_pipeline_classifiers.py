@@ -77,6 +77,7 @@ def main() -> None:
     bundle = SurrogateBundle.load(args.bundle)
     with DatasetStore(args.data_dir) as store:
         recorded = store.provenance or {}
+        assessment = (store.metadata.get("config") or {}).get("assessment")  # the phi_a of the store's labels
         # the store and the bundle must be of the pipeline's actuator and command
         provenance.require_same(recorded, metadata.get("provenance") or {}, f"store {args.data_dir}")
         provenance.require_same(bundle.provenance, recorded, f"bundle {args.bundle}")
@@ -111,7 +112,8 @@ def main() -> None:
             "verdict_val": _rates(pipe(val_x.to(dtype))[1], val_h),
             "health_val": _rates(pipe.classifier(val_k.to(dtype)) - pipe.classifier.threshold, val_h),
         }
-    export_torchscript(pipe, args.out, metadata)
+    # the phi_a its health classifier (the RUL event) learned, which phm-track compares with a life split's
+    export_torchscript(pipe, args.out, {**metadata, "assessment": assessment})
     report = {
         "out": args.out,
         "before": before,

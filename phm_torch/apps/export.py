@@ -187,8 +187,9 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         if cal.get(key) is not None
     }
     extra["damage"] = _damage(cal, cfg, cal_path)  # the tracker's process model (phm-track)
-    if bundle.extra.get("drive_current_bound") is not None:  # the input contract's overcurrent check
-        extra["drive_current_bound"] = bundle.extra["drive_current_bound"]
+    for key in ("drive_current_bound", "assessment"):  # the input contract's overcurrent; phm-track's phi_a check
+        if bundle.extra.get(key) is not None:
+            extra[key] = bundle.extra[key]
     probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)  # each file reloaded as phm-predict reads it
     checked = write_checked(pipeline, out, formats, {"provenance": prov, **extra}, probe)
     diffs = checked["max_abs_diff"]

@@ -22,6 +22,7 @@ import torch
 from omegaconf import DictConfig
 
 from .. import provenance
+from ..assessment_record import same_labels
 from ..online.input_contract import InputContract
 from ..online.loaded import TorchScriptPipeline, load_pipeline
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
@@ -123,6 +124,15 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         if not truth_path.is_file():
             raise ValueError(f"truth: no such file {str(truth_path)!r}")
         truth = json.loads(truth_path.read_text())
+        metrics["same_assessment"] = same_labels(metadata.get("assessment"), truth.get("assessment"))
+        if metrics["same_assessment"] is False:
+            log.warning(
+                "truth %s was labelled by another assessment function than the pipeline's classifiers learned: "
+                "their health boundaries differ, and the end-of-life timing is judged against the truth's",
+                truth_path,
+            )
+        elif metrics["same_assessment"] is None:
+            log.info("%s or %s records no assessment config: not compared", model_path, truth_path)
         scores = evaluate_life(result, truth)
         common.write_json(out_dir / "metrics.json", {**scores, "tracking": metrics})
         objects["life_metrics"] = scores

@@ -183,6 +183,7 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
         "tracking_nrmse_healthy": inp.tracking_healthy,
         "identifiability": c.r2,
         "drive_current_bound": inp.bundle.extra.get("drive_current_bound"),  # the input contract's overcurrent
+        "assessment": inp.bundle.extra.get("assessment"),  # the phi_a its classifiers learned (phm-track checks it)
         "damage": dict(settings.damage),  # phm-track's process model
     }
     return metrics, {

@@ -121,6 +121,7 @@ def make_bundle(
             "n_train": len(data.train),
             "provenance": data.provenance,
             "drive_current_bound": data.current_bound,
+            "assessment": (data.info["metadata"].get("config") or {}).get("assessment"),  # the labels' phi_a
         },
         full_residual_threshold=ood["ood_full_residual_threshold"],
         gappy_statistics=red.statistics,

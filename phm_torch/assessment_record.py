@@ -1,0 +1,39 @@
+"""Which assessment function an artefact's labels came from, and whether two artefacts agree on it.
+
+phi_a labels the training vectors of the health classifier and the inspections of a life split. A pipeline and a
+life split labelled by different phi_a disagree near the health boundary, exactly where a run to failure crosses
+it (the pretrained pipeline's hand-tuned sweep against the derived one: its health classifier said "faulty" an
+inspection late for 25 of 40 histories). The stores record their assessment config; the bundle and the exported
+pipeline carry it on (``assessment`` in their metadata), and phm-track compares it with a life split's.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from typing import Any
+
+# settings that change how phi_a runs, not what it answers
+RUN_ONLY = ("compile", "group_size")
+
+
+def labelling(assessment: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    """The assessment config without its run-only settings (``RUN_ONLY``, at any depth); None for None."""
+    if assessment is None:
+        return None
+
+    def strip(node: Any) -> Any:
+        if isinstance(node, Mapping):
+            return {k: strip(v) for k, v in node.items() if k not in RUN_ONLY}
+        if isinstance(node, (list, tuple)):
+            return [strip(v) for v in node]
+        return node
+
+    return strip(assessment)
+
+
+def same_labels(a: Mapping[str, Any] | None, b: Mapping[str, Any] | None) -> bool | None:
+    """Whether two assessment configs label alike (None: one of them is unknown)."""
+    if a is None or b is None:
+        return None
+    return json.dumps(labelling(a), sort_keys=True) == json.dumps(labelling(b), sort_keys=True)
