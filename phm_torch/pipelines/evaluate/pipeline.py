@@ -18,7 +18,6 @@ import torch
 
 from ... import provenance
 from ...checks import build
-from ...data.store import DatasetStore
 from ...faults import FAULT_NAMES
 from ...io.atomic import write_json
 from ...online import OnlinePipeline
@@ -32,9 +31,9 @@ from ...prognostics.evaluation import RULComparison
 from ...prognostics.plots import error_panels, rul_vs_expected
 from ...prognostics.reference import margin_score, reference_rul
 from ...prognostics.rul import VARIANTS
-from ...surrogates.bundle import SurrogateBundle
 from ...surrogates.metrics import IDENTIFIED_R2
-from .calibration import fdi_band, fdi_intervals, identifiability, noisy, tracking_ranges, verdict_scaling
+from .calibration import fdi_band, fdi_intervals, identifiability, verdict_scaling
+from .inputs import read_inputs
 from .settings import EvaluateSettings
 
 
@@ -85,7 +84,7 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
         exported files carry besides the pipeline) and ``probe`` (records the exported files are checked on).
     """
     cal = settings.calibration
-    inp = _inputs(settings)
+    inp = read_inputs(settings)
     out_dir = settings.out_dir
     out_dir.mkdir(parents=True, exist_ok=True)
     prov, assessment, params, damage, bundle = inp.prov, inp.assessment, inp.params, inp.damage, inp.bundle
@@ -197,72 +196,6 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
         "export_metadata": export_metadata,
         "probe": signals[:8],
     }
-
-
-def _inputs(settings: EvaluateSettings) -> SimpleNamespace:
-    """Everything the evaluation reads: provenance (reconciled with the config), assessment config, actuator, damage
-    model, bundle, the evaluated split (k, signals, healthy), the calibration split (k, clean and noisy signals,
-    healthy) and the tracking ranges of every split."""
-    cal = settings.calibration
-    with DatasetStore(settings.data_dir) as store:
-        prov = {
-            key: provenance.reconcile(
-                (store.provenance or {}).get(key),
-                settings.requested_provenance[key],
-                key in settings.explicit,
-                key,
-                f"store {settings.data_dir}",
-            )
-            for key in provenance.KEYS
-        }
-        assessment = (
-            dict(settings.assessment)
-            if settings.assessment is not None
-            else (store.metadata.get("config") or {}).get("assessment")
-        )
-    if assessment is None:
-        raise ValueError(
-            f"assessment: store {settings.data_dir} records no assessment config; choose one with "
-            "assessment=frequency_response"
-        )
-    params = _actuator(prov["actuator"], settings.fallback_actuator)
-    damage = build(dict(settings.damage), "damage", nominal=list(params.nominal_faults))
-    bundle = SurrogateBundle.load(settings.bundle)
-    provenance.require_same(bundle.provenance, prov, f"bundle {settings.bundle}")  # trained on a store of the same
-    with DatasetStore(settings.data_dir) as store:
-        view = store.split(settings.split)
-        k = torch.as_tensor(view.K[()], dtype=torch.float64)
-        signals = torch.as_tensor(view.current[()], dtype=torch.float64)
-        band_view = store.split(cal.split)
-        band_k = torch.as_tensor(band_view.K[()], dtype=torch.float64)
-        band_clean = torch.as_tensor(band_view.current[()], dtype=torch.float64)
-        band_healthy = torch.as_tensor(band_view.healthy[()]).bool()
-        healthy = torch.as_tensor(view.healthy[()]).bool()
-        tracking, tracking_healthy = tracking_ranges(store)
-    if k.shape[0] == 0:
-        raise ValueError(f"split {settings.split!r} of {settings.data_dir} is empty")
-    bound = bundle.extra.get("drive_current_bound")
-    inside = None if bound is None else band_clean.abs().amax(1) <= float(bound)
-    if inside is not None:  # the pipeline answers overcurrent beyond its drive range: nothing to calibrate there
-        band_k, band_clean, band_healthy = band_k[inside], band_clean[inside], band_healthy[inside]
-    band_signals = noisy(band_clean, cal.noise, settings.seed)
-    return SimpleNamespace(
-        band_beyond_drive_range=0 if inside is None else int((~inside).sum()),
-        prov=prov,
-        assessment=assessment,
-        params=params,
-        damage=damage,
-        bundle=bundle,
-        k=k,
-        signals=signals,
-        healthy=healthy,
-        band_k=band_k,
-        band_clean=band_clean,
-        band_signals=band_signals,
-        band_healthy=band_healthy,
-        tracking=tracking,
-        tracking_healthy=tracking_healthy,
-    )
 
 
 def _calibrate(settings: EvaluateSettings, pipeline: OnlinePipeline, inp: SimpleNamespace) -> SimpleNamespace:
@@ -394,12 +327,3 @@ def _calibration_record(
         "damage": dict(settings.damage),
         "provenance": inp.prov,
     }
-
-
-def _actuator(record: Any, fallback: ActuatorParams | None) -> ActuatorParams:
-    """The actuator of a provenance record, or the configured one for a store that records none."""
-    if record is not None:
-        return ActuatorParams.from_mapping(record["values"])
-    if fallback is None:
-        raise ValueError("actuator: the artefact records no actuator; choose one with actuator=<name>")
-    return fallback
