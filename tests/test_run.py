@@ -10,6 +10,7 @@ import torch
 from phm_torch.apps.export import export
 from phm_torch.apps.predict import predict
 from phm_torch.apps.run import compose_stage, generate_overrides, run_all
+from phm_torch.online.export import read_metadata
 
 pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
@@ -82,6 +83,10 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     assert 0.0 <= saved["train"]["err_k"] < 1.0
     assert saved["evaluate"]["export_max_abs_diff"] < 1e-5  # TorchScript reloads equal to eager
     assert saved["evaluate"]["fdi_band_n_used"] >= 10  # the full-flow band is calibrated on val
+    # the drive range (2 x the reference's 15 A) and the labels' phi_a travel from the store into the pipeline
+    assert saved["train"]["drive_current_bound"] == 30.0 and saved["evaluate"]["calibration_beyond_drive_range"] >= 0
+    recorded = read_metadata(saved["evaluate"]["export"])
+    assert recorded["drive_current_bound"] == 30.0 and recorded["assessment"]["_target_"].endswith("AssessmentFunction")
     # phm-export rebuilds the same pipeline, FDI band included, from the bundle and rul_calibration.json
     calibration = json.loads((tmp_path / "evaluate" / "rul_calibration.json").read_text())
     assert calibration["fdi_deltas"] == saved["evaluate"]["fdi_band_deltas"]
