@@ -8,13 +8,13 @@ undefined (err_alpha at one mode) is left out and the page says why; a banner st
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Any
 
 from .html import HtmlReport
 from .pretrained import pretrained_section
+from .stage_sections import cases_section, life_section, percent, workbench_section
 
 # The seed paper's figures (Berri, Dalla Vedova, Mainini), as fractions where they are rates.
 PAPER = {
@@ -70,14 +70,6 @@ LATENCY_LABELS = {
     "online_step_us_p99": "online step (reloaded TorchScript), one signal, p99 [us]",
     "online_batched_signals_per_s": "online step, batch of 1024 [signals/s]",
 }
-
-
-def _load(path: Path) -> dict[str, Any]:
-    return json.loads(path.read_text()) if path.is_file() else {}
-
-
-def _pct(v: float | None) -> float | None:
-    return None if v is None else 100 * v
 
 
 def _duration(seconds: float) -> str:
@@ -195,7 +187,7 @@ def _data(r: HtmlReport, gen: dict[str, Any]) -> None:
     splits = gen.get("splits") or {}
     r.table(
         ["split", "signals", "healthy", "healthy [%]"],
-        [[name, s.get("count"), s.get("healthy"), _pct(s.get("healthy_fraction"))] for name, s in splits.items()],
+        [[name, s.get("count"), s.get("healthy"), percent(s.get("healthy_fraction"))] for name, s in splits.items()],
     )
     r.table(
         ["quantity", "value"],
@@ -241,12 +233,12 @@ def _classifier(r: HtmlReport, tr: dict[str, Any]) -> None:
     r.table(
         ["rate", "ours [%]", "paper [%]"],
         [
-            ["accuracy", _pct(tr.get("classifier_accuracy")), 98.2],
-            ["missed faults (faulty called healthy)", _pct(tr.get("missed_fault_rate")), 3.25],
-            ["false alarms", _pct(tr.get("false_alarm_rate")), 1.33],
-            ["verdict from k_hat (the whole chain): accuracy", _pct(tr.get("chain_accuracy")), None],
-            ["verdict from k_hat: missed faults", _pct(tr.get("chain_missed_fault_rate")), None],
-            ["verdict from k_hat: false alarms", _pct(tr.get("chain_false_alarm_rate")), None],
+            ["accuracy", percent(tr.get("classifier_accuracy")), 98.2],
+            ["missed faults (faulty called healthy)", percent(tr.get("missed_fault_rate")), 3.25],
+            ["false alarms", percent(tr.get("false_alarm_rate")), 1.33],
+            ["verdict from k_hat (the whole chain): accuracy", percent(tr.get("chain_accuracy")), None],
+            ["verdict from k_hat: missed faults", percent(tr.get("chain_missed_fault_rate")), None],
+            ["verdict from k_hat: false alarms", percent(tr.get("chain_false_alarm_rate")), None],
         ],
     )
     r.note(
@@ -258,7 +250,7 @@ def _classifier(r: HtmlReport, tr: dict[str, Any]) -> None:
 def _rul(r: HtmlReport, run_dir: Path, ev: dict[str, Any]) -> None:
     r.section("RUL vs expected RUL with the 5-95 % band (from the true k and from the full flow)")
     known = {key for key, _, _ in RUL_ROWS}
-    rows = [[label, _pct(ev[key]) if unit == "%" else ev[key], unit] for key, label, unit in RUL_ROWS if key in ev]
+    rows = [[label, percent(ev[key]) if unit == "%" else ev[key], unit] for key, label, unit in RUL_ROWS if key in ev]
     rows += [[key, ev[key], ""] for key in ev if key.startswith("rul_") and key not in known]
     r.table(["quantity", "ours", "unit"], rows)
     r.note(
@@ -296,7 +288,7 @@ def _uncertainty(r: HtmlReport, ev: dict[str, Any]) -> None:
         [
             ["Brier score", ev.get("verdict_brier")],
             ["Brier score of the base rate", ev.get("verdict_brier_base_rate")],
-            ["accuracy [%]", _pct(ev.get("verdict_accuracy"))],
+            ["accuracy [%]", percent(ev.get("verdict_accuracy"))],
             ["prior P(faulty)", ev.get("verdict_prior_faulty")],
         ],
     )
@@ -350,7 +342,7 @@ def build_report(run_dir: Path, metrics: dict[str, Any], studies: dict[str, Any]
     _classifier(r, tr)
     _rul(r, run_dir, ev)
     _uncertainty(r, ev)
-    _life_section(r, run_dir)
+    life_section(r, run_dir)
 
     r.section("Online latencies (paper: milliseconds on a desktop; targets FDI <= 100 us, full step <= 1 ms)")
     lat = studies.get("latency", {})
@@ -360,137 +352,6 @@ def build_report(run_dir: Path, metrics: dict[str, Any], studies: dict[str, Any]
         + [[LATENCY_LABELS.get(k, k), v] for k, v in lat.items()],
     )
 
-    _workbench(r, run_dir, metrics.get("workbench", {}))
-    _cases(r, run_dir, metrics.get("cases"))
+    workbench_section(r, run_dir, metrics.get("workbench", {}))
+    cases_section(r, run_dir, metrics.get("cases"))
     return r.write(run_dir / "report" / "index.html")
-
-
-def _workbench(r: HtmlReport, run_dir: Path, wb: dict[str, Any]) -> None:
-    r.section("Workbench on the bundled hidden-effect measurement: before / after")
-    wbr = _load(run_dir / "workbench" / "report.json")
-    if not wbr:
-        r.note("(workbench stage not run)")
-        return
-    r.table(
-        ["effect", "score", "p-value", "significant", "NRMSE after refit [%]"],
-        [
-            [
-                c.get("label") or c.get("effect"),
-                c.get("score"),
-                c.get("p_value"),
-                c.get("significant"),
-                _pct(c.get("nrmse_after_refit")),
-            ]
-            for c in wbr.get("candidates", [])[:5]
-        ],
-    )
-    nrmse, floor, after = wbr.get("nrmse") or {}, wbr.get("noise_floor") or {}, wb.get("nrmse_after") or {}
-    r.table(
-        ["channel", "NRMSE, model as given [%]", "noise floor [%]", "NRMSE, effects added [%]"],
-        [[c, _pct(nrmse.get(c)), _pct(floor.get(c)), _pct(after.get(c))] for c in nrmse],
-    )
-    timing = wb.get("timing") or {}
-    r.table(
-        ["quantity", "value"],
-        [
-            ["most likely missing effect", wb.get("best_candidate")],
-            ["effects added", wb.get("added") or "none"],
-            ["neural closure's lead input", wb.get("closure_lead")],
-            ["wall time [s]", timing.get("total_s")],
-        ],
-    )
-    r.markup(
-        '<p class="note">The workbench\'s own page, with every diagnostic: '
-        '<a href="../workbench/report.html">workbench/report.html</a>.</p>'
-    )
-    for png in ("before_after", "candidates", "overlay"):
-        if (run_dir / "workbench" / f"{png}.png").is_file():
-            r.figure(run_dir / "workbench" / f"{png}.png", png.replace("_", " "))
-
-
-def _cases(r: HtmlReport, run_dir: Path, cases: dict[str, Any] | None) -> None:
-    if not cases:
-        return
-    from ..faults import FAULT_NAMES
-
-    r.section("Virtual bench: faulty actuators vs nominal")
-    nominal = (cases.get("nominal") or {}).get("faults") or []
-    rows = []
-    for name, c in (cases.get("cases") or {}).items():
-        changed = {
-            FAULT_NAMES[i]: v for i, v in enumerate(c.get("faults") or []) if i >= len(nominal) or v != nominal[i]
-        }
-        rows.append(
-            [
-                name,
-                changed or "none",
-                _pct(c.get("nrmse_current")),
-                _pct(c.get("nrmse_position")),
-                c.get("peak_current"),
-            ]
-        )
-    r.table(
-        ["case", "faults (differing from nominal)", "NRMSE current [%]", "NRMSE position [%]", "peak current [A]"], rows
-    )
-    r.note(
-        f"{str(cases.get('fidelity', '')).upper()} records of {cases.get('duration')} s; NRMSE = RMS(case - "
-        f"nominal) / range of the nominal signal, noise-free; simulated in {cases.get('wall_time_s')} s."
-    )
-    for png in sorted((run_dir / "cases").glob("*.png"))[:3]:
-        r.figure(png, png.stem)
-
-
-LIFE_ROWS = (  # metric of phm_torch.prognostics.life_metrics, its label, its key in the targets block
-    ("coverage_5_95", "true RUL inside the 5-95 % band", "coverage_5_95"),
-    (
-        "median_relative_band_width_second_half",
-        "median (p95 - p5) / true RUL, second half of life",
-        "median_relative_band_width_second_half",
-    ),
-    ("alpha_lambda", "alpha-lambda accuracy (alpha 0.2, lambda 0.5)", "alpha_lambda"),
-    ("relative_accuracy", "relative accuracy at lambda 0.5 (median)", None),
-    ("prognostic_horizon", "prognostic horizon / life (median, alpha 0.1)", "prognostic_horizon"),
-    ("eol_detection_delay", "end-of-life detection delay [h] (median)", None),
-    (
-        "eol_flagged_within_one_inspection",
-        "end of life flagged within one inspection",
-        "eol_flagged_within_one_inspection",
-    ),
-    ("positive_p50_when_faulty", "positive RUL p50 on a faulty verdict (count)", "positive_p50_when_faulty"),
-)
-
-
-def _life_section(r: HtmlReport, run_dir: Path) -> None:
-    """Life tracking (phm-track on the life split): the fused RUL against the single-record one (not in the
-    paper: its RUL is a snapshot)."""
-    scores = _load(run_dir / "track" / "metrics.json")
-    r.section("Life tracking: inspections fused over each actuator's life vs one record at a time (not in the paper)")
-    if not scores:
-        r.note("(track stage not run)")
-        return
-    targets = scores.get("targets", {})
-
-    def value(which: str, key: str) -> Any:  # a metric recorded as null is infinite; one not recorded, a dash
-        v = scores[which].get(key)
-        return "∞" if v is None and key in scores[which] else v
-
-    rows = []
-    for key, label, target_key in LIFE_ROWS:
-        t = targets.get(target_key) if target_key else None
-        rows.append(
-            [
-                label,
-                value("tracker", key),
-                value("snapshot", key),
-                "" if t is None else t["target"],
-                "" if t is None else t["passed"],
-            ]
-        )
-    r.table(["Saxena et al. (2010) metric", "tracker", "snapshot", "target", "met"], rows)
-    r.note(
-        f"{scores.get('n_actuators')} actuators, {scores.get('n_inspections')} inspections "
-        f"({scores.get('n_out_of_distribution')} out of distribution, not fused); metric definitions in "
-        "docs/prognostics.md (Life tracking metrics). ∞: an infinite value (a censored band)."
-    )
-    for name in ("life_rul", "life_damage", "life_fleet"):
-        r.figure(run_dir / "track" / f"{name}.png", name.replace("_", " "))
