@@ -28,7 +28,7 @@ from ..params import CONF_DIR
 from ..report.figures import err_alpha_vs_modes, fdi_per_parameter, hidden_neuron_study, placement
 from ..report.paper import build_report
 from ..surrogates.bundle import SurrogateBundle
-from ..timing import call_times_us, percentiles_us
+from ..timing import torchscript_step_latency
 from . import common
 
 log = logging.getLogger(__name__)
@@ -166,28 +166,6 @@ def workbench_measurement(cfg: DictConfig, shared: list[str], out_dir: Path) -> 
     return out
 
 
-def _latency(model_path: Path, signals: torch.Tensor, repeats: int) -> dict[str, float]:
-    """p50/p99 of the reloaded TorchScript step on one signal (one thread), and batched throughput."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        model = torch.jit.load(str(model_path))
-        one = signals[:1].to(model.times.dtype)
-        with torch.no_grad():
-            step = percentiles_us(call_times_us(lambda: model(one), repeats))
-            batch = signals[:1].expand(1024, -1).to(model.times.dtype).contiguous()
-            t0 = time.perf_counter()
-            model(batch)
-            throughput = 1024 / (time.perf_counter() - t0)
-    finally:
-        torch.set_num_threads(threads)
-    return {
-        "online_step_us_p50": step["p50_us"],
-        "online_step_us_p99": step["p99_us"],
-        "online_batched_signals_per_s": throughput,
-    }
-
-
 def pretrained_study(cfg: DictConfig, run_dir: Path, metrics: dict[str, Any]) -> dict[str, Any] | None:
     """The shipped pipeline ``cfg.report.pretrained`` run by phm-predict on ``cfg.report.pretrained_records`` and
     on the cases stage's records (when they have the pipeline's test length), for the report's section
@@ -296,7 +274,7 @@ def _studies(
             studies["fdi_per_parameter"] = fdi_per_parameter(metrics["train"]["fdi_mae"], fig_dir / "fdi_mae.png")
         model = eval_dir / "online.pt"
         if model.is_file():
-            studies["latency"] = _latency(
+            studies["latency"] = torchscript_step_latency(
                 model, yva, common.integer(cfg.report.latency_repeats, "report.latency_repeats", 10)
             )
     return studies
