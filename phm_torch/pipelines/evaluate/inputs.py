@@ -3,18 +3,22 @@ each checked against the others' provenance."""
 
 from __future__ import annotations
 
+import logging
 from types import SimpleNamespace
 from typing import Any
 
 import torch
 
 from ... import provenance
+from ...assessment_record import same_labels
 from ...checks import build
 from ...data.store import DatasetStore
 from ...params import ActuatorParams
 from ...surrogates.bundle import SurrogateBundle
 from .calibration import noisy, tracking_ranges
 from .settings import EvaluateSettings
+
+log = logging.getLogger(__name__)
 
 
 def read_inputs(settings: EvaluateSettings) -> SimpleNamespace:
@@ -47,6 +51,12 @@ def read_inputs(settings: EvaluateSettings) -> SimpleNamespace:
     damage = build(dict(settings.damage), "damage", nominal=list(params.nominal_faults))
     bundle = SurrogateBundle.load(settings.bundle)
     provenance.require_same(bundle.provenance, prov, f"bundle {settings.bundle}")  # trained on a store of the same
+    if same_labels(bundle.extra.get("assessment"), assessment) is False:  # its classifiers learned another boundary
+        log.warning(
+            "bundle %s: its classifiers learned the labels of another assessment function than the one the reference "
+            "RULs are computed with here: verdicts and RUL events are judged against a boundary they did not learn",
+            settings.bundle,
+        )
     with DatasetStore(settings.data_dir) as store:
         view = store.split(settings.split)
         k = torch.as_tensor(view.K[()], dtype=torch.float64)
