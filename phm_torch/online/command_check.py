@@ -7,7 +7,6 @@ onto confident but wrong fault estimates, so the command is checked before the a
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -59,21 +58,24 @@ def check_command(
     span = float(expected.max() - expected.min())
     if not span > 0:
         raise ValueError("command: the pipeline's test command is constant; nothing to check the record against")
-    nrmse = float((recorded - expected).pow(2).mean().sqrt()) / span
+    nrmse = command_nrmse(recorded, expected)
     if nrmse <= tolerance:  # the search below only explains a mismatch
         gain = float((recorded * expected).sum() / expected.pow(2).sum())
         return CommandCheck(nrmse, 0.0, gain, True)
     n = recorded.numel()
-    max_lag = min(round(MAX_LAG_S * sample_rate), n // 4)
-    best = (math.inf, 0, 1.0)
-    for lag in range(-max_lag, max_lag + 1):  # recorded[i] = expected[i - lag]: a record that starts late
-        r = recorded[max(lag, 0) : n + min(lag, 0)]
-        e = expected[max(-lag, 0) : n - max(lag, 0)]
-        gain = float((r * e).sum() / e.pow(2).sum().clamp_min(1e-300))
-        err = float((r - gain * e).pow(2).mean())
-        if err < best[0]:
-            best = (err, lag, gain)
-    return CommandCheck(nrmse, best[1] / sample_rate, best[2], False)
+    lag = command_lag(recorded, expected, round(MAX_LAG_S * sample_rate))  # recorded[i] = expected[i - lag]
+    r, e = recorded[max(lag, 0) : n + min(lag, 0)], expected[max(-lag, 0) : n - max(lag, 0)]
+    gain = float((r * e).sum() / e.pow(2).sum().clamp_min(1e-300))
+    return CommandCheck(nrmse, lag / sample_rate, gain, False)
+
+
+def command_nrmse(recorded: torch.Tensor, expected: torch.Tensor) -> float:
+    """RMS of (recorded - expected) over the expected command's range, on their finite samples: the command
+    check's measure of how far a record's command column is from the test command."""
+    recorded, expected = recorded.double().flatten(), expected.double().flatten()
+    seen = torch.isfinite(recorded) & torch.isfinite(expected)
+    span = float(expected[seen].max() - expected[seen].min())
+    return float((recorded[seen] - expected[seen]).pow(2).mean().sqrt()) / span
 
 
 def command_lag(recorded: torch.Tensor, expected: torch.Tensor, max_lag: int) -> int:

@@ -16,7 +16,7 @@ import torch
 from ..faults import FAULT_NAMES
 from ..surrogates.metrics import IDENTIFIED_R2
 from .bench_check import BenchCheck
-from .command_check import MAX_LAG_S, NRMSE_TOLERANCE, command_lag, shifted
+from .command_check import MAX_LAG_S, NRMSE_TOLERANCE, command_lag, command_nrmse, shifted
 from .corruptions import Record
 from .input_contract import InputContract
 from .loaded import as_loaded
@@ -66,11 +66,7 @@ def align_trigger(
     lag = command_lag(cmd, expected, round(MAX_LAG_S * rate))
     if lag == 0:
         return record, 0.0
-    span = float(expected.max() - expected.min())
-    moved = shifted(cmd.double(), lag)
-    seen = torch.isfinite(moved)
-    before = float((cmd.double() - expected).pow(2).mean().sqrt()) / span
-    after = float((moved[seen] - expected[seen]).pow(2).mean().sqrt()) / span
+    before, after = command_nrmse(cmd, expected), command_nrmse(shifted(cmd.double(), lag), expected)
     if not (after <= NRMSE_TOLERANCE and after < before):
         return record, 0.0
     # one trigger moves every channel: the position still follows its command column, never leads it; a
