@@ -4,13 +4,10 @@ signal (B, n_e) or selected samples (B, n_w) -> gappy POD -> FDI MLP -> k_hat ->
 (the verdict classifier of estimates, or the health classifier) -> deterministic RUL 5/50/95 % (the
 paper's delta-disturbed propagations) + an out-of-distribution flag.
 
-The propagations of a known k stop where the health classifier f(k) of true fault vectors turns faulty;
-those of a measured k_hat where the verdict score g does, the classifier fitted on FDI estimates. So the
-RUL of a record agrees with its verdict: stopped by f, an estimate that g calls faulty (the FDI bias near
-the boundary, which g undoes) kept a positive median RUL, up to thousands of hours, and one g calls healthy a
-zero RUL (6 % of the paper store's val records with the pretrained pipeline; docs/prognostics.md). A
-record g calls faulty gets zero at 5 and 50 % (its median propagation starts a small δ_50 away from k_hat).
-Without a verdict classifier g is f.
+The propagations of a known k stop where the health classifier f(k) turns faulty, those of a measured k_hat
+where the verdict score g (fitted on FDI estimates) does, so a record's RUL agrees with its verdict (stopped by
+f, 6 % of the paper store's val records disagreed; docs/prognostics.md). A record g calls faulty gets zero at 5
+and 50 %. Without a verdict classifier g is f.
 
 The RUL propagations and their event search live in :mod:`phm_torch.online.rul_propagation` (a mixin).
 """
