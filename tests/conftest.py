@@ -109,3 +109,48 @@ def run_cli(tmp_path: Path) -> Callable[..., subprocess.CompletedProcess]:
         )
 
     return _run
+
+
+# Fault vectors of the reference actuator simulated once per session, HF, on its full chirp: test_physics' cases
+# (the datasheet's fault signatures) and test_pretrained's fresh records share one batch, because an HF run costs
+# nearly as much for 4 rows as for 14 (its time steps, not its batch, set the cost).
+_NOMINAL = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5)
+
+
+def _faults(**kw: float) -> tuple[float, ...]:
+    k = list(_NOMINAL)
+    for name, v in kw.items():
+        k[int(name[1:]) - 1] = v
+    return tuple(k)
+
+
+HF_CHIRP_FAULTS = (
+    _NOMINAL,
+    *(_faults(**{f"k{i}": 1.0}) for i in range(1, 7)),
+    _faults(k6=1.0, k7=0.0),
+    _faults(k8=1.0),
+    _faults(k8=0.0),
+    _faults(k1=0.3),
+    _faults(k3=0.4),
+    _faults(k2=0.2, k8=0.7),
+)
+
+
+@pytest.fixture(scope="session")
+def hf_reference_chirp() -> Callable[[Sequence[Sequence[float]]], dict[str, object]]:
+    """select(k) -> the HF records of fault vectors k (each one of HF_CHIRP_FAULTS) on the reference actuator's
+    chirp: ``{"time": (n,), channel: (len(k), n)}`` for every channel, from one session-wide simulation."""
+    import torch
+
+    from phm_torch.command import Chirp
+    from phm_torch.simulator import EMASimulator
+
+    command = Chirp()
+    rows = torch.tensor(HF_CHIRP_FAULTS, dtype=torch.float64)
+    run = EMASimulator(load_actuator(), "hf").run(rows, command, command.duration)
+
+    def select(k: Sequence[Sequence[float]]) -> dict[str, object]:
+        index = [HF_CHIRP_FAULTS.index(tuple(float(v) for v in row)) for row in k]
+        return {"time": run.time} | {c: v[index] for c, v in run.channels.items()}
+
+    return select

@@ -12,8 +12,7 @@ import torch
 from phm_torch.apps.predict import predict
 from phm_torch.command import Chirp
 from phm_torch.io import Measurement, write_measurement
-from phm_torch.params import CONF_DIR, load_actuator
-from phm_torch.simulator import EMASimulator
+from phm_torch.params import CONF_DIR
 
 pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
@@ -31,11 +30,9 @@ DAMAGE = [0, 1, 2, 3, 4, 5, 7]  # every component but the phase k7
 
 
 @pytest.fixture(scope="module")
-def records():
-    params = load_actuator()
-    command = Chirp()
-    sig = EMASimulator(params, "hf").run(K, command, command.duration, channels=["current", "position"])
-    return sig, command
+def records(hf_reference_chirp):
+    run = hf_reference_chirp(K.tolist())  # one session-wide HF batch (tests/conftest.py)
+    return {c: run[c] for c in ("time", "current", "position")}, Chirp()
 
 
 def test_estimates_intervals_and_verdict_on_fresh_records(records):
@@ -64,7 +61,7 @@ def test_estimates_intervals_and_verdict_on_fresh_records(records):
 
 def test_phm_predict_with_the_pretrained_pipeline(records, compose, tmp_path):
     sig, command = records
-    t = sig.time.numpy()
+    t = sig["time"].numpy()
     paths = []
     for i, noise in ((0, 0.01), (1, 0.01), (1, 0.05)):
         path = tmp_path / f"run{len(paths)}.csv"
@@ -72,7 +69,7 @@ def test_phm_predict_with_the_pretrained_pipeline(records, compose, tmp_path):
             path,
             Measurement(
                 t,
-                command(sig.time).numpy(),
+                command(sig["time"]).numpy(),
                 sig["position"][i].numpy(),
                 sig["current"][i].numpy() + noise * np.random.default_rng(i).standard_normal(len(t)),
                 sample_rate=20000.0,
@@ -95,7 +92,7 @@ def test_phm_predict_takes_a_record_a_few_samples_off_the_test_length(records, c
     """Another implementation may stop a sample early or late: within 1 % of the length the record is cut,
     or its tail marked missing, and the estimate barely moves; beyond it, a clear error."""
     sig, command = records
-    t, cmd = sig.time.numpy(), command(sig.time).numpy()
+    t, cmd = sig["time"].numpy(), command(sig["time"]).numpy()
     pos, cur = sig["position"][1].numpy(), sig["current"][1].numpy()
 
     def run(name: str, stop: int, extra: int = 0) -> dict:
@@ -121,11 +118,12 @@ def test_phm_predict_drops_missing_current_cells(records, compose, tmp_path):
     by 0.004-0.016 in the median, 0.06 at most, on these four records)."""
     sig, command = records
     model = torch.jit.load(str(PIPELINE))
-    t = sig.time.numpy()
+    t = sig["time"].numpy()
     current = sig["current"][1].numpy()
     full_path, holed_path = tmp_path / "full.csv", tmp_path / "holed.csv"
     write_measurement(
-        full_path, Measurement(t, command(sig.time).numpy(), sig["position"][1].numpy(), current, sample_rate=20000.0)
+        full_path,
+        Measurement(t, command(sig["time"]).numpy(), sig["position"][1].numpy(), current, sample_rate=20000.0),
     )
     text = full_path.read_text().splitlines()
     assert text[0].split(",")[-1] == "current"
@@ -174,9 +172,9 @@ def test_pretrained_pipeline_knows_its_actuator_and_flags_another_command(record
     recorded = read_metadata(PIPELINE)["provenance"]
     assert recorded["actuator"]["name"] == "ema_reference" and recorded["command"]["name"] == "chirp"
     sig, command = records
-    t = sig.time.numpy()
+    t = sig["time"].numpy()
     paths = []
-    for name, cmd in (("right", command(sig.time)), ("late", command(sig.time - 0.010))):
+    for name, cmd in (("right", command(sig["time"])), ("late", command(sig["time"] - 0.010))):
         path = tmp_path / f"{name}.csv"
         write_measurement(
             path,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -16,7 +17,7 @@ pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on p
 
 
 TINY_LIFE = (
-    'generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=8","dataset.chunk_size=64",'
+    'generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=4","dataset.chunk_size=64",'
     '"dataset.fidelity=lf","dataset.life.n_actuators=2","dataset.life.compile=false"]'
 )
 
@@ -57,21 +58,25 @@ def test_phm_run_tiny_with_the_life_split_and_the_track_stage(tmp_path):
 
 
 def test_phm_run_tiny_end_to_end(tmp_path):
+    # the workbench stage on the example's first 0.2 s (the workbench's own tests check what it finds)
+    lines = Path("examples/workbench_hidden_cogging.csv").read_text().splitlines()[:4002]
+    measurement = tmp_path / "workbench_short.csv"
+    measurement.write_text("\n".join(lines) + "\n")
     cfg = compose_stage(
         "run",
         [
             f"out_dir={tmp_path}",
             "stages=[cases,generate,train,evaluate,workbench,report]",
             (
-                'generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=8","dataset.chunk_size=64",'
-                '"dataset.fidelity=lf","dataset.life.n_actuators=0",'
+                'generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=4","dataset.chunk_size=64",'
+                '"dataset.fidelity=lf","dataset.life.n_actuators=0","assessment.sweep.cycles=3",'
                 # the paper's sampling: the healthy-fraction pilot (1,536 uncompiled phi_a labels) took 2 of the 3 min
                 '"+dataset.healthy_fraction=null"]'
             ),
             'cases=["fidelity=lf","duration=0.05"]',
             'train=["n_modes=8","n_points=16","selector=qdeim"]',
-            'evaluate=["rul.n_samples=20"]',
-            'workbench=["measurements=examples/workbench_hidden_cogging.csv","refit.top=1","refit.rounds=1"]',
+            'evaluate=["rul.n_samples=20","reference.step_hours=2000.0","reference.refine_iterations=4"]',
+            f'workbench=["measurements={measurement}","refit.top=1","refit.rounds=1"]',
             "report.hidden_neurons=[4,8]",
             "report.hidden_epochs=5",
             "report.latency_repeats=20",
