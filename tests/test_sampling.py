@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.stats import kstest
 
-from phm_torch.data.calibration import ExponentCalibrator, calibrate, isotonic_decreasing
+from phm_torch.data.calibration import MAX_DISTANCE_EXPONENT, ExponentCalibrator, calibrate, isotonic_decreasing
 from phm_torch.data.sampling import ImportanceSampler
 
 NOMINAL = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5)
@@ -103,7 +103,7 @@ def test_distance_exponent(q):
     )
 
 
-@pytest.mark.parametrize("target", [0.15, 0.3, 0.4])
+@pytest.mark.parametrize("target", [0.25, 0.3, 0.4])
 def test_calibrated_exponent_on_a_synthetic_health_function(target):
     # healthy <=> d <= c: the healthy fraction at exponent q is c ** q, so q* = ln(target) / ln(c)
     c = 0.6
@@ -128,6 +128,17 @@ def test_calibration_keeps_the_paper_within_tolerance():
     # an unreachable target (nothing healthy beyond d = 1e-4): clamped to the bound, reported
     rec = calibrate(sampler, lambda k: sampler.distance(k) <= 1e-4, 0.3, 0.05, 500, np.random.SeedSequence(3))
     assert not rec["reached"] and rec["distance_exponent"] == pytest.approx(0.05)
+
+
+def test_the_exponent_never_empties_the_near_nominal_region():
+    # healthy <=> d <= 0.6 and a target of 0.15 would need q = ln 0.15 / ln 0.6 = 3.7: capped at 3, which keeps
+    # 0.5^3 = 12.5 % of the vectors within half the radius; reported as not reached, with the fraction it gives
+    sampler = ImportanceSampler(NOMINAL, (6,), 1.0)
+    rec = calibrate(sampler, lambda k: sampler.distance(k) <= 0.6, 0.15, 0.02, 2000, np.random.SeedSequence(1))
+    assert not rec["reached"] and rec["distance_exponent"] == MAX_DISTANCE_EXPONENT == rec["max_distance_exponent"]
+    assert rec["expected_healthy_fraction"] == pytest.approx(0.6**3, abs=0.02)
+    capped = ImportanceSampler(NOMINAL, (6,), 1.0, rec["distance_exponent"])
+    assert (capped.distance(capped.sample(4000, 2)) <= 0.5).mean() == pytest.approx(0.125, abs=0.02)
 
 
 def test_isotonic_fit():

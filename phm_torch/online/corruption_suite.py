@@ -168,11 +168,12 @@ def judgement(out: dict[str, Any], k: torch.Tensor, healthy: bool) -> dict[str, 
     that of the health classifier on the true k (8,), every damage component inside its interval (within
     ``TOLERANCE``); ``err_k``: mean |k_hat - k| over the damage components."""
     verdict_right = out["healthy"] == healthy
-    inside = None
+    inside, each = None, None
     truth = k.double()
     if out["k_interval"] is not None:
         bounds = torch.tensor([out["k_interval"][name] for name in FAULT_NAMES], dtype=torch.float64)
-        inside = bool(((truth >= bounds[:, 0] - TOLERANCE) & (truth <= bounds[:, 1] + TOLERANCE))[DAMAGE].all())
+        each = ((truth >= bounds[:, 0] - TOLERANCE) & (truth <= bounds[:, 1] + TOLERANCE))[DAMAGE]
+        inside = bool(each.all())
     k_hat = torch.tensor([out["k_hat"][name] for name in FAULT_NAMES], dtype=torch.float64)
     return {
         "flagged": out["out_of_distribution"],
@@ -180,6 +181,7 @@ def judgement(out: dict[str, Any], k: torch.Tensor, healthy: bool) -> dict[str, 
         "right": bool(verdict_right and inside),
         "verdict_right": verdict_right,
         "inside": inside,
+        "inside_each": None if each is None else each.tolist(),
         "err_k": float((k_hat - truth).abs()[DAMAGE].mean()),
     }
 
@@ -277,6 +279,8 @@ def false_rejections(model: Any, path: Path, cases: list[Case]) -> dict[str, Any
         for i, level in enumerate(CLEAN_NOISE)
     }
     new = sum(any(x not in PIPELINE_CHECKS and x != "pipeline" for x in r["reasons"]) for r in results)
+    kept = [r for r in results if not r["flagged"]]
+    each = [r["inside_each"] for r in kept if r["inside_each"] is not None]
     return {
         "records": len(results),
         "flagged": flagged,
@@ -286,6 +290,13 @@ def false_rejections(model: Any, path: Path, cases: list[Case]) -> dict[str, Any
         "flagged_by_new_checks": new,
         "rate_new_checks": new / len(results),
         "unflagged_wrong": sum(not r["flagged"] and not r["right"] for r in results),
+        # why an unflagged clean record counts as wrong: its verdict, or a component outside its interval (the
+        # intervals are per parameter at their calibrated coverage, so some joint misses are expected)
+        "unflagged_verdict_wrong": sum(not r["verdict_right"] for r in kept),
+        "unflagged_outside_interval": sum(r["inside"] is False for r in kept),
+        "interval_coverage_unflagged": (
+            {FAULT_NAMES[d]: sum(e[i] for e in each) / len(each) for i, d in enumerate(DAMAGE)} if each else None
+        ),
     }
 
 
