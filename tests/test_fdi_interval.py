@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from test_online import N_FULL, pipeline  # noqa: F401  (the fixture)
 
 from phm_torch.online.fdi_interval import calibrate_fdi_interval, difficulty_class, interval_quality
 
@@ -107,3 +108,38 @@ def test_a_sparse_easiest_class_is_pooled_upwards():
     interval = calibrate_fdi_interval(k_hat[keep], k[keep], NOMINAL, coverage=0.9, min_count=20)
     assert interval.counts[0] < 20 and torch.isfinite(interval.half_widths).all()
     assert (interval.half_widths[1:] >= interval.half_widths[:-1]).all()
+
+
+def test_a_component_the_command_does_not_identify_gets_the_whole_range(pipeline):  # noqa: F811
+    """phm-evaluate's interval calibration: a conformal width holds only for the calibration split's own spread
+    of a component whose k_hat is the training prior, so an unidentified component's interval is [0, 1] at every
+    noise level, and the others keep their calibrated widths."""
+    import copy
+
+    from phm_torch.pipelines.evaluate.calibration import fdi_intervals
+    from phm_torch.pipelines.evaluate.settings import CalibrationSettings
+
+    g = torch.Generator().manual_seed(3)
+    t = torch.linspace(0, 1, N_FULL, dtype=torch.float64)
+    k = torch.rand(120, 8, generator=g, dtype=torch.float64) * 0.5
+    clean = pipeline.mean_signal + 0.05 * torch.sin(7 * t + 3 * k[:, :1]) * k[:, 1:2]
+    with torch.no_grad():
+        k_hat, _, _, ood, _ = pipeline(clean)
+    settings = CalibrationSettings.from_nodes(
+        {"split": "val", "noise": 0.01, "correct_median": False},
+        {"prior_faulty": None},
+        {"coverage": 0.9, "min_count": 20, "noise_levels": [0.03]},
+        0.999,
+        0.999,
+    )
+    widths = {}
+    for unidentified in ((), (5,)):
+        pipe = copy.deepcopy(pipeline)
+        fdi_intervals(settings, pipe, k_hat, ood, clean, k, 0, unidentified)
+        widths[unidentified] = pipe.k_half_widths
+    assert widths[()].shape[0] == 2 and (widths[()][..., 5] < 1.0).all()
+    assert (widths[(5,)][..., 5] == 1.0).all()
+    keep = [j for j in range(8) if j != 5]
+    torch.testing.assert_close(widths[(5,)][..., keep], widths[()][..., keep])
+    lower, upper = pipe.k_interval(k_hat, torch.full((k_hat.shape[0],), 0.01, dtype=k_hat.dtype))
+    assert (lower[:, 5] == 0).all() and (upper[:, 5] == 1).all()

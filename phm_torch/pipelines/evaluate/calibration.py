@@ -5,6 +5,7 @@ tracking ranges."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 
 import torch
 
@@ -110,12 +111,20 @@ def fdi_intervals(
     clean: torch.Tensor,
     k: torch.Tensor,
     seed: int,
+    unidentified: Sequence[int] = (),
 ) -> tuple[FDIInterval | None, list[float]]:
     """Calibrate the pipeline's k_hat intervals in place at every noise level of ``settings``: the first from
     the pipeline's outputs k_hat, ood on the (noisy) calibration signals, the others from the noise-free
     ``clean`` signals (N, n) with that level of noise added. Returns the first level's interval (None: not
-    calibrated) and the levels calibrated."""
+    calibrated) and the levels calibrated.
+
+    The components of ``unidentified`` (the test command does not identify them) get the whole range [0, 1]: their
+    k_hat is mostly the training prior, so a conformal width holds only for the calibration split's own spread of
+    them. The 270 V rudder's eccentricity (R^2 0.13) had a width calibrated on a store of heavy faults; on clean
+    near-nominal records its interval held the truth 27 % of the time."""
     interval = _fdi_interval(settings, pipeline.nominal, k_hat, ood, k)
+    if interval is not None and unidentified:
+        interval.half_widths[:, list(unidentified)] = 1.0
     levels = list(settings.noise_levels[:1])
     if interval is None:
         return None, levels

@@ -222,7 +222,9 @@ def _calibrate(settings: EvaluateSettings, pipeline: OnlinePipeline, inp: Simple
         pipeline.verdict_offset.fill_(verdict[1])
     calibration_noise = cal.noise  # the band signals' own
     pipeline.calibration_noise.fill_(calibration_noise)
-    interval, noise_levels = fdi_intervals(cal, pipeline, band_k_hat, band_ood, band_clean, band_k, settings.seed)
+    interval, noise_levels = fdi_intervals(
+        cal, pipeline, band_k_hat, band_ood, band_clean, band_k, settings.seed, unidentified
+    )
     levels = list(cal.noise_levels)
     gappy_residual = calibrate_gappy_residual(pipeline, band_clean, levels, settings.seed, cal.ood_quantile)
     consistency = (
