@@ -104,8 +104,34 @@ def _plan(settings: GenerateSettings, assessment: AssessmentFunction) -> _Run:
         settings.data_dir, fp, lambda: calibration.calibrate_spec(spec, nominal, assessment, seed)
     )
     q = float(sampling["distance_exponent"])
+    _log_sampling(sampling)
     plan = gen.make_plan(spec, nominal, seed, q)
     return _Run(fp, sampling, pilot_s, plan, make_label_plan(spec, nominal, seed, q))
+
+
+def _log_sampling(sampling: dict) -> None:
+    """Say which importance sampling the store uses, and why a healthy-fraction target was not reached."""
+    target = sampling.get("healthy_fraction_target")
+    if target is None:
+        return
+    expected, pilot = sampling.get("expected_healthy_fraction"), sampling.get("pilot_healthy_fraction")
+    if sampling.get("reached", True):
+        log.info(
+            "importance sampling: distance exponent %s for a healthy fraction of %s (the paper's scaling gave %s)",
+            sampling["distance_exponent"],
+            expected,
+            pilot,
+        )
+    else:
+        log.warning(
+            "importance sampling: the healthy fraction %s is not reached; distance exponent %s (its bound) gives %s "
+            "(the paper's scaling: %s). A larger exponent would leave almost no near-nominal vectors in the store "
+            "(docs/dataset.md); set dataset.healthy_fraction to a reachable value or null to silence this",
+            target,
+            sampling["distance_exponent"],
+            expected,
+            pilot,
+        )
 
 
 def _compute(settings: GenerateSettings, assessment: AssessmentFunction, run: _Run) -> None:
