@@ -21,7 +21,7 @@ from typing import Any
 from ... import provenance
 from ...assessment import AssessmentFunction
 from ...command import time_grid
-from ...data import calibration
+from ...data import calibration, merge
 from ...data import generation as gen
 from ...data.labels import LabelComputer, make_label_plan
 from ...data.store import read_json
@@ -77,7 +77,7 @@ def generate(
 
     run = _plan(settings, assessment)
     t0 = time.perf_counter()
-    if gen.is_complete(data_dir, run.fp) and settings.stage != "merge":
+    if merge.is_complete(data_dir, run.fp) and settings.stage != "merge":
         log.info("%s already holds the finished store of this config", data_dir)
     else:
         if settings.stage in ("all", "chunks"):
@@ -85,7 +85,7 @@ def generate(
         _merge(settings, assessment, run)
     wall = time.perf_counter() - t0
 
-    complete = gen.is_complete(data_dir, run.fp)
+    complete = merge.is_complete(data_dir, run.fp)
     life = None
     if spec.life.n_actuators > 0 and settings.stage != "chunks" and settings.shard_index == 0:  # one shard writes it
         life = write_life(settings, assessment, make_damage)
@@ -159,7 +159,7 @@ def _merge(settings: GenerateSettings, assessment: AssessmentFunction, run: _Run
         grid = time_grid(settings.duration, settings.params.sample_rate)
         metadata, extra = store_records(settings, assessment, run.plan, run.label_plan, run.fp, run.sampling)
         signal = (grid.numpy(), settings.command(grid).numpy())
-        gen.merge(settings.data_dir, run.plan, run.fp, *signal, metadata, extra, labels=run.label_plan)
+        merge.merge(settings.data_dir, run.plan, run.fp, *signal, metadata, extra, labels=run.label_plan)
     elif missing:
         log.info(
             "chunks %s are not done yet (other shards); run with stage=merge once they are",

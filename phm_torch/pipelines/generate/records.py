@@ -13,7 +13,7 @@ from typing import Any
 import torch
 
 from ... import __version__
-from ...assessment import AssessmentFunction
+from ...assessment import MARGIN_NAMES, AssessmentFunction
 from ...data import generation as gen
 from ...params import CONF_DIR
 from .settings import GenerateSettings
@@ -74,7 +74,7 @@ def store_records(
         "package_version": __version__,
         "git_revision": git_revision(),
         "torch_version": torch.__version__,
-        "margin_names": list(gen.MARGIN_NAMES),
+        "margin_names": list(MARGIN_NAMES),
         "sampling": sampling,
         "assessment_sweep": assessment.record(),
     }
