@@ -228,7 +228,8 @@ def test_stage_lists_cannot_change_the_actuator_of_one_stage():
 @pytest.mark.slow
 def test_phm_run_on_the_second_actuator_end_to_end(tmp_path):
     """`phm-run actuator=ema_hvdc_rudder command=chirp_hvdc_rudder` at a small scale: every stage runs on the
-    270 V actuator and its own chirp, the sampling reaches the configured healthy fraction, every artefact
+    270 V actuator and its own chirp, the calibrated sampling keeps the healthy fraction in range (the rudder
+    reaches ~37 % at the distance-exponent bound, not the 30 % target), every artefact
     records that actuator and command, and the workbench finds the hidden cogging of that motor (its own
     slot order), on a record simulated for it."""
     from phm_torch.online.export import read_metadata

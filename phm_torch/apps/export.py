@@ -183,7 +183,7 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     out = Path(cfg.out)
     extra = {
         key: cal[key]
-        for key in ("tracking_nrmse", "tracking_nrmse_healthy")  # the input contract's
+        for key in ("tracking_nrmse", "tracking_nrmse_healthy", "shape_correlation_min")  # the input contract's
         if cal.get(key) is not None
     }
     extra["damage"] = _damage(cal, cfg, cal_path)  # the tracker's process model (phm-track)

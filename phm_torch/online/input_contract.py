@@ -46,7 +46,8 @@ From the current, against the noise calibration and the training model's nominal
   (``|k_hat - k_0| > interval_level``, the phase k7 left out):
   * ``offset`` (at most one large fault) - over the rest window (the leading samples where the nominal
     record has not left zero yet: the actuator at rest) the record sits off the nominal record;
-  * ``shape`` (no large fault) - the record's correlation with the nominal record below ``SHAPE_MIN``;
+  * ``shape`` (no large fault) - the record's correlation with the nominal record below ``SHAPE_MIN``, or below
+    the pipeline's own calibrated threshold (``shape_correlation_min``, :func:`calibrate_shape_min`) when lower;
   * ``spikes`` (no large fault) - a second difference far above the record's noise and above the steps the
     filtered current takes itself.
 
@@ -86,7 +87,8 @@ POSITION_GAIN = 2.0
 REST_LEVEL = 0.02  # the rest window: nominal |current| <= this x its RMS
 REST_MIN = 8  # samples: a shorter rest window is no check
 OFFSET_MAX = 0.05  # |record - nominal| mean over the rest window, over the nominal RMS (+ 4 noise std)
-SHAPE_MIN = 0.9  # correlation with the nominal record
+SHAPE_MIN = 0.9  # correlation with the nominal record (the most a calibrated pipeline's own threshold may be)
+SHAPE_MARGIN = 1.5  # a calibrated threshold: 1 - this x (1 - the lowest correlation of the held-out records)
 NOISE_MAX = 0.1  # relative noise limit of a pipeline that does not record its calibrated levels
 NOISE_MARGIN = 1.5  # the intervals are held at their highest calibrated level up to this factor above it
 SPIKE_SIGMA = 12.0  # a spike: a second difference above this many noise std of a second difference...
@@ -119,6 +121,25 @@ def _large_faults(model: Any, k_hat: torch.Tensor | None) -> int | None:
     if k_hat is None:
         return None
     return int((((k_hat.to(nominal.dtype).flatten() - nominal).abs() * mask) > level).sum())
+
+
+def calibrate_shape_min(model: Any, signals: torch.Tensor, k_hat: torch.Tensor) -> float | None:
+    """The ``shape`` check's threshold for a pipeline, from held-out records (B, n_full) [A] and its estimates
+    k_hat (B, 8): 1 - SHAPE_MARGIN x (1 - the lowest correlation with the nominal record among the records whose
+    estimate has no large fault), at most SHAPE_MIN. SHAPE_MIN was measured on the reference actuator (>= 0.968);
+    the 270 V rudder's clean near-nominal records go lower, and 1.1 % of them were refused. None: nothing to
+    calibrate on (no nominal record, or no such record)."""
+    nominal = getattr(model, "nominal_record", None)
+    if nominal is None or signals.shape[0] == 0 or nominal.numel() != signals.shape[1]:
+        return None
+    none_large = torch.tensor([_large_faults(model, k) == 0 for k in k_hat], dtype=torch.bool)
+    x = signals[none_large].double()
+    if x.shape[0] == 0:
+        return None
+    nominal = nominal.double()
+    xc, nc = x - x.mean(1, keepdim=True), nominal - nominal.mean()
+    corr = (xc @ nc) / (xc.norm(dim=1) * nc.norm()).clamp(min=1e-300)
+    return min(SHAPE_MIN, 1.0 - SHAPE_MARGIN * (1.0 - float(corr.min())))
 
 
 def pipeline_reasons(model: Any, x: torch.Tensor) -> list[list[str]] | None:
@@ -209,6 +230,7 @@ class InputContract:
     nominal: torch.Tensor | None = None  # the pipeline's nominal record (n_full,) [A], float64; None: unknown
     tracking_range_healthy: tuple[float, float] | None = None  # that of the healthy training records
     current_bound: float | None = None  # [A] the drive range the FDI was trained within (None: unchecked)
+    shape_min: float = SHAPE_MIN  # the ``shape`` check's lowest correlation (metadata ``shape_correlation_min``)
 
     @classmethod
     def of(
@@ -220,7 +242,7 @@ class InputContract:
         noise_max = NOISE_MAX if levels is None or levels.numel() < 2 else NOISE_MARGIN * float(levels[-1])
         nominal = getattr(model, "nominal_record", None)
         usable = nominal is not None and bool(torch.isfinite(nominal).all()) and float(nominal.abs().max()) > 0
-        bound = metadata.get("drive_current_bound")
+        bound, shape = metadata.get("drive_current_bound"), metadata.get("shape_correlation_min")
         return cls(
             command,
             tracking,
@@ -228,6 +250,7 @@ class InputContract:
             nominal.double() if usable else None,
             healthy,
             None if bound is None else float(bound),
+            SHAPE_MIN if shape is None else min(SHAPE_MIN, float(shape)),
         )
 
     def _tracking(self, record: Record, healthy: bool | None = None) -> dict[str, Any]:
@@ -290,7 +313,7 @@ class InputContract:
         finite = torch.isfinite(x)
         filled = torch.where(finite, x, nominal)
         corr = torch.corrcoef(torch.stack([filled, nominal]))[0, 1]
-        if not bool(corr >= SHAPE_MIN):
+        if not bool(corr >= self.shape_min):
             reasons.append("shape")
         d2 = (x[2:] - 2.0 * x[1:-1] + x[:-2]).abs()
         d2 = d2[torch.isfinite(d2)]

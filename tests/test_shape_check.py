@@ -1,0 +1,53 @@
+"""The input contract's ``shape`` check: a near-nominal answer's record must correlate with the nominal record, at
+a threshold phm-evaluate calibrates per pipeline (never stricter than SHAPE_MIN)."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import pytest
+import torch
+
+from phm_torch.online.input_contract import SHAPE_MARGIN, SHAPE_MIN, InputContract, calibrate_shape_min
+
+N = 2000
+T = torch.linspace(0.0, 1.0, N, dtype=torch.float64)
+NOMINAL = torch.sin(2 * math.pi * 5 * T * T) * (T > 0.05)
+
+
+def model() -> SimpleNamespace:
+    return SimpleNamespace(
+        nominal_record=NOMINAL,
+        interval_level=0.3,
+        nominal=torch.tensor([0.0] * 6 + [0.5, 0.5], dtype=torch.float64),
+        interval_mask=torch.tensor([1.0] * 6 + [0.0, 1.0], dtype=torch.float64),
+        n_full=N,
+    )
+
+
+def record(mix: float) -> torch.Tensor:
+    """The nominal record blended with another waveform: correlation falls as mix grows."""
+    return (1 - mix) * NOMINAL + mix * torch.cos(2 * math.pi * 3 * T)
+
+
+def test_the_threshold_is_the_lowest_held_out_correlation_widened_and_never_above_shape_min():
+    m = model()
+    near = torch.tensor([0.0] * 6 + [0.5, 0.5], dtype=torch.float64)
+    heavy = near.clone()
+    heavy[2] = 0.9  # a large fault: its record is not compared with the nominal one
+    signals = torch.stack([record(0.0), record(0.2), record(0.45), record(0.9)])
+    k_hat = torch.stack([near, near, near, heavy])
+    corr = torch.corrcoef(torch.stack([record(0.45), NOMINAL]))[0, 1].item()
+    assert corr < SHAPE_MIN  # a near-nominal record of this pipeline below the reference's threshold
+    got = calibrate_shape_min(m, signals, k_hat)
+    assert got == pytest.approx(1 - SHAPE_MARGIN * (1 - corr))
+    assert calibrate_shape_min(m, signals[:2], k_hat[:2]) == SHAPE_MIN  # records all above it: kept
+    assert calibrate_shape_min(m, signals[3:], k_hat[3:]) is None  # nothing near nominal to calibrate on
+    # the contract reads it from the pipeline's metadata: that record is no longer refused; a stranger one still is
+    strict, own = InputContract.of(m, {}, None), InputContract.of(m, {"shape_correlation_min": got}, None)
+    assert own.shape_min == got and strict.shape_min == SHAPE_MIN
+    x = record(0.45)
+    assert "shape" in strict.current_reasons(m, x, 0.0, near) and "shape" not in own.current_reasons(m, x, 0.0, near)
+    assert "shape" in own.current_reasons(m, record(0.95), 0.0, near)
+    assert InputContract.of(m, {"shape_correlation_min": 0.99}, None).shape_min == SHAPE_MIN  # never stricter
