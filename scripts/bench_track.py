@@ -89,7 +89,7 @@ def main() -> None:
         "settings": vars(settings),
         "machine": {
             "cpus": os.cpu_count(),
-            "note": "shared host: other jobs run beside the benchmark",
+            # the host is shared: the load averages say whether other jobs ran beside the benchmark (~1: none)
             "load_average_start": os.getloadavg(),
         },
     }
