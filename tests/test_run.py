@@ -240,6 +240,7 @@ def test_phm_run_on_the_second_actuator_end_to_end(tmp_path):
             "actuator=ema_hvdc_rudder",
             "command=chirp_hvdc_rudder",
             f"out_dir={tmp_path}",
+            "stages=[cases,generate,train,evaluate,workbench,report]",  # tracking: the life test above
             (
                 'generate=["dataset.n_train=300","dataset.n_val=60","dataset.n_rul=8","dataset.chunk_size=128",'
                 '"dataset.fidelity=lf","dataset.n_labels=512","+dataset.pilot_size=768"]'
