@@ -9,10 +9,11 @@ from .closure import ClosureSettings
 from .closure_net import ClosureNet, NeuralClosure
 from .data import Record, load_records, record_from_measurement
 from .diagnostics import DiagnosticSettings
-from .loop import Workbench, WorkbenchResult
+from .loop import Workbench
 from .noise import HighBandNoise
 from .parameters import ParameterSpace, build_space
 from .report import report_dict, write_report
+from .result import WorkbenchResult
 from .settings import RefitSettings, WorkbenchSettings
 from .synthetic import Case, synthesize
 

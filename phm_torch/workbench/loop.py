@@ -13,7 +13,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -41,51 +41,13 @@ from .model import Evaluator
 from .noise import HighBandNoise
 from .orders import NAMED_ORDERS, actuator_orders, closure_orders, max_order, residual_orders
 from .parameters import ParameterSpace, build_space
+from .result import Round, WorkbenchResult
 from .settings import WorkbenchSettings
 
 log = logging.getLogger(__name__)
 
 DEFAULT_FREE = ("motor_inertia", "dry_friction", "k8")
 DEFAULT_GROUPS = {"dry_friction": ("coulomb_friction", "static_friction")}
-
-
-@dataclass
-class Round:
-    """One ranking round: the model tested and its candidates (best first)."""
-
-    model: Calibration
-    candidates: list[Candidate]
-    added: str | None = None
-    added_model: Calibration | None = None
-
-
-@dataclass
-class WorkbenchResult:
-    """Everything the report shows (see :mod:`phm_torch.workbench.report`)."""
-
-    records: list[Record]
-    model: Calibration
-    final: Calibration
-    rounds: list[Round]
-    before_after: list[Calibration]
-    closure: ClosureResult | None
-    diagnostics: dict[str, dict]
-    metrics: dict[str, dict]
-    noise: list[dict[str, float]]
-    timing: dict[str, float]
-    settings: WorkbenchSettings
-    fidelity: str
-    actuator: str = "unnamed"
-    orders: dict[str, Any] = field(default_factory=dict)
-
-    @property
-    def candidates(self) -> list[Candidate]:
-        """Candidates of the first round (against the configured model), best first."""
-        return self.rounds[0].candidates if self.rounds else []
-
-    @property
-    def added(self) -> list[str]:
-        return [r.added for r in self.rounds if r.added]
 
 
 class Workbench:

@@ -27,7 +27,7 @@ from . import plots
 from .calibrate import Calibration
 from .candidates import Candidate
 from .diagnostics import error_metrics
-from .loop import WorkbenchResult
+from .result import WorkbenchResult
 
 TOP_HARMONICS = 5
 
