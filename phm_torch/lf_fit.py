@@ -15,13 +15,8 @@ Procedure (``phm-fit-lf``, :func:`run_fit`):
 4. :func:`discrepancy` on both held-out sets with the physical values (``LFShape()``: 1, 1, 2, 0) and the
    fitted ones, and :func:`decide`.
 
-Decision rule (:func:`decide`): the fitted coefficients are kept only if, on *both* held-out sets and
-for *both* channels (envelope current, position), neither the median nor the max NRMSE grows by more
-than ``max_worsening`` (relative; default 0: no worsening at all), and the median current NRMSE falls
-by at least ``min_gain`` (relative; default 2 %) on both sets. Otherwise the physical values are kept.
-The physical values are the safe default: they follow from the winding geometry (EMF and resistance
-proportional to the healthy turns, inductance to their square, instantaneous commutation), so a fit
-has to earn its departure from them on vectors it has not seen.
+The decision rule (keep the fit only if it improves every held-out set and worsens none) lives in
+:mod:`phm_torch.lf_fit_decision`.
 """
 
 from __future__ import annotations
@@ -37,11 +32,11 @@ from scipy.stats import qmc
 from .data.sampling import ImportanceSampler
 from .faults import N_FAULTS
 from .fitting import Problem, fit, from_residuals
+from .lf_fit_decision import CHANNELS, Decision, decide
 from .params import ActuatorParams, LFShape
 from .simulator import EMASimulator
 
 COEFFICIENTS = tuple(f.name for f in fields(LFShape))
-CHANNELS = ("current", "position")
 HELD_OUT = ("importance", "uniform")
 JITTER = 1e-3  # a change of every coefficient that no fit resolves (see ``fit_and_validate``)
 # Physical ranges of the coefficients: EMF and resistance fall with the shorted fraction s at a rate
@@ -266,60 +261,6 @@ def fit_shape(
         res.converged,
         at_bound,
     )
-
-
-# ---- decision ------------------------------------------------------------------------------------
-@dataclass
-class Decision:
-    """Which coefficients to keep: ``keep`` is ``"fitted"`` or ``"physical"``; ``reasons`` says why."""
-
-    keep: str
-    reasons: list[str]
-
-    @property
-    def accepted(self) -> bool:
-        return self.keep == "fitted"
-
-
-def decide(
-    before: Mapping[str, Mapping[str, Mapping[str, float]]],
-    after: Mapping[str, Mapping[str, Mapping[str, float]]],
-    min_gain: float = 0.02,
-    max_worsening: float = 0.0,
-) -> Decision:
-    """Apply the decision rule (module docstring) to held-out summaries ``{set: {channel: {median, max}}}``
-    with the physical values (``before``) and the fitted ones (``after``)."""
-    reasons, ok = [], True
-    for name in before:
-        for channel in CHANNELS:
-            for stat in ("median", "max"):
-                b, a = before[name][channel][stat], after[name][channel][stat]
-                if a > b * (1.0 + max_worsening):
-                    ok = False
-                    reasons.append(f"{name} {channel} {stat} NRMSE worsens {100 * b:.2f} -> {100 * a:.2f} %")
-        b, a = before[name]["current"]["median"], after[name]["current"]["median"]
-        gain = 1.0 - a / b if b > 0 else 0.0
-        if gain < min_gain:
-            ok = False
-            reasons.append(
-                f"{name} median current NRMSE falls by {100 * gain:.1f} % "
-                f"({100 * b:.2f} -> {100 * a:.2f} %), less than the {100 * min_gain:g} % required"
-            )
-    if ok:
-        gains = ", ".join(
-            f"{n} {100 * before[n]['current']['median']:.2f} -> {100 * after[n]['current']['median']:.2f} %"
-            for n in before
-        )
-        return Decision(
-            "fitted",
-            [
-                (
-                    f"held-out median current NRMSE improves on every set ({gains}) and no "
-                    f"held-out median or max worsens by more than {100 * max_worsening:g} %"
-                )
-            ],
-        )
-    return Decision("physical", reasons)
 
 
 # ---- whole procedure -----------------------------------------------------------------------------
