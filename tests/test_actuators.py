@@ -163,3 +163,16 @@ def test_hf_and_lf_agree_on_the_nominal_test_command(hvdc, command):
     # and the HF bench tracks the chirp (measured RMS error 22 % of the amplitude, the reference 23 %)
     err = out["hf"]["position"] - out["hf"]["command"]
     assert float(err.pow(2).mean().sqrt()) < 0.3 * command.amplitude
+
+
+def test_the_example_user_folder_holds_a_valid_actuator_and_command():
+    """examples/trim28_conf, the user folder of docs/results.md's third actuator: its YAML loads as an actuator and
+    a command, and its linear loop meets the requirements (scripts/check_actuator.py passes it), so the example
+    stays valid as the datasheet schema evolves."""
+    folder = CONF_DIR.parent / "examples" / "trim28_conf"
+    trim = load_actuator(str(folder / "actuator" / "trim28.yaml"))
+    chirp = instantiate(OmegaConf.load(folder / "command" / "chirp_trim28.yaml"))
+    assert trim.supply_voltage == 28.0 and trim.pole_pairs == 2 and chirp.f_end == 12.0
+    fig = linear_figures(trim)
+    assert fig["spectral_radius"] < 1.0
+    assert fig["gain_margin_db"] >= REQ.gain_margin_db and fig["phase_margin_deg"] >= REQ.phase_margin_deg
