@@ -133,13 +133,18 @@ def calibrate_shape_min(model: Any, signals: torch.Tensor, k_hat: torch.Tensor) 
     if nominal is None or signals.shape[0] == 0 or nominal.numel() != signals.shape[1]:
         return None
     none_large = torch.tensor([_large_faults(model, k) == 0 for k in k_hat], dtype=torch.bool)
-    x = signals[none_large].double()
-    if x.shape[0] == 0:
+    if not bool(none_large.any()):
         return None
-    nominal = nominal.double()
-    xc, nc = x - x.mean(1, keepdim=True), nominal - nominal.mean()
-    corr = (xc @ nc) / (xc.norm(dim=1) * nc.norm()).clamp(min=1e-300)
+    corr = nominal_correlation(signals[none_large].double(), nominal.double())
     return min(SHAPE_MIN, 1.0 - SHAPE_MARGIN * (1.0 - float(corr.min())))
+
+
+def nominal_correlation(x: torch.Tensor, nominal: torch.Tensor) -> torch.Tensor:
+    """Correlation (B,) (or () for one record) of records x (B, n) or (n,) [A] with the nominal record (n,) [A],
+    a missing sample taking the nominal value; 0 for a constant record. The ``shape`` check and its calibration."""
+    x = torch.where(torch.isfinite(x), x, nominal)
+    xc, nc = x - x.mean(-1, keepdim=True), nominal - nominal.mean()
+    return (xc @ nc) / (xc.norm(dim=-1) * nc.norm()).clamp(min=1e-300)
 
 
 def pipeline_reasons(model: Any, x: torch.Tensor) -> list[list[str]] | None:
@@ -310,10 +315,7 @@ class InputContract:
             reasons.append("offset")
         if large > 0:
             return reasons
-        finite = torch.isfinite(x)
-        filled = torch.where(finite, x, nominal)
-        corr = torch.corrcoef(torch.stack([filled, nominal]))[0, 1]
-        if not bool(corr >= self.shape_min):
+        if not bool(nominal_correlation(x, nominal) >= self.shape_min):
             reasons.append("shape")
         d2 = (x[2:] - 2.0 * x[1:-1] + x[:-2]).abs()
         d2 = d2[torch.isfinite(d2)]
