@@ -123,14 +123,21 @@ def _log_sampling(sampling: dict) -> None:
             pilot,
         )
     else:
+        at_top = sampling["distance_exponent"] >= sampling.get("max_distance_exponent", float("inf"))
+        why = (
+            "a larger exponent would leave almost no near-nominal vectors in the store"
+            if at_top
+            else "the actuator is faulty almost whatever the damage: check its nominal margins"
+        )
         log.warning(
             "importance sampling: the healthy fraction %s is not reached; distance exponent %s (its bound) gives %s "
-            "(the paper's scaling: %s). A larger exponent would leave almost no near-nominal vectors in the store "
-            "(docs/dataset.md); set dataset.healthy_fraction to a reachable value or null to silence this",
+            "(the paper's scaling: %s); %s (docs/dataset.md). Set dataset.healthy_fraction to a reachable value, "
+            "or null for the paper's scaling",
             target,
             sampling["distance_exponent"],
             expected,
             pilot,
+            why,
         )
 
 
