@@ -55,22 +55,21 @@ REFERENCE = {
 }
 
 
-def _run(fidelity: str) -> dict[str, dict[str, torch.Tensor]]:
-    s = EMASimulator(P, fidelity).run(torch.tensor(list(CASES.values())), CHIRP, CHIRP.duration)
-    return {name: {c: v[i] for c, v in s.channels.items()} | {"time": s.time} for i, name in enumerate(CASES)}
+def _by_case(channels: dict[str, torch.Tensor], time: torch.Tensor) -> dict[str, dict[str, torch.Tensor]]:
+    """Batched channels (len(CASES), n) as {case: {channel: (n,), "time": (n,)}}."""
+    return {name: {c: v[i] for c, v in channels.items()} | {"time": time} for i, name in enumerate(CASES)}
 
 
 @pytest.fixture(scope="module")
 def hf(hf_reference_chirp):
     run = hf_reference_chirp(list(CASES.values()))  # one session-wide HF batch (tests/conftest.py)
-    return {
-        name: {c: v[i] for c, v in run.items() if c != "time"} | {"time": run["time"]} for i, name in enumerate(CASES)
-    }
+    return _by_case({c: v for c, v in run.items() if c != "time"}, run["time"])
 
 
 @pytest.fixture(scope="module")
 def lf():
-    return _run("lf")
+    s = EMASimulator(P, "lf").run(torch.tensor(list(CASES.values())), CHIRP, CHIRP.duration)
+    return _by_case(s.channels, s.time)
 
 
 @pytest.mark.parametrize("fidelity", ["hf", "lf"])
