@@ -5,7 +5,9 @@ When phi_a changes (the sweep derived from the actuator replaced the hand-tuned 
 old boundary. Its FDI is unaffected, but every verdict and RUL event is judged by a boundary the new labels do not
 share. This script keeps the FDI and everything calibrated on it, and changes three things:
 - the health classifier is taken from a bundle trained on a store labelled by the current phi_a
-  (``phm-train``'s, boundary refinement included);
+  (``phm-train``'s, boundary refinement included), or, with ``--fit-classifier``, fitted here on that store's
+  training and labels splits exactly as phm-train fits it (its composed config: the classifier kind, the boundary
+  refinement on importance-sampled and damage-law path candidates; phi_a is all it needs, no FDI training);
 - with ``--refit-verdict``, the verdict classifier is refit on the pipeline's own estimates of that store's training
   records (1 % current noise), with their labels, as phm-train fits it (on fewer records than the pipeline's own
   it can lose more near nominal than it gains: pretrained/README.md);
@@ -15,6 +17,8 @@ The file's metadata is kept.
 
     python scripts/refit_pipeline_classifiers.py --pipeline tests/data/pretrained_v0.pt --data-dir data/paper \
         --bundle results/train/surrogates.pt --out /tmp/p/online.pt
+    python scripts/refit_pipeline_classifiers.py --pipeline pretrained/online_surrogates_best.pt \
+        --data-dir data/paper --fit-classifier --work-dir /tmp/p/fit --out /tmp/p/online.pt
     phm-export pipeline=/tmp/p/online.pt format=[torchscript,export] out=/tmp/p2/online_surrogates_best.pt
 """
 
@@ -23,15 +27,20 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
+from hydra.utils import instantiate
 
 from phm_torch import provenance
+from phm_torch.apps.run import compose_stage
+from phm_torch.apps.train import settings_from_config
 from phm_torch.data import DatasetStore
 from phm_torch.online.export import export_torchscript
 from phm_torch.online.from_torchscript import pipeline_from_torchscript
 from phm_torch.pipelines.evaluate.calibration import fdi_band, noisy, verdict_scaling
+from phm_torch.pipelines.train import fit_health_classifier, store_labeller
 from phm_torch.surrogates import SurrogateBundle
 from phm_torch.surrogates.classifiers import MLPClassifier
 
@@ -59,11 +68,33 @@ def _rates(score: torch.Tensor, healthy: torch.Tensor) -> dict[str, float]:
     }
 
 
+def _fit_classifier(args: argparse.Namespace, k: torch.Tensor, healthy: torch.Tensor) -> tuple[Any, dict[str, Any]]:
+    """The health classifier phm-train would fit on the store ``args.data_dir`` (its composed train config)."""
+    work = Path(args.work_dir or Path(args.out).with_suffix(".fit"))
+    cfg = compose_stage("train", [f"data_dir={args.data_dir}", f"out_dir={work}", *args.train_override])
+    settings = settings_from_config(cfg)
+    classifier = instantiate(cfg.classifier, _convert_="all")
+    with DatasetStore(args.data_dir) as store:
+        labeller = store_labeller(settings, store.metadata)
+        fingerprint = store.manifest.get("fingerprint")
+    timing: dict[str, float] = {}
+    n, info = fit_health_classifier(settings, classifier, k, healthy, labeller, fingerprint, timing)
+    return classifier, {"vectors": n, "refinement": info, "timing_s": timing}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--pipeline", required=True, help="the TorchScript pipeline file to refit")
     ap.add_argument("--data-dir", required=True, help="a store of the pipeline's actuator and command, current phi_a")
-    ap.add_argument("--bundle", required=True, help="a phm-train bundle on that store: its health classifier is taken")
+    source = ap.add_mutually_exclusive_group(required=True)
+    source.add_argument("--bundle", help="a phm-train bundle on that store: its health classifier is taken")
+    source.add_argument(
+        "--fit-classifier",
+        action="store_true",
+        help="fit the health classifier on the store as phm-train does (its train config, refinement included)",
+    )
+    ap.add_argument("--work-dir", default=None, help="with --fit-classifier: the refinement's label cache (resumable)")
+    ap.add_argument("--train-override", action="append", default=[], help="with --fit-classifier: a phm-train override")
     ap.add_argument("--out", required=True)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
@@ -74,14 +105,12 @@ def main() -> None:
     args = ap.parse_args()
     torch.set_num_threads(1)
     pipe, metadata = pipeline_from_torchscript(args.pipeline)
-    bundle = SurrogateBundle.load(args.bundle)
     with DatasetStore(args.data_dir) as store:
         recorded = store.provenance or {}
         assessment = (store.metadata.get("config") or {}).get("assessment")  # the phi_a of the store's labels
         # the store and the bundle must be of the pipeline's actuator and command
         provenance.require_same(recorded, metadata.get("provenance") or {}, f"store {args.data_dir}")
-        provenance.require_same(bundle.provenance, recorded, f"bundle {args.bundle}")
-        _, train_x, train_h = _split(store, "train")
+        train_k, train_x, train_h = _split(store, "train")
         val_k, val_x, val_h = _split(store, "val")
     dtype = pipe.times.dtype
     before = {}
@@ -92,7 +121,13 @@ def main() -> None:
             noisy_train = noisy(train_x, NOISE, args.seed).to(dtype)
             k_hat = torch.cat([pipe(noisy_train[i : i + BATCH])[0] for i in range(0, len(noisy_train), BATCH)])
     weights = pipe.classifier.threshold.dtype  # the classifiers' own dtype (the pipeline's may differ)
-    pipe.classifier = bundle.classifier.to(weights)
+    if args.fit_classifier:
+        health, fit_report = _fit_classifier(args, train_k, train_h)
+    else:
+        bundle = SurrogateBundle.load(args.bundle)
+        provenance.require_same(bundle.provenance, recorded, f"bundle {args.bundle}")
+        health, fit_report = bundle.classifier, None
+    pipe.classifier = health.to(weights)
     if args.refit_verdict:
         pipe.verdict_classifier = MLPClassifier(seed=args.seed).fit(k_hat.double(), train_h).to(weights)
     band_signals = noisy(val_x, NOISE, args.seed)
@@ -120,6 +155,7 @@ def main() -> None:
         "after": after,
         "fdi_band_deltas": None if band is None else band.deltas.tolist(),
         "verdict_platt": None if platt is None else list(platt[:2]),
+        "classifier_fit": fit_report,
     }
     Path(args.out).with_suffix(".refit.json").write_text(json.dumps(report, indent=2))
     print(json.dumps(report, indent=2))

@@ -326,16 +326,19 @@ def test_classifier_also_learns_from_the_labels_split(compose, tmp_path):
     """The assessment-only labels split joins the classifier's training set (and only when asked)."""
     data_dir = write_store(tmp_path / "s", {"train": 40, "val": 10, "labels": 300})
     train = SimpleNamespace(k=faults(40, 0).float(), healthy=health(faults(40, 0)))
-    k, h = classifier_set(settings_from_config(compose("train", [f"data_dir={data_dir}"])), train)
+    k, h = classifier_set(settings_from_config(compose("train", [f"data_dir={data_dir}"])), train.k, train.healthy)
     assert k.shape == (340, 8) and h.shape == (340,) and k.dtype == torch.float64
     assert torch.equal(h[:40], train.healthy)
     assert torch.equal(h[40:], health(faults(300, 34)))  # write_store's seed for the 3rd split
     k_only, _ = classifier_set(
-        settings_from_config(compose("train", [f"data_dir={data_dir}", "classifier_labels=false"])), train
+        settings_from_config(compose("train", [f"data_dir={data_dir}", "classifier_labels=false"])),
+        train.k,
+        train.healthy,
     )
     assert k_only.shape == (40, 8)
     plain = write_store(tmp_path / "p", {"train": 40, "val": 10})  # a store without labels: train only
-    assert classifier_set(settings_from_config(compose("train", [f"data_dir={plain}"])), train)[0].shape == (40, 8)
+    settings = settings_from_config(compose("train", [f"data_dir={plain}"]))
+    assert classifier_set(settings, train.k, train.healthy)[0].shape == (40, 8)
 
 
 def test_bayesian_gappy_estimator_round_trips_through_the_bundle(store, compose, tmp_path):

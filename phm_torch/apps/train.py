@@ -90,7 +90,9 @@ def settings_from_config(cfg: DictConfig) -> TrainSettings:
         monitor_fraction=cfg.monitor_fraction,
         max_missed_fault_rate=cfg.calibration.max_missed_fault_rate,
         classifier_labels=bool(cfg.classifier_labels),
-        refine=BoundaryRefinement(refine.rounds, refine.labels_per_round, refine.candidates_per_label),
+        refine=BoundaryRefinement(
+            refine.rounds, refine.labels_per_round, refine.candidates_per_label, refine.path_labels_per_round
+        ),
         refine_device=str(refine.device),
         verdict_classifier=bool(cfg.verdict_classifier),
         forward_check=bool(cfg.forward_check),
@@ -101,6 +103,7 @@ def settings_from_config(cfg: DictConfig) -> TrainSettings:
         explicit_provenance=frozenset(k for k in provenance.KEYS if cfg.get(k) is not None),
         drive_range=cfg.drive_range,
         fit_within_drive_range=bool(cfg.fit_within_drive_range),
+        damage=common.plain(cfg.damage) if cfg.get("damage") is not None else None,
     )
 
 

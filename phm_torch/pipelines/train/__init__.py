@@ -5,7 +5,7 @@ network (:mod:`.fdi`), the classifiers (:mod:`.classifiers`), the evaluation; it
 :mod:`.settings`'s (:class:`FDIModel` is the ``_target_`` of the ``model`` config node).
 """
 
-from .classifiers import classifier_set, store_labeller
+from .classifiers import classifier_set, fit_health_classifier, store_labeller
 from .fdi import monitor_rows
 from .pipeline import train_surrogates
 from .settings import EvalSettings, FDIModel, FitSettings, GappySettings, TrainSettings
@@ -17,6 +17,7 @@ __all__ = [
     "GappySettings",
     "TrainSettings",
     "classifier_set",
+    "fit_health_classifier",
     "monitor_rows",
     "store_labeller",
     "train_surrogates",

@@ -12,38 +12,46 @@ import torch
 
 from ...checks import build, device
 from ...data.labels import LabelComputer, label_chunk_rows
+from ...data.life import LifeSpec
 from ...data.sampling import ImportanceSampler
 from ...data.spec import DatasetSpec
 from ...data.store import LABELS, read_labelled, recorded_actuator
 from ...surrogates import rms
 from ...surrogates.classifiers.base import HealthClassifier
+from ...surrogates.classifiers.damage_paths import DamagePathSampler
 from ...surrogates.classifiers.refinement import refine_classifier
 from ...surrogates.verdict_classifier import fit_verdict_classifier
 from .data import Reduction, StoreData
 from .settings import TrainSettings
 
 REFINE_STREAM = 0x5EF1  # seed-sequence key of the classifier refinement's candidates
+PATH_STREAM = 0x9A7  # offset of the damage-law path candidates' seed
 Sampler = Callable[[int, int], Any]
 Assessor = Callable[[Any], Any]
 
 
-def classifier_set(settings: TrainSettings, train: Any) -> tuple[torch.Tensor, torch.Tensor]:
-    """The health classifier's training set: the train split's (k (N, 8) float64, healthy (N,)) and, with
+def classifier_set(
+    settings: TrainSettings, k: torch.Tensor, healthy: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The health classifier's training set: the train split's (k (N, 8) as float64, healthy (N,)) and, with
     ``settings.classifier_labels``, the store's assessment-only ``labels`` split (if it has one)."""
-    k, healthy = train.k.to(torch.float64), train.healthy
+    k = k.to(torch.float64)
     if not settings.classifier_labels:
         return k, healthy
     k_extra, h_extra = read_labelled(settings.data_dir, splits=(LABELS,), optional=(LABELS,))
     return (torch.cat([k, torch.from_numpy(k_extra)]), torch.cat([healthy, torch.from_numpy(h_extra)]))
 
 
-def store_labeller(settings: TrainSettings, metadata: dict[str, Any]) -> tuple[Sampler | None, Assessor | None]:
-    """The classifier refinement's candidate sampler and labeller phi_a, both rebuilt from the config the store
-    records (its actuator, assessment and importance sampler), so that the new labels are the store's own kind;
-    ``(None, None)`` without refinement rounds."""
+def store_labeller(
+    settings: TrainSettings, metadata: dict[str, Any]
+) -> tuple[Sampler | None, Assessor | None, Sampler | None]:
+    """The classifier refinement's candidate sampler, labeller phi_a and damage-law path sampler, rebuilt from the
+    config the store records (its actuator, assessment and importance sampler), so that the new labels are the
+    store's own kind, and from ``settings.damage`` (the paths); ``(None, None, None)`` without refinement
+    rounds, no path sampler without path labels."""
     rounds = settings.refine.rounds
     if rounds == 0:
-        return None, None
+        return None, None, None
     config = metadata.get("config") or {}
     if "actuator" not in config or "assessment" not in config or "dataset" not in config:
         raise ValueError(
@@ -55,9 +63,8 @@ def store_labeller(settings: TrainSettings, metadata: dict[str, Any]) -> tuple[S
     dataset = config["dataset"]
     # candidates drawn as the store's training vectors were: with its calibrated distance exponent
     exponent = float((metadata.get("sampling") or {}).get("distance_exponent", 1.0))
-    sampler = ImportanceSampler(
-        tuple(params.nominal_faults), tuple(dataset.get("uniform", [])), 1.0, distance_exponent=exponent
-    )
+    uniform = tuple(dataset.get("uniform", []))
+    sampler = ImportanceSampler(tuple(params.nominal_faults), uniform, 1.0, distance_exponent=exponent)
     assessment = build(config["assessment"], "assessment", params=params, device=device(settings.refine_device))
     chunk = int(dataset.get("label_chunk_size", DatasetSpec.label_chunk_size))
     seed = settings.seed
@@ -70,7 +77,48 @@ def store_labeller(settings: TrainSettings, metadata: dict[str, Any]) -> tuple[S
         labeller = LabelComputer(assessment, params.nominal_faults, rows)
         return np.concatenate([labeller(k[i : i + rows])["healthy"] for i in range(0, len(k), rows)]).astype(bool)
 
-    return sample, assess
+    paths = None
+    if settings.refine.path_labels_per_round > 0 and settings.damage is not None:
+        law = build(settings.damage, "damage", nominal=list(params.nominal_faults))
+        # initial damage as the store's life split draws it (the same default when it has none)
+        initial = (dataset.get("life") or {}).get("initial_damage", LifeSpec.initial_damage)
+        paths = DamagePathSampler(law, float(initial), uniform, seed + PATH_STREAM).sample
+    return sample, assess, paths
+
+
+def fit_health_classifier(
+    settings: TrainSettings,
+    classifier: HealthClassifier,
+    k: torch.Tensor,
+    healthy: torch.Tensor,
+    labeller: tuple[Sampler | None, Assessor | None, Sampler | None],
+    fingerprint: str | None,
+    timing: dict[str, float],
+) -> tuple[int, dict[str, Any]]:
+    """Fit the health classifier on the training split's (k (N, 8), healthy (N,)) and the store's labels split
+    (:func:`classifier_set`), refined on its boundary with ``labeller`` (:func:`store_labeller`) and calibrated
+    to ``settings.max_missed_fault_rate``; returns the number of vectors it was fitted on and the refinement's
+    report (timings into ``timing``). ``fingerprint`` (the store's) keys the refinement's label cache."""
+    t0 = time.perf_counter()
+    k_cls, healthy_cls = classifier_set(settings, k, healthy)
+    sample, assess, sample_paths = labeller
+    k_all, _, refine_info = refine_classifier(
+        classifier,
+        k_cls,
+        healthy_cls,
+        sample,
+        assess,
+        settings.refine,
+        settings.seed,
+        settings.out_dir / "classifier_labels",
+        {"data": fingerprint, "damage": settings.damage},
+        sample_paths,
+    )
+    if settings.max_missed_fault_rate is not None:  # on the importance-sampled set: the refined one crowds the boundary
+        classifier.calibrate(k_cls, healthy_cls, settings.max_missed_fault_rate)
+    timing["classifier_fit_s"] = time.perf_counter() - t0 - refine_info["assess_s"]
+    timing["classifier_refine_assess_s"] = refine_info["assess_s"]
+    return len(k_all), refine_info
 
 
 def fit_classifiers(
@@ -80,7 +128,7 @@ def fit_classifiers(
     data: StoreData,
     red: Reduction,
     network: Any,
-    labeller: tuple[Sampler | None, Assessor | None],
+    labeller: tuple[Sampler | None, Assessor | None, Sampler | None],
     timing: dict[str, float],
 ) -> tuple[int, dict[str, Any], HealthClassifier | None]:
     """Fit the health classifier on k (refined on its boundary with the store's assessment, calibrated to
@@ -92,22 +140,9 @@ def fit_classifiers(
         classifier (None without one).
     """
     train, seed, max_missed = data.train, settings.seed, settings.max_missed_fault_rate
-    t0 = time.perf_counter()
-    k_cls, healthy_cls = classifier_set(settings, train)
-    k_all, _, refine_info = refine_classifier(
-        classifier,
-        k_cls,
-        healthy_cls,
-        *labeller,
-        settings.refine,
-        seed,
-        settings.out_dir / "classifier_labels",
-        {"data": data.info["manifest"].get("fingerprint")},
+    n_fitted, refine_info = fit_health_classifier(
+        settings, classifier, train.k, train.healthy, labeller, data.info["manifest"].get("fingerprint"), timing
     )
-    if max_missed is not None:  # on the importance-sampled set: the refined one crowds the boundary
-        classifier.calibrate(k_cls, healthy_cls, max_missed)
-    timing["classifier_fit_s"] = time.perf_counter() - t0 - refine_info["assess_s"]
-    timing["classifier_refine_assess_s"] = refine_info["assess_s"]
     verdict = None
     if settings.verdict_classifier:  # judges estimates: fitted on the training records' own, with eval.noise
         t0 = time.perf_counter()
@@ -123,4 +158,4 @@ def fit_classifiers(
             max_missed,
         )
         timing["verdict_classifier_fit_s"] = time.perf_counter() - t0
-    return len(k_all), refine_info, verdict
+    return n_fitted, refine_info, verdict

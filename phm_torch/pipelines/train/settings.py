@@ -150,6 +150,8 @@ class TrainSettings:
         max_missed_fault_rate: ``calibration.max_missed_fault_rate`` (None: the classifiers' own thresholds).
         classifier_labels: also fit the health classifier on the store's assessment-only labels split.
         refine: the classifier's boundary refinement; refine_device: its simulator device.
+        damage: the damage law's config node (``_target_`` and values), whose paths the refinement's path labels
+            lie on (None: no paths).
         verdict_classifier: also fit the verdict classifier on the estimates.  forward_check: the forward surrogate.
         loggers: Lightning loggers by name.  trainer: Lightning Trainer keyword settings.
         ckpt_path: resume the FDI training from this checkpoint (None: from scratch).
@@ -188,6 +190,7 @@ class TrainSettings:
     explicit_provenance: frozenset[str]
     drive_range: float | None = None
     fit_within_drive_range: bool = False
+    damage: Mapping[str, Any] | None = None
 
     def __post_init__(self) -> None:
         _set(self, "seed", integer(self.seed, "seed", 0))
