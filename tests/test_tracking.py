@@ -17,6 +17,7 @@ from phm_torch.surrogates.fdi_mlp import FDIMLP
 from phm_torch.surrogates.gappy_pod import GappyPOD
 from phm_torch.tracking import DamageLaw, ParticleRUL, Tracker, TrackerSettings
 from phm_torch.tracking.fleet import censor
+from phm_torch.tracking.particle_rul import HUGE
 
 N_FULL, N_MODES = 2001, 6
 NOMINAL = list(load_actuator().nominal_faults)
@@ -291,6 +292,30 @@ def test_the_warm_started_crossing_is_the_cold_one(pipeline, law):
     guess = cold * (1.0 + 0.05 * torch.randn(16, generator=g, dtype=torch.float64))  # a noisy previous one
     guess[:3] = float("nan")  # unknown: cold search
     torch.testing.assert_close(rul.warm_crossing(k, guess, tau_max), cold, rtol=2e-3, atol=1.0)
+
+
+def test_a_particle_faulty_now_has_no_life_left_whatever_its_previous_crossing(pipeline, law):
+    """The score need not stay faulty along a path (phi_a's bandwidth can come back above its limit): a particle
+    faulty now has RUL 0 even when its warm start points at a later healthy -> faulty crossing."""
+
+    class Beyond(ParticleRUL):  # faulty from k1 = 0.5 on
+        def score(self, k):
+            return torch.where(k.clamp(0.0, 1.0)[:, 0] >= 0.5, -1.0, 1.0).to(torch.float64)
+
+    class TwoBands(Beyond):  # and for k1 in [0.2, 0.3]
+        def score(self, k):
+            x = k.clamp(0.0, 1.0)[:, 0]
+            return torch.where((x >= 0.2) & (x <= 0.3), -1.0, super().score(k))
+
+    rul = TwoBands(pipeline, law, bisections=10)
+    k = torch.tensor(NOMINAL, dtype=torch.float64).repeat(3, 1)
+    k[:, 0] = torch.tensor([0.25, 0.25, 0.35])  # faulty now, faulty now, healthy now
+    tau_max = torch.full((3,), law.horizon_hours, dtype=torch.float64)
+    later = Beyond(pipeline, law, bisections=10).wear_clock_crossing(k, law.horizon_hours)  # crossings of 0.5
+    assert (later > 0).all() and (later < law.horizon_hours).all()
+    out = rul.warm_crossing(k, torch.stack([later[0], torch.tensor(HUGE, dtype=torch.float64), later[2]]), tau_max)
+    assert out[:2].tolist() == [0.0, 0.0]
+    torch.testing.assert_close(out[2:], later[2:], rtol=0.0, atol=rul.step)  # a step score: within a grid step
 
 
 def test_a_band_calibrated_with_the_rate_scale_has_that_share_removed_once(pipeline, law):

@@ -110,12 +110,15 @@ class ParticleRUL:
         hold the crossing fall back to the cold search."""
         dk = (k - self.law.nominal).to(torch.float64)
         out = torch.full_like(guess, float("nan"))
-        far = guess >= HUGE
+        # already faulty: no life left, whatever the path does later. The score need not stay faulty along it
+        # (phi_a's bandwidth can come back above its limit), and a bracket further on would find a later crossing
+        out[self.score(k) <= 0] = 0.0
+        far = (guess >= HUGE) & torch.isnan(out)
         if bool(far.any()):  # still healthy at the end of its own search: 1 row
             i = far.nonzero().flatten()
             healthy = self.score(self._at(dk[i], tau_max[i])) > 0
             out[i[healthy]] = HUGE
-        near = torch.isfinite(guess) & ~far
+        near = torch.isfinite(guess) & (guess < HUGE) & torch.isnan(out)
         if bool(near.any()):
             i = near.nonzero().flatten()
             g = guess[i].clamp(min=0.0)
@@ -123,8 +126,6 @@ class ParticleRUL:
             lo, hi = (g - width).clamp(min=0.0), torch.minimum(g + width, tau_max[i])
             both = self.score(self._at(dk[i].repeat(2, 1), torch.cat([lo, hi])))
             s0, s1 = both[: i.numel()], both[i.numel() :]
-            done = (lo <= 0) & (s0 <= 0)  # already faulty
-            out[i[done]] = 0.0
             ok = (s0 > 0) & (s1 <= 0)
             if bool(ok.any()):
                 j = ok.nonzero().flatten()
