@@ -1,4 +1,4 @@
-"""Give an exported TorchScript pipeline the health classifier of the assessment function its actuator ships now.
+"""Give an exported TorchScript pipeline the classifiers of the assessment function its actuator ships now.
 
 A pipeline's health classifier learns phi_a's labels, and its verdict classifier learns them from the FDI's estimates.
 When phi_a changes (the sweep derived from the actuator replaced the hand-tuned one), the shipped pipeline keeps the
@@ -7,10 +7,12 @@ share. This script keeps the FDI and everything calibrated on it, and changes th
 - the health classifier is taken from a bundle trained on a store labelled by the current phi_a
   (``phm-train``'s, boundary refinement included), or, with ``--fit-classifier``, fitted here on that store's
   training and labels splits exactly as phm-train fits it (its composed config: the classifier kind, the boundary
-  refinement on importance-sampled and damage-law path candidates; phi_a is all it needs, no FDI training);
+  refinement on importance-sampled and damage-law path candidates; phi_a is all it needs, no FDI training), or,
+  with ``--keep-classifier``, kept;
 - with ``--refit-verdict``, the verdict classifier is refit on the pipeline's own estimates of that store's training
-  records (1 % current noise), with their labels, as phm-train fits it (on fewer records than the pipeline's own
-  it can lose more near nominal than it gains: pretrained/README.md);
+  records (1 % current noise), with their labels, as phm-train fits it (on 10,000 records instead of the pipeline's
+  own 80,000 it lost more near nominal than it gained; on 40,000 it gained everywhere: pretrained/README.md), and
+  ``--verdict-life`` adds the (noisy) records of a life split with their phi_a labels;
 - the two calibrations that read the classifiers are redone on the store's val split, as phm-evaluate does them:
   the FDI band of the full-flow RUL, and P(faulty)'s Platt scaling.
 The file's metadata is kept.
@@ -19,6 +21,8 @@ The file's metadata is kept.
         --bundle results/train/surrogates.pt --out /tmp/p/online.pt
     python scripts/refit_pipeline_classifiers.py --pipeline pretrained/online_surrogates_best.pt \
         --data-dir data/paper --fit-classifier --work-dir /tmp/p/fit --out /tmp/p/online.pt
+    python scripts/refit_pipeline_classifiers.py --pipeline pretrained/online_surrogates_best.pt \
+        --data-dir data/paper40k --keep-classifier --refit-verdict --out /tmp/p/online.pt
     phm-export pipeline=/tmp/p/online.pt format=[torchscript,export] out=/tmp/p2/online_surrogates_best.pt
 """
 
@@ -37,6 +41,7 @@ from phm_torch import provenance
 from phm_torch.apps.run import compose_stage
 from phm_torch.apps.train import settings_from_config
 from phm_torch.data import DatasetStore
+from phm_torch.io.measurement_csv import read_measurement
 from phm_torch.online.export import export_torchscript
 from phm_torch.online.from_torchscript import pipeline_from_torchscript
 from phm_torch.pipelines.evaluate.calibration import fdi_band, noisy, verdict_scaling
@@ -68,6 +73,20 @@ def _rates(score: torch.Tensor, healthy: torch.Tensor) -> dict[str, float]:
     }
 
 
+def _life_records(life_dir: Path, n_full: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The current (N, n_full) [A] of every inspection record of a life split and its phi_a label (N,) bool."""
+    truth = json.loads((life_dir / "truth.json").read_text())
+    currents, healthy = [], []
+    for history in truth["actuators"].values():
+        for inspection in history["inspections"]:
+            m = read_measurement(life_dir / inspection["file"], optional=("command", "position"))
+            if len(m.current) != n_full:
+                raise ValueError(f"{life_dir / inspection['file']}: {len(m.current)} samples, the pipeline's {n_full}")
+            currents.append(torch.as_tensor(m.current, dtype=torch.float64))
+            healthy.append(bool(inspection["healthy"]))
+    return torch.stack(currents), torch.tensor(healthy)
+
+
 def _fit_classifier(args: argparse.Namespace, k: torch.Tensor, healthy: torch.Tensor) -> tuple[Any, dict[str, Any]]:
     """The health classifier phm-train would fit on the store ``args.data_dir`` (its composed train config)."""
     work = Path(args.work_dir or Path(args.out).with_suffix(".fit"))
@@ -93,10 +112,19 @@ def main() -> None:
         action="store_true",
         help="fit the health classifier on the store as phm-train does (its train config, refinement included)",
     )
+    source.add_argument(
+        "--keep-classifier", action="store_true", help="keep the pipeline's health classifier (with --refit-verdict)"
+    )
     ap.add_argument("--work-dir", default=None, help="with --fit-classifier: the refinement's label cache (resumable)")
     ap.add_argument("--train-override", action="append", default=[], help="with --fit-classifier: a phm-train override")
     ap.add_argument("--out", required=True)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--verdict-life",
+        action="append",
+        default=[],
+        help="with --refit-verdict: a life split (phm-generate stage=life) whose records join its training set",
+    )
     ap.add_argument(
         "--refit-verdict",
         action="store_true",
@@ -120,8 +148,16 @@ def main() -> None:
         if args.refit_verdict:
             noisy_train = noisy(train_x, NOISE, args.seed).to(dtype)
             k_hat = torch.cat([pipe(noisy_train[i : i + BATCH])[0] for i in range(0, len(noisy_train), BATCH)])
+            del noisy_train
+            for life in args.verdict_life:  # records along damage paths, noisy as written, labelled by phi_a
+                life_x, life_h = _life_records(Path(life), int(pipe.n_full))
+                k_life = torch.cat([pipe(life_x[i : i + BATCH].to(dtype))[0] for i in range(0, len(life_x), BATCH)])
+                k_hat, train_h = torch.cat([k_hat, k_life]), torch.cat([train_h, life_h])
+                before[f"verdict_life_records_{Path(life).name}"] = len(life_h)
     weights = pipe.classifier.threshold.dtype  # the classifiers' own dtype (the pipeline's may differ)
-    if args.fit_classifier:
+    if args.keep_classifier:
+        health, fit_report = pipe.classifier, None
+    elif args.fit_classifier:
         health, fit_report = _fit_classifier(args, train_k, train_h)
     else:
         bundle = SurrogateBundle.load(args.bundle)
