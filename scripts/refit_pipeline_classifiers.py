@@ -184,7 +184,8 @@ def main() -> None:
             "health_val": _rates(pipe.classifier(val_k.to(dtype)) - pipe.classifier.threshold, val_h),
         }
     # the phi_a its health classifier (the RUL event) learned, which phm-track compares with a life split's
-    export_torchscript(pipe, args.out, {**metadata, "assessment": assessment})
+    prior = {} if platt is None else {"verdict_prior_faulty": platt[2]}  # phm-track's verdict evidence reads it
+    export_torchscript(pipe, args.out, {**metadata, "assessment": assessment, **prior})
     report = {
         "out": args.out,
         "before": before,

@@ -318,6 +318,34 @@ def test_a_particle_faulty_now_has_no_life_left_whatever_its_previous_crossing(p
     torch.testing.assert_close(out[2:], later[2:], rtol=0.0, atol=rul.step)  # a step score: within a grid step
 
 
+def test_the_records_verdict_is_a_likelihood_ratio_on_the_particles_already_faulty(pipeline, law):
+    """P(faulty) p Platt-scaled at fault rate pi is the posterior odds of the record alone: its likelihood ratio is
+    (p / (1 - p)) / (pi / (1 - pi)), 1 for a record that says no more than the prior. Half the particles past the
+    boundary: the median RUL is 0 unless the record says healthy, and a record at the prior changes nothing."""
+    from phm_torch.tracking.measurement import verdict_odds
+
+    odds = verdict_odds([0.9, 0.5, 0.2, None], 0.5)
+    torch.testing.assert_close(odds, torch.tensor([9.0, 1.0, 0.25, 1.0], dtype=torch.float64))
+    assert float(verdict_odds([0.714], 0.714)[0]) == pytest.approx(1.0)
+    assert verdict_odds([0.3], None) is None
+    with pytest.raises(ValueError, match="verdict_prior_faulty"):
+        verdict_odds([0.3], 1.0)
+
+    class Beyond(ParticleRUL):  # faulty from k1 = 0.5 on
+        def score(self, k):
+            return torch.where(k.clamp(0.0, 1.0)[:, 0] >= 0.5, -1.0, 1.0).to(torch.float64)
+
+    rul = Beyond(pipeline, law, bisections=10)
+    k = torch.tensor(NOMINAL, dtype=torch.float64).repeat(1, 16, 1)
+    k[0, :8, 0], k[0, 8:, 0] = 0.6, 0.3  # half of the cloud already faulty
+    s = torch.ones(1, 16, dtype=torch.float64)
+    q = {r: rul(k, s, faulty_odds=torch.tensor([r], dtype=torch.float64))[0][0, 1] for r in (1.0, 0.25, 4.0)}
+    assert float(q[1.0]) == 0.0 and float(q[4.0]) == 0.0  # as likely faulty as not, or more: no life left
+    assert float(q[0.25]) > 0.0  # the record says healthy: the healthy particles' life
+    plain = rul(k, s)[0][0, 1]
+    assert float(plain) == float(q[1.0])
+
+
 def test_a_band_calibrated_with_the_rate_scale_has_that_share_removed_once(pipeline, law):
     from phm_torch.tracking.particle_rul import eps_log_sigmas
 

@@ -43,7 +43,15 @@ def _sha256(path: Path) -> str:
 
 # TrackerSettings' fields set at the top level of conf/track.yaml; their defaults are composed in from the
 # dataclass (/schema/track), so the YAML does not restate them
-TRACKER_KEYS = ("n_particles", "rul_particles", "seed", "measurement_dof", "resample_ess", "verdict")
+TRACKER_KEYS = (
+    "n_particles",
+    "rul_particles",
+    "seed",
+    "measurement_dof",
+    "resample_ess",
+    "verdict",
+    "verdict_evidence",
+)
 schema.register("track", {key: schema.plain(getattr(TrackerSettings(), key)) for key in TRACKER_KEYS})
 
 

@@ -31,7 +31,9 @@ def build_tracker(
     a config without the key was calibrated before, with eps alone. The shipped pipeline has no damage config at
     all (the composed ``conf/damage`` stands in, with a warning), and was calibrated before too. The prior of s
     (the tracking) is the law's ``rate_scale_sigma``, or the composed config's where the pipeline's has none.
-    The description (JSON) names the law's source and the band."""
+    The fault rate its P(faulty) was calibrated at (``verdict_prior_faulty``) turns each record's P(faulty) into a
+    likelihood ratio (:func:`~.measurement.verdict_odds`). The description (JSON) names the law's source, the
+    band and that rate."""
     require_calibrated(model, source)
     damage, where = damage_config(metadata, fallback_damage, source)
     calibrated_sigma = damage.get("rate_scale_sigma")
@@ -47,10 +49,19 @@ def build_tracker(
     with_s = where.endswith("metadata") and bool(calibrated_sigma) and float(calibrated_sigma) > 0
     eps = eps_log_sigmas(model, law, with_s)
     rul = ParticleRUL(model, law, settings.max_rate_scale, settings.bisections, eps)
-    return Tracker(law, rul, settings), {
+    prior = metadata.get("verdict_prior_faulty")
+    if settings.verdict_evidence and prior is None:
+        log.info(
+            "%s records no verdict_prior_faulty (exported before phm-export copied it): the records' own verdicts "
+            "are not weighed into the RUL",
+            source,
+        )
+    tracker = Tracker(law, rul, settings, None if prior is None else float(prior))
+    return tracker, {
         "damage": damage,
         "damage_source": where,
         "rate_scale_sigma": law.rate_scale_sigma,
         "eps_log_sigmas": list(eps),
         "band_included_rate_scale": with_s,
+        "verdict_prior_faulty": tracker.verdict_prior,
     }

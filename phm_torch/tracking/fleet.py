@@ -20,7 +20,7 @@ from ..faults import FAULT_NAMES
 from ..online.diagnosis import QUANTILES, censor
 from .index import Inspection
 from .inspection import measurement
-from .measurement import interval_scale
+from .measurement import interval_scale, verdict_odds
 from .particle_filter import Posterior, Tracker
 from .state import fingerprint, load_state, save_state
 
@@ -103,6 +103,7 @@ def _run_chunk(
         record_verdict = tracker.settings.verdict == "record"
         faulty = torch.tensor([not d["healthy"] and record_verdict for d in diag])
         restart = torch.tensor([row.event == "maintenance" for row in batch])
+        odds = verdict_odds([d.get("p_faulty") for d in diag], tracker.verdict_prior)
         post = tracker.update(
             [row.actuator for row in batch],
             torch.tensor([row.hours for row in batch]),
@@ -111,6 +112,7 @@ def _run_chunk(
             fuse,
             faulty,
             restart,
+            odds,
         )
         for i, (row, d) in enumerate(zip(batch, diag)):
             out[row.actuator].append(

@@ -59,6 +59,8 @@ class TrackerSettings:
         resample_ess: resample when the effective sample size is below this fraction of n_particles.
         verdict: ``posterior``: an inspection is faulty where the posterior's median RUL is 0; ``record``: also
             where the record's own verdict (phm-predict's) is faulty, whose RUL 5 % and 50 % are then 0.
+        verdict_evidence: weigh the RUL particles already faulty by the record's P(faulty) as a likelihood ratio
+            (:func:`~.measurement.verdict_odds`; needs the pipeline's ``verdict_prior_faulty``).
     """
 
     n_particles: int = 128
@@ -70,6 +72,7 @@ class TrackerSettings:
     bisections: int = 6
     resample_ess: float = 0.5
     verdict: str = "record"
+    verdict_evidence: bool = True
 
     def __post_init__(self) -> None:
         for name in ("n_particles", "rul_particles", "seed", "bisections"):
@@ -136,6 +139,8 @@ class Tracker:
         law: the damage law (process model).
         rul: the per-particle RUL (:class:`~.particle_rul.ParticleRUL`); None: no RUL (NaN).
         settings: :class:`TrackerSettings`.
+        verdict_prior: the fault rate at which the pipeline's P(faulty) was calibrated (metadata
+            ``verdict_prior_faulty``); None, or ``settings.verdict_evidence`` false: the records' verdicts weigh nothing.
 
     State per actuator id, rows of: ``k`` (A, P, 8) and ``k_cov`` (A, P, 8, 8) the Gaussian of k per particle,
     ``log_s`` (A, P), ``log_w`` (A, P) normalised log weights, ``z_k`` (A, P, 8) the normals of each particle's
@@ -146,9 +151,17 @@ class Tracker:
     FIELDS = ("k", "k_cov", "log_s", "log_w", "z_k", "tau", "hours", "steps", "tracked")
     PARTICLE_FIELDS = ("k", "k_cov", "log_s", "log_w", "z_k", "tau")
 
-    def __init__(self, law: DamageLaw, rul: ParticleRUL | None, settings: TrackerSettings | None = None):
+    def __init__(
+        self,
+        law: DamageLaw,
+        rul: ParticleRUL | None,
+        settings: TrackerSettings | None = None,
+        verdict_prior: float | None = None,
+    ):
         self.law, self.rul_model = law, rul
         self.settings = settings or TrackerSettings()
+        # the fault rate P(faulty) was calibrated at (None: the record's verdict is not weighed)
+        self.verdict_prior = verdict_prior if self.settings.verdict_evidence else None
         self.rows: dict[str, int] = {}
         for name, value in self._blank(0).items():
             setattr(self, name, value)
@@ -217,6 +230,7 @@ class Tracker:
         fuse: torch.Tensor,
         faulty: torch.Tensor | None = None,
         restart: torch.Tensor | None = None,
+        faulty_odds: torch.Tensor | None = None,
     ) -> Posterior:
         """One inspection of each of ``actuators`` (distinct ids).
 
@@ -266,7 +280,8 @@ class Tracker:
         if bool(upd.any()):
             self._fuse(st, k_hat, scale, z, upd, cap)
         now_tracked = tracked | init
-        post = self._summary(st, now_tracked, z[:, :, N_FAULTS + 3], fuse & faulty)
+        odds = None if faulty_odds is None else torch.where(fuse, torch.as_tensor(faulty_odds).reshape(b), 1.0)
+        post = self._summary(st, now_tracked, z[:, :, N_FAULTS + 3], fuse & faulty, odds)
         for name, value in st.items():
             getattr(self, name)[rows] = value
         self.tracked[rows] = now_tracked
@@ -312,7 +327,12 @@ class Tracker:
         st["log_w"][idx] = -math.log(p)
 
     def _summary(
-        self, st: dict[str, torch.Tensor], tracked: torch.Tensor, z_eps: torch.Tensor, faulty: torch.Tensor
+        self,
+        st: dict[str, torch.Tensor],
+        tracked: torch.Tensor,
+        z_eps: torch.Tensor,
+        faulty: torch.Tensor,
+        faulty_odds: torch.Tensor | None = None,
     ) -> Posterior:
         """Weighted summaries of the batch; refreshes ``st["tau"]`` of the RUL subset."""
         k_mean_p, log_s = st["k"], st["log_s"]
@@ -327,7 +347,8 @@ class Tracker:
             idx = tracked.nonzero().flatten()
             m = min(self.settings.rul_particles, k.shape[1])
             wm = w[idx, :m] / w[idx, :m].sum(1, keepdim=True)
-            r, c, tau = self.rul_model(k[idx, :m], log_s[idx, :m].exp(), z_eps[idx, :m], wm, st["tau"][idx, :m])
+            odds = None if faulty_odds is None else faulty_odds[idx]
+            r, c, tau = self.rul_model(k[idx, :m], log_s[idx, :m].exp(), z_eps[idx, :m], wm, st["tau"][idx, :m], odds)
             rul[idx], censored[idx] = r, c
             st["tau"][idx, :m] = tau
         # the inspection's verdict says faulty: no life left at 5 and 50 %

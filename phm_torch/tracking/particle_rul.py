@@ -191,6 +191,7 @@ class ParticleRUL:
         z_eps: torch.Tensor | None = None,
         weights: torch.Tensor | None = None,
         guess: torch.Tensor | None = None,
+        faulty_odds: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """RUL 5/50/95 % of particle clouds: k (B, M, 8), s (B, M), standard normals z_eps (B, M) for the
         future-eps factor (None: none), normalised weights (B, M) (None: equal), the particles' previous
@@ -204,6 +205,9 @@ class ParticleRUL:
         tau = self.warm_crossing(k.reshape(-1, 8), guess.to(torch.float64), tau_max).reshape(b, m)
         rul = torch.where(tau >= HUGE, torch.full_like(tau, HUGE), tau / speed)
         w = torch.full_like(rul, 1.0 / m) if weights is None else weights.to(rul)
+        if faulty_odds is not None:
+            w = w * torch.where(tau <= 0, faulty_odds.to(rul).unsqueeze(1), torch.ones_like(rul))
+            w = w / w.sum(1, keepdim=True).clamp(min=1e-300)
         q = weighted_quantiles(rul, w, (0.05, 0.5, 0.95))  # (B, 3)
         censored = q >= self.horizon
         return torch.where(censored, torch.full_like(q, float("nan")), q), censored, tau
