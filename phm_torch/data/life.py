@@ -123,6 +123,24 @@ def _generator(stream: np.random.SeedSequence, *key: int) -> torch.Generator:
     return torch.Generator().manual_seed(int(child.generate_state(1, np.uint64)[0]))
 
 
+def near_nominal(
+    nominal: torch.Tensor, initial_damage: float, uniform: Sequence[int], n: int, g: torch.Generator
+) -> torch.Tensor:
+    """n fault vectors (n, 8) float64 near nominal (8,), drawn from generator g: every component within
+    ``initial_damage`` of nominal, toward the inside of [0, 1] (either side for a nominal inside), the ``uniform``
+    components (0-based) uniform on [0, 1]. How a life history starts, and a damage-law path of the classifier
+    refinement (:mod:`phm_torch.surrogates.classifiers.damage_paths`)."""
+    nom = nominal.to(torch.float64)
+    u = torch.rand(n, nom.numel(), generator=g, dtype=torch.float64)
+    side = torch.where(torch.rand(n, nom.numel(), generator=g, dtype=torch.float64) < 0.5, -1.0, 1.0)
+    side = torch.where(nom <= 0.0, 1.0, torch.where(nom >= 1.0, -1.0, side))  # inward at a bound
+    k = (nom + side * u * initial_damage).clamp(0.0, 1.0)
+    phase = torch.rand(n, nom.numel(), generator=g, dtype=torch.float64)
+    for i in uniform:
+        k[:, i] = phase[:, i]
+    return k
+
+
 class LifeGenerator:
     """Draws, integrates, assesses and simulates the life histories of one config.
 
@@ -179,15 +197,7 @@ class LifeGenerator:
 
     def _candidates(self, g: torch.Generator) -> torch.Tensor:
         """CANDIDATES initial vectors (CANDIDATES, 8) from generator g."""
-        nom = self.nominal
-        u = torch.rand(CANDIDATES, nom.numel(), generator=g, dtype=torch.float64)
-        side = torch.where(torch.rand(CANDIDATES, nom.numel(), generator=g, dtype=torch.float64) < 0.5, -1.0, 1.0)
-        side = torch.where(nom <= 0.0, 1.0, torch.where(nom >= 1.0, -1.0, side))  # inward at a bound
-        k = (nom + side * u * self.life.initial_damage).clamp(0.0, 1.0)
-        phase = torch.rand(CANDIDATES, nom.numel(), generator=g, dtype=torch.float64)
-        for i in self.uniform:
-            k[:, i] = phase[:, i]
-        return k
+        return near_nominal(self.nominal, self.life.initial_damage, self.uniform, CANDIDATES, g)
 
     def initial_states(self, indices: Sequence[int]) -> torch.Tensor:
         """A healthy initial vector per actuator index (P, 8): its first healthy candidate."""

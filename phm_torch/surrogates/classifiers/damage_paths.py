@@ -7,7 +7,7 @@ phi_a's boundary a median 70 h late (std 90-110 h) along 60 simulated run-to-fai
 of such paths as well, 1-21 h (std 60-80 h), and the first inspection it calls faulty was phi_a's for 45 of 60
 actuators instead of 28 (docs/surrogates.md, "Boundary refinement").
 
-A path starts as a life history does (:mod:`phm_torch.data.life`): every damage component within
+A path starts as a life history does (:func:`phm_torch.data.life.near_nominal`): every damage component within
 ``initial_damage`` of nominal (toward the inside of [0, 1]), the ``uniform`` components (the eccentricity phase)
 uniform; it gets a wear-rate scale s and block-constant eps from the damage model and is integrated on the
 damage grid over the model's horizon. Each path gives ``POINTS_PER_PATH`` candidates at grid times drawn
@@ -23,6 +23,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 
+from ...data.life import near_nominal
 from ...prognostics.damage import DamageModel
 
 POINTS_PER_PATH = 16
@@ -45,20 +46,10 @@ class DamagePathSampler:
         self.damage, self.initial_damage = damage, float(initial_damage)
         self.uniform, self.seed = tuple(int(i) for i in uniform), int(seed)
 
-    def _starts(self, n: int, g: torch.Generator) -> torch.Tensor:
-        nom = self.damage.nominal
-        u = torch.rand(n, nom.numel(), generator=g, dtype=torch.float64)
-        side = torch.where(torch.rand(n, nom.numel(), generator=g, dtype=torch.float64) < 0.5, -1.0, 1.0)
-        side = torch.where(nom <= 0.0, 1.0, torch.where(nom >= 1.0, -1.0, side))  # inward at a bound
-        k = (nom + side * u * self.initial_damage).clamp(0.0, 1.0)
-        for i in self.uniform:
-            k[:, i] = torch.rand(n, generator=g, dtype=torch.float64)
-        return k
-
     def paths(self, n_paths: int, g: torch.Generator) -> torch.Tensor:
         """k(t) of ``n_paths`` paths on the damage grid, (T, n_paths, 8), clamped to [0, 1]."""
         d = self.damage
-        k = self._starts(n_paths, g)
+        k = near_nominal(d.nominal, self.initial_damage, self.uniform, n_paths, g)
         scale = d.sample_rate_scale(n_paths, g)
         eps = d.sample_noise(n_paths, g)
         return d.integrate(k, eps, t=d.grid, scale=scale).clamp(0.0, 1.0)
