@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from omegaconf import open_dict
 
 from phm_torch.apps.export import export
 from phm_torch.apps.predict import predict
@@ -223,6 +224,26 @@ def test_workbench_demo_is_the_shipped_record_only_for_its_own_actuator(tmp_path
 def test_stage_lists_cannot_change_the_actuator_of_one_stage():
     with pytest.raises(ValueError, match="whole run"):
         run_all(compose_stage("run", ['train=["actuator.gear_ratio=150"]', "stages=[train]"]))
+    with pytest.raises(ValueError, match="damage law of one stage"):
+        run_all(compose_stage("run", ['evaluate=["damage.rate_scale_sigma=0.1"]', "stages=[evaluate]"]))
+
+
+def test_the_run_damage_law_reaches_every_stage_that_reads_one():
+    """`phm-run damage.rate_scale_sigma=0.2` (or `damage=<name>` of a user's folder) sets the one damage law of
+    the life split, the classifier's path labels, the RUL and the tracker, not each stage's own default."""
+    from phm_torch.apps import run as run_app
+    from phm_torch.apps import track as _track  # noqa: F401  (registers phm-track's schema)
+
+    cfg = compose_stage("run", ["damage.rate_scale_sigma=0.2", "damage.horizon_hours=12000"])
+    over = run_app.damage_overrides(cfg)
+    assert over[0] == "damage=coupled"
+    for app in ("generate", "train", "evaluate", "track"):
+        stage = compose_stage(app, over)
+        assert stage.damage.rate_scale_sigma == 0.2 and stage.damage.horizon_hours == 12000
+        assert stage.damage.rate == cfg.damage.rate
+    with open_dict(cfg):
+        del cfg["damage"]
+    assert run_app.damage_overrides(cfg) == []  # a run config without the group: each stage's own default
 
 
 @pytest.mark.slow

@@ -45,7 +45,7 @@ def compose_stage(app: str, overrides: list[str]) -> DictConfig:
     else:
         with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
             cfg = compose(config_name=app, overrides=overrides, return_hydra_config=True)
-    return common.keep_choices(cfg, SHARED_GROUPS)
+    return common.keep_choices(cfg, (*SHARED_GROUPS, DAMAGE_GROUP))
 
 
 DATA_KEYS = ("dataset", "assessment")  # config nodes of phm-generate that a run-level experiment may set
@@ -59,6 +59,7 @@ def _dotted(prefix: str, node: Any) -> list[str]:
 
 
 SHARED_GROUPS = ("actuator", "command")  # chosen once for the run and passed to every stage
+DAMAGE_GROUP = "damage"  # the damage law, chosen once for the run and passed to the stages that read one
 
 
 def shared_overrides(cfg: DictConfig) -> list[str]:
@@ -83,6 +84,17 @@ def shared_overrides(cfg: DictConfig) -> list[str]:
     return out
 
 
+def damage_overrides(cfg: DictConfig) -> list[str]:
+    """The run's damage law for the stages that read one (the life split, the classifier's path labels, the
+    RUL, the tracker): ``damage=<name>`` when it was chosen by name, then its values as dotted overrides (so
+    ``phm-run damage.rate_scale_sigma=0.2`` reaches each of them). Without a ``damage`` node, nothing: each
+    stage keeps its own default."""
+    if cfg.get(DAMAGE_GROUP) is None:
+        return []
+    name = common.choice(cfg, DAMAGE_GROUP)
+    return [*([f"{DAMAGE_GROUP}={name}"] if name else []), *_dotted(DAMAGE_GROUP, cfg[DAMAGE_GROUP])]
+
+
 def _searchpath() -> list[str]:
     from hydra.core.hydra_config import HydraConfig
 
@@ -105,9 +117,9 @@ def _overrides(value: Any, name: str) -> list[str]:
     out = []
     for item in items:  # a shipped example file is found from any working directory
         key, _, path = item.partition("=")
-        if key.lstrip("+~").split(".")[0] in SHARED_GROUPS:
+        if key.lstrip("+~").split(".")[0] in (*SHARED_GROUPS, DAMAGE_GROUP):
             raise ValueError(
-                f"{name}: {item!r} sets the actuator or command of one stage only; set it for the "
+                f"{name}: {item!r} sets the actuator, command or damage law of one stage only; set it for the "
                 f"whole run (phm-run {item.lstrip('+~')})"
             )
         shipped = CONF_DIR.parent / path
@@ -293,14 +305,19 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     data_dir, train_dir, eval_dir = run_dir / "data", run_dir / "train", run_dir / "evaluate"
     gen_over = generate_overrides(cfg)
     shared = shared_overrides(cfg)
+    damage = damage_overrides(cfg)
     plan = {
         "cases": ("cases", [*shared, f"out_dir={run_dir / 'cases'}", *_overrides(cfg.cases, "cases")]),
-        "generate": ("generate", [*shared, f"data_dir={data_dir}", *gen_over]),
-        "train": ("train", [*shared, f"data_dir={data_dir}", f"out_dir={train_dir}", *_overrides(cfg.train, "train")]),
+        "generate": ("generate", [*shared, *damage, f"data_dir={data_dir}", *gen_over]),
+        "train": (
+            "train",
+            [*shared, *damage, f"data_dir={data_dir}", f"out_dir={train_dir}", *_overrides(cfg.train, "train")],
+        ),
         "evaluate": (
             "evaluate",
             [
                 *shared,
+                *damage,
                 f"data_dir={data_dir}",
                 f"bundle={train_dir / 'surrogates.pt'}",
                 f"out_dir={eval_dir}",
@@ -311,6 +328,7 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             "track",
             [
                 *shared,
+                *damage,
                 f"index={data_dir / 'life' / 'index.csv'}",
                 f"pipeline={eval_dir / 'online.pt'}",
                 f"truth={data_dir / 'life' / 'truth.json'}",
