@@ -10,12 +10,14 @@ import torch
 
 from phm_torch.online import OnlinePipeline
 from phm_torch.online.consistency import ConsistencyCheck, calibrate_consistency
+from phm_torch.online.pipeline_consistency import attach_consistency, pipeline_basis
 from phm_torch.params import load_actuator
 from phm_torch.prognostics import DamageModel
 from phm_torch.surrogates import POD, GappyPOD, SurrogateBundle, add_noise, rms
 from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
 from phm_torch.surrogates.fdi_mlp import FDIMLP
 from phm_torch.surrogates.forward import ForwardSurrogate, fit_forward_check
+from phm_torch.surrogates.full_signal_check import FullSignalCheck
 
 pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
@@ -221,3 +223,47 @@ def test_bundle_round_trip_with_and_without_forward_model(fitted, tmp_path):
             SurrogateBundle.load(tmp_path / "plain.pt"), _damage(), torch.zeros(3), torch.ones(8)
         ).has_consistency
     )
+
+
+def _pipeline_with_rows(fitted) -> OnlinePipeline:
+    """A pipeline without a consistency check whose full-record check reads every 16th sample, its gappy layer every
+    8th: the two share every 16th, enough to recover the basis at the rows."""
+    pod, _, fdi, _ = fitted
+    gappy = GappyPOD(pod.modes_, pod.mean_, torch.arange(0, N_E, 8))
+    k = faults(300, 2)
+    clf = PolynomialSVM(degree=2).fit(k, k[:, :5].amax(1) < 0.5)
+    check = FullSignalCheck(
+        pod.modes_, pod.mean_, residual_threshold=1e3, roughness_threshold=1e3, plateau_threshold=1.0
+    )
+    return OnlinePipeline(
+        gappy, fdi, clf, _damage(), torch.tensor([0.02, 0.0, -0.02]), torch.ones(8), N_E, 1e3, full_check=check
+    ).eval()
+
+
+def test_a_pipeline_without_its_bundle_gets_a_consistency_check_from_its_own_basis(fitted):
+    """scripts/add_consistency_check.py's library part: the POD basis at the rows is recovered from the full-record
+    check's orthonormalised basis and the gappy modes (exactly), and the fitted check flags shifted and flipped
+    records, scripted as eager, while good ones pass."""
+    pod, *_ = fitted
+    pipe = _pipeline_with_rows(fitted)
+    mean, modes = pipeline_basis(pipe)
+    rows, idx = torch.arange(0, N_E, 16), pipe.gappy.indices
+    for at in (rows, idx):
+        torch.testing.assert_close(mean[at], pod.mean_[at].double(), atol=1e-9, rtol=0)
+        torch.testing.assert_close(modes[at], pod.modes_[at].double(), atol=1e-9, rtol=0)
+    assert bool(torch.isnan(mean[1:8]).all())  # nothing else is known
+    k = faults(1200, 0)
+    attach_consistency(pipe, k, records(k), seed=0, max_epochs=250, patience=30, n_hidden=48)
+    assert pipe.has_consistency
+    calibrate_consistency(pipe, records(faults(150, 9)), [0.01, 0.03, 0.1], seed=0, quantile=0.98)
+    test = records(faults(40, 11))
+    y = add_noise(test, rms(test), 0.01, torch.Generator().manual_seed(5))
+    bad = torch.cat([y, torch.roll(y, 20, dims=1), -y])
+    scripted = torch.jit.script(pipe)
+    with torch.no_grad():
+        margin = pipe.consistency(bad)
+        torch.testing.assert_close(margin, scripted.consistency(bad), atol=1e-5, rtol=1e-5)
+    assert float((margin[:40] > 1).double().mean()) <= 0.05 and bool((margin[40:] > 1).all())
+    with pytest.raises(ValueError, match="share 0 samples"):
+        pipe.gappy = GappyPOD(pod.modes_, pod.mean_, torch.arange(1, N_E, 16))
+        pipeline_basis(pipe)

@@ -278,26 +278,57 @@ def fit_forward_check(
         nominal: (8,) nominal fault vector (its eccentricity centres the phase features; None: 0).
         seed: the surrogate's seed.  params: other :class:`ForwardSurrogate` arguments.
 
-    The fit's wall time [s] is ``fit_s_``; :meth:`ForwardSurrogate.summary` gives the figures phm-train reports.
-
-    The targets are the records' full POD projections. ``floor_full_`` and ``floor_samples_`` are the
-    medians over the held-out rows of the relative residual (:func:`consistency_statistic` with noise 0 and
-    floor 1) of the noise-free records at the FDI's own estimates, on every ``STRIDE``-th sample and on
-    the selected samples."""
+    The targets are the records' full POD projections (:func:`fit_forward_on_coefficients` does the rest)."""
     t0 = time.perf_counter()
-    if nominal is not None:
-        params.setdefault("nominal_eccentricity", float(nominal[ECC_AMPLITUDE]))
-    model = ForwardSurrogate(pod.n_modes, seed=seed, **params)
     alpha = torch.cat(
         [pod(current[i : i + block_rows].to(pod.mean_.dtype)) for i in range(0, len(current), block_rows)]
     )
+    model = fit_forward_on_coefficients(
+        alpha, k, current, gappy, network, pod.mean_, pod.modes_, nominal, seed, block_rows, **params
+    )
+    model.fit_s_ = time.perf_counter() - t0
+    return model
+
+
+@torch.no_grad()
+def fit_forward_on_coefficients(
+    alpha: torch.Tensor,
+    k: torch.Tensor,
+    current: torch.Tensor,
+    gappy: nn.Module,
+    network: nn.Module,
+    mean: torch.Tensor,
+    modes: torch.Tensor,
+    nominal: torch.Tensor | None = None,
+    seed: int = 0,
+    block_rows: int = 2048,
+    **params: Any,
+) -> ForwardSurrogate:
+    """A forward surrogate fitted to given POD coefficients of training records, with its residual floors.
+
+    Args:
+        alpha: (N, n_m) the records' POD coefficients, the targets (a bundle's full projections, or, for a pipeline
+            without its bundle, the gappy estimates of its selected samples).
+        k: (N, 8) their fault vectors.  current: (N, n_e) the records [A].
+        gappy, network: the FDI's gappy layer and network (alpha [, noise] -> k_hat), for the floors.
+        mean: (n_e,) POD mean [A] and modes: (n_e, n_m) POD modes; only every ``STRIDE``-th row is read.
+        nominal, seed, params: as :func:`fit_forward_check`.
+
+    The fit's wall time [s] is ``fit_s_``; :meth:`ForwardSurrogate.summary` gives the figures phm-train reports.
+    ``floor_full_`` and ``floor_samples_`` are the medians over the held-out rows of the relative residual
+    (:func:`consistency_statistic` with noise 0 and floor 1) of the noise-free records at the FDI's own estimates,
+    on every ``STRIDE``-th sample and on the selected samples."""
+    t0 = time.perf_counter()
+    if nominal is not None:
+        params.setdefault("nominal_eccentricity", float(nominal[ECC_AMPLITUDE]))
+    model = ForwardSurrogate(int(alpha.shape[1]), seed=seed, **params)
     mean_square = torch.cat(
         [current[i : i + block_rows].to(torch.float64).pow(2).mean(1) for i in range(0, len(current), block_rows)]
     )
     model.fit(k, alpha.to(torch.float32), 1.0 / mean_square.clamp(min=1e-12))
     n_hold = max(1, round(model.holdout * len(k)))
     hold = torch.randperm(len(k), generator=torch.Generator().manual_seed(seed))[:n_hold]  # fit's own draw
-    y = current[hold].to(pod.mean_.dtype)
+    y = current[hold].to(mean.dtype)
     samples = gappy.select(y)
     a_hat, _ = gappy(samples)
     k_hat = (
@@ -307,8 +338,8 @@ def fit_forward_check(
     )
     pred = model(k_hat)
     zero, one = torch.zeros(len(hold)), torch.tensor(1.0)
-    rows = torch.arange(0, pod.mean_.shape[0], STRIDE)
-    full = consistency_statistic(y[:, rows], pod.mean_[rows], pod.modes_[rows], pred, zero, one)
+    rows = torch.arange(0, mean.shape[0], STRIDE)
+    full = consistency_statistic(y[:, rows], mean[rows], modes[rows], pred, zero, one)
     sel = consistency_statistic(samples, gappy.mean_hat, gappy.modes_hat, pred, zero, one)
     model.floor_full_ = full.median().to(model.floor_full_.dtype)
     model.floor_samples_ = sel.median().to(model.floor_samples_.dtype)
