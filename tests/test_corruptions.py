@@ -33,7 +33,6 @@ BLIND_SPOTS = {
         "current_gain",
         "current_lag",
         "current_offset",
-        "current_reversal",
         "drift",
         "hum",
         "spikes",
@@ -44,11 +43,9 @@ BLIND_SPOTS = {
         "current_gain",
         "current_lag",
         "current_offset",
-        "current_reversal",
         "drift",
         "hum",
         "spikes",
-        "time_reversal",
         "trigger_offset",
     ],
 }
@@ -96,7 +93,8 @@ def test_every_case_flagged_or_right_except_the_blind_spots(suite):
     full = {k: v["full"] for k, v in table.items()}
     # what the issue found confidently wrong, now flagged with its reason
     assert full["current_sign"]["flagged_from"] == 1.0 and full["current_sign"]["severities"]["1.0"]["reasons"] == [
-        "sign"
+        "inconsistent",
+        "sign",
     ]
     assert (
         full["time_reversal"]["flagged_from"] == 1.0
@@ -111,6 +109,12 @@ def test_every_case_flagged_or_right_except_the_blind_spots(suite):
     assert full["current_offset"]["severities"]["0.1"]["reasons"] == ["offset"]
     assert full["clipping"]["flagged_from"] <= 0.2 and "plateau" in full["clipping"]["severities"]["0.5"]["reasons"]
     assert table["position_sign"]["current_only"]["flagged_from"] is None  # no position column: nothing to check
+    # the consistency check (analysis by synthesis, added to the shipped file): what no cheap check sees
+    only = {k: v["current_only"] for k, v in table.items()}
+    for kind, severity in (("current_reversal", "1.0"), ("current_gain", "1.0"), ("current_lag", "0.02")):
+        for mode in (full, only):
+            assert mode[kind]["severities"][severity]["reasons"] == ["inconsistent"], (kind, mode[kind])
+    assert only["time_reversal"]["flagged_from"] == 1.0 and only["trigger_offset"]["flagged_from"] == 0.02
 
 
 def test_pipeline_reasons_explain_its_flag(suite):
@@ -141,7 +145,7 @@ def test_current_only_csv_skips_command_and_tracking(suite, compose, tmp_path):
     good, bad = out["records"]
     assert good["checks_skipped"] == ["command", "tracking"] and good["command_check"] is None
     assert not good["out_of_distribution"] and not good["healthy"]  # the friction fault, found
-    assert bad["out_of_distribution"] and bad["ood_reasons"] == ["sign"] and bad["p_faulty"] is None
+    assert bad["out_of_distribution"] and bad["ood_reasons"] == ["inconsistent", "sign"] and bad["p_faulty"] is None
 
 
 def test_a_dead_position_sensor_is_caught_on_a_healthy_answer_only():
