@@ -15,7 +15,8 @@ share. This script keeps the FDI and everything calibrated on it, and changes th
   ``--verdict-life`` adds the (noisy) records of a life split with their phi_a labels;
 - the two calibrations that read the classifiers are redone on the store's val split, as phm-evaluate does them:
   the FDI band of the full-flow RUL, and P(faulty)'s Platt scaling.
-The file's metadata is kept.
+The classifiers are cast to the pipeline's dtype (``--keep-classifier`` alone does only that and the two
+calibrations). The file's metadata is kept.
 
     python scripts/refit_pipeline_classifiers.py --pipeline tests/data/pretrained_v0.pt --data-dir data/paper \
         --bundle results/train/surrogates.pt --out /tmp/p/online.pt
@@ -154,7 +155,9 @@ def main() -> None:
                 k_life = torch.cat([pipe(life_x[i : i + BATCH].to(dtype))[0] for i in range(0, len(life_x), BATCH)])
                 k_hat, train_h = torch.cat([k_hat, k_life]), torch.cat([train_h, life_h])
                 before[f"verdict_life_records_{Path(life).name}"] = len(life_h)
-    weights = pipe.classifier.threshold.dtype  # the classifiers' own dtype (the pipeline's may differ)
+    # the classifiers in the pipeline's dtype: a float64 classifier (the refits' before 2026-11-26, evening) cost a
+    # third of a batched step's throughput, the RUL search scoring ~12 rows per propagation
+    weights = pipe.times.dtype
     if args.keep_classifier:
         health, fit_report = pipe.classifier, None
     elif args.fit_classifier:
@@ -166,6 +169,8 @@ def main() -> None:
     pipe.classifier = health.to(weights)
     if args.refit_verdict:
         pipe.verdict_classifier = MLPClassifier(seed=args.seed).fit(k_hat.double(), train_h).to(weights)
+    else:
+        pipe.verdict_classifier = pipe.verdict_classifier.to(weights)
     band_signals = noisy(val_x, NOISE, args.seed)
     band = fdi_band(pipe, band_signals, val_k, False)
     if band is not None:

@@ -81,6 +81,24 @@ def test_traced_scoring_per_scan_point_equals_the_blocked_search(vectors):
 
 
 @pytest.mark.torchscript
+def test_classifiers_of_different_dtypes_stop_one_propagation_together(vectors):
+    """A verdict classifier in float32 beside a float64 health classifier (a refit in another dtype): the health
+    stops mix their scores in one propagation (index_copy), so the search casts both to the health classifier's
+    score dtype; the RUL equals the float64 pipeline's within the float32 scores' rounding."""
+    import copy
+
+    ref = _pipeline(None)
+    ref.set_health_stop([2])
+    mixed = copy.deepcopy(ref)
+    mixed.verdict_classifier = copy.deepcopy(ref.classifier).float()
+    with torch.no_grad():
+        expected = ref.rul(vectors, measured=True)
+        got = mixed.rul(vectors, measured=True)
+    assert got.dtype == expected.dtype == torch.float64
+    assert float((got - expected).abs().max()) <= float(ref.times[1] - ref.times[0])  # within one grid step
+    assert float((got - expected).abs().median()) < 0.05  # hours: the crossing interpolated from float32 scores
+
+
 def test_full_record_statistics_from_one_gather_equal_the_three_checks():
     g = torch.Generator().manual_seed(1)
     t = torch.linspace(0, 1, N_FULL, dtype=torch.float64)

@@ -118,10 +118,13 @@ class RULPropagation:
         return torch.cat([self._classify(block, measured) for block in k.split(self.score_block)])
 
     def _classify(self, k: torch.Tensor, measured: bool) -> torch.Tensor:
-        """One block of :meth:`_score_rows` (TorchScript calls each submodule by name)."""
+        """One block of :meth:`_score_rows` (TorchScript calls each submodule by name), in the dtype of the health
+        classifier's score: the two classifiers may differ in dtype (a score's dtype is its classifier's
+        threshold's), and the stopping scores of one propagation mix them."""
+        dtype = self.classifier.threshold.dtype
         if measured:
-            return self.verdict_classifier(k) - self.verdict_classifier.threshold
-        return self.classifier(k) - self.classifier.threshold
+            return (self.verdict_classifier(k) - self.verdict_classifier.threshold).to(dtype)
+        return (self.classifier(k) - self.classifier.threshold).to(dtype)
 
     def _stop_scores(self, k: torch.Tensor, measured: bool, blocked: bool) -> torch.Tensor:
         """Stopping score (M, 3) of the three propagations' states k (M, 3, 8): the verdict classifier's for
