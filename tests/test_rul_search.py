@@ -99,6 +99,7 @@ def test_classifiers_of_different_dtypes_stop_one_propagation_together(vectors):
     assert float((got - expected).abs().median()) < 0.05  # hours: the crossing interpolated from float32 scores
 
 
+@pytest.mark.torchscript  # scripts the check on purpose
 def test_full_record_statistics_from_one_gather_equal_the_three_checks():
     g = torch.Generator().manual_seed(1)
     t = torch.linspace(0, 1, N_FULL, dtype=torch.float64)
