@@ -39,7 +39,7 @@ def test_phm_run_tiny_with_the_life_split_and_the_track_stage(tmp_path):
             'workbench=["measurements=examples/workbench_hidden_cogging.csv","refit.top=1","refit.rounds=1"]',
             "report.hidden_neurons=[4]",
             "report.hidden_epochs=2",
-            "report.latency_repeats=5",
+            "report.latency_repeats=10",
         ],
     )
     run_all(cfg)
