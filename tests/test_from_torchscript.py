@@ -362,3 +362,19 @@ def test_predict_gives_the_same_json_from_the_shipped_pt_and_pt2(pretrained, com
         assert b["k_hat"][name] == pytest.approx(value, abs=MISSING_ATOL), name
     for name, value in a["rul_hours"].items():
         assert b["rul_hours"][name] == (None if value is None else pytest.approx(value, rel=MISSING_RTOL)), name
+
+
+def test_run_passes_the_measured_noise_to_the_forward_only_where_it_is_the_same_estimate():
+    """TorchScriptPipeline.run measures each record's noise for the report; a pipeline whose forward estimates it the
+    same way (the first samples) is given that level instead of estimating it again, with the same outputs; the
+    original file (its noise_level read the whole record) and a rebased record estimate their own."""
+    shipped, original = load_pipeline(PT), load_pipeline(OLD)
+    assert shipped.noise_reusable and not original.noise_reusable
+    base = shipped.module.nominal_record.unsqueeze(0)
+    x = base + 0.02 * base.abs().mean() * torch.randn(6, base.shape[1], generator=torch.Generator().manual_seed(4))
+    x[3, 40:43] = float("nan")  # a record with missing samples takes the same path
+    with torch.no_grad():
+        ref = shipped.module(x.to(shipped.dtype))
+    got = shipped.run(x)
+    for a, b in zip((got.k_hat, got.score, got.rul, got.ood, got.residual), ref):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True)

@@ -100,6 +100,7 @@ class TorchScriptPipeline(LoadedPipeline):
         self.module, self.metadata = module, dict(metadata or {})
         self.dtype = module.times.dtype
         self.horizon_hours = float(module.times[-1])
+        self.noise_reusable = _noise_reusable(module)
 
     def __getattr__(self, name: str) -> Any:
         if name == "module":  # not set yet (unpickling, copy): no recursion
@@ -122,7 +123,10 @@ class TorchScriptPipeline(LoadedPipeline):
         with torch.no_grad():
             noise = m.noise_level(x) if noise_known else nan  # as measured, before the baseline
             current = m.rebase(x, bench_nominal) if bench_nominal is not None else x
-            k_hat, score, rul, ood, residual = m(current)
+            # forward would estimate the same noise again (9 % of a batched step); after a baseline it must read
+            # the rebased record's own
+            reuse = noise_known and bench_nominal is None and self.noise_reusable
+            k_hat, score, rul, ood, residual = m(current, noise) if reuse else m(current)
             p_faulty = m.faulty_probability(score) if self.calibrated else nan
             lower = upper = None
             if hasattr(m, "k_interval"):  # widths follow the noise where the file's (or eager) method takes it
@@ -137,6 +141,17 @@ class TorchScriptPipeline(LoadedPipeline):
 
     def pipeline_reasons(self, x: torch.Tensor) -> list[list[str]] | None:
         return pipeline_reasons(self.module, x)
+
+
+def _noise_reusable(module: Any) -> bool:
+    """Whether ``module(x)`` estimates the noise of full records exactly as ``module.noise_level(x)`` does, so that
+    the level measured for the report can be passed in: every pipeline since both read the first samples
+    (``_estimated_noise``); a file whose ``noise_level`` read the whole record (the original pretrained one) is
+    left to estimate its own."""
+    code = getattr(getattr(module, "noise_level", None), "code", None)
+    if code is None:  # an eager pipeline: this code's noise_level
+        return hasattr(module, "_estimated_noise")
+    return "_estimated_noise" in code
 
 
 def _tensor(values: list[float] | None, dtype: torch.dtype) -> torch.Tensor | None:
