@@ -378,3 +378,33 @@ def test_run_passes_the_measured_noise_to_the_forward_only_where_it_is_the_same_
     got = shipped.run(x)
     for a, b in zip((got.k_hat, got.score, got.rul, got.ood, got.residual), ref):
         torch.testing.assert_close(a, b, rtol=0, atol=0, equal_nan=True)
+
+
+def test_conversion_derives_the_fdi_fold_instead_of_copying_the_old_files_flag():
+    """The original file predates the fold (it has no fdi_folded), the previous shipped one said False for its
+    ensemble: the converted pipeline folds it, and its FDI alone equals the file's layer-by-layer answer."""
+    from phm_torch.online.from_torchscript import pipeline_from_torchscript
+
+    old = load_scripted(OLD)
+    assert not bool(getattr(old, "fdi_folded", False))
+    pipe, _ = pipeline_from_torchscript(OLD)
+    assert pipe.fdi_folded and pipe.folded_fdi.two_stage
+    base = old.nominal_record.unsqueeze(0)
+    x = base + 0.02 * base.abs().mean() * torch.randn(8, base.shape[1], generator=torch.Generator().manual_seed(6))
+    samples = x.index_select(1, old.gappy.indices).to(old.times.dtype)
+    with torch.no_grad():
+        layers = old.fdi(old.gappy(samples)[0], None)  # the noise-aware ensemble at its default level
+        torch.testing.assert_close(pipe.k_hat_of_samples(samples), layers, rtol=0, atol=1e-5)
+
+
+def test_conversion_does_not_copy_a_stale_fold_flag(tmp_path):
+    """A file written when its FDI could not be folded says fdi_folded False; the converter derives it again."""
+    from phm_torch.online.from_torchscript import pipeline_from_torchscript
+
+    pipe = small_pipeline()
+    assert pipe.fdi_folded
+    pipe.fdi_folded = False  # as a file of an older phm_torch recorded it
+    export_torchscript(pipe, tmp_path / "old.pt")
+    assert not bool(load_scripted(tmp_path / "old.pt").fdi_folded)
+    converted, _ = pipeline_from_torchscript(tmp_path / "old.pt")
+    assert converted.fdi_folded

@@ -74,6 +74,7 @@ CLASSES: dict[str, type[nn.Module]] = {
 # the pipeline's submodules: restored from the file and passed to the constructor, or (residual_limit) built by it
 PIPELINE_CHILDREN = ("gappy", "fdi", "classifier", "verdict_classifier", "full_check", "consistency_check")
 BUILT_CHILDREN = ("residual_limit", "folded_fdi")  # derived by the constructor
+BUILT_ATTRIBUTES = ("fdi_folded",)  # derived by the constructor from the parts: an older file's value is stale
 MODULE_INTERNALS = ("training", "_is_full_backward_hook")  # declared by every scripted module, not its state
 # largest |converted - file| / max(1, |file|) of any output rewrite_pipeline accepts: a float32 pipeline's rounding
 # (records with missing samples: the gappy layer's Woodbury path now starts from its solve matrix, 1e-5 of k_hat)
@@ -251,7 +252,8 @@ def convert_scripted(module: torch.jit.ScriptModule, path: str | os.PathLike) ->
             f"has no place for"
         )
     for name, value in attrs.items():
-        setattr(pipeline, name, value)
+        if name not in BUILT_ATTRIBUTES:
+            setattr(pipeline, name, value)
     return pipeline.eval(), sorted(result.missing_keys)
 
 

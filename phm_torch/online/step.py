@@ -23,6 +23,7 @@ What the eager pipeline decides with Python control flow on data, the step decid
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import torch
@@ -110,6 +111,15 @@ class _GappyBuffers:
         return self._layer._woodbury(self, *args)
 
 
+def _step_view(pipeline: OnlinePipeline) -> OnlinePipeline:
+    """``pipeline`` sharing every part but the FDI-only fold (:meth:`OnlinePipeline.k_hat_of_samples`), which the step
+    never calls: an exported program would carry its derived weights as constants (1.4 MB for the pretrained one)."""
+    view = copy.copy(pipeline)
+    view._modules = dict(pipeline._modules)  # a child table of its own: the pipeline itself is left as it is
+    view._modules["folded_fdi"] = nn.Identity()
+    return view
+
+
 class OnlineStep(nn.Module):
     """One input length of an :class:`OnlinePipeline` as a single traceable ``forward``.
 
@@ -128,7 +138,7 @@ class OnlineStep(nn.Module):
                 f"complete_only: the pipeline needs {pipeline.min_count} of its {pipeline.n_points} "
                 f"samples, so every record takes its missing-sample path (no complete-record step)"
             )
-        self.pipeline = pipeline.eval()
+        self.pipeline = _step_view(pipeline.eval())
         self.full = bool(full)
         self.complete_only = bool(complete_only)
         self.length = pipeline.n_full if full else pipeline.n_points
