@@ -75,6 +75,7 @@ CLASSES: dict[str, type[nn.Module]] = {
 PIPELINE_CHILDREN = ("gappy", "fdi", "classifier", "verdict_classifier", "full_check", "consistency_check")
 BUILT_CHILDREN = ("residual_limit", "folded_fdi")  # derived by the constructor
 BUILT_ATTRIBUTES = ("fdi_folded",)  # derived by the constructor from the parts: an older file's value is stale
+BUILT_BUFFERS = ("verdict_stop_index",)  # derived from health_stop_index (non-persistent)
 MODULE_INTERNALS = ("training", "_is_full_backward_hook")  # declared by every scripted module, not its state
 # largest |converted - file| / max(1, |file|) of any output rewrite_pipeline accepts: a float32 pipeline's rounding
 # (records with missing samples: the gappy layer's Woodbury path now starts from its solve matrix, 1e-5 of k_hat)
@@ -244,7 +245,11 @@ def convert_scripted(module: torch.jit.ScriptModule, path: str | os.PathLike) ->
         **{key: attrs[key] for key in ("sample_rate", "coarse") if key in attrs},
     )
     # a scripted module lists its derived (non-persistent) buffers too: the constructor made them from the restored parts
-    stored = {k: v for k, v in module.state_dict().items() if k.split(".")[0] not in BUILT_CHILDREN[1:]}
+    stored = {
+        k: v
+        for k, v in module.state_dict().items()
+        if k.split(".")[0] not in BUILT_CHILDREN[1:] and k not in BUILT_BUFFERS
+    }
     result = pipeline.load_state_dict(stored, strict=False)  # the file's tensors, every one (checked below)
     if result.unexpected_keys:
         raise ValueError(

@@ -78,6 +78,8 @@ class RULPropagation:
         self.register_buffer("coarse_index", torch.tensor(coarse_index, dtype=torch.long))
         self.mixed_stop = False
         self.register_buffer("health_stop_index", torch.zeros(0, dtype=torch.long))
+        # the quantiles the verdict classifier stops: derived from health_stop_index (not stored)
+        self.register_buffer("verdict_stop_index", torch.arange(3), persistent=False)
         self.register_buffer("unknown_shift", torch.zeros(3, 8, dtype=dtype))
 
     def set_unidentified(self, components: Sequence[int] | None) -> None:
@@ -104,6 +106,10 @@ class RULPropagation:
         if any(v not in (0, 2) for v in q):
             raise ValueError(f"online.fdi_health_stop: quantiles must be among 0 (5 %) and 2 (95 %), got {q}")
         self.health_stop_index = torch.tensor(q, dtype=torch.long, device=self.times.device)
+        rest = [v for v in range(3) if v not in q]
+        self.register_buffer(
+            "verdict_stop_index", torch.tensor(rest, dtype=torch.long, device=self.times.device), False
+        )
         self.mixed_stop = len(q) > 0
 
     def _score_rows(self, k: torch.Tensor, measured: bool, blocked: bool = True) -> torch.Tensor:
@@ -130,11 +136,13 @@ class RULPropagation:
         """Stopping score (M, 3) of the three propagations' states k (M, 3, 8): the verdict classifier's for
         ``measured`` except at the quantiles :meth:`set_health_stop` names, the health classifier's otherwise."""
         m = k.shape[0]
-        score = self._score_rows(k.reshape(-1, 8).clamp(0.0, 1.0), measured, blocked).reshape(m, 3)
-        if measured and self.mixed_stop:
-            cols = self.health_stop_index
+        if not (measured and self.mixed_stop):
+            return self._score_rows(k.reshape(-1, 8).clamp(0.0, 1.0), measured, blocked).reshape(m, 3)
+        # each quantile scored by its own classifier only (the verdict's rows of a health stop would be overwritten)
+        score = torch.zeros(m, 3, dtype=self.classifier.threshold.dtype, device=k.device)
+        for cols, by_verdict in ((self.health_stop_index, False), (self.verdict_stop_index, True)):
             rows = k.index_select(1, cols).reshape(-1, 8).clamp(0.0, 1.0)
-            score = score.index_copy(1, cols, self._score_rows(rows, False, blocked).reshape(m, cols.shape[0]))
+            score = score.index_copy(1, cols, self._score_rows(rows, by_verdict, blocked).reshape(m, cols.shape[0]))
         return score
 
     def rul(self, k: torch.Tensor, measured: bool = False, blocked: bool = True) -> torch.Tensor:
