@@ -85,10 +85,8 @@ def shared_overrides(cfg: DictConfig) -> list[str]:
 
 
 def damage_overrides(cfg: DictConfig) -> list[str]:
-    """The run's damage law for the stages that read one (the life split, the classifier's path labels, the
-    RUL, the tracker): ``damage=<name>`` when it was chosen by name, then its values as dotted overrides (so
-    ``phm-run damage.rate_scale_sigma=0.2`` reaches each of them). Without a ``damage`` node, nothing: each
-    stage keeps its own default."""
+    """The run's damage law for the stages that read one: ``damage=<name>`` when chosen by name, then its values as
+    dotted overrides (``phm-run damage.rate_scale_sigma=0.2`` reaches each stage); no ``damage`` node: nothing."""
     if cfg.get(DAMAGE_GROUP) is None:
         return []
     name = common.choice(cfg, DAMAGE_GROUP)

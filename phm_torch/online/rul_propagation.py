@@ -106,10 +106,7 @@ class RULPropagation:
         if any(v not in (0, 2) for v in q):
             raise ValueError(f"online.fdi_health_stop: quantiles must be among 0 (5 %) and 2 (95 %), got {q}")
         self.health_stop_index = torch.tensor(q, dtype=torch.long, device=self.times.device)
-        rest = [v for v in range(3) if v not in q]
-        self.register_buffer(
-            "verdict_stop_index", torch.tensor(rest, dtype=torch.long, device=self.times.device), False
-        )
+        self.verdict_stop_index = torch.tensor([v for v in range(3) if v not in q], device=self.times.device)
         self.mixed_stop = len(q) > 0
 
     def _score_rows(self, k: torch.Tensor, measured: bool, blocked: bool = True) -> torch.Tensor:
