@@ -162,3 +162,36 @@ def test_missing_columns_uncalibrated_pipeline_and_old_pipeline(fleet, compose, 
     with pytest.raises(ValueError, match="does not match the pipeline's propagators"):
         run(compose, fleet, tmp_path, f"pipeline={fleet / 'old.pt'}")
     assert any("carries no damage config" in r.getMessage() for r in caplog.records)
+
+
+def test_a_response_beside_the_pipeline_is_inverted_and_one_for_another_pipeline_refused(fleet, compose, tmp_path):
+    import shutil
+
+    import numpy as np
+
+    from phm_torch.online.loaded import load_pipeline
+    from phm_torch.tracking.response import fit_response, probe_k_hat
+
+    shutil.copy(fleet / "online.pt", tmp_path / "online.pt")
+    probe = probe_k_hat(load_pipeline(tmp_path / "online.pt").module)
+    rng = np.random.default_rng(0)
+    k = rng.uniform(0.0, 1.0, (2000, 8))
+    fit_response(k, 0.5 + 0.6 * k, pipeline={"probe_k_hat": probe, "source": "online.pt"}).save(
+        tmp_path / "online.fdi_response.json"
+    )
+    _metrics, objects = run(compose, fleet, tmp_path / "out", f"pipeline={tmp_path / 'online.pt'}")
+    insp = objects["track"]["actuators"]["A0"]["inspections"][0]
+    assert "backlash" in objects["track"]["tracker"]["fdi_response"]["corrected"]
+    hat, corrected = insp["k_hat"]["backlash"], insp["k_hat_corrected"]["backlash"]
+    assert corrected == pytest.approx(min(max((hat - 0.5) / 0.6, 0.0), 1.0), abs=0.02)  # h(k) = 0.5 + 0.6 k inverted
+    without = run(compose, fleet, tmp_path / "none", f"pipeline={tmp_path / 'online.pt'}", "response=null")[1]
+    assert "k_hat_corrected" not in without["track"]["actuators"]["A0"]["inspections"][0]
+    fit_response(k, k, pipeline={"probe_k_hat": [v + 0.01 for v in probe], "source": "other.pt"}).save(
+        tmp_path / "other.json"
+    )
+    with pytest.raises(ValueError, match=r"fitted for another pipeline \(other.pt\)"):
+        run(compose, fleet, tmp_path / "x", f"response={tmp_path / 'other.json'}")
+    with pytest.raises(ValueError, match="response: no such file"):
+        run(compose, fleet, tmp_path / "x", f"response={tmp_path / 'nope.json'}")
+    with pytest.raises(ValueError, match="response_out=.*needs truth="):
+        run(compose, fleet, tmp_path / "x", f"response_out={tmp_path / 'r.json'}")

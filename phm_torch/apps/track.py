@@ -27,10 +27,12 @@ from ..online.input_contract import InputContract
 from ..online.loaded import TorchScriptPipeline, load_pipeline
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
 from ..tracking.inspection import inspect_record
+from ..tracking.response import FDIResponse, fit_response, pairs_from_track, probe_k_hat
 from . import common, schema
 from .predict import _pipeline_command, _read, _record  # phm-predict's record path, reused as is
 
 log = logging.getLogger(__name__)
+RESPONSE_SUFFIX = ".fdi_response.json"  # response=auto: <pipeline stem> + this, beside the pipeline
 
 
 def _sha256(path: Path) -> str:
@@ -76,7 +78,8 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     prov, command = _pipeline_command(cfg, metadata, model_path)
     model = loaded.module
     settings = _settings(cfg)
-    tracker, described = build_tracker(model, metadata, common.plain(cfg.damage), settings, str(model_path))
+    response = _response(cfg.response, model_path)
+    tracker, described = build_tracker(model, metadata, common.plain(cfg.damage), settings, str(model_path), response)
     index = read_index(cfg.index)
     contract = InputContract.of(model, metadata, command)
     resample = bool(cfg.resample)
@@ -92,6 +95,10 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         return out
 
     out_dir = Path(cfg.out_dir)
+    if cfg.response_out is not None and cfg.truth is None:
+        raise ValueError(
+            f"response_out={cfg.response_out}: fitting a response needs truth= (a life split's truth.json)"
+        )
     run_key = {"pipeline_sha256": _sha256(model_path), "settings": vars(settings), **described}
     actuators = track_fleet(
         index,
@@ -146,7 +153,43 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         objects["life_metrics"] = scores
         objects["figures"] = plot_life(result, truth, out_dir)
         metrics["tracker"], metrics["snapshot"] = scores.get("tracker"), scores.get("snapshot")
+        if cfg.response_out is not None:
+            k_true, k_hat = pairs_from_track(result, truth)
+            fitted = fit_response(
+                k_true,
+                k_hat,
+                pipeline={
+                    "source": str(model_path),
+                    "sha256": run_key["pipeline_sha256"],
+                    "probe_k_hat": probe_k_hat(model),
+                    "actuator": provenance.describe(prov["actuator"]),
+                    "command": provenance.describe(prov["command"]),
+                    "life_split": str(truth_path),
+                },
+            )
+            fitted.save(cfg.response_out)
+            log.info(
+                "FDI response fitted on %d inspections (moves %s): %s", len(k_true), fitted.corrected, cfg.response_out
+            )
+            metrics["fdi_response_out"] = str(cfg.response_out)
     return metrics, objects
+
+
+def _response(setting: Any, model_path: Path) -> FDIResponse | None:
+    """The FDI response to invert: ``auto`` reads ``<pipeline stem>.fdi_response.json`` beside the pipeline where
+    there is one, null none, else the path given."""
+    if setting is None:
+        return None
+    if str(setting) == "auto":
+        beside = model_path.with_name(model_path.stem + RESPONSE_SUFFIX)
+        if not beside.is_file():
+            return None
+        log.info("FDI response beside the pipeline: %s", beside)
+        return FDIResponse.load(beside)
+    path = Path(str(setting))
+    if not path.is_file():
+        raise ValueError(f"response: no such file {str(path)!r} (auto: the one beside the pipeline; null: none)")
+    return FDIResponse.load(path)
 
 
 @hydra.main(config_path=common.CONFIG_PATH, config_name="track", version_base="1.3")

@@ -11,6 +11,7 @@ from .damage_law import DamageLaw, damage_config
 from .inspection import require_calibrated
 from .particle_filter import Tracker, TrackerSettings
 from .particle_rul import ParticleRUL, eps_log_sigmas
+from .response import FDIResponse
 
 log = logging.getLogger(__name__)
 
@@ -21,6 +22,7 @@ def build_tracker(
     fallback_damage: Mapping[str, Any] | None,
     settings: TrackerSettings,
     source: str,
+    response: FDIResponse | None = None,
 ) -> tuple[Tracker, dict[str, Any]]:
     """(tracker, description) for the pipeline ``model`` with metadata ``metadata`` (:func:`read_metadata`).
 
@@ -32,9 +34,12 @@ def build_tracker(
     all (the composed ``conf/damage`` stands in, with a warning), and was calibrated before too. The prior of s
     (the tracking) is the law's ``rate_scale_sigma``, or the composed config's where the pipeline's has none.
     The fault rate its P(faulty) was calibrated at (``verdict_prior_faulty``) turns each record's P(faulty) into a
-    likelihood ratio (:func:`~.measurement.verdict_odds`). The description (JSON) names the law's source, the
-    band and that rate."""
+    likelihood ratio (:func:`~.measurement.verdict_odds`). ``response``: the FDI's response near nominal, checked
+    to belong to ``model`` and inverted before each k_hat is fused (:mod:`.response`). The description (JSON)
+    names the law's source, the band, that rate and the components the response moves."""
     require_calibrated(model, source)
+    if response is not None:
+        response.check_for(model, source)
     damage, where = damage_config(metadata, fallback_damage, source)
     calibrated_sigma = damage.get("rate_scale_sigma")
     if calibrated_sigma is None and fallback_damage is not None and fallback_damage.get("rate_scale_sigma"):
@@ -56,7 +61,7 @@ def build_tracker(
             "are not weighed into the RUL",
             source,
         )
-    tracker = Tracker(law, rul, settings, None if prior is None else float(prior))
+    tracker = Tracker(law, rul, settings, None if prior is None else float(prior), response)
     return tracker, {
         "damage": damage,
         "damage_source": where,
@@ -64,4 +69,5 @@ def build_tracker(
         "eps_log_sigmas": list(eps),
         "band_included_rate_scale": with_s,
         "verdict_prior_faulty": tracker.verdict_prior,
+        "fdi_response": None if response is None else {"corrected": response.corrected, **response.pipeline},
     }

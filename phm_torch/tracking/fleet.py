@@ -49,13 +49,15 @@ def inspection_record(
     fused: bool,
     horizon: float,
     record_verdict: bool = False,
+    k_corrected: list[float] | None = None,
 ) -> dict[str, Any]:
-    """One inspection of ``track.json`` (row ``i`` of the batch summary ``post``)."""
+    """One inspection of ``track.json`` (row ``i`` of the batch summary ``post``); ``k_corrected``: the k the filter
+    read, k_hat through the FDI response's inverse (written as ``k_hat_corrected`` where a response is used)."""
     tracked = bool(post.tracked[i])
     rul, rul_censored = censor(post.rul[i].tolist(), horizon) if tracked else (None, False)
     snap = diagnosis.get("rul_hours")
     snapshot, snap_censored = censor([snap[q] for q in QUANTILES], horizon) if snap is not None else (None, False)
-    return {
+    out = {
         "hours": row.hours,
         "file": row.file,
         "event": row.event or None,
@@ -80,6 +82,9 @@ def inspection_record(
         "snapshot_rul_censored": snap_censored,
         "noise": diagnosis.get("noise"),
     }
+    if k_corrected is not None:
+        out["k_hat_corrected"] = dict(zip(FAULT_NAMES, k_corrected))
+    return out
 
 
 def _run_chunk(
@@ -97,8 +102,10 @@ def _run_chunk(
         batch = [v[r] for v in rows.values() if len(v) > r]
         diag = [diagnoses[(row.actuator, row.line)] for row in batch]
         meas = [measurement(model, d) for d in diag]
-        k_hat = torch.stack([m[0] for m in meas])
-        scale = interval_scale(k_hat, torch.stack([m[1] for m in meas]), torch.stack([m[2] for m in meas]), dof)
+        k_hat, lower, upper = (torch.stack([m[j] for m in meas]) for j in range(3))
+        if tracker.response is not None:  # the FDI's mean response near nominal inverted (:mod:`.response`)
+            k_hat, lower, upper = tracker.response.correct(k_hat, lower, upper)
+        scale = interval_scale(k_hat, lower, upper, dof)
         fuse = torch.tensor([not d["out_of_distribution"] for d in diag])
         record_verdict = tracker.settings.verdict == "record"
         faulty = torch.tensor([not d["healthy"] and record_verdict for d in diag])
@@ -117,7 +124,14 @@ def _run_chunk(
         for i, (row, d) in enumerate(zip(batch, diag)):
             out[row.actuator].append(
                 inspection_record(
-                    row, d, post, i, bool(fuse[i]) and bool(post.tracked[i]), tracker.law.horizon_hours, record_verdict
+                    row,
+                    d,
+                    post,
+                    i,
+                    bool(fuse[i]) and bool(post.tracked[i]),
+                    tracker.law.horizon_hours,
+                    record_verdict,
+                    None if tracker.response is None else k_hat[i].tolist(),
                 )
             )
     return out

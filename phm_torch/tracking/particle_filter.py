@@ -41,6 +41,7 @@ from . import kalman
 from .damage_law import DamageLaw
 from .particle_rul import HUGE, ParticleRUL, weighted_quantiles
 from .resampling import liu_west, systematic_indices
+from .response import FDIResponse
 
 
 @dataclass
@@ -141,6 +142,8 @@ class Tracker:
         settings: :class:`TrackerSettings`.
         verdict_prior: the fault rate at which the pipeline's P(faulty) was calibrated (metadata
             ``verdict_prior_faulty``); None, or ``settings.verdict_evidence`` false: the records' verdicts weigh nothing.
+        response: the FDI's response near nominal (:class:`~.response.FDIResponse`), inverted before each k_hat
+            is fused (:func:`~.fleet.track_fleet`); None: k_hat read as centred on k.
 
     State per actuator id, rows of: ``k`` (A, P, 8) and ``k_cov`` (A, P, 8, 8) the Gaussian of k per particle,
     ``log_s`` (A, P), ``log_w`` (A, P) normalised log weights, ``z_k`` (A, P, 8) the normals of each particle's
@@ -157,8 +160,9 @@ class Tracker:
         rul: ParticleRUL | None,
         settings: TrackerSettings | None = None,
         verdict_prior: float | None = None,
+        response: FDIResponse | None = None,
     ):
-        self.law, self.rul_model = law, rul
+        self.law, self.rul_model, self.response = law, rul, response
         self.settings = settings or TrackerSettings()
         # the fault rate P(faulty) was calibrated at (None: the record's verdict is not weighed)
         self.verdict_prior = verdict_prior if self.settings.verdict_evidence else None
