@@ -189,3 +189,18 @@ def test_pretrained_pipeline_knows_its_actuator_and_flags_another_command(record
     assert late["command_check"]["best_lag_s"] == pytest.approx(0.010, abs=1e-4)
     with pytest.raises(ValueError, match="differs from the actuator pipeline"):
         predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements={paths[0]}", "actuator=ema_hvdc_rudder"]))
+
+
+def test_the_shipped_fdi_response_belongs_to_the_pretrained_pipeline_and_undoes_its_compression():
+    from phm_torch.online.loaded import load_pipeline
+    from phm_torch.tracking.response import FDIResponse
+
+    response = FDIResponse.load(PIPELINE.with_name("online_surrogates_best.fdi_response.json"))
+    response.check_for(load_pipeline(PIPELINE).module, str(PIPELINE))  # raises for another pipeline
+    assert "backlash" in response.corrected and "eccentricity_phase" not in response.corrected
+    assert response.pipeline["actuator"].startswith("ema_reference") and response.pipeline["records"] > 5000
+    # the backlash's small damages are read at well under their size: 0.005 reads ~0.003, and is put back
+    read = torch.full((1, 8), 0.5, dtype=torch.float64)
+    read[0, 1] = float(np.interp(0.005, response.knots_true[1], response.knots_hat[1]))
+    assert read[0, 1] < 0.0035
+    assert float(response.invert(read)[0, 1]) == pytest.approx(0.005, abs=1e-6)
