@@ -113,7 +113,7 @@ def test_an_interrupted_run_resumes_to_the_same_result(fleet, compose, tmp_path,
 
     def flaky(*args, **kwargs):
         calls["n"] += 1
-        if calls["n"] == 6:  # dies inside the second actuator
+        if calls["n"] == 9:  # dies inside the second actuator (after the fleet check's 3 and the first's 4)
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
@@ -195,3 +195,30 @@ def test_a_response_beside_the_pipeline_is_inverted_and_one_for_another_pipeline
         run(compose, fleet, tmp_path / "x", f"response={tmp_path / 'nope.json'}")
     with pytest.raises(ValueError, match="response_out=.*needs truth="):
         run(compose, fleet, tmp_path / "x", f"response_out={tmp_path / 'r.json'}")
+
+
+def test_a_fleet_that_reads_one_damage_vector_at_its_first_inspections_is_refused(compose, tmp_path):
+    """Every actuator's first record alike (one bench's difference, not wear): the fleet check refuses to fuse
+    anything and says why; with action=warn it tracks them as read."""
+    pipe = make_pipeline()
+    export_torchscript(pipe, tmp_path / "online.pt", {"damage": damage_config()})
+    alpha = torch.full((6,), 0.4, dtype=torch.float64)
+    rows = ["actuator,hours,file"]
+    for a in range(3):
+        for i in range(3):
+            path = tmp_path / "records" / f"A{a}_{i}.csv"
+            write_measurement(path, record(pipe, alpha + 0.01 * i))
+            rows.append(f"A{a},{200 * i},records/{path.name}")
+    (tmp_path / "index.csv").write_text("\n".join(rows) + "\n")
+    with torch.no_grad():
+        k_first = pipe(record(pipe, alpha)["current"].unsqueeze(0))[0][0]
+    assert float(k_first[:6].abs().max()) > 0.1  # the synthetic FDI reads these records as damaged
+    refused, objects = run(compose, tmp_path, tmp_path / "out", "fleet_check.min_actuators=2")
+    assert refused["fleet_check"]["offset"] and refused["fused"] == 0
+    insp = objects["track"]["actuators"]["A1"]["inspections"]
+    assert all(i["out_of_distribution"] and "fleet_offset" in i["ood_reasons"] for i in insp)
+    assert all(i["rul_hours"] is None for i in insp)
+    warned, _ = run(compose, tmp_path, tmp_path / "warn", "fleet_check.min_actuators=2", "fleet_check.action=warn")
+    assert warned["fleet_check"]["offset"] and warned["fused"] == 9
+    unchecked, _ = run(compose, tmp_path, tmp_path / "default", "resume=false")
+    assert not unchecked["fleet_check"]["checked"] and unchecked["fused"] == 9  # 3 actuators < min_actuators 5

@@ -10,6 +10,7 @@ into ``metrics.json`` and draws the figures. Rerun with the same settings to res
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import logging
@@ -23,13 +24,15 @@ from omegaconf import DictConfig
 
 from .. import provenance
 from ..assessment_record import same_labels
+from ..online.bench_check import check_bench
 from ..online.input_contract import InputContract
 from ..online.loaded import TorchScriptPipeline, load_pipeline
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
+from ..tracking.fleet_check import FleetCheckSettings, check_fleet
 from ..tracking.inspection import inspect_record
 from ..tracking.response import FDIResponse, fit_response, pairs_from_track, probe_k_hat
 from . import common, schema
-from .predict import _pipeline_command, _read, _record  # phm-predict's record path, reused as is
+from .predict import _bench_nominal, _pipeline_command, _read, _record  # phm-predict's record path, reused as is
 
 log = logging.getLogger(__name__)
 RESPONSE_SUFFIX = ".fdi_response.json"  # response=auto: <pipeline stem> + this, beside the pipeline
@@ -54,7 +57,13 @@ TRACKER_KEYS = (
     "verdict",
     "verdict_evidence",
 )
-schema.register("track", {key: schema.plain(getattr(TrackerSettings(), key)) for key in TRACKER_KEYS})
+schema.register(
+    "track",
+    {
+        **{key: schema.plain(getattr(TrackerSettings(), key)) for key in TRACKER_KEYS},
+        "fleet_check": {f.name: f.default for f in dataclasses.fields(FleetCheckSettings)},
+    },
+)
 
 
 def _settings(cfg: DictConfig) -> TrackerSettings:
@@ -83,23 +92,40 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     index = read_index(cfg.index)
     contract = InputContract.of(model, metadata, command)
     resample = bool(cfg.resample)
+    bench_nominal = _bench_nominal(cfg, loaded)  # phm-predict's baseline: the bench's healthy record(s)
+    bench = None if bench_nominal is None else check_bench(loaded, bench_nominal)
+    if bench is not None and not bench.ok:
+        log.warning("%s; every inspection is out of distribution (reason 'bench')", bench.message())
 
     def diagnose_rows(rows: list) -> list[dict[str, Any]]:
         out = []
         for row in rows:
             current, m = _read(str(row.path), loaded, resample)
-            found = inspect_record(loaded, _record(m, current), contract)
+            found = inspect_record(loaded, _record(m, current), contract, bench_nominal, bench)
             for message in found["messages"]:
                 log.warning("%s: %s; the inspection is out of distribution (not fused)", row.path, message)
             out.append(found)
         return out
+
+    fleet = _fleet_check(cfg, model, index, diagnose_rows)
+    if fleet["offset"] and cfg.fleet_check.action == "refuse":
+        read = diagnose_rows
+
+        def diagnose_rows(rows: list) -> list[dict[str, Any]]:  # every inspection refused: nothing is fused
+            return [_refused(d) for d in read(rows)]
 
     out_dir = Path(cfg.out_dir)
     if cfg.response_out is not None and cfg.truth is None:
         raise ValueError(
             f"response_out={cfg.response_out}: fitting a response needs truth= (a life split's truth.json)"
         )
-    run_key = {"pipeline_sha256": _sha256(model_path), "settings": vars(settings), **described}
+    run_key = {
+        "pipeline_sha256": _sha256(model_path),
+        "settings": vars(settings),
+        **described,
+        "baseline": None if bench_nominal is None else hashlib.sha256(bench_nominal.numpy().tobytes()).hexdigest(),
+        "fleet_offset": fleet["offset"] and cfg.fleet_check.action == "refuse",
+    }
     actuators = track_fleet(
         index,
         tracker,
@@ -125,6 +151,9 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "inspections": len(inspections),
         "fused": sum(i["fused"] for i in inspections),
         "out_of_distribution": sum(i["out_of_distribution"] for i in inspections),
+        "baseline": bench_nominal is not None,
+        "bench_check": None if bench is None else bench.as_dict(),
+        "fleet_check": fleet,
         "damage_source": described["damage_source"],
         "out_dir": str(out_dir),
         "actuator": provenance.describe(prov["actuator"]),
@@ -173,6 +202,37 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             )
             metrics["fdi_response_out"] = str(cfg.response_out)
     return metrics, objects
+
+
+def _fleet_check(cfg: DictConfig, model: Any, index: dict[str, list], diagnose_rows: Any) -> dict[str, Any]:
+    """The fleet check (:mod:`~phm_torch.tracking.fleet_check`) of each actuator's first inspection, logged."""
+    settings = FleetCheckSettings(**common.plain(cfg.fleet_check))
+    fleet = check_fleet(diagnose_rows([rows[0] for rows in index.values()]), model.nominal.tolist(), settings)
+    if fleet["offset"]:
+        action = "every inspection is out of distribution (reason 'fleet_offset'), nothing is fused"
+        log.warning(
+            "fleet check: %s; %s", fleet["message"], action if settings.action == "refuse" else "tracked as read"
+        )
+    elif not fleet["checked"]:
+        log.info(
+            "fleet check: %d usable first inspections, fewer than %d: not checked",
+            fleet["n_actuators"],
+            settings.min_actuators,
+        )
+    return fleet
+
+
+def _refused(diagnosis: dict[str, Any]) -> dict[str, Any]:
+    """A diagnosis made out of distribution by the fleet check: reported, never fused."""
+    reasons = [*diagnosis.get("ood_reasons", []), "fleet_offset"]
+    return {
+        **diagnosis,
+        "out_of_distribution": True,
+        "ood_reasons": reasons,
+        "k_interval": None,
+        "p_faulty": None,
+        "rul_hours": None,
+    }
 
 
 def _response(setting: Any, model_path: Path) -> FDIResponse | None:

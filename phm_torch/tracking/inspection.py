@@ -16,6 +16,7 @@ from typing import Any
 import torch
 
 from ..faults import FAULT_NAMES
+from ..online.bench_check import BenchCheck
 from ..online.corruptions import Record
 from ..online.diagnosis import NOISE_FLOOR, diagnose
 from ..online.input_contract import InputContract, pipeline_reasons
@@ -32,9 +33,16 @@ def require_calibrated(model: Any, source: str) -> None:
         )
 
 
-def inspect_record(model: Any, record: Record, contract: InputContract) -> dict[str, Any]:
-    """phm-predict's diagnosis of one record (the dict of :func:`diagnose`)."""
-    return diagnose(model, record, contract)
+def inspect_record(
+    model: Any,
+    record: Record,
+    contract: InputContract,
+    bench_nominal: torch.Tensor | None = None,
+    bench: BenchCheck | None = None,
+) -> dict[str, Any]:
+    """phm-predict's diagnosis of one record (the dict of :func:`diagnose`), moved onto the training model with the
+    bench's healthy record ``bench_nominal`` (n_full,) [A] where given (phm-predict's ``baseline``)."""
+    return diagnose(model, record, contract, bench_nominal, bench)
 
 
 def inspect_currents(model: Any, currents: torch.Tensor, contract: InputContract) -> list[dict[str, Any]]:
