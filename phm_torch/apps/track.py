@@ -94,6 +94,12 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     resample = bool(cfg.resample)
     bench_nominal = _bench_nominal(cfg, loaded)  # phm-predict's baseline: the bench's healthy record(s)
     bench = None if bench_nominal is None else check_bench(loaded, bench_nominal)
+    if bench_nominal is None and loaded.can_rebase:
+        log.warning(
+            "no baseline: the inspections are read as records of the training model; a bench differing from it by "
+            "a few kelvin of winding temperature halves the RUL's coverage (docs/prognostics.md, 'A bench that "
+            "differs'); give baseline=<a healthy record of this bench>"
+        )
     if bench is not None and not bench.ok:
         log.warning("%s; every inspection is out of distribution (reason 'bench')", bench.message())
 
