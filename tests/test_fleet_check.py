@@ -46,6 +46,12 @@ def test_a_new_fleet_is_not_flagged_and_a_common_offset_is():
     assert found["offset"] and set(found["components"]) == {"dry_friction", "short_a", "short_b", "short_c"}
     assert found["components"]["short_b"]["median"] == pytest.approx(0.027, abs=0.003)
     assert "give baseline=" in found["message"] and "\n" not in found["message"]
+    # a component the command does not identify reads the training prior everywhere: not an offset
+    prior = fleet(40)
+    prior[:, 5] = 0.1
+    firsts = [{**d, "k_not_identified": ["eccentricity"]} for d in first_inspections(prior)]
+    assert check_fleet(first_inspections(prior), NOMINAL, settings)["offset"]
+    assert not check_fleet(firsts, NOMINAL, settings)["offset"]
 
 
 def test_used_actuators_each_with_its_own_damage_do_not_agree_on_an_offset():

@@ -14,7 +14,9 @@ one to the next.
 :func:`check_fleet` takes the first inspection of each actuator and flags a **common offset** where, on some
 damage component, the fleet's median k_hat is ``z_threshold`` calibrated half-widths or more from nominal and
 ``agree`` of the actuators read it on the same side by one half-width or more: a fleet of used actuators, each
-with its own damage, does not agree that way. Fewer than ``min_actuators`` first inspections: not checked.
+with its own damage, does not agree that way. Components the pipeline's test command does not identify
+(``k_not_identified``: their estimate is the training prior on every record) and the eccentricity phase are not
+checked. Fewer than ``min_actuators`` first inspections: not checked.
 """
 
 from __future__ import annotations
@@ -66,9 +68,11 @@ def check_fleet(
     out: dict[str, Any] = {"checked": len(usable) >= settings.min_actuators, "n_actuators": len(usable)}
     if not out["checked"]:
         return {**out, "offset": False, "components": {}, "message": None}
+    # a component the test command does not identify reads the training prior on every record: no offset
+    unidentified = {n for d in usable for n in d.get("k_not_identified") or []}
     offset = {}
     for j, name in enumerate(FAULT_NAMES):
-        if name == PHASE:
+        if name == PHASE or name in unidentified:
             continue
         dev = np.array([d["k_hat"][name] - nominal[j] for d in usable])
         half = np.array([max((d["k_interval"][name][1] - d["k_interval"][name][0]) / 2.0, 1e-6) for d in usable])
