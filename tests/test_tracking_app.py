@@ -222,3 +222,27 @@ def test_a_fleet_that_reads_one_damage_vector_at_its_first_inspections_is_refuse
     assert warned["fleet_check"]["offset"] and warned["fused"] == 9
     unchecked, _ = run(compose, tmp_path, tmp_path / "default", "resume=false")
     assert not unchecked["fleet_check"]["checked"] and unchecked["fused"] == 9  # 3 actuators < min_actuators 5
+
+
+def test_a_near_nominal_fdi_beside_the_pipeline_is_read_near_nominal(fleet, compose, tmp_path):
+    import shutil
+
+    from phm_torch.online.loaded import load_pipeline
+    from phm_torch.tracking.near_nominal import NearNominalFDI
+    from phm_torch.tracking.response import probe_k_hat
+
+    shutil.copy(fleet / "online.pt", tmp_path / "online.pt")
+    module = load_pipeline(tmp_path / "online.pt").module
+    near = NearNominalFDI(int(module.gappy.modes_hat.shape[1]), n_hidden=8, gate=1.0, noise_max=0.5)
+    near.half_widths_.fill_(0.01)
+    near.provenance = {"probe_k_hat": probe_k_hat(module), "source": "online.pt"}
+    near.save(tmp_path / "online.near_nominal.pt")
+    _, objects = run(compose, fleet, tmp_path / "out", f"pipeline={tmp_path / 'online.pt'}")
+    track = objects["track"]
+    insp = [i for a in track["actuators"].values() for i in a["inspections"] if not i["out_of_distribution"]]
+    assert insp and all("k_hat_near_nominal" in i for i in insp)
+    first = insp[0]
+    assert first["k_hat_near_nominal"]["eccentricity_phase"] == first["k_hat"]["eccentricity_phase"]
+    assert track["tracker"]["near_nominal"]["source"] == "online.pt"
+    _, none = run(compose, fleet, tmp_path / "none", f"pipeline={tmp_path / 'online.pt'}", "near_nominal=null")
+    assert not any("k_hat_near_nominal" in i for a in none["track"]["actuators"].values() for i in a["inspections"])

@@ -30,12 +30,14 @@ from ..online.loaded import TorchScriptPipeline, load_pipeline
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
 from ..tracking.fleet_check import FleetCheckSettings, check_fleet
 from ..tracking.inspection import inspect_record
+from ..tracking.near_nominal import NearNominalFDI
 from ..tracking.response import FDIResponse, fit_response, pairs_from_track, probe_k_hat
 from . import common, schema
 from .predict import _bench_nominal, _pipeline_command, _read, _record  # phm-predict's record path, reused as is
 
 log = logging.getLogger(__name__)
 RESPONSE_SUFFIX = ".fdi_response.json"  # response=auto: <pipeline stem> + this, beside the pipeline
+NEAR_NOMINAL_SUFFIX = ".near_nominal.pt"  # near_nominal=auto: <pipeline stem> + this, beside the pipeline
 
 
 def _sha256(path: Path) -> str:
@@ -88,6 +90,9 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     model = loaded.module
     settings = _settings(cfg)
     response = _response(cfg.response, model_path)
+    near = _near_nominal(cfg.near_nominal, model_path)
+    if near is not None:
+        near.check_for(model, str(model_path))
     tracker, described = build_tracker(model, metadata, common.plain(cfg.damage), settings, str(model_path), response)
     index = read_index(cfg.index)
     contract = InputContract.of(model, metadata, command)
@@ -107,7 +112,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         out = []
         for row in rows:
             current, m = _read(str(row.path), loaded, resample)
-            found = inspect_record(loaded, _record(m, current), contract, bench_nominal, bench)
+            found = inspect_record(loaded, _record(m, current), contract, bench_nominal, bench, near)
             for message in found["messages"]:
                 log.warning("%s: %s; the inspection is out of distribution (not fused)", row.path, message)
             out.append(found)
@@ -131,6 +136,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         **described,
         "baseline": None if bench_nominal is None else hashlib.sha256(bench_nominal.numpy().tobytes()).hexdigest(),
         "fleet_offset": fleet["offset"] and cfg.fleet_check.action == "refuse",
+        "near_nominal": None if near is None else near.provenance.get("heldout_rms"),
     }
     actuators = track_fleet(
         index,
@@ -145,7 +151,13 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "pipeline": str(model_path),
         "actuator": prov["actuator"],
         "command": prov["command"],
-        "tracker": {"settings": vars(settings), **described},
+        "tracker": {
+            "settings": vars(settings),
+            **described,
+            "near_nominal": None
+            if near is None
+            else {"gate": near.gate, "noise_max": near.noise_max, **near.provenance},
+        },
         "actuators": actuators,
         "fleet": fleet_list(actuators),
     }
@@ -239,6 +251,20 @@ def _refused(diagnosis: dict[str, Any]) -> dict[str, Any]:
         "p_faulty": None,
         "rul_hours": None,
     }
+
+
+def _near_nominal(setting: Any, model_path: Path) -> NearNominalFDI | None:
+    """The near-nominal FDI to read: ``auto`` the ``<pipeline stem>.near_nominal.pt`` beside the pipeline where there
+    is one, null none, else the path given."""
+    if setting is None:
+        return None
+    path = model_path.with_name(model_path.stem + NEAR_NOMINAL_SUFFIX) if str(setting) == "auto" else Path(str(setting))
+    if not path.is_file():
+        if str(setting) == "auto":
+            return None
+        raise ValueError(f"near_nominal: no such file {str(path)!r} (auto: the one beside the pipeline; null: none)")
+    log.info("near-nominal FDI: %s", path)
+    return NearNominalFDI.load(path)
 
 
 def _response(setting: Any, model_path: Path) -> FDIResponse | None:

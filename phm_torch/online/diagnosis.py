@@ -88,8 +88,10 @@ def diagnose(
     contract: InputContract,
     bench_nominal: torch.Tensor | None = None,
     bench: BenchCheck | None = None,
+    keep_current: bool = False,
 ) -> dict[str, Any]:
-    """The diagnosis of one record by the exported pipeline ``model``, as a JSON-able dict.
+    """The diagnosis of one record by the exported pipeline ``model``, as a JSON-able dict (with ``keep_current``,
+    also ``"current"``: the (1, n_full) record the pipeline read, aligned and rebased, a tensor for the caller).
 
     Args:
         model: the pipeline: a :class:`~.loaded.LoadedPipeline` of any format (:func:`~.loaded.load_pipeline`),
@@ -150,4 +152,5 @@ def diagnose(
         "noise": None if math.isnan(noise) else noise,
         "noise_above_calibration": noisy,
         "messages": checks.messages,
+        **({"current": current} if keep_current else {}),
     }

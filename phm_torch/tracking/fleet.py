@@ -82,8 +82,10 @@ def inspection_record(
         "snapshot_rul_censored": snap_censored,
         "noise": diagnosis.get("noise"),
     }
-    if k_corrected is not None:
+    if k_corrected is not None and diagnosis.get("k_near_nominal") is None:
         out["k_hat_corrected"] = dict(zip(FAULT_NAMES, k_corrected))
+    if diagnosis.get("k_near_nominal") is not None:
+        out["k_hat_near_nominal"] = dict(diagnosis["k_near_nominal"])
     return out
 
 
@@ -104,7 +106,9 @@ def _run_chunk(
         meas = [measurement(model, d) for d in diag]
         k_hat, lower, upper = (torch.stack([m[j] for m in meas]) for j in range(3))
         if tracker.response is not None:  # the FDI's mean response near nominal inverted (:mod:`.response`)
-            k_hat, lower, upper = tracker.response.correct(k_hat, lower, upper)
+            corrected = tracker.response.correct(k_hat, lower, upper)
+            pipeline_read = torch.tensor([d.get("k_near_nominal") is None for d in diag]).unsqueeze(1)
+            k_hat, lower, upper = (torch.where(pipeline_read, c, v) for c, v in zip(corrected, (k_hat, lower, upper)))
         scale = interval_scale(k_hat, lower, upper, dof)
         fuse = torch.tensor([not d["out_of_distribution"] for d in diag])
         record_verdict = tracker.settings.verdict == "record"

@@ -20,6 +20,7 @@ from ..online.bench_check import BenchCheck
 from ..online.corruptions import Record
 from ..online.diagnosis import NOISE_FLOOR, diagnose
 from ..online.input_contract import InputContract, pipeline_reasons
+from .near_nominal import NearNominalFDI
 
 
 def require_calibrated(model: Any, source: str) -> None:
@@ -39,10 +40,31 @@ def inspect_record(
     contract: InputContract,
     bench_nominal: torch.Tensor | None = None,
     bench: BenchCheck | None = None,
+    near_nominal: NearNominalFDI | None = None,
 ) -> dict[str, Any]:
     """phm-predict's diagnosis of one record (the dict of :func:`diagnose`), moved onto the training model with the
-    bench's healthy record ``bench_nominal`` (n_full,) [A] where given (phm-predict's ``baseline``)."""
-    return diagnose(model, record, contract, bench_nominal, bench)
+    bench's healthy record ``bench_nominal`` (n_full,) [A] where given (phm-predict's ``baseline``). With a
+    ``near_nominal`` FDI, an in-distribution record near nominal also gets ``k_near_nominal`` and its interval
+    ``k_near_nominal_interval`` (:mod:`.near_nominal`), which the tracker reads instead of k_hat."""
+    found = diagnose(model, record, contract, bench_nominal, bench, keep_current=near_nominal is not None)
+    current = found.pop("current", None)
+    if near_nominal is None or found["out_of_distribution"] or found["noise"] is None:
+        return found
+    m = model.module if hasattr(model, "module") else model
+    samples = current.index_select(1, m.gappy.indices).to(m.gappy.modes_hat.dtype)
+    if not bool(torch.isfinite(samples).all()):  # missing samples: the pipeline's own estimate
+        return found
+    k_pipeline = torch.tensor([[found["k_hat"][n] for n in FAULT_NAMES]], dtype=torch.float64)
+    with torch.no_grad():
+        used, k, lower, upper = near_nominal.read(
+            m.gappy(samples)[0], k_pipeline, torch.tensor([found["noise"]], dtype=torch.float64)
+        )
+    if bool(used[0]):
+        found["k_near_nominal"] = dict(zip(FAULT_NAMES, k[0].tolist()))
+        found["k_near_nominal_interval"] = {
+            n: [a, b] for n, a, b in zip(FAULT_NAMES, lower[0].tolist(), upper[0].tolist())
+        }
+    return found
 
 
 def inspect_currents(model: Any, currents: torch.Tensor, contract: InputContract) -> list[dict[str, Any]]:
@@ -86,8 +108,13 @@ def inspect_currents(model: Any, currents: torch.Tensor, contract: InputContract
 
 
 def measurement(model: Any, diagnosis: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(k_hat (8,), lower (8,), upper (8,)) of one diagnosis. Out of distribution, phm-predict reports no interval:
-    the calibrated one is recomputed (only for the record; an OOD inspection is never fused)."""
+    """(k_hat (8,), lower (8,), upper (8,)) of one diagnosis: the near-nominal FDI's reading where it has one, else
+    the pipeline's. Out of distribution, phm-predict reports no interval: the calibrated one is recomputed (only
+    for the record; an OOD inspection is never fused)."""
+    if diagnosis.get("k_near_nominal") is not None:
+        bounds = torch.tensor([diagnosis["k_near_nominal_interval"][n] for n in FAULT_NAMES], dtype=torch.float64)
+        k = torch.tensor([diagnosis["k_near_nominal"][n] for n in FAULT_NAMES], dtype=torch.float64)
+        return k, bounds[:, 0], bounds[:, 1]
     k_hat = torch.tensor([diagnosis["k_hat"][n] for n in FAULT_NAMES], dtype=torch.float64)
     if diagnosis.get("k_interval") is not None:
         bounds = torch.tensor([diagnosis["k_interval"][n] for n in FAULT_NAMES], dtype=torch.float64)

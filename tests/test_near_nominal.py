@@ -1,0 +1,105 @@
+"""The near-nominal FDI of life tracking (phm_torch.tracking.near_nominal): it learns coefficients -> k near nominal,
+its half-widths are its held-out rms, it is read only where the pipeline's own estimate is near nominal and the
+noise low, it round-trips through its file (weights_only) and refuses another pipeline."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from test_tracking import make_pipeline
+
+from phm_torch.tracking.near_nominal import NearNominalFDI, fit_near_nominal
+from phm_torch.tracking.response import probe_k_hat
+
+N_MODES = 10
+
+
+def synthetic(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Near-nominal k (every damage below 0.2) and coefficients linear in it with a little noise."""
+    g = torch.Generator().manual_seed(seed)
+    k = torch.rand(n, 8, generator=g, dtype=torch.float64) * 0.2
+    k[:, 6] = torch.rand(n, generator=g, dtype=torch.float64)
+    k[:, 7] = 0.5 + (k[:, 7] - 0.1) * 0.2
+    mix = torch.randn(8, N_MODES, generator=torch.Generator().manual_seed(99), dtype=torch.float64)
+    mix[6] = 0.0  # the phase is not seen
+    return k @ mix + 0.0005 * torch.randn(n, N_MODES, generator=g, dtype=torch.float64), k
+
+
+@pytest.fixture(scope="module")
+def fitted() -> NearNominalFDI:
+    alpha, k = synthetic(3000, 0)
+    net = NearNominalFDI(N_MODES, n_hidden=32, gate=0.25, noise_max=0.02)
+    fit_near_nominal(net, alpha, k, steps=3000, lr=3e-3)
+    alpha_cal, k_cal = synthetic(500, 1)
+    net.calibrate(alpha_cal, k_cal, k_cal, torch.full((500,), 0.01, dtype=torch.float64))
+    net.provenance = {"probe_k_hat": probe_k_hat(make_pipeline()), "source": "synthetic"}
+    return net
+
+
+def test_it_learns_near_nominal_k_and_its_half_widths_are_its_held_out_error(fitted):
+    alpha, k = synthetic(500, 2)
+    with torch.no_grad():
+        err = (fitted(alpha) - k)[:, [0, 1, 2, 3, 4, 5, 7]]
+    rms = err.pow(2).mean(0).sqrt()
+    assert float(rms.max()) < 0.01  # against a 0.2 range
+    widths = fitted.half_widths_[[0, 1, 2, 3, 4, 5, 7]]
+    assert torch.allclose(widths / 1.645, rms, rtol=0.3)  # calibrated on another draw of the same records
+    inside = (err.abs() <= widths).double().mean()
+    assert 0.83 < float(inside) < 0.97  # ~90 %
+
+
+def test_it_is_read_only_near_nominal_at_low_noise(fitted):
+    alpha, k = synthetic(4, 3)
+    k_pipeline = k.clone()
+    k_pipeline[1, 2] = 0.4  # the pipeline sees a large short: its own estimate stands
+    noise = torch.tensor([0.01, 0.01, 0.05, 0.01], dtype=torch.float64)  # record 2 too noisy
+    used, out, lower, upper = fitted.read(alpha, k_pipeline, noise)
+    assert used.tolist() == [True, False, False, True]
+    assert torch.equal(out[1], k_pipeline[1]) and math.isnan(float(lower[1, 0]))
+    assert float(out[0, 6]) == float(k_pipeline[0, 6])  # the phase is always the pipeline's
+    assert bool((upper[0] >= out[0]).all()) and bool((lower[0] <= out[0]).all())
+
+
+def test_it_round_trips_and_refuses_another_pipeline(fitted, tmp_path):
+    fitted.save(tmp_path / "nn.pt")
+    again = NearNominalFDI.load(tmp_path / "nn.pt")
+    alpha, _ = synthetic(8, 4)
+    with torch.no_grad():
+        assert torch.equal(again(alpha), fitted(alpha))
+    pipe = make_pipeline()  # 6 modes
+    with pytest.raises(ValueError, match="reads 10 coefficients, the synthetic pipeline has 6"):
+        again.check_for(pipe, "the synthetic pipeline")
+    small = NearNominalFDI(6, n_hidden=8)
+    small.provenance = {"probe_k_hat": probe_k_hat(pipe)}
+    small.check_for(pipe, "the synthetic pipeline")
+    small.provenance["probe_k_hat"] = [v + 0.01 for v in small.provenance["probe_k_hat"]]
+    with pytest.raises(ValueError, match="trained for another pipeline"):
+        small.check_for(pipe, "the synthetic pipeline")
+    (tmp_path / "bad.pt").write_bytes(b"not a file of ours")
+    with pytest.raises(ValueError, match="cannot read it"):
+        NearNominalFDI.load(tmp_path / "bad.pt")
+    uncalibrated = NearNominalFDI(N_MODES, n_hidden=8)
+    with pytest.raises(ValueError, match="not calibrated"):
+        uncalibrated.read(alpha, torch.zeros(8, 8, dtype=torch.float64), torch.zeros(8, dtype=torch.float64))
+    with pytest.raises(ValueError, match=r"near_nominal.gate must be in \(0, 1\]"):
+        NearNominalFDI(N_MODES, gate=0.0)
+
+
+def test_only_the_records_the_gate_admits_calibrate_it(fitted):
+    alpha, k = synthetic(400, 5)
+    k_pipeline = k.clone()
+    k_pipeline[:100, 3] = 0.6  # outside the gate: their (here wild) errors must not widen the intervals
+    alpha = alpha.clone()
+    alpha[:100] += 5.0
+    before = fitted.half_widths_.clone()
+    try:
+        rms, n = fitted.calibrate(alpha, k, k_pipeline, torch.full((400,), 0.01, dtype=torch.float64))
+        assert n == 300 and float(rms[[0, 1, 2, 3, 4, 5, 7]].max()) < 0.01
+        with pytest.raises(ValueError, match="3 held-out records within the gate, 20 needed"):
+            fitted.calibrate(
+                alpha[200:203], k[200:203], k_pipeline[200:203], torch.full((3,), 0.01, dtype=torch.float64)
+            )
+    finally:
+        fitted.half_widths_.copy_(before)
