@@ -204,3 +204,20 @@ def test_the_shipped_fdi_response_belongs_to_the_pretrained_pipeline_and_undoes_
     read[0, 1] = float(np.interp(0.005, response.knots_true[1], response.knots_hat[1]))
     assert read[0, 1] < 0.0035
     assert float(response.invert(read)[0, 1]) == pytest.approx(0.005, abs=1e-6)
+
+
+def test_the_shipped_near_nominal_fdi_belongs_to_the_pretrained_pipeline_and_is_calibrated():
+    from phm_torch.online.loaded import load_pipeline
+    from phm_torch.tracking.near_nominal import NearNominalFDI
+
+    near = NearNominalFDI.load(PIPELINE.with_name("online_surrogates_best.near_nominal.pt"))
+    module = load_pipeline(PIPELINE).module
+    near.check_for(module, str(PIPELINE))
+    widths = near.half_widths_[DAMAGE]
+    assert bool(torch.isfinite(widths).all()) and float(widths.max()) < 0.01  # 2-3x tighter than the pipeline's
+    # on the pipeline's own nominal record (no damage): read, and near nominal
+    with torch.no_grad():
+        record = module.nominal_record.unsqueeze(0)
+        k_pipeline, noise = module(record)[0], module.noise_level(record)
+        used, k, _, _ = near.read(module.gappy(record.index_select(1, module.gappy.indices))[0], k_pipeline, noise)
+    assert bool(used[0]) and float(k[0, DAMAGE].sub(near.nominal[DAMAGE]).abs().max()) < 0.01

@@ -67,15 +67,24 @@ def inspect_record(
     return found
 
 
-def inspect_currents(model: Any, currents: torch.Tensor, contract: InputContract) -> list[dict[str, Any]]:
+def inspect_currents(
+    model: Any, currents: torch.Tensor, contract: InputContract, near_nominal: NearNominalFDI | None = None
+) -> list[dict[str, Any]]:
     """The diagnoses of current-only records (B, n_full) [A], batched: the fields of :func:`diagnose` that the
-    tracker reads (k_hat, k_interval, healthy, p_faulty, rul_hours, out_of_distribution, ood_reasons, noise)."""
+    tracker reads (k_hat, k_interval, healthy, p_faulty, rul_hours, out_of_distribution, ood_reasons, noise; with a
+    ``near_nominal`` FDI, its reading where gated, as :func:`inspect_record`)."""
     x = currents.to(model.times.dtype)
     with torch.no_grad():
         noise = model.noise_level(x)
         k_hat, score, rul, ood, _ = model(x)
         lower, upper = model.k_interval(k_hat, noise.to(k_hat.dtype))
         p_faulty = model.faulty_probability(score)
+        near = None
+        if near_nominal is not None:
+            samples = x.index_select(1, model.gappy.indices).to(model.gappy.modes_hat.dtype)
+            used, k_near, lo_near, hi_near = near_nominal.read(model.gappy(samples)[0], k_hat, noise)
+            used = used & torch.isfinite(samples).all(1)
+            near = (used.tolist(), k_near.tolist(), lo_near.tolist(), hi_near.tolist())
     flagged = ood.nonzero().flatten().tolist()
     found = pipeline_reasons(model, x[flagged]) if flagged else []
     own = dict(zip(flagged, found or [[] for _ in flagged]))
@@ -104,6 +113,9 @@ def inspect_currents(model: Any, currents: torch.Tensor, contract: InputContract
                 "noise_above_calibration": noise_list[i] > noise_max,
             }
         )
+        if near is not None and near[0][i] and not bad:
+            out[-1]["k_near_nominal"] = dict(zip(FAULT_NAMES, near[1][i]))
+            out[-1]["k_near_nominal_interval"] = {n: [a, b] for n, a, b in zip(FAULT_NAMES, near[2][i], near[3][i])}
     return out
 
 

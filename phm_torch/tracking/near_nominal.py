@@ -21,7 +21,7 @@ import json
 import math
 import os
 import pickle
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -54,7 +54,7 @@ class NearNominalFDI(nn.Module):
         n_modes: int,
         n_hidden: int = 256,
         n_layers: int = 2,
-        nominal=None,
+        nominal: Sequence[float] | None = None,
         gate: float = 0.25,
         noise_max: float = 0.02,
     ):
@@ -188,7 +188,7 @@ def fit_near_nominal(
     batch_size: int = 256,
     lr: float = 2e-3,
     seed: int = 0,
-    fresh: Any = None,
+    fresh: Callable[[], tuple[torch.Tensor, torch.Tensor]] | None = None,
 ) -> NearNominalFDI:
     """Train ``model`` (Adam, cosine decay) on coefficients alpha (N, n_m) and true k (N, 8); the eccentricity phase
     is not a target. ``fresh``: None, or a callable () -> (alpha, k) redrawing the training rows (new noise) every
