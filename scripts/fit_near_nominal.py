@@ -1,9 +1,11 @@
 """Train and calibrate the near-nominal FDI of a pipeline for life tracking (phm_torch/tracking/near_nominal.py).
 
-Training rows: the records of a life split (run-to-failure histories, their noise as recorded) but a held-out share
-of its actuators, and the near-nominal records of a store's train split (every damage at most --max-damage, a fresh
-draw of --noise white noise every 2,000 steps); inputs are the pipeline's own gappy coefficients of the selected
-samples. The held-out actuators calibrate the 90 % half-widths per component and give the error reported. Writes
+Training rows: the records of a life split (run-to-failure histories) but a held-out share of its actuators, and the
+near-nominal records of a store's train split (every damage at most --max-damage); every 2,000 steps each row gets a
+fresh relative noise level, uniform up to 1.1 x the last of --noise-levels (a life record at least its own), and a
+fresh draw of white noise to reach it. Inputs are the pipeline's own gappy coefficients of the selected samples and
+the level. The held-out actuators, brought to each of --noise-levels, calibrate the 90 % half-widths per component
+and level and give the errors reported. Writes
 ``<out>`` (``phm-track near_nominal=auto`` reads ``<pipeline stem>.near_nominal.pt`` beside the pipeline) and prints
 JSON.
 
@@ -30,23 +32,24 @@ from phm_torch.tracking.near_nominal import PHASE_INDEX, NearNominalFDI, fit_nea
 from phm_torch.tracking.response import probe_k_hat
 
 
-def life_records(root: Path, model) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
-    """(samples (N, n_w), the pipeline's noise level (N,), k (N, 8), actuator of each row) of every inspection of a
-    life split."""
+def life_records(root: Path, model) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """(samples (N, n_w), record RMS (N,), the pipeline's noise level (N,), k (N, 8), actuator of each row) of every
+    inspection of a life split."""
     idx = model.gappy.indices.numpy()
     truth = json.loads((root / "truth.json").read_text())["actuators"]
-    samples, noise, k, who = [], [], [], []
+    samples, scale, noise, k, who = [], [], [], [], []
     for actuator, info in truth.items():
         for ins in info["inspections"]:
             with open(root / ins["file"]) as fh:
                 column = next(csv.reader(fh)).index("current")
             current = np.loadtxt(root / ins["file"], delimiter=",", skiprows=1, usecols=column, dtype=np.float64)
             samples.append(current[idx])
+            scale.append(float(np.sqrt((current**2).mean())))
             with torch.no_grad():
                 noise.append(float(model.noise_level(torch.as_tensor(current, dtype=model.times.dtype)[None])[0]))
             k.append(ins["k_true"])
             who.append(actuator)
-    return np.array(samples), np.array(noise), np.array(k), who
+    return np.array(samples), np.array(scale), np.array(noise), np.array(k), who
 
 
 def store_records(store: Path, idx: np.ndarray, nominal: np.ndarray, max_damage: float) -> tuple[np.ndarray, ...]:
@@ -73,11 +76,10 @@ def main() -> None:
     ap.add_argument("--store", required=True, help="a store of the pipeline's actuator and command (dataset.h5)")
     ap.add_argument("--out", required=True)
     ap.add_argument("--max-damage", type=float, default=0.2)
-    ap.add_argument("--noise", type=float, default=0.01, help="relative white noise added to the store's records")
+    ap.add_argument("--noise-levels", default="0.01,0.02,0.03,0.04", help="the calibrated relative noise levels")
     ap.add_argument("--holdout", type=int, default=5, help="every n-th actuator of the life split calibrates")
     ap.add_argument("--steps", type=int, default=40000)
     ap.add_argument("--gate", type=float, default=0.25)
-    ap.add_argument("--noise-max", type=float, default=0.02)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
@@ -87,7 +89,7 @@ def main() -> None:
     model = loaded.module
     idx = model.gappy.indices.numpy()
     nominal = model.nominal.double().numpy()
-    life_s, life_noise, life_k, who = life_records(Path(args.life), model)
+    life_s, life_scale, life_noise, life_k, who = life_records(Path(args.life), model)
     actuators = sorted(set(who))
     held = {a for i, a in enumerate(actuators) if i % args.holdout == 0}
     cal = np.array([a in held for a in who])
@@ -100,26 +102,48 @@ def main() -> None:
             return torch.cat([model.gappy(b)[0] for b in x.split(4096)]).double()
 
     gen = np.random.default_rng(args.seed)
-    life_a = alpha(life_s[~cal])
+    levels = [float(v) for v in args.noise_levels.split(",")]
+    top = levels[-1] * 1.1
+
+    def noisier(samples: np.ndarray, scale: np.ndarray, now: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """The samples with white noise added to reach the relative level ``target`` from ``now`` (per row)."""
+        extra = np.sqrt(np.clip(target**2 - now**2, 0.0, None)) * scale
+        return samples + extra[:, None] * gen.standard_normal(samples.shape)
+
+    train_s, train_scale, train_now = life_s[~cal], life_scale[~cal], life_noise[~cal]
     life_kt = torch.as_tensor(life_k[~cal])
     store_kt = torch.as_tensor(store_k)
 
-    def fresh() -> tuple[torch.Tensor, torch.Tensor]:
-        noisy = store_s + args.noise * store_scale[:, None] * gen.standard_normal(store_s.shape)
-        return torch.cat([alpha(noisy), life_a]), torch.cat([store_kt, life_kt])
+    def fresh() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Every row at a fresh noise level, uniform up to 1.1 x the last calibrated one (life rows: at least their
+        own), and a fresh draw of it."""
+        store_level = gen.uniform(0.002, top, store_s.shape[0])
+        life_level = np.maximum(gen.uniform(0.002, top, train_s.shape[0]), train_now)
+        a = torch.cat(
+            [
+                alpha(noisier(store_s, store_scale, np.zeros(store_s.shape[0]), store_level)),
+                alpha(noisier(train_s, train_scale, train_now, life_level)),
+            ]
+        )
+        return a, torch.as_tensor(np.concatenate([store_level, life_level])), torch.cat([store_kt, life_kt])
 
     net = NearNominalFDI(
-        int(model.gappy.modes_hat.shape[1]), nominal=nominal.tolist(), gate=args.gate, noise_max=args.noise_max
+        int(model.gappy.modes_hat.shape[1]), nominal=nominal.tolist(), gate=args.gate, noise_levels=levels
     )
-    a0, k0 = fresh()
     t1 = time.perf_counter()
-    fit_near_nominal(net, a0, k0, steps=args.steps, seed=args.seed, fresh=fresh)
+    fit_near_nominal(net, *fresh(), steps=args.steps, seed=args.seed, fresh=fresh)
     fit_s = time.perf_counter() - t1
-    with torch.no_grad():  # the pipeline's own estimates of the held-out records: the gate
-        held_s = torch.as_tensor(life_s[cal], dtype=model.gappy.modes_hat.dtype)
-        held_n = torch.as_tensor(life_noise[cal], dtype=model.times.dtype)
-        k_pipeline = model(held_s, held_n)[0].double()
-    rms, n_gated = net.calibrate(alpha(life_s[cal]), torch.as_tensor(life_k[cal]), k_pipeline, held_n.double())
+    held_s, held_scale, held_now, held_k = life_s[cal], life_scale[cal], life_noise[cal], torch.as_tensor(life_k[cal])
+    calibration = {}
+    for i, level in enumerate(levels):  # the held-out histories at each level: the pipeline's estimates gate them
+        target = np.maximum(np.full(held_s.shape[0], level), held_now)
+        noisy = noisier(held_s, held_scale, held_now, target)
+        level_n = torch.as_tensor(target)
+        with torch.no_grad():
+            x = torch.as_tensor(noisy, dtype=model.gappy.modes_hat.dtype)
+            k_pipeline = model(x, level_n.to(model.times.dtype))[0].double()
+        rms, n_gated = net.calibrate(i, alpha(noisy), held_k, k_pipeline, level_n)
+        calibration[str(level)] = {"records": n_gated, "rms": dict(zip(FAULT_NAMES, rms.tolist()))}
     recorded = loaded.metadata.get("provenance") or {}
     net.provenance = {
         "source": args.pipeline,
@@ -129,14 +153,13 @@ def main() -> None:
         "life_split": str(args.life),
         "life_records": int((~cal).sum()),
         "calibration_records": int(cal.sum()),
-        "calibration_records_gated": n_gated,
         "calibration_actuators": len(held),
         "store": str(args.store),
         "store_records": int(store_k.shape[0]),
         "max_damage": args.max_damage,
-        "noise": args.noise,
+        "noise_levels": levels,
         "steps": args.steps,
-        "heldout_rms": dict(zip(FAULT_NAMES, rms.tolist())),
+        "heldout": calibration,
     }
     net.save(args.out)
     print(

@@ -30,10 +30,11 @@ def synthetic(n: int, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
 @pytest.fixture(scope="module")
 def fitted() -> NearNominalFDI:
     alpha, k = synthetic(3000, 0)
-    net = NearNominalFDI(N_MODES, n_hidden=32, gate=0.25, noise_max=0.02)
-    fit_near_nominal(net, alpha, k, steps=3000, lr=3e-3)
+    net = NearNominalFDI(N_MODES, n_hidden=32, gate=0.25, noise_levels=(0.01, 0.02))
+    fit_near_nominal(net, alpha, torch.full((3000,), 0.01, dtype=torch.float64), k, steps=3000, lr=3e-3)
     alpha_cal, k_cal = synthetic(500, 1)
-    net.calibrate(alpha_cal, k_cal, k_cal, torch.full((500,), 0.01, dtype=torch.float64))
+    for level, noise in enumerate((0.01, 0.02)):
+        net.calibrate(level, alpha_cal, k_cal, k_cal, torch.full((500,), noise, dtype=torch.float64))
     net.provenance = {"probe_k_hat": probe_k_hat(make_pipeline()), "source": "synthetic"}
     return net
 
@@ -41,10 +42,14 @@ def fitted() -> NearNominalFDI:
 def test_it_learns_near_nominal_k_and_its_half_widths_are_its_held_out_error(fitted):
     alpha, k = synthetic(500, 2)
     with torch.no_grad():
-        err = (fitted(alpha) - k)[:, [0, 1, 2, 3, 4, 5, 7]]
+        err = (fitted(alpha, torch.full((500,), 0.01, dtype=torch.float64)) - k)[:, [0, 1, 2, 3, 4, 5, 7]]
     rms = err.pow(2).mean(0).sqrt()
     assert float(rms.max()) < 0.01  # against a 0.2 range
-    widths = fitted.half_widths_[[0, 1, 2, 3, 4, 5, 7]]
+    widths = fitted.half_widths_[0, [0, 1, 2, 3, 4, 5, 7]]
+    # between the calibrated levels the widths are interpolated, held beyond them
+    mid = fitted.half_widths(torch.tensor([0.005, 0.015, 0.03], dtype=torch.float64))
+    assert torch.allclose(mid[0], fitted.half_widths_[0]) and torch.allclose(mid[2], fitted.half_widths_[1])
+    assert torch.allclose(mid[1], fitted.half_widths_.mean(0))
     assert torch.allclose(widths / 1.645, rms, rtol=0.3)  # calibrated on another draw of the same records
     inside = (err.abs() <= widths).double().mean()
     assert 0.83 < float(inside) < 0.97  # ~90 %
@@ -67,7 +72,8 @@ def test_it_round_trips_and_refuses_another_pipeline(fitted, tmp_path):
     again = NearNominalFDI.load(tmp_path / "nn.pt")
     alpha, _ = synthetic(8, 4)
     with torch.no_grad():
-        assert torch.equal(again(alpha), fitted(alpha))
+        noise = torch.full((8,), 0.01, dtype=torch.float64)
+        assert torch.equal(again(alpha, noise), fitted(alpha, noise))
     pipe = make_pipeline()  # 6 modes
     with pytest.raises(ValueError, match="reads 10 coefficients, the synthetic pipeline has 6"):
         again.check_for(pipe, "the synthetic pipeline")
@@ -85,6 +91,8 @@ def test_it_round_trips_and_refuses_another_pipeline(fitted, tmp_path):
         uncalibrated.read(alpha, torch.zeros(8, 8, dtype=torch.float64), torch.zeros(8, dtype=torch.float64))
     with pytest.raises(ValueError, match=r"near_nominal.gate must be in \(0, 1\]"):
         NearNominalFDI(N_MODES, gate=0.0)
+    with pytest.raises(ValueError, match="noise_levels must be positive and increasing"):
+        NearNominalFDI(N_MODES, noise_levels=(0.02, 0.01))
 
 
 def test_only_the_records_the_gate_admits_calibrate_it(fitted):
@@ -95,11 +103,11 @@ def test_only_the_records_the_gate_admits_calibrate_it(fitted):
     alpha[:100] += 5.0
     before = fitted.half_widths_.clone()
     try:
-        rms, n = fitted.calibrate(alpha, k, k_pipeline, torch.full((400,), 0.01, dtype=torch.float64))
+        rms, n = fitted.calibrate(0, alpha, k, k_pipeline, torch.full((400,), 0.01, dtype=torch.float64))
         assert n == 300 and float(rms[[0, 1, 2, 3, 4, 5, 7]].max()) < 0.01
         with pytest.raises(ValueError, match="3 held-out records within the gate, 20 needed"):
             fitted.calibrate(
-                alpha[200:203], k[200:203], k_pipeline[200:203], torch.full((3,), 0.01, dtype=torch.float64)
+                0, alpha[200:203], k[200:203], k_pipeline[200:203], torch.full((3,), 0.01, dtype=torch.float64)
             )
     finally:
         fitted.half_widths_.copy_(before)

@@ -213,7 +213,7 @@ def test_the_shipped_near_nominal_fdi_belongs_to_the_pretrained_pipeline_and_is_
     near = NearNominalFDI.load(PIPELINE.with_name("online_surrogates_best.near_nominal.pt"))
     module = load_pipeline(PIPELINE).module
     near.check_for(module, str(PIPELINE))
-    widths = near.half_widths_[DAMAGE]
+    widths = near.half_widths_[0, DAMAGE]  # at 1 % noise
     assert bool(torch.isfinite(widths).all()) and float(widths.max()) < 0.01  # 2-3x tighter than the pipeline's
     # on the pipeline's own nominal record (no damage): read, and near nominal
     with torch.no_grad():

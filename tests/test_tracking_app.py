@@ -233,7 +233,7 @@ def test_a_near_nominal_fdi_beside_the_pipeline_is_read_near_nominal(fleet, comp
 
     shutil.copy(fleet / "online.pt", tmp_path / "online.pt")
     module = load_pipeline(tmp_path / "online.pt").module
-    near = NearNominalFDI(int(module.gappy.modes_hat.shape[1]), n_hidden=8, gate=1.0, noise_max=0.5)
+    near = NearNominalFDI(int(module.gappy.modes_hat.shape[1]), n_hidden=8, gate=1.0, noise_levels=(0.5,))
     near.half_widths_.fill_(0.01)
     near.provenance = {"probe_k_hat": probe_k_hat(module), "source": "online.pt"}
     near.save(tmp_path / "online.near_nominal.pt")

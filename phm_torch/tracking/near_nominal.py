@@ -8,7 +8,8 @@ eccentricity, with a biased mean response, :mod:`.response`) set the prognostic 
 The same inputs (the 40 gappy coefficients of the 1000 selected samples) read by a network trained on near-nominal
 records only give 2-3 times smaller errors there (docs/prognostics.md, "A near-nominal FDI"). The network is gated
 by the pipeline's own estimate: used where its largest damage is at most ``gate`` and the record's noise at most
-``noise_max``; elsewhere the pipeline's k_hat stands. Its 90 % half-widths are calibrated on held-out histories,
+the last calibrated noise level; elsewhere the pipeline's k_hat stands. It is told each record's noise level (the
+noise-aware networks' input); its 90 % half-widths are calibrated on held-out histories at each of its noise levels,
 per component.
 
 Saved as a dict of tensors (``torch.save``, read back with ``weights_only=True``) with a JSON header holding the
@@ -17,6 +18,7 @@ settings and the provenance: the pipeline it reads (its :func:`~.response.probe_
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -34,6 +36,7 @@ from .response import PROBE_TOLERANCE, probe_k_hat
 
 FORMAT = "phm_torch.near_nominal_fdi/1"
 Z95 = 1.6448536269514722
+NOISE_UNIT = 0.01  # the noise input is the relative level in percent
 PHASE_INDEX = FAULT_NAMES.index("eccentricity_phase")  # not a damage: never gated on, always the pipeline's
 
 
@@ -43,10 +46,10 @@ class NearNominalFDI(nn.Module):
     Args:
         n_modes: the pipeline's POD modes.  n_hidden, n_layers: tanh layers.  nominal: (8,) nominal fault vector.
         gate: largest damage |k_hat - nominal| of the pipeline's own estimate up to which this network is read.
-        noise_max: largest relative record noise up to which it is read.
+        noise_levels: increasing relative noise levels its half-widths are calibrated at; it is read up to the last.
 
-    Fitted buffers: ``input_mean_``, ``input_std_`` (n_m,) coefficient scaling; ``half_widths_`` (8,) calibrated
-    90 % half-widths [k units] of its estimates (NaN until calibrated).
+    Fitted buffers: ``input_mean_``, ``input_std_`` (n_m,) coefficient scaling; ``half_widths_`` (n_levels, 8)
+    calibrated 90 % half-widths [k units] of its estimates at ``noise_levels`` (NaN until calibrated).
     """
 
     def __init__(
@@ -56,19 +59,20 @@ class NearNominalFDI(nn.Module):
         n_layers: int = 2,
         nominal: Sequence[float] | None = None,
         gate: float = 0.25,
-        noise_max: float = 0.02,
+        noise_levels: Sequence[float] = (0.01, 0.02, 0.03, 0.04),
     ):
         super().__init__()
         if isinstance(n_modes, bool) or not isinstance(n_modes, int) or n_modes < 1:
             raise ValueError(f"near_nominal.n_modes must be a positive integer, got {n_modes!r}")
         if not 0.0 < float(gate) <= 1.0:
             raise ValueError(f"near_nominal.gate must be in (0, 1], got {gate!r}")
-        if not float(noise_max) > 0.0:
-            raise ValueError(f"near_nominal.noise_max must be > 0, got {noise_max!r}")
+        levels = [float(v) for v in noise_levels]
+        if not levels or levels[0] <= 0.0 or any(b <= a for a, b in itertools.pairwise(levels)):
+            raise ValueError(f"near_nominal.noise_levels must be positive and increasing, got {list(noise_levels)}")
         self.n_modes, self.n_hidden, self.n_layers = n_modes, int(n_hidden), int(n_layers)
-        self.gate, self.noise_max = float(gate), float(noise_max)
+        self.gate, self.noise_max = float(gate), levels[-1]
         layers: list[nn.Module] = []
-        width = n_modes
+        width = n_modes + 1  # the coefficients and the record's noise level
         for _ in range(self.n_layers):
             layers += [nn.Linear(width, self.n_hidden), nn.Tanh()]
             width = self.n_hidden
@@ -78,12 +82,28 @@ class NearNominalFDI(nn.Module):
         self.register_buffer("nominal", nominal)
         self.register_buffer("input_mean_", torch.zeros(n_modes, dtype=torch.float64))
         self.register_buffer("input_std_", torch.ones(n_modes, dtype=torch.float64))
-        self.register_buffer("half_widths_", torch.full((N_FAULTS,), math.nan, dtype=torch.float64))
+        self.register_buffer("noise_levels", torch.tensor(levels, dtype=torch.float64))
+        self.register_buffer("half_widths_", torch.full((len(levels), N_FAULTS), math.nan, dtype=torch.float64))
         self.provenance: dict[str, Any] = {}
 
-    def forward(self, alpha: torch.Tensor) -> torch.Tensor:
-        """Estimates k (B, 8) of records with gappy coefficients alpha (B, n_m)."""
-        return self.net((alpha.to(torch.float64) - self.input_mean_) / self.input_std_).clamp(0.0, 1.0)
+    def forward(self, alpha: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """Estimates k (B, 8) of records with gappy coefficients alpha (B, n_m) and relative noise (B,)."""
+        return self.net(self._features(alpha, noise)).clamp(0.0, 1.0)
+
+    def _features(self, alpha: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        scaled = (alpha.to(torch.float64) - self.input_mean_) / self.input_std_
+        return torch.cat([scaled, (noise.to(torch.float64) / NOISE_UNIT).unsqueeze(1)], 1)
+
+    def half_widths(self, noise: torch.Tensor) -> torch.Tensor:
+        """(B, 8) calibrated 90 % half-widths at the records' noise (B,), linear between the calibrated levels and
+        held at the first and last."""
+        levels, rows = self.noise_levels, self.half_widths_
+        if levels.numel() == 1:
+            return rows[0].expand(noise.shape[0], N_FAULTS)
+        x = noise.to(torch.float64).clamp(float(levels[0]), float(levels[-1]))
+        low = (torch.searchsorted(levels, x, right=True) - 1).clamp(0, levels.numel() - 2)
+        frac = ((x - levels[low]) / (levels[low + 1] - levels[low])).unsqueeze(1)
+        return rows[low] * (1.0 - frac) + rows[low + 1] * frac
 
     def gated(self, k_pipeline: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """(B,) bool: where this network is read, given the pipeline's k_hat (B, 8) and the records' noise (B,)."""
@@ -100,10 +120,10 @@ class NearNominalFDI(nn.Module):
         if not bool(torch.isfinite(self.half_widths_).all()):
             raise ValueError("near-nominal FDI: not calibrated (half_widths_ NaN)")
         used = self.gated(k_pipeline, noise)
-        mine = self(alpha)
+        mine = self(alpha, noise)
         mine[:, PHASE_INDEX] = k_pipeline[:, PHASE_INDEX].to(torch.float64)
         k = torch.where(used.unsqueeze(1), mine, k_pipeline.to(torch.float64))
-        w = self.half_widths_.expand_as(k)
+        w = self.half_widths(noise)
         lower, upper = (k - w).clamp(0.0, 1.0), (k + w).clamp(0.0, 1.0)
         nan = torch.full_like(k, math.nan)
         lower = torch.where(used.unsqueeze(1), lower, nan)
@@ -111,17 +131,18 @@ class NearNominalFDI(nn.Module):
         return used, k, lower, upper
 
     def calibrate(
-        self, alpha: torch.Tensor, k_true: torch.Tensor, k_pipeline: torch.Tensor, noise: torch.Tensor
+        self, level: int, alpha: torch.Tensor, k_true: torch.Tensor, k_pipeline: torch.Tensor, noise: torch.Tensor
     ) -> tuple[torch.Tensor, int]:
-        """Set ``half_widths_`` to the 90 % half-width of a Gaussian of the estimates' rms error per component, on
-        the held-out records (alpha (N, n_m), true k (N, 8)) that the gate admits (the pipeline's k_hat (N, 8) and
-        noise (N,)); returns (that rms (8,), the number of records)."""
+        """Set row ``level`` of ``half_widths_`` (the calibrated noise level ``noise_levels[level]``) to the 90 %
+        half-width of a Gaussian of the estimates' rms error per component, on held-out records at that noise
+        (alpha (N, n_m), true k (N, 8), noise (N,)) that the gate admits (the pipeline's k_hat (N, 8)); returns (that
+        rms (8,), the number of records)."""
         used = self.gated(k_pipeline, noise)
         if int(used.sum()) < 20:
             raise ValueError(f"near-nominal FDI: {int(used.sum())} held-out records within the gate, 20 needed")
         with torch.no_grad():
-            rms = (self(alpha[used]) - k_true[used].to(torch.float64)).pow(2).mean(0).sqrt()
-        self.half_widths_.copy_(Z95 * rms)
+            rms = (self(alpha[used], noise[used]) - k_true[used].to(torch.float64)).pow(2).mean(0).sqrt()
+        self.half_widths_[level] = Z95 * rms
         return rms, int(used.sum())
 
     def check_for(self, model: Any, source: str) -> None:
@@ -147,7 +168,7 @@ class NearNominalFDI(nn.Module):
             "n_hidden": self.n_hidden,
             "n_layers": self.n_layers,
             "gate": self.gate,
-            "noise_max": self.noise_max,
+            "noise_levels": self.noise_levels.tolist(),
             "provenance": self.provenance,
         }
 
@@ -173,7 +194,7 @@ class NearNominalFDI(nn.Module):
             header["n_layers"],
             state["nominal"].tolist(),
             header["gate"],
-            header["noise_max"],
+            header["noise_levels"],
         )
         model.load_state_dict(state)
         model.provenance = dict(header.get("provenance", {}))
@@ -183,20 +204,26 @@ class NearNominalFDI(nn.Module):
 def fit_near_nominal(
     model: NearNominalFDI,
     alpha: torch.Tensor,
+    noise: torch.Tensor,
     k_true: torch.Tensor,
     steps: int = 40000,
     batch_size: int = 256,
     lr: float = 2e-3,
     seed: int = 0,
-    fresh: Callable[[], tuple[torch.Tensor, torch.Tensor]] | None = None,
+    fresh: Callable[[], tuple[torch.Tensor, torch.Tensor, torch.Tensor]] | None = None,
 ) -> NearNominalFDI:
-    """Train ``model`` (Adam, cosine decay) on coefficients alpha (N, n_m) and true k (N, 8); the eccentricity phase
-    is not a target. ``fresh``: None, or a callable () -> (alpha, k) redrawing the training rows (new noise) every
-    2,000 steps. Returns the model (eval mode)."""
-    if alpha.ndim != 2 or alpha.shape[1] != model.n_modes or k_true.shape != (alpha.shape[0], N_FAULTS):
+    """Train ``model`` (Adam, cosine decay) on coefficients alpha (N, n_m), the records' relative noise (N,) and
+    true k (N, 8); the eccentricity phase is not a target. ``fresh``: None, or a callable () -> (alpha, noise, k)
+    redrawing the training rows (new noise) every 2,000 steps. Returns the model (eval mode)."""
+    if (
+        alpha.ndim != 2
+        or alpha.shape[1] != model.n_modes
+        or k_true.shape != (alpha.shape[0], N_FAULTS)
+        or noise.shape != alpha.shape[:1]
+    ):
         raise ValueError(
-            f"near-nominal FDI: alpha (N, {model.n_modes}) and k (N, 8) expected, got {tuple(alpha.shape)}, "
-            f"{tuple(k_true.shape)}"
+            f"near-nominal FDI: alpha (N, {model.n_modes}), noise (N,) and k (N, 8) expected, got "
+            f"{tuple(alpha.shape)}, {tuple(noise.shape)}, {tuple(k_true.shape)}"
         )
     gen = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
@@ -210,13 +237,13 @@ def fit_near_nominal(
     opt = torch.optim.Adam(model.net.parameters(), lr=lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps)
     model.train()
-    a, k = alpha.to(torch.float64), k_true.to(torch.float64)
+    a, n, k = alpha, noise, k_true
     for step in range(steps):
         if fresh is not None and step and step % 2000 == 0:
-            a, k = (t.to(torch.float64) for t in fresh())
+            a, n, k = fresh()
         rows = torch.randint(0, a.shape[0], (batch_size,), generator=gen)
-        pred = model.net((a[rows] - model.input_mean_) / model.input_std_)
-        loss = ((pred - k[rows]).pow(2) * weight).mean()
+        pred = model.net(model._features(a[rows], n[rows]))
+        loss = ((pred - k[rows].to(torch.float64)).pow(2) * weight).mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
