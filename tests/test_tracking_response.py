@@ -146,3 +146,18 @@ def test_inverting_a_compressive_response_removes_the_trackers_long_rul(pipeline
     rul_raw, rul_corrected = float(posts[False].rul[0, 1]), float(posts[True].rul[0, 1])
     # exponential growth at s F = 7.5e-4 / h: a level 0.7 of the truth is ln(1 / 0.7) / 7.5e-4 = 476 h further away
     assert rul_raw - rul_corrected == pytest.approx(476.0, rel=0.35)
+
+
+def test_companion_files_follow_one_rule(pipeline, tmp_path):  # noqa: F811
+    from phm_torch.tracking.companions import companion
+
+    model_path = tmp_path / "online.pt"
+    assert companion("response", "auto", model_path, pipeline) is None  # none beside: tracked without
+    assert companion("response", None, model_path, pipeline) is None
+    k, k_hat = synthetic_pairs()
+    fit_response(k, k_hat, pipeline={"probe_k_hat": probe_k_hat(pipeline)}).save(tmp_path / "online.fdi_response.json")
+    assert isinstance(companion("response", "auto", model_path, pipeline), FDIResponse)
+    with pytest.raises(ValueError, match="near_nominal: no such file"):
+        companion("near_nominal", str(tmp_path / "nope.pt"), model_path, pipeline)
+    with pytest.raises(ValueError, match="unknown kind 'other'"):
+        companion("other", "auto", model_path, pipeline)

@@ -28,16 +28,14 @@ from ..online.bench_check import check_bench
 from ..online.input_contract import InputContract
 from ..online.loaded import TorchScriptPipeline, load_pipeline
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
+from ..tracking.companions import companion
 from ..tracking.fleet_check import FleetCheckSettings, check_fleet
 from ..tracking.inspection import inspect_record
-from ..tracking.near_nominal import NearNominalFDI
-from ..tracking.response import FDIResponse, fit_response, pairs_from_track, probe_k_hat
+from ..tracking.response import fit_response, pairs_from_track, probe_k_hat
 from . import common, schema
 from .predict import _bench_nominal, _pipeline_command, _read, _record  # phm-predict's record path, reused as is
 
 log = logging.getLogger(__name__)
-RESPONSE_SUFFIX = ".fdi_response.json"  # response=auto: <pipeline stem> + this, beside the pipeline
-NEAR_NOMINAL_SUFFIX = ".near_nominal.pt"  # near_nominal=auto: <pipeline stem> + this, beside the pipeline
 
 
 def _sha256(path: Path) -> str:
@@ -89,10 +87,8 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     prov, command = _pipeline_command(cfg, metadata, model_path)
     model = loaded.module
     settings = _settings(cfg)
-    response = _response(cfg.response, model_path)
-    near = _near_nominal(cfg.near_nominal, model_path)
-    if near is not None:
-        near.check_for(model, str(model_path))
+    response = companion("response", cfg.response, model_path, model)
+    near = companion("near_nominal", cfg.near_nominal, model_path, model)
     tracker, described = build_tracker(model, metadata, common.plain(cfg.damage), settings, str(model_path), response)
     index = read_index(cfg.index)
     contract = InputContract.of(model, metadata, command)
@@ -251,37 +247,6 @@ def _refused(diagnosis: dict[str, Any]) -> dict[str, Any]:
         "p_faulty": None,
         "rul_hours": None,
     }
-
-
-def _near_nominal(setting: Any, model_path: Path) -> NearNominalFDI | None:
-    """The near-nominal FDI to read: ``auto`` the ``<pipeline stem>.near_nominal.pt`` beside the pipeline where there
-    is one, null none, else the path given."""
-    if setting is None:
-        return None
-    path = model_path.with_name(model_path.stem + NEAR_NOMINAL_SUFFIX) if str(setting) == "auto" else Path(str(setting))
-    if not path.is_file():
-        if str(setting) == "auto":
-            return None
-        raise ValueError(f"near_nominal: no such file {str(path)!r} (auto: the one beside the pipeline; null: none)")
-    log.info("near-nominal FDI: %s", path)
-    return NearNominalFDI.load(path)
-
-
-def _response(setting: Any, model_path: Path) -> FDIResponse | None:
-    """The FDI response to invert: ``auto`` reads ``<pipeline stem>.fdi_response.json`` beside the pipeline where
-    there is one, null none, else the path given."""
-    if setting is None:
-        return None
-    if str(setting) == "auto":
-        beside = model_path.with_name(model_path.stem + RESPONSE_SUFFIX)
-        if not beside.is_file():
-            return None
-        log.info("FDI response beside the pipeline: %s", beside)
-        return FDIResponse.load(beside)
-    path = Path(str(setting))
-    if not path.is_file():
-        raise ValueError(f"response: no such file {str(path)!r} (auto: the one beside the pipeline; null: none)")
-    return FDIResponse.load(path)
 
 
 @hydra.main(config_path=common.CONFIG_PATH, config_name="track", version_base="1.3")
