@@ -34,12 +34,10 @@ def build_tracker(
     all (the composed ``conf/damage`` stands in, with a warning), and was calibrated before too. The prior of s
     (the tracking) is the law's ``rate_scale_sigma``, or the composed config's where the pipeline's has none.
     The fault rate its P(faulty) was calibrated at (``verdict_prior_faulty``) turns each record's P(faulty) into a
-    likelihood ratio (:func:`~.measurement.verdict_odds`). ``response``: the FDI's response near nominal, checked
-    to belong to ``model`` and inverted before each k_hat is fused (:mod:`.response`). The description (JSON)
-    names the law's source, the band, that rate and the components the response moves."""
+    likelihood ratio (:func:`~.measurement.verdict_odds`). ``response``: the FDI's response near nominal of ``model``
+    (:func:`~.companions.companion` loads and checks it), inverted before each k_hat is fused (:mod:`.response`).
+    The description (JSON) names the law's source, the band, that rate and the components the response moves."""
     require_calibrated(model, source)
-    if response is not None:
-        response.check_for(model, source)
     damage, where = damage_config(metadata, fallback_damage, source)
     calibrated_sigma = damage.get("rate_scale_sigma")
     if calibrated_sigma is None and fallback_damage is not None and fallback_damage.get("rate_scale_sigma"):

@@ -32,7 +32,8 @@ from torch import nn
 
 from ..faults import FAULT_NAMES, N_FAULTS
 from ..io.atomic import atomic_open
-from .response import PROBE_TOLERANCE, probe_k_hat
+from ..online.noise_threshold import interpolate_levels
+from .response import check_probe
 
 FORMAT = "phm_torch.near_nominal_fdi/1"
 Z95 = 1.6448536269514722
@@ -97,13 +98,10 @@ class NearNominalFDI(nn.Module):
     def half_widths(self, noise: torch.Tensor) -> torch.Tensor:
         """(B, 8) calibrated 90 % half-widths at the records' noise (B,), linear between the calibrated levels and
         held at the first and last."""
-        levels, rows = self.noise_levels, self.half_widths_
-        if levels.numel() == 1:
-            return rows[0].expand(noise.shape[0], N_FAULTS)
-        x = noise.to(torch.float64).clamp(float(levels[0]), float(levels[-1]))
-        low = (torch.searchsorted(levels, x, right=True) - 1).clamp(0, levels.numel() - 2)
-        frac = ((x - levels[low]) / (levels[low + 1] - levels[low])).unsqueeze(1)
-        return rows[low] * (1.0 - frac) + rows[low + 1] * frac
+        # per component, the pipeline's own interpolation of calibrated levels
+        return torch.stack(
+            [interpolate_levels(self.noise_levels, self.half_widths_[:, j], noise) for j in range(N_FAULTS)], 1
+        )
 
     def gated(self, k_pipeline: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """(B,) bool: where this network is read, given the pipeline's k_hat (B, 8) and the records' noise (B,)."""
@@ -147,15 +145,7 @@ class NearNominalFDI(nn.Module):
 
     def check_for(self, model: Any, source: str) -> None:
         """Raise ValueError unless this network was trained on ``model``'s gappy coefficients (its probe k_hat)."""
-        recorded = self.provenance.get("probe_k_hat")
-        if recorded is None:
-            raise ValueError(f"near-nominal FDI: records no probe_k_hat, so it cannot be matched to {source}")
-        diff = max(abs(a - b) for a, b in zip(probe_k_hat(model), recorded))
-        if not diff <= PROBE_TOLERANCE:
-            raise ValueError(
-                f"near-nominal FDI was trained for another pipeline ({self.provenance.get('source', '?')}): the k_hat "
-                f"of its POD mean differs by {diff:.3g} from {source}'s"
-            )
+        check_probe(self.provenance, model, source, "near-nominal FDI", "trained")
         if int(model.gappy.modes_hat.shape[1]) != self.n_modes:
             raise ValueError(
                 f"near-nominal FDI reads {self.n_modes} coefficients, {source} has {model.gappy.modes_hat.shape[1]}"

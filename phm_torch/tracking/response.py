@@ -44,6 +44,21 @@ def probe_k_hat(model: Any) -> list[float]:
         return [float(v) for v in model(model.gappy.mean_hat.unsqueeze(0))[0][0]]
 
 
+def check_probe(recorded: Mapping[str, Any], model: Any, source: str, what: str, made: str) -> None:
+    """Raise ValueError unless the provenance ``recorded`` of a file made for a pipeline (``what`` names the file,
+    ``made`` how it was made) holds that pipeline's probe: the k_hat of ``model``'s POD mean (:func:`probe_k_hat`)
+    must be the recorded one to 1e-4, whatever file or format holds the pipeline."""
+    probe = recorded.get("probe_k_hat")
+    if probe is None:
+        raise ValueError(f"{what}: records no probe_k_hat, so it cannot be matched to {source}")
+    diff = max(abs(a - b) for a, b in zip(probe_k_hat(model), probe))
+    if not diff <= PROBE_TOLERANCE:
+        raise ValueError(
+            f"{what} was {made} for another pipeline ({recorded.get('source', '?')}): the k_hat of its POD mean "
+            f"differs by {diff:.3g} from {source}'s"
+        )
+
+
 @dataclass(frozen=True)
 class FDIResponse:
     """Per component j, the knots (true k, mean k_hat) of h_j; an empty tuple leaves component j as measured.
@@ -99,18 +114,8 @@ class FDIResponse:
         return k, (lower + shift).clamp(0.0, 1.0), (upper + shift).clamp(0.0, 1.0)
 
     def check_for(self, model: Any, source: str) -> None:
-        """Raise ValueError unless this response was fitted for the pipeline ``model`` (``source`` names it): the
-        k_hat of its POD mean (:func:`probe_k_hat`) must be the one recorded (1e-4), whatever file or format holds it."""
-        recorded = self.pipeline.get("probe_k_hat")
-        if recorded is None:
-            raise ValueError(f"fdi response: records no probe_k_hat, so it cannot be matched to {source}")
-        now = probe_k_hat(model)
-        diff = max(abs(a - b) for a, b in zip(now, recorded))
-        if not diff <= PROBE_TOLERANCE:
-            raise ValueError(
-                f"fdi response was fitted for another pipeline ({self.pipeline.get('source', '?')}): the k_hat of "
-                f"its POD mean differs by {diff:.3g} from {source}'s"
-            )
+        """Raise ValueError unless this response was fitted for the pipeline ``model`` (``source`` names it)."""
+        check_probe(self.pipeline, model, source, "fdi response", "fitted")
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -181,8 +186,8 @@ def fit_response(
         raise ValueError(f"fdi response: n_bins must be an integer >= 2, got {n_bins!r}")
     if k_true.shape[0] < n_bins * min_count:
         raise ValueError(
-            f"fdi response: {k_true.shape[0]} pairs are too few for {n_bins} bins of at least {min_count} (a life split "
-            f"of a few hundred inspections at least)"
+            f"fdi response: {k_true.shape[0]} pairs are too few for {n_bins} bins of at least {min_count} "
+            f"(a life split of a few hundred inspections at least)"
         )
     knots_true, knots_hat = [], []
     for j in range(N_FAULTS):
