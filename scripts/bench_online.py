@@ -11,9 +11,11 @@ alternating order (round-robin over the formats, ``--rounds`` rounds, medians ov
   methods (:meth:`TorchScriptPipeline.run`), one program call for the others;
 * ``forward_full`` p50/p99 (TorchScript only): its ``forward`` alone, the figure this script reported before;
 * ``step_samples`` p50/p99: one record of selected samples;
-* ``fdi`` p50/p99 (TorchScript only): selected samples -> gappy POD -> MLP -> k_hat, one call of
-  ``k_hat_of_samples`` (the gappy least squares folded into the first layer; older files: the two submodules);
-* ``records_per_s_256`` / ``records_per_s_4096``: batched throughput of the full step;
+* ``fdi`` p50/p99 (TorchScript, and aoti packages with their FDI program): selected samples -> gappy POD -> MLP
+  -> k_hat, one call of ``k_hat_of_samples`` (the gappy least squares folded into the first layer; older
+  TorchScript files: the two submodules);
+* ``records_per_s_256`` / ``records_per_s_4096``: batched throughput of the full step (a program format's loader
+  calls its program on at most 256 records at a time, :data:`~phm_torch.online.loaded.CALL_BATCH`);
 * ``load_s`` (median of 3 loads) and ``file_bytes``.
 
 Usage: python scripts/bench_online.py --model a.pt --model a.pt2 [--data-dir DIR] [--out results/bench_online.json]
@@ -96,6 +98,8 @@ def main() -> None:
                         return m.fdi(alpha)
 
                     t.setdefault("fdi", []).extend(call_times_us(fdi, args.repeats))
+                elif getattr(model, "fdi_program", None) is not None:  # an aoti package's FDI program, called alone
+                    t.setdefault("fdi", []).extend(call_times_us(lambda m=model: m.fdi_program(samples), args.repeats))
                 for n, batch in batches.items():
                     model.run(batch[:64])
                     t0 = time.perf_counter()

@@ -15,6 +15,7 @@ from ..io.atomic import atomic_open
 from .pipeline import OnlinePipeline
 
 METADATA_FILE = "phm_metadata.json"  # the extra file of the archive with the pipeline's provenance
+FDI_PROGRAM = "fdi"  # an aoti package's FDI alone: complete selected samples (B, n_points) -> k_hat (B, 8)
 
 
 def export_torchscript(

@@ -33,7 +33,8 @@ from typing import Any
 import torch
 
 from ..io.atomic import atomic_open
-from .export import METADATA_FILE, export_torchscript
+from .aoti_lowering import FDI_INDUCTOR_OPTIONS, for_inductor
+from .export import FDI_PROGRAM, METADATA_FILE, export_torchscript
 from .extras import EXTRAS, require
 from .input_contract import PIPELINE_CHECKS
 from .pipeline import OnlinePipeline
@@ -103,12 +104,15 @@ def _metadata(
     fmt: str,
     limits: str | None = None,
     max_batch: int | None = None,
+    programs: Sequence[str] = (),
 ) -> str:
     """The file's metadata; ``limits``: what the format cannot serve (then ``pipeline.missing_samples`` is false:
     records with a missing sample are refused by the loader); ``max_batch``: records per program call (the loader
-    splits larger batches), None: no bound."""
+    splits larger batches), None: no bound; ``programs``: the file's programs besides the two steps."""
+    const = pipeline_constants(pipeline)
     const = {
-        **pipeline_constants(pipeline),
+        **const,
+        "programs": {**const["programs"], **{name: False for name in programs}},
         "missing_samples": limits is None,
         "limits": limits,
         "max_batch": max_batch,
@@ -134,17 +138,45 @@ def write_export(
         )
 
 
+class _SampleFDI(torch.nn.Module):
+    """Complete selected samples (B, n_points) [A] in the pipeline's dtype -> k_hat (B, 8): the folded FDI of
+    :meth:`OnlinePipeline.k_hat_of_samples` (its samples cast to the gappy layer's dtype first, as there)."""
+
+    def __init__(self, pipeline: OnlinePipeline):
+        super().__init__()
+        self.folded = pipeline.folded_fdi
+        self.dtype = pipeline.gappy.modes_hat.dtype
+
+    def forward(self, samples: torch.Tensor) -> torch.Tensor:
+        return self.folded(samples.to(self.dtype))
+
+
+def fdi_program(pipeline: OnlinePipeline, max_batch: int = MAX_BATCH) -> torch.export.ExportedProgram | None:
+    """The FDI alone, complete selected samples (B, n_points) [A] -> k_hat (B, 8), batch dynamic (None where the
+    pipeline's FDI is not folded: a Bayesian gappy layer)."""
+    if not pipeline.eval().fdi_folded:
+        return None
+    x = pipeline.gappy.mean_hat.detach().to(pipeline.times.dtype).expand(EXAMPLE_BATCH, -1).contiguous()
+    batch = torch.export.Dim("batch", min=1, max=max_batch)
+    with torch.no_grad():
+        return torch.export.export(_SampleFDI(pipeline), (x,), dynamic_shapes={"samples": {0: batch}}, strict=False)
+
+
 def write_aoti(
     pipeline: OnlinePipeline,
     path: str | os.PathLike,
     metadata: Mapping[str, Any] | None = None,
     programs: dict[str, torch.export.ExportedProgram] | None = None,
 ) -> None:
-    """Compile :func:`export_programs` with AOTInductor (a C++ compiler is needed) and write the package
-    atomically to ``path``; minutes on a small CPU."""
+    """Compile :func:`export_programs` (and :func:`fdi_program` as ``fdi``) with AOTInductor (a C++ compiler is
+    needed), each program rewritten by :func:`for_inductor`, and write the package atomically to ``path``; minutes
+    on a small CPU."""
     from torch.export.pt2_archive._package import package_pt2
 
-    programs = programs or export_programs(pipeline)
+    programs = dict(programs or export_programs(pipeline))
+    fdi = fdi_program(pipeline)
+    if fdi is not None:
+        programs[FDI_PROGRAM] = fdi
     files = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name, ep in programs.items():
@@ -152,10 +184,12 @@ def write_aoti(
                 "aot_inductor.package": True,
                 "aot_inductor.model_name_for_generated_files": name,
                 "aot_inductor.output_path": str(Path(tmp) / name),
+                **(FDI_INDUCTOR_OPTIONS if name == FDI_PROGRAM else {}),
             }
-            files[name] = torch._inductor.aot_compile(ep.module(), ep.example_inputs[0], options=options)
+            files[name] = torch._inductor.aot_compile(for_inductor(ep.module()), ep.example_inputs[0], options=options)
         with atomic_open(path, "wb") as fh:
-            package_pt2(fh, aoti_files=files, extra_files={METADATA_FILE: _metadata(pipeline, metadata, "aoti")})
+            meta = _metadata(pipeline, metadata, "aoti", programs=[n for n in programs if n not in PROGRAMS])
+            package_pt2(fh, aoti_files=files, extra_files={METADATA_FILE: meta})
 
 
 def _write_torchscript(
