@@ -33,7 +33,7 @@ from typing import Any
 import torch
 
 from ..io.atomic import atomic_open
-from .aoti_lowering import FDI_INDUCTOR_OPTIONS, for_inductor
+from .aoti_lowering import FDI_INDUCTOR_OPTIONS, STEP_INDUCTOR_OPTIONS, for_inductor
 from .export import FDI_PROGRAM, METADATA_FILE, export_torchscript
 from .extras import EXTRAS, require
 from .input_contract import PIPELINE_CHECKS
@@ -184,6 +184,7 @@ def write_aoti(
                 "aot_inductor.package": True,
                 "aot_inductor.model_name_for_generated_files": name,
                 "aot_inductor.output_path": str(Path(tmp) / name),
+                **STEP_INDUCTOR_OPTIONS,
                 **(FDI_INDUCTOR_OPTIONS if name == FDI_PROGRAM else {}),
             }
             files[name] = torch._inductor.aot_compile(for_inductor(ep.module()), ep.example_inputs[0], options=options)
