@@ -283,7 +283,7 @@ def test_bad_settings(kwargs):
 
 def test_plot_life_writes_figures_and_fleet_table(tmp_path):
     from phm_torch.faults import FAULT_NAMES
-    from phm_torch.prognostics.life_plots import fleet_rows, plot_life, select_actuators
+    from phm_torch.prognostics.life_plots import fleet_rows, plot_life, readings, select_actuators
 
     track, truth = make_life([1050.0, 1450.0, 2050.0])
     for n, a in enumerate(truth["actuators"]):
@@ -295,6 +295,15 @@ def test_plot_life_writes_figures_and_fleet_table(tmp_path):
             i["k_interval"] = {FAULT_NAMES[0]: [0.9e-4 * g["hours"], 1.2e-4 * g["hours"]]}
             i["k_filtered_interval"] = {FAULT_NAMES[0]: [0.95e-4 * g["hours"], 1.05e-4 * g["hours"]]}
     track["actuators"]["A000"]["inspections"][1]["k_interval"] = None  # one inspection without
+    # what the filter read, where it is not k_hat: the near-nominal FDI's reading, k_hat through the response's inverse
+    a1 = track["actuators"]["A001"]["inspections"]
+    a1[0]["k_hat_near_nominal"], a1[0]["k_hat_near_nominal_interval"] = {"backlash": 0.02}, {"backlash": [0.01, 0.04]}
+    a1[1]["k_hat_corrected"], a1[1]["k_hat_corrected_interval"] = {"backlash": 0.05}, {"backlash": [0.03, 0.06]}
+    centre, bars = readings(a1, "backlash")
+    assert centre[:2].tolist() == [0.02, 0.05] and centre[2] == a1[2]["k_hat"]["backlash"]
+    assert bars[:, 0] == pytest.approx([0.01, 0.02]) and bars[:, 1] == pytest.approx([0.02, 0.01])
+    k_hat_bars = readings(track["actuators"]["A000"]["inspections"], FAULT_NAMES[0])[1]
+    assert np.isnan(k_hat_bars[:, 1]).all() and np.isfinite(k_hat_bars[:, 0]).all()  # its k_interval is None
     last = track["actuators"]["A001"]["inspections"][-1]
     last["rul_hours"] = None  # censored: listed last in the fleet
     paths = plot_life(track, truth, tmp_path, max_actuators=2)

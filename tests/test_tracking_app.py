@@ -184,6 +184,8 @@ def test_a_response_beside_the_pipeline_is_inverted_and_one_for_another_pipeline
     assert "backlash" in objects["track"]["tracker"]["fdi_response"]["corrected"]
     hat, corrected = insp["k_hat"]["backlash"], insp["k_hat_corrected"]["backlash"]
     assert corrected == pytest.approx(min(max((hat - 0.5) / 0.6, 0.0), 1.0), abs=0.02)  # h(k) = 0.5 + 0.6 k inverted
+    low, high = insp["k_hat_corrected_interval"]["backlash"]  # the interval the filter read, through the inverse too
+    assert low <= corrected <= high and (high - low) >= (insp["k_interval"]["backlash"][1] - hat) * 0.9
     without = run(compose, fleet, tmp_path / "none", f"pipeline={tmp_path / 'online.pt'}", "response=null")[1]
     assert "k_hat_corrected" not in without["track"]["actuators"]["A0"]["inspections"][0]
     fit_response(k, k, pipeline={"probe_k_hat": [v + 0.01 for v in probe], "source": "other.pt"}).save(
@@ -243,6 +245,8 @@ def test_a_near_nominal_fdi_beside_the_pipeline_is_read_near_nominal(fleet, comp
     assert insp and all("k_hat_near_nominal" in i for i in insp)
     first = insp[0]
     assert first["k_hat_near_nominal"]["eccentricity_phase"] == first["k_hat"]["eccentricity_phase"]
+    low, high = first["k_hat_near_nominal_interval"]["backlash"]
+    assert high - low == pytest.approx(0.02, abs=1e-6) and low <= first["k_hat_near_nominal"]["backlash"] <= high
     assert track["tracker"]["near_nominal"]["source"] == "online.pt"
     _, none = run(compose, fleet, tmp_path / "none", f"pipeline={tmp_path / 'online.pt'}", "near_nominal=null")
     assert not any("k_hat_near_nominal" in i for a in none["track"]["actuators"].values() for i in a["inspections"])

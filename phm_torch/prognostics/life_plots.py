@@ -135,11 +135,29 @@ def _interval(insp: Sequence[Mapping[str, Any]], key: str, name: str, centre: np
     return np.stack([centre - lohi[:, 0], lohi[:, 1] - centre]).clip(min=0)
 
 
+# what the filter read at an inspection (its key and interval key in track.json), first found first: the near-nominal
+# FDI's reading, the pipeline's k_hat through the response's inverse, the pipeline's k_hat
+READINGS = (
+    ("k_hat_near_nominal", "k_hat_near_nominal_interval"),
+    ("k_hat_corrected", "k_hat_corrected_interval"),
+    ("k_hat", "k_interval"),
+)
+
+
+def readings(insp: Sequence[Mapping[str, Any]], name: str) -> tuple[np.ndarray, np.ndarray]:
+    """What the filter read of component ``name`` at each inspection (n,) and its interval as distances below /
+    above (2, n): the first of :data:`READINGS` the inspection has."""
+    read = [next((r for r in READINGS if i.get(r[0]) is not None), READINGS[-1]) for i in insp]
+    centre = np.array([_named(i.get(key), FAULT_NAMES).get(name, np.nan) for i, (key, _) in zip(insp, read)], float)
+    bars = [_interval([i], bound, name, centre[n : n + 1]) for n, (i, (_, bound)) in enumerate(zip(insp, read))]
+    return centre, np.concatenate(bars, axis=1) if bars else np.zeros((2, 0))
+
+
 def damage_figure(track: Mapping[str, Any], truth: Mapping[str, Any], ids: Sequence[str], path: Path) -> Path:
     """One panel per actuator, each damage component that moves over the life (the phase k7 is never a
     damage) as its change since the truth's initial k0 (so a drift around 0.5 shares the axis with damages
-    near 0): true (line), filtered (dashed, ``k_filtered_interval`` shaded), k_hat (dots, ``k_interval``
-    bars)."""
+    near 0): true (line), filtered (dashed, ``k_filtered_interval`` shaded), the reading the filter fused (dots:
+    the near-nominal FDI's, or k_hat through the response's inverse, or k_hat; its interval as bars)."""
     fig, axes = _grid(len(ids))
     handles: dict[str, Any] = {}
     for ax, a in zip(axes, ids):
@@ -154,9 +172,8 @@ def damage_figure(track: Mapping[str, Any], truth: Mapping[str, Any], ids: Seque
             color = f"C{j}"  # one colour per component in every panel
             (handles[name],) = ax.plot(gh, k_true[:, j] - k0[j], "-", color=color, lw=1.4)
             filt = np.array([_named(i.get("k_filtered"), FAULT_NAMES).get(name, np.nan) for i in insp], float)
-            khat = np.array([_named(i.get("k_hat"), FAULT_NAMES).get(name, np.nan) for i in insp], float)
+            khat, bars = readings(insp, name)
             ax.plot(hours, filt - k0[j], "--", color=color, lw=1.0)
-            bars = _interval(insp, "k_interval", name, khat)  # the measurement's calibrated interval
             ax.errorbar(hours, khat - k0[j], yerr=bars, fmt=".", color=color, ms=3, alpha=0.5, elinewidth=0.5)
             band = _interval(insp, "k_filtered_interval", name, filt)
             if np.isfinite(band).any():
@@ -164,7 +181,7 @@ def damage_figure(track: Mapping[str, Any], truth: Mapping[str, Any], ids: Seque
         eol = g.get("eol_hours")
         if eol is not None:
             ax.axvline(float(eol), color="k", lw=0.6)
-        ax.set_title(f"{a}: true (line), filtered (dashed), k_hat (dots)", fontsize=9)
+        ax.set_title(f"{a}: true (line), filtered (dashed), reading (dots)", fontsize=9)
         ax.set_xlabel("hours [h]")
         ax.set_ylabel("k - k0 [-]")
         ax.grid(alpha=0.3)

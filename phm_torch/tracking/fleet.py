@@ -49,10 +49,12 @@ def inspection_record(
     fused: bool,
     horizon: float,
     record_verdict: bool = False,
-    k_corrected: list[float] | None = None,
+    k_corrected: tuple[list[float], list[float], list[float]] | None = None,
 ) -> dict[str, Any]:
-    """One inspection of ``track.json`` (row ``i`` of the batch summary ``post``); ``k_corrected``: the k the filter
-    read, k_hat through the FDI response's inverse (written as ``k_hat_corrected`` where a response is used)."""
+    """One inspection of ``track.json`` (row ``i`` of the batch summary ``post``); ``k_corrected``: (k, lower,
+    upper), the reading the filter fused where a response is used, k_hat and its interval through the FDI response's
+    inverse (written as ``k_hat_corrected`` and ``k_hat_corrected_interval``; the near-nominal FDI's reading, where
+    it has one, as ``k_hat_near_nominal`` and ``k_hat_near_nominal_interval``)."""
     tracked = bool(post.tracked[i])
     rul, rul_censored = censor(post.rul[i].tolist(), horizon) if tracked else (None, False)
     snap = diagnosis.get("rul_hours")
@@ -83,9 +85,12 @@ def inspection_record(
         "noise": diagnosis.get("noise"),
     }
     if k_corrected is not None and diagnosis.get("k_near_nominal") is None:
-        out["k_hat_corrected"] = dict(zip(FAULT_NAMES, k_corrected))
+        k, lower, upper = k_corrected
+        out["k_hat_corrected"] = dict(zip(FAULT_NAMES, k))
+        out["k_hat_corrected_interval"] = {n: [a, b] for n, a, b in zip(FAULT_NAMES, lower, upper)}
     if diagnosis.get("k_near_nominal") is not None:
         out["k_hat_near_nominal"] = dict(diagnosis["k_near_nominal"])
+        out["k_hat_near_nominal_interval"] = dict(diagnosis["k_near_nominal_interval"])
     return out
 
 
@@ -135,7 +140,7 @@ def _run_chunk(
                     bool(fuse[i]) and bool(post.tracked[i]),
                     tracker.law.horizon_hours,
                     record_verdict,
-                    None if tracker.response is None else k_hat[i].tolist(),
+                    None if tracker.response is None else (k_hat[i].tolist(), lower[i].tolist(), upper[i].tolist()),
                 )
             )
     return out
