@@ -226,7 +226,7 @@ def test_a_fleet_that_reads_one_damage_vector_at_its_first_inspections_is_refuse
     assert not unchecked["fleet_check"]["checked"] and unchecked["fused"] == 9  # 3 actuators < min_actuators 5
 
 
-def test_a_near_nominal_fdi_beside_the_pipeline_is_read_near_nominal(fleet, compose, tmp_path):
+def test_a_near_nominal_fdi_beside_the_pipeline_is_read_near_nominal(fleet, compose, tmp_path, caplog):
     import shutil
 
     from phm_torch.online.loaded import load_pipeline
@@ -248,5 +248,9 @@ def test_a_near_nominal_fdi_beside_the_pipeline_is_read_near_nominal(fleet, comp
     low, high = first["k_hat_near_nominal_interval"]["backlash"]
     assert high - low == pytest.approx(0.02, abs=1e-6) and low <= first["k_hat_near_nominal"]["backlash"] <= high
     assert track["tracker"]["near_nominal"]["source"] == "online.pt"
+    warned = [r.getMessage() for r in caplog.records if "=auto: no online." in r.getMessage()]
+    assert warned and all("response=auto" in m and "response_out=" in m for m in warned)  # no response beside it
+    caplog.clear()
     _, none = run(compose, fleet, tmp_path / "none", f"pipeline={tmp_path / 'online.pt'}", "near_nominal=null")
     assert not any("k_hat_near_nominal" in i for a in none["track"]["actuators"].values() for i in a["inspections"])
+    assert not any("near_nominal=auto" in r.getMessage() for r in caplog.records)  # null: none asked for

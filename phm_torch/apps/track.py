@@ -28,7 +28,7 @@ from ..online.bench_check import check_bench
 from ..online.input_contract import InputContract
 from ..online.loaded import TorchScriptPipeline, load_pipeline
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
-from ..tracking.companions import companion
+from ..tracking.companions import companion, missing_message
 from ..tracking.fleet_check import FleetCheckSettings, check_fleet
 from ..tracking.inspection import inspect_record
 from ..tracking.response import fit_response, pairs_from_track, probe_k_hat
@@ -89,6 +89,9 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     settings = _settings(cfg)
     response = companion("response", cfg.response, model_path, model)
     near = companion("near_nominal", cfg.near_nominal, model_path, model)
+    for kind, found in (("response", response), ("near_nominal", near)):
+        if found is None and str(cfg[kind]) == "auto":
+            log.warning(missing_message(kind, model_path))
     tracker, described = build_tracker(model, metadata, common.plain(cfg.damage), settings, str(model_path), response)
     index = read_index(cfg.index)
     contract = InputContract.of(model, metadata, command)

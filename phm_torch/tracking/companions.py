@@ -16,6 +16,21 @@ log = logging.getLogger(__name__)
 
 SUFFIXES = {"response": ".fdi_response.json", "near_nominal": ".near_nominal.pt"}
 LOADERS = {"response": FDIResponse.load, "near_nominal": NearNominalFDI.load}
+MAKERS = {  # how a user makes each for their own pipeline (docs/prognostics.md, "Life tracking")
+    "response": "phm-track index=<a life split's index.csv> truth=<its truth.json> response_out=<path>",
+    "near_nominal": "python scripts/fit_near_nominal.py --pipeline <pipeline> --life <life split> --store <store>",
+}
+
+
+def missing_message(kind: str, pipeline_path: Path) -> str:
+    """What ``auto`` not finding the ``kind`` file beside the pipeline means, and how to make one: a pipeline made by
+    phm-run has neither, and near nominal the tracker then reads the pipeline's own k_hat."""
+    name = pipeline_path.stem + SUFFIXES[kind]
+    return (
+        f"{kind}=auto: no {name} beside {pipeline_path}; near nominal the tracker reads the pipeline's k_hat as it is "
+        f"(the pretrained one reads small damages at 0.55-0.8 of their growth; docs/prognostics.md). Make one with: "
+        f"{MAKERS[kind]}"
+    )
 
 
 def companion(kind: str, setting: Any, pipeline_path: Path, model: Any) -> FDIResponse | NearNominalFDI | None:
