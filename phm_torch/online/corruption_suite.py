@@ -160,7 +160,18 @@ def judge(
     """The diagnosis of a (corrupted) record on phm-predict's path, and whether it is flagged or still right."""
     if current_only:
         record = Record(record.time, None, None, record.current)
-    return judgement(diagnose(model, record, contract), case.k, case.healthy)
+    out = diagnose(model, record, contract)
+    if out["k_interval"] is None and out.get("k_hat") is not None:
+        # flagged: phm-predict reports no interval; the calibrated one at its noise says whether the answer the flag
+        # withheld was right (a false rejection) or wrong
+        k_hat = torch.tensor([[out["k_hat"][n] for n in FAULT_NAMES]], dtype=model.k_half_widths.dtype)
+        with torch.no_grad():
+            noise = out.get("noise")
+            args = (k_hat,) if noise is None else (k_hat, torch.tensor([noise], dtype=k_hat.dtype))
+            lower, upper = model.k_interval(*args)
+        withheld = {n: [float(a), float(b)] for n, a, b in zip(FAULT_NAMES, lower[0], upper[0])}
+        return judgement({**out, "k_interval": withheld}, case.k, case.healthy)
+    return judgement(out, case.k, case.healthy)
 
 
 def judgement(out: dict[str, Any], k: torch.Tensor, healthy: bool) -> dict[str, Any]:
@@ -289,6 +300,11 @@ def false_rejections(model: Any, path: Path, cases: list[Case]) -> dict[str, Any
         "reasons": reasons,
         "flagged_by_new_checks": new,
         "rate_new_checks": new / len(results),
+        # a flagged record whose withheld answer was right (k_hat within its calibrated interval, verdict right): the
+        # false rejections proper; flagged and wrong: the flag did its job
+        "flagged_right": sum(r["flagged"] and r["right"] for r in results),
+        "false_rejection_rate": sum(r["flagged"] and r["right"] for r in results) / len(results),
+        "flagged_wrong": sum(r["flagged"] and not r["right"] for r in results),
         "unflagged_wrong": sum(not r["flagged"] and not r["right"] for r in results),
         # why an unflagged clean record counts as wrong: its verdict, or a component outside its interval (the
         # intervals are per parameter at their calibrated coverage, so some joint misses are expected)
