@@ -34,10 +34,11 @@ FDI_INDUCTOR_OPTIONS = {
 }
 
 
+CLASSIFIERS = ("classifier", "verdict_classifier")  # the pipeline's classifier modules (their tanh: for_inductor)
+
 # tanh(x) / x = P(x^2) on |x| < 0.625: a degree-6 least-squares fit on 2,000 Chebyshev nodes (float64; largest
 # error 1.5e-10, far below float32's 6e-8)
 TANH_SPLIT = 0.625
-CLASSIFIERS = ("classifier", "verdict_classifier")  # the pipeline's classifier modules (their tanh: for_inductor)
 TANH_SERIES = (
     0.9999999999416033,
     -0.333333306390829,
