@@ -199,7 +199,7 @@ def test_a_response_beside_the_pipeline_is_inverted_and_one_for_another_pipeline
         run(compose, fleet, tmp_path / "x", f"response_out={tmp_path / 'r.json'}")
 
 
-def test_a_fleet_that_reads_one_damage_vector_at_its_first_inspections_is_refused(compose, tmp_path):
+def test_a_fleet_that_reads_one_damage_vector_at_its_first_inspections_is_refused(compose, tmp_path, monkeypatch):
     """Every actuator's first record alike (one bench's difference, not wear): the fleet check refuses to fuse
     anything and says why; with action=warn it tracks them as read."""
     pipe = make_pipeline()
@@ -220,8 +220,14 @@ def test_a_fleet_that_reads_one_damage_vector_at_its_first_inspections_is_refuse
     insp = objects["track"]["actuators"]["A1"]["inspections"]
     assert all(i["out_of_distribution"] and "fleet_offset" in i["ood_reasons"] for i in insp)
     assert all(i["rul_hours"] is None for i in insp)
+    import phm_torch.apps.track as track_app
+
+    reads = []
+    read = track_app._read
+    monkeypatch.setattr(track_app, "_read", lambda path, *a: reads.append(path) or read(path, *a))
     warned, _ = run(compose, tmp_path, tmp_path / "warn", "fleet_check.min_actuators=2", "fleet_check.action=warn")
     assert warned["fleet_check"]["offset"] and warned["fused"] == 9
+    assert sorted(reads) == sorted(set(reads)) and len(reads) == 9  # each record read once, the first ones too
     unchecked, _ = run(compose, tmp_path, tmp_path / "default", "resume=false")
     assert not unchecked["fleet_check"]["checked"] and unchecked["fused"] == 9  # 3 actuators < min_actuators 5
 

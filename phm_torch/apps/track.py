@@ -107,17 +107,26 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     if bench is not None and not bench.ok:
         log.warning("%s; every inspection is out of distribution (reason 'bench')", bench.message())
 
+    first_inspections: dict[tuple[str, int], dict[str, Any]] = {}  # the fleet check's, read once
+
     def diagnose_rows(rows: list) -> list[dict[str, Any]]:
         out = []
         for row in rows:
-            current, m = _read(str(row.path), loaded, resample)
-            found = inspect_record(loaded, _record(m, current), contract, bench_nominal, bench, near)
-            for message in found["messages"]:
-                log.warning("%s: %s; the inspection is out of distribution (not fused)", row.path, message)
+            found = first_inspections.pop((row.actuator, row.line), None)
+            if found is None:
+                current, m = _read(str(row.path), loaded, resample)
+                found = inspect_record(loaded, _record(m, current), contract, bench_nominal, bench, near)
+                for message in found["messages"]:
+                    log.warning("%s: %s; the inspection is out of distribution (not fused)", row.path, message)
             out.append(found)
         return out
 
-    fleet = _fleet_check(cfg, model, index, diagnose_rows)
+    def diagnose_first(rows: list) -> list[dict[str, Any]]:
+        found = diagnose_rows(rows)
+        first_inspections.update(((row.actuator, row.line), d) for row, d in zip(rows, found))
+        return found
+
+    fleet = _fleet_check(cfg, model, index, diagnose_first)
     if fleet["offset"] and cfg.fleet_check.action == "refuse":
         read = diagnose_rows
 
