@@ -368,3 +368,29 @@ def test_cpp_example_runs_the_aoti_package_as_python_does(pipeline, aoti_file, t
         assert (lines[STEP_OUTPUTS.index("rul")].split()[1] == "nan") == bool(ref["ood"][0])
     bad = subprocess.run([str(binary), str(aoti_file)], check=False, capture_output=True, text=True)
     assert bad.returncode == 2 and "usage:" in bad.stderr
+
+
+@pytest.mark.slow
+def test_the_pretrained_pipeline_as_an_aoti_package_equals_its_torchscript_file(tmp_path):
+    """The AOTInductor lowering on the pipeline it was made for (MLP classifiers, whose tanh it rewrites; the small
+    pipeline above has polynomial ones): every output phm-predict reads within 1e-5 of the shipped TorchScript file
+    (relative above 1: the RUL in hours), the package's FDI program within 3e-5 (about 1.5 min of compilation)."""
+    from phm_torch.online.from_torchscript import (
+        output_diffs,
+        pipeline_from_torchscript,
+        probe_records,
+        rewrite_pipeline,
+    )
+
+    shipped = Path(__file__).resolve().parents[1] / "pretrained" / "online_surrogates_best.pt"
+    done = rewrite_pipeline(shipped, tmp_path / "online.pt", ["aoti"])
+    package, file = load_pipeline(done["files"]["aoti"]), load_pipeline(shipped)
+    pipeline, _ = pipeline_from_torchscript(shipped)
+    probe = probe_records(pipeline, seed=4)
+    with torch.no_grad():
+        diffs = output_diffs(package, file, probe)
+        assert max(d["scaled"] for d in diffs.values()) <= TOL, diffs
+        samples = probe.index_select(1, pipeline.gappy.indices)
+        complete = samples[torch.isfinite(samples).all(1)]
+        got, ref = package.k_hat_of_samples(complete), file.module.k_hat_of_samples(complete)
+        torch.testing.assert_close(got, ref, rtol=3 * TOL, atol=3 * TOL)
