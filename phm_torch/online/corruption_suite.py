@@ -29,7 +29,7 @@ from phm_torch.data.sampling import ImportanceSampler
 from phm_torch.faults import FAULT_NAMES
 from phm_torch.io.atomic import atomic_open
 from phm_torch.online.corruptions import CORRUPTIONS, Record, corrupt
-from phm_torch.online.diagnosis import diagnose
+from phm_torch.online.diagnosis import calibrated_interval, diagnose
 from phm_torch.online.export import read_metadata
 from phm_torch.online.input_contract import PIPELINE_CHECKS, InputContract
 from phm_torch.params import CONF_DIR, ActuatorParams
@@ -161,16 +161,11 @@ def judge(
     if current_only:
         record = Record(record.time, None, None, record.current)
     out = diagnose(model, record, contract)
-    if out["k_interval"] is None and out.get("k_hat") is not None:
+    if out["out_of_distribution"]:
         # flagged: phm-predict reports no interval; the calibrated one at its noise says whether the answer the flag
         # withheld was right (a false rejection) or wrong
-        k_hat = torch.tensor([[out["k_hat"][n] for n in FAULT_NAMES]], dtype=model.k_half_widths.dtype)
-        with torch.no_grad():
-            noise = out.get("noise")
-            args = (k_hat,) if noise is None else (k_hat, torch.tensor([noise], dtype=k_hat.dtype))
-            lower, upper = model.k_interval(*args)
-        withheld = {n: [float(a), float(b)] for n, a, b in zip(FAULT_NAMES, lower[0], upper[0])}
-        return judgement({**out, "k_interval": withheld}, case.k, case.healthy)
+        lower, upper = calibrated_interval(model, out)
+        out = {**out, "k_interval": {n: [a, b] for n, a, b in zip(FAULT_NAMES, lower.tolist(), upper.tolist())}}
     return judgement(out, case.k, case.healthy)
 
 

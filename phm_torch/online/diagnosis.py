@@ -82,6 +82,22 @@ def align_trigger(
     return aligned, lag / rate
 
 
+def calibrated_interval(model: Any, diagnosis: Mapping[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
+    """(lower, upper) (8,) float64 of a diagnosis's k_hat: its reported ``k_interval``, or where the diagnosis
+    reports none (out of distribution) the calibrated one recomputed at its noise (the answer the flag withheld)."""
+    if diagnosis.get("k_interval") is not None:
+        bounds = torch.tensor([diagnosis["k_interval"][n] for n in FAULT_NAMES], dtype=torch.float64)
+        return bounds[:, 0], bounds[:, 1]
+    k_hat = torch.tensor([[diagnosis["k_hat"][n] for n in FAULT_NAMES]], dtype=model.k_half_widths.dtype)
+    noise = diagnosis.get("noise")
+    with torch.no_grad():
+        args = (k_hat,)
+        if noise is not None and "noise" in str(model.k_interval.schema):
+            args += (torch.tensor([noise], dtype=k_hat.dtype),)
+        lower, upper = model.k_interval(*args)
+    return lower[0].to(torch.float64), upper[0].to(torch.float64)
+
+
 def diagnose(
     model: Any,
     record: Record,

@@ -263,15 +263,21 @@ class ProgramPipeline(LoadedPipeline):
 class _FlatCall:
     """An AOTInductor program called with its tensors as a flat list (its C++ loader's ``boxed_run``): the package's
     Python wrapper rebuilds the call's input and output specs from JSON at every call, about 40 us of one
-    record's 0.45 ms step. The programs here take only tensors and return a tensor or a tuple of them."""
+    record's 0.45 ms step. The programs here take only tensors and return a tensor or a tuple of them. A torch whose
+    package has no such loader (a private attribute) is called through its wrapper."""
 
     def __init__(self, compiled: Any):
         from torch.utils import _pytree
 
-        self.loader = compiled.loader
-        self.single = _pytree.treespec_loads(self.loader.get_call_spec()[1]).is_leaf()
+        self.compiled, self.loader = compiled, getattr(compiled, "loader", None)
+        if not hasattr(self.loader, "boxed_run"):
+            self.loader = None
+        else:
+            self.single = _pytree.treespec_loads(self.loader.get_call_spec()[1]).is_leaf()
 
     def __call__(self, *tensors: torch.Tensor) -> Any:
+        if self.loader is None:
+            return self.compiled(*tensors)
         out = self.loader.boxed_run(list(tensors))
         return out[0] if self.single else tuple(out)
 

@@ -18,7 +18,7 @@ import torch
 from ..faults import FAULT_NAMES
 from ..online.bench_check import BenchCheck
 from ..online.corruptions import Record
-from ..online.diagnosis import NOISE_FLOOR, diagnose
+from ..online.diagnosis import NOISE_FLOOR, calibrated_interval, diagnose
 from ..online.input_contract import InputContract, pipeline_reasons
 from .near_nominal import NearNominalFDI
 
@@ -128,13 +128,4 @@ def measurement(model: Any, diagnosis: dict[str, Any]) -> tuple[torch.Tensor, to
         k = torch.tensor([diagnosis["k_near_nominal"][n] for n in FAULT_NAMES], dtype=torch.float64)
         return k, bounds[:, 0], bounds[:, 1]
     k_hat = torch.tensor([diagnosis["k_hat"][n] for n in FAULT_NAMES], dtype=torch.float64)
-    if diagnosis.get("k_interval") is not None:
-        bounds = torch.tensor([diagnosis["k_interval"][n] for n in FAULT_NAMES], dtype=torch.float64)
-        return k_hat, bounds[:, 0], bounds[:, 1]
-    noise = diagnosis.get("noise")
-    with torch.no_grad():
-        args = (k_hat.to(model.k_half_widths.dtype).unsqueeze(0),)
-        if noise is not None and "noise" in str(model.k_interval.schema):
-            args += (torch.tensor([noise], dtype=model.k_half_widths.dtype),)
-        lower, upper = model.k_interval(*args)
-    return k_hat, lower[0].to(torch.float64), upper[0].to(torch.float64)
+    return (k_hat, *calibrated_interval(model, diagnosis))
