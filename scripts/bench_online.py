@@ -20,6 +20,7 @@ alternating order (round-robin over the formats, ``--rounds`` rounds, medians ov
 * ``load_s`` (median of 3 loads) and ``file_bytes``.
 
 Usage: python scripts/bench_online.py --model a.pt --model a.pt2 [--data-dir DIR] [--out results/bench_online.json]
+(two files of one format, e.g. two builds of a package, are reported under "<format> <path>" for the second)
 """
 
 from __future__ import annotations
@@ -73,8 +74,9 @@ def main() -> None:
     models, report = {}, {}
     for path in args.model:
         model, load_s = _load(path)
-        models[model.format] = model
-        report[model.format] = {"file": path, "file_bytes": os.path.getsize(path), "load_s": load_s}
+        key = model.format if model.format not in models else f"{model.format} {path}"  # two builds side by side
+        models[key] = model
+        report[key] = {"file": path, "file_bytes": os.path.getsize(path), "load_s": load_s}
     first = next(iter(models.values()))
     signals = _records(first, args.data_dir)
     one = signals[:1]
@@ -88,7 +90,7 @@ def main() -> None:
                 t = times[fmt]
                 t.setdefault("step_full", []).extend(call_times_us(lambda m=model: m.run(one), args.repeats))
                 t.setdefault("step_samples", []).extend(call_times_us(lambda m=model: m.run(samples), args.repeats))
-                if fmt == "torchscript":
+                if model.format == "torchscript":
                     m = model.module
                     t.setdefault("forward_full", []).extend(call_times_us(lambda m=m: m(one), args.repeats))
 

@@ -66,3 +66,34 @@ def test_for_inductor_rewrites_the_classifiers_tanh_and_every_matrix_layer_only(
     with torch.no_grad():
         for got, ref in zip(lowered(k), toy(k)):
             torch.testing.assert_close(got, ref, rtol=1e-6, atol=1e-6)
+
+
+class _Crossing(nn.Module):
+    """A verdict classifier scored twice, the second time on states marked by a zero ``crossing_marker``, as the
+    RUL search scores the two ends of each crossing."""
+
+    def __init__(self):
+        super().__init__()
+        self.verdict_classifier = nn.Sequential(nn.Linear(8, 16), nn.Tanh(), nn.Linear(16, 1))
+        self.register_buffer("crossing_marker", torch.zeros(()), persistent=False)
+
+    def forward(self, k: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.verdict_classifier(k), self.verdict_classifier(2.0 * k + self.crossing_marker)
+
+
+def test_for_inductor_keeps_the_crossing_scores_tanh_exact_and_drops_the_marker():
+    toy = _Crossing().eval()
+    k = torch.rand(5, 8, generator=torch.Generator().manual_seed(3))
+    batch = torch.export.Dim("batch", min=1, max=1024)
+    module = torch.export.export(toy, (k,), dynamic_shapes={"k": {0: batch}}, strict=False).module()
+    lowered = for_inductor(module)
+    nodes = [n for n in lowered.graph.nodes if n.op in ("call_function", "get_attr")]
+    targets = [n.target for n in nodes if n.op == "call_function"]
+    assert targets.count(tanh_for_inductor) == 1 and targets.count(torch.ops.aten.tanh.default) == 1
+    assert not any(str(n.target).endswith("crossing_marker") for n in nodes)  # the x + 0 is gone
+    assert torch.ops.aten.add.Tensor not in targets
+    with torch.no_grad():
+        scan, ends = lowered(k)
+        ref_scan, ref_ends = toy(k)
+    assert torch.equal(ends, ref_ends)  # the exact tanh: the same kernels as eager here
+    torch.testing.assert_close(scan, ref_scan, rtol=1e-6, atol=1e-6)

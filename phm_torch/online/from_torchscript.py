@@ -75,7 +75,8 @@ CLASSES: dict[str, type[nn.Module]] = {
 PIPELINE_CHILDREN = ("gappy", "fdi", "classifier", "verdict_classifier", "full_check", "consistency_check")
 BUILT_CHILDREN = ("residual_limit", "folded_fdi")  # derived by the constructor
 BUILT_ATTRIBUTES = ("fdi_folded",)  # derived by the constructor from the parts: an older file's value is stale
-BUILT_BUFFERS = ("verdict_stop_index",)  # derived from health_stop_index (non-persistent)
+# non-persistent buffers the constructor makes: verdict_stop_index (from health_stop_index), crossing_marker (zero)
+BUILT_BUFFERS = ("verdict_stop_index", "crossing_marker")
 MODULE_INTERNALS = ("training", "_is_full_backward_hook")  # declared by every scripted module, not its state
 # largest |converted - file| / max(1, |file|) of any output rewrite_pipeline accepts: a float32 pipeline's rounding
 # (records with missing samples: the gappy layer's Woodbury path now starts from its solve matrix, 1e-5 of k_hat)

@@ -81,6 +81,9 @@ class RULPropagation:
         # the quantiles the verdict classifier stops: derived from health_stop_index (not stored)
         self.register_buffer("verdict_stop_index", torch.arange(3), persistent=False)
         self.register_buffer("unknown_shift", torch.zeros(3, 8, dtype=dtype))
+        # zero, added to the states of the crossing's two final scores: it marks them for the AOTInductor lowering,
+        # which keeps their classifiers' tanh exact (:data:`~phm_torch.online.aoti_lowering.CROSSING_MARKER`)
+        self.register_buffer("crossing_marker", torch.zeros((), dtype=dtype), persistent=False)
 
     def set_unidentified(self, components: Sequence[int] | None) -> None:
         """The growing components (``direction`` > 0) among ``components`` (indices) start the 95 % propagation
@@ -204,17 +207,21 @@ class RULPropagation:
         hi = coarse[first]  # faulty grid index
         prev = (first - 1).clamp(min=0)
         lo = coarse[prev]  # healthy grid index (or 0)
-        s1 = score.gather(0, first.unsqueeze(0)).squeeze(0)  # scores at lo and hi, kept up to date
-        s0 = score.gather(0, prev.unsqueeze(0)).squeeze(0)
         for _ in range(self.bisections):
             mid = torch.div(lo + hi, 2, rounding_mode="floor")
             states = self.nominal + (self.propagators[mid] @ dk.unsqueeze(-1)).squeeze(-1)  # (B, 3, 8)
             s_mid = self._stop_scores(states, measured, blocked)
             inner = mid > lo
-            bad = (s_mid <= 0) & inner
-            good = (s_mid > 0) & inner
-            hi, s1 = torch.where(bad, mid, hi), torch.where(bad, s_mid, s1)
-            lo, s0 = torch.where(good, mid, lo), torch.where(good, s_mid, s0)
+            hi = torch.where((s_mid <= 0) & inner, mid, hi)
+            lo = torch.where((s_mid > 0) & inner, mid, lo)
+        # the two scores the crossing is interpolated between, scored again from their states: the linear zero of
+        # two close scores magnifies their rounding (a short RUL moves by 1e-7 / (s0 - s1) of a grid step), so the
+        # AOTInductor lowering keeps these rows' tanh exact (marked by the zero crossing_marker); every other score
+        # only decides a side
+        ends = torch.stack([lo, hi])  # (2, B, 3)
+        end_states = self.nominal + (self.propagators[ends] @ dk.unsqueeze(-1)).squeeze(-1)  # (2, B, 3, 8)
+        end_scores = self._stop_scores((end_states + self.crossing_marker).reshape(2 * b, 3, 8), measured, blocked)
+        s0, s1 = end_scores.reshape(2, b, 3).unbind(0)
         t0, t1 = self.times[lo], self.times[hi]
         frac = (s0 / (s0 - s1).clamp(min=1e-12)).clamp(0.0, 1.0)  # linear zero
         crossing = torch.where(first > 0, t0 + frac * (t1 - t0), torch.zeros_like(t0))
