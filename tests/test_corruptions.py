@@ -113,7 +113,12 @@ def test_every_case_flagged_or_right_except_the_blind_spots(suite):
     only = {k: v["current_only"] for k, v in table.items()}
     for kind, severity in (("current_reversal", "1.0"), ("current_gain", "1.0"), ("current_lag", "0.02")):
         for mode in (full, only):
-            assert mode[kind]["severities"][severity]["reasons"] == ["inconsistent"], (kind, mode[kind])
+            reasons = mode[kind]["severities"][severity]["reasons"]
+            # a current reversed in time also starts off the nominal rest window (its answer has no shorted pair)
+            assert reasons == (["inconsistent", "offset"] if kind == "current_reversal" else ["inconsistent"]), (
+                kind,
+                mode[kind],
+            )
     assert only["time_reversal"]["flagged_from"] == 1.0 and only["trigger_offset"]["flagged_from"] == 0.02
 
 
@@ -167,3 +172,25 @@ def test_a_dead_position_sensor_is_caught_on_a_healthy_answer_only():
     wide = InputContract(tracking_range=(0.03, 0.8))
     assert wide._tracking(good)["ok"] and not wide._tracking(reversed_)["ok"]
     assert wide._tracking(reversed_)["correlation"] < -0.9
+
+
+def test_offset_check_is_skipped_only_for_an_answer_with_a_heavily_shorted_pair(suite):
+    """A probe offset of half the RMS current on the nominal record is flagged ``offset`` whatever large faults it
+    makes the FDI read, unless the answer has two phases shorted at REST_SHORTS or more: only such a pair draws
+    current at rest (input_contract's module note)."""
+    from phm_torch.online.input_contract import REST_SHORTS, SHORT_INDEX
+
+    cs, model, cases = suite
+    contract = cs.contract_of(model, PIPELINE)
+    nominal = cases[0].record.current.double()
+    shifted = nominal + 0.5 * float(nominal.pow(2).mean().sqrt())
+    k = model.nominal.clone().double()
+    friction_and_short = k.clone()
+    friction_and_short[0], friction_and_short[SHORT_INDEX[0]] = 0.65, 0.34  # two large faults, one shorted phase
+    shorted_pair = k.clone()
+    shorted_pair[SHORT_INDEX[1]] = shorted_pair[SHORT_INDEX[2]] = REST_SHORTS + 0.05
+    assert "offset" not in contract.current_reasons(model, nominal, 0.01, k)
+    assert "offset" in contract.current_reasons(model, shifted, 0.01, k)
+    assert "offset" in contract.current_reasons(model, shifted, 0.01, friction_and_short)
+    assert "offset" not in contract.current_reasons(model, shifted, 0.01, shorted_pair)
+    assert "offset" not in contract.current_reasons(model, shifted, 0.01, None)  # no answer: no comparison
