@@ -47,11 +47,12 @@ From the current, against the noise calibration and the training model's nominal
   * ``offset`` (unless two phases read shorted at ``REST_SHORTS`` or more) - over the rest window (the leading
     samples where the nominal record has not left zero yet: the actuator at rest) the record sits off the nominal
     record. At rest only a pair of heavily shorted phases draws current (their loop unstable at the PWM rate):
-    over a grid of two-phase shorts of the reference actuator the rest window's offset reached the limit from
-    0.5 and 0.8 (1.1 x; 0.5 and 0.65: 0.08 x), while one short at any level with dry friction or backlash at 0.8
-    stayed below 0.05 x, and so did every other of 125 val-like vectors (0.075 x at most). The check had been
-    skipped for any answer with two large faults, and a bench offset that made the FDI read two (a probe offset of
-    half the RMS current read as dry friction 0.65 and short_a 0.34) went unflagged;
+    over a grid of two-phase shorts of the reference actuator (``scripts/rest_current_shorts.py``) the rest
+    window's offset reached the limit from 0.5 and 0.8 (1.1 x; 0.5 and 0.65: 0.08 x), while one short at any
+    level with dry friction or backlash at 0.8 stayed below 0.05 x, and so did every other of 125 val-like vectors
+    (0.075 x at most). The check had been skipped for any answer with two large faults, and a bench offset that
+    made the FDI read two (a probe offset of half the RMS current read as dry friction 0.65 and short_a 0.34) went
+    unflagged;
   * ``shape`` (no large fault) - the record's correlation with the nominal record below ``SHAPE_MIN``, or below
     the pipeline's own calibrated threshold (``shape_correlation_min``, :func:`calibrate_shape_min`) when lower;
   * ``spikes`` (no large fault) - a second difference far above the record's noise and above the steps the
