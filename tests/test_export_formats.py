@@ -394,3 +394,12 @@ def test_the_pretrained_pipeline_as_an_aoti_package_equals_its_torchscript_file(
         complete = samples[torch.isfinite(samples).all(1)]
         got, ref = package.k_hat_of_samples(complete), file.module.k_hat_of_samples(complete)
         torch.testing.assert_close(got, ref, rtol=3 * TOL, atol=3 * TOL)
+    # the lowering found the crossing's scores: each classifier's three tanh layers kept exact there, the marker gone
+    from phm_torch.online.aoti_lowering import _in_classifier, for_inductor, tanh_for_inductor
+    from phm_torch.online.formats import export_programs
+
+    lowered = for_inductor(export_programs(pipeline)["model"].module())
+    calls = [n for n in lowered.graph.nodes if n.op == "call_function"]
+    exact = [n for n in calls if n.target is torch.ops.aten.tanh.default and _in_classifier(n)]
+    assert len(exact) == 6 and any(n.target is tanh_for_inductor for n in calls)
+    assert not any("crossing_marker" in str(n.target) for n in lowered.graph.nodes)
