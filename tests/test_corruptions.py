@@ -91,6 +91,9 @@ def test_every_case_flagged_or_right_except_the_blind_spots(suite):
     table = cs.run_suite(model, PIPELINE, cases, {})
     assert cs.blind_spots(table) == BLIND_SPOTS
     full = {k: v["full"] for k, v in table.items()}
+    # what the POD modes leave unexplained beyond the white-noise estimate, for an answer near nominal: mains hum on
+    # the nominal record (the friction record's answer is not near enough to be checked: hum stays a blind spot)
+    assert all("unexplained" in full["hum"]["severities"][s]["reasons"] for s in ("0.2", "0.4"))
     # what the issue found confidently wrong, now flagged with its reason
     assert full["current_sign"]["flagged_from"] == 1.0 and full["current_sign"]["severities"]["1.0"]["reasons"] == [
         "inconsistent",

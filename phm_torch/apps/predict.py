@@ -51,8 +51,7 @@ from .. import provenance
 from ..io import read_measurement
 from ..online.bench_check import check_bench
 from ..online.corruptions import Record
-from ..online.diagnosis import NOISE_FLOOR, diagnose
-from ..online.input_contract import InputContract
+from ..online.diagnosis import NOISE_FLOOR, contract_for, diagnose
 from ..online.loaded import LoadedPipeline, UnservedRecord, load_pipeline
 from . import common
 
@@ -160,7 +159,7 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             "bench give baseline=<healthy record(s) of that bench>, since a small modelling difference "
             "moves the verdict (docs/surrogates.md, 'Modelling differences')"
         )
-    contract = InputContract.of(model, metadata, command)
+    contract = contract_for(model, metadata, command)
     bench = None if bench_nominal is None else check_bench(model, bench_nominal)
     if bench is not None and not bench.ok:
         log.warning("%s; every record is out of distribution (reason 'bench')", bench.message())

@@ -25,7 +25,7 @@ from omegaconf import DictConfig
 from .. import provenance
 from ..assessment_record import same_labels
 from ..online.bench_check import check_bench
-from ..online.input_contract import InputContract
+from ..online.diagnosis import contract_for
 from ..online.loaded import TorchScriptPipeline, load_pipeline
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
 from ..tracking.companions import companion, missing_message
@@ -94,7 +94,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             log.warning(missing_message(kind, model_path))
     tracker, described = build_tracker(model, metadata, common.plain(cfg.damage), settings, str(model_path), response)
     index = read_index(cfg.index)
-    contract = InputContract.of(model, metadata, command)
+    contract = contract_for(model, metadata, command)
     resample = bool(cfg.resample)
     bench_nominal = _bench_nominal(cfg, loaded)  # phm-predict's baseline: the bench's healthy record(s)
     bench = None if bench_nominal is None else check_bench(loaded, bench_nominal)

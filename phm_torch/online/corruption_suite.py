@@ -29,7 +29,7 @@ from phm_torch.data.sampling import ImportanceSampler
 from phm_torch.faults import FAULT_NAMES
 from phm_torch.io.atomic import atomic_open
 from phm_torch.online.corruptions import CORRUPTIONS, Record, corrupt
-from phm_torch.online.diagnosis import calibrated_interval, diagnose
+from phm_torch.online.diagnosis import calibrated_interval, contract_for, diagnose
 from phm_torch.online.export import read_metadata
 from phm_torch.online.input_contract import PIPELINE_CHECKS, InputContract
 from phm_torch.params import CONF_DIR, ActuatorParams
@@ -194,7 +194,7 @@ def judgement(out: dict[str, Any], k: torch.Tensor, healthy: bool) -> dict[str, 
 
 def contract_of(model: Any, path: Path) -> InputContract:
     """The pipeline's input contract, as phm-predict builds it."""
-    return InputContract.of(model, read_metadata(path), pipeline_conditions(path)[2])
+    return contract_for(model, read_metadata(path), pipeline_conditions(path)[2])
 
 
 def _summary(severities: tuple[float, ...], results: dict[float, list[dict[str, Any]]]) -> dict[str, Any]:

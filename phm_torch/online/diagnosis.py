@@ -7,6 +7,7 @@ take the same path. The record's fields are described in :mod:`phm_torch.apps.pr
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -20,6 +21,7 @@ from .command_check import MAX_LAG_S, NRMSE_TOLERANCE, command_lag, command_nrms
 from .corruptions import Record
 from .input_contract import InputContract
 from .loaded import as_loaded
+from .unexplained_check import residual_floor
 
 # Relative noise always tolerated, whatever the calibration level: the noise estimate of a few noise-free
 # heavy-fault records (ringing current) reaches 2.5 %: 1.3-1.5 % of the paper store's records read above this,
@@ -82,6 +84,18 @@ def align_trigger(
     return aligned, lag / rate
 
 
+def contract_for(
+    model: Any, metadata: Mapping[str, Any], command: Callable[[torch.Tensor], torch.Tensor] | None
+) -> InputContract:
+    """The input contract of an exported pipeline (:meth:`InputContract.of`), with the ``unexplained`` check's
+    floor: the pipeline's gappy residual of its own nominal record (one run; :mod:`.unexplained_check`)."""
+    contract = InputContract.of(model, metadata, command)
+    loaded = as_loaded(model)
+    return dataclasses.replace(
+        contract, residual_floor=residual_floor(loaded.run, getattr(loaded, "nominal_record", None))
+    )
+
+
 def calibrated_interval(model: Any, diagnosis: Mapping[str, Any]) -> tuple[torch.Tensor, torch.Tensor]:
     """(lower, upper) (8,) float64 of a diagnosis's k_hat: its reported ``k_interval``, or where the diagnosis
     reports none (out of distribution) the calibrated one recomputed at its noise (the answer the flag withheld)."""
@@ -129,7 +143,9 @@ def diagnose(
     bounds = None if step.k_lower is None else torch.stack([step.k_lower, step.k_upper], -1)[0]
     reference = float(getattr(model, "calibration_noise", float("nan")))
     noisy = None if math.isnan(reference) or math.isnan(noise) else noise > max(2.0 * reference, NOISE_FLOOR)
-    checks = contract.check(model, record, current[0], noise, bool(ood[0]), k_hat[0], bool(score[0] > 0), measured)
+    checks = contract.check(
+        model, record, current[0], noise, bool(ood[0]), k_hat[0], bool(score[0] > 0), measured, float(resid[0])
+    )
     if trigger_lag:
         checks.messages.append(
             f"the record lagged the test command by {1000 * trigger_lag:.2f} ms (a trigger offset): every channel "

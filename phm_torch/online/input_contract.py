@@ -53,6 +53,8 @@ From the current, against the noise calibration and the training model's nominal
     (0.075 x at most). The check had been skipped for any answer with two large faults, and a bench offset that
     made the FDI read two (a probe offset of half the RMS current read as dry friction 0.65 and short_a 0.34) went
     unflagged;
+  * ``unexplained`` (every damage within 0.1 of nominal) - the pipeline's gappy residual above what the model's
+    own floor and the record's estimated white noise explain (:mod:`.unexplained_check`: coloured noise, hum);
   * ``shape`` (no large fault) - the record's correlation with the nominal record below ``SHAPE_MIN``, or below
     the pipeline's own calibrated threshold (``shape_correlation_min``, :func:`calibrate_shape_min`) when lower;
   * ``spikes`` (no large fault) - a second difference far above the record's noise and above the steps the
@@ -81,6 +83,7 @@ from ..metrics import nrmse
 from .command_check import CommandCheck, check_command
 from .corruptions import Record
 from .run_checks import run_reasons
+from .unexplained_check import UNEXPLAINED_RATIO, checked, unexplained_ratio
 
 PIPELINE_CHECKS = ("missing", "flat", "gappy_residual", "pod_residual", "roughness", "plateau", "inconsistent")
 # a position anti-correlated with its command is a reversed sensor; a stalled actuator (a double short stops it)
@@ -256,6 +259,7 @@ class InputContract:
     tracking_range_healthy: tuple[float, float] | None = None  # that of the healthy training records
     current_bound: float | None = None  # [A] the drive range the FDI was trained within (None: unchecked)
     shape_min: float = SHAPE_MIN  # the ``shape`` check's lowest correlation (metadata ``shape_correlation_min``)
+    residual_floor: float | None = None  # [A] the ``unexplained`` check's r_0 (None: unchecked; diagnosis.contract_for)
 
     @classmethod
     def of(
@@ -303,6 +307,7 @@ class InputContract:
         noise: float,
         k_hat: torch.Tensor | None = None,
         measured: torch.Tensor | None = None,
+        residual: float | None = None,
     ) -> list[str]:
         """The checks of the current (n_full,) [A] against the noise calibration and the nominal record, those
         of a near-nominal answer given its estimate k_hat (8,) (None: skipped); the run checks read ``measured``,
@@ -337,6 +342,14 @@ class InputContract:
             reasons.append("offset")
         if large > 0:
             return reasons
+        if (
+            residual is not None
+            and self.residual_floor is not None
+            and checked(k_hat, model.nominal, model.interval_mask)
+        ):
+            rms = float(_nanmean(x.pow(2)).sqrt())
+            if unexplained_ratio(residual, noise, rms, self.residual_floor) > UNEXPLAINED_RATIO:
+                reasons.append("unexplained")
         if not bool(nominal_correlation(x, nominal) >= self.shape_min):
             reasons.append("shape")
         d2 = (x[2:] - 2.0 * x[1:-1] + x[:-2]).abs()
@@ -356,13 +369,14 @@ class InputContract:
         k_hat: torch.Tensor | None = None,
         healthy: bool | None = None,
         measured: torch.Tensor | None = None,
+        residual: float | None = None,
     ) -> ContractChecks:
         """Every check of one record: ``current`` (n_full,) [A] as the pipeline saw it (after any rebase),
         ``noise`` its estimated relative noise (as measured), ``ood`` the pipeline's own flag, ``k_hat`` (8,) its
         estimate (None: the checks of a near-nominal answer are skipped), ``healthy`` its verdict (True: the
         position must follow the command as the healthy training records do, a dead or reversed sensor on a
         healthy actuator; None or False: as any training record does), ``measured`` the current as recorded
-        (:meth:`current_reasons`)."""
+        (:meth:`current_reasons`), ``residual`` the pipeline's gappy residual [A] (the ``unexplained`` check)."""
         reasons, skipped, messages = [], [], []
         if ood:
             found = pipeline_reasons(model, current.unsqueeze(0))
@@ -397,7 +411,9 @@ class InputContract:
                 )
         else:  # no command or position column, or a constant command: nothing to follow
             skipped.append("tracking")
-        reasons += [r for r in self.current_reasons(model, current, noise, k_hat, measured) if r not in reasons]
+        reasons += [
+            r for r in self.current_reasons(model, current, noise, k_hat, measured, residual) if r not in reasons
+        ]
         return ContractChecks(reasons, skipped, command, tracking, messages)
 
 
