@@ -1,6 +1,6 @@
 """Which faults draw current at rest? The input contract's ``offset`` check compares a record's rest window (the
 leading samples where the nominal record has not left zero) with the nominal record's, and skips answers that
-could draw current there (``input_contract.REST_SHORTS``). Writes JSON.
+could draw current there (``rest_offset_check.REST_SHORTS``). Writes JSON.
 
 HF records of the pipeline's actuator on its test command (noise-free, cached with the corruption suite's records)
 over a grid of two-phase shorts (short_b x short_c) and of one short with dry friction or backlash and gain drift;
@@ -22,8 +22,8 @@ import torch
 from phm_torch.faults import FAULT_NAMES
 from phm_torch.io.atomic import atomic_open
 from phm_torch.online.corruption_suite import CACHE, PIPELINE, _simulate, contract_of, pipeline_conditions
-from phm_torch.online.input_contract import OFFSET_MAX, REST_LEVEL
 from phm_torch.online.loaded import load_pipeline
+from phm_torch.online.rest_offset_check import OFFSET_MAX, REST_LEVEL
 
 LEVELS = (0.2, 0.35, 0.5, 0.65, 0.8, 0.95)
 

@@ -181,7 +181,7 @@ def test_offset_check_is_skipped_only_for_an_answer_with_a_heavily_shorted_pair(
     """A probe offset of half the RMS current on the nominal record is flagged ``offset`` whatever large faults it
     makes the FDI read, unless the answer has two phases shorted at REST_SHORTS or more: only such a pair draws
     current at rest (input_contract's module note)."""
-    from phm_torch.online.input_contract import REST_SHORTS, SHORT_INDEX
+    from phm_torch.online.rest_offset_check import REST_SHORTS, SHORT_INDEX
 
     cs, model, cases = suite
     contract = cs.contract_of(model, PIPELINE)

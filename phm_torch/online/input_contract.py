@@ -44,15 +44,9 @@ From the current, against the noise calibration and the training model's nominal
 * and, for a record whose estimate k_hat is near nominal (the checks a near-nominal answer must pass: its
   record must look like the nominal one), counted in large faults as the intervals count them
   (``|k_hat - k_0| > interval_level``, the phase k7 left out):
-  * ``offset`` (unless two phases read shorted at ``REST_SHORTS`` or more) - over the rest window (the leading
-    samples where the nominal record has not left zero yet: the actuator at rest) the record sits off the nominal
-    record. At rest only a pair of heavily shorted phases draws current (their loop unstable at the PWM rate):
-    over a grid of two-phase shorts of the reference actuator (``scripts/rest_current_shorts.py``) the rest
-    window's offset reached the limit from 0.5 and 0.8 (1.1 x; 0.5 and 0.65: 0.08 x), while one short at any
-    level with dry friction or backlash at 0.8 stayed below 0.05 x, and so did every other of 125 val-like vectors
-    (0.075 x at most). The check had been skipped for any answer with two large faults, and a bench offset that
-    made the FDI read two (a probe offset of half the RMS current read as dry friction 0.65 and short_a 0.34) went
-    unflagged;
+  * ``offset`` (unless two phases read shorted at 0.4 or more) - over the rest window (the leading samples where the
+    nominal record has not left zero yet: the actuator at rest) the record sits off the nominal record
+    (:mod:`.rest_offset_check`);
   * ``unexplained`` (every damage within 0.1 of nominal) - the pipeline's gappy residual above what the model's
     own floor and the record's estimated white noise explain (:mod:`.unexplained_check`: coloured noise, hum);
   * ``shape`` (no large fault) - the record's correlation with the nominal record below ``SHAPE_MIN``, or below
@@ -78,10 +72,10 @@ from typing import Any
 
 import torch
 
-from ..faults import FAULT_NAMES
 from ..metrics import nrmse
 from .command_check import CommandCheck, check_command
 from .corruptions import Record
+from .rest_offset_check import rest_offset
 from .run_checks import run_reasons
 from .unexplained_check import UNEXPLAINED_RATIO, checked, unexplained_ratio
 
@@ -96,11 +90,6 @@ TRACKING_NRMSE_MAX = 0.5
 # position range over the command's range: a loop does not move its load twice as far as commanded (no lower
 # bound: a heavy fault can stall the actuator, position range 0.09 x the command's on a paper-sampled vector)
 POSITION_GAIN = 2.0
-REST_LEVEL = 0.02  # the rest window: nominal |current| <= this x its RMS
-REST_MIN = 8  # samples: a shorter rest window is no check
-OFFSET_MAX = 0.05  # |record - nominal| mean over the rest window, over the nominal RMS (+ 4 noise std)
-SHORT_INDEX = tuple(i for i, name in enumerate(FAULT_NAMES) if name.startswith("short_"))
-REST_SHORTS = 0.4  # two phases shorted this much in k_hat may draw current at rest (0.5 true, less the FDI's error)
 SHAPE_MIN = 0.9  # correlation with the nominal record (the most a calibrated pipeline's own threshold may be)
 SHAPE_MARGIN = 1.5  # a calibrated threshold: 1 - this x (1 - the lowest correlation of the held-out records)
 NOISE_MAX = 0.1  # relative noise limit of a pipeline that does not record its calibrated levels
@@ -124,15 +113,6 @@ class ContractChecks:
 def _nanmean(x: torch.Tensor) -> torch.Tensor:
     finite = torch.isfinite(x)
     return torch.where(finite, x, torch.zeros_like(x)).sum(-1) / finite.sum(-1).clamp(min=1)
-
-
-def _rest_current_possible(k_hat: torch.Tensor | None) -> bool:
-    """Whether the answer k_hat (8,) has two phases shorted at ``REST_SHORTS`` or more (module docstring); True
-    without an answer (the offset check is then skipped)."""
-    if k_hat is None:
-        return True
-    shorts = k_hat.flatten()[list(SHORT_INDEX)].double()
-    return int((shorts >= REST_SHORTS).sum()) >= 2
 
 
 def _large_faults(model: Any, k_hat: torch.Tensor | None) -> int | None:
@@ -331,14 +311,8 @@ class InputContract:
         large = _large_faults(model, k_hat)
         if large is None:
             return reasons
-        quiet = (nominal.abs() <= REST_LEVEL * scale).int().cumprod(0)
-        rest = int(quiet.sum())
         sigma = 0.0 if math.isnan(noise) else noise * float(_nanmean(x.pow(2)).sqrt())  # noise std [A]
-        if (
-            rest >= REST_MIN
-            and not _rest_current_possible(k_hat)
-            and abs(float(_nanmean(x[:rest] - nominal[:rest]))) > OFFSET_MAX * scale + 4.0 * sigma / math.sqrt(rest)
-        ):
+        if rest_offset(x, nominal, sigma, k_hat):
             reasons.append("offset")
         if large > 0:
             return reasons

@@ -1,0 +1,54 @@
+"""The ``offset`` check of the input contract: over the rest window (the leading samples where the nominal record has
+not left zero yet: the actuator at rest) the record sits off the nominal record by more than ``OFFSET_MAX`` of its
+RMS plus four noise standard deviations of the window's mean, unless the answer has two phases shorted at
+``REST_SHORTS`` or more.
+
+At rest only a pair of heavily shorted phases draws current (their loop unstable at the PWM rate): over a grid of
+two-phase shorts of the reference actuator (``scripts/rest_current_shorts.py``) the rest window's offset reached
+the limit from 0.5 and 0.8 (1.1 x; 0.5 and 0.65: 0.08 x), while one short at any level with dry friction or
+backlash at 0.8 stayed below 0.05 x, and so did every other of 125 val-like vectors (0.075 x at most). The check
+had been skipped for any answer with two large faults, and a bench offset that made the FDI read two (a probe
+offset of half the RMS current read as dry friction 0.65 and short_a 0.34) went unflagged.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from ..faults import FAULT_NAMES
+
+REST_LEVEL = 0.02  # the rest window: nominal |current| <= this x its RMS
+REST_MIN = 8  # samples: a shorter rest window is no check
+OFFSET_MAX = 0.05  # |record - nominal| mean over the rest window, over the nominal RMS (+ 4 noise std)
+SHORT_INDEX = tuple(i for i, name in enumerate(FAULT_NAMES) if name.startswith("short_"))
+REST_SHORTS = 0.4  # two phases shorted this much in k_hat may draw current at rest (0.5 true, less the FDI's error)
+
+
+def rest_window(nominal: torch.Tensor) -> int:
+    """Samples of the rest window of the nominal record (n,) [A]: its leading samples within ``REST_LEVEL`` x RMS."""
+    scale = float(nominal.pow(2).mean().sqrt())
+    return int((nominal.abs() <= REST_LEVEL * scale).int().cumprod(0).sum())
+
+
+def rest_current_possible(k_hat: torch.Tensor | None) -> bool:
+    """Whether the answer k_hat (8,) has two phases shorted at ``REST_SHORTS`` or more (the module note); True
+    without an answer (the check is then skipped)."""
+    if k_hat is None:
+        return True
+    shorts = k_hat.flatten()[list(SHORT_INDEX)].double()
+    return int((shorts >= REST_SHORTS).sum()) >= 2
+
+
+def rest_offset(x: torch.Tensor, nominal: torch.Tensor, sigma: float, k_hat: torch.Tensor | None) -> bool:
+    """Whether the record x (n,) [A] sits off the nominal record (n,) [A] over the rest window, its white noise
+    ``sigma`` [A] allowed for (missing samples left out), for the answer k_hat (8,)."""
+    rest = rest_window(nominal)
+    if rest < REST_MIN or rest_current_possible(k_hat):
+        return False
+    window = x[:rest] - nominal[:rest]
+    finite = torch.isfinite(window)
+    mean = float(torch.where(finite, window, torch.zeros_like(window)).sum() / finite.sum().clamp(min=1))
+    scale = float(nominal.pow(2).mean().sqrt())
+    return abs(mean) > OFFSET_MAX * scale + 4.0 * sigma / math.sqrt(rest)
