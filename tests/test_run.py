@@ -93,6 +93,9 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     assert saved["train"]["drive_current_bound"] == 30.0 and saved["evaluate"]["calibration_beyond_drive_range"] >= 0
     recorded = read_metadata(saved["evaluate"]["export"])
     assert recorded["drive_current_bound"] == 30.0 and recorded["assessment"]["_target_"].endswith("AssessmentFunction")
+    # the unexplained check's threshold: the pipeline's own (never below the default) or none to calibrate on
+    own = saved["evaluate"]["unexplained_ratio_max"]
+    assert recorded.get("unexplained_ratio_max") == own and (own is None or own >= 2.2)
     # phm-export rebuilds the same pipeline, FDI band included, from the bundle and rul_calibration.json
     calibration = json.loads((tmp_path / "evaluate" / "rul_calibration.json").read_text())
     assert calibration["fdi_deltas"] == saved["evaluate"]["fdi_band_deltas"]

@@ -62,3 +62,26 @@ def test_contract_of_the_pretrained_pipeline_takes_its_nominal_residual_as_floor
             model, x.double(), float(out.noise[0]), out.k_hat[0], residual=float(out.residual[0])
         )
         assert ("unexplained" in reasons) is expected, reasons
+
+
+@pytest.mark.torchscript
+def test_a_pipeline_calibrates_its_own_threshold_never_below_the_default():
+    from phm_torch.online.from_torchscript import pipeline_from_torchscript
+    from phm_torch.online.input_contract import InputContract
+    from phm_torch.online.unexplained_check import CALIBRATION_MARGIN, UNEXPLAINED_RATIO, calibrate_ratio
+
+    pipeline, _ = pipeline_from_torchscript(PIPELINE)
+    nominal = pipeline.nominal_record.double()
+    rms = float(nominal.pow(2).mean().sqrt())
+    gen = torch.Generator().manual_seed(1)
+    noisy = nominal + 0.01 * rms * torch.randn(4, nominal.numel(), generator=gen, dtype=torch.float64)
+    t = torch.arange(nominal.numel(), dtype=torch.float64) / float(pipeline.sample_rate)
+    hummed = noisy + 0.3 * rms * math.sqrt(2.0) * torch.sin(2 * math.pi * 400.0 * t)
+    with torch.no_grad():
+        k_noisy, k_hummed = pipeline(noisy.float())[0], pipeline(hummed.float())[0]
+    assert calibrate_ratio(pipeline, noisy.float(), k_noisy) == UNEXPLAINED_RATIO  # explained: the default
+    loose = calibrate_ratio(pipeline, hummed.float(), k_hummed)  # held-out records the modes cannot explain
+    assert loose is not None and loose > CALIBRATION_MARGIN * UNEXPLAINED_RATIO
+    assert InputContract.of(pipeline, {"unexplained_ratio_max": loose}, None).unexplained_ratio == loose
+    assert InputContract.of(pipeline, {"unexplained_ratio_max": 1.5}, None).unexplained_ratio == UNEXPLAINED_RATIO
+    assert calibrate_ratio(pipeline, noisy[:0].float(), k_noisy[:0]) is None

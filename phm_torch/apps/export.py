@@ -184,7 +184,13 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     extra = {
         key: cal[key]
         # the input contract's, and the fault rate P(faulty) was calibrated at (phm-track's verdict evidence)
-        for key in ("tracking_nrmse", "tracking_nrmse_healthy", "shape_correlation_min", "verdict_prior_faulty")
+        for key in (
+            "tracking_nrmse",
+            "tracking_nrmse_healthy",
+            "shape_correlation_min",
+            "unexplained_ratio_max",
+            "verdict_prior_faulty",
+        )
         if cal.get(key) is not None
     }
     extra["damage"] = _damage(cal, cfg, cal_path)  # the tracker's process model (phm-track)

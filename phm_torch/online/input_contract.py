@@ -240,6 +240,7 @@ class InputContract:
     current_bound: float | None = None  # [A] the drive range the FDI was trained within (None: unchecked)
     shape_min: float = SHAPE_MIN  # the ``shape`` check's lowest correlation (metadata ``shape_correlation_min``)
     residual_floor: float | None = None  # [A] the ``unexplained`` check's r_0 (None: unchecked; diagnosis.contract_for)
+    unexplained_ratio: float = UNEXPLAINED_RATIO  # its threshold (metadata ``unexplained_ratio_max``: never lower)
 
     @classmethod
     def of(
@@ -252,6 +253,7 @@ class InputContract:
         nominal = getattr(model, "nominal_record", None)
         usable = nominal is not None and bool(torch.isfinite(nominal).all()) and float(nominal.abs().max()) > 0
         bound, shape = metadata.get("drive_current_bound"), metadata.get("shape_correlation_min")
+        ratio = metadata.get("unexplained_ratio_max")
         return cls(
             command,
             tracking,
@@ -260,6 +262,7 @@ class InputContract:
             healthy,
             None if bound is None else float(bound),
             SHAPE_MIN if shape is None else min(SHAPE_MIN, float(shape)),
+            unexplained_ratio=UNEXPLAINED_RATIO if ratio is None else max(UNEXPLAINED_RATIO, float(ratio)),
         )
 
     def _tracking(self, record: Record, healthy: bool | None = None) -> dict[str, Any]:
@@ -322,7 +325,7 @@ class InputContract:
             and checked(k_hat, model.nominal, model.interval_mask)
         ):
             rms = float(_nanmean(x.pow(2)).sqrt())
-            if unexplained_ratio(residual, noise, rms, self.residual_floor) > UNEXPLAINED_RATIO:
+            if unexplained_ratio(residual, noise, rms, self.residual_floor) > self.unexplained_ratio:
                 reasons.append("unexplained")
         if not bool(nominal_correlation(x, nominal) >= self.shape_min):
             reasons.append("shape")

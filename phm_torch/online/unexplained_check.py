@@ -17,12 +17,15 @@ nominal (not flagged by the pipeline) reach 1.62 (within 0.2: 2.26; within 0.3: 
 to the nominal record keeps it at 0.96-1.06. The nominal record read near nominal with 10 / 20 % coloured noise:
 2.2 / 3.4, with 10 / 20 / 40 % 400 Hz hum: 2.0 / 3.6 / 6.9. On a 48 V spoiler actuator's small pipeline
 (r_0 = 0.0054 A, ``FLOOR_LEVEL``) its 425 clean answers within 0.3 of nominal reach 1.21.
+phm-evaluate calibrates a pipeline's own threshold (:func:`calibrate_ratio`, metadata ``unexplained_ratio_max``),
+which may only loosen ``UNEXPLAINED_RATIO``.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from types import SimpleNamespace
 from typing import Any
 
 import torch
@@ -33,6 +36,7 @@ NEAR = 0.1  # the largest damage |k_hat - k_0| (phase left out) of an answer the
 # nominal record almost exactly (a 48 V spoiler actuator's: 1.6e-4 A) saw other noise-free near-nominal records at
 # 3.2 times that, where any real noise dominates (at 1 % its ratios stayed below 1.2)
 FLOOR_LEVEL = 0.005
+CALIBRATION_MARGIN = 1.35  # a pipeline's own threshold: its held-out near answers' largest ratio x this
 
 
 def residual_floor(run: Callable[[torch.Tensor], Any], nominal: torch.Tensor | None) -> float | None:
@@ -60,3 +64,26 @@ def unexplained_ratio(residual: float, noise: float, rms: float, floor: float) -
     counted), ``rms`` the record's RMS current [A], ``floor`` r_0 [A] (:func:`residual_floor`)."""
     sigma = 0.0 if math.isnan(noise) else noise * rms
     return residual / math.sqrt(floor * floor + sigma * sigma)
+
+
+def calibrate_ratio(pipeline: Any, signals: torch.Tensor, k_hat: torch.Tensor) -> float | None:
+    """The check's threshold for an eager pipeline from held-out noisy records (B, n_full) [A] and its estimates
+    k_hat (B, 8): ``CALIBRATION_MARGIN`` x the largest ratio of the answers within ``NEAR`` of nominal, and never
+    below ``UNEXPLAINED_RATIO`` (a pipeline's own records may only loosen it: an actuator whose modes leave more of
+    its near-nominal records unexplained than the reference's). None: nothing to calibrate on."""
+    nominal = getattr(pipeline, "nominal_record", None)
+    if nominal is None or signals.shape[0] == 0 or nominal.numel() != signals.shape[1]:
+        return None
+    near = torch.tensor([checked(k, pipeline.nominal, pipeline.interval_mask) for k in k_hat], dtype=torch.bool)
+    if not bool(near.any()):
+        return None
+    x = signals[near].to(pipeline.times.dtype)
+    with torch.no_grad():
+        floor = residual_floor(lambda r: SimpleNamespace(residual=pipeline(r)[4]), nominal)
+        residual, noise = pipeline(x)[4], pipeline.noise_level(x)
+    if floor is None:
+        return None
+    rms = x.double().pow(2).mean(1).sqrt()
+    ratios = [unexplained_ratio(float(r), float(n), float(m), floor) for r, n, m in zip(residual, noise, rms)]
+    finite = [v for v in ratios if math.isfinite(v)]
+    return max(UNEXPLAINED_RATIO, CALIBRATION_MARGIN * max(finite)) if finite else None

@@ -25,6 +25,7 @@ from ...online.consistency import calibrate_consistency
 from ...online.fdi_interval import interval_quality
 from ...online.input_contract import calibrate_shape_min
 from ...online.noise_threshold import calibrate_gappy_residual
+from ...online.unexplained_check import calibrate_ratio
 from ...online.verdict import verdict_quality
 from ...params import ActuatorParams
 from ...prognostics import DeterministicRUL, RULEstimator
@@ -178,6 +179,7 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
     metrics.update(actuator=provenance.describe(prov["actuator"]), command=provenance.describe(prov["command"]))
     metrics["calibration_beyond_drive_range"] = inp.band_beyond_drive_range  # left out of every calibration
     metrics["shape_correlation_min"] = c.shape_min
+    metrics["unexplained_ratio_max"] = c.unexplained
     export_metadata = {
         "provenance": prov,
         "tracking_nrmse": inp.tracking,
@@ -185,6 +187,7 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
         "identifiability": c.r2,
         "drive_current_bound": inp.bundle.extra.get("drive_current_bound"),  # the input contract's overcurrent
         "shape_correlation_min": c.shape_min,  # the input contract's shape check
+        "unexplained_ratio_max": c.unexplained,  # its unexplained check
         "assessment": inp.bundle.extra.get("assessment"),  # the phi_a its classifiers learned (phm-track checks it)
         "damage": dict(settings.damage),  # phm-track's process model
     }
@@ -238,6 +241,7 @@ def _calibrate(settings: EvaluateSettings, pipeline: OnlinePipeline, inp: Simple
     return SimpleNamespace(
         r2=r2,
         shape_min=calibrate_shape_min(pipeline, band_signals[~band_ood], band_k_hat[~band_ood]),
+        unexplained=calibrate_ratio(pipeline, band_signals[~band_ood], band_k_hat[~band_ood]),
         unidentified=unidentified,
         band=band,
         verdict=verdict,
@@ -329,6 +333,7 @@ def _calibration_record(
         "tracking_nrmse": inp.tracking,
         "tracking_nrmse_healthy": inp.tracking_healthy,
         "shape_correlation_min": c.shape_min,
+        "unexplained_ratio_max": c.unexplained,
         "consistency": c.consistency,
         "gappy_residual": c.gappy_residual,
         "damage": dict(settings.damage),
