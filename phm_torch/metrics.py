@@ -8,6 +8,12 @@ import numpy as np
 import torch
 
 
+def finite_mean(x: torch.Tensor) -> torch.Tensor:
+    """Mean over the last dimension of the finite values of x (..., n) (NaN and inf left out; 0 if none)."""
+    finite = torch.isfinite(x)
+    return torch.where(finite, x, torch.zeros_like(x)).sum(-1) / finite.sum(-1).clamp(min=1)
+
+
 def nrmse(signal: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
     """RMS of (signal - reference) over the last axis, divided by the reference's range (max - min); (...,)
     fraction.

@@ -24,19 +24,11 @@ import torch
 
 from phm_torch.io.atomic import atomic_open
 from phm_torch.online.corruption_suite import CACHE, clean_records
-from phm_torch.online.from_torchscript import pipeline_from_torchscript, probe_records
+from phm_torch.online.from_torchscript import pipeline_from_torchscript, probe_records, scaled_differences
 from phm_torch.online.loaded import as_loaded, load_pipeline
 
 OUTPUTS = ("k_hat", "score", "p_faulty", "rul", "residual", "noise")
 LIMIT = 1e-5
-
-
-def scaled(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Per record (B,): the largest |a - b| / max(1, |b|) over its values; NaN on both sides is equal."""
-    a, b = a.double().reshape(a.shape[0], -1), b.double().reshape(b.shape[0], -1)
-    both = torch.isnan(a) & torch.isnan(b)
-    d = ((a - b) / b.abs().nan_to_num(0.0, 0.0, 0.0).clamp(min=1.0)).abs()
-    return torch.where(both, torch.zeros_like(d), d.nan_to_num(float("inf"))).amax(1)
 
 
 def compare(a, b, x: torch.Tensor) -> dict[str, dict[str, float]]:
@@ -46,7 +38,7 @@ def compare(a, b, x: torch.Tensor) -> dict[str, dict[str, float]]:
         va, vb = getattr(ra, name), getattr(rb, name)
         if va is None or vb is None:
             continue
-        d = scaled(va, vb)
+        d = scaled_differences(va, vb)
         out[name] = {"max": float(d.max()), "records_over_1e-5": int((d > LIMIT).sum())}
     return out
 

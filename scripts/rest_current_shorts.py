@@ -23,7 +23,7 @@ from phm_torch.faults import FAULT_NAMES
 from phm_torch.io.atomic import atomic_open
 from phm_torch.online.corruption_suite import CACHE, PIPELINE, _simulate, contract_of, pipeline_conditions
 from phm_torch.online.loaded import load_pipeline
-from phm_torch.online.rest_offset_check import OFFSET_MAX, REST_LEVEL
+from phm_torch.online.rest_offset_check import OFFSET_MAX, rest_window
 
 LEVELS = (0.2, 0.35, 0.5, 0.65, 0.8, 0.95)
 
@@ -36,7 +36,7 @@ def main() -> None:
     path = Path(args.pipeline)
     nominal = contract_of(load_pipeline(path), path).nominal
     scale = float(nominal.pow(2).mean().sqrt())
-    rest = int((nominal.abs() <= REST_LEVEL * scale).int().cumprod(0).sum())
+    rest = rest_window(nominal)
     params, _, command = pipeline_conditions(path)
     k0 = torch.tensor(params.nominal_faults, dtype=torch.float64)
     index = {name: i for i, name in enumerate(FAULT_NAMES)}

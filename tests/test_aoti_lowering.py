@@ -41,6 +41,12 @@ def test_linear_for_inductor_is_the_product_plus_the_bias():
     torch.testing.assert_close(linear_for_inductor(x, w, b), nn.functional.linear(x, w, b), rtol=1e-6, atol=1e-6)
 
 
+def _lowered(module: nn.Module, k: torch.Tensor) -> torch.fx.GraphModule:
+    """``module`` exported with a dynamic batch on k (B, 8) and rewritten by :func:`for_inductor`."""
+    batch = torch.export.Dim("batch", min=1, max=1024)
+    return for_inductor(torch.export.export(module, (k,), dynamic_shapes={"k": {0: batch}}, strict=False).module())
+
+
 class _Toy(nn.Module):
     """A verdict classifier and an FDI, as the pipeline names them, each a layer and a tanh."""
 
@@ -56,9 +62,7 @@ class _Toy(nn.Module):
 def test_for_inductor_rewrites_the_classifiers_tanh_and_every_matrix_layer_only():
     toy = _Toy().eval()
     k = torch.rand(5, 8, generator=torch.Generator().manual_seed(2))
-    batch = torch.export.Dim("batch", min=1, max=1024)
-    module = torch.export.export(toy, (k,), dynamic_shapes={"k": {0: batch}}, strict=False).module()
-    lowered = for_inductor(module)
+    lowered = _lowered(toy, k)
     targets = [n.target for n in lowered.graph.nodes if n.op == "call_function"]
     assert targets.count(tanh_for_inductor) == 1  # the classifier's
     assert targets.count(torch.ops.aten.tanh.default) == 1  # the FDI's, kept: its k_hat starts the RUL
@@ -84,9 +88,7 @@ class _Crossing(nn.Module):
 def test_for_inductor_keeps_the_crossing_scores_tanh_exact_and_drops_the_marker():
     toy = _Crossing().eval()
     k = torch.rand(5, 8, generator=torch.Generator().manual_seed(3))
-    batch = torch.export.Dim("batch", min=1, max=1024)
-    module = torch.export.export(toy, (k,), dynamic_shapes={"k": {0: batch}}, strict=False).module()
-    lowered = for_inductor(module)
+    lowered = _lowered(toy, k)
     nodes = [n for n in lowered.graph.nodes if n.op in ("call_function", "get_attr")]
     targets = [n.target for n in nodes if n.op == "call_function"]
     assert targets.count(tanh_for_inductor) == 1 and targets.count(torch.ops.aten.tanh.default) == 1

@@ -318,6 +318,15 @@ def probe_records(pipeline: OnlinePipeline, seed: int = 0) -> torch.Tensor:
 OUTPUTS = ("k_hat", "k_lower", "k_upper", "score", "p_faulty", "rul", "ood", "residual", "noise")  # StepResult's
 
 
+def scaled_differences(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Per record (B,): the largest |a - b| / max(1, |b|) over the values of one output a, b (B, ...) (relative above
+    1, e.g. the RUL in hours); NaN on both sides counts as equal, on one side only as an infinite difference."""
+    a, b = a.double().reshape(a.shape[0], -1), b.double().reshape(b.shape[0], -1)
+    scale = b.abs().nan_to_num(0.0, 0.0, 0.0).clamp(min=1.0)
+    d = ((a - b) / scale).abs().nan_to_num(float("inf"))
+    return torch.where(torch.isnan(a) & torch.isnan(b), torch.zeros_like(d), d).amax(1)
+
+
 def output_diffs(a: Any, b: Any, x: torch.Tensor) -> dict[str, dict[str, float]]:
     """How far apart two pipelines (loaded, eager or scripted) are on records x (full, and for full x also their
     selected samples), over every output phm-predict reads (:data:`OUTPUTS`, the fields of
@@ -345,9 +354,7 @@ def output_diffs(a: Any, b: Any, x: torch.Tensor) -> dict[str, dict[str, float]]
             if va is None or vb is None:
                 diff = scaled = 0.0 if va is None and vb is None else math.inf
             else:
-                va, vb = va.double(), vb.double()
-                scale = vb.abs().nan_to_num(0.0, 0.0, 0.0).clamp(min=1.0)
-                diff, scaled = _max_diff(va, vb), _max_diff(va / scale, vb / scale)
+                diff, scaled = _max_diff(va, vb), float(scaled_differences(va, vb).max())
             out[name] = {"abs": max(out[name]["abs"], diff), "scaled": max(out[name]["scaled"], scaled)}
     return out
 

@@ -57,10 +57,10 @@ From the current, against the noise calibration and the training model's nominal
 A record whose k_hat has large faults skips the shape and spike comparisons: heavy faults reshape the record (24
 val-like vectors: correlation with the nominal record down to 0.22); the consistency of such an answer is the
 forward surrogate's (``inconsistent``). The rest window stays the nominal one's under any fault but a heavily
-shorted pair (above; the 0.9 of its RMS measured once came from two phases shorted at 0.8 and 0.63). The thresholds were measured on
-clean records of the reference actuator (``scripts/corruption_suite.py``, docs/prognostics.md): over 24 random
-fault vectors at 0-3 % noise, records with no large fault in k_hat correlate >= 0.968 with the nominal one,
-sit within 0.012 of its RMS over the rest window with at most one, and step by at most 0.39 of it.
+shorted pair (:mod:`.rest_offset_check`; the 0.9 of its RMS measured once came from two phases shorted at 0.8 and
+0.63). The thresholds were measured on clean records of the reference actuator (``scripts/corruption_suite.py``,
+docs/prognostics.md): over 24 random fault vectors at 0-3 % noise, records with no large fault in k_hat correlate
+>= 0.968 with the nominal one, sit within 0.012 of its RMS over the rest window, and step by at most 0.39 of it.
 """
 
 from __future__ import annotations
@@ -72,7 +72,7 @@ from typing import Any
 
 import torch
 
-from ..metrics import nrmse
+from ..metrics import finite_mean, nrmse
 from .command_check import CommandCheck, check_command
 from .corruptions import Record
 from .rest_offset_check import rest_offset
@@ -108,11 +108,6 @@ class ContractChecks:
     command: CommandCheck | None
     tracking: dict[str, Any] | None
     messages: list[str] = field(default_factory=list)
-
-
-def _nanmean(x: torch.Tensor) -> torch.Tensor:
-    finite = torch.isfinite(x)
-    return torch.where(finite, x, torch.zeros_like(x)).sum(-1) / finite.sum(-1).clamp(min=1)
 
 
 def _large_faults(model: Any, k_hat: torch.Tensor | None) -> int | None:
@@ -308,25 +303,22 @@ class InputContract:
         if nominal is None or nominal.shape != x.shape:
             return reasons
         scale = float(nominal.pow(2).mean().sqrt())
-        mean = float(_nanmean(x))
+        mean = float(finite_mean(x))
         if mean * float(nominal.mean()) < 0:
             reasons.append("sign")
         large = _large_faults(model, k_hat)
         if large is None:
             return reasons
-        sigma = 0.0 if math.isnan(noise) else noise * float(_nanmean(x.pow(2)).sqrt())  # noise std [A]
+        rms = float(finite_mean(x.pow(2)).sqrt())
+        sigma = 0.0 if math.isnan(noise) else noise * rms  # noise std [A]
         if rest_offset(x, nominal, sigma, k_hat):
             reasons.append("offset")
         if large > 0:
             return reasons
-        if (
-            residual is not None
-            and self.residual_floor is not None
-            and checked(k_hat, model.nominal, model.interval_mask)
-        ):
-            rms = float(_nanmean(x.pow(2)).sqrt())
-            if unexplained_ratio(residual, noise, rms, self.residual_floor) > self.unexplained_ratio:
-                reasons.append("unexplained")
+        floor = self.residual_floor
+        near = residual is not None and floor is not None and checked(k_hat, model.nominal, model.interval_mask)
+        if near and unexplained_ratio(residual, noise, rms, floor) > self.unexplained_ratio:
+            reasons.append("unexplained")
         if not bool(nominal_correlation(x, nominal) >= self.shape_min):
             reasons.append("shape")
         d2 = (x[2:] - 2.0 * x[1:-1] + x[:-2]).abs()

@@ -18,6 +18,7 @@ import math
 import torch
 
 from ..faults import FAULT_NAMES
+from ..metrics import finite_mean
 
 REST_LEVEL = 0.02  # the rest window: nominal |current| <= this x its RMS
 REST_MIN = 8  # samples: a shorter rest window is no check
@@ -28,8 +29,11 @@ REST_SHORTS = 0.4  # two phases shorted this much in k_hat may draw current at r
 
 def rest_window(nominal: torch.Tensor) -> int:
     """Samples of the rest window of the nominal record (n,) [A]: its leading samples within ``REST_LEVEL`` x RMS."""
-    scale = float(nominal.pow(2).mean().sqrt())
-    return int((nominal.abs() <= REST_LEVEL * scale).int().cumprod(0).sum())
+    return int((nominal.abs() <= REST_LEVEL * _rms(nominal)).int().cumprod(0).sum())
+
+
+def _rms(x: torch.Tensor) -> float:
+    return float(x.pow(2).mean().sqrt())
 
 
 def rest_current_possible(k_hat: torch.Tensor | None) -> bool:
@@ -47,8 +51,5 @@ def rest_offset(x: torch.Tensor, nominal: torch.Tensor, sigma: float, k_hat: tor
     rest = rest_window(nominal)
     if rest < REST_MIN or rest_current_possible(k_hat):
         return False
-    window = x[:rest] - nominal[:rest]
-    finite = torch.isfinite(window)
-    mean = float(torch.where(finite, window, torch.zeros_like(window)).sum() / finite.sum().clamp(min=1))
-    scale = float(nominal.pow(2).mean().sqrt())
-    return abs(mean) > OFFSET_MAX * scale + 4.0 * sigma / math.sqrt(rest)
+    mean = float(finite_mean(x[:rest] - nominal[:rest]))
+    return abs(mean) > OFFSET_MAX * _rms(nominal) + 4.0 * sigma / math.sqrt(rest)
