@@ -123,7 +123,7 @@ def main() -> None:
         "updates": len(times),
     }
 
-    # the near-nominal FDI's reading of one record (gappy coefficients, its network, the gate), where it ships
+    # the near-nominal FDI's reading of one record (its coefficients, its network, the gate), where it ships
     pool = records(model, args.pool)
     near_path = PIPELINE.with_name(PIPELINE.stem + ".near_nominal.pt")
     near = NearNominalFDI.load(near_path) if near_path.is_file() else None
@@ -135,7 +135,7 @@ def main() -> None:
         for _ in range(200):
             t0 = time.perf_counter()
             with torch.no_grad():
-                near.read(model.gappy(one.index_select(1, model.gappy.indices))[0], k_one, noise_one)
+                near.read(near.coefficients(model, one)[0], k_one, noise_one)
             reads_us.append(1e6 * (time.perf_counter() - t0))
         out["near_nominal_read_us_p50"] = statistics.median(reads_us)
 

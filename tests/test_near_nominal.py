@@ -111,3 +111,40 @@ def test_only_the_records_the_gate_admits_calibrate_it(fitted):
             )
     finally:
         fitted.half_widths_.copy_(before)
+
+
+def test_a_full_record_network_projects_every_sample_on_an_orthonormal_basis(tmp_path):
+    """Its basis holds the training records' principal directions, orthonormal, so white noise of std sigma per
+    sample is white of std sigma on each coefficient (what the fit adds); a record it cannot read (a NaN sample, or
+    another length) is refused or marked, and the file round-trips with its basis."""
+    n_full, n_modes = 200, 4
+    g = torch.Generator().manual_seed(7)
+    shapes = torch.randn(3, n_full, generator=g, dtype=torch.float64)
+    records = torch.randn(300, 3, generator=g, dtype=torch.float64) @ shapes + 2.0
+    net = NearNominalFDI(n_modes, n_hidden=8, noise_levels=(0.01,), n_full=n_full)
+    explained = net.fit_basis(records)
+    basis = net.basis_.double()  # stored in float32
+    assert torch.allclose(basis.T @ basis, torch.eye(n_modes, dtype=torch.float64), atol=1e-6)
+    assert float(explained[:3].sum()) == pytest.approx(1.0, abs=1e-9)  # three shapes: three directions hold it all
+    alpha, readable = net.coefficients(None, records)
+    assert bool(readable.all())
+    back = alpha[:, :3] @ basis[:, :3].T + net.record_mean_
+    assert torch.allclose(back, records, atol=1e-5)  # the records lie in the basis's span
+    sigma = 0.3
+    noise = sigma * torch.randn(4000, n_full, generator=g, dtype=torch.float64)
+    coeff_std = (noise @ basis).std(0)
+    assert torch.allclose(coeff_std, torch.full((n_modes,), sigma, dtype=torch.float64), rtol=0.05)
+    holed = records[:2].clone()
+    holed[1, 5] = float("nan")
+    alpha, readable = net.coefficients(None, holed)
+    assert readable.tolist() == [True, False] and bool(torch.isfinite(alpha).all())
+    with pytest.raises(ValueError, match=r"records \(B, 200\) expected, got \(2, 199\)"):
+        net.coefficients(None, records[:2, :199])
+    with pytest.raises(ValueError, match="n_full must be an integer above n_modes"):
+        NearNominalFDI(n_modes, n_full=3)
+    net.provenance = {"probe_k_hat": probe_k_hat(make_pipeline())}
+    net.save(tmp_path / "full.pt")
+    again = NearNominalFDI.load(tmp_path / "full.pt")
+    assert again.n_full == n_full and torch.equal(again.basis_, net.basis_)
+    with pytest.raises(ValueError, match="reads records of 200 samples"):
+        again.check_for(make_pipeline(), "the synthetic pipeline")

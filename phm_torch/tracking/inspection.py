@@ -51,13 +51,14 @@ def inspect_record(
     if near_nominal is None or found["out_of_distribution"] or found["noise"] is None:
         return found
     m = model.module if hasattr(model, "module") else model
-    samples = current.index_select(1, m.gappy.indices).to(m.gappy.modes_hat.dtype)
-    if not bool(torch.isfinite(samples).all()):  # missing samples: the pipeline's own estimate
+    with torch.no_grad():
+        alpha, readable = near_nominal.coefficients(m, current)
+    if not bool(readable[0]):  # missing samples: the pipeline's own estimate
         return found
     k_pipeline = torch.tensor([[found["k_hat"][n] for n in FAULT_NAMES]], dtype=torch.float64)
     with torch.no_grad():
         used, k, lower, upper = near_nominal.read(
-            m.gappy(samples)[0], k_pipeline, torch.tensor([found["noise"]], dtype=torch.float64)
+            alpha, k_pipeline, torch.tensor([found["noise"]], dtype=torch.float64)
         )
     if bool(used[0]):
         found["k_near_nominal"] = dict(zip(FAULT_NAMES, k[0].tolist()))
@@ -81,9 +82,9 @@ def inspect_currents(
         p_faulty = model.faulty_probability(score)
         near = None
         if near_nominal is not None:
-            samples = x.index_select(1, model.gappy.indices).to(model.gappy.modes_hat.dtype)
-            used, k_near, lo_near, hi_near = near_nominal.read(model.gappy(samples)[0], k_hat, noise)
-            used = used & torch.isfinite(samples).all(1)
+            alpha, readable = near_nominal.coefficients(model, x)
+            used, k_near, lo_near, hi_near = near_nominal.read(alpha, k_hat, noise)
+            used = used & readable
             near = (used.tolist(), k_near.tolist(), lo_near.tolist(), hi_near.tolist())
     flagged = ood.nonzero().flatten().tolist()
     found = pipeline_reasons(model, x[flagged]) if flagged else []
