@@ -260,3 +260,35 @@ def test_a_near_nominal_fdi_beside_the_pipeline_is_read_near_nominal(fleet, comp
     _, none = run(compose, fleet, tmp_path / "none", f"pipeline={tmp_path / 'online.pt'}", "near_nominal=null")
     assert not any("k_hat_near_nominal" in i for a in none["track"]["actuators"].values() for i in a["inspections"])
     assert not any("near_nominal=auto" in r.getMessage() for r in caplog.records)  # null: none asked for
+
+
+def test_a_whole_record_near_nominal_fdi_is_read_on_every_sample(fleet, compose, tmp_path):
+    """The near-nominal FDI that projects the whole record on its own basis (``n_full``) is read by phm-track as the
+    gappy one is; its reading is that of its own projection of the record."""
+    import shutil
+
+    import numpy as np
+
+    from phm_torch.faults import FAULT_NAMES
+    from phm_torch.io import read_measurement
+    from phm_torch.online.loaded import load_pipeline
+    from phm_torch.tracking.near_nominal import NearNominalFDI
+    from phm_torch.tracking.response import probe_k_hat
+
+    shutil.copy(fleet / "online.pt", tmp_path / "online.pt")
+    module = load_pipeline(tmp_path / "online.pt").module
+    near = NearNominalFDI(4, n_hidden=8, gate=1.0, noise_levels=(0.5,), n_full=int(module.n_full))
+    currents = [read_measurement(f).current for f in sorted((fleet / "records").glob("*.csv"))]
+    near.fit_basis(torch.tensor(np.stack(currents)))  # the fleet's own records: 12 > 4 directions
+    near.half_widths_.fill_(0.01)
+    near.provenance = {"probe_k_hat": probe_k_hat(module), "source": "online.pt"}
+    near.save(tmp_path / "online.near_nominal.pt")
+    _, objects = run(compose, fleet, tmp_path / "out", f"pipeline={tmp_path / 'online.pt'}")
+    actuator, info = next(iter(objects["track"]["actuators"].items()))
+    first = next(i for i in info["inspections"] if not i["out_of_distribution"])
+    current = torch.tensor(read_measurement(fleet / first["file"]).current).reshape(1, -1)
+    alpha, readable = near.coefficients(module, current)
+    with torch.no_grad():
+        expected = near(alpha, torch.tensor([first["noise"]], dtype=torch.float64))[0]
+    got = torch.tensor([first["k_hat_near_nominal"][n] for n in FAULT_NAMES], dtype=torch.float64)
+    assert bool(readable[0]) and torch.allclose(got[:6], expected[:6], atol=1e-6), actuator
