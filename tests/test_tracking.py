@@ -405,3 +405,28 @@ def test_the_kalman_update_is_the_joint_one_and_a_clamped_reading_is_a_bound():
         ),
         rel=1e-6,
     )
+
+
+def test_the_boundary_timing_error_widens_the_band_of_healthy_particles_only(pipeline, law):
+    """Each healthy, uncensored particle's RUL gets std x its normal added (kept above 0); a particle already past
+    the boundary (RUL 0) and a censored one are untouched, so the end-of-life flag (p50 = 0) cannot move. Without
+    normals, or at std 0, the RUL is the plain one."""
+    k = torch.tensor(NOMINAL, dtype=torch.float64).repeat(1, 64, 1)
+    k[0, :48, 0] = torch.linspace(0.1, 0.3, 48, dtype=torch.float64)  # healthy with some life left
+    k[0, 48:, 0] = 0.95  # past the classifier's boundary (< 0.3 healthy): no life left
+    s = torch.ones(1, 64, dtype=torch.float64)
+    z = torch.randn(1, 64, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    plain = ParticleRUL(pipeline, law, bisections=8)
+    jitter = ParticleRUL(pipeline, law, bisections=8, boundary_std_hours=300.0)
+    q0, _, tau0 = plain(k, s)
+    q1, _, tau1 = jitter(k, s, z_boundary=z)
+    torch.testing.assert_close(tau1, tau0)  # the crossings (the warm starts) are the classifier's own
+    assert torch.equal(jitter(k, s)[0], q0)  # no normals: no timing error
+    assert torch.equal(ParticleRUL(pipeline, law, 8, 8)(k, s, z_boundary=z)[0], q0)  # std 0: none
+    assert float(q0[0, 0]) == 0.0 and float(q1[0, 0]) == 0.0  # a quarter of the particles have no life left
+    assert float(q1[0, 1]) > 0.0  # the healthy ones still have some, whatever their timing error
+    assert float(q1[0, 2]) > float(q0[0, 2])  # the upper bound moves out by the timing error
+    with pytest.raises(ValueError, match="boundary_std_hours must be finite and >= 0, got -1.0"):
+        ParticleRUL(pipeline, law, boundary_std_hours=-1.0)
+    with pytest.raises(ValueError, match="tracker.boundary_std_hours must be finite and >= 0"):
+        TrackerSettings(boundary_std_hours=float("nan"))

@@ -56,6 +56,7 @@ TRACKER_KEYS = (
     "resample_ess",
     "verdict",
     "verdict_evidence",
+    "boundary_std_hours",
 )
 schema.register(
     "track",

@@ -51,7 +51,7 @@ def build_tracker(
     law = DamageLaw.from_config(damage, model, where)
     with_s = where.endswith("metadata") and bool(calibrated_sigma) and float(calibrated_sigma) > 0
     eps = eps_log_sigmas(model, law, with_s)
-    rul = ParticleRUL(model, law, settings.max_rate_scale, settings.bisections, eps)
+    rul = ParticleRUL(model, law, settings.max_rate_scale, settings.bisections, eps, settings.boundary_std_hours)
     prior = metadata.get("verdict_prior_faulty")
     if settings.verdict_evidence and prior is None:
         log.info(

@@ -62,6 +62,9 @@ class TrackerSettings:
             where the record's own verdict (phm-predict's) is faulty, whose RUL 5 % and 50 % are then 0.
         verdict_evidence: weigh the RUL particles already faulty by the record's P(faulty) as a likelihood ratio
             (:func:`~.measurement.verdict_odds`; needs the pipeline's ``verdict_prior_faulty``).
+        boundary_std_hours: [h] the health classifier's timing error against phi_a where a damage path crosses the
+            boundary, given to each healthy RUL particle (:class:`~.particle_rul.ParticleRUL`). 60: the std measured
+            along 60 histories of the reference actuator (50-69 h; docs/prognostics.md); 0: none.
     """
 
     n_particles: int = 128
@@ -74,6 +77,7 @@ class TrackerSettings:
     resample_ess: float = 0.5
     verdict: str = "record"
     verdict_evidence: bool = True
+    boundary_std_hours: float = 60.0
 
     def __post_init__(self) -> None:
         for name in ("n_particles", "rul_particles", "seed", "bisections"):
@@ -101,6 +105,9 @@ class TrackerSettings:
             raise ValueError(f"tracker.shrink must be in (0, 1], got {self.shrink!r}")
         if not float(self.max_rate_scale) > 1.0:
             raise ValueError(f"tracker.max_rate_scale must be > 1, got {self.max_rate_scale!r}")
+        self.boundary_std_hours = float(self.boundary_std_hours)
+        if not (math.isfinite(self.boundary_std_hours) and self.boundary_std_hours >= 0.0):
+            raise ValueError(f"tracker.boundary_std_hours must be finite and >= 0, got {self.boundary_std_hours!r}")
 
 
 @dataclass
@@ -214,15 +221,17 @@ class Tracker:
 
     # ---- one inspection per actuator of a batch -------------------------------------------------------
     def _normals(self, actuators: Sequence[str], rows: torch.Tensor) -> torch.Tensor:
-        """(B, P, 13) standard normals, one generator per (actuator, inspection number): [0, 8) the RUL sample's
+        """(B, P, 14) standard normals, one generator per (actuator, inspection number): [0, 8) the RUL sample's
         normals of a new track, 8 the initial log s, 9 the kernel step, 10 (first particle) the resampling comb,
-        11 the future-eps factor of the RUL, 12 the order of the resampled copies."""
+        11 the future-eps factor of the RUL, 12 the order of the resampled copies, 13 the health boundary's timing
+        error of the RUL (drawn after the others, so that they are those of a generator without it)."""
         p = self.settings.n_particles
-        out = torch.empty(len(actuators), p, N_FAULTS + 5, dtype=torch.float64)
+        out = torch.empty(len(actuators), p, N_FAULTS + 6, dtype=torch.float64)
         g = torch.Generator()
         for i, (a, step) in enumerate(zip(actuators, self.steps[rows].tolist())):
             g.manual_seed(actuator_seed(self.settings.seed, a, step))
-            out[i] = torch.randn(out.shape[1:], generator=g, dtype=torch.float64)
+            out[i, :, : N_FAULTS + 5] = torch.randn((p, N_FAULTS + 5), generator=g, dtype=torch.float64)
+            out[i, :, N_FAULTS + 5] = torch.randn(p, generator=g, dtype=torch.float64)
         return out
 
     def update(
@@ -285,7 +294,7 @@ class Tracker:
             self._fuse(st, k_hat, scale, z, upd, cap)
         now_tracked = tracked | init
         odds = None if faulty_odds is None else torch.where(fuse, torch.as_tensor(faulty_odds).reshape(b), 1.0)
-        post = self._summary(st, now_tracked, z[:, :, N_FAULTS + 3], fuse & faulty, odds)
+        post = self._summary(st, now_tracked, z[:, :, N_FAULTS + 3], fuse & faulty, odds, z[:, :, N_FAULTS + 5])
         for name, value in st.items():
             getattr(self, name)[rows] = value
         self.tracked[rows] = now_tracked
@@ -337,6 +346,7 @@ class Tracker:
         z_eps: torch.Tensor,
         faulty: torch.Tensor,
         faulty_odds: torch.Tensor | None = None,
+        z_boundary: torch.Tensor | None = None,
     ) -> Posterior:
         """Weighted summaries of the batch; refreshes ``st["tau"]`` of the RUL subset."""
         k_mean_p, log_s = st["k"], st["log_s"]
@@ -352,7 +362,10 @@ class Tracker:
             m = min(self.settings.rul_particles, k.shape[1])
             wm = w[idx, :m] / w[idx, :m].sum(1, keepdim=True)
             odds = None if faulty_odds is None else faulty_odds[idx]
-            r, c, tau = self.rul_model(k[idx, :m], log_s[idx, :m].exp(), z_eps[idx, :m], wm, st["tau"][idx, :m], odds)
+            zb = None if z_boundary is None else z_boundary[idx, :m]
+            r, c, tau = self.rul_model(
+                k[idx, :m], log_s[idx, :m].exp(), z_eps[idx, :m], wm, st["tau"][idx, :m], odds, zb
+            )
             rul[idx], censored[idx] = r, c
             st["tau"][idx, :m] = tau
         # the inspection's verdict says faulty: no life left at 5 and 50 %

@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 HUGE = 1e30  # the RUL of a particle still healthy at the end of its search (censored)
 WARM_WIDTH = 0.1  # relative half-width of the warm bracket (at least one grid step)
 REFINE = 2  # Illinois steps in a warm bracket
+MIN_LIVE_RUL = 1e-3  # [h] a healthy particle's RUL after its boundary timing error: still healthy (> 0)
 
 
 def eps_log_sigmas(model: Any, law: DamageLaw, band_includes_rate_scale: bool) -> tuple[float, float]:
@@ -68,6 +69,10 @@ class ParticleRUL:
         max_rate_scale: largest s r the wear-clock search covers (the grid reaches horizon x this).
         bisections: halvings of the first faulty coarse interval.
         eps_sigmas: (low, high) log-std of the future-eps factor r (:func:`eps_log_sigmas`); (0, 0): none.
+        boundary_std_hours: std [h] of the health classifier's crossing time against the true boundary's (phi_a's)
+            along a damage path: each particle still healthy and not censored gets that much Gaussian timing
+            error in its RUL, kept above 0 (a particle's being past the boundary, and so the end-of-life flag, is
+            unchanged); 0: none.
     """
 
     def __init__(
@@ -77,9 +82,13 @@ class ParticleRUL:
         max_rate_scale: float = 8.0,
         bisections: int = 6,
         eps_sigmas: tuple[float, float] = (0.0, 0.0),
+        boundary_std_hours: float = 0.0,
     ):
         if not max_rate_scale >= 1.0:
             raise ValueError(f"max_rate_scale must be >= 1, got {max_rate_scale!r}")
+        if not (math.isfinite(boundary_std_hours) and boundary_std_hours >= 0.0):
+            raise ValueError(f"tracker.boundary_std_hours must be finite and >= 0, got {boundary_std_hours!r}")
+        self.boundary_std = float(boundary_std_hours)
         self.model, self.law = model, law
         self.step = float(model.times[1] - model.times[0])
         self.horizon = law.horizon_hours
@@ -192,10 +201,12 @@ class ParticleRUL:
         weights: torch.Tensor | None = None,
         guess: torch.Tensor | None = None,
         faulty_odds: torch.Tensor | None = None,
+        z_boundary: torch.Tensor | None = None,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """RUL 5/50/95 % of particle clouds: k (B, M, 8), s (B, M), standard normals z_eps (B, M) for the
         future-eps factor (None: none), normalised weights (B, M) (None: equal), the particles' previous
-        wear-clock crossings moved to now (B, M) (None or NaN: unknown, cold search).
+        wear-clock crossings moved to now (B, M) (None or NaN: unknown, cold search), standard normals z_boundary
+        (B, M) for the boundary's timing error (None: none).
 
         Returns (quantiles (B, 3) [h], NaN where censored; censored (B, 3); the crossings tau* (B, M) [h])."""
         b, m = s.shape
@@ -204,6 +215,10 @@ class ParticleRUL:
         guess = torch.full((b * m,), float("nan"), dtype=torch.float64) if guess is None else guess.reshape(-1)
         tau = self.warm_crossing(k.reshape(-1, 8), guess.to(torch.float64), tau_max).reshape(b, m)
         rul = torch.where(tau >= HUGE, torch.full_like(tau, HUGE), tau / speed)
+        if z_boundary is not None and self.boundary_std > 0.0:  # where the classifier says it, not where phi_a does
+            live = (rul > 0.0) & (rul < HUGE)
+            moved = (rul + self.boundary_std * z_boundary.to(rul)).clamp(min=MIN_LIVE_RUL)
+            rul = torch.where(live, moved, rul)
         w = torch.full_like(rul, 1.0 / m) if weights is None else weights.to(rul)
         if faulty_odds is not None:
             w = w * torch.where(tau <= 0, faulty_odds.to(rul).unsqueeze(1), torch.ones_like(rul))
