@@ -254,6 +254,15 @@ def test_a_near_nominal_fdi_beside_the_pipeline_is_read_near_nominal(fleet, comp
     low, high = first["k_hat_near_nominal_interval"]["backlash"]
     assert high - low == pytest.approx(0.02, abs=1e-6) and low <= first["k_hat_near_nominal"]["backlash"] <= high
     assert track["tracker"]["near_nominal"]["source"] == "online.pt"
+    # another near-nominal file beside the pipeline: a resumed run recomputes, it does not reuse the old states
+    near.half_widths_.fill_(0.02)
+    near.save(tmp_path / "online.near_nominal.pt")
+    _, again = run(compose, fleet, tmp_path / "out", f"pipeline={tmp_path / 'online.pt'}")
+    first_again = next(
+        i for a in again["track"]["actuators"].values() for i in a["inspections"] if not i["out_of_distribution"]
+    )
+    low, high = first_again["k_hat_near_nominal_interval"]["backlash"]
+    assert high - low == pytest.approx(0.04, abs=1e-6)
     warned = [r.getMessage() for r in caplog.records if "=auto: no online." in r.getMessage()]
     assert warned and all("response=auto" in m and "response_out=" in m for m in warned)  # no response beside it
     caplog.clear()

@@ -32,10 +32,20 @@ from ..tracking.companions import companion, missing_message
 from ..tracking.fleet_check import FleetCheckSettings, check_fleet
 from ..tracking.inspection import inspect_record
 from ..tracking.response import fit_response, pairs_from_track, probe_k_hat
+from ..tracking.state import fingerprint
 from . import common, schema
 from .predict import _bench_nominal, _pipeline_command, _read, _record  # phm-predict's record path, reused as is
 
 log = logging.getLogger(__name__)
+
+
+def _tensors_sha256(state: dict[str, torch.Tensor]) -> str:
+    """sha256 of a state dict's names and values (a companion network's identity in the run key)."""
+    digest = hashlib.sha256()
+    for name, value in sorted(state.items()):
+        digest.update(name.encode())
+        digest.update(value.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()
 
 
 def _sha256(path: Path) -> str:
@@ -145,7 +155,9 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         **described,
         "baseline": None if bench_nominal is None else hashlib.sha256(bench_nominal.numpy().tobytes()).hexdigest(),
         "fleet_offset": fleet["offset"] and cfg.fleet_check.action == "refuse",
-        "near_nominal": None if near is None else near.provenance.get("heldout_rms"),
+        # the companions' whole content: a resumed run with another response or near-nominal file is recomputed
+        "near_nominal": None if near is None else _tensors_sha256(near.state_dict()),
+        "response": None if response is None else fingerprint(response.to_json()),
     }
     actuators = track_fleet(
         index,
