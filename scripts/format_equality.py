@@ -24,8 +24,9 @@ import torch
 
 from phm_torch.io.atomic import atomic_open
 from phm_torch.online.corruption_suite import CACHE, clean_records
-from phm_torch.online.from_torchscript import pipeline_from_torchscript, probe_records, scaled_differences
+from phm_torch.online.from_torchscript import pipeline_from_torchscript, probe_records
 from phm_torch.online.loaded import as_loaded, load_pipeline
+from phm_torch.online.output_diffs import scaled_differences
 
 OUTPUTS = ("k_hat", "score", "p_faulty", "rul", "residual", "noise")
 LIMIT = 1e-5

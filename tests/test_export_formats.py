@@ -16,9 +16,10 @@ import torch
 
 from phm_torch.io import write_measurement
 from phm_torch.online import OnlinePipeline
-from phm_torch.online.formats import _max_diff, check_formats, format_path, write_checked, write_formats
+from phm_torch.online.formats import check_formats, format_path, write_checked, write_formats
 from phm_torch.online.input_contract import PIPELINE_CHECKS, pipeline_reasons
 from phm_torch.online.loaded import load_pipeline
+from phm_torch.online.output_diffs import max_difference
 from phm_torch.online.step import STEP_OUTPUTS, OnlineStep
 from phm_torch.params import load_actuator
 from phm_torch.prognostics import DamageModel
@@ -264,7 +265,7 @@ def test_write_checked_reloads_every_format_as_predict_reads_it(pipeline, tmp_pa
     assert Path(checked["files"]["export"]).name == "online.pt2" and Path(checked["files"]["torchscript"]).is_file()
     assert all(0.0 <= d < TOL for d in checked["max_abs_diff"].values()), checked
     rul = torch.tensor([[1.0, 2.0, 3.0], [float("nan")] * 3])
-    assert _max_diff(rul, rul.clone()) == 0.0 and _max_diff(rul.nan_to_num(0.0), rul) == float("inf")
+    assert max_difference(rul, rul.clone()) == 0.0 and max_difference(rul.nan_to_num(0.0), rul) == float("inf")
 
 
 def test_evaluate_refuses_an_unknown_export_format_before_any_work(compose, tmp_path):
@@ -375,12 +376,8 @@ def test_the_pretrained_pipeline_as_an_aoti_package_equals_its_torchscript_file(
     """The AOTInductor lowering on the pipeline it was made for (MLP classifiers, whose tanh it rewrites; the small
     pipeline above has polynomial ones): every output phm-predict reads within 1e-5 of the shipped TorchScript file
     (relative above 1: the RUL in hours), the package's FDI program within 3e-5 (about 1.5 min of compilation)."""
-    from phm_torch.online.from_torchscript import (
-        output_diffs,
-        pipeline_from_torchscript,
-        probe_records,
-        rewrite_pipeline,
-    )
+    from phm_torch.online.from_torchscript import pipeline_from_torchscript, probe_records, rewrite_pipeline
+    from phm_torch.online.output_diffs import output_diffs
 
     shipped = Path(__file__).resolve().parents[1] / "pretrained" / "online_surrogates_best.pt"
     done = rewrite_pipeline(shipped, tmp_path / "online.pt", ["aoti"])

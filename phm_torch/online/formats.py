@@ -37,6 +37,7 @@ from .aoti_lowering import FDI_INDUCTOR_OPTIONS, STEP_INDUCTOR_OPTIONS, for_indu
 from .export import FDI_PROGRAM, METADATA_FILE, export_torchscript
 from .extras import EXTRAS, require
 from .input_contract import PIPELINE_CHECKS
+from .output_diffs import max_difference
 from .pipeline import OnlinePipeline
 from .step import STEP_OUTPUTS, OnlineStep
 
@@ -298,11 +299,5 @@ def write_checked(
             loaded = load_pipeline(path, name)
             # a format that serves complete records only (onnx, executorch) refuses the others: compared on the rest
             rows = slice(None) if getattr(loaded, "missing_samples", True) else complete
-            diffs[name] = max(_max_diff(a, b[rows]) for a, b in zip(loaded(probe[rows]), eager))
+            diffs[name] = max(max_difference(a, b[rows]) for a, b in zip(loaded(probe[rows]), eager))
     return {"files": {k: str(v) for k, v in paths.items()}, "max_abs_diff": diffs}
-
-
-def _max_diff(a: torch.Tensor, b: torch.Tensor) -> float:
-    a, b = a.double(), b.double()
-    same_nan = torch.isnan(a) & torch.isnan(b)
-    return float(torch.where(same_nan, torch.zeros_like(a), (a - b).abs().nan_to_num(float("inf"))).max())

@@ -46,6 +46,7 @@ from ..surrogates.gappy_pod import GappyPOD
 from .consistency import ConsistencyCheck
 from .export import read_metadata
 from .fdi_interval import DEFAULT_LEVEL
+from .output_diffs import output_diffs
 from .pipeline import OnlinePipeline
 
 log = logging.getLogger(__name__)
@@ -315,50 +316,6 @@ def probe_records(pipeline: OnlinePipeline, seed: int = 0) -> torch.Tensor:
     return torch.stack([base, *noisy, holed, foreign])
 
 
-OUTPUTS = ("k_hat", "k_lower", "k_upper", "score", "p_faulty", "rul", "ood", "residual", "noise")  # StepResult's
-
-
-def scaled_differences(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Per record (B,): the largest |a - b| / max(1, |b|) over the values of one output a, b (B, ...) (relative above
-    1, e.g. the RUL in hours); NaN on both sides counts as equal, on one side only as an infinite difference."""
-    a, b = a.double().reshape(a.shape[0], -1), b.double().reshape(b.shape[0], -1)
-    scale = b.abs().nan_to_num(0.0, 0.0, 0.0).clamp(min=1.0)
-    d = ((a - b) / scale).abs().nan_to_num(float("inf"))
-    return torch.where(torch.isnan(a) & torch.isnan(b), torch.zeros_like(d), d).amax(1)
-
-
-def output_diffs(a: Any, b: Any, x: torch.Tensor) -> dict[str, dict[str, float]]:
-    """How far apart two pipelines (loaded, eager or scripted) are on records x (full, and for full x also their
-    selected samples), over every output phm-predict reads (:data:`OUTPUTS`, the fields of
-    :class:`~phm_torch.online.loaded.StepResult`): per output, ``abs`` the largest |a - b| and ``scaled`` the
-    largest |a - b| / max(1, |b|) (relative for outputs above 1, e.g. the RUL in hours). NaN on both sides counts as
-    equal, on one side only (or an output one of them lacks) as an infinite difference."""
-    from .formats import _max_diff
-    from .loaded import as_loaded
-
-    a, b = as_loaded(a), as_loaded(b)
-    inputs = [x]
-    if x.shape[1] == int(a.n_full):  # a TorchScript pipeline's selected samples are its gappy layer's
-        inputs.append(x.index_select(1, a.indices if hasattr(a, "indices") else a.gappy.indices))
-    out = {name: {"abs": 0.0, "scaled": 0.0} for name in OUTPUTS}
-    for xi in inputs:
-        ra, rb = a.run(xi), b.run(xi)
-        bounds = {}
-        if ra.k_lower is not None and bool(torch.isfinite(rb.noise).all()) and hasattr(a, "module"):
-            # the intervals at b's noise estimate: the estimator is the code's, not the file's (noise_level became
-            # the windowed estimate after the pretrained file was written); the estimates are compared as "noise"
-            lower, upper = a.module.k_interval(ra.k_hat, rb.noise.to(ra.k_hat.dtype))
-            bounds = {"k_lower": lower, "k_upper": upper}
-        for name in OUTPUTS:
-            va, vb = bounds.get(name, getattr(ra, name)), getattr(rb, name)
-            if va is None or vb is None:
-                diff = scaled = 0.0 if va is None and vb is None else math.inf
-            else:
-                diff, scaled = _max_diff(va, vb), float(scaled_differences(va, vb).max())
-            out[name] = {"abs": max(out[name]["abs"], diff), "scaled": max(out[name]["scaled"], scaled)}
-    return out
-
-
 def rewrite_pipeline(
     path: str | os.PathLike,
     out: str | os.PathLike,
@@ -369,7 +326,7 @@ def rewrite_pipeline(
     """Write the TorchScript pipeline file ``path`` again in ``formats`` beside ``out``
     (:func:`~phm_torch.online.formats.write_checked`), from its eager pipeline, with the file's metadata (updated
     by ``metadata``). The converted pipeline must equal the file within ``tolerance`` (|difference| / max(1, |file|),
-    :func:`output_diffs`) on :func:`probe_records` (``ValueError`` otherwise, before anything is written); no output
+    :func:`~.output_diffs.output_diffs`) on :func:`probe_records` (``ValueError`` otherwise, before anything is written); no output
     may replace the input file.
 
     Returns ``{"files", "max_abs_diff_input"`` (per output, converted vs the file), ``"max_scaled_diff_input"``,
