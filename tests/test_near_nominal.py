@@ -142,6 +142,10 @@ def test_a_full_record_network_projects_every_sample_on_an_orthonormal_basis(tmp
         net.coefficients(None, records[:2, :199])
     with pytest.raises(ValueError, match="n_full must be an integer above n_modes"):
         NearNominalFDI(n_modes, n_full=3)
+    before = net.coefficients(None, records[:2])[0]
+    net.basis_.mul_(-1.0)  # a basis changed in place after a projection: the next one reads it, not a stale copy
+    assert torch.allclose(net.coefficients(None, records[:2])[0], -before)
+    net.basis_.mul_(-1.0)
     net.provenance = {"probe_k_hat": probe_k_hat(make_pipeline())}
     net.save(tmp_path / "full.pt")
     again = NearNominalFDI.load(tmp_path / "full.pt")

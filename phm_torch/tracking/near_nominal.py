@@ -97,7 +97,7 @@ class NearNominalFDI(nn.Module):
         if n_full is not None and (isinstance(n_full, bool) or not isinstance(n_full, int) or n_full <= n_modes):
             raise ValueError(f"near_nominal.n_full must be an integer above n_modes ({n_modes}), got {n_full!r}")
         self.n_full = n_full
-        self._basis64: torch.Tensor | None = None  # basis_ in float64, made at the first projection
+        self._basis64: tuple[Any, torch.Tensor] | None = None  # (basis_'s identity, basis_ in float64)
         if n_full is not None:
             self.register_buffer("record_mean_", torch.zeros(n_full, dtype=torch.float64))
             # float32: the file's largest tensor at half the size; the projection is summed in float64
@@ -118,9 +118,11 @@ class NearNominalFDI(nn.Module):
         x = current.to(torch.float64)
         readable = torch.isfinite(x).all(1)
         x = torch.where(readable.unsqueeze(1), x - self.record_mean_, torch.zeros_like(x))
-        if self._basis64 is None or self._basis64.device != x.device:  # cast once, not at every record (~1 ms)
-            self._basis64 = self.basis_.to(device=x.device, dtype=torch.float64)
-        return x @ self._basis64, readable
+        # cast once, not at every record (~1 ms); made again whenever basis_ changed (fit, load_state_dict, .to)
+        key = (self.basis_.data_ptr(), self.basis_._version, x.device)
+        if self._basis64 is None or self._basis64[0] != key:
+            self._basis64 = (key, self.basis_.to(device=x.device, dtype=torch.float64))
+        return x @ self._basis64[1], readable
 
     @torch.no_grad()
     def fit_basis(self, records: torch.Tensor) -> torch.Tensor:
@@ -139,7 +141,6 @@ class NearNominalFDI(nn.Module):
         _, sv, vh = torch.linalg.svd(x - mean, full_matrices=False)
         self.record_mean_.copy_(mean)
         self.basis_.copy_(vh[: self.n_modes].T)
-        self._basis64 = None
         return (sv[: self.n_modes] ** 2) / (sv**2).sum()
 
     def forward(self, alpha: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
