@@ -19,14 +19,9 @@ from phm_torch.io import Measurement, read_measurement, write_measurement
 from phm_torch.online import OnlinePipeline
 from phm_torch.online.consistency import ConsistencyCheck
 from phm_torch.online.export import export_torchscript, read_metadata
-from phm_torch.online.from_torchscript import (
-    OUTPUTS,
-    convert_scripted,
-    load_scripted,
-    output_diffs,
-    pipeline_from_torchscript,
-)
+from phm_torch.online.from_torchscript import convert_scripted, load_scripted, pipeline_from_torchscript
 from phm_torch.online.loaded import as_loaded, load_pipeline
+from phm_torch.online.output_diffs import OUTPUTS, output_diffs
 from phm_torch.params import CONF_DIR
 from phm_torch.surrogates.classifiers.mlp import MLPClassifier
 from phm_torch.surrogates.classifiers.rbf_svm import RBFSVM
