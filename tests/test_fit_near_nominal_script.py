@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 import torch
 from test_tracking import N_FULL, damage_config, make_pipeline
 
@@ -49,6 +50,7 @@ def run_script(*args: str) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.torchscript
 def test_the_script_fits_a_calibrated_whole_record_network(tmp_path):
     pipe = make_pipeline()
     export_torchscript(pipe, tmp_path / "online.pt", {"damage": damage_config()})

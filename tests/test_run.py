@@ -36,6 +36,12 @@ def test_phm_run_tiny_with_the_life_split_and_the_track_stage(tmp_path):
             'train=["n_modes=8","n_points=16","selector=qdeim"]',
             'evaluate=["rul.n_samples=20"]',
             'track=["n_particles=128","rul_particles=32"]',
+            "companions.life_actuators=5",
+            "companions.near_nominal.full_record=4",
+            "companions.near_nominal.steps=200",
+            "companions.near_nominal.gate=1.0",
+            "companions.near_nominal.holdout=2",
+            "companions.threads=1",
             'workbench=["measurements=examples/workbench_hidden_cogging.csv","refit.top=1","refit.rounds=1"]',
             "report.hidden_neurons=[4]",
             "report.hidden_epochs=2",
@@ -44,6 +50,19 @@ def test_phm_run_tiny_with_the_life_split_and_the_track_stage(tmp_path):
     )
     run_all(cfg)
     saved = json.loads((tmp_path / "metrics.json").read_text())
+    # the companions stage: five histories of its own (not the track stage's), the response and the near-nominal FDI
+    # written beside the pipeline and read by the track stage, the verdict mode chosen on those histories
+    made = saved["companions"]
+    assert made["life_actuators"] == 5 and made["life_seed"] == 1 and made["life_inspections"] >= 5 * 3
+    assert made["tracker_verdict"]["verdict"] in ("record", "posterior")
+    assert made["near_nominal_records"]["life"] > 0 and made["near_nominal_settings"]["full_record"] == 4
+    assert (tmp_path / "evaluate" / "online.near_nominal.pt").is_file()
+    # five tiny histories hold fewer than the 200 inspections a response needs: none is written, and the run goes on
+    assert (made["response"] is None) == (made["life_inspections"] < 200)
+    assert (tmp_path / "evaluate" / "online.fdi_response.json").is_file() == (made["response"] is not None)
+    tracked = json.loads((tmp_path / "track" / "track.json").read_text())["tracker"]
+    assert tracked["near_nominal"]["life_split"] == str(tmp_path / "companions" / "data" / "life")
+    assert tracked["settings"]["verdict"] == made["tracker_verdict"]["verdict"]
     # the track stage: both life histories tracked with the evaluate stage's pipeline, scored against the truth
     assert saved["track"]["actuators"] == 2 and saved["track"]["inspections"] >= 2 * 3
     life = json.loads((tmp_path / "track" / "metrics.json").read_text())

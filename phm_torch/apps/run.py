@@ -2,8 +2,10 @@
 
 Stages (each the plain function of its own app, composed from its own config plus the overrides listed
 under its name in conf/run.yaml): cases (virtual bench), generate (with a life split of run-to-failure
-histories), train, evaluate (RUL + TorchScript export and reload), track (phm-track on the life split: the
-fused RUL against the single-record one), workbench (hidden-effect demo), report (report/index.html). ``metrics.json`` merges
+histories), train, evaluate (RUL + TorchScript export and reload), companions (the tracker's FDI response and
+near-nominal FDI of that pipeline, from histories of their own: :mod:`.run_companions`), track (phm-track on the
+life split: the fused RUL against the single-record one), workbench (hidden-effect demo), report
+(report/index.html). ``metrics.json`` merges
 every stage's metrics under the stage's name.
 """
 
@@ -17,8 +19,6 @@ from typing import Any
 
 import hydra
 import torch
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
 from omegaconf import DictConfig
 
 from .. import provenance
@@ -30,101 +30,18 @@ from ..report.paper import build_report
 from ..surrogates.bundle import SurrogateBundle
 from ..timing import torchscript_step_latency
 from . import common
+from .run_companions import remove_stale, run_companions
+from .stage_config import (
+    SHARED_GROUPS,
+    compose_stage,
+    damage_overrides,
+    generate_overrides,
+    shared_overrides,
+    stage_overrides,
+)
 
 log = logging.getLogger(__name__)
-STAGES = ("cases", "generate", "train", "evaluate", "track", "workbench", "report")
-
-
-def compose_stage(app: str, overrides: list[str]) -> DictConfig:
-    """The composed config of ``app`` (conf/<app>.yaml) with ``overrides``, inside or outside a Hydra app.
-
-    The config-group choices of the shared groups (``actuator``, ``command``) are kept under ``choices``
-    (what :func:`common.choice` reads), since a composed config outside ``@hydra.main`` has no runtime."""
-    if GlobalHydra.instance().is_initialized():
-        cfg = compose(config_name=app, overrides=overrides, return_hydra_config=True)
-    else:
-        with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-            cfg = compose(config_name=app, overrides=overrides, return_hydra_config=True)
-    return common.keep_choices(cfg, (*SHARED_GROUPS, DAMAGE_GROUP))
-
-
-DATA_KEYS = ("dataset", "assessment")  # config nodes of phm-generate that a run-level experiment may set
-
-
-def _dotted(prefix: str, node: Any) -> list[str]:
-    """Hydra overrides ``a.b.c=value`` for every leaf of a config node (lists stay whole values)."""
-    if isinstance(node, DictConfig):
-        return [o for key, value in node.items() for o in _dotted(f"{prefix}.{key}", value)]
-    return [f"{prefix}={json.dumps(common.plain(node))}"]
-
-
-SHARED_GROUPS = ("actuator", "command")  # chosen once for the run and passed to every stage
-DAMAGE_GROUP = "damage"  # the damage law, chosen once for the run and passed to the stages that read one
-
-
-def shared_overrides(cfg: DictConfig) -> list[str]:
-    """The run's actuator and command for every stage: ``actuator=<name>`` and ``command=<name>`` (the
-    choice), then their values as dotted overrides (so ``phm-run actuator.gear_ratio=150`` reaches every
-    stage too), and the run's config search path (a user's own config folder)."""
-    out = []
-    for key in SHARED_GROUPS:
-        name = common.choice(cfg, key)
-        if name is None:
-            record = common.requested_provenance(cfg)[key]
-            name = provenance.known_name(key, record["sha256"]) if record else None
-        if name is None:
-            raise ValueError(
-                f"{key}: phm-run needs a {key} config chosen by name ({key}=<name> of a "
-                f"conf/{key}/<name>.yaml in the config search path)"
-            )
-        out += [f"{key}={name}", *_dotted(key, cfg[key])]
-    searchpath = _searchpath()
-    if searchpath:
-        out.append(f"hydra.searchpath={json.dumps(searchpath)}")
-    return out
-
-
-def damage_overrides(cfg: DictConfig) -> list[str]:
-    """The run's damage law for the stages that read one: ``damage=<name>`` when chosen by name, then its values as
-    dotted overrides (``phm-run damage.rate_scale_sigma=0.2`` reaches each stage); no ``damage`` node: nothing."""
-    if cfg.get(DAMAGE_GROUP) is None:
-        return []
-    name = common.choice(cfg, DAMAGE_GROUP)
-    return [*([f"{DAMAGE_GROUP}={name}"] if name else []), *_dotted(DAMAGE_GROUP, cfg[DAMAGE_GROUP])]
-
-
-def _searchpath() -> list[str]:
-    from hydra.core.hydra_config import HydraConfig
-
-    return list(HydraConfig.get().searchpath) if HydraConfig.initialized() else []
-
-
-def generate_overrides(cfg: DictConfig) -> list[str]:
-    """phm-generate's overrides in a run: the run's ``generate`` list, then the dataset/assessment settings
-    that a data experiment (``phm-run experiment=paper``) put at the run level, which win."""
-    return [
-        *_overrides(cfg.generate, "generate"),
-        *(o for key in DATA_KEYS if key in cfg for o in _dotted(key, cfg[key])),
-    ]
-
-
-def _overrides(value: Any, name: str) -> list[str]:
-    items = common.plain(value) or []
-    if not isinstance(items, list) or not all(isinstance(v, str) for v in items):
-        raise ValueError(f"{name} must be a list of Hydra overrides (strings), got {items!r}")
-    out = []
-    for item in items:  # a shipped example file is found from any working directory
-        key, _, path = item.partition("=")
-        if key.lstrip("+~").split(".")[0] in (*SHARED_GROUPS, DAMAGE_GROUP):
-            raise ValueError(
-                f"{name}: {item!r} sets the actuator, command or damage law of one stage only; set it for the "
-                f"whole run (phm-run {item.lstrip('+~')})"
-            )
-        shipped = CONF_DIR.parent / path
-        if key == "measurements" and path and not Path(path).exists() and shipped.is_file():
-            item = f"{key}={shipped}"
-        out.append(item)
-    return out
+STAGES = ("cases", "generate", "train", "evaluate", "companions", "track", "workbench", "report")
 
 
 def workbench_measurement(cfg: DictConfig, shared: list[str], out_dir: Path) -> Path:
@@ -305,11 +222,11 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     shared = shared_overrides(cfg)
     damage = damage_overrides(cfg)
     plan = {
-        "cases": ("cases", [*shared, f"out_dir={run_dir / 'cases'}", *_overrides(cfg.cases, "cases")]),
+        "cases": ("cases", [*shared, f"out_dir={run_dir / 'cases'}", *stage_overrides(cfg.cases, "cases")]),
         "generate": ("generate", [*shared, *damage, f"data_dir={data_dir}", *gen_over]),
         "train": (
             "train",
-            [*shared, *damage, f"data_dir={data_dir}", f"out_dir={train_dir}", *_overrides(cfg.train, "train")],
+            [*shared, *damage, f"data_dir={data_dir}", f"out_dir={train_dir}", *stage_overrides(cfg.train, "train")],
         ),
         "evaluate": (
             "evaluate",
@@ -319,7 +236,7 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                 f"data_dir={data_dir}",
                 f"bundle={train_dir / 'surrogates.pt'}",
                 f"out_dir={eval_dir}",
-                *_overrides(cfg.evaluate, "evaluate"),
+                *stage_overrides(cfg.evaluate, "evaluate"),
             ],
         ),
         "track": (
@@ -331,12 +248,12 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                 f"pipeline={eval_dir / 'online.pt'}",
                 f"truth={data_dir / 'life' / 'truth.json'}",
                 f"out_dir={run_dir / 'track'}",
-                *_overrides(cfg.track, "track"),
+                *stage_overrides(cfg.track, "track"),
             ],
         ),
         "workbench": (
             "workbench",
-            [*shared, f"out_dir={run_dir / 'workbench'}", *_overrides(cfg.workbench, "workbench")],
+            [*shared, f"out_dir={run_dir / 'workbench'}", *stage_overrides(cfg.workbench, "workbench")],
         ),
     }
     from .cases import run_cases
@@ -370,6 +287,8 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             metrics["report"] = {k: v for k, v in studies.items() if k in ("latency", "healthy_fraction")}
             metrics["report"]["hidden_neurons"] = studies.get("hidden", {}).get("rows")
             objects["report"] = build_report(run_dir, metrics, studies, repo=CONF_DIR.parent)
+        elif stage == "companions":
+            metrics[stage] = run_companions(cfg, run_dir, data_dir, eval_dir / "online.pt", shared, damage, gen_over)
         else:
             app, overrides = plan[stage]
             if stage == "track" and not (data_dir / "life" / "index.csv").is_file():
@@ -379,6 +298,9 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                 )
             if stage == "workbench" and not any(o.startswith("measurements=") for o in overrides):
                 overrides = [*overrides, f"measurements={workbench_measurement(cfg, shared, run_dir / 'workbench')}"]
+            if stage == "evaluate":  # a new pipeline: the companion files of the one it replaces do not belong
+                for path in remove_stale(eval_dir / "online.pt"):
+                    log.info("removed %s (a companion of the pipeline this stage replaces)", path)
             stage_metrics, _ = functions[stage](compose_stage(app, overrides))
             metrics[stage] = stage_metrics
         timings[stage] = round(time.perf_counter() - t0, 2)

@@ -31,6 +31,7 @@ from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, t
 from ..tracking.companions import companion, missing_message
 from ..tracking.fleet_check import FleetCheckSettings, check_fleet
 from ..tracking.inspection import inspect_record
+from ..tracking.near_nominal import NearNominalFDI
 from ..tracking.response import fit_response, pairs_from_track, probe_k_hat
 from ..tracking.state import fingerprint
 from . import common, schema
@@ -77,11 +78,26 @@ schema.register(
 )
 
 
-def _settings(cfg: DictConfig) -> TrackerSettings:
+def _settings(cfg: DictConfig, near: NearNominalFDI | None = None) -> TrackerSettings:
     values = {key: cfg[key] for key in TRACKER_KEYS}
     if values["measurement_dof"] in (".inf", "inf"):  # the command line's spelling of infinity
         values["measurement_dof"] = math.inf
+    if values["verdict"] == "auto":
+        values["verdict"] = auto_verdict(near)
     return TrackerSettings(**values)
+
+
+def auto_verdict(near: NearNominalFDI | None) -> str:
+    """``verdict=auto``: the mode the near-nominal FDI's maker chose on its own life split (phm-run's companions
+    stage records ``tracker_verdict`` in its provenance: the mode that flagged more of those actuators' ends of life
+    within one inspection), else ``record``."""
+    chosen = (near.provenance.get("tracker_verdict") or {}).get("verdict") if near is not None else None
+    if chosen is None:
+        return "record"
+    log.info(
+        "verdict=auto: %r, chosen on the near-nominal FDI's life split (%s)", chosen, near.provenance["life_split"]
+    )
+    return str(chosen)
 
 
 def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -97,9 +113,9 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     metadata = loaded.metadata
     prov, command = _pipeline_command(cfg, metadata, model_path)
     model = loaded.module
-    settings = _settings(cfg)
     response = companion("response", cfg.response, model_path, model)
     near = companion("near_nominal", cfg.near_nominal, model_path, model)
+    settings = _settings(cfg, near)
     for kind, found in (("response", response), ("near_nominal", near)):
         if found is None and str(cfg[kind]) == "auto":
             log.warning(missing_message(kind, model_path))

@@ -160,11 +160,14 @@ def _interp(x: torch.Tensor, xp: torch.Tensor, fp: torch.Tensor) -> torch.Tensor
     return torch.where(x < xp[0], fp[0] + (x - xp[0]), torch.where(x > xp[-1], fp[-1] + (x - xp[-1]), inside))
 
 
+RESPONSE_BINS, RESPONSE_MIN_COUNT = 10, 20  # fit_response's defaults: it needs at least their product of pairs
+
+
 def fit_response(
     k_true: np.ndarray,
     k_hat: np.ndarray,
-    n_bins: int = 10,
-    min_count: int = 20,
+    n_bins: int = RESPONSE_BINS,
+    min_count: int = RESPONSE_MIN_COUNT,
     min_slope: float = 0.5,
     pipeline: Mapping[str, Any] | None = None,
 ) -> FDIResponse:

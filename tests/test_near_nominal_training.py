@@ -1,0 +1,146 @@
+"""The near-nominal FDI's training as a library function (phm_torch/tracking/near_nominal_training.py) and phm-run's
+companions stage around it (phm_torch/apps/run_companions.py): settings checked by name, a store split read where
+it is near nominal, the stale companions of a replaced pipeline removed, bad stage settings refused."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+import torch
+from test_fit_near_nominal_script import life_split
+from test_tracking import N_FULL, damage_config, make_pipeline
+
+from phm_torch.apps.run import compose_stage
+from phm_torch.apps.run_companions import choose_verdict, companion_paths, remove_stale, run_companions
+from phm_torch.apps.track import auto_verdict
+from phm_torch.online.export import export_torchscript
+from phm_torch.tracking.companions import companion
+from phm_torch.tracking.near_nominal import NearNominalFDI
+from phm_torch.tracking.near_nominal_training import NearNominalTraining, store_records, train_near_nominal
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("width_factor", 0.8),
+        ("holdout", 1),
+        ("steps", 0),
+        ("gate", 0.0),
+        ("max_damage", 1.5),
+        ("noise_levels", (0.02, 0.01)),
+        ("full_record", -1),
+    ],
+)
+def test_settings_out_of_range_are_refused_by_name(field, value):
+    with pytest.raises(ValueError, match=f"{field} = "):
+        NearNominalTraining(**{field: value})
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    root = tmp_path_factory.mktemp("near_training")
+    pipe = make_pipeline()
+    export_torchscript(pipe, root / "online.pt", {"damage": damage_config()})
+    life_split(root / "life", pipe, n_actuators=10, n_inspections=10)  # 20 held-out records calibrate
+    return root, pipe
+
+
+@pytest.mark.torchscript
+def test_the_library_trains_a_network_that_belongs_to_its_pipeline_and_beats_the_spread(exported):
+    root, pipe = exported
+    settings = NearNominalTraining(full_record=8, steps=3000, gate=1.0, noise_levels=(0.01, 0.02), seed=3)
+    net, report = train_near_nominal(root / "online.pt", root / "life", settings)
+    assert report is net.provenance and report["calibration_actuators"] == 2 and report["life_records"] == 80
+    assert report["width_factor"] == 1.25 and report["store"] is None and report["store_records"] == 0
+    assert net.n_full == N_FULL and net.n_modes == 8
+    rms = torch.tensor([report["heldout"]["0.01"]["rms"][n] for n in ("dry_friction", "backlash", "short_a")])
+    assert float(rms.max()) < 0.75 * 0.2 / 12**0.5, rms  # below the truth's own spread (uniform on [0, 0.2])
+    net.save(root / "online.near_nominal.pt")
+    read = companion("near_nominal", "auto", root / "online.pt", pipe)  # phm-track's auto finds it and checks it
+    assert isinstance(read, NearNominalFDI) and read.provenance["steps"] == 3000
+
+
+def test_a_store_split_is_read_where_every_damage_is_near_nominal(tmp_path):
+    k = np.tile(np.array([0.0] * 6 + [0.5, 0.5]), (5, 1))
+    k[1, 0], k[2, 6], k[3, 7] = 0.5, 0.9, 0.95  # a large damage; an eccentricity phase (not a damage); a gain drift
+    current = np.arange(5 * 11, dtype=np.float32).reshape(5, 11)
+    with h5py.File(tmp_path / "dataset.h5", "w") as f:
+        f.create_dataset("train/K", data=k)
+        f.create_dataset("train/current", data=current)
+    samples, scale, kept = store_records(tmp_path, slice(None), np.array([0.0] * 6 + [0.5, 0.5]), 0.2)
+    assert samples.shape == (3, 11) and np.array_equal(kept, k[[0, 2, 4]])
+    np.testing.assert_allclose(scale, np.sqrt((current[[0, 2, 4]].astype(np.float64) ** 2).mean(1)))
+    with pytest.raises(ValueError, match="store_split: 'rul' is not a split"):
+        store_records(tmp_path, slice(None), np.zeros(8), 0.2, "rul")
+    with pytest.raises(ValueError, match="store: no dataset.h5"):
+        store_records(tmp_path / "none", slice(None), np.zeros(8), 0.2)
+
+
+@pytest.mark.torchscript
+def test_a_life_split_that_leaves_nothing_to_train_on_is_refused(exported, tmp_path):
+    root, pipe = exported
+    life_split(tmp_path / "life", pipe, n_actuators=1, n_inspections=2)
+    with pytest.raises(ValueError, match="leave none to train on"):
+        train_near_nominal(root / "online.pt", tmp_path / "life", NearNominalTraining(steps=10))
+    with pytest.raises(ValueError, match="no truth.json"):
+        train_near_nominal(root / "online.pt", tmp_path, NearNominalTraining(steps=10))
+
+
+def test_the_companions_of_a_replaced_pipeline_are_removed(tmp_path):
+    pipeline = tmp_path / "online.pt"
+    paths = companion_paths(pipeline)
+    assert {p.name for p in paths.values()} == {"online.fdi_response.json", "online.near_nominal.pt"}
+    for path in paths.values():
+        path.write_text("x")
+    (tmp_path / "other.near_nominal.pt").write_text("x")
+    assert sorted(remove_stale(pipeline)) == sorted(str(p) for p in paths.values())
+    assert [p.name for p in tmp_path.iterdir()] == ["other.near_nominal.pt"]
+    assert remove_stale(pipeline) == []
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("companions.life_actuators=3", "companions.life_actuators must be >= 5"),
+        ("+companions.near_nominal.layers=3", "companions.near_nominal: .*layers"),
+        ("companions.near_nominal.holdout=1", "holdout = 1"),
+        ("companions.near_nominal.width_factor=0.5", "width_factor = 0.5"),
+    ],
+)
+def test_bad_companion_settings_are_refused_before_any_work(tmp_path, override, message):
+    cfg = compose_stage("run", [f"out_dir={tmp_path}", override])
+    with pytest.raises(ValueError, match=message):
+        run_companions(cfg, tmp_path, tmp_path / "data", tmp_path / "online.pt", [], [], [])
+    assert not (tmp_path / "companions").exists()
+
+
+def test_the_stage_needs_the_evaluate_stage_pipeline(tmp_path):
+    cfg = compose_stage("run", [f"out_dir={tmp_path}"])
+    with pytest.raises(ValueError, match="companions needs the evaluate stage's pipeline"):
+        run_companions(cfg, tmp_path, tmp_path / "data", tmp_path / "online.pt", [], [], [])
+
+
+def _tracked(record: float | None, posterior: float | None) -> dict:
+    return {
+        "record": {"tracker": {"eol_flagged_within_one_inspection": record, "eol_flagged_early": 0.5}},
+        "posterior": {"tracker": {"eol_flagged_within_one_inspection": posterior, "eol_flagged_early": 0.0}},
+    }
+
+
+@pytest.mark.parametrize(
+    ("record", "posterior", "chosen"),
+    [(0.21, 0.76, "posterior"), (0.91, 0.85, "record"), (0.5, 0.5, "record"), (None, 0.3, "posterior")],
+)
+def test_the_verdict_mode_is_the_one_that_flags_more_ends_of_life_in_time(record, posterior, chosen):
+    verdict = choose_verdict(_tracked(record, posterior))
+    assert verdict["verdict"] == chosen
+    assert verdict["eol_flagged_within_one_inspection"] == {"record": record, "posterior": posterior}
+    assert verdict["eol_flagged_early"] == {"record": 0.5, "posterior": 0.0}
+
+
+def test_phm_track_verdict_auto_reads_the_choice_beside_the_pipeline():
+    near = NearNominalFDI(4)
+    assert auto_verdict(None) == "record" and auto_verdict(near) == "record"  # the shipped file records none
+    near.provenance = {"life_split": "lifetrain", "tracker_verdict": {"verdict": "posterior"}}
+    assert auto_verdict(near) == "posterior"
