@@ -1,4 +1,4 @@
-"""Train and calibrate the near-nominal FDI of a pipeline for life tracking (phm_torch/tracking/near_nominal.py).
+r"""Train and calibrate the near-nominal FDI of a pipeline for life tracking (phm_torch/tracking/near_nominal.py).
 
 A thin command line over :func:`phm_torch.tracking.near_nominal_training.train_near_nominal` (its module docstring
 says what the rows and the calibration are); phm-run's ``companions`` stage calls the same function. Writes
@@ -8,6 +8,8 @@ JSON. The shipped file was made with (pretrained/README.md):
     python scripts/fit_near_nominal.py --pipeline pretrained/online_surrogates_best.pt --life /tmp/lifetrain/life \
         --store /tmp/nearstore --store-split rul --full-record 64 --width-factor 1.25 \
         --out pretrained/online_surrogates_best.near_nominal.pt
+
+(64 and 1.25 are now the defaults.)
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ import torch
 
 from phm_torch.tracking.near_nominal_training import NearNominalTraining, train_near_nominal
 
+DEFAULTS = NearNominalTraining()  # the defaults are the library's (64 whole-record directions, half-widths x 1.25)
+
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -28,31 +32,37 @@ def main() -> None:
     ap.add_argument("--store", help="a store of the pipeline's actuator and command (dataset.h5); optional")
     ap.add_argument(
         "--store-split",
-        default="train",
+        default=DEFAULTS.store_split,
         help="the store's split to read (rul: a store made with n_rul=8000 rul_radius=0.2 is all near nominal)",
     )
     ap.add_argument(
         "--full-record",
         type=int,
-        default=0,
+        default=DEFAULTS.full_record,
         metavar="N_MODES",
         help="read every sample of the record on its own basis of N_MODES principal directions of the training "
         "records (0: the pipeline's gappy coefficients of its selected samples)",
     )
     ap.add_argument("--out", required=True)
-    ap.add_argument("--max-damage", type=float, default=0.2)
-    ap.add_argument("--noise-levels", default="0.01,0.02,0.03,0.04", help="the calibrated relative noise levels")
-    ap.add_argument("--holdout", type=int, default=5, help="every n-th actuator of the life split calibrates")
-    ap.add_argument("--steps", type=int, default=40000)
-    ap.add_argument("--gate", type=float, default=0.25)
+    ap.add_argument("--max-damage", type=float, default=DEFAULTS.max_damage)
+    ap.add_argument(
+        "--noise-levels",
+        default=",".join(str(v) for v in DEFAULTS.noise_levels),
+        help="the calibrated relative noise levels",
+    )
+    ap.add_argument(
+        "--holdout", type=int, default=DEFAULTS.holdout, help="every n-th actuator of the life split calibrates"
+    )
+    ap.add_argument("--steps", type=int, default=DEFAULTS.steps)
+    ap.add_argument("--gate", type=float, default=DEFAULTS.gate)
     ap.add_argument(
         "--width-factor",
         type=float,
-        default=1.0,
+        default=DEFAULTS.width_factor,
         help="multiplies the calibrated half-widths: the held-out errors persist from one inspection to the next, "
         "which the filter fuses as independent; choose it on the tracker's coverage of held-out histories",
     )
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=DEFAULTS.seed)
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
     if not args.width_factor >= 1.0:
