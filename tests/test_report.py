@@ -236,3 +236,24 @@ def test_the_report_stage_runs_the_pretrained_pipeline_on_the_bundled_record(tmp
     assert pred["healthy"] and not pred["out_of_distribution"]
     other = compose_stage("run", [f"out_dir={tmp_path}", "actuator.coulomb_friction=0.012"])
     assert "it is for the actuator ema_reference" in pretrained_study(other, tmp_path, {})["skipped"]
+
+
+def test_the_life_section_says_what_the_companions_stage_gave_the_tracker(run_dir):
+    (run_dir / "track").mkdir()
+    scores = {"tracker": {"coverage_5_95": 0.86}, "snapshot": {"coverage_5_95": 0.99}, "targets": {}}
+    (run_dir / "track" / "metrics.json").write_text(json.dumps({**scores, "n_actuators": 6, "n_inspections": 90}))
+    companions = {
+        "life_actuators": 40,
+        "life_inspections": 772,
+        "response": "evaluate/online.fdi_response.json",
+        "tracker_verdict": {
+            "verdict": "posterior",
+            "eol_flagged_within_one_inspection": {"record": 0.075, "posterior": 0.3},
+        },
+    }
+    text = html.unescape(build_report(run_dir, {**_metrics(600), "companions": companions}, _studies()).read_text())
+    assert "made from 40 histories of their own (772 inspections" in text
+    assert "an FDI response, a near-nominal FDI, and the verdict mode 'posterior'" in text
+    assert "record: 7.5 %, posterior: 30 % of the ends of life flagged within one inspection" in text
+    without = html.unescape(build_report(run_dir, _metrics(600), _studies()).read_text())
+    assert "histories of their own" not in without

@@ -342,7 +342,7 @@ def build_report(run_dir: Path, metrics: dict[str, Any], studies: dict[str, Any]
     _classifier(r, tr)
     _rul(r, run_dir, ev)
     _uncertainty(r, ev)
-    life_section(r, run_dir)
+    life_section(r, run_dir, metrics.get("companions"))
 
     r.section("Online latencies (paper: milliseconds on a desktop; targets FDI <= 100 us, full step <= 1 ms)")
     lat = studies.get("latency", {})

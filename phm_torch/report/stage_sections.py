@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from .html import HtmlReport
+from .html import HtmlReport, fmt
 
 
 def load_json(path: Path) -> dict[str, Any]:
@@ -116,14 +116,26 @@ LIFE_ROWS = (  # metric of phm_torch.prognostics.life_metrics, its label, its ke
 )
 
 
-def life_section(r: HtmlReport, run_dir: Path) -> None:
+def life_section(r: HtmlReport, run_dir: Path, companions: dict[str, Any] | None = None) -> None:
     """Life tracking (phm-track on the life split): the fused RUL against the single-record one (not in the
-    paper: its RUL is a snapshot)."""
+    paper: its RUL is a snapshot); ``companions``: the companions stage's metrics (what the tracker read besides
+    the pipeline), when it ran."""
     scores = load_json(run_dir / "track" / "metrics.json")
     r.section("Life tracking: inspections fused over each actuator's life vs one record at a time (not in the paper)")
     if not scores:
         r.note("(track stage not run)")
         return
+    if companions:
+        verdict = companions.get("tracker_verdict") or {}
+        within = verdict.get("eol_flagged_within_one_inspection") or {}
+        r.note(
+            f"The tracker read the companions stage's files, made from {companions.get('life_actuators')} histories of "
+            f"their own ({companions.get('life_inspections')} inspections, not the ones scored here): "
+            + ("an FDI response, " if companions.get("response") else "no FDI response (too few inspections), ")
+            + f"a near-nominal FDI, and the verdict mode {verdict.get('verdict')!r}, chosen there ("
+            + ", ".join(f"{mode}: {fmt(100 * v) if v is not None else '-'} %" for mode, v in within.items())
+            + " of the ends of life flagged within one inspection)."
+        )
     targets = scores.get("targets", {})
 
     def value(which: str, key: str) -> Any:  # a metric recorded as null is infinite; one not recorded, a dash
