@@ -62,7 +62,9 @@ def test_phm_run_tiny_with_the_life_split_and_the_track_stage(tmp_path):
     assert (tmp_path / "evaluate" / "online.fdi_response.json").is_file() == (made["response"] is not None)
     tracked = json.loads((tmp_path / "track" / "track.json").read_text())["tracker"]
     assert tracked["near_nominal"]["life_split"] == str(tmp_path / "companions" / "data" / "life")
-    assert tracked["settings"]["verdict"] == made["tracker_verdict"]["verdict"]
+    rule = made["tracker_verdict"]
+    assert (tracked["settings"]["verdict"], tracked["settings"]["faulty_at"]) == (rule["verdict"], rule["faulty_at"])
+    assert set(rule["rules"]) == {"record/p50", "record/p5", "posterior/p50", "posterior/p5"}
     # the track stage: both life histories tracked with the evaluate stage's pipeline, scored against the truth
     assert saved["track"]["actuators"] == 2 and saved["track"]["inspections"] >= 2 * 3
     life = json.loads((tmp_path / "track" / "metrics.json").read_text())

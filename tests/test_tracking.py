@@ -430,3 +430,19 @@ def test_the_boundary_timing_error_widens_the_band_of_healthy_particles_only(pip
         ParticleRUL(pipeline, law, boundary_std_hours=-1.0)
     with pytest.raises(ValueError, match="tracker.boundary_std_hours must be finite and >= 0"):
         TrackerSettings(boundary_std_hours=float("nan"))
+
+
+def test_faulty_at_p5_flags_where_a_twentieth_of_the_posterior_is_past_the_boundary(pipeline, law):
+    """An actuator near the classifier's boundary (its 400-point fit of "every damage below 0.3") read with spread:
+    part of its particles are past it, so the RUL's 5 % quantile is 0 while its median is not. ``faulty_at=p5`` makes that
+    inspection faulty: RUL 5 % and 50 % reported 0, the 95 % and every draw unchanged."""
+    edge = torch.tensor([[0.35, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5]], dtype=torch.float64)
+    args = (["A"], torch.tensor([0.0]), edge, scale_of(edge, 0.1), torch.tensor([True]), torch.tensor([False]))
+    median = tracker(pipeline, law).update(*args)
+    early = tracker(pipeline, law, faulty_at="p5").update(*args)
+    assert float(median.rul[0, 0]) == 0.0 and float(median.rul[0, 1]) > 0.0  # p50: still healthy
+    assert float(early.rul[0, 0]) == 0.0 and float(early.rul[0, 1]) == 0.0  # p5: faulty, no life left at 50 %
+    torch.testing.assert_close(early.rul[0, 2], median.rul[0, 2])
+    torch.testing.assert_close(early.rate_scale, median.rate_scale)
+    with pytest.raises(ValueError, match="tracker.faulty_at must be one of \\['p5', 'p50'\\], got 'p25'"):
+        TrackerSettings(faulty_at="p25")

@@ -6,8 +6,10 @@ network trained where an actuator spends its life, read instead of the pipeline'
 tracker reads the pipeline's k_hat as it is (docs/prognostics.md, "Life tracking"). Both are learned from
 run-to-failure histories with their truth, which must not be the histories the track stage scores, so this stage
 generates a life split of its own (the generate stage's settings and seed + 1, ``companions.life_actuators``
-histories), tracks it with the truth to fit the response, and trains and calibrates the near-nominal FDI on it and
-on the store's near-nominal records (:func:`~phm_torch.tracking.near_nominal_training.train_near_nominal`).
+histories), tracks it with the truth to fit the response, trains and calibrates the near-nominal FDI on it and on
+the store's near-nominal records (:func:`~phm_torch.tracking.near_nominal_training.train_near_nominal`), then tracks
+it with both files under each end-of-life rule of the tracker and records the one to use (:func:`choose_verdict`)
+in the near-nominal FDI, which phm-track's ``verdict=auto`` / ``faulty_at=auto`` read.
 """
 
 from __future__ import annotations
@@ -26,25 +28,42 @@ from . import common, schema
 from .stage_config import compose_stage
 
 log = logging.getLogger(__name__)
-VERDICT_MODES = ("record", "posterior")  # TrackerSettings.verdict; the first is the default
+# the tracker's end-of-life rules tried (TrackerSettings.verdict, .faulty_at); the first is its default
+RULES = (("record", "p50"), ("record", "p5"), ("posterior", "p50"), ("posterior", "p5"))
+LATE_MARGIN = 0.1  # a rule may flag this much more of the ends of life late or never than the best one does
 OWN_KEYS = ("data_dir", "stage", "seed", "dataset.life.n_actuators")  # set by this stage for its life split
 # the near-nominal training's code defaults under companions.near_nominal (conf/run.yaml composes them in first)
 schema.register("run_companions", {"near_nominal": schema.node(NearNominalTraining())})
 
 
-def choose_verdict(tracked: dict[str, dict[str, Any]]) -> dict[str, Any]:
-    """The tracker's verdict mode for a pipeline from its tracks of one life split in each mode (phm-track's
-    metrics, with the truth): the mode that flagged more ends of life within one inspection, ``record`` (the
-    tracker's default) on a tie. A pipeline whose own verdict raises false alarms near nominal (a small training set,
-    importance-sampled far from nominal) flags most ends of life far too early with ``record``."""
-    figures = {
-        key: {mode: (m.get("tracker") or {}).get(key) for mode, m in tracked.items()}
-        for key in ("eol_flagged_within_one_inspection", "eol_flagged_early", "prognostic_horizon", "alpha_lambda")
-    }
-    within = {mode: v if v is not None else -1.0 for mode, v in figures["eol_flagged_within_one_inspection"].items()}
-    best = max(within.values())
-    chosen = "record" if within.get("record") == best else max(within, key=within.__getitem__)
-    return {"verdict": chosen, **figures}
+def choose_verdict(tracked: dict[tuple[str, str], dict[str, Any]]) -> dict[str, Any]:
+    """The tracker's end-of-life rule (``verdict``, ``faulty_at``) for a pipeline, from its tracks of one life split
+    under each rule of :data:`RULES` (phm-track's metrics, with the truth). Late matters more than early: only the
+    rules whose share of ends of life flagged late or never is within ``LATE_MARGIN`` of the least are eligible; of
+    those, the one flagging most within one inspection, the earlier in :data:`RULES` on a tie (the first is the
+    tracker's default). A pipeline whose own verdict raises false alarms near nominal (a small training set,
+    importance-sampled far from nominal) flags most ends of life far too early with ``record``; the posterior's median
+    alone can flag late where the health classifier's boundary lies beyond phi_a's."""
+    figures = {}
+    for rule, m in tracked.items():
+        t = m.get("tracker") or {}
+        within, early = t.get("eol_flagged_within_one_inspection"), t.get("eol_flagged_early")
+        late = None if within is None or early is None else max(0.0, 1.0 - within - early)
+        figures["/".join(rule)] = {
+            "eol_flagged_within_one_inspection": within,
+            "eol_flagged_early": early,
+            "eol_flagged_late_or_never": late,
+            "prognostic_horizon": t.get("prognostic_horizon"),
+            "alpha_lambda": t.get("alpha_lambda"),
+        }
+    scored = {rule: f for rule, f in zip(tracked, figures.values()) if f["eol_flagged_late_or_never"] is not None}
+    if not scored:
+        chosen = next(iter(tracked))
+    else:
+        least = min(f["eol_flagged_late_or_never"] for f in scored.values())
+        eligible = [r for r, f in scored.items() if f["eol_flagged_late_or_never"] <= least + LATE_MARGIN + 1e-12]
+        chosen = max(eligible, key=lambda r: (scored[r]["eol_flagged_within_one_inspection"], -RULES.index(r)))
+    return {"verdict": chosen[0], "faulty_at": chosen[1], "rules": figures}
 
 
 def companion_paths(pipeline: Path) -> dict[str, Path]:
@@ -107,8 +126,6 @@ def run_companions(
     paths = companion_paths(pipeline)
     remove_stale(pipeline)
     life = life_dir / "life"
-    # the pipeline's own k_hat (no companions) tracked against the truth of this split, once with each verdict mode:
-    # the first fits the response; the pair chooses the tracker's verdict mode for this pipeline (verdict=auto)
     n_rows = len((life / "index.csv").read_text().strip().splitlines()) - 1
     fit = n_rows >= RESPONSE_BINS * RESPONSE_MIN_COUNT
     if not fit:
@@ -119,26 +136,27 @@ def run_companions(
             RESPONSE_BINS * RESPONSE_MIN_COUNT,
             n_actuators,
         )
-    tracked = {}
-    for mode in VERDICT_MODES:
-        tracked[mode], _ = track(
-            compose_stage(
-                "track",
-                [
-                    *shared,
-                    *damage,
-                    f"index={life / 'index.csv'}",
-                    f"pipeline={pipeline}",
-                    f"truth={life / 'truth.json'}",
-                    f"out_dir={root / f'track_{mode}'}",
-                    "response=null",
-                    "near_nominal=null",
-                    f"verdict={mode}",
-                    *([f"response_out={paths['response']}"] if fit and mode == VERDICT_MODES[0] else []),
-                ],
-            )
+    life_args = [
+        *shared,
+        *damage,
+        f"index={life / 'index.csv'}",
+        f"pipeline={pipeline}",
+        f"truth={life / 'truth.json'}",
+    ]
+    raw, _ = track(  # the pipeline's own k_hat against the truth, for the response (the particles do not matter)
+        compose_stage(
+            "track",
+            [
+                *life_args,
+                f"out_dir={root / 'track_raw'}",
+                "response=null",
+                "near_nominal=null",
+                "n_particles=16",
+                "rul_particles=16",
+                *([f"response_out={paths['response']}"] if fit else []),
+            ],
         )
-    verdict = choose_verdict(tracked)
+    )
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
@@ -151,6 +169,27 @@ def run_companions(
         ) from err
     finally:
         torch.set_num_threads(previous)
+    net.save(paths["near_nominal"])
+    # the tracker as the track stage will run it (both files beside the pipeline) under each end-of-life rule; the
+    # rule chosen is recorded in the near-nominal FDI (phm-track verdict=auto). Most of these histories trained it:
+    # its reading is sharper on them than on new ones, so a rule's flags look later here than they will be
+    tracked = {
+        rule: track(
+            compose_stage(
+                "track",
+                [
+                    *life_args,
+                    f"out_dir={root / ('track_' + '_'.join(rule))}",
+                    "response=auto",
+                    "near_nominal=auto",
+                    f"verdict={rule[0]}",
+                    f"faulty_at={rule[1]}",
+                ],
+            )
+        )[0]
+        for rule in RULES
+    }
+    verdict = choose_verdict(tracked)
     net.provenance["tracker_verdict"] = verdict
     net.save(paths["near_nominal"])
     log.info("companions of %s: %s", pipeline, ", ".join(str(p) for p in paths.values() if p.is_file()))
@@ -158,7 +197,7 @@ def run_companions(
     return {
         "life_actuators": n_actuators,
         "life_seed": seed,
-        "life_inspections": tracked[VERDICT_MODES[0]]["inspections"],
+        "life_inspections": raw["inspections"],
         "tracker_verdict": verdict,
         "life_generate": gen_metrics.get("life"),
         "response": None if response is None else str(paths["response"]),

@@ -57,6 +57,7 @@ def _sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
+AUTO_KEYS = ("verdict", "faulty_at")  # "auto" in conf/track.yaml: the near-nominal FDI's recorded choice (auto_verdict)
 # TrackerSettings' fields set at the top level of conf/track.yaml; their defaults are composed in from the
 # dataclass (/schema/track), so the YAML does not restate them
 TRACKER_KEYS = (
@@ -67,6 +68,7 @@ TRACKER_KEYS = (
     "resample_ess",
     "verdict",
     "verdict_evidence",
+    "faulty_at",
     "boundary_std_hours",
 )
 schema.register(
@@ -82,22 +84,26 @@ def _settings(cfg: DictConfig, near: NearNominalFDI | None = None) -> TrackerSet
     values = {key: cfg[key] for key in TRACKER_KEYS}
     if values["measurement_dof"] in (".inf", "inf"):  # the command line's spelling of infinity
         values["measurement_dof"] = math.inf
-    if values["verdict"] == "auto":
-        values["verdict"] = auto_verdict(near)
+    for key, value in auto_verdict(near).items():
+        if values[key] == "auto":
+            values[key] = value
     return TrackerSettings(**values)
 
 
-def auto_verdict(near: NearNominalFDI | None) -> str:
-    """``verdict=auto``: the mode the near-nominal FDI's maker chose on its own life split (phm-run's companions
-    stage records ``tracker_verdict`` in its provenance: the mode that flagged more of those actuators' ends of life
-    within one inspection), else ``record``."""
-    chosen = (near.provenance.get("tracker_verdict") or {}).get("verdict") if near is not None else None
-    if chosen is None:
-        return "record"
-    log.info(
-        "verdict=auto: %r, chosen on the near-nominal FDI's life split (%s)", chosen, near.provenance["life_split"]
-    )
-    return str(chosen)
+def auto_verdict(near: NearNominalFDI | None) -> dict[str, str]:
+    """What ``verdict=auto`` and ``faulty_at=auto`` become: the rule the near-nominal FDI's maker chose on its own life
+    split (phm-run's companions stage records ``tracker_verdict`` in its provenance), else the tracker's defaults
+    (``record``, ``p50``)."""
+    defaults = {key: getattr(TrackerSettings(), key) for key in AUTO_KEYS}
+    chosen = (near.provenance.get("tracker_verdict") or {}) if near is not None else {}
+    rule = {key: str(chosen.get(key) or default) for key, default in defaults.items()}
+    if chosen.get("verdict") is not None:
+        log.info(
+            "tracker rule=auto: %s, chosen on the near-nominal FDI's life split (%s)",
+            rule,
+            near.provenance["life_split"],
+        )
+    return rule
 
 
 def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:

@@ -33,8 +33,9 @@ def _healthy(
     diagnosis: Mapping[str, Any], rul: Mapping[str, float | None] | None, fused: bool, record_verdict: bool
 ) -> bool:
     """The tracker's verdict: faulty wherever the posterior's median RUL is 0 (most of its probability past the
-    health classifier's boundary); with ``record_verdict`` also wherever a fused inspection's own (phm-predict's)
-    verdict is faulty. Before a track, the record's own verdict."""
+    health classifier's boundary; the filter reports it 0 also where its ``faulty_at`` quantile is); with
+    ``record_verdict`` also wherever a fused inspection's own (phm-predict's) verdict is faulty. Before a track, the
+    record's own verdict."""
     if rul is None:
         return bool(diagnosis["healthy"])
     past = rul["p50"] is not None and rul["p50"] <= 0.0

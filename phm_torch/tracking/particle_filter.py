@@ -43,6 +43,8 @@ from .particle_rul import HUGE, ParticleRUL, weighted_quantiles
 from .resampling import liu_west, systematic_indices
 from .response import FDIResponse
 
+FAULTY_AT = {"p5": 0, "p50": 1}  # TrackerSettings.faulty_at: its column in the RUL quantiles (5, 50, 95 %)
+
 
 @dataclass
 class TrackerSettings:
@@ -62,6 +64,9 @@ class TrackerSettings:
             where the record's own verdict (phm-predict's) is faulty, whose RUL 5 % and 50 % are then 0.
         verdict_evidence: weigh the RUL particles already faulty by the record's P(faulty) as a likelihood ratio
             (:func:`~.measurement.verdict_odds`; needs the pipeline's ``verdict_prior_faulty``).
+        faulty_at: the posterior RUL quantile whose reaching 0 makes an inspection faulty: ``p50`` (most of the
+            probability past the health boundary) or ``p5`` (5 % of it: an earlier flag, fewer ends of life flagged
+            late); a faulty inspection's RUL 5 % and 50 % are 0, as where the record's own verdict decides.
         boundary_std_hours: [h] the health classifier's timing error against phi_a where a damage path crosses the
             boundary, given to each healthy RUL particle (:class:`~.particle_rul.ParticleRUL`). 60: the std measured
             along 60 histories of the reference actuator (50-69 h; docs/prognostics.md); 0: none.
@@ -77,6 +82,7 @@ class TrackerSettings:
     resample_ess: float = 0.5
     verdict: str = "record"
     verdict_evidence: bool = True
+    faulty_at: str = "p50"
     boundary_std_hours: float = 60.0
 
     def __post_init__(self) -> None:
@@ -98,6 +104,8 @@ class TrackerSettings:
             raise ValueError(f"tracker.resample_ess must be in [0, 1], got {self.resample_ess!r}")
         if self.verdict not in ("posterior", "record"):
             raise ValueError(f"tracker.verdict must be 'posterior' or 'record', got {self.verdict!r}")
+        if self.faulty_at not in FAULTY_AT:
+            raise ValueError(f"tracker.faulty_at must be one of {list(FAULTY_AT)}, got {self.faulty_at!r}")
         self.measurement_dof = float(self.measurement_dof)
         if not self.measurement_dof > 0:
             raise ValueError(f"tracker.measurement_dof must be > 0 (inf: Gaussian), got {self.measurement_dof!r}")
@@ -368,8 +376,10 @@ class Tracker:
             )
             rul[idx], censored[idx] = r, c
             st["tau"][idx, :m] = tau
-        # the inspection's verdict says faulty: no life left at 5 and 50 %
-        stop = (faulty & tracked).unsqueeze(1) & (torch.arange(3) < 2)
+        # the inspection's verdict says faulty, or the posterior's faulty_at quantile is already 0: no life left at 5
+        # and 50 % (the 5 % quantile is 0 wherever the 50 % is)
+        past = rul[:, FAULTY_AT[self.settings.faulty_at]] <= 0.0  # NaN (untracked): False
+        stop = ((faulty | past) & tracked).unsqueeze(1) & (torch.arange(3) < 2)
         rul = torch.where(stop, torch.zeros_like(rul), rul)
         censored = censored & ~stop
         nan = ~tracked.view(-1, 1)
