@@ -12,8 +12,8 @@ from test_fit_near_nominal_script import life_split
 from test_tracking import N_FULL, damage_config, make_pipeline
 
 from phm_torch.apps.run import compose_stage
-from phm_torch.apps.run_companions import RULES, choose_verdict, companion_paths, remove_stale, run_companions
-from phm_torch.apps.track import auto_verdict
+from phm_torch.apps.run_companions import RULES, choose_end_of_life_rule, companion_paths, remove_stale, run_companions
+from phm_torch.apps.track import auto_rule
 from phm_torch.online.export import export_torchscript
 from phm_torch.tracking.companions import companion
 from phm_torch.tracking.near_nominal import NearNominalFDI
@@ -143,7 +143,7 @@ CASES = [
 
 @pytest.mark.parametrize(("figures", "chosen"), CASES)
 def test_the_end_of_life_rule_flags_most_in_time_among_those_rarely_late(figures, chosen):
-    verdict = choose_verdict(_tracked(dict(zip(RULES, figures))))
+    verdict = choose_end_of_life_rule(_tracked(dict(zip(RULES, figures))))
     assert (verdict["verdict"], verdict["faulty_at"]) == chosen
     first = verdict["rules"]["record/p50"]
     if figures[0][0] is not None:
@@ -153,6 +153,6 @@ def test_the_end_of_life_rule_flags_most_in_time_among_those_rarely_late(figures
 def test_phm_track_auto_reads_the_rule_beside_the_pipeline():
     near = NearNominalFDI(4)
     defaults = {"verdict": "record", "faulty_at": "p50"}
-    assert auto_verdict(None) == defaults and auto_verdict(near) == defaults  # the shipped file records none
-    near.provenance = {"life_split": "lifetrain", "tracker_verdict": {"verdict": "posterior", "faulty_at": "p5"}}
-    assert auto_verdict(near) == {"verdict": "posterior", "faulty_at": "p5"}
+    assert auto_rule(None) == defaults and auto_rule(near) == defaults  # the shipped file records none
+    near.provenance = {"life_split": "lifetrain", "tracker_rule": {"verdict": "posterior", "faulty_at": "p5"}}
+    assert auto_rule(near) == {"verdict": "posterior", "faulty_at": "p5"}

@@ -246,14 +246,18 @@ def test_the_life_section_says_what_the_companions_stage_gave_the_tracker(run_di
         "life_actuators": 40,
         "life_inspections": 772,
         "response": "evaluate/online.fdi_response.json",
-        "tracker_verdict": {
+        "tracker_rule": {
             "verdict": "posterior",
-            "eol_flagged_within_one_inspection": {"record": 0.075, "posterior": 0.3},
+            "faulty_at": "p5",
+            "rules": {
+                "record/p50": {"eol_flagged_within_one_inspection": 0.225, "eol_flagged_late_or_never": 0.075},
+                "posterior/p5": {"eol_flagged_within_one_inspection": 0.7, "eol_flagged_late_or_never": 0.05},
+            },
         },
     }
     text = html.unescape(build_report(run_dir, {**_metrics(600), "companions": companions}, _studies()).read_text())
     assert "made from 40 histories of their own (772 inspections" in text
-    assert "an FDI response, a near-nominal FDI, and the verdict mode 'posterior'" in text
-    assert "record: 7.5 %, posterior: 30 % of the ends of life flagged within one inspection" in text
+    assert "an FDI response, a near-nominal FDI, and the end-of-life rule posterior/p5, chosen there" in text
+    assert "record/p50 22.5 % / 7.5 %; posterior/p5 70 % / 5 %)" in text
     without = html.unescape(build_report(run_dir, _metrics(600), _studies()).read_text())
     assert "histories of their own" not in without

@@ -54,7 +54,7 @@ def test_phm_run_tiny_with_the_life_split_and_the_track_stage(tmp_path):
     # written beside the pipeline and read by the track stage, the verdict mode chosen on those histories
     made = saved["companions"]
     assert made["life_actuators"] == 5 and made["life_seed"] == 1 and made["life_inspections"] >= 5 * 3
-    assert made["tracker_verdict"]["verdict"] in ("record", "posterior")
+    assert made["tracker_rule"]["verdict"] in ("record", "posterior")
     assert made["near_nominal_records"]["life"] > 0 and made["near_nominal_settings"]["full_record"] == 4
     assert (tmp_path / "evaluate" / "online.near_nominal.pt").is_file()
     # five tiny histories hold fewer than the 200 inspections a response needs: none is written, and the run goes on
@@ -62,7 +62,7 @@ def test_phm_run_tiny_with_the_life_split_and_the_track_stage(tmp_path):
     assert (tmp_path / "evaluate" / "online.fdi_response.json").is_file() == (made["response"] is not None)
     tracked = json.loads((tmp_path / "track" / "track.json").read_text())["tracker"]
     assert tracked["near_nominal"]["life_split"] == str(tmp_path / "companions" / "data" / "life")
-    rule = made["tracker_verdict"]
+    rule = made["tracker_rule"]
     assert (tracked["settings"]["verdict"], tracked["settings"]["faulty_at"]) == (rule["verdict"], rule["faulty_at"])
     assert set(rule["rules"]) == {"record/p50", "record/p5", "posterior/p50", "posterior/p5"}
     # the track stage: both life histories tracked with the evaluate stage's pipeline, scored against the truth

@@ -8,7 +8,7 @@ run-to-failure histories with their truth, which must not be the histories the t
 generates a life split of its own (the generate stage's settings and seed + 1, ``companions.life_actuators``
 histories), tracks it with the truth to fit the response, trains and calibrates the near-nominal FDI on it and on
 the store's near-nominal records (:func:`~phm_torch.tracking.near_nominal_training.train_near_nominal`), then tracks
-it with both files under each end-of-life rule of the tracker and records the one to use (:func:`choose_verdict`)
+it with both files under each end-of-life rule of the tracker and records the one to use (:func:`choose_end_of_life_rule`)
 in the near-nominal FDI, which phm-track's ``verdict=auto`` / ``faulty_at=auto`` read.
 """
 
@@ -36,7 +36,7 @@ OWN_KEYS = ("data_dir", "stage", "seed", "dataset.life.n_actuators")  # set by t
 schema.register("run_companions", {"near_nominal": schema.node(NearNominalTraining())})
 
 
-def choose_verdict(tracked: dict[tuple[str, str], dict[str, Any]]) -> dict[str, Any]:
+def choose_end_of_life_rule(tracked: dict[tuple[str, str], dict[str, Any]]) -> dict[str, Any]:
     """The tracker's end-of-life rule (``verdict``, ``faulty_at``) for a pipeline, from its tracks of one life split
     under each rule of :data:`RULES` (phm-track's metrics, with the truth). Late matters more than early: only the
     rules whose share of ends of life flagged late or never is within ``LATE_MARGIN`` of the least are eligible; of
@@ -189,8 +189,8 @@ def run_companions(
         )[0]
         for rule in RULES
     }
-    verdict = choose_verdict(tracked)
-    net.provenance["tracker_verdict"] = verdict
+    chosen = choose_end_of_life_rule(tracked)
+    net.provenance["tracker_rule"] = chosen
     net.save(paths["near_nominal"])
     log.info("companions of %s: %s", pipeline, ", ".join(str(p) for p in paths.values() if p.is_file()))
     response = FDIResponse.load(paths["response"]) if fit else None
@@ -198,7 +198,7 @@ def run_companions(
         "life_actuators": n_actuators,
         "life_seed": seed,
         "life_inspections": raw["inspections"],
-        "tracker_verdict": verdict,
+        "tracker_rule": chosen,
         "life_generate": gen_metrics.get("life"),
         "response": None if response is None else str(paths["response"]),
         "response_corrected": None if response is None else response.corrected,

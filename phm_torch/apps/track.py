@@ -57,7 +57,7 @@ def _sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-AUTO_KEYS = ("verdict", "faulty_at")  # "auto" in conf/track.yaml: the near-nominal FDI's recorded choice (auto_verdict)
+AUTO_KEYS = ("verdict", "faulty_at")  # "auto" in conf/track.yaml: the near-nominal FDI's recorded choice (auto_rule)
 # TrackerSettings' fields set at the top level of conf/track.yaml; their defaults are composed in from the
 # dataclass (/schema/track), so the YAML does not restate them
 TRACKER_KEYS = (
@@ -84,18 +84,18 @@ def _settings(cfg: DictConfig, near: NearNominalFDI | None = None) -> TrackerSet
     values = {key: cfg[key] for key in TRACKER_KEYS}
     if values["measurement_dof"] in (".inf", "inf"):  # the command line's spelling of infinity
         values["measurement_dof"] = math.inf
-    for key, value in auto_verdict(near).items():
+    for key, value in auto_rule(near).items():
         if values[key] == "auto":
             values[key] = value
     return TrackerSettings(**values)
 
 
-def auto_verdict(near: NearNominalFDI | None) -> dict[str, str]:
+def auto_rule(near: NearNominalFDI | None) -> dict[str, str]:
     """What ``verdict=auto`` and ``faulty_at=auto`` become: the rule the near-nominal FDI's maker chose on its own life
-    split (phm-run's companions stage records ``tracker_verdict`` in its provenance), else the tracker's defaults
+    split (phm-run's companions stage records ``tracker_rule`` in its provenance), else the tracker's defaults
     (``record``, ``p50``)."""
     defaults = {key: getattr(TrackerSettings(), key) for key in AUTO_KEYS}
-    chosen = (near.provenance.get("tracker_verdict") or {}) if near is not None else {}
+    chosen = (near.provenance.get("tracker_rule") or {}) if near is not None else {}
     rule = {key: str(chosen.get(key) or default) for key, default in defaults.items()}
     if chosen.get("verdict") is not None:
         log.info(

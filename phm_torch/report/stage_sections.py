@@ -126,15 +126,22 @@ def life_section(r: HtmlReport, run_dir: Path, companions: dict[str, Any] | None
         r.note("(track stage not run)")
         return
     if companions:
-        verdict = companions.get("tracker_verdict") or {}
-        within = verdict.get("eol_flagged_within_one_inspection") or {}
+        rule = companions.get("tracker_rule") or {}
+
+        def pct(v: float | None) -> str:
+            return "-" if v is None else f"{fmt(100 * v)} %"
+
         r.note(
             f"The tracker read the companions stage's files, made from {companions.get('life_actuators')} histories of "
             f"their own ({companions.get('life_inspections')} inspections, not the ones scored here): "
             + ("an FDI response, " if companions.get("response") else "no FDI response (too few inspections), ")
-            + f"a near-nominal FDI, and the verdict mode {verdict.get('verdict')!r}, chosen there ("
-            + ", ".join(f"{mode}: {fmt(100 * v) if v is not None else '-'} %" for mode, v in within.items())
-            + " of the ends of life flagged within one inspection)."
+            + f"a near-nominal FDI, and the end-of-life rule {rule.get('verdict')}/{rule.get('faulty_at')}, chosen "
+            + "there (ends of life flagged within one inspection / late or never: "
+            + "; ".join(
+                f"{name} {pct(f.get('eol_flagged_within_one_inspection'))} / {pct(f.get('eol_flagged_late_or_never'))}"
+                for name, f in (rule.get("rules") or {}).items()
+            )
+            + ")."
         )
     targets = scores.get("targets", {})
 
