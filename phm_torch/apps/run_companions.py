@@ -21,6 +21,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
+from ..tracking import read_index
 from ..tracking.companions import SUFFIXES
 from ..tracking.near_nominal_training import NearNominalTraining, train_near_nominal
 from ..tracking.response import RESPONSE_BINS, RESPONSE_MIN_COUNT, FDIResponse
@@ -126,7 +127,7 @@ def run_companions(
     paths = companion_paths(pipeline)
     remove_stale(pipeline)
     life = life_dir / "life"
-    n_rows = len((life / "index.csv").read_text().strip().splitlines()) - 1
+    n_rows = sum(len(rows) for rows in read_index(life / "index.csv").values())
     fit = n_rows >= RESPONSE_BINS * RESPONSE_MIN_COUNT
     if not fit:
         log.warning(

@@ -12,7 +12,6 @@ the file's provenance. ``scripts/fit_near_nominal.py`` and phm-run's ``companion
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 from dataclasses import dataclass
@@ -25,6 +24,7 @@ import torch
 
 from .. import provenance
 from ..faults import FAULT_NAMES
+from ..io import read_measurement
 from ..online.loaded import load_pipeline
 from .near_nominal import PHASE_INDEX, NearNominalFDI, fit_near_nominal
 from .response import probe_k_hat
@@ -94,9 +94,7 @@ def life_records(
     samples, scale, noise, k, who = [], [], [], [], []
     for actuator, info in truth.items():
         for ins in info["inspections"]:
-            with open(root / ins["file"]) as fh:
-                column = next(csv.reader(fh)).index("current")
-            current = np.loadtxt(root / ins["file"], delimiter=",", skiprows=1, usecols=column, dtype=np.float64)
+            current = read_measurement(root / ins["file"]).current  # float64 (n_full,) [A]
             samples.append(current[idx])
             scale.append(float(np.sqrt((current**2).mean())))
             with torch.no_grad():
