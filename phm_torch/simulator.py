@@ -115,6 +115,9 @@ class EMASimulator:
                 f"1/{params.sample_rate} s must be a whole number of substeps of {self.h:.3g} s"
             )
         self.substeps_per_sample = round(per_sample)
+        # a sample rate below the PWM frequency samples every m-th period (at its start): step() offers the
+        # period's first substep, run() keeps it from every m-th period only
+        self.periods_per_sample = max(1, self.substeps_per_sample // self.motor.substeps)
         self.filter = ButterworthFilter(params.filter_cutoff, self.h, dtype, self.device)
         self._offsets = [torch.tensor(j * self.h, dtype=dtype, device=self.device) for j in range(self.motor.substeps)]
         self.compiled = compile
@@ -161,7 +164,8 @@ class EMASimulator:
             command: position command sampled at this period's start [rad] (B,) or scalar.
         Returns:
             The new state and the acquisition samples taken at the substep boundaries of this period
-            that fall on the acquisition grid (raw: the filter output, before any noise).
+            that fall on the acquisition grid (raw: the filter output, before any noise); at a sample rate below
+            the PWM frequency, the period's start, on the grid for one period in ``periods_per_sample``.
         """
         plant = state.plant
         i_fb = self.motor.feedback_current(state.elec, state.mech.theta_m, plant)
@@ -327,8 +331,9 @@ class EMASimulator:
 
         for k in range(n_periods):
             state, samples = self._step_fn(state, cmd_ctrl[..., k])
-            for smp in samples:
-                store(smp)
+            if k % self.periods_per_sample == 0:
+                for smp in samples:
+                    store(smp)
         store(self._sample(state.mech, state.elec, state.lvdt, state.filt))
         if state.energy is not None:
             state.energy["stored"] = energy_balance.stored_energy(self.motor, state.plant, state.mech, state.elec)

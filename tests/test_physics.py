@@ -228,6 +228,26 @@ def test_batch_invariance(fidelity, duration):
         torch.testing.assert_close(both[c][1], alone[c][0], rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("fidelity", ["hf", "lf"])
+def test_a_slower_acquisition_reads_the_same_actuator(fidelity):
+    """An actuator sampled at half its PWM frequency (5 kHz; the reference samples at twice it, 20 kHz) records every
+    fourth sample of its 20 kHz record: the acquisition does not touch the dynamics (a sample every second control
+    period, not one every period)."""
+    import dataclasses
+
+    p = load_actuator()
+    k = torch.zeros(2, 8, dtype=torch.float64)
+    k[:, 6:] = 0.5
+    k[1, 2] = 0.3
+    fast = EMASimulator(p, fidelity).run(k, Chirp(), 0.02)
+    slow_rate = p.pwm_frequency / 2
+    every = round(p.sample_rate / slow_rate)
+    slow = EMASimulator(dataclasses.replace(p, sample_rate=slow_rate), fidelity).run(k, Chirp(), 0.02)
+    assert slow.time.shape == (round(0.02 * slow_rate) + 1,) and torch.allclose(slow.time, fast.time[::every])
+    for channel in ("current", "position", "command"):
+        assert torch.equal(slow.channels[channel], fast.channels[channel][:, ::every]), channel
+
+
 def test_compiled_substep_equals_eager():
     k = torch.tensor([NOM, [0.3, 0.5, 0.2, 0.1, 0.0, 0.6, 0.9, 0.2]])
     eager = EMASimulator(P, "lf").run(k, CHIRP, 0.01)
