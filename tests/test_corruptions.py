@@ -94,11 +94,11 @@ def test_every_case_flagged_or_right_except_the_blind_spots(suite):
     # what the POD modes leave unexplained beyond the white-noise estimate, for an answer near nominal: mains hum on
     # the nominal record (the friction record's answer is not near enough to be checked: hum stays a blind spot)
     assert all("unexplained" in full["hum"]["severities"][s]["reasons"] for s in ("0.2", "0.4"))
-    # what the issue found confidently wrong, now flagged with its reason
-    assert full["current_sign"]["flagged_from"] == 1.0 and full["current_sign"]["severities"]["1.0"]["reasons"] == [
-        "inconsistent",
-        "sign",
-    ]
+    # what the issue found confidently wrong, now flagged with its reason, or corrected: a current probe the wrong
+    # way round is read as -current (diagnosis.correct_polarity), every case then right, full and current only
+    for mode in ("full", "current_only"):
+        sign = table["current_sign"][mode]["severities"]["1.0"]
+        assert sign["cases"] == sign["unflagged_right"], table["current_sign"]
     assert (
         full["time_reversal"]["flagged_from"] == 1.0
         and "command" in full["time_reversal"]["severities"]["1.0"]["reasons"]
@@ -150,10 +150,13 @@ def test_current_only_csv_skips_command_and_tracking(suite, compose, tmp_path):
     rows = "\n".join(f"{t!r},{-c!r}" for t, c in zip(rec.time.tolist(), rec.current.tolist()))
     flipped.write_text("time,current\n" + rows + "\n")
     _, out = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements=[{path},{flipped}]"]))
-    good, bad = out["records"]
+    good, flip = out["records"]
     assert good["checks_skipped"] == ["command", "tracking"] and good["command_check"] is None
     assert not good["out_of_distribution"] and not good["healthy"]  # the friction fault, found
-    assert bad["out_of_distribution"] and bad["ood_reasons"] == ["inconsistent", "sign"] and bad["p_faulty"] is None
+    assert not good["current_reversed"] and flip["current_reversed"]
+    # the probe turned round: read as -current, the same answer, and said so
+    assert not flip["out_of_distribution"] and flip["k_hat"] == good["k_hat"] and flip["p_faulty"] == good["p_faulty"]
+    assert any("read reversed" in m for m in flip["messages"])
 
 
 def test_a_dead_position_sensor_is_caught_on_a_healthy_answer_only():

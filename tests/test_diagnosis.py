@@ -71,3 +71,52 @@ def test_tracking_nrmse_is_the_library_nrmse_and_undefined_for_a_constant_comman
     assert tracking_nrmse(cmd, pos) == pytest.approx(float(nrmse(pos, cmd)))
     assert tracking_range(cmd, torch.stack([pos, cmd])) == pytest.approx([0.0, float(nrmse(pos, cmd))])
     assert math.isnan(tracking_nrmse(torch.zeros(501, dtype=torch.float64), pos))
+
+
+def test_a_reversed_current_is_found_by_its_mean_and_shape_together():
+    """A probe the wrong way round is read as -current; a record whose mean alone has the other sign, or one reversed
+    in time (its mean keeps its sign), is not: those are the ``sign`` check's and the consistency check's."""
+    from phm_torch.online.diagnosis import correct_polarity, polarity_reversal
+
+    t = torch.arange(2001, dtype=torch.float64) / 20000.0
+    nominal = 0.3 + torch.sin(2 * math.pi * 15 * t)  # a mean of the nominal's sign, the shape of a chirp's current
+    assert polarity_reversal(nominal, nominal) is None and polarity_reversal(nominal, None) is None
+    assert polarity_reversal(-nominal, nominal) == pytest.approx(-1.0)
+    faulty = 0.5 * nominal + 0.4 * torch.sin(2 * math.pi * 40 * t)  # reshaped by a fault, still the nominal's sign
+    assert polarity_reversal(-faulty, nominal) < 0.0 and polarity_reversal(faulty, nominal) is None
+    assert polarity_reversal(nominal - 0.6, nominal) is None  # the other mean, the nominal shape: not a reversed probe
+    assert polarity_reversal(nominal.flip(0), nominal) is None  # reversed in time
+    assert polarity_reversal(-nominal[:-1], nominal) is None  # another length: nothing to compare
+    holed = -nominal.clone()
+    holed[::7] = float("nan")  # missing samples: still read
+    record, corr = correct_polarity(Record(t, t, t, holed), nominal)
+    assert corr < -0.99 and torch.equal(record.current.nan_to_num(), (-holed).nan_to_num())
+    assert record.command is not None and torch.equal(record.position, t)  # only the current is turned round
+
+
+@pytest.mark.torchscript
+def test_a_bench_with_its_probe_turned_round_reads_as_one_the_right_way(compose, tmp_path):
+    """phm-predict with a baseline: the bench's healthy record and the measurement both reversed give the answer of
+    both the right way round, without a flag."""
+    from phm_torch.apps.predict import predict
+
+    module = torch.jit.load(str(PIPELINE))
+    nominal = module.nominal_record.double()
+    t = torch.arange(nominal.numel(), dtype=torch.float64) / 20000.0
+    g = torch.Generator().manual_seed(1)
+    bench = nominal * 1.01 + 0.002 * torch.randn(nominal.numel(), generator=g, dtype=torch.float64)
+    measured = nominal * 1.01 + 0.002 * torch.randn(nominal.numel(), generator=g, dtype=torch.float64)
+
+    def csv(name, x):
+        path = tmp_path / name
+        path.write_text("time,current\n" + "\n".join(f"{a!r},{b!r}" for a, b in zip(t.tolist(), x.tolist())) + "\n")
+        return path
+
+    answers = []
+    for sign in (1.0, -1.0):
+        base, rec = csv(f"base{sign}.csv", sign * bench), csv(f"rec{sign}.csv", sign * measured)
+        _, out = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements=[{rec}]", f"baseline=[{base}]"]))
+        answers.append(out["records"][0])
+    right, turned = answers
+    assert not turned["out_of_distribution"] and turned["current_reversed"] and not right["current_reversed"]
+    assert turned["k_hat"] == pytest.approx(right["k_hat"]) and turned["healthy"] == right["healthy"]

@@ -22,7 +22,13 @@ Each record holds:
   the pipeline's own checks by name, ``command``, ``tracking``, ``sign``, ``offset``, ``shape``, ``noise``,
   ``spikes``, ``gap``, ``stuck``, ``held``, ``bench``), ``checks_skipped`` (``command`` and ``tracking`` for a CSV without command or position
   columns, a current-only record), ``command_check``, ``tracking_check`` and ``messages`` (one line per failed
-  check). The record is computed by :func:`phm_torch.online.diagnosis.diagnose`.
+  check);
+* what was corrected before the pipeline read the record, each said in ``messages``: ``trigger_offset_s`` (the shift
+  onto the test command's grid found by the record's command column; ``null`` without one) and ``current_reversed``
+  (a current probe the wrong way round: the current's mean of the other sign than the nominal record's and its
+  shape anti-correlated with it, read as -current; the ``baseline`` records likewise).
+
+The record is computed by :func:`phm_torch.online.diagnosis.diagnose`.
 
 The model is a file written by ``phm-evaluate`` or ``phm-export`` in any of its formats (TorchScript ``.pt``,
 torch.export ``.pt2``, AOTInductor ``.aoti.pt2``, ONNX ``.onnx.zip`` (complete records only); :mod:`phm_torch.online.formats`), the format read from the
@@ -51,7 +57,7 @@ from .. import provenance
 from ..io import read_measurement
 from ..online.bench_check import check_bench
 from ..online.corruptions import Record
-from ..online.diagnosis import NOISE_FLOOR, contract_for, diagnose
+from ..online.diagnosis import NOISE_FLOOR, contract_for, diagnose, polarity_reversal
 from ..online.loaded import LoadedPipeline, UnservedRecord, load_pipeline
 from . import common
 
@@ -137,7 +143,19 @@ def _bench_nominal(cfg: DictConfig, model: LoadedPipeline) -> torch.Tensor | Non
             f"baseline: the pipeline {str(cfg.pipeline)!r} holds no nominal record of its training "
             f"model (exported before baselines existed, or trained on a store without a nominal split)"
         )
-    return torch.cat([_current(p, model, bool(cfg.resample)) for p in _paths(cfg.baseline, "baseline")]).mean(0)
+    records = []
+    for path in _paths(cfg.baseline, "baseline"):
+        current = _current(path, model, bool(cfg.resample))[0]
+        corr = polarity_reversal(current, model.nominal_record)
+        if corr is not None:  # the bench's probe turned round: its records are read as -current (diagnose)
+            log.warning(
+                "baseline %s: the current read reversed (correlation %.2f with the nominal record): read as -current",
+                path,
+                corr,
+            )
+            current = -current
+        records.append(current)
+    return torch.stack(records).mean(0)
 
 
 def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:

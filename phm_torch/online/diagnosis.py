@@ -15,11 +15,12 @@ from typing import Any
 import torch
 
 from ..faults import FAULT_NAMES
+from ..metrics import finite_mean
 from ..surrogates.metrics import IDENTIFIED_R2
 from .bench_check import BenchCheck
 from .command_check import MAX_LAG_S, NRMSE_TOLERANCE, command_lag, command_nrmse, shifted
 from .corruptions import Record
-from .input_contract import InputContract
+from .input_contract import InputContract, nominal_correlation
 from .loaded import as_loaded
 from .unexplained_check import residual_floor
 
@@ -84,6 +85,39 @@ def align_trigger(
     return aligned, lag / rate
 
 
+# A current probe the wrong way round: the record's mean current has the other sign than the nominal record's (the
+# envelope current of every fault vector keeps the nominal sign; the input contract's ``sign`` check) and its shape is
+# anti-correlated with the nominal record's (the heaviest val-like faults still correlate at +0.22 or more).
+REVERSED_CORRELATION = 0.0
+
+
+def polarity_reversal(current: torch.Tensor, nominal: torch.Tensor | None) -> float | None:
+    """The correlation (< ``REVERSED_CORRELATION``) with the nominal record (n_full,) [A] of a current (n_full,) [A]
+    that a probe read the wrong way round, None where it is not reversed (or there is nothing to compare with).
+
+    Read as it came, a reversed current was refused (``sign``, ``inconsistent``) and a bench with its probe turned
+    round tracked nothing; its sign is unambiguous, so phm-predict and phm-track restore it like a trigger offset,
+    and say so. A record whose mean has the other sign but whose shape still follows the nominal record is left for
+    the ``sign`` check to refuse."""
+    if nominal is None or current.shape != nominal.shape:
+        return None
+    x, nominal = current.double(), nominal.double()
+    if not float(finite_mean(x)) * float(nominal.mean()) < 0:
+        return None
+    present = torch.isfinite(x)  # over the samples it has (the shape check fills the missing with the nominal's)
+    corr = float(nominal_correlation(x[present], nominal[present])) if int(present.sum()) > 2 else 0.0
+    return corr if corr < REVERSED_CORRELATION else None
+
+
+def correct_polarity(record: Record, nominal: torch.Tensor | None) -> tuple[Record, float | None]:
+    """The record with its current's sign restored where :func:`polarity_reversal` finds it reversed, and that
+    correlation (None: left as it came)."""
+    corr = polarity_reversal(record.current, nominal)
+    if corr is None:
+        return record, None
+    return Record(record.time, record.command, record.position, -record.current), corr
+
+
 def contract_for(
     model: Any, metadata: Mapping[str, Any], command: Callable[[torch.Tensor], torch.Tensor] | None
 ) -> InputContract:
@@ -136,6 +170,7 @@ def diagnose(
     model = as_loaded(model)
     measured = record.current
     record, trigger_lag = align_trigger(record, contract.command)
+    record, reversed_corr = correct_polarity(record, contract.nominal)
     current = torch.as_tensor(record.current, dtype=model.dtype).reshape(1, -1)
     step = model.run(current, bench_nominal)
     k_hat, score, rul, ood, resid, current = step.k_hat, step.score, step.rul, step.ood, step.residual, step.current
@@ -153,6 +188,11 @@ def diagnose(
             if trigger_lag > 0
             else f"the record led the test command by {-1000 * trigger_lag:.2f} ms (a trigger offset): every "
             f"channel was moved onto the test command's time grid, its first {-1000 * trigger_lag:.2f} ms missing"
+        )
+    if reversed_corr is not None:
+        checks.messages.append(
+            f"the current read reversed (its mean of the other sign than the nominal record's, its correlation with "
+            f"it {reversed_corr:.2f}): a current probe the wrong way round; read as -current"
         )
     if bench is not None and not bench.ok:
         checks.reasons.append("bench")
@@ -181,6 +221,7 @@ def diagnose(
         else {"nrmse": command.nrmse, "best_lag_s": command.best_lag_s, "gain": command.gain, "ok": command.ok},
         "tracking_check": checks.tracking,
         "trigger_offset_s": trigger_lag,
+        "current_reversed": reversed_corr is not None,
         "noise": None if math.isnan(noise) else noise,
         "noise_above_calibration": noisy,
         "messages": checks.messages,
