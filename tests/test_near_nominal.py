@@ -134,10 +134,18 @@ def test_a_full_record_network_projects_every_sample_on_an_orthonormal_basis(tmp
     noise = sigma * torch.randn(4000, n_full, generator=g, dtype=torch.float64)
     coeff_std = (noise @ basis).std(0)
     assert torch.allclose(coeff_std, torch.full((n_modes,), sigma, dtype=torch.float64), rtol=0.05)
-    holed = records[:2].clone()
-    holed[1, 5] = float("nan")
+    holed = records[:3].clone()
+    holed[1, -4:] = float("nan")  # 2 % missing (a record aligned on its trigger): least squares on the rest
+    holed[2, 3:20] = float("nan")  # 8.5 %: not readable
     alpha, readable = net.coefficients(None, holed)
-    assert readable.tolist() == [True, False] and bool(torch.isfinite(alpha).all())
+    assert readable.tolist() == [True, True, False] and bool(torch.isfinite(alpha).all())
+    full = net.coefficients(None, records[:3])[0]
+    assert torch.allclose(alpha[:2], full[:2], atol=1e-6) and bool((alpha[2] == 0).all())  # in the span: exact
+    noisy = records[:1] + sigma * torch.randn(1, n_full, generator=g, dtype=torch.float64)
+    gap = noisy.clone()
+    gap[0, -4:] = float("nan")
+    drift = net.coefficients(None, gap)[0] - net.coefficients(None, noisy)[0]
+    assert float(drift.abs().max()) < sigma  # four samples fewer: a fraction of one sample's noise on a coefficient
     with pytest.raises(ValueError, match=r"records \(B, 200\) expected, got \(2, 199\)"):
         net.coefficients(None, records[:2, :199])
     with pytest.raises(ValueError, match="n_full must be an integer above n_modes"):
