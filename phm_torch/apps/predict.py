@@ -26,7 +26,9 @@ Each record holds:
 * what was corrected before the pipeline read the record, each said in ``messages``: ``trigger_offset_s`` (the shift
   onto the test command's grid found by the record's command column; ``null`` without one) and ``current_reversed``
   (a current probe the wrong way round: the current's mean of the other sign than the nominal record's and its
-  shape anti-correlated with it, read as -current; the ``baseline`` records likewise).
+  shape anti-correlated with it, read as -current; the ``baseline`` records likewise); with a ``baseline`` whose
+  difference from the nominal record is a probe's gain and offset, every record is read through the inverse map
+  (:mod:`phm_torch.online.probe_calibration`; the metrics' ``probe_calibration``).
 
 The record is computed by :func:`phm_torch.online.diagnosis.diagnose`.
 
@@ -59,6 +61,7 @@ from ..online.bench_check import check_bench
 from ..online.corruptions import Record
 from ..online.diagnosis import NOISE_FLOOR, contract_for, diagnose, polarity_reversal
 from ..online.loaded import LoadedPipeline, UnservedRecord, load_pipeline
+from ..online.probe_calibration import ProbeCalibration, fit_probe
 from . import common
 
 log = logging.getLogger(__name__)
@@ -134,10 +137,11 @@ def _record(m: Any, current: torch.Tensor) -> Record:
     return Record(torch.as_tensor(m.time[:n], dtype=torch.float64), column(m.command), column(m.position), current[0])
 
 
-def _bench_nominal(cfg: DictConfig, model: LoadedPipeline) -> torch.Tensor | None:
-    """The mean of the ``baseline`` records (healthy records of the measuring bench), or None."""
+def _bench_nominal(cfg: DictConfig, model: LoadedPipeline) -> tuple[torch.Tensor | None, ProbeCalibration | None]:
+    """The mean of the ``baseline`` records (healthy records of the measuring bench), read through the probe
+    calibration it shows (:mod:`phm_torch.online.probe_calibration`), and that calibration; (None, None) without."""
     if cfg.get("baseline") is None:
-        return None
+        return None, None
     if not model.can_rebase:
         raise ValueError(
             f"baseline: the pipeline {str(cfg.pipeline)!r} holds no nominal record of its training "
@@ -155,7 +159,12 @@ def _bench_nominal(cfg: DictConfig, model: LoadedPipeline) -> torch.Tensor | Non
             )
             current = -current
         records.append(current)
-    return torch.stack(records).mean(0)
+    mean = torch.stack(records).mean(0)
+    probe = fit_probe(mean, model.nominal_record)
+    if probe is not None:
+        log.warning("%s", probe.message())
+        mean = probe.apply(mean)
+    return mean, probe
 
 
 def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -168,7 +177,7 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     prov, command = _pipeline_command(cfg, metadata, model_path)
     if not model.calibrated:
         log.warning("%s was exported before the verdict calibration existed: p_faulty is null", model_path)
-    bench_nominal = _bench_nominal(cfg, model)
+    bench_nominal, probe = _bench_nominal(cfg, model)
     if bench_nominal is None and model.can_rebase:
         # a bench differing from the training model by 0.5 % of the current can turn 14 % of the faults
         # into "healthy" verdicts; the rebase restores them (docs/surrogates.md, modelling differences)
@@ -192,7 +201,10 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     for path in paths:
         current, m = _read(path, model, bool(cfg.resample))
         try:
-            record = {"file": str(path), **diagnose(model, _record(m, current), contract, bench_nominal, bench)}
+            record = {
+                "file": str(path),
+                **diagnose(model, _record(m, current), contract, bench_nominal, bench, probe=probe),
+            }
         except UnservedRecord as e:  # a format that serves complete records only (onnx)
             raise UnservedRecord(f"measurements: {str(path)!r}: {e}") from None
         for message in record["messages"]:
@@ -213,6 +225,7 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "out_of_distribution": sum(r["out_of_distribution"] for r in records),
         "baseline": bench_nominal is not None,
         "bench_check": None if bench is None else bench.as_dict(),
+        "probe_calibration": None if probe is None else probe.as_dict(),
         "actuator": provenance.describe(prov["actuator"]),
         "command": provenance.describe(prov["command"]),
         "noise_above_calibration": sum(bool(r["noise_above_calibration"]) for r in records),

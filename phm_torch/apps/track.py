@@ -129,7 +129,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     index = read_index(cfg.index)
     contract = contract_for(model, metadata, command)
     resample = bool(cfg.resample)
-    bench_nominal = _bench_nominal(cfg, loaded)  # phm-predict's baseline: the bench's healthy record(s)
+    bench_nominal, probe = _bench_nominal(cfg, loaded)  # phm-predict's baseline: the bench's healthy record(s)
     bench = None if bench_nominal is None else check_bench(loaded, bench_nominal)
     if bench_nominal is None and loaded.can_rebase:
         log.warning(
@@ -148,7 +148,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             found = first_inspections.pop((row.actuator, row.line), None)
             if found is None:
                 current, m = _read(str(row.path), loaded, resample)
-                found = inspect_record(loaded, _record(m, current), contract, bench_nominal, bench, near)
+                found = inspect_record(loaded, _record(m, current), contract, bench_nominal, bench, near, probe)
                 for message in found["messages"]:
                     log.warning("%s: %s; the inspection is out of distribution (not fused)", row.path, message)
             out.append(found)
@@ -214,6 +214,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "out_of_distribution": sum(i["out_of_distribution"] for i in inspections),
         "baseline": bench_nominal is not None,
         "bench_check": None if bench is None else bench.as_dict(),
+        "probe_calibration": None if probe is None else probe.as_dict(),
         "fleet_check": fleet,
         "damage_source": described["damage_source"],
         "out_dir": str(out_dir),

@@ -22,6 +22,7 @@ from .command_check import MAX_LAG_S, NRMSE_TOLERANCE, command_lag, command_nrms
 from .corruptions import Record
 from .input_contract import InputContract, nominal_correlation
 from .loaded import as_loaded
+from .probe_calibration import ProbeCalibration
 from .unexplained_check import residual_floor
 
 # Relative noise always tolerated, whatever the calibration level: the noise estimate of a few noise-free
@@ -153,6 +154,7 @@ def diagnose(
     bench_nominal: torch.Tensor | None = None,
     bench: BenchCheck | None = None,
     keep_current: bool = False,
+    probe: ProbeCalibration | None = None,
 ) -> dict[str, Any]:
     """The diagnosis of one record by the exported pipeline ``model``, as a JSON-able dict (with ``keep_current``,
     also ``"current"``: the (1, n_full) record the pipeline read, aligned and rebased, a tensor for the caller).
@@ -166,11 +168,15 @@ def diagnose(
         bench_nominal: (n_full,) [A] healthy record of the measuring bench (phm-predict's ``baseline``), or None.
         bench: :func:`~.bench_check.check_bench` of that record (once per bench); a bench it finds too far from
             the training model makes the record out of distribution with the reason ``bench``.
+        probe: the bench's probe calibration (:func:`~.probe_calibration.fit_probe` of its healthy record, which
+            ``bench_nominal`` then is read through): the record's current is read through it too.
     """
     model = as_loaded(model)
     measured = record.current
     record, trigger_lag = align_trigger(record, contract.command)
     record, reversed_corr = correct_polarity(record, contract.nominal)
+    if probe is not None:
+        record = Record(record.time, record.command, record.position, probe.apply(record.current))
     current = torch.as_tensor(record.current, dtype=model.dtype).reshape(1, -1)
     step = model.run(current, bench_nominal)
     k_hat, score, rul, ood, resid, current = step.k_hat, step.score, step.rul, step.ood, step.residual, step.current

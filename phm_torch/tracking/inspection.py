@@ -20,6 +20,7 @@ from ..online.bench_check import BenchCheck
 from ..online.corruptions import Record
 from ..online.diagnosis import NOISE_FLOOR, calibrated_interval, diagnose
 from ..online.input_contract import InputContract, pipeline_reasons
+from ..online.probe_calibration import ProbeCalibration
 from .near_nominal import NearNominalFDI
 
 
@@ -41,12 +42,13 @@ def inspect_record(
     bench_nominal: torch.Tensor | None = None,
     bench: BenchCheck | None = None,
     near_nominal: NearNominalFDI | None = None,
+    probe: ProbeCalibration | None = None,
 ) -> dict[str, Any]:
     """phm-predict's diagnosis of one record (the dict of :func:`diagnose`), moved onto the training model with the
     bench's healthy record ``bench_nominal`` (n_full,) [A] where given (phm-predict's ``baseline``). With a
     ``near_nominal`` FDI, an in-distribution record near nominal also gets ``k_near_nominal`` and its interval
     ``k_near_nominal_interval`` (:mod:`.near_nominal`), which the tracker reads instead of k_hat."""
-    found = diagnose(model, record, contract, bench_nominal, bench, keep_current=near_nominal is not None)
+    found = diagnose(model, record, contract, bench_nominal, bench, keep_current=near_nominal is not None, probe=probe)
     current = found.pop("current", None)
     if near_nominal is None or found["out_of_distribution"] or found["noise"] is None:
         return found
