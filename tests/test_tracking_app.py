@@ -232,6 +232,56 @@ def test_a_fleet_that_reads_one_damage_vector_at_its_first_inspections_is_refuse
     assert not unchecked["fleet_check"]["checked"] and unchecked["fused"] == 9  # 3 actuators < min_actuators 5
 
 
+def test_a_fleet_offset_that_a_current_probe_explains_is_named_and_a_baseline_calibrates_it(compose, tmp_path):
+    """Every record of a fleet through a probe of gain 1.02 and offset 0.01 A: the fleet check's message names the
+    probe the fleet's mean first record shows (said, not applied); with a healthy record of that bench as baseline
+    the probe is calibrated and every inspection reads as the same fleet's records through a perfect probe."""
+    pipe = make_pipeline()
+    pipe.nominal_record.copy_(pipe.mean_signal)  # a nominal record to compare with (the synthetic FDI's reading
+    export_torchscript(pipe, tmp_path / "online.pt", {"damage": damage_config()})  # of it is not nominal: flagged)
+    for fleet_name, probe in (("clean", lambda x: x), ("probe", lambda x: 1.02 * x + 0.01)):
+        rows = ["actuator,hours,file"]
+        for a in range(6):
+            alpha = 0.01 * torch.randn(6, generator=torch.Generator().manual_seed(a), dtype=torch.float64)
+            for i in range(2):
+                data = record(pipe, alpha + 0.01 * i)
+                data["current"] = probe(data["current"])
+                path = tmp_path / fleet_name / f"A{a}_{i}.csv"
+                write_measurement(path, data)
+                rows.append(f"A{a},{200 * i},{path.name}")
+        (tmp_path / fleet_name / "index.csv").write_text("\n".join(rows) + "\n")
+    healthy = record(pipe, torch.zeros(6, dtype=torch.float64))
+    healthy["current"] = 1.02 * healthy["current"] + 0.01
+    write_measurement(tmp_path / "healthy.csv", healthy)
+
+    def track(name, *extra):
+        from phm_torch.apps.track import track as run_track
+
+        overrides = [f"index={tmp_path / name / 'index.csv'}", f"pipeline={tmp_path / 'online.pt'}"]
+        overrides += [f"out_dir={tmp_path / 'out' / str(len(extra))}{name}", "n_particles=64", "rul_particles=16"]
+        return run_track(compose("track", [*overrides, *extra]))
+
+    refused, _ = track("probe")
+    assert refused["fleet_check"]["offset"] and refused["fused"] == 0
+    suspected = refused["fleet_check"]["probe_suspected"]
+    assert suspected["gain"] == pytest.approx(1.02, abs=2e-3) and suspected["offset"] == pytest.approx(0.01, abs=2e-3)
+    assert (
+        "a probe error, which a healthy record of this bench as baseline= calibrates"
+        in refused["fleet_check"]["message"]
+    )
+    clean, clean_objects = track("clean", "fleet_check.action=warn")
+    assert "probe_suspected" not in clean["fleet_check"] and clean["probe_calibration"] is None
+    base = f"baseline={tmp_path / 'healthy.csv'}"
+    calibrated, objects = track("probe", base, "fleet_check.action=warn")
+    assert calibrated["probe_calibration"]["gain"] == pytest.approx(1.02, abs=1e-9)
+    for a in ("A0", "A5"):
+        pairs = zip(
+            objects["track"]["actuators"][a]["inspections"], clean_objects["track"]["actuators"][a]["inspections"]
+        )
+        for got, want in pairs:
+            assert got["k_hat"] == pytest.approx(want["k_hat"], abs=1e-6)
+
+
 def test_a_near_nominal_fdi_beside_the_pipeline_is_read_near_nominal(fleet, compose, tmp_path, caplog):
     import shutil
 

@@ -58,7 +58,7 @@ def fit_probe(baseline: torch.Tensor, nominal: torch.Tensor | None) -> ProbeCali
     """The probe error the bench's healthy record ``baseline`` (n_full,) [A] shows against the training model's
     nominal record (n_full,) [A] (missing samples left out), or None: no nominal record to compare with, a difference
     an affine map does not explain (``EXPLAINED_MIN``), one too small to matter, or a gain outside ``GAIN_RANGE``."""
-    if nominal is None or baseline.shape != nominal.shape:
+    if nominal is None or baseline.shape != nominal.shape or not bool(torch.isfinite(nominal).all()):
         return None
     b, n = baseline.double(), nominal.double()
     present = torch.isfinite(b)
