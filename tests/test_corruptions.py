@@ -108,7 +108,8 @@ def test_every_case_flagged_or_right_except_the_blind_spots(suite):
     trigger = full["trigger_offset"]["severities"].values()
     assert all(s["cases"] == s["unflagged_right"] for s in trigger), full["trigger_offset"]
     assert full["white_noise"]["flagged_from"] <= 0.2 and "noise" in full["white_noise"]["severities"]["0.4"]["reasons"]
-    assert full["position_sign"]["severities"]["1.0"]["reasons"] == ["tracking"]
+    position = full["position_sign"]["severities"]["1.0"]  # read as -position (diagnosis.correct_position_polarity)
+    assert position["reasons"] == [] and position["cases"] == position["unflagged_right"]
     assert full["current_offset"]["severities"]["0.1"]["reasons"] == ["offset"]
     assert full["clipping"]["flagged_from"] <= 0.2 and "plateau" in full["clipping"]["severities"]["0.5"]["reasons"]
     assert table["position_sign"]["current_only"]["flagged_from"] is None  # no position column: nothing to check

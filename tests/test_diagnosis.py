@@ -120,3 +120,18 @@ def test_a_bench_with_its_probe_turned_round_reads_as_one_the_right_way(compose,
     right, turned = answers
     assert not turned["out_of_distribution"] and turned["current_reversed"] and not right["current_reversed"]
     assert turned["k_hat"] == pytest.approx(right["k_hat"]) and turned["healthy"] == right["healthy"]
+
+
+def test_a_reversed_position_sensor_is_read_the_right_way_round_and_a_stalled_one_is_not():
+    from phm_torch.online.diagnosis import correct_position_polarity
+
+    t = torch.arange(2001, dtype=torch.float64) / 20000.0
+    cmd = 5e-3 * torch.sin(2 * math.pi * 10 * t)
+    follows = 0.95 * 5e-3 * torch.sin(2 * math.pi * 10 * t - 0.2)
+    record, corr = correct_position_polarity(Record(t, cmd, -follows, torch.ones_like(t)))
+    assert corr < -0.9 and torch.equal(record.position, follows) and torch.equal(record.current, torch.ones_like(t))
+    assert correct_position_polarity(Record(t, cmd, follows, torch.ones_like(t)))[1] is None
+    stalled = 1e-5 * torch.sin(2 * math.pi * 37 * t)  # uncorrelated with its command: left for the tracking check
+    assert correct_position_polarity(Record(t, cmd, stalled, torch.ones_like(t)))[1] is None
+    assert correct_position_polarity(Record(t, cmd, torch.zeros_like(t), torch.ones_like(t)))[1] is None  # dead
+    assert correct_position_polarity(Record(t, None, -follows, torch.ones_like(t)))[1] is None  # nothing to compare

@@ -26,7 +26,9 @@ Each record holds:
 * what was corrected before the pipeline read the record, each said in ``messages``: ``trigger_offset_s`` (the shift
   onto the test command's grid found by the record's command column; ``null`` without one) and ``current_reversed``
   (a current probe the wrong way round: the current's mean of the other sign than the nominal record's and its
-  shape anti-correlated with it, read as -current; the ``baseline`` records likewise); with a ``baseline`` whose
+  shape anti-correlated with it, read as -current; the ``baseline`` records likewise), ``position_reversed`` (a
+  position anti-correlated with the command column: a sensor the wrong way round, read as -position and then
+  checked as any position is); with a ``baseline`` whose
   difference from the nominal record is a probe's gain and offset, every record is read through the inverse map
   (:mod:`phm_torch.online.probe_calibration`; the metrics' ``probe_calibration``).
 

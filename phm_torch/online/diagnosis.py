@@ -20,7 +20,7 @@ from ..surrogates.metrics import IDENTIFIED_R2
 from .bench_check import BenchCheck
 from .command_check import MAX_LAG_S, NRMSE_TOLERANCE, command_lag, command_nrmse, shifted
 from .corruptions import Record
-from .input_contract import InputContract, nominal_correlation
+from .input_contract import REVERSED_CORRELATION, InputContract, nominal_correlation
 from .loaded import as_loaded
 from .probe_calibration import ProbeCalibration
 from .unexplained_check import residual_floor
@@ -89,11 +89,11 @@ def align_trigger(
 # A current probe the wrong way round: the record's mean current has the other sign than the nominal record's (the
 # envelope current of every fault vector keeps the nominal sign; the input contract's ``sign`` check) and its shape is
 # anti-correlated with the nominal record's (the heaviest val-like faults still correlate at +0.22 or more).
-REVERSED_CORRELATION = 0.0
+CURRENT_REVERSED_CORRELATION = 0.0
 
 
 def polarity_reversal(current: torch.Tensor, nominal: torch.Tensor | None) -> float | None:
-    """The correlation (< ``REVERSED_CORRELATION``) with the nominal record (n_full,) [A] of a current (n_full,) [A]
+    """The correlation (< ``CURRENT_REVERSED_CORRELATION``) with the nominal record (n_full,) [A] of a current (n_full,) [A]
     that a probe read the wrong way round, None where it is not reversed (or there is nothing to compare with).
 
     Read as it came, a reversed current was refused (``sign``, ``inconsistent``) and a bench with its probe turned
@@ -107,7 +107,7 @@ def polarity_reversal(current: torch.Tensor, nominal: torch.Tensor | None) -> fl
         return None
     present = torch.isfinite(x)  # over the samples it has (the shape check fills the missing with the nominal's)
     corr = float(nominal_correlation(x[present], nominal[present])) if int(present.sum()) > 2 else 0.0
-    return corr if corr < REVERSED_CORRELATION else None
+    return corr if corr < CURRENT_REVERSED_CORRELATION else None
 
 
 def correct_polarity(record: Record, nominal: torch.Tensor | None) -> tuple[Record, float | None]:
@@ -117,6 +117,22 @@ def correct_polarity(record: Record, nominal: torch.Tensor | None) -> tuple[Reco
     if corr is None:
         return record, None
     return Record(record.time, record.command, record.position, -record.current), corr
+
+
+def correct_position_polarity(record: Record) -> tuple[Record, float | None]:
+    """The record with its position's sign restored where the position sensor reads the wrong way round, and the
+    correlation with the command column that showed it (None: left as it came).
+
+    A position anti-correlated with its command (below the tracking check's ``REVERSED_CORRELATION``) is a reversed
+    sensor (a stalled actuator correlates near 0, the paper store's val records at 0.82 and above): read the other
+    way round, it is checked as any position is (its tracking range); the FDI never reads it."""
+    cmd, pos = record.command, record.position
+    if cmd is None or pos is None or not bool(torch.isfinite(cmd).all() and torch.isfinite(pos).all()):
+        return record, None
+    corr = float(torch.corrcoef(torch.stack([pos.double().flatten(), cmd.double().flatten()]))[0, 1])
+    if not corr < REVERSED_CORRELATION:  # NaN (a constant position or command) is not reversed
+        return record, None
+    return Record(record.time, record.command, -record.position, record.current), corr
 
 
 def contract_for(
@@ -175,6 +191,7 @@ def diagnose(
     measured = record.current
     record, trigger_lag = align_trigger(record, contract.command)
     record, reversed_corr = correct_polarity(record, contract.nominal)
+    record, position_corr = correct_position_polarity(record)
     if probe is not None:
         record = Record(record.time, record.command, record.position, probe.apply(record.current))
     current = torch.as_tensor(record.current, dtype=model.dtype).reshape(1, -1)
@@ -199,6 +216,11 @@ def diagnose(
         checks.messages.append(
             f"the current read reversed (its mean of the other sign than the nominal record's, its correlation with "
             f"it {reversed_corr:.2f}): a current probe the wrong way round; read as -current"
+        )
+    if position_corr is not None:
+        checks.messages.append(
+            f"the position read reversed (correlation {position_corr:.2f} with the command column): a position "
+            "sensor the wrong way round; read as -position"
         )
     if bench is not None and not bench.ok:
         checks.reasons.append("bench")
@@ -228,6 +250,7 @@ def diagnose(
         "tracking_check": checks.tracking,
         "trigger_offset_s": trigger_lag,
         "current_reversed": reversed_corr is not None,
+        "position_reversed": position_corr is not None,
         "noise": None if math.isnan(noise) else noise,
         "noise_above_calibration": noisy,
         "messages": checks.messages,
