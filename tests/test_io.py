@@ -203,3 +203,34 @@ def test_missing_ok_columns_read_empty_and_nan_cells_as_missing(tmp_path):
     bad = write_text(tmp_path / "bad.csv", HEADER, [*good_rows(2), "0.0001,nan,0.0009,0.5", "0.00015,0,0,inf"])
     with pytest.raises(ValueError, match=r"line 4, column 'command': value 'nan' is not finite"):
         read_measurement(bad, missing_ok=("current",))
+
+
+def test_a_bench_csv_with_units_in_its_header_semicolons_and_decimal_commas(tmp_path):
+    """As a bench or a spreadsheet writes it: names in any case with a unit, a byte-order mark, semicolons and
+    decimal commas; every value converted to the module's units exactly (ms -> s, mrad and deg -> rad, mA -> A)."""
+    rows = ["\ufeffTime [ms];Command [mrad];Position (deg);Current (mA);temperature [C]"]
+    for i in range(5):
+        rows.append(f"{0.05 * i:.2f};{i},5;{2 * i};{1000 + i};25".replace(".", ","))
+    path = tmp_path / "bench.csv"
+    path.write_text("\n".join(rows) + "\n", encoding="utf-8")
+    m = read_measurement(path, expected_rate=20000.0)
+    np.testing.assert_allclose(m.time, 5e-5 * np.arange(5), rtol=1e-12)
+    np.testing.assert_allclose(m.command, 1e-3 * (np.arange(5) + 0.5), rtol=1e-12)
+    np.testing.assert_allclose(m.position, np.deg2rad(2.0 * np.arange(5)), rtol=1e-12)
+    np.testing.assert_allclose(m.current, 1.0 + 1e-3 * np.arange(5), rtol=1e-12)
+    assert list(m.extra) == ["temperature [C]"] and m.sample_rate == pytest.approx(20000.0)
+
+
+def test_an_unknown_unit_and_a_time_column_in_milliseconds_are_named(tmp_path):
+    path = tmp_path / "furlongs.csv"
+    path.write_text("time [fortnight],command,position,current\n0,0,0,1\n1,0,0,1\n")
+    with pytest.raises(ValueError, match=r"column 'time \[fortnight\]': unknown unit 'fortnight' for 'time'"):
+        read_measurement(path)
+    path = tmp_path / "ms.csv"
+    path.write_text("time,command,position,current\n" + "".join(f"{0.05 * i},0,0,1\n" for i in range(4)))
+    with pytest.raises(ValueError, match=r"\(a time column in ms\? name it 'time \[ms\]'\)"):
+        read_measurement(path, expected_rate=20000.0)
+    path = tmp_path / "twice.csv"
+    path.write_text("Time,time [s],command,position,current\n0,0,0,0,1\n1,1,0,0,1\n")
+    with pytest.raises(ValueError, match="duplicate column 'time'"):
+        read_measurement(path)

@@ -7,6 +7,10 @@ Format (one file = one acquisition):
   and ``current`` [A, filtered envelope of the phase currents] are required, in any order;
 * any further numeric columns are optional channels, e.g. ``ia``, ``ib``, ``ic`` [A], ``speed``
   [rad/s, motor], ``motor_angle`` [rad].
+* as benches write them: the known columns' names in any case, with a unit in brackets or parentheses
+  (``Time [ms]``, ``current (mA)``, ``position [deg]``: :data:`UNIT_SCALES`, converted to the units above on reading;
+  an unknown unit is an error naming it), comma, semicolon or tab separated (with a semicolon or a tab, decimal
+  commas are read too).
 
 Reading validates everything and raises :class:`ValueError` naming the file, the column and the line
 (line 1 is the header) of the first problem found.
@@ -17,6 +21,7 @@ from __future__ import annotations
 import csv
 import math
 import os
+import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +44,23 @@ UNITS = {
     "motor_angle": "rad",
     "user_angle": "rad",
 }
+
+# Units a known column may carry in its header ("current [mA]"): the factor to this module's unit (UNITS)
+_ANGLE = {"rad": 1.0, "mrad": 1e-3, "deg": math.pi / 180.0, "°": math.pi / 180.0}
+_CURRENT = {"a": 1.0, "ma": 1e-3}
+UNIT_SCALES = {
+    "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6},
+    "command": _ANGLE,
+    "position": _ANGLE,
+    "motor_angle": _ANGLE,
+    "user_angle": _ANGLE,
+    "current": _CURRENT,
+    "ia": _CURRENT,
+    "ib": _CURRENT,
+    "ic": _CURRENT,
+    "speed": {"rad/s": 1.0, "rpm": 2.0 * math.pi / 60.0},
+}
+_HEADER = re.compile(r"^\s*(?P<name>[^\[\(]*?)\s*(?:[\[\(]\s*(?P<unit>[^\]\)]*?)\s*[\]\)])?\s*$")
 
 # Relative tolerances: a time step may differ from the median step by this fraction of it (timestamps
 # written with a few decimals are quantised); the sample rate may differ from the expected one by this.
@@ -178,6 +200,29 @@ def write_measurement(
 
 
 # ---- reading --------------------------------------------------------------------------------------
+def _read_header(path: Path, cells: list[str]) -> tuple[list[str], list[float]]:
+    """Column names (a known column's in lower case, its unit taken off) and each column's factor to the units of
+    :data:`UNITS`, from a header row as written (``Time [ms]``, ``current (mA)``, ``ia``, ``temperature [C]``)."""
+    names, scales = [], []
+    for cell in cells:
+        match = _HEADER.match(cell)
+        name, unit = (match["name"], match["unit"]) if match else (cell.strip(), None)
+        known = name.lower()
+        if known in UNIT_SCALES:
+            factors = UNIT_SCALES[known]
+            factor = 1.0 if unit is None else factors.get(unit.lower().replace(" ", ""))
+            if factor is None:
+                raise ValueError(
+                    f"{path}: column {cell.strip()!r}: unknown unit {unit!r} for {known!r}; known: {sorted(factors)}"
+                )
+            names.append(known)
+            scales.append(factor)
+        else:  # another channel: kept as written
+            names.append(cell.strip())
+            scales.append(1.0)
+    return names, scales
+
+
 def read_measurement(
     path: str | os.PathLike,
     expected_rate: float | None = None,
@@ -208,13 +253,16 @@ def read_measurement(
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"{path}: no such measurement file")
-    with open(path, newline="") as fh:
-        rows = list(csv.reader(fh))
+    with open(path, newline="", encoding="utf-8-sig") as fh:  # utf-8-sig: a spreadsheet's byte-order mark
+        text = fh.read()
+    first = text.split("\n", 1)[0]
+    delimiter = "," if "," in first or not any(d in first for d in ";\t") else (";" if ";" in first else "\t")
+    rows = list(csv.reader(text.splitlines(), delimiter=delimiter))
     while rows and not any(cell.strip() for cell in rows[-1]):
         rows.pop()  # trailing blank lines
     if not rows:
         raise ValueError(f"{path}: empty file (expected a header row with columns {list(REQUIRED)})")
-    header = [h.strip() for h in rows[0]]
+    header, scales = _read_header(path, rows[0])
     for i, name in enumerate(header):
         if not name:
             raise ValueError(f"{path}: header column {i + 1} is empty")
@@ -239,14 +287,14 @@ def read_measurement(
                 data[r, c] = math.nan
                 continue
             try:
-                value = float(cell)
+                value = float(cell if delimiter == "," else cell.replace(",", "."))  # decimal commas beside ';'
             except ValueError:
                 raise ValueError(f"{path}: line {line}, column {header[c]!r}: non-numeric value {cell!r}") from None
             if not math.isfinite(value):
                 raise ValueError(f"{path}: line {line}, column {header[c]!r}: value {cell.strip()!r} is not finite")
             data[r, c] = value
 
-    cols = {name: data[:, i].copy() for i, name in enumerate(header)}
+    cols = {name: data[:, i] * scales[i] for i, name in enumerate(header)}
     cols.update({name: np.full(len(body), math.nan) for name in absent})
     time = cols["time"]
     step = np.diff(time)
@@ -273,9 +321,17 @@ def read_measurement(
             raise ValueError(f"expected_rate must be a positive number, got {expected_rate!r}")
         if abs(rate - expected_rate) > RATE_TOLERANCE * expected_rate:
             if not resample:
+                hint = next(
+                    (
+                        f" (a time column in {unit}? name it 'time [{unit}]')"
+                        for unit, factor in (("ms", 1e3), ("us", 1e6))
+                        if abs(rate * factor - expected_rate) <= RATE_TOLERANCE * expected_rate
+                    ),
+                    "",
+                )
                 raise ValueError(
                     f"{path}: sample rate {rate:.6g} Hz (from column 'time') differs from the "
-                    f"expected {expected_rate:.6g} Hz; pass resample=True to interpolate"
+                    f"expected {expected_rate:.6g} Hz{hint}; pass resample=True to interpolate"
                 )
             source_rate = rate
             n_new = math.floor((time[-1] - time[0]) * expected_rate * (1 + 1e-12)) + 1
