@@ -135,3 +135,16 @@ def test_a_reversed_position_sensor_is_read_the_right_way_round_and_a_stalled_on
     assert correct_position_polarity(Record(t, cmd, stalled, torch.ones_like(t)))[1] is None
     assert correct_position_polarity(Record(t, cmd, torch.zeros_like(t), torch.ones_like(t)))[1] is None  # dead
     assert correct_position_polarity(Record(t, None, -follows, torch.ones_like(t)))[1] is None  # nothing to compare
+
+
+def test_a_refused_record_far_off_the_nominal_scale_says_so():
+    from phm_torch.online.diagnosis import scale_message
+
+    t = torch.arange(2001, dtype=torch.float64) / 20000.0
+    nominal = 0.3 + torch.sin(2 * math.pi * 15 * t)
+    assert scale_message(nominal * 3.0, nominal) is None and scale_message(nominal / 3.0, nominal) is None
+    assert "(the current written in mA? name the column 'current [mA]')" in scale_message(1000.0 * nominal, nominal)
+    far = scale_message(40.0 * nominal, nominal)
+    assert far.startswith("the current's RMS is 40 x the nominal record's") and "mA" not in far
+    assert scale_message(nominal / 50.0, nominal).startswith("the current's RMS is 0.02 x")
+    assert scale_message(nominal, None) is None and scale_message(nominal[:-1], nominal) is None

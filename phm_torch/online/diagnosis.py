@@ -135,6 +135,26 @@ def correct_position_polarity(record: Record) -> tuple[Record, float | None]:
     return Record(record.time, record.command, -record.position, record.current), corr
 
 
+SCALE_OFF = 10.0  # a record whose RMS current is this many times the nominal record's (or as many times less)
+
+
+def scale_message(current: torch.Tensor, nominal: torch.Tensor | None) -> str | None:
+    """For a refused record: a line saying that its RMS current (n_full,) [A] is ``SCALE_OFF`` or more times off the
+    nominal record's (another actuator, a probe's range, or the current written in mA), None otherwise. The flags
+    of such a record (gappy residual, consistency) name a symptom, not the cause."""
+    if nominal is None or current.shape != nominal.shape:
+        return None
+    rms = float(finite_mean(current.double().pow(2)).sqrt())
+    ratio = rms / float(nominal.double().pow(2).mean().sqrt())
+    if not math.isfinite(ratio) or 1.0 / SCALE_OFF < ratio < SCALE_OFF:
+        return None
+    units = " (the current written in mA? name the column 'current [mA]')" if 500.0 <= ratio <= 2000.0 else ""
+    return (
+        f"the current's RMS is {ratio:.3g} x the nominal record's: a record of another actuator or test, or a probe's "
+        f"range or units{units}"
+    )
+
+
 def contract_for(
     model: Any, metadata: Mapping[str, Any], command: Callable[[torch.Tensor], torch.Tensor] | None
 ) -> InputContract:
@@ -226,6 +246,8 @@ def diagnose(
         checks.reasons.append("bench")
         checks.messages.append(bench.message())
     out = bool(checks.reasons)
+    if out and (scale := scale_message(current[0], contract.nominal)) is not None:
+        checks.messages.append(scale)
     trusted_bounds = bounds is not None and not out and bool(torch.isfinite(bounds).all())
     r = rul[0].tolist()
     censored = out or any(math.isnan(v) for v in r)
