@@ -84,6 +84,8 @@ def inspection_record(
         "snapshot_rul_hours": snapshot,
         "snapshot_rul_censored": snap_censored,
         "noise": diagnosis.get("noise"),
+        # what phm-predict's path corrected (a trigger offset, a reversed probe) or refused, one line each
+        "messages": list(diagnosis.get("messages", [])),
     }
     if k_corrected is not None and diagnosis.get("k_near_nominal") is None:
         k, lower, upper = k_corrected
