@@ -148,3 +148,18 @@ def test_a_refused_record_far_off_the_nominal_scale_says_so():
     assert far.startswith("the current's RMS is 40 x the nominal record's") and "mA" not in far
     assert scale_message(nominal / 50.0, nominal).startswith("the current's RMS is 0.02 x")
     assert scale_message(nominal, None) is None and scale_message(nominal[:-1], nominal) is None
+
+
+def test_every_reason_a_check_can_give_has_its_line():
+    """A refused record says why in words: every reason the checks emit has a line (its own, with measured values,
+    or reason_text's), so a new check cannot be added without one."""
+    import re
+
+    from phm_torch.online.input_contract import PIPELINE_CHECKS
+    from phm_torch.online.reason_text import REASON_TEXT, SELF_EXPLAINED, reason_lines
+
+    src = "".join(p.read_text() for p in (Path(__file__).resolve().parents[1] / "phm_torch" / "online").glob("*.py"))
+    emitted = set(re.findall(r'reasons\.append\("([a-z_]+)"\)', src)) | set(PIPELINE_CHECKS) | {"pipeline"}
+    assert {"sign", "offset", "spikes", "bench", "command"} <= emitted  # the scan finds the checks
+    assert emitted <= set(REASON_TEXT) | set(SELF_EXPLAINED)
+    assert reason_lines(["command", "plateau"]) == [f"plateau: {REASON_TEXT['plateau']}"]

@@ -93,7 +93,8 @@ def test_track_json_fleet_ood_and_maintenance(fleet, compose, tmp_path):
         "messages",
     }
     assert keys <= set(insp[0])
-    assert insp[0]["messages"] == [] and isinstance(insp[2]["messages"], list)  # phm-predict's lines, as there
+    assert insp[0]["messages"] == [] and all(m.split(":")[0] in insp[2]["ood_reasons"] for m in insp[2]["messages"])
+    assert insp[2]["messages"]  # a refused record says why, one line a reason (phm-predict's)
     for i in (x for a in track["actuators"].values() for x in a["inspections"]):
         if i["rul_hours"] is not None:  # censored bounds are null, never the horizon
             assert all(v is None or v < 20000.0 for v in i["rul_hours"].values())

@@ -23,6 +23,7 @@ from .corruptions import Record
 from .input_contract import REVERSED_CORRELATION, InputContract, nominal_correlation
 from .loaded import as_loaded
 from .probe_calibration import ProbeCalibration
+from .reason_text import reason_lines
 from .unexplained_check import residual_floor
 
 # Relative noise always tolerated, whatever the calibration level: the noise estimate of a few noise-free
@@ -246,6 +247,7 @@ def diagnose(
         checks.reasons.append("bench")
         checks.messages.append(bench.message())
     out = bool(checks.reasons)
+    checks.messages.extend(reason_lines(checks.reasons))
     if out and (scale := scale_message(current[0], contract.nominal)) is not None:
         checks.messages.append(scale)
     trusted_bounds = bounds is not None and not out and bool(torch.isfinite(bounds).all())
