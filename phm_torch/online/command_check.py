@@ -87,6 +87,12 @@ def command_lag(recorded: torch.Tensor, expected: torch.Tensor, max_lag: int) ->
         recorded: (n,) the record's command column [rad].  expected: (n,) the test command at the record's times.
         max_lag: the largest shift searched, in samples (>= 0).
     """
+    lags, residual = lag_residuals(recorded, expected, max_lag)
+    return int(lags[int(torch.argmin(residual))])
+
+
+def lag_residuals(recorded: torch.Tensor, expected: torch.Tensor, max_lag: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(lags (L,), mean squared residual (L,)) of :func:`command_lag`'s least squares at every shift it searches."""
     r, e = recorded.double().flatten(), expected.double().flatten()
     n = r.numel()
     max_lag = max(0, min(int(max_lag), n // 4))
@@ -99,8 +105,7 @@ def command_lag(recorded: torch.Tensor, expected: torch.Tensor, max_lag: int) ->
     start, stop = lags.clamp(min=0), n + lags.clamp(max=0)  # the overlap, in the record's samples
     r_energy = r2[stop] - r2[start]
     e_energy = e2[stop - lags] - e2[start - lags]
-    residual = (r_energy - cross.pow(2) / e_energy.clamp_min(1e-300)) / (stop - start)
-    return int(lags[int(torch.argmin(residual))])
+    return lags, (r_energy - cross.pow(2) / e_energy.clamp_min(1e-300)) / (stop - start)
 
 
 def shifted(x: torch.Tensor | None, lag: int) -> torch.Tensor | None:

@@ -253,6 +253,22 @@ def clock_error(time, command, position, current, severity, rng):
     return Record(time, command, position, x)
 
 
+@register(
+    "logger_clock",
+    (0.001, 0.003, 0.005, 0.01),
+    "relative clock error",
+    "the logger's clock runs fast: every channel is the actuator's at t (1 + s) (its end held)",
+)
+def logger_clock(time, command, position, current, severity, rng):
+    t = time - time[0]
+    src = (t * (1.0 + severity)).clamp(max=float(t[-1])).numpy()
+
+    def read(x):
+        return None if x is None else torch.as_tensor(np.interp(src, t.numpy(), x.double().numpy()), dtype=x.dtype)
+
+    return Record(time, read(command), read(position), read(current))
+
+
 @register("position_sign", (1.0,), "-", "the position sensor the wrong way round")
 def position_sign(time, command, position, current, severity, rng):
     return Record(time, command, None if position is None else -position, current)

@@ -18,6 +18,7 @@ from ..faults import FAULT_NAMES
 from ..metrics import finite_mean
 from ..surrogates.metrics import IDENTIFIED_R2
 from .bench_check import BenchCheck
+from .clock_alignment import align_clock
 from .command_check import MAX_LAG_S, NRMSE_TOLERANCE, command_lag, command_nrmse, shifted
 from .corruptions import Record
 from .input_contract import REVERSED_CORRELATION, InputContract, nominal_correlation
@@ -63,12 +64,14 @@ def align_trigger(
     command within the command check's tolerance and better than unshifted: another command is left for the
     command check to refuse."""
     cmd = record.command
-    if cmd is None or command is None or cmd.numel() < 4 or not bool(torch.isfinite(cmd).all()):
+    # the column's leading finite run (a record resampled onto a faster clock misses its end: clock_alignment.py)
+    m = 0 if cmd is None else int(torch.isfinite(cmd).int().cumprod(0).sum())
+    if cmd is None or command is None or m < max(4, cmd.numel() // 2) or bool(torch.isfinite(cmd[m:]).any()):
         return record, None
     t = (record.time - record.time[0]).double()
     rate = (t.numel() - 1) / float(t[-1])
     expected = command(t)
-    lag = command_lag(cmd, expected, round(MAX_LAG_S * rate))
+    lag = command_lag(cmd[:m], expected[:m], round(MAX_LAG_S * rate))
     if lag == 0:
         return record, 0.0
     before, after = command_nrmse(cmd, expected), command_nrmse(shifted(cmd.double(), lag), expected)
@@ -79,8 +82,8 @@ def align_trigger(
     position = record.position
     if (
         position is not None
-        and bool(torch.isfinite(position).all())
-        and command_lag(position, cmd, round(MAX_LAG_S * rate)) < 0
+        and bool(torch.isfinite(position[:m]).all())
+        and command_lag(position[:m], cmd[:m], round(MAX_LAG_S * rate)) < 0
     ):
         return record, 0.0
     aligned = Record(record.time, shifted(cmd, lag), shifted(record.position, lag), shifted(record.current, lag))
@@ -210,6 +213,7 @@ def diagnose(
     """
     model = as_loaded(model)
     measured = record.current
+    record, clock_error = align_clock(record, contract.command)
     record, trigger_lag = align_trigger(record, contract.command)
     record, reversed_corr = correct_polarity(record, contract.nominal)
     record, position_corr = correct_position_polarity(record)
@@ -232,6 +236,11 @@ def diagnose(
             if trigger_lag > 0
             else f"the record led the test command by {-1000 * trigger_lag:.2f} ms (a trigger offset): every "
             f"channel was moved onto the test command's time grid, its first {-1000 * trigger_lag:.2f} ms missing"
+        )
+    if clock_error:
+        checks.messages.append(
+            f"the record's clock ran {100 * clock_error:+.2f} % off the test command's (from its command column): "
+            "every channel was resampled onto the test command's time grid"
         )
     if reversed_corr is not None:
         checks.messages.append(
@@ -273,6 +282,7 @@ def diagnose(
         else {"nrmse": command.nrmse, "best_lag_s": command.best_lag_s, "gain": command.gain, "ok": command.ok},
         "tracking_check": checks.tracking,
         "trigger_offset_s": trigger_lag,
+        "clock_error": clock_error,
         "current_reversed": reversed_corr is not None,
         "position_reversed": position_corr is not None,
         "noise": None if math.isnan(noise) else noise,
