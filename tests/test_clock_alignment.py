@@ -59,7 +59,7 @@ def test_what_is_left_as_it_came():
     assert align_clock(Record(rec.time, None, None, rec.current), CHIRP)[1] is None  # no command column
     assert align_clock(rec, None)[1] is None  # no test command
     sine = Sine(amplitude=5e-3, frequency=40.0, duration=0.5)  # 25 samples a period: the windows alias
-    out, found = align_clock(_record(sine, 0.01), sine)
+    _, found = align_clock(_record(sine, 0.01), sine)
     assert found == 0.0 or found == pytest.approx(0.01, abs=2e-4)  # never a wrong stretch
 
 
