@@ -29,7 +29,6 @@ PIPELINE = ROOT / "pretrained" / "online_surrogates_best.pt"
 BLIND_SPOTS = {
     "full": [
         "clock_error",
-        "coloured_noise",
         "current_gain",
         "current_lag",
         "current_offset",
@@ -39,7 +38,6 @@ BLIND_SPOTS = {
     ],
     "current_only": [
         "clock_error",
-        "coloured_noise",
         "current_gain",
         "current_lag",
         "current_offset",

@@ -163,3 +163,35 @@ def test_every_reason_a_check_can_give_has_its_line():
     assert {"sign", "offset", "spikes", "bench", "command"} <= emitted  # the scan finds the checks
     assert emitted <= set(REASON_TEXT) | set(SELF_EXPLAINED)
     assert reason_lines(["command", "plateau"]) == [f"plateau: {REASON_TEXT['plateau']}"]
+
+
+@pytest.mark.torchscript
+def test_a_probe_offset_is_read_at_rest_and_removed_from_a_near_nominal_record():
+    """Near nominal the rest window sits on the nominal record within its noise; a probe's offset of 3 % of the RMS
+    current there (under the ``offset`` check's 5 %) is measured and removed: the answer is the clean record's."""
+    from phm_torch.online.rest_offset_check import CORRECT_SIGMAS, probe_offset, rest_window
+
+    nominal = torch.zeros(1000, dtype=torch.float64)
+    nominal[100:] = torch.sin((torch.arange(900, dtype=torch.float64) + 1.0) / 30.0)
+    rms = float(nominal.pow(2).mean().sqrt())
+    rest = rest_window(nominal)
+    sigma = 0.01 * rms
+    assert rest == 100 and probe_offset(nominal + 0.5 * CORRECT_SIGMAS * sigma / rest**0.5, nominal, sigma) is None
+    assert probe_offset(nominal + 0.03 * rms, nominal, sigma) == pytest.approx(0.03 * rms)
+    assert probe_offset(nominal + 0.03 * rms, None, sigma) is None
+
+    torch.set_num_threads(1)
+    module = torch.jit.load(str(PIPELINE))
+    model = TorchScriptPipeline(module, {})
+    clean = module.nominal_record.double()
+    rms = float(clean.pow(2).mean().sqrt())
+    g = torch.Generator().manual_seed(4)
+    clean = clean + 0.01 * rms * torch.randn(clean.numel(), generator=g, dtype=torch.float64)
+    t = torch.arange(clean.numel(), dtype=torch.float64) / 20000.0
+    contract = InputContract.of(model, {}, None)
+    right = diagnose(model, Record(t, None, None, clean), contract)
+    shifted = diagnose(model, Record(t, None, None, clean + 0.03 * rms), contract)
+    assert right["probe_offset"] is None and shifted["probe_offset"] == pytest.approx(0.03 * rms, rel=0.1)
+    assert not shifted["out_of_distribution"] and any("a probe's offset" in m for m in shifted["messages"])
+    for name in FAULT_NAMES:
+        assert shifted["k_hat"][name] == pytest.approx(right["k_hat"][name], abs=2e-3), name

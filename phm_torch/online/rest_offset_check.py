@@ -53,3 +53,29 @@ def rest_offset(x: torch.Tensor, nominal: torch.Tensor, sigma: float, k_hat: tor
         return False
     mean = float(finite_mean(x[:rest] - nominal[:rest]))
     return abs(mean) > OFFSET_MAX * _rms(nominal) + 4.0 * sigma / math.sqrt(rest)
+
+
+# A near-nominal answer draws no current at rest (a shorted pair does, from 0.5), so over the rest window a clean record
+# sits on the nominal one within its noise: over 492 of the inspections of 100 life histories (1 % noise) the window's
+# mean stayed within 0.5 % of the nominal RMS, a median 0.11 % (its noise std: 0.14 %). A larger offset there is the
+# probe's and is removed (:func:`~.diagnosis.remove_probe_offset`) where the answer without it is near nominal.
+# Measured on those histories with a random offset within +-5 % of the RMS current per record: tracked at 21 %
+# coverage as read; 83 % removing what exceeds 2.5 noise std (clean histories: 86.9 against 87.2 %); 84 % removing every
+# offset, but the clean ones lost 2.5 points of coverage and 0.07 of horizon to the noise of the estimate.
+CORRECT_MIN = 0.0  # the rest-window offset over the nominal RMS ...
+CORRECT_SIGMAS = 2.5  # ... plus this many noise std of the window's mean, from which it is removed
+
+
+def probe_offset(x: torch.Tensor, nominal: torch.Tensor | None, sigma: float) -> float | None:
+    """The record x (n,) [A]'s mean offset [A] from the nominal record (n,) [A] over the rest window, where it exceeds
+    ``CORRECT_MIN`` of the nominal RMS plus ``CORRECT_SIGMAS`` noise standard deviations of the window's mean
+    (``sigma`` [A] the record's white noise); None where it does not, or there is no rest window to read."""
+    if nominal is None or x.shape != nominal.shape:
+        return None
+    rest = rest_window(nominal)
+    if rest < REST_MIN:
+        return None
+    mean = float(finite_mean(x[:rest].double() - nominal[:rest].double()))
+    if math.isnan(mean) or abs(mean) <= CORRECT_MIN * _rms(nominal) + CORRECT_SIGMAS * sigma / math.sqrt(rest):
+        return None
+    return mean
