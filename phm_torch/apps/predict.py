@@ -23,7 +23,8 @@ Each record holds:
   ``spikes``, ``gap``, ``stuck``, ``held``, ``bench``), ``checks_skipped`` (``command`` and ``tracking`` for a CSV without command or position
   columns, a current-only record), ``command_check``, ``tracking_check`` and ``messages`` (one line per failed
   check);
-* what was corrected before the pipeline read the record, each said in ``messages``: ``clock_error`` (a logger's
+* what was corrected before the pipeline read the record, each said in ``messages``: ``probe_offset`` [A] (an offset
+  read over the rest window and removed where the answer without it is near nominal), ``clock_error`` (a logger's
   relative clock error undone by resampling, from the record's command column; ``null`` without one),
   ``trigger_offset_s`` (the shift
   onto the test command's grid found by the record's command column; ``null`` without one) and ``current_reversed``
