@@ -240,6 +240,16 @@ def drift(time, command, position, current, severity, rng):
     return Record(time, command, position, current + severity * _rms(current) * ramp)
 
 
+def _fast_clock(time: torch.Tensor, x: torch.Tensor | None, severity: float) -> torch.Tensor | None:
+    """A channel (n,) as a logger whose clock runs fast by ``severity`` writes it: at t the actuator's at t (1 + s),
+    linearly interpolated, its end held past the record."""
+    if x is None:
+        return None
+    t = time - time[0]
+    src = (t * (1.0 + severity)).clamp(max=float(t[-1]))
+    return torch.as_tensor(np.interp(src.numpy(), t.numpy(), x.double().numpy()), dtype=x.dtype)
+
+
 @register(
     "clock_error",
     (0.001, 0.005, 0.02, 0.05),
@@ -247,10 +257,7 @@ def drift(time, command, position, current, severity, rng):
     "the logger's clock runs fast: the current is the actuator's at t (1 + s)",
 )
 def clock_error(time, command, position, current, severity, rng):
-    t = time - time[0]
-    src = (t * (1.0 + severity)).clamp(max=float(t[-1]))
-    x = torch.as_tensor(np.interp(src.numpy(), t.numpy(), current.double().numpy()), dtype=current.dtype)
-    return Record(time, command, position, x)
+    return Record(time, command, position, _fast_clock(time, current, severity))
 
 
 @register(
@@ -260,13 +267,7 @@ def clock_error(time, command, position, current, severity, rng):
     "the logger's clock runs fast: every channel is the actuator's at t (1 + s) (its end held)",
 )
 def logger_clock(time, command, position, current, severity, rng):
-    t = time - time[0]
-    src = (t * (1.0 + severity)).clamp(max=float(t[-1])).numpy()
-
-    def read(x):
-        return None if x is None else torch.as_tensor(np.interp(src, t.numpy(), x.double().numpy()), dtype=x.dtype)
-
-    return Record(time, read(command), read(position), read(current))
+    return Record(time, *(_fast_clock(time, x, severity) for x in (command, position, current)))
 
 
 @register("position_sign", (1.0,), "-", "the position sensor the wrong way round")
