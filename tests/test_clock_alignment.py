@@ -13,7 +13,7 @@ import torch
 from phm_torch.command import Chirp, Sine
 from phm_torch.online.clock_alignment import CLOCK_MIN, align_clock, stretched
 from phm_torch.online.corruptions import Record
-from phm_torch.online.diagnosis import align_trigger
+from phm_torch.online.record_corrections import align_trigger
 
 RATE = 20000.0
 CHIRP = Chirp(amplitude=5e-3, f_start=0.0, f_end=15.0, duration=0.5)

@@ -94,7 +94,7 @@ def test_every_case_flagged_or_right_except_the_blind_spots(suite):
     # the nominal record (the friction record's answer is not near enough to be checked: hum stays a blind spot)
     assert all("unexplained" in full["hum"]["severities"][s]["reasons"] for s in ("0.2", "0.4"))
     # what the issue found confidently wrong, now flagged with its reason, or corrected: a current probe the wrong
-    # way round is read as -current (diagnosis.correct_polarity), every case then right, full and current only
+    # way round is read as -current (record_corrections.correct_polarity), every case then right, full and current only
     for mode in ("full", "current_only"):
         sign = table["current_sign"][mode]["severities"]["1.0"]
         assert sign["cases"] == sign["unflagged_right"], table["current_sign"]
@@ -103,7 +103,7 @@ def test_every_case_flagged_or_right_except_the_blind_spots(suite):
         and "command" in full["time_reversal"]["severities"]["1.0"]["reasons"]
     )
     # trigger offsets are corrected, not refused: the record is moved back onto the test command's grid by its
-    # own command column (diagnosis.align_trigger), and every case is then right at every severity
+    # own command column (record_corrections.align_trigger), and every case is then right at every severity
     trigger = full["trigger_offset"]["severities"].values()
     assert all(s["cases"] == s["unflagged_right"] for s in trigger), full["trigger_offset"]
     # a logger's clock off by 0.1-0.5 % (every channel): resampled by the stretch its command column shows
@@ -111,7 +111,7 @@ def test_every_case_flagged_or_right_except_the_blind_spots(suite):
     clock = full["logger_clock"]["severities"]
     assert all(clock[s]["cases"] == clock[s]["unflagged_right"] for s in ("0.001", "0.003", "0.005")), clock
     assert full["white_noise"]["flagged_from"] <= 0.2 and "noise" in full["white_noise"]["severities"]["0.4"]["reasons"]
-    position = full["position_sign"]["severities"]["1.0"]  # read as -position (diagnosis.correct_position_polarity)
+    position = full["position_sign"]["severities"]["1.0"]  # read as -position (record_corrections.correct_position_polarity)
     assert position["reasons"] == [] and position["cases"] == position["unflagged_right"]
     assert full["current_offset"]["severities"]["0.1"]["reasons"] == ["offset"]
     assert full["clipping"]["flagged_from"] <= 0.2 and "plateau" in full["clipping"]["severities"]["0.5"]["reasons"]

@@ -76,7 +76,7 @@ def test_tracking_nrmse_is_the_library_nrmse_and_undefined_for_a_constant_comman
 def test_a_reversed_current_is_found_by_its_mean_and_shape_together():
     """A probe the wrong way round is read as -current; a record whose mean alone has the other sign, or one reversed
     in time (its mean keeps its sign), is not: those are the ``sign`` check's and the consistency check's."""
-    from phm_torch.online.diagnosis import correct_polarity, polarity_reversal
+    from phm_torch.online.record_corrections import correct_polarity, polarity_reversal
 
     t = torch.arange(2001, dtype=torch.float64) / 20000.0
     nominal = 0.3 + torch.sin(2 * math.pi * 15 * t)  # a mean of the nominal's sign, the shape of a chirp's current
@@ -123,7 +123,7 @@ def test_a_bench_with_its_probe_turned_round_reads_as_one_the_right_way(compose,
 
 
 def test_a_reversed_position_sensor_is_read_the_right_way_round_and_a_stalled_one_is_not():
-    from phm_torch.online.diagnosis import correct_position_polarity
+    from phm_torch.online.record_corrections import correct_position_polarity
 
     t = torch.arange(2001, dtype=torch.float64) / 20000.0
     cmd = 5e-3 * torch.sin(2 * math.pi * 10 * t)

@@ -1,5 +1,5 @@
 """Trigger offsets: the record's own command column gives its shift against the test command
-(``command_check.command_lag``, every lag at once by FFT, exact least squares), and ``diagnosis.align_trigger`` moves
+(``command_check.command_lag``, every lag at once by FFT, exact least squares), and ``record_corrections.align_trigger`` moves
 every channel back onto the test command's grid, its unseen end missing; another command is left alone."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import torch
 from phm_torch.command import Chirp
 from phm_torch.online.command_check import command_lag, shifted
 from phm_torch.online.corruptions import Record
-from phm_torch.online.diagnosis import align_trigger
+from phm_torch.online.record_corrections import align_trigger
 
 RATE = 20000.0
 T = torch.arange(10001, dtype=torch.float64) / RATE

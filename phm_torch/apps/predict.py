@@ -64,9 +64,10 @@ from .. import provenance
 from ..io import read_measurement
 from ..online.bench_check import check_bench
 from ..online.corruptions import Record
-from ..online.diagnosis import NOISE_FLOOR, contract_for, diagnose, polarity_reversal
+from ..online.diagnosis import NOISE_FLOOR, contract_for, diagnose
 from ..online.loaded import LoadedPipeline, UnservedRecord, load_pipeline
 from ..online.probe_calibration import ProbeCalibration, fit_probe
+from ..online.record_corrections import polarity_reversal
 from . import common
 
 log = logging.getLogger(__name__)

@@ -25,9 +25,10 @@ from omegaconf import DictConfig
 from .. import provenance
 from ..assessment_record import same_labels
 from ..online.bench_check import check_bench
-from ..online.diagnosis import align_trigger, contract_for, correct_polarity
+from ..online.diagnosis import contract_for
 from ..online.loaded import TorchScriptPipeline, load_pipeline
 from ..online.probe_calibration import fit_probe
+from ..online.record_corrections import prepare_record
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
 from ..tracking.companions import companion, missing_message
 from ..tracking.fleet_check import FleetCheckSettings, check_fleet
@@ -152,9 +153,8 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                 current, m = _read(str(row.path), loaded, resample)
                 record = _record(m, current)
                 found = inspect_record(loaded, record, contract, bench_nominal, bench, near, probe)
-                if keep is not None:
-                    aligned = correct_polarity(align_trigger(record, contract.command)[0], contract.nominal)[0]
-                    keep.append(aligned.current.to(torch.float32))
+                if keep is not None:  # the record as the pipeline read it (the same corrections, made again)
+                    keep.append(prepare_record(record, contract.command, contract.nominal)[0].current.float())
                 for message in found["messages"]:
                     log.warning("%s: %s; the inspection is out of distribution (not fused)", row.path, message)
             out.append(found)

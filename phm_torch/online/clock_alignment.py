@@ -5,7 +5,7 @@ t = (1 + e) tau: over the 0.5 s chirp, 0.5 % puts its end 2.5 ms off. The comman
 under its tolerance), the trigger alignment cannot undo it (no single shift fits), and the FDI read the stretched
 current as faults: 3 of the corruption suite's 4 records wrong at +0.5 %, 4 of 4 at -0.5 %, nothing flagged.
 
-The record's own command column tells the stretch, as it tells a trigger offset (:func:`~.diagnosis.align_trigger`):
+The record's own command column tells the stretch, as it tells a trigger offset (:func:`~.record_corrections.align_trigger`):
 :func:`align_clock` finds the command column's shift against the test command in ``WINDOWS`` windows of the record's
 second half (where a chirp is fastest, so a shift is sharpest), fits shift = a - e tau by least squares, and where
 |e| is at least ``CLOCK_MIN`` resamples every channel by it (linear interpolation; the part of the test command's

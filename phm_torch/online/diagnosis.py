@@ -18,13 +18,12 @@ from ..faults import FAULT_NAMES
 from ..metrics import finite_mean
 from ..surrogates.metrics import IDENTIFIED_R2
 from .bench_check import BenchCheck
-from .clock_alignment import align_clock
-from .command_check import MAX_LAG_S, NRMSE_TOLERANCE, command_lag, command_nrmse, shifted
 from .corruptions import Record
-from .input_contract import REVERSED_CORRELATION, InputContract, nominal_correlation
+from .input_contract import InputContract
 from .loaded import as_loaded
 from .probe_calibration import ProbeCalibration
 from .reason_text import reason_lines
+from .record_corrections import prepare_record
 from .rest_offset_check import probe_offset
 from .unexplained_check import checked, residual_floor
 
@@ -50,94 +49,6 @@ def not_identified(metadata: Mapping[str, Any]) -> list[str]:
     the training prior); [] for a pipeline exported without that measurement."""
     r2 = metadata.get("identifiability") or {}
     return [name for name in FAULT_NAMES if name in r2 and not (r2[name] is not None and r2[name] >= IDENTIFIED_R2)]
-
-
-def align_trigger(
-    record: Record, command: Callable[[torch.Tensor], torch.Tensor] | None
-) -> tuple[Record, float | None]:
-    """The record moved onto the test command's time grid, and the shift [s] it needed (None: no command column or
-    no test command to align on; 0.0: already aligned).
-
-    A trigger offset shifts every channel against the test command: the FDI then reads the current's timing as
-    faults (0.5 ms moved err_k as much as a real fault and no check saw it). The record's own command column
-    tells the shift (:func:`~.command_check.command_lag`); the shifted record's unseen end is missing (NaN),
-    which the gappy layer and the checks handle. It is applied only when the shifted command matches the test
-    command within the command check's tolerance and better than unshifted: another command is left for the
-    command check to refuse."""
-    cmd = record.command
-    # the column's leading finite run (a record resampled onto a faster clock misses its end: clock_alignment.py)
-    m = 0 if cmd is None else int(torch.isfinite(cmd).int().cumprod(0).sum())
-    if cmd is None or command is None or m < max(4, cmd.numel() // 2) or bool(torch.isfinite(cmd[m:]).any()):
-        return record, None
-    t = (record.time - record.time[0]).double()
-    rate = (t.numel() - 1) / float(t[-1])
-    expected = command(t)
-    lag = command_lag(cmd[:m], expected[:m], round(MAX_LAG_S * rate))
-    if lag == 0:
-        return record, 0.0
-    before, after = command_nrmse(cmd, expected), command_nrmse(shifted(cmd.double(), lag), expected)
-    if not (after <= NRMSE_TOLERANCE and after < before):
-        return record, 0.0
-    # one trigger moves every channel: the position still follows its command column, never leads it; a
-    # command column shifted alone (another logger) is left for the command check to refuse
-    position = record.position
-    if (
-        position is not None
-        and bool(torch.isfinite(position[:m]).all())
-        and command_lag(position[:m], cmd[:m], round(MAX_LAG_S * rate)) < 0
-    ):
-        return record, 0.0
-    aligned = Record(record.time, shifted(cmd, lag), shifted(record.position, lag), shifted(record.current, lag))
-    return aligned, lag / rate
-
-
-# A current probe the wrong way round: the record's mean current has the other sign than the nominal record's (the
-# envelope current of every fault vector keeps the nominal sign; the input contract's ``sign`` check) and its shape is
-# anti-correlated with the nominal record's (the heaviest val-like faults still correlate at +0.22 or more).
-CURRENT_REVERSED_CORRELATION = 0.0
-
-
-def polarity_reversal(current: torch.Tensor, nominal: torch.Tensor | None) -> float | None:
-    """The correlation (< ``CURRENT_REVERSED_CORRELATION``) with the nominal record (n_full,) [A] of a current (n_full,) [A]
-    that a probe read the wrong way round, None where it is not reversed (or there is nothing to compare with).
-
-    Read as it came, a reversed current was refused (``sign``, ``inconsistent``) and a bench with its probe turned
-    round tracked nothing; its sign is unambiguous, so phm-predict and phm-track restore it like a trigger offset,
-    and say so. A record whose mean has the other sign but whose shape still follows the nominal record is left for
-    the ``sign`` check to refuse."""
-    if nominal is None or current.shape != nominal.shape:
-        return None
-    x, nominal = current.double(), nominal.double()
-    if not float(finite_mean(x)) * float(nominal.mean()) < 0:
-        return None
-    present = torch.isfinite(x)  # over the samples it has (the shape check fills the missing with the nominal's)
-    corr = float(nominal_correlation(x[present], nominal[present])) if int(present.sum()) > 2 else 0.0
-    return corr if corr < CURRENT_REVERSED_CORRELATION else None
-
-
-def correct_polarity(record: Record, nominal: torch.Tensor | None) -> tuple[Record, float | None]:
-    """The record with its current's sign restored where :func:`polarity_reversal` finds it reversed, and that
-    correlation (None: left as it came)."""
-    corr = polarity_reversal(record.current, nominal)
-    if corr is None:
-        return record, None
-    return Record(record.time, record.command, record.position, -record.current), corr
-
-
-def correct_position_polarity(record: Record) -> tuple[Record, float | None]:
-    """The record with its position's sign restored where the position sensor reads the wrong way round, and the
-    correlation with the command column that showed it (None: left as it came).
-
-    A position anti-correlated with its command (below the tracking check's ``REVERSED_CORRELATION``) is a reversed
-    sensor (a stalled actuator correlates near 0, the paper store's val records at 0.82 and above): read the other
-    way round, it is checked as any position is (its tracking range); the FDI never reads it."""
-    cmd, pos = record.command, record.position
-    if cmd is None or pos is None or not bool(torch.isfinite(cmd).all() and torch.isfinite(pos).all()):
-        return record, None
-    corr = float(torch.corrcoef(torch.stack([pos.double().flatten(), cmd.double().flatten()]))[0, 1])
-    if not corr < REVERSED_CORRELATION:  # NaN (a constant position or command) is not reversed
-        return record, None
-    return Record(record.time, record.command, -record.position, record.current), corr
 
 
 SCALE_OFF = 10.0  # a record whose RMS current is this many times the nominal record's (or as many times less)
@@ -234,10 +145,7 @@ def diagnose(
     """
     model = as_loaded(model)
     measured = record.current
-    record, clock_error = align_clock(record, contract.command)
-    record, trigger_lag = align_trigger(record, contract.command)
-    record, reversed_corr = correct_polarity(record, contract.nominal)
-    record, position_corr = correct_position_polarity(record)
+    record, fixed = prepare_record(record, contract.command, contract.nominal)
     if probe is not None:
         record = Record(record.time, record.command, record.position, probe.apply(record.current))
     current = torch.as_tensor(record.current, dtype=model.dtype).reshape(1, -1)
@@ -251,33 +159,11 @@ def diagnose(
     checks = contract.check(
         model, record, current[0], noise, bool(ood[0]), k_hat[0], bool(score[0] > 0), measured, float(resid[0])
     )
-    if trigger_lag:
-        checks.messages.append(
-            f"the record lagged the test command by {1000 * trigger_lag:.2f} ms (a trigger offset): every channel "
-            f"was moved back onto the test command's time grid, its last {1000 * abs(trigger_lag):.2f} ms missing"
-            if trigger_lag > 0
-            else f"the record led the test command by {-1000 * trigger_lag:.2f} ms (a trigger offset): every "
-            f"channel was moved onto the test command's time grid, its first {-1000 * trigger_lag:.2f} ms missing"
-        )
+    checks.messages.extend(fixed.messages())
     if offset is not None:
         checks.messages.append(
             f"the current sat {offset:+.4g} A off the nominal record at rest (a probe's offset; the answer near "
             "nominal without it): removed"
-        )
-    if clock_error:
-        checks.messages.append(
-            f"the record's clock ran {100 * clock_error:+.2f} % off the test command's (from its command column): "
-            "every channel was resampled onto the test command's time grid"
-        )
-    if reversed_corr is not None:
-        checks.messages.append(
-            f"the current read reversed (its mean of the other sign than the nominal record's, its correlation with "
-            f"it {reversed_corr:.2f}): a current probe the wrong way round; read as -current"
-        )
-    if position_corr is not None:
-        checks.messages.append(
-            f"the position read reversed (correlation {position_corr:.2f} with the command column): a position "
-            "sensor the wrong way round; read as -position"
         )
     if bench is not None and not bench.ok:
         checks.reasons.append("bench")
@@ -308,11 +194,11 @@ def diagnose(
         if command is None
         else {"nrmse": command.nrmse, "best_lag_s": command.best_lag_s, "gain": command.gain, "ok": command.ok},
         "tracking_check": checks.tracking,
-        "trigger_offset_s": trigger_lag,
-        "clock_error": clock_error,
+        "trigger_offset_s": fixed.trigger_offset_s,
+        "clock_error": fixed.clock_error,
         "probe_offset": offset,
-        "current_reversed": reversed_corr is not None,
-        "position_reversed": position_corr is not None,
+        "current_reversed": fixed.current_correlation is not None,
+        "position_reversed": fixed.position_correlation is not None,
         "noise": None if math.isnan(noise) else noise,
         "noise_above_calibration": noisy,
         "messages": checks.messages,
