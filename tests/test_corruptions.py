@@ -111,7 +111,9 @@ def test_every_case_flagged_or_right_except_the_blind_spots(suite):
     clock = full["logger_clock"]["severities"]
     assert all(clock[s]["cases"] == clock[s]["unflagged_right"] for s in ("0.001", "0.003", "0.005")), clock
     assert full["white_noise"]["flagged_from"] <= 0.2 and "noise" in full["white_noise"]["severities"]["0.4"]["reasons"]
-    position = full["position_sign"]["severities"]["1.0"]  # read as -position (record_corrections.correct_position_polarity)
+    position = full["position_sign"]["severities"][
+        "1.0"
+    ]  # read as -position (record_corrections.correct_position_polarity)
     assert position["reasons"] == [] and position["cases"] == position["unflagged_right"]
     assert full["current_offset"]["severities"]["0.1"]["reasons"] == ["offset"]
     assert full["clipping"]["flagged_from"] <= 0.2 and "plateau" in full["clipping"]["severities"]["0.5"]["reasons"]
