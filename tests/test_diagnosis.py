@@ -135,6 +135,10 @@ def test_a_reversed_position_sensor_is_read_the_right_way_round_and_a_stalled_on
     assert correct_position_polarity(Record(t, cmd, stalled, torch.ones_like(t)))[1] is None
     assert correct_position_polarity(Record(t, cmd, torch.zeros_like(t), torch.ones_like(t)))[1] is None  # dead
     assert correct_position_polarity(Record(t, None, -follows, torch.ones_like(t)))[1] is None  # nothing to compare
+    aligned_cmd, aligned_pos = cmd.clone(), (-follows).clone()
+    aligned_cmd[-40:], aligned_pos[-40:] = float("nan"), float("nan")  # moved back onto its trigger: its end missing
+    record, corr = correct_position_polarity(Record(t, aligned_cmd, aligned_pos, torch.ones_like(t)))
+    assert corr < -0.9 and torch.equal(record.position[:-40], follows[:-40])
 
 
 def test_a_refused_record_far_off_the_nominal_scale_says_so():

@@ -102,9 +102,12 @@ def correct_position_polarity(record: Record) -> tuple[Record, float | None]:
     sensor (a stalled actuator correlates near 0, the paper store's val records at 0.82 and above): read the other
     way round, it is checked as any position is (its tracking range); the FDI never reads it."""
     cmd, pos = record.command, record.position
-    if cmd is None or pos is None or not bool(torch.isfinite(cmd).all() and torch.isfinite(pos).all()):
+    if cmd is None or pos is None:
         return record, None
-    corr = float(torch.corrcoef(torch.stack([pos.double().flatten(), cmd.double().flatten()]))[0, 1])
+    both = torch.isfinite(cmd) & torch.isfinite(pos)  # a record aligned on its trigger or clock misses its ends
+    if int(both.sum()) < 3:
+        return record, None
+    corr = float(torch.corrcoef(torch.stack([pos[both].double(), cmd[both].double()]))[0, 1])
     if not corr < REVERSED_CORRELATION:  # NaN (a constant position or command) is not reversed
         return record, None
     return Record(record.time, record.command, -record.position, record.current), corr
