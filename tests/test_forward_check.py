@@ -267,3 +267,34 @@ def test_a_pipeline_without_its_bundle_gets_a_consistency_check_from_its_own_bas
     with pytest.raises(ValueError, match="share 0 samples"):
         pipe.gappy = GappyPOD(pod.modes_, pod.mean_, torch.arange(1, N_E, 16))
         pipeline_basis(pipe)
+
+
+def test_recalibration_at_a_higher_quantile_raises_the_thresholds_and_nothing_else(fitted):
+    """scripts/recalibrate_consistency.py's library part: a higher quantile raises every threshold, flags no more of
+    the held-out records, and leaves every other output as it was; bad arguments are one-line errors."""
+    from phm_torch.online.consistency import recalibrate_consistency
+
+    pipe = _pipeline(fitted, True)
+    clean = records(faults(300, 9))
+    calibrate_consistency(pipe, clean[:150], [0.01, 0.03, 0.1], seed=0, quantile=0.9)
+    low = pipe.consistency_check.thresholds.clone()
+    probe = add_noise(clean[200:], rms(clean[200:]), 0.01, torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        before = pipe(probe)
+    report = recalibrate_consistency(pipe, clean, 0.99, seed=0, calibrate_records=150)
+    assert bool((pipe.consistency_check.thresholds > low).all())
+    assert report["after"]["calibration"]["quantile"] == 0.99
+    for level, rates in report["after"]["flag_rates"].items():
+        assert rates["inconsistent"] <= report["before"]["flag_rates"][level]["inconsistent"]
+    assert report["before"]["flag_rates"]["0.01"]["inconsistent"] > 0.0  # at 0.9 some held-out records were flagged
+    with torch.no_grad():
+        after = pipe(probe)
+    for i in (0, 1, 4):  # k_hat, score, residual
+        torch.testing.assert_close(after[i], before[i])
+    assert int(after[3].sum()) < int(before[3].sum())  # fewer flags: the RUL of the records no longer flagged
+    kept = ~(after[3] | before[3])  # is no longer NaN; where neither is flagged it is the same
+    torch.testing.assert_close(after[2][kept], before[2][kept])
+    with pytest.raises(ValueError, match="calibrate_records must be in"):
+        recalibrate_consistency(pipe, clean, 0.99, seed=0, calibrate_records=295)
+    with pytest.raises(ValueError, match="no consistency check"):
+        recalibrate_consistency(_pipeline(fitted, False), clean, 0.99, seed=0, calibrate_records=150)

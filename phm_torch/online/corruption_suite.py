@@ -142,7 +142,7 @@ def suite_records(
     return base, changed
 
 
-def clean_records(model: Any, path: Path, n: int = 125, cache: Path = CACHE, seed: int = 1) -> list[Case]:
+def clean_records(model: Any, path: Path, n: int = 500, cache: Path = CACHE, seed: int = 1) -> list[Case]:
     """Val-like records: ``n`` fault vectors drawn as the paper's store draws them, each at 0, 1, 2 and 3 %
     noise, twice (8 n records)."""
     params, _, command = pipeline_conditions(path)
