@@ -107,6 +107,26 @@ def test_track_json_fleet_ood_and_maintenance(fleet, compose, tmp_path):
     assert json.loads((tmp_path / "fleet.json").read_text()) == track["fleet"]
 
 
+def test_only_a_refused_inspection_is_logged_as_not_fused(fleet, compose, tmp_path, caplog, monkeypatch):
+    """A record's messages say what was corrected (fused) as well as what was refused: the log says "not fused"
+    only for the latter (it had said so for every message, a corrected probe offset included)."""
+    import phm_torch.apps.track as app
+
+    real = app.inspect_record
+
+    def with_a_correction(*args, **kwargs):
+        found = real(*args, **kwargs)
+        return {**found, "messages": [*found["messages"], "probe_offset: removed"]}
+
+    monkeypatch.setattr(app, "inspect_record", with_a_correction)
+    caplog.set_level("WARNING")
+    run(compose, fleet, tmp_path)
+    lines = [r.getMessage() for r in caplog.records if "probe_offset: removed" in r.getMessage()]
+    refused = [line for line in lines if "A1_2.csv" in line]
+    assert len(lines) == 12 and refused and all("not fused" in line for line in refused)
+    assert not any("not fused" in line for line in lines if "A1_2.csv" not in line)
+
+
 def test_an_interrupted_run_resumes_to_the_same_result(fleet, compose, tmp_path, monkeypatch):
     import phm_torch.apps.track as app
 

@@ -155,8 +155,10 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
                 found = inspect_record(loaded, record, contract, bench_nominal, bench, near, probe)
                 if keep is not None:  # the record as the pipeline read it (the same corrections, made again)
                     keep.append(prepare_record(record, contract.command, contract.nominal)[0].current.float())
+                # the messages say what was corrected as well as what was refused: "not fused" only for the latter
+                tail = "; the inspection is out of distribution (not fused)" if found["out_of_distribution"] else ""
                 for message in found["messages"]:
-                    log.warning("%s: %s; the inspection is out of distribution (not fused)", row.path, message)
+                    log.warning("%s: %s%s", row.path, message, tail)
             out.append(found)
         return out
 
