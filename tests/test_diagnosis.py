@@ -201,3 +201,15 @@ def test_a_probe_offset_is_read_at_rest_and_removed_from_a_near_nominal_record()
     assert not shifted["out_of_distribution"] and any("a probe's offset" in m for m in shifted["messages"])
     for name in FAULT_NAMES:
         assert shifted["k_hat"][name] == pytest.approx(right["k_hat"][name], abs=2e-3), name
+    # with a bench's healthy record (baseline) the rest window compared holds that record's noise too: here its rest
+    # mean sits 1.5 std of one record's noise off, as one in seven baselines does; at 3 std of the record's own noise
+    # alone, about 7 % of the bench's clean records had their noise removed as a probe's offset
+    base = module.nominal_record.double() + 0.01 * rms * torch.randn(clean.numel(), generator=g, dtype=torch.float64)
+    rest = rest_window(module.nominal_record.double())
+    base[:rest] += 1.5 * 0.01 * rms / rest**0.5 - (base[:rest] - module.nominal_record.double()[:rest]).mean()
+    fired = 0
+    for _ in range(150):
+        noise = 0.01 * rms * torch.randn(clean.numel(), generator=g, dtype=torch.float64)
+        record = Record(t, None, None, module.nominal_record.double() + noise)
+        fired += diagnose(model, record, contract, bench_nominal=base)["probe_offset"] is not None
+    assert fired <= 2

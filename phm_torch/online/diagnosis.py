@@ -83,6 +83,8 @@ def remove_probe_offset(
         return step, None
     seen = current[0].double() if bench_nominal is None else current[0].double() - (bench_nominal.double() - nominal)
     sigma = float(step.noise[0]) * float(finite_mean(seen.pow(2)).sqrt())
+    if bench_nominal is not None:  # seen holds the bench's healthy record's noise as well as this record's
+        sigma *= math.sqrt(2.0)
     offset = probe_offset(seen, nominal, 0.0 if math.isnan(sigma) else sigma)
     if offset is None:
         return step, None
