@@ -213,3 +213,40 @@ def test_a_probe_offset_is_read_at_rest_and_removed_from_a_near_nominal_record()
         record = Record(t, None, None, module.nominal_record.double() + noise)
         fired += diagnose(model, record, contract, bench_nominal=base)["probe_offset"] is not None
     assert fired <= 2
+
+
+def test_a_removed_probe_offset_widens_the_near_nominal_reading_by_its_own_error():
+    """phm-track's reading of a record whose probe offset was removed: the offset was read over a 48-sample rest
+    window, so its noise moves the near-nominal reading; the interval grows by that response (in quadrature) and holds
+    the reading of the same record without an offset. A record without one keeps the calibrated half-widths."""
+    from phm_torch.tracking.inspection import inspect_record
+    from phm_torch.tracking.near_nominal import NearNominalFDI
+
+    torch.set_num_threads(1)
+    module = torch.jit.load(str(PIPELINE))
+    model = TorchScriptPipeline(module, {})
+    near = NearNominalFDI.load(PIPELINE.with_suffix(".near_nominal.pt"))
+    nominal = module.nominal_record.double()
+    rms = float(nominal.pow(2).mean().sqrt())
+    g = torch.Generator().manual_seed(11)
+    clean = nominal + 0.02 * rms * torch.randn(nominal.numel(), generator=g, dtype=torch.float64)
+    t = torch.arange(nominal.numel(), dtype=torch.float64) / 20000.0
+    contract = InputContract.of(model, {}, None)
+    plain = inspect_record(model, Record(t, None, None, clean), contract, near_nominal=near)
+    shifted = inspect_record(model, Record(t, None, None, clean + 0.03 * rms), contract, near_nominal=near)
+    assert plain["probe_offset"] is None and shifted["probe_offset"] is not None
+
+    def bounds(found):
+        return torch.tensor([found["k_near_nominal_interval"][n] for n in FAULT_NAMES], dtype=torch.float64)
+
+    def reading(found):
+        return torch.tensor([found["k_near_nominal"][n] for n in FAULT_NAMES], dtype=torch.float64)
+
+    w = near.half_widths(torch.tensor([plain["noise"]], dtype=torch.float64))[0]
+    torch.testing.assert_close(bounds(plain)[:, 1], (reading(plain) + w).clamp(0.0, 1.0))
+    damage = torch.tensor([n != "eccentricity_phase" for n in FAULT_NAMES])  # the phase's bound is clamped at 1
+    w = near.half_widths(torch.tensor([shifted["noise"]], dtype=torch.float64))[0][damage]
+    widened = (bounds(shifted)[:, 1] - reading(shifted))[damage]
+    assert bool((widened >= w - 1e-9).all()) and float((widened / w).max()) > 1.5
+    inside = (bounds(shifted)[:, 0] <= reading(plain)) & (reading(plain) <= bounds(shifted)[:, 1])
+    assert bool(inside.all()), (reading(plain), bounds(shifted))

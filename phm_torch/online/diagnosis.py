@@ -71,6 +71,13 @@ def scale_message(current: torch.Tensor, nominal: torch.Tensor | None) -> str | 
     )
 
 
+def rest_noise(seen: torch.Tensor, noise: float, with_baseline: bool) -> float:
+    """White noise [A] of the record ``seen`` (n,) [A] as the rest window compares it: its relative ``noise`` times
+    its RMS, and with a bench's healthy record (``with_baseline``, subtracted from it) that record's noise too."""
+    sigma = noise * float(finite_mean(seen.pow(2)).sqrt())
+    return sigma * math.sqrt(2.0) if with_baseline else sigma
+
+
 def remove_probe_offset(
     model: Any, current: torch.Tensor, bench_nominal: torch.Tensor | None, step: Any, nominal: torch.Tensor | None
 ) -> tuple[Any, float | None]:
@@ -82,9 +89,7 @@ def remove_probe_offset(
     if nominal is None:
         return step, None
     seen = current[0].double() if bench_nominal is None else current[0].double() - (bench_nominal.double() - nominal)
-    sigma = float(step.noise[0]) * float(finite_mean(seen.pow(2)).sqrt())
-    if bench_nominal is not None:  # seen holds the bench's healthy record's noise as well as this record's
-        sigma *= math.sqrt(2.0)
+    sigma = rest_noise(seen, float(step.noise[0]), bench_nominal is not None)
     offset = probe_offset(seen, nominal, 0.0 if math.isnan(sigma) else sigma)
     if offset is None:
         return step, None

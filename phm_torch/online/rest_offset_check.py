@@ -70,6 +70,13 @@ CORRECT_MIN = 0.0  # the rest-window offset over the nominal RMS ...
 CORRECT_SIGMAS = 3.0  # ... plus this many noise std of the window's mean, from which it is removed
 
 
+def offset_std(nominal: torch.Tensor, sigma: float) -> float:
+    """Standard deviation [A] of the rest window's mean of a record with white noise ``sigma`` [A] (the nominal record
+    (n,) [A] sets the window): the uncertainty of an offset read there, NaN without a rest window."""
+    rest = rest_window(nominal)
+    return sigma / math.sqrt(rest) if rest >= REST_MIN else math.nan
+
+
 def probe_offset(x: torch.Tensor, nominal: torch.Tensor | None, sigma: float) -> float | None:
     """The record x (n,) [A]'s mean offset [A] from the nominal record (n,) [A] over the rest window, where it exceeds
     ``CORRECT_MIN`` of the nominal RMS plus ``CORRECT_SIGMAS`` noise standard deviations of the window's mean
