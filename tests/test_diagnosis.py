@@ -170,6 +170,20 @@ def test_every_reason_a_check_can_give_has_its_line():
 
 
 @pytest.mark.torchscript
+def _pretrained_nominal(noise: float, seed: int):
+    """The pretrained pipeline (scripted module, loaded, its input contract), its nominal record (n,) [A] and RMS,
+    that record with ``noise`` x RMS of white noise, and its time axis."""
+    torch.set_num_threads(1)
+    module = torch.jit.load(str(PIPELINE))
+    model = TorchScriptPipeline(module, {})
+    nominal = module.nominal_record.double()
+    rms = float(nominal.pow(2).mean().sqrt())
+    g = torch.Generator().manual_seed(seed)
+    clean = nominal + noise * rms * torch.randn(nominal.numel(), generator=g, dtype=torch.float64)
+    t = torch.arange(nominal.numel(), dtype=torch.float64) / 20000.0
+    return module, model, InputContract.of(model, {}, None), nominal, rms, clean, t, g
+
+
 def test_a_probe_offset_is_read_at_rest_and_removed_from_a_near_nominal_record():
     """Near nominal the rest window sits on the nominal record within its noise; a probe's offset of 3 % of the RMS
     current there (under the ``offset`` check's 5 %) is measured and removed: the answer is the clean record's."""
@@ -186,15 +200,7 @@ def test_a_probe_offset_is_read_at_rest_and_removed_from_a_near_nominal_record()
     assert probe_offset(nominal + 2.8 * sigma / rest**0.5, nominal, sigma) is None
     assert probe_offset(nominal + 0.03 * rms, None, sigma) is None
 
-    torch.set_num_threads(1)
-    module = torch.jit.load(str(PIPELINE))
-    model = TorchScriptPipeline(module, {})
-    clean = module.nominal_record.double()
-    rms = float(clean.pow(2).mean().sqrt())
-    g = torch.Generator().manual_seed(4)
-    clean = clean + 0.01 * rms * torch.randn(clean.numel(), generator=g, dtype=torch.float64)
-    t = torch.arange(clean.numel(), dtype=torch.float64) / 20000.0
-    contract = InputContract.of(model, {}, None)
+    module, model, contract, _, rms, clean, t, g = _pretrained_nominal(0.01, 4)
     right = diagnose(model, Record(t, None, None, clean), contract)
     shifted = diagnose(model, Record(t, None, None, clean + 0.03 * rms), contract)
     assert right["probe_offset"] is None and shifted["probe_offset"] == pytest.approx(0.03 * rms, rel=0.1)
@@ -222,16 +228,8 @@ def test_a_removed_probe_offset_widens_the_near_nominal_reading_by_its_own_error
     from phm_torch.tracking.inspection import inspect_record
     from phm_torch.tracking.near_nominal import NearNominalFDI
 
-    torch.set_num_threads(1)
-    module = torch.jit.load(str(PIPELINE))
-    model = TorchScriptPipeline(module, {})
+    _, model, contract, _, rms, clean, t, _ = _pretrained_nominal(0.02, 11)
     near = NearNominalFDI.load(PIPELINE.with_suffix(".near_nominal.pt"))
-    nominal = module.nominal_record.double()
-    rms = float(nominal.pow(2).mean().sqrt())
-    g = torch.Generator().manual_seed(11)
-    clean = nominal + 0.02 * rms * torch.randn(nominal.numel(), generator=g, dtype=torch.float64)
-    t = torch.arange(nominal.numel(), dtype=torch.float64) / 20000.0
-    contract = InputContract.of(model, {}, None)
     plain = inspect_record(model, Record(t, None, None, clean), contract, near_nominal=near)
     shifted = inspect_record(model, Record(t, None, None, clean + 0.03 * rms), contract, near_nominal=near)
     assert plain["probe_offset"] is None and shifted["probe_offset"] is not None
