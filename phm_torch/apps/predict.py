@@ -24,7 +24,8 @@ Each record holds:
   columns, a current-only record), ``command_check``, ``tracking_check`` and ``messages`` (one line per failed
   check);
 * what was corrected before the pipeline read the record, each said in ``messages``: ``probe_offset`` [A] (an offset
-  read over the rest window and removed where the answer without it is near nominal), ``clock_error`` (a logger's
+  read over the rest window and removed where the answer without it is near nominal) with ``probe_offset_std`` [A]
+  (its own error: the window mean's noise), ``clock_error`` (a logger's
   relative clock error undone by resampling, from the record's command column; ``null`` without one),
   ``trigger_offset_s`` (the shift
   onto the test command's grid found by the record's command column; ``null`` without one) and ``current_reversed``

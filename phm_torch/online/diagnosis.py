@@ -24,7 +24,7 @@ from .loaded import as_loaded
 from .probe_calibration import ProbeCalibration
 from .reason_text import reason_lines
 from .record_corrections import prepare_record
-from .rest_offset_check import probe_offset
+from .rest_offset_check import offset_std, probe_offset
 from .unexplained_check import checked, residual_floor
 
 # Relative noise always tolerated, whatever the calibration level: the noise estimate of a few noise-free
@@ -71,31 +71,28 @@ def scale_message(current: torch.Tensor, nominal: torch.Tensor | None) -> str | 
     )
 
 
-def rest_noise(seen: torch.Tensor, noise: float, with_baseline: bool) -> float:
-    """White noise [A] of the record ``seen`` (n,) [A] as the rest window compares it: its relative ``noise`` times
-    its RMS, and with a bench's healthy record (``with_baseline``, subtracted from it) that record's noise too."""
-    sigma = noise * float(finite_mean(seen.pow(2)).sqrt())
-    return sigma * math.sqrt(2.0) if with_baseline else sigma
-
-
 def remove_probe_offset(
     model: Any, current: torch.Tensor, bench_nominal: torch.Tensor | None, step: Any, nominal: torch.Tensor | None
-) -> tuple[Any, float | None]:
+) -> tuple[Any, float | None, float | None]:
     """The pipeline's step of a record (1, n_full) [A] without the probe offset its rest window shows
     (:func:`~.rest_offset_check.probe_offset`), where the answer without it is near nominal and in distribution, and
-    that offset [A]; else the step as it came and None. Near nominal a probe offset of 2-5 % of the RMS current
+    that offset and its standard deviation [A] (the rest window mean's noise); else the step as it came and None, None. Near nominal a probe offset of 2-5 % of the RMS current
     (under the ``offset`` check's 5 %, which heavy faults need) moved the near-nominal readings several times their
     error: 100 life histories with a random offset within +-5 % per record tracked at 21 % coverage."""
     if nominal is None:
-        return step, None
+        return step, None, None
     seen = current[0].double() if bench_nominal is None else current[0].double() - (bench_nominal.double() - nominal)
-    sigma = rest_noise(seen, float(step.noise[0]), bench_nominal is not None)
+    sigma = float(step.noise[0]) * float(finite_mean(seen.pow(2)).sqrt())
+    if bench_nominal is not None:  # seen holds the bench's healthy record's noise as well as this record's
+        sigma *= math.sqrt(2.0)
     offset = probe_offset(seen, nominal, 0.0 if math.isnan(sigma) else sigma)
     if offset is None:
-        return step, None
+        return step, None, None
     corrected = model.run(current - offset, bench_nominal)
     near = checked(corrected.k_hat[0], model.nominal, model.interval_mask)
-    return (corrected, offset) if near and not bool(corrected.ood[0]) else (step, None)
+    return (
+        (corrected, offset, offset_std(nominal, sigma)) if near and not bool(corrected.ood[0]) else (step, None, None)
+    )
 
 
 def contract_for(
@@ -157,7 +154,7 @@ def diagnose(
         record = Record(record.time, record.command, record.position, probe.apply(record.current))
     current = torch.as_tensor(record.current, dtype=model.dtype).reshape(1, -1)
     step = model.run(current, bench_nominal)
-    step, offset = remove_probe_offset(model, current, bench_nominal, step, contract.nominal)
+    step, offset, offset_error = remove_probe_offset(model, current, bench_nominal, step, contract.nominal)
     k_hat, score, rul, ood, resid, current = step.k_hat, step.score, step.rul, step.ood, step.residual, step.current
     noise, p_faulty = float(step.noise[0]), float(step.p_faulty[0])  # noise as measured, before the baseline
     bounds = None if step.k_lower is None else torch.stack([step.k_lower, step.k_upper], -1)[0]
@@ -204,6 +201,7 @@ def diagnose(
         "trigger_offset_s": fixed.trigger_offset_s,
         "clock_error": fixed.clock_error,
         "probe_offset": offset,
+        "probe_offset_std": offset_error,
         "current_reversed": fixed.current_correlation is not None,
         "position_reversed": fixed.position_correlation is not None,
         "noise": None if math.isnan(noise) else noise,

@@ -87,6 +87,6 @@ def probe_offset(x: torch.Tensor, nominal: torch.Tensor | None, sigma: float) ->
     if rest < REST_MIN:
         return None
     mean = float(finite_mean(x[:rest].double() - nominal[:rest].double()))
-    if math.isnan(mean) or abs(mean) <= CORRECT_MIN * _rms(nominal) + CORRECT_SIGMAS * sigma / math.sqrt(rest):
+    if math.isnan(mean) or abs(mean) <= CORRECT_MIN * _rms(nominal) + CORRECT_SIGMAS * offset_std(nominal, sigma):
         return None
     return mean

@@ -18,10 +18,9 @@ import torch
 from ..faults import FAULT_NAMES
 from ..online.bench_check import BenchCheck
 from ..online.corruptions import Record
-from ..online.diagnosis import NOISE_FLOOR, calibrated_interval, diagnose, rest_noise
+from ..online.diagnosis import NOISE_FLOOR, calibrated_interval, diagnose
 from ..online.input_contract import InputContract, pipeline_reasons
 from ..online.probe_calibration import ProbeCalibration
-from ..online.rest_offset_check import offset_std
 from .measurement import Z95
 from .near_nominal import NearNominalFDI
 
@@ -65,9 +64,8 @@ def inspect_record(
             alpha, k_pipeline, torch.tensor([found["noise"]], dtype=torch.float64)
         )
     if bool(used[0]):
-        if found.get("probe_offset") is not None and contract.nominal is not None:
-            lower, upper = _with_offset_error(near_nominal, m, current, k_pipeline, found, contract, bench_nominal, k)
-            lower, upper = lower.unsqueeze(0), upper.unsqueeze(0)
+        if found.get("probe_offset_std") is not None:
+            lower, upper = _with_offset_error(near_nominal, m, current, k_pipeline, found, k)
         found["k_near_nominal"] = dict(zip(FAULT_NAMES, k[0].tolist()))
         found["k_near_nominal_interval"] = {
             n: [a, b] for n, a, b in zip(FAULT_NAMES, lower[0].tolist(), upper[0].tolist())
@@ -81,29 +79,24 @@ def _with_offset_error(
     current: torch.Tensor,
     k_pipeline: torch.Tensor,
     found: dict[str, Any],
-    contract: InputContract,
-    bench_nominal: torch.Tensor | None,
     k: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The near-nominal reading k (1, 8)'s 90 % bounds (8,) widened by the error of the probe offset diagnose removed:
-    that offset was read over the rest window (48 samples on the reference), so it is off by the window mean's noise,
-    and a constant shift of the record moves the near-nominal readings several times their own error. The reading's
-    response to +-1 std of it, in quadrature with the calibrated half-widths. Without this, a clean record whose noise
-    crossed the removal's gate was fused as a precise reading 0.005-0.03 off (40 histories at 3 % noise: coverage
-    86.9 -> 82.8 % from 4 such inspections)."""
+    """The near-nominal reading k (1, 8)'s 90 % bounds (1, 8) widened by the error of the probe offset diagnose
+    removed (``probe_offset_std``): that offset was read over the rest window (48 samples on the reference), so it is
+    off by the window mean's noise, and a constant shift of the record moves the near-nominal readings several times
+    their own error. The reading's response to +-1 std of it, in quadrature with the calibrated half-widths. Without
+    this, a clean record whose noise crossed the removal's gate was fused as a precise reading 0.005-0.03 off (40
+    histories at 3 % noise: coverage 86.9 -> 82.8 % from 4 such inspections)."""
     noise = torch.tensor([found["noise"]], dtype=torch.float64)
-    seen = current[0].double()
-    std = offset_std(contract.nominal, rest_noise(seen, float(found["noise"]), bench_nominal is not None))
-    k0 = k[0]
+    std = float(found["probe_offset_std"])
     with torch.no_grad():
         shifted = [
-            near_nominal.read(near_nominal.coefficients(model, current + sign * std)[0], k_pipeline, noise)[1][0]
+            near_nominal.read(near_nominal.coefficients(model, current + sign * std)[0], k_pipeline, noise)[1]
             for sign in (1.0, -1.0)
         ]
-        w = near_nominal.half_widths(noise)[0].to(torch.float64)
-    extra = Z95 * (shifted[0] - shifted[1]).abs() / 2.0
-    half = (w.pow(2) + extra.pow(2)).sqrt()
-    return (k0 - half).clamp(0.0, 1.0), (k0 + half).clamp(0.0, 1.0)
+        w = near_nominal.half_widths(noise).to(torch.float64)
+    half = (w.pow(2) + (Z95 * (shifted[0] - shifted[1]).abs() / 2.0).pow(2)).sqrt()
+    return (k - half).clamp(0.0, 1.0), (k + half).clamp(0.0, 1.0)
 
 
 def inspect_currents(
