@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 Diagnose = Callable[[Sequence[Inspection]], list[dict[str, Any]]]
 
 
-def _healthy(
+def tracker_healthy(
     diagnosis: Mapping[str, Any], rul: Mapping[str, float | None] | None, fused: bool, record_verdict: bool
 ) -> bool:
     """The tracker's verdict: faulty wherever the posterior's median RUL is 0 (most of its probability past the
@@ -74,7 +74,7 @@ def inspection_record(
         else None,
         "rate_scale": dict(zip(QUANTILES, post.rate_scale[i].tolist())) if tracked else None,
         "p_faulty": diagnosis.get("p_faulty"),
-        "healthy": _healthy(diagnosis, rul, fused, record_verdict),
+        "healthy": tracker_healthy(diagnosis, rul, fused, record_verdict),
         "snapshot_healthy": bool(diagnosis["healthy"]),
         "rul_hours": rul,
         "rul_censored": rul_censored,
