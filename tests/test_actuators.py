@@ -165,14 +165,23 @@ def test_hf_and_lf_agree_on_the_nominal_test_command(hvdc, command):
     assert float(err.pow(2).mean().sqrt()) < 0.3 * command.amplitude
 
 
-def test_the_example_user_folder_holds_a_valid_actuator_and_command():
-    """examples/trim28_conf, the user folder of docs/results.md's third actuator: its YAML loads as an actuator and
-    a command, and its linear loop meets the requirements (scripts/check_actuator.py passes it), so the example
-    stays valid as the datasheet schema evolves."""
-    folder = CONF_DIR.parent / "examples" / "trim28_conf"
-    trim = load_actuator(str(folder / "actuator" / "trim28.yaml"))
-    chirp = instantiate(OmegaConf.load(folder / "command" / "chirp_trim28.yaml"))
-    assert trim.supply_voltage == 28.0 and trim.pole_pairs == 2 and chirp.f_end == 12.0
-    fig = linear_figures(trim)
+@pytest.mark.parametrize(
+    ("folder", "actuator", "command", "volts", "pole_pairs", "f_end"),
+    [
+        ("trim28_conf", "trim28", "chirp_trim28", 28.0, 2, 12.0),
+        ("flap115_conf", "flap115", "chirp_flap115", 115.0, 4, 10.0),
+    ],
+)
+def test_the_example_user_folders_hold_a_valid_actuator_and_command(
+    folder, actuator, command, volts, pole_pairs, f_end
+):
+    """examples/<folder>, the user folders of docs/results.md's third and fourth actuators: each YAML loads as an
+    actuator and a command, and its linear loop meets the requirements (scripts/check_actuator.py passes it), so the
+    examples stay valid as the datasheet schema evolves."""
+    root = CONF_DIR.parent / "examples" / folder
+    params = load_actuator(str(root / "actuator" / f"{actuator}.yaml"))
+    chirp = instantiate(OmegaConf.load(root / "command" / f"{command}.yaml"))
+    assert params.supply_voltage == volts and params.pole_pairs == pole_pairs and chirp.f_end == f_end
+    fig = linear_figures(params)
     assert fig["spectral_radius"] < 1.0
     assert fig["gain_margin_db"] >= REQ.gain_margin_db and fig["phase_margin_deg"] >= REQ.phase_margin_deg
