@@ -29,7 +29,7 @@ from phm_torch.io.atomic import write_json
 from phm_torch.online.export import read_metadata
 from phm_torch.params import CONF_DIR
 from phm_torch.tracking import TrackerSettings, build_tracker
-from phm_torch.tracking.information_limit import fused_readings, information_limit
+from phm_torch.tracking.information_limit import fused_readings, information_limit, track_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 FIGURES = (
@@ -82,7 +82,7 @@ def main() -> None:
         split: dict = {"truth": str(truth_path), "pipeline": pipeline, "settings": vars(settings), "limits": []}
         for error_std in args.error_std:
             tracker, _ = build_tracker(model, metadata, damage, settings, pipeline)
-            found = information_limit(tracker, truth, error_std, args.seed)
+            found = information_limit(track_truth(tracker, truth, error_std, args.seed), truth)
             split["limits"].append(found)
             row = {k: found["tracking"][k] for k in FIGURES}
             print(f"{life} true k +- {error_std:g}: {row}; classifier on the true k: {found['classifier_on_true_k']}")
@@ -96,7 +96,9 @@ def main() -> None:
             split["per_component"] = {}
             for c, name in enumerate(FAULT_NAMES):
                 tracker, _ = build_tracker(model, metadata, damage, settings, pipeline)
-                found = information_limit(tracker, truth, min(args.error_std), args.seed, readings, (c,))
+                found = information_limit(
+                    track_truth(tracker, truth, min(args.error_std), args.seed, readings, (c,)), truth
+                )
                 split["per_component"][name] = {k: found["tracking"][k] for k in FIGURES}
                 print(f"{life} {name} as read: {split['per_component'][name]}")
         out["splits"][life] = split

@@ -24,6 +24,11 @@ def fresh_tracker(pipeline, law, **kw) -> Tracker:
     return Tracker(law, ParticleRUL(pipeline, law, settings.max_rate_scale, settings.bisections), settings)
 
 
+def limit_of(pipeline, law, truth: dict, *args, **kw) -> dict:
+    """information_limit of a fresh tracker's track_truth(truth, *args, **kw)."""
+    return information_limit(track_truth(fresh_tracker(pipeline, law), truth, *args, **kw), truth)
+
+
 def life_truth(pipeline, law) -> dict:
     """Noise-free histories at rate scales 0.7-1.4 from small damages, inspected every 200 h until two inspections
     after the pipeline's classifier turns faulty; the end of life is where it turns faulty on a 1 h grid."""
@@ -50,7 +55,7 @@ def life_truth(pipeline, law) -> dict:
 def test_the_classifier_on_the_true_k_flags_the_end_of_life_it_defines_and_the_tracker_follows(setup):
     pipeline, law = setup
     truth = life_truth(pipeline, law)
-    found = information_limit(fresh_tracker(pipeline, law), truth, error_std=1e-4)
+    found = limit_of(pipeline, law, truth, error_std=1e-4)
     assert found["n_actuators"] == 6
     # the first inspection at or after the end of life the classifier itself defines
     assert found["classifier_on_true_k"]["eol_flagged_within_one_inspection"] == 1.0
@@ -67,8 +72,8 @@ def test_the_classifier_on_the_true_k_flags_the_end_of_life_it_defines_and_the_t
 def test_the_limit_falls_as_the_measurement_worsens(setup):
     pipeline, law = setup
     truth = life_truth(pipeline, law)
-    exact = information_limit(fresh_tracker(pipeline, law), truth, error_std=1e-4)["tracking"]
-    poor = information_limit(fresh_tracker(pipeline, law), truth, error_std=0.03)["tracking"]
+    exact = limit_of(pipeline, law, truth, error_std=1e-4)["tracking"]
+    poor = limit_of(pipeline, law, truth, error_std=0.03)["tracking"]
     # a 3 % error on every component hides the rate scale for most of the life
     assert poor["prognostic_horizon"] < exact["prognostic_horizon"] - 0.3
     assert poor["p50_within_alpha_second_half"] < exact["p50_within_alpha_second_half"] - 0.3
@@ -147,9 +152,9 @@ def test_a_component_read_as_a_run_fused_it_costs_the_horizon_its_error_does(set
     assert readings["A0"][0][1].tolist() == pytest.approx([1e-3 / 1.6448536269514722] * 8)
     assert readings["A0"][1][1].tolist() == pytest.approx([0.08 / 1.6448536269514722] * 8)
     readings = fused_readings(run_track_of(truth, 0.02))
-    exact = information_limit(fresh_tracker(pipeline, law), truth, 1e-4)
-    one = information_limit(fresh_tracker(pipeline, law), truth, 1e-4, readings=readings, components=(0,))
-    every = information_limit(fresh_tracker(pipeline, law), truth, 1e-4, readings=readings, components=tuple(range(8)))
+    exact = limit_of(pipeline, law, truth, 1e-4)
+    one = limit_of(pipeline, law, truth, 1e-4, readings=readings, components=(0,))
+    every = limit_of(pipeline, law, truth, 1e-4, readings=readings, components=tuple(range(8)))
     assert one["components_as_read"] == ["dry_friction"]
     # one component 0.01 off at every inspection: the other seven still give s; all eight off: the horizon is lost
     assert one["tracking"]["prognostic_horizon"] > exact["tracking"]["prognostic_horizon"] - 0.05

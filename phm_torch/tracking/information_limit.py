@@ -103,7 +103,8 @@ def track_truth(
         readings, components: with :func:`fused_readings` of a run on the same split, the 0-based ``components``
             are read (value and scale) as that run fused them.
 
-    Returns a track in phm-track's layout ({"actuators": {id: {"inspections": [...]}}}) with, per inspection,
+    Returns a track in phm-track's layout ({"actuators": {id: {"inspections": [...]}}}, with ``error_std`` and
+    ``components_as_read`` beside) with, per inspection,
     ``hours``, ``k_hat`` (the measured k), ``rul_hours`` (5/50/95 %, None where censored), ``rul_censored``,
     ``healthy``, ``out_of_distribution`` (False) and, as its snapshot, the health classifier on the true k
     (``snapshot_healthy``; no snapshot RUL).
@@ -166,26 +167,19 @@ def track_truth(
                     "snapshot_rul_hours": None,
                 }
             )
-    return {"actuators": out}
+    return {"error_std": float(error_std), "components_as_read": [FAULT_NAMES[c] for c in components], "actuators": out}
 
 
-def information_limit(
-    tracker: Tracker,
-    truth: Mapping[str, Any],
-    error_std: float = 1e-4,
-    seed: int = 0,
-    readings: Readings | None = None,
-    components: tuple[int, ...] = (),
-) -> dict[str, Any]:
-    """The two bounds of a life split (module docstring): ``tracking`` (the tracker fed the true k, phm-track's
-    fleet figures and targets) and ``classifier_on_true_k`` (its end-of-life flags), with ``error_std`` and the
-    count of actuators; each figure as :func:`~phm_torch.prognostics.life_metrics.evaluate_life` computes it."""
-    track = track_truth(tracker, truth, error_std, seed, readings, components)
+def information_limit(track: Mapping[str, Any], truth: Mapping[str, Any]) -> dict[str, Any]:
+    """The two bounds of a life split (module docstring) from :func:`track_truth`'s ``track`` of ``truth``:
+    ``tracking`` (the tracker fed the true k, phm-track's fleet figures and targets) and ``classifier_on_true_k``
+    (its end-of-life flags), with the track's ``error_std``, ``components_as_read`` and the count of actuators; each
+    figure as :func:`~phm_torch.prognostics.life_metrics.evaluate_life` computes it."""
     scored = evaluate_life(track, truth)
     snapshot = scored["snapshot"]
     return {
-        "error_std": float(error_std),
-        "components_as_read": [FAULT_NAMES[c] for c in components],
+        "error_std": track["error_std"],
+        "components_as_read": track["components_as_read"],
         "n_actuators": scored["n_actuators"],
         "tracking": scored["tracker"],
         "targets": scored["targets"],
