@@ -184,6 +184,7 @@ def _pretrained_nominal(noise: float, seed: int):
     return module, model, InputContract.of(model, {}, None), nominal, rms, clean, t, g
 
 
+@pytest.mark.torchscript  # the shipped TorchScript file
 def test_a_probe_offset_is_read_at_rest_and_removed_from_a_near_nominal_record():
     """Near nominal the rest window sits on the nominal record within its noise; a probe's offset of 3 % of the RMS
     current there (under the ``offset`` check's 5 %) is measured and removed: the answer is the clean record's."""
@@ -221,6 +222,7 @@ def test_a_probe_offset_is_read_at_rest_and_removed_from_a_near_nominal_record()
     assert fired <= 2
 
 
+@pytest.mark.torchscript  # the shipped TorchScript file
 def test_a_removed_probe_offset_widens_the_near_nominal_reading_by_its_own_error():
     """phm-track's reading of a record whose probe offset was removed: the offset was read over a 48-sample rest
     window, so its noise moves the near-nominal reading; the interval grows by that response (in quadrature) and holds
