@@ -261,3 +261,20 @@ def test_the_life_section_says_what_the_companions_stage_gave_the_tracker(run_di
     assert "record/p50 22.5 % / 7.5 %; posterior/p5 70 % / 5 %)" in text
     without = html.unescape(build_report(run_dir, _metrics(600), _studies()).read_text())
     assert "histories of their own" not in without
+
+
+def test_the_life_section_puts_the_tracking_limit_beside_the_tracker(run_dir):
+    (run_dir / "track").mkdir()
+    scores = {"tracker": {"prognostic_horizon": 0.574}, "snapshot": {"prognostic_horizon": 0.1}, "targets": {}}
+    limit = {
+        "error_std": 1e-4,
+        "tracking": {"prognostic_horizon": 0.623},
+        "classifier_on_true_k": {"eol_flagged_within_one_inspection": 0.96},
+    }
+    (run_dir / "track" / "metrics.json").write_text(json.dumps({**scores, "limit": limit, "n_actuators": 100}))
+    text = html.unescape(build_report(run_dir, _metrics(600), _studies()).read_text())
+    assert "tracker fed the true k (±0.0001)" in text and "0.623" in text
+    assert "flags 96 % of the ends of life within one inspection" in text
+    (run_dir / "track" / "metrics.json").write_text(json.dumps({**scores, "limit": None, "n_actuators": 100}))
+    without = html.unescape(build_report(run_dir, _metrics(600), _studies()).read_text())
+    assert "fed the true k" not in without and "0.574" in without

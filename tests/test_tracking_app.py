@@ -107,6 +107,44 @@ def test_track_json_fleet_ood_and_maintenance(fleet, compose, tmp_path):
     assert json.loads((tmp_path / "fleet.json").read_text()) == track["fleet"]
 
 
+def fleet_truth(with_k: bool = True) -> dict:
+    """A truth.json for the fleet fixture's 3 x 4 inspections: A0 ends its life at 700 h, the others never; k_true a
+    small ramp from nominal (without ``with_k``: the end of life and the hours only, as another tool may write it)."""
+    from test_tracking import NOMINAL
+
+    actuators = {}
+    for a in range(3):
+        eol = 700.0 if a == 0 else None
+        rows = []
+        for i in range(4):
+            k = [v + (0.01 * (i + 1) if j < 6 else 0.0) for j, v in enumerate(NOMINAL)]
+            row = {"hours": 200.0 * i, "healthy": True, "rul_true": None if eol is None else eol - 200.0 * i}
+            rows.append({**row, "k_true": k} if with_k else row)
+        actuators[f"A{a}"] = {"eol_hours": eol, "inspections": rows, **({"rate_scale": 1.0} if with_k else {})}
+    return {"every_hours": 200.0, "actuators": actuators} if with_k else {"actuators": actuators}
+
+
+def test_with_truth_the_tracking_limit_is_scored_beside_the_run(fleet, compose, tmp_path, caplog):
+    (tmp_path / "truth.json").write_text(json.dumps(fleet_truth()))
+    metrics, _ = run(compose, fleet, tmp_path / "a", f"truth={tmp_path / 'truth.json'}")
+    saved = json.loads((tmp_path / "a" / "metrics.json").read_text())
+    assert saved["limit"] == metrics["limit"]
+    limit = metrics["limit"]
+    assert limit["error_std"] == 1e-4 and limit["components_as_read"] == [] and limit["n_actuators"] == 3
+    assert set(limit["tracking"]) == set(saved["tracker"])  # scored as the run itself
+    assert set(limit["classifier_on_true_k"]) >= {"eol_flagged_within_one_inspection", "eol_never_flagged"}
+    off, _ = run(compose, fleet, tmp_path / "b", f"truth={tmp_path / 'truth.json'}", "limit_error_std=null")
+    assert off["limit"] is None
+    (tmp_path / "bare.json").write_text(json.dumps(fleet_truth(with_k=False)))
+    with caplog.at_level("INFO", logger="phm_torch"):
+        bare, _ = run(compose, fleet, tmp_path / "c", f"truth={tmp_path / 'bare.json'}")
+    assert bare["limit"] is None and "no k_true at every inspection" in caplog.text
+    # scored all the same, the one-inspection window from the inspections' spacing; the figures drawn
+    scored = json.loads((tmp_path / "c" / "metrics.json").read_text())
+    assert scored["settings"]["every_hours"] == 200.0 and "median spacing, 200 h" in caplog.text
+    assert scored["tracker"]["coverage_5_95_n"] == 4 and (tmp_path / "c" / "life_damage.png").is_file()
+
+
 def test_only_a_refused_inspection_is_logged_as_not_fused(fleet, compose, tmp_path, caplog, monkeypatch):
     """A record's messages say what was corrected (fused) as well as what was refused: the log says "not fused"
     only for the latter (it had said so for every message, a corrected probe offset included)."""

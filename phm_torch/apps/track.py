@@ -32,6 +32,7 @@ from ..online.record_corrections import prepare_record
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
 from ..tracking.companions import companion, missing_message
 from ..tracking.fleet_check import FleetCheckSettings, check_fleet
+from ..tracking.information_limit import information_limit, track_truth
 from ..tracking.inspection import inspect_record
 from ..tracking.near_nominal import NearNominalFDI
 from ..tracking.response import fit_response, pairs_from_track, probe_k_hat
@@ -264,10 +265,12 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         elif metrics["same_assessment"] is None:
             log.info("%s or %s records no assessment config: not compared", model_path, truth_path)
         scores = evaluate_life(result, truth)
+        scores["limit"] = _limit(cfg, model, metadata, settings, model_path, truth)
         common.write_json(out_dir / "metrics.json", {**scores, "tracking": metrics})
         objects["life_metrics"] = scores
         objects["figures"] = plot_life(result, truth, out_dir)
         metrics["tracker"], metrics["snapshot"] = scores.get("tracker"), scores.get("snapshot")
+        metrics["limit"] = scores["limit"]
         if cfg.response_out is not None:
             k_true, k_hat = pairs_from_track(result, truth)
             fitted = fit_response(
@@ -288,6 +291,37 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             )
             metrics["fdi_response_out"] = str(cfg.response_out)
     return metrics, objects
+
+
+def _limit(
+    cfg: DictConfig, model: Any, metadata: dict[str, Any], settings: TrackerSettings, path: Path, truth: dict[str, Any]
+) -> dict[str, Any] | None:
+    """What the histories leave to know (:mod:`~phm_torch.tracking.information_limit`): a fresh tracker of the same
+    settings fed the truth's k within ``cfg.limit_error_std``, scored as this run; None when that is null or the
+    truth has no ``k_true`` at every inspection (logged)."""
+    error_std = cfg.limit_error_std
+    if error_std is None:
+        return None
+    if not all("k_true" in row for a in truth["actuators"].values() for row in a.get("inspections", [])):
+        log.info("truth has no k_true at every inspection: the tracking limit (the true k tracked) is not computed")
+        return None
+    tracker, _ = build_tracker(model, metadata, common.plain(cfg.damage), settings, str(path))
+    found = information_limit(track_truth(tracker, truth, float(error_std), settings.seed), truth)
+    t, c = found["tracking"], found["classifier_on_true_k"]
+    log.info(
+        "with the true k (+-%g), the same filter reaches coverage %s, alpha-lambda %s, prognostic horizon %s, end of "
+        "life within one inspection %s; the health classifier on the true k flags %s of the ends of life within one "
+        "inspection (docs/prognostics.md, 'What the histories leave to know')",
+        float(error_std),
+        *(_rounded(v) for v in (t["coverage_5_95"], t["alpha_lambda"], t["prognostic_horizon"])),
+        _rounded(t["eol_flagged_within_one_inspection"]),
+        _rounded(c["eol_flagged_within_one_inspection"]),
+    )
+    return found
+
+
+def _rounded(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3g}"
 
 
 def _fleet_check(cfg: DictConfig, model: Any, index: dict[str, list], diagnose_rows: Any) -> dict[str, Any]:

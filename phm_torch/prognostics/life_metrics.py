@@ -16,11 +16,14 @@ a predicted RUL 5/50/95 % [h]. A censored bound (``null`` in track.json: beyond 
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 HOURS_TOLERANCE = 1e-6  # [h] a track's hours must equal the truth's within this
 METHODS = {"tracker": ("rul_hours", "rul_censored"), "snapshot": ("snapshot_rul_hours", "snapshot_rul_censored")}
@@ -128,6 +131,18 @@ def _finite_or_none(x: float | None) -> float | None:
 
 def _median(values: Sequence[float]) -> float | None:
     return float(np.median(values)) if len(values) else None
+
+
+def inspection_spacing(truth: Mapping[str, Any]) -> float | None:
+    """Median hours between consecutive inspections over every actuator of ``truth`` (None: no actuator has two)."""
+    gaps = [
+        b - a
+        for g in truth["actuators"].values()
+        for a, b in zip(
+            [float(i["hours"]) for i in g["inspections"]], [float(i["hours"]) for i in g["inspections"]][1:]
+        )
+    ]
+    return float(np.median(gaps)) if gaps else None
 
 
 def check_inputs(track: Mapping[str, Any], truth: Mapping[str, Any]) -> None:
@@ -301,8 +316,8 @@ def evaluate_life(
         track: track.json (issue 25's contract): ``actuators[id].inspections[]`` with ``hours``,
             ``rul_hours`` / ``snapshot_rul_hours`` {p5, p50, p95} [h] (null = censored), ``healthy``,
             ``out_of_distribution``.
-        truth: truth.json: ``every_hours``, ``actuators[id]`` with ``eol_hours``, ``rate_scale``,
-            ``inspections[].hours`` (the same hours as the track).
+        truth: truth.json: ``every_hours`` (absent: the inspections' median spacing), ``actuators[id]`` with
+            ``eol_hours`` (``rate_scale`` optional), ``inspections[].hours`` (the same hours as the track).
         alpha: half-width of the alpha-lambda cone, a fraction of the true RUL.
         lam: where alpha-lambda and relative accuracy are taken, a fraction of the life.
         horizon_alpha: half-width of the prognostic-horizon bounds, a fraction of the life.
@@ -319,10 +334,13 @@ def evaluate_life(
     ):
         if not ok:
             raise ValueError(f"evaluate_life: {name} = {v!r} is outside its range")
-    every = truth.get("every_hours")
-    if not isinstance(every, (int, float)) or not every > 0:
-        raise ValueError(f"evaluate_life: truth.every_hours must be > 0, got {every!r}")
     check_inputs(track, truth)
+    every = truth.get("every_hours")
+    if every is None:  # a truth written by another tool: the inspections' own spacing
+        every = inspection_spacing(truth)
+        log.info("truth has no every_hours: the inspections' median spacing, %g h, is the one-inspection window", every)
+    if isinstance(every, bool) or not isinstance(every, (int, float)) or not every > 0:
+        raise ValueError(f"evaluate_life: truth.every_hours must be > 0, got {every!r}")
     per = {
         a: _actuator(track["actuators"][a], g, float(every), alpha, lam, horizon_alpha)
         for a, g in truth["actuators"].items()

@@ -163,17 +163,27 @@ def damage_figure(track: Mapping[str, Any], truth: Mapping[str, Any], ids: Seque
     for ax, a in zip(axes, ids):
         g, insp = truth["actuators"][a], track["actuators"][a]["inspections"]
         gh = np.array([float(i["hours"]) for i in g["inspections"]])
-        k_true = np.array([i["k_true"] for i in g["inspections"]], float).reshape(len(gh), -1)
-        k0 = np.asarray(g.get("k0") or k_true[0], float)
         hours = np.array([float(i["hours"]) for i in insp])
-        moving = [j for j in range(k_true.shape[1]) if j != PHASE_INDEX and np.ptp(k_true[:, j]) > 1e-9]
+        filtered = np.array(
+            [[_named(i.get("k_filtered"), FAULT_NAMES).get(n, np.nan) for n in FAULT_NAMES] for i in insp], float
+        ).reshape(len(insp), len(FAULT_NAMES))
+        # a truth written by another tool may hold the end of life only: the filtered k then says what moves
+        has_true = bool(g["inspections"]) and all("k_true" in i for i in g["inspections"])
+        k_true = np.array([i["k_true"] for i in g["inspections"]], float).reshape(len(gh), -1) if has_true else None
+        shown = k_true if k_true is not None else filtered
+        start = np.nan_to_num(shown[0]) if len(shown) else np.zeros(len(FAULT_NAMES))
+        k0 = np.asarray(g.get("k0") or start, float)
+        spread = np.nanmax(shown, 0) - np.nanmin(shown, 0) if len(shown) else np.zeros(0)
+        moving = [j for j in range(len(spread)) if j != PHASE_INDEX and spread[j] > 1e-9]
         for j in moving:
             name = FAULT_NAMES[j] if j < len(FAULT_NAMES) else f"k{j + 1}"
             color = f"C{j}"  # one colour per component in every panel
-            (handles[name],) = ax.plot(gh, k_true[:, j] - k0[j], "-", color=color, lw=1.4)
-            filt = np.array([_named(i.get("k_filtered"), FAULT_NAMES).get(name, np.nan) for i in insp], float)
+            if k_true is not None:
+                (handles[name],) = ax.plot(gh, k_true[:, j] - k0[j], "-", color=color, lw=1.4)
+            filt = filtered[:, j]
             khat, bars = readings(insp, name)
-            ax.plot(hours, filt - k0[j], "--", color=color, lw=1.0)
+            (line,) = ax.plot(hours, filt - k0[j], "--", color=color, lw=1.0)
+            handles.setdefault(name, line)
             ax.errorbar(hours, khat - k0[j], yerr=bars, fmt=".", color=color, ms=3, alpha=0.5, elinewidth=0.5)
             band = _interval(insp, "k_filtered_interval", name, filt)
             if np.isfinite(band).any():

@@ -145,23 +145,38 @@ def life_section(r: HtmlReport, run_dir: Path, companions: dict[str, Any] | None
         )
     targets = scores.get("targets", {})
 
-    def value(which: str, key: str) -> Any:  # a metric recorded as null is infinite; one not recorded, a dash
-        v = scores[which].get(key)
-        return "∞" if v is None and key in scores[which] else v
+    limit = scores.get("limit")  # the same filter fed the true k (phm-track's limit_error_std), when computed
+
+    def value(
+        block: dict[str, Any], key: str
+    ) -> Any:  # a metric recorded as null is infinite; one not recorded, a dash
+        v = block.get(key)
+        return "∞" if v is None and key in block else v
 
     rows = []
     for key, label, target_key in LIFE_ROWS:
         t = targets.get(target_key) if target_key else None
+        limit_cell = [value(limit["tracking"], key)] if limit else []
         rows.append(
             [
                 label,
-                value("tracker", key),
-                value("snapshot", key),
+                value(scores["tracker"], key),
+                *limit_cell,
+                value(scores["snapshot"], key),
                 "" if t is None else t["target"],
                 "" if t is None else t["passed"],
             ]
         )
-    r.table(["Saxena et al. (2010) metric", "tracker", "snapshot", "target", "met"], rows)
+    limit_head = [f"tracker fed the true k (±{limit['error_std']:g})"] if limit else []
+    r.table(["Saxena et al. (2010) metric", "tracker", *limit_head, "snapshot", "target", "met"], rows)
+    if limit:
+        flagged = limit["classifier_on_true_k"]["eol_flagged_within_one_inspection"]
+        r.note(
+            "The tracker fed the true k is what these histories leave to know with this damage law and health "
+            "classifier: a target it misses, no FDI reaches here. The health classifier on the true k flags "
+            f"{'-' if flagged is None else f'{fmt(100 * flagged)} %'} of the ends of life within one inspection "
+            "(docs/prognostics.md, 'What the histories leave to know')."
+        )
     r.note(
         f"{scores.get('n_actuators')} actuators, {scores.get('n_inspections')} inspections "
         f"({scores.get('n_out_of_distribution')} out of distribution, not fused); metric definitions in "
