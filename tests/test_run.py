@@ -76,7 +76,10 @@ def test_phm_run_tiny_with_the_life_split_and_the_track_stage(tmp_path):
         "positive_p50_when_faulty",
     }
     assert life["n_actuators"] == 2 and set(life["tracker"]) == set(life["snapshot"])
-    assert "Life tracking" in (tmp_path / "report" / "index.html").read_text()
+    # beside it, the same filter fed the true k (the tracking's limit), also in the report's life table
+    assert set(life["limit"]["tracking"]) == set(life["tracker"]) and life["limit"]["error_std"] == 1e-4
+    report = (tmp_path / "report" / "index.html").read_text()
+    assert "Life tracking" in report and "fed the true k" in report
 
 
 def test_phm_run_tiny_end_to_end(tmp_path):
