@@ -22,6 +22,7 @@ import numpy as np
 from ..faults import FAULT_NAMES
 from ..io.atomic import atomic_open
 from ..plotting import save_figure
+from ..tracking.measurement import READINGS
 from .damage import PHASE_INDEX
 from .life_metrics import METHODS, _quantiles, lambda_index
 
@@ -137,16 +138,11 @@ def _interval(insp: Sequence[Mapping[str, Any]], key: str, name: str, centre: np
 
 # what the filter read at an inspection (its key and interval key in track.json), first found first: the near-nominal
 # FDI's reading, the pipeline's k_hat through the response's inverse, the pipeline's k_hat
-READINGS = (
-    ("k_hat_near_nominal", "k_hat_near_nominal_interval"),
-    ("k_hat_corrected", "k_hat_corrected_interval"),
-    ("k_hat", "k_interval"),
-)
 
 
 def readings(insp: Sequence[Mapping[str, Any]], name: str) -> tuple[np.ndarray, np.ndarray]:
     """What the filter read of component ``name`` at each inspection (n,) and its interval as distances below /
-    above (2, n): the first of :data:`READINGS` the inspection has."""
+    above (2, n): the first of :data:`~phm_torch.tracking.measurement.READINGS` the inspection has."""
     read = [next((r for r in READINGS if i.get(r[0]) is not None), READINGS[-1]) for i in insp]
     centre = np.array([_named(i.get(key), FAULT_NAMES).get(name, np.nan) for i, (key, _) in zip(insp, read)], float)
     bars = [_interval([i], bound, name, centre[n : n + 1]) for n, (i, (_, bound)) in enumerate(zip(insp, read))]

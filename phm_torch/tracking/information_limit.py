@@ -30,7 +30,7 @@ from ..faults import FAULT_NAMES, N_FAULTS
 from ..online.diagnosis import censor
 from ..prognostics.life_metrics import evaluate_life
 from .fleet import tracker_healthy
-from .measurement import interval_scale
+from .measurement import READINGS, interval_scale
 from .particle_filter import Tracker
 from .particle_rul import ParticleRUL
 
@@ -53,11 +53,6 @@ def _truth_actuators(truth: Mapping[str, Any]) -> dict[str, list[Mapping[str, An
     return out
 
 
-READINGS = (  # what phm-track fused, first found: the near-nominal FDI's, the response-corrected, the pipeline's
-    ("k_hat_near_nominal", "k_hat_near_nominal_interval"),
-    ("k_hat_corrected", "k_hat_corrected_interval"),
-    ("k_hat", "k_interval"),
-)
 Readings = dict[str, list[tuple[torch.Tensor, torch.Tensor]]]
 
 

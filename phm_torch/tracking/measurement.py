@@ -40,6 +40,14 @@ def interval_scale(k_hat: torch.Tensor, lower: torch.Tensor, upper: torch.Tensor
     return (w / t_quantile_95(dof)).clamp(min=MIN_SCALE)
 
 
+# the reading the filter fused, as track.json records it, first found: the near-nominal FDI's, the pipeline's k_hat
+# through the FDI response's inverse, the pipeline's k_hat; each (value key, 90 % interval key)
+READINGS = (
+    ("k_hat_near_nominal", "k_hat_near_nominal_interval"),
+    ("k_hat_corrected", "k_hat_corrected_interval"),
+    ("k_hat", "k_interval"),
+)
+
 ODDS_CLIP = 1e-6  # P(faulty) clipped to [this, 1 - this]: a record never decides alone
 
 
