@@ -139,6 +139,14 @@ def test_with_truth_the_tracking_limit_is_scored_beside_the_run(fleet, compose, 
     with caplog.at_level("INFO", logger="phm_torch"):
         bare, _ = run(compose, fleet, tmp_path / "c", f"truth={tmp_path / 'bare.json'}")
     assert bare["limit"] is None and "no k_true at every inspection" in caplog.text
+    # a truth of another actuator than the pipeline's: scored, but no limit (its classifier says nothing of that k)
+    (tmp_path / "other.json").write_text(
+        json.dumps({**fleet_truth(), "actuator": {"name": "flap", "sha256": "f" * 64}})
+    )
+    with caplog.at_level("WARNING", logger="phm_torch"):
+        other, _ = run(compose, fleet, tmp_path / "d", f"truth={tmp_path / 'other.json'}", "actuator=ema_reference")
+    assert other["limit"] is None and other["tracker"] is not None
+    assert "truth is of the actuator flap (sha256 ffffffff), the pipeline of ema_reference" in caplog.text
     # scored all the same, the one-inspection window from the inspections' spacing; the figures drawn
     scored = json.loads((tmp_path / "c" / "metrics.json").read_text())
     assert scored["settings"]["every_hours"] == 200.0 and "median spacing, 200 h" in caplog.text

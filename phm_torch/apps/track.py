@@ -265,7 +265,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         elif metrics["same_assessment"] is None:
             log.info("%s or %s records no assessment config: not compared", model_path, truth_path)
         scores = evaluate_life(result, truth)
-        scores["limit"] = _limit(cfg, model, metadata, settings, model_path, truth)
+        scores["limit"] = _limit(cfg, model, metadata, settings, model_path, truth, prov["actuator"])
         common.write_json(out_dir / "metrics.json", {**scores, "tracking": metrics})
         objects["life_metrics"] = scores
         objects["figures"] = plot_life(result, truth, out_dir)
@@ -294,13 +294,29 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
 
 
 def _limit(
-    cfg: DictConfig, model: Any, metadata: dict[str, Any], settings: TrackerSettings, path: Path, truth: dict[str, Any]
+    cfg: DictConfig,
+    model: Any,
+    metadata: dict[str, Any],
+    settings: TrackerSettings,
+    path: Path,
+    truth: dict[str, Any],
+    actuator: dict[str, Any] | None,
 ) -> dict[str, Any] | None:
     """What the histories leave to know (:mod:`~phm_torch.tracking.information_limit`): a fresh tracker of the same
-    settings fed the truth's k within ``cfg.limit_error_std``, scored as this run; None when that is null or the
-    truth has no ``k_true`` at every inspection (logged)."""
+    settings fed the truth's k within ``cfg.limit_error_std``, scored as this run; None when that is null, the
+    truth has no ``k_true`` at every inspection, or it records another actuator than the pipeline's ``actuator``
+    (each logged: the pipeline's classifier says nothing of another actuator's true k)."""
     error_std = cfg.limit_error_std
     if error_std is None:
+        return None
+    other = truth.get("actuator")
+    if isinstance(other, dict) and actuator and other.get("sha256") and other["sha256"] != actuator.get("sha256"):
+        log.warning(
+            "truth is of the actuator %s, the pipeline of %s: the tracking limit (the true k tracked) is not computed, "
+            "and the run's scores judge this pipeline on another actuator's histories",
+            provenance.describe(other),
+            provenance.describe(actuator),
+        )
         return None
     if not all("k_true" in row for a in truth["actuators"].values() for row in a.get("inspections", [])):
         log.info("truth has no k_true at every inspection: the tracking limit (the true k tracked) is not computed")
