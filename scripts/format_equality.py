@@ -5,10 +5,12 @@ Records: the pipeline's probe records (clean, 3 missing samples, OOD, ...; seeds
 val-like records (random fault vectors drawn as the paper's store draws them, HF-simulated for the pipeline's own
 actuator and command, cached; 0 and 3 % current noise). A complete-records-only format (onnx, executorch) is
 compared on the complete records. Per format and output: the largest |format - file| / max(1, |file|) (relative
-above 1: the RUL in hours), how many records exceed 1e-5, and the same for |file - float64|.
+above 1: the RUL in hours), how many records exceed 1e-5, and the same for |file - float64|; and each format against
+the pipeline evaluated in float64 (what a file written with ``phm-export dtype=float64`` is made from).
 
     python scripts/format_equality.py --pipeline pretrained/online_surrogates_best.pt \
-        --model /tmp/x/online.aoti.pt2 --model /tmp/x/online.onnx.zip --out results/format_equality.json
+        --model /tmp/x/online.aoti.pt2 --model /tmp/x/online.onnx.zip --model /tmp/x64/online.onnx.zip \
+        --out results/format_equality.json
 """
 
 from __future__ import annotations
@@ -74,10 +76,14 @@ def main() -> None:
         for model_path in args.model:
             model = load_pipeline(model_path)
             served = x if bool(getattr(model, "missing_samples", True)) else complete
-            report["formats"][model.format] = {
+            wide = model.dtype == torch.float64
+            report["formats"][model.format + ("_float64" if wide else "")] = {
                 "file": model_path,
                 "records": int(served.shape[0]),
+                "dtype": str(model.dtype).removeprefix("torch."),
                 "vs_file": compare(model, file, served),
+                # a float64 file (phm-export dtype=float64) against the pipeline it was made from, float64 eager
+                "vs_float64": compare(model, f64, served),
             }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -16,7 +16,7 @@ import torch
 
 from phm_torch.io import write_measurement
 from phm_torch.online import OnlinePipeline
-from phm_torch.online.formats import check_formats, format_path, write_checked, write_formats
+from phm_torch.online.formats import check_formats, format_path, in_dtype, write_checked, write_formats
 from phm_torch.online.input_contract import PIPELINE_CHECKS, pipeline_reasons
 from phm_torch.online.loaded import load_pipeline
 from phm_torch.online.output_diffs import max_difference
@@ -93,7 +93,7 @@ def eager(pipe: OnlinePipeline, x: torch.Tensor) -> dict[str, torch.Tensor]:
     with torch.no_grad():
         k_hat, score, rul, ood, residual = pipe(x)
         full = x.shape[1] == N_FULL
-        noise = pipe.noise_level(x) if full else torch.full((x.shape[0],), float("nan"))
+        noise = pipe.noise_level(x) if full else torch.full((x.shape[0],), float("nan"), dtype=k_hat.dtype)
         lower, upper = pipe.k_interval(k_hat, noise) if full else pipe.k_interval(k_hat)
         found = pipeline_reasons(pipe, x)
     reasons = torch.tensor([[name in row for name in PIPELINE_CHECKS] for row in found])
@@ -165,7 +165,28 @@ def test_step_with_a_bench_offset_equals_the_pipeline_on_the_rebased_records(pip
 @pytest.mark.parametrize("batch", [1, 256])
 @pytest.mark.parametrize("full", [True, False])
 def test_every_format_equals_eager(pipeline, loaded, batch, full):
-    x = records(pipeline, max(batch, 3), seed=batch)
+    check_every_format(pipeline, loaded, batch, full)
+
+
+@pytest.fixture(scope="module")
+def loaded_float64(pipeline, tmp_path_factory):
+    """The pipeline computing in float64 (phm-export dtype=float64) and its TorchScript and export files."""
+    wide = in_dtype(pipeline, "float64")
+    files = write_formats(wide, tmp_path_factory.mktemp("float64") / "online.pt", ["torchscript", "export"])
+    return wide, {fmt: load_pipeline(path) for fmt, path in files.items()}
+
+
+@pytest.mark.parametrize("batch", [1, 256])
+@pytest.mark.parametrize("full", [True, False])
+def test_every_float64_format_equals_eager_float64(loaded_float64, batch, full):
+    wide, loaded = loaded_float64
+    assert all(model.dtype == torch.float64 for model in loaded.values())
+    check_every_format(wide, loaded, batch, full)
+
+
+def check_every_format(pipeline: OnlinePipeline, loaded: dict, batch: int, full: bool) -> None:
+    """Every loaded file equals eager on ``batch`` records (batch 1: a clean one, one missing 3 samples, noise)."""
+    x = records(pipeline, max(batch, 3), seed=batch).to(pipeline.times.dtype)
     x = x if full else x.index_select(1, pipeline.gappy.indices)
     cases = [x[:batch]] if batch > 1 else [x[i : i + 1] for i in range(3)]  # batch 1: clean, 3 missing, noise
     for fmt, model in loaded.items():

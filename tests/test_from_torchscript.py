@@ -403,3 +403,29 @@ def test_conversion_does_not_copy_a_stale_fold_flag(tmp_path):
     assert not bool(load_scripted(tmp_path / "old.pt").fdi_folded)
     converted, _ = pipeline_from_torchscript(tmp_path / "old.pt")
     assert converted.fdi_folded
+
+
+def test_export_app_writes_a_float64_file_of_a_float32_one(compose, run_cli, tmp_path):
+    """dtype=float64: the file computes in float64 (its metadata says so, phm-predict casts records to it) and
+    equals the float32 file within the float32 floor; a bad dtype is one line naming it, exit status 2."""
+    from phm_torch.apps.export import export
+
+    source = tmp_path / "online.pt"
+    export_torchscript(small_pipeline(), source, {"provenance": None})
+    out = tmp_path / "wide.pt"
+    metrics, _ = export(
+        compose("export", [f"pipeline={source}", "format=[torchscript,export]", f"out={out}"] + ["dtype=float64"])
+    )
+    assert metrics["max_abs_diff_reloaded"] < 1e-9  # each file against the float64 eager pipeline it was made from
+    for path in (tmp_path / "wide.pt", tmp_path / "wide.pt2"):
+        assert read_metadata(path).get("pipeline", {"dtype": "float64"})["dtype"] == "float64"
+        wide = load_pipeline(path)
+        assert wide.dtype == torch.float64
+        x = records(small_pipeline(), 4)
+        got, ref = wide.run(x), load_pipeline(source).run(x)
+        for name in ("k_hat", "score", "rul", "residual"):
+            a, b = getattr(got, name), getattr(ref, name)
+            assert a.dtype == torch.float64 and (b.dtype == torch.float32 or name != "k_hat")
+            torch.testing.assert_close(a, b.double(), atol=1e-4, rtol=1e-4, equal_nan=True, msg=name)
+    result = run_cli("phm_torch.apps.export", f"pipeline={source}", "format=[export]", "dtype=float16")
+    assert result.returncode == 2 and "dtype: must be one of float32, float64 or null" in result.stderr

@@ -17,7 +17,7 @@ from omegaconf import DictConfig
 from .. import provenance
 from ..online import OnlinePipeline
 from ..online.export import read_metadata
-from ..online.formats import check_formats, write_checked
+from ..online.formats import check_dtype, check_formats, in_dtype, write_checked
 from ..online.from_torchscript import rewrite_pipeline
 from ..surrogates.bundle import SurrogateBundle
 from . import common
@@ -115,7 +115,9 @@ def _rewrite(cfg: DictConfig, formats: list[str]) -> tuple[dict[str, Any], dict[
     source = Path(cfg.pipeline)
     recorded = read_metadata(source) if source.is_file() else {}
     prov = common.reconcile_provenance(cfg, recorded.get("provenance"), f"pipeline {source}")
-    done = rewrite_pipeline(source, cfg.out, formats, {"provenance": prov} if any(prov.values()) else None)
+    done = rewrite_pipeline(
+        source, cfg.out, formats, {"provenance": prov} if any(prov.values()) else None, dtype=cfg.get("dtype")
+    )
     by_format = done["max_abs_diff_by_format"]
     return {
         "out": next(iter(done["files"].values())),
@@ -135,6 +137,7 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Build the pipeline from the bundle, the damage model and the RUL calibration (or rewrite the TorchScript
     ``pipeline``); write and re-check it."""
     formats = check_formats(common.plain(cfg.format))
+    check_dtype(cfg.get("dtype"))  # before the bundle is read
     if cfg.get("pipeline") is not None:
         return _rewrite(cfg, formats)
     bundle = SurrogateBundle.load(cfg.bundle)
@@ -197,6 +200,7 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     for key in ("drive_current_bound", "assessment"):  # the input contract's overcurrent; phm-track's phi_a check
         if bundle.extra.get(key) is not None:
             extra[key] = bundle.extra[key]
+    pipeline = in_dtype(pipeline, cfg.get("dtype"))
     probe = bundle.pod.mean_.unsqueeze(0).to(pipeline.times.dtype)  # each file reloaded as phm-predict reads it
     checked = write_checked(pipeline, out, formats, {"provenance": prov, **extra}, probe)
     diffs = checked["max_abs_diff"]

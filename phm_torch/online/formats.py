@@ -21,6 +21,7 @@ lengths, dtype, nominal vector and record, interval level, the output and reason
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import os
@@ -41,6 +42,7 @@ from .output_diffs import max_difference
 from .pipeline import OnlinePipeline
 from .step import STEP_OUTPUTS, OnlineStep
 
+DTYPES = {"float32": torch.float32, "float64": torch.float64}  # what a file may compute in (phm-export dtype=)
 PROGRAMS = {"model": True, "samples": False}  # program name -> full records (else selected samples)
 EXAMPLE_BATCH = 4  # tracing batch: any size > 1 (a batch of 1 would be specialised), dynamic from 1 up
 MAX_BATCH = 1 << 20
@@ -48,6 +50,31 @@ MAX_BATCH = 1 << 20
 
 def _finite_list(t: torch.Tensor) -> list[float] | None:
     return [float(v) for v in t.flatten().tolist()] if bool(torch.isfinite(t).all()) else None
+
+
+def in_dtype(pipeline: OnlinePipeline, dtype: str | None) -> OnlinePipeline:
+    """``pipeline`` computing in ``dtype`` (a name of ``DTYPES``; None: as it is), a copy where it changes.
+
+    Why float64: the verdict score's slope is about 100 per unit of k near the health boundary, so float32 runtimes
+    that sum the FDI's products in other orders (ONNX Runtime, ExecuTorch's portable kernels) give scores and RUL
+    crossings 1e-4 apart, the float32 floor; in float64 every format agrees with eager float64 within 1e-7.
+    ``ValueError`` naming ``dtype`` for another name, or for float32 asked of a float64 pipeline (its numbers
+    would change: not a rewrite)."""
+    wanted, own = check_dtype(dtype), pipeline.times.dtype
+    if wanted is None or wanted == own:
+        return pipeline
+    if wanted.itemsize < own.itemsize:
+        raise ValueError(f"dtype: {dtype!r} would round a {str(own).removeprefix('torch.')} pipeline; not written")
+    return copy.deepcopy(pipeline).to(wanted).eval()
+
+
+def check_dtype(dtype: str | None) -> torch.dtype | None:
+    """The torch dtype of ``dtype`` (a name of ``DTYPES``, or None); ``ValueError`` naming ``dtype`` otherwise."""
+    if dtype is None:
+        return None
+    if not isinstance(dtype, str) or dtype not in DTYPES:
+        raise ValueError(f"dtype: must be one of {', '.join(DTYPES)} or null (the pipeline's own), got {dtype!r}")
+    return DTYPES[dtype]
 
 
 def pipeline_constants(pipeline: OnlinePipeline) -> dict[str, Any]:
@@ -292,6 +319,7 @@ def write_checked(
 
     paths = write_formats(pipeline, out, formats, metadata)
     diffs = {}
+    probe = probe.to(pipeline.times.dtype)
     complete = torch.isfinite(probe.index_select(1, pipeline.gappy.indices.to(probe.device))).all(1)
     with torch.no_grad():
         eager = pipeline(probe)

@@ -322,18 +322,19 @@ def rewrite_pipeline(
     formats: str | Sequence[str],
     metadata: Mapping[str, Any] | None = None,
     tolerance: float = TOLERANCE,
+    dtype: str | None = None,
 ) -> dict[str, Any]:
     """Write the TorchScript pipeline file ``path`` again in ``formats`` beside ``out``
     (:func:`~phm_torch.online.formats.write_checked`), from its eager pipeline, with the file's metadata (updated
     by ``metadata``). The converted pipeline must equal the file within ``tolerance`` (|difference| / max(1, |file|),
     :func:`~.output_diffs.output_diffs`) on :func:`probe_records` (``ValueError`` otherwise, before anything is written); no output
-    may replace the input file.
+    may replace the input file. ``dtype``: the files compute in it (:func:`~.formats.in_dtype`; None: the file's own).
 
     Returns ``{"files", "max_abs_diff_input"`` (per output, converted vs the file), ``"max_scaled_diff_input"``,
     ``"max_abs_diff_by_format"`` (each written file reloaded vs the converted pipeline, :func:`write_checked`),
     ``"derived"`` (state the file lacks, derived by the constructor)}.
     """
-    from .formats import check_formats, format_path, write_checked
+    from .formats import check_formats, format_path, in_dtype, write_checked
 
     names = check_formats(formats)
     path = Path(path)
@@ -352,6 +353,7 @@ def rewrite_pipeline(
             f"(> {tolerance:g}, relative above 1) on its probe records; not written"
         )
     kept = {k: v for k, v in read_metadata(path).items() if k not in ("format", "pipeline")}  # the writers add these
+    pipeline = in_dtype(pipeline, dtype)
     checked = write_checked(pipeline, out, names, {**kept, **dict(metadata or {})}, probe)
     return {
         "files": checked["files"],
