@@ -143,3 +143,32 @@ def test_bad_input(modes):
         GreedySelector(10, criterion="a_optimal")
     with pytest.raises(ValueError, match="time must have shape"):
         build_selector("som", n_points=4).fit(modes, torch.zeros(3))
+
+
+def test_som_keeps_the_greedy_points_when_its_own_leave_the_gappy_matrix_ill_conditioned(modes, caplog):
+    """Above max_condition the greedy E-optimal points replace the map's (said in the log and in fallback_), and
+    only when they are better conditioned; at the default bound the map's own points stay where they are fine."""
+    from phm_torch.surrogates.selectors.som import gram_condition
+
+    own = SOMSelector(12, max_condition=None).fit(modes)
+    assert own.fallback_ is None and own.condition_ == pytest.approx(gram_condition(modes, own.indices_))
+    default = SOMSelector(12).fit(modes)
+    assert torch.equal(default.indices_, own.indices_) and default.fallback_ is None and own.condition_ < 1000
+    greedy = GreedySelector(12).fit(modes)
+    greedy_condition = gram_condition(modes, greedy.indices_)
+    assert greedy_condition < own.condition_  # so that a bound between them must switch
+    with caplog.at_level("WARNING", logger="phm_torch.surrogates.selectors.som"):
+        strict = SOMSelector(12, max_condition=(greedy_condition + own.condition_) / 2).fit(modes)
+    assert torch.equal(strict.indices_, greedy.indices_)
+    assert strict.fallback_ == {
+        "selector": "greedy",
+        "som_condition": pytest.approx(own.condition_),
+        "condition": pytest.approx(greedy_condition),
+    }
+    assert strict.condition_ == pytest.approx(greedy_condition) and "kept the greedy E-optimal points" in caplog.text
+    assert strict.get_params()["max_condition"] == pytest.approx((greedy_condition + own.condition_) / 2)
+    # a bound below what greedy reaches too: the greedy points are still kept, being the better conditioned
+    assert torch.equal(SOMSelector(12, max_condition=1.0).fit(modes).indices_, greedy.indices_)
+    for bad in (0.5, "1e3", True):
+        with pytest.raises(ValueError, match="selector.max_condition must be a number >= 1 or null"):
+            SOMSelector(12, max_condition=bad)

@@ -179,6 +179,7 @@ def train_surrogates(
         n_members=settings.n_members,
         selector=selector.name,
         selector_params=selector.get_params(),
+        selector_fallback=getattr(selector, "fallback_", None),  # the SOM's points replaced (ill-conditioned)
         classifier=classifier.name,
         gappy_estimator=settings.gappy.estimator,
         forward_check=forward.summary() if forward else None,
