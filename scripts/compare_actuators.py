@@ -11,6 +11,10 @@ the healthy fraction must lie in [0.15, 0.40].
     python scripts/compare_actuators.py --run reference=/tmp/ref_paper/run --run rudder=/tmp/rud_paper/run \
         --lf reference=ref_lf.report.json --lf rudder=rud_lf.report.json \
         --workbench reference=results/bench_ref.json --workbench rudder=results/bench_rud.json --out cmp.json
+
+``--figures name=cmp.json`` takes that actuator's figures from an earlier comparison: all of them when it has no
+``--run`` (its run directory gone), else only those its run does not give (the LF fit, the workbench); actuators
+named by ``--figures`` come first (the base is the first name).
 """
 
 from __future__ import annotations
@@ -126,13 +130,23 @@ def main() -> None:
     ap.add_argument("--run", action="append", required=True, help="name=phm-run out_dir (the first is the base)")
     ap.add_argument("--lf", action="append", help="name=phm-fit-lf report JSON")
     ap.add_argument("--workbench", action="append", help="name=bench_workbench JSON")
+    ap.add_argument("--figures", action="append", help="name=earlier comparison JSON (its figures of that actuator)")
     ap.add_argument("--factor", type=float, default=1.3, help="allowed factor against the first actuator")
     ap.add_argument("--out", type=Path, default=None, help="JSON written (atomically)")
     args = ap.parse_args()
     if not args.factor >= 1.0:
         raise SystemExit(f"compare_actuators: error: --factor must be >= 1, got {args.factor}")
     runs, lfs, benches = _pairs(args.run, "--run"), _pairs(args.lf, "--lf"), _pairs(args.workbench, "--workbench")
-    table = {name: figures(path, lfs.get(name), benches.get(name)) for name, path in runs.items()}
+    earlier = {}
+    for name, path in _pairs(args.figures, "--figures").items():
+        recorded = _read(path).get("figures", {})
+        if name not in recorded:
+            raise SystemExit(f"compare_actuators: error: --figures {name}={path}: it holds no figures of {name!r}")
+        earlier[name] = recorded[name]
+    table = {}
+    for name in dict.fromkeys([*earlier, *runs]):
+        own = figures(runs[name], lfs.get(name), benches.get(name)) if name in runs else {}
+        table[name] = {**earlier.get(name, {}), **{k: v for k, v in own.items() if v is not None}}
     verdicts = compare(table, args.factor)
     print(markdown(table, verdicts))
     if args.out:
@@ -143,6 +157,7 @@ def main() -> None:
                     "figures": table,
                     "verdicts": verdicts,
                     "runs": {k: str(v) for k, v in runs.items()},
+                    "figures_from": {k: str(v) for k, v in _pairs(args.figures, "--figures").items()},
                 },
                 fh,
                 indent=2,

@@ -1,0 +1,51 @@
+"""scripts/compare_actuators.py: figures side by side from run directories and from an earlier comparison."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "compare_actuators.py"
+
+
+def _run_dir(root: Path, err_k: float) -> Path:
+    for sub in ("train", "evaluate", "data"):
+        (root / sub).mkdir(parents=True)
+    train = {"err_alpha_median": 0.02, "err_k": err_k, "classifier_accuracy": 0.99, "missed_fault_rate": 0.01}
+    train.update(chain_accuracy=0.9, chain_missed_fault_rate=0.05, actuator="rudder (sha256 0)")
+    (root / "train" / "metrics.json").write_text(json.dumps(train))
+    (root / "evaluate" / "metrics.json").write_text(json.dumps({"rul_err_median_true_k": 0.01}))
+    (root / "data" / "manifest.json").write_text(json.dumps({"splits": {"train": {"count": 100, "healthy": 30}}}))
+    return root
+
+
+def test_figures_of_an_earlier_comparison_fill_what_a_run_lacks(tmp_path):
+    earlier = {
+        "figures": {
+            "reference": {"err_k": 0.10, "hf_lf_current_nrmse_median": 0.02, "workbench_hit_rate": 0.8},
+            "rudder": {"err_k": 0.30, "hf_lf_current_nrmse_median": 0.022, "workbench_hit_rate": 0.7},
+        }
+    }
+    (tmp_path / "earlier.json").write_text(json.dumps(earlier))
+    run = _run_dir(tmp_path / "rudder_run", err_k=0.12)
+    out = tmp_path / "cmp.json"
+    args = ["--run", f"rudder={run}", "--figures", f"reference={tmp_path / 'earlier.json'}"]
+    args += ["--figures", f"rudder={tmp_path / 'earlier.json'}", "--out", str(out)]
+    subprocess.run([sys.executable, str(SCRIPT), *args], check=True, capture_output=True, text=True)
+    done = json.loads(out.read_text())
+    assert list(done["figures"]) == ["reference", "rudder"]  # the --figures names first: the base
+    rudder = done["figures"]["rudder"]
+    assert rudder["err_k"] == 0.12 and rudder["hf_lf_current_nrmse_median"] == 0.022  # the run's, else the earlier
+    assert rudder["healthy_fraction_train"] == 0.3
+    verdicts = done["verdicts"]["rudder"]
+    assert abs(verdicts["err_k"]["ratio"] - 1.2) < 1e-12 and verdicts["err_k"]["met"] is True
+    assert verdicts["workbench_hit_rate"]["met"] is True and verdicts["hf_lf_current_nrmse_median"]["met"] is True
+    bad = subprocess.run(
+        [sys.executable, str(SCRIPT), "--run", f"rudder={run}", "--figures", f"trim={tmp_path / 'earlier.json'}"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert bad.returncode != 0 and "holds no figures of 'trim'" in bad.stderr
