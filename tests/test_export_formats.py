@@ -165,7 +165,7 @@ def test_step_with_a_bench_offset_equals_the_pipeline_on_the_rebased_records(pip
 @pytest.mark.parametrize("batch", [1, 256])
 @pytest.mark.parametrize("full", [True, False])
 def test_every_format_equals_eager(pipeline, loaded, batch, full):
-    check_every_format(pipeline, loaded, batch, full)
+    assert check_every_format(pipeline, loaded, batch, full) == len(loaded) * (1 if batch > 1 else 3)
 
 
 @pytest.fixture(scope="module")
@@ -181,14 +181,16 @@ def loaded_float64(pipeline, tmp_path_factory):
 def test_every_float64_format_equals_eager_float64(loaded_float64, batch, full):
     wide, loaded = loaded_float64
     assert all(model.dtype == torch.float64 for model in loaded.values())
-    check_every_format(wide, loaded, batch, full)
+    assert check_every_format(wide, loaded, batch, full) == len(loaded) * (1 if batch > 1 else 3)
 
 
-def check_every_format(pipeline: OnlinePipeline, loaded: dict, batch: int, full: bool) -> None:
-    """Every loaded file equals eager on ``batch`` records (batch 1: a clean one, one missing 3 samples, noise)."""
+def check_every_format(pipeline: OnlinePipeline, loaded: dict, batch: int, full: bool) -> int:
+    """Every loaded file equals eager on ``batch`` records (batch 1: a clean one, one missing 3 samples, noise);
+    returns how many (file, batch) pairs were compared."""
     x = records(pipeline, max(batch, 3), seed=batch).to(pipeline.times.dtype)
     x = x if full else x.index_select(1, pipeline.gappy.indices)
     cases = [x[:batch]] if batch > 1 else [x[i : i + 1] for i in range(3)]  # batch 1: clean, 3 missing, noise
+    compared = 0
     for fmt, model in loaded.items():
         assert model.format == fmt
         for xb in cases:
@@ -202,6 +204,8 @@ def check_every_format(pipeline: OnlinePipeline, loaded: dict, batch: int, full:
             if not bool(ref["ood"].any()):  # pipeline_reasons lists nothing for a record in distribution
                 ref["reasons"] = got["reasons"] = torch.zeros(0)
             assert_equal_outputs(got, ref)
+            compared += 1
+    return compared
 
 
 def test_export_file_loads_and_runs_without_phm_torch(pipeline, files, tmp_path):

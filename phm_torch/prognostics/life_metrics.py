@@ -135,14 +135,9 @@ def _median(values: Sequence[float]) -> float | None:
 
 def inspection_spacing(truth: Mapping[str, Any]) -> float | None:
     """Median hours between consecutive inspections over every actuator of ``truth`` (None: no actuator has two)."""
-    gaps = [
-        b - a
-        for g in truth["actuators"].values()
-        for a, b in zip(
-            [float(i["hours"]) for i in g["inspections"]], [float(i["hours"]) for i in g["inspections"]][1:]
-        )
-    ]
-    return float(np.median(gaps)) if gaps else None
+    gaps = [np.diff([float(i["hours"]) for i in g["inspections"]]) for g in truth["actuators"].values()]
+    gaps = np.concatenate(gaps) if gaps else np.zeros(0)
+    return float(np.median(gaps)) if gaps.size else None
 
 
 def check_inputs(track: Mapping[str, Any], truth: Mapping[str, Any]) -> None:

@@ -136,10 +136,6 @@ def _interval(insp: Sequence[Mapping[str, Any]], key: str, name: str, centre: np
     return np.stack([centre - lohi[:, 0], lohi[:, 1] - centre]).clip(min=0)
 
 
-# what the filter read at an inspection (its key and interval key in track.json), first found first: the near-nominal
-# FDI's reading, the pipeline's k_hat through the response's inverse, the pipeline's k_hat
-
-
 def readings(insp: Sequence[Mapping[str, Any]], name: str) -> tuple[np.ndarray, np.ndarray]:
     """What the filter read of component ``name`` at each inspection (n,) and its interval as distances below /
     above (2, n): the first of :data:`~phm_torch.tracking.measurement.READINGS` the inspection has."""

@@ -147,9 +147,8 @@ def life_section(r: HtmlReport, run_dir: Path, companions: dict[str, Any] | None
 
     limit = scores.get("limit")  # the same filter fed the true k (phm-track's limit_error_std), when computed
 
-    def value(
-        block: dict[str, Any], key: str
-    ) -> Any:  # a metric recorded as null is infinite; one not recorded, a dash
+    def value(block: dict[str, Any], key: str) -> Any:
+        """A metric recorded as null is infinite; one not recorded, a dash."""
         v = block.get(key)
         return "∞" if v is None and key in block else v
 
