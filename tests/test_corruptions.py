@@ -7,6 +7,7 @@ The records (nominal and dry friction x1.6 of the reference actuator, 1 % noise)
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -206,3 +207,35 @@ def test_offset_check_is_skipped_only_for_an_answer_with_a_heavily_shorted_pair(
     assert "offset" in contract.current_reasons(model, shifted, 0.01, friction_and_short)
     assert "offset" not in contract.current_reasons(model, shifted, 0.01, shorted_pair)
     assert "offset" not in contract.current_reasons(model, shifted, 0.01, None)  # no answer: no comparison
+
+
+def test_a_command_without_a_rest_window_lists_the_offset_check_as_skipped(suite):
+    """A probe offset is read over the rest window; where the command moves at once there is none, and the record's
+    checks say so instead of passing it silently. The reference's command has one: the check is not listed."""
+    from phm_torch.online.rest_offset_check import REST_MIN, rest_window
+
+    cs, model, cases = suite
+    contract = cs.contract_of(model, PIPELINE)
+    rec = cases[0].record
+    current = rec.current.double()
+    assert rest_window(contract.nominal) >= REST_MIN
+    args = (model, rec, current, 0.01, False, model.nominal.clone().double(), True)
+    assert "offset" not in contract.check(*args).skipped
+    # a nominal record that never rests
+    moving = dataclasses.replace(
+        contract, nominal=contract.nominal + 0.5 * float(contract.nominal.pow(2).mean().sqrt())
+    )
+    assert rest_window(moving.nominal) < REST_MIN
+    assert "offset" in moving.check(*args).skipped
+
+
+def test_a_corrected_reversal_is_not_logged_as_out_of_distribution(suite, compose, tmp_path, caplog):
+    _, _, cases = suite
+    rec = cases[1].record
+    flipped = tmp_path / "flipped.csv"
+    rows = "\n".join(f"{t!r},{-c!r}" for t, c in zip(rec.time.tolist(), rec.current.tolist()))
+    flipped.write_text("time,current\n" + rows + "\n")
+    with caplog.at_level("WARNING", logger="phm_torch.apps.predict"):
+        _, out = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements=[{flipped}]"]))
+    assert out["records"][0]["current_reversed"] and not out["records"][0]["out_of_distribution"]
+    assert "read reversed" in caplog.text and "out of distribution" not in caplog.text

@@ -214,8 +214,9 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             }
         except UnservedRecord as e:  # a format that serves complete records only (onnx)
             raise UnservedRecord(f"measurements: {str(path)!r}: {e}") from None
-        for message in record["messages"]:
-            log.warning("%s: %s; the record is out of distribution", path, message)
+        ood = "; the record is out of distribution" if record["out_of_distribution"] else ""
+        for message in record["messages"]:  # a correction (a reversed probe read as -current) is answered
+            log.warning("%s: %s%s", path, message, ood)
         if record["noise_above_calibration"]:
             log.warning(
                 "%s: estimated current noise %.2f %% of its RMS, more than twice the %.2f %% the "

@@ -46,7 +46,7 @@ From the current, against the noise calibration and the training model's nominal
   (``|k_hat - k_0| > interval_level``, the phase k7 left out):
   * ``offset`` (unless two phases read shorted at 0.4 or more) - over the rest window (the leading samples where the
     nominal record has not left zero yet: the actuator at rest) the record sits off the nominal record
-    (:mod:`.rest_offset_check`);
+    (:mod:`.rest_offset_check`); listed in ``checks_skipped`` for a command that moves at once (no rest window);
   * ``unexplained`` (every damage within 0.1 of nominal) - the pipeline's gappy residual above what the model's
     own floor and the record's estimated white noise explain (:mod:`.unexplained_check`: coloured noise, hum);
   * ``shape`` (no large fault) - the record's correlation with the nominal record below ``SHAPE_MIN``, or below
@@ -75,7 +75,7 @@ import torch
 from ..metrics import finite_mean, nrmse
 from .command_check import CommandCheck, check_command
 from .corruptions import Record
-from .rest_offset_check import rest_offset
+from .rest_offset_check import REST_MIN, rest_offset, rest_window
 from .run_checks import run_reasons
 from .unexplained_check import UNEXPLAINED_RATIO, checked, unexplained_ratio
 
@@ -383,6 +383,9 @@ class InputContract:
         reasons += [
             r for r in self.current_reasons(model, current, noise, k_hat, measured, residual) if r not in reasons
         ]
+        if self.nominal is not None and rest_window(self.nominal) < REST_MIN:
+            # a command that moves at once leaves no rest window: a probe offset is neither checked nor removed
+            skipped.append("offset")
         return ContractChecks(reasons, skipped, command, tracking, messages)
 
 
