@@ -40,6 +40,38 @@ class Chirp:
 
 
 @dataclass(frozen=True)
+class SlewedChirp:
+    """A chirp riding on a constant-rate slew: theta_cmd(t) = A sin(2 pi (f0 t + (f1 - f0) t^2 / (2 T))) + r t.
+
+    The slew turns the motor through whole revolutions at a steady speed while the chirp probes the loop:
+    an effect that repeats once per motor revolution (rotor eccentricity: amplitude *and* phase) or per
+    commutation sector (a shorted phase) is then seen over its whole period, which a chirp of a few
+    radians at the motor cannot show. Its own class, so that the parameters (and hashes) of every plain
+    chirp stay what they were.
+
+    Attributes:
+        amplitude: A [rad, user side].  f_start, f_end: [Hz].  duration: T [s].
+        slew_rate: r [rad/s, user side]; the motor turns N r T over the test (N the gear ratio).
+    """
+
+    amplitude: float
+    f_start: float
+    f_end: float
+    duration: float
+    slew_rate: float
+
+    def __post_init__(self) -> None:
+        Chirp(self.amplitude, self.f_start, self.f_end, self.duration)  # the same checks
+        if not math.isfinite(self.slew_rate):
+            raise ValueError(f"command.slew_rate must be finite, got {self.slew_rate}")
+
+    def __call__(self, t: torch.Tensor) -> torch.Tensor:
+        """Command [rad] at times t [s] (any shape)."""
+        chirp = Chirp(self.amplitude, self.f_start, self.f_end, self.duration)
+        return chirp(t) + self.slew_rate * t
+
+
+@dataclass(frozen=True)
 class Sine:
     """theta_cmd(t) = offset + A sin(2 pi f t): a single-frequency test (frequency response)."""
 
@@ -62,7 +94,11 @@ def time_grid(
     return torch.arange(n + 1, dtype=dtype, device=device) / sample_rate
 
 
-COMMANDS = {"chirp": Chirp, "sine": Sine}  # command kinds: conf/command/<name>.yaml composes in the defaults of one
+COMMANDS = {
+    "chirp": Chirp,
+    "slewed_chirp": SlewedChirp,
+    "sine": Sine,
+}  # command kinds: conf/command/<name>.yaml composes in the defaults of one
 
 
 def with_defaults(node: Mapping[str, Any]) -> dict[str, Any]:

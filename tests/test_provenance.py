@@ -184,3 +184,20 @@ def test_workbench_records_the_command_and_checks_the_files_against_it(compose):
     assert command_provenance(compose("workbench", [f"measurements={demo}"]), records)["name"] == "measured"
     with pytest.raises(ValueError, match=r"command=sine: .*workbench_hidden_cogging.csv: command differs"):
         command_provenance(compose("workbench", [f"measurements={demo}", "command=sine"]), records)
+
+
+def test_a_slewed_chirp_is_the_chirp_on_a_ramp_and_hashes_apart_from_it():
+    """SlewedChirp = Chirp + r t on the acquisition grid; its record (class included) never matches a plain chirp's,
+    and a bad slew rate is refused by name."""
+    from phm_torch.command import COMMANDS, SlewedChirp, with_defaults
+
+    t = time_grid(0.5, 20_000.0)
+    slewed = SlewedChirp(5e-3, 0.0, 15.0, 0.5, slew_rate=0.02)
+    assert torch.allclose(slewed(t), Chirp()(t) + 0.02 * t, atol=1e-15, rtol=0)
+    assert COMMANDS["slewed_chirp"] is SlewedChirp
+    node = with_defaults({**CHIRP, "_target_": "phm_torch.command.SlewedChirp", "slew_rate": 0.02})
+    assert provenance.command_record("s", node)["sha256"] != provenance.command_record("c", CHIRP)["sha256"]
+    with pytest.raises(ValueError, match="command.slew_rate must be finite"):
+        SlewedChirp(5e-3, 0.0, 15.0, 0.5, slew_rate=float("inf"))
+    with pytest.raises(ValueError, match="command.amplitude must be > 0"):
+        SlewedChirp(0.0, 0.0, 15.0, 0.5, slew_rate=0.0)

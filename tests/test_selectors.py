@@ -145,30 +145,53 @@ def test_bad_input(modes):
         build_selector("som", n_points=4).fit(modes, torch.zeros(3))
 
 
-def test_som_keeps_the_greedy_points_when_its_own_leave_the_gappy_matrix_ill_conditioned(modes, caplog):
-    """Above max_condition the greedy E-optimal points replace the map's (said in the log and in fallback_), and
-    only when they are better conditioned; at the default bound the map's own points stay where they are fine."""
-    from phm_torch.surrogates.selectors.som import gram_condition
+def test_som_exchanges_the_fewest_points_when_its_own_leave_the_gappy_matrix_ill_conditioned(modes, caplog):
+    """Above max_condition the fewest of the map's points are exchanged that bring G within the bound (said in the
+    log and in fallback_), the rest stay where the map put them; at the default bound the map's own points stay."""
+    from phm_torch.surrogates.selectors.exchange import gram_condition
 
     own = SOMSelector(12, max_condition=None).fit(modes)
     assert own.fallback_ is None and own.condition_ == pytest.approx(gram_condition(modes, own.indices_))
     default = SOMSelector(12).fit(modes)
     assert torch.equal(default.indices_, own.indices_) and default.fallback_ is None and own.condition_ < 1000
-    greedy = GreedySelector(12).fit(modes)
-    greedy_condition = gram_condition(modes, greedy.indices_)
-    assert greedy_condition < own.condition_  # so that a bound between them must switch
+    bound = own.condition_ / 3
     with caplog.at_level("WARNING", logger="phm_torch.surrogates.selectors.som"):
-        strict = SOMSelector(12, max_condition=(greedy_condition + own.condition_) / 2).fit(modes)
-    assert torch.equal(strict.indices_, greedy.indices_)
-    assert strict.fallback_ == {
-        "selector": "greedy",
+        strict = SOMSelector(12, max_condition=bound).fit(modes)
+    replaced = int((~torch.isin(strict.indices_, own.indices_)).sum())
+    assert 1 <= replaced < 12 and strict.fallback_ == {
+        "replaced": replaced,
         "som_condition": pytest.approx(own.condition_),
-        "condition": pytest.approx(greedy_condition),
+        "condition": pytest.approx(gram_condition(modes, strict.indices_)),
     }
-    assert strict.condition_ == pytest.approx(greedy_condition) and "kept the greedy E-optimal points" in caplog.text
-    assert strict.get_params()["max_condition"] == pytest.approx((greedy_condition + own.condition_) / 2)
-    # a bound below what greedy reaches too: the greedy points are still kept, being the better conditioned
-    assert torch.equal(SOMSelector(12, max_condition=1.0).fit(modes).indices_, greedy.indices_)
+    assert strict.condition_ <= bound and f"exchanged {replaced} of its points" in caplog.text
+    # the fewest: one swap fewer than it made leaves G above the bound
+    from phm_torch.surrogates.selectors.exchange import exchange_points
+
+    _, swaps, condition = exchange_points(modes, own.indices_.clone(), bound, max_swaps=replaced - 1)
+    assert swaps == replaced - 1 and condition > bound
+    assert strict.get_params()["max_condition"] == pytest.approx(bound)
+    # a bound no exchange reaches: the greedy E-optimal set where it does better, else the best exchange
+    greedy = GreedySelector(12).fit(modes)
+    unreachable = SOMSelector(12, max_condition=1.0).fit(modes)
+    assert unreachable.condition_ <= min(gram_condition(modes, greedy.indices_), strict.condition_) + 1e-9
     for bad in (0.5, "1e3", True):
         with pytest.raises(ValueError, match="selector.max_condition must be a number >= 1 or null"):
             SOMSelector(12, max_condition=bad)
+
+
+def test_exchange_points_raises_the_smallest_eigenvalue_and_checks_its_input(modes):
+    """Each swap lowers the condition number (the first-order candidate is checked exactly); a set with no more
+    points than modes, or a bound below 1, is refused."""
+    from phm_torch.surrogates.selectors.exchange import best_swap, exchange_points, gram_condition
+
+    start = torch.arange(0, 12 * 3, 3)  # 12 early, closely spaced samples: a poorly conditioned set
+    before = gram_condition(modes, start)
+    swapped, after = best_swap(modes, start)
+    assert after < before and int((swapped != start).sum()) == 1 and swapped.unique().numel() == 12
+    kept, swaps, condition = exchange_points(modes, start, before / 10)
+    assert condition <= before / 10 and swaps >= 1 and condition == pytest.approx(gram_condition(modes, kept))
+    assert exchange_points(modes, start, before * 2)[1] == 0  # already within: nothing exchanged
+    with pytest.raises(ValueError, match="needs more points than modes"):
+        exchange_points(modes, torch.arange(8), 10.0)
+    with pytest.raises(ValueError, match="max_condition must be >= 1"):
+        exchange_points(modes, start, 0.5)

@@ -14,9 +14,11 @@ the presentation order.
 
 The map places its neurons where the modes vary, not where they are independent: on another actuator's modes its
 30 points can leave the gappy matrix G = V[S]^T V[S] nearly singular (measured on a flap EMA's 10,000-signal
-store: condition number 8,259 and err_alpha 23 %, where the reference actuator's selections stay at 61-294). Above
-``max_condition`` the selector keeps the greedy E-optimal choice instead (:class:`GreedySelector`: 31 and 2.2 %
-there), says so in the log and in ``fallback_``.
+store: condition number 8,259 and err_alpha 23 %, where the reference actuator's selections stay at 61-306). Above
+``max_condition`` the selector exchanges the fewest of its points that bring it within the bound
+(:func:`~.exchange.exchange_points`: two there, 535 and 8.6 %), keeping the rest of the map's placement; the
+greedy E-optimal set (:class:`GreedySelector`) only where the exchange cannot reach the bound. It says so in the log
+and in ``fallback_``.
 
 Column scaling: with ``column_scaling="maxabs"`` the time column is mapped to [0, 1] and each mode is
 divided by its largest magnitude, then the time column is multiplied by ``time_weight``. Unscaled
@@ -32,6 +34,7 @@ import math
 import torch
 
 from .base import Selector, check_count
+from .exchange import exchange_points, gram_condition
 from .greedy import GreedySelector
 
 log = logging.getLogger(__name__)
@@ -52,10 +55,11 @@ class SOMSelector(Selector):
         sigma_start: initial neighbourhood width [grid units]; ``None`` = max(rows, cols) / 4 (>= 1).
         sigma_end: final neighbourhood width [grid units].
         max_condition: largest condition number of the gappy matrix V[S]^T V[S] the map's points may leave;
-            above it the greedy E-optimal points are kept (when they do better). None: the map's points always.
+            above it the fewest points are exchanged that bring it within (needs n_points > n_m). None: the
+            map's points always.
 
     Fitted: ``indices_``; ``weights_`` (n_points, n_m + 1) the map; ``condition_`` the kept points' condition
-    number; ``fallback_`` None, or {selector, som_condition, condition} when the greedy points replaced the map's.
+    number; ``fallback_`` None, or {replaced (how many of the map's points were exchanged), som_condition, condition}.
     """
 
     name = "som"
@@ -157,25 +161,35 @@ class SOMSelector(Selector):
         return self._conditioned(modes, time, torch.tensor(chosen))
 
     def _conditioned(self, modes: torch.Tensor, time: torch.Tensor, chosen: torch.Tensor) -> torch.Tensor:
-        """The map's points, or the greedy E-optimal ones where the map's leave G worse than ``max_condition``."""
+        """The map's points, or, where they leave G worse than ``max_condition``, the fewest of them exchanged
+        (:func:`exchange_points`); the greedy E-optimal set only where the exchange cannot reach the bound and
+        the greedy set does better."""
         self.condition_, self.fallback_ = gram_condition(modes, chosen), None
-        if self.max_condition is None or self.condition_ <= self.max_condition:
+        if self.max_condition is None or self.condition_ <= self.max_condition or self.n_points <= modes.shape[1]:
             return chosen
-        greedy = GreedySelector(self.n_points)._select(modes, time)
-        condition = gram_condition(modes, greedy)
-        if condition >= self.condition_:
+        som_condition = self.condition_
+        kept, swaps, condition = exchange_points(modes, chosen, self.max_condition)
+        how = f"exchanged {swaps} of its points"
+        if condition > self.max_condition:
+            greedy = GreedySelector(self.n_points)._select(modes, time)
+            greedy_condition = gram_condition(modes, greedy)
+            if greedy_condition < condition:
+                kept, condition, how = greedy, greedy_condition, "kept the greedy E-optimal points"
+        if not condition < som_condition:
             return chosen
         log.warning(
             "selector som: its %d points leave the gappy matrix with condition number %.0f (> max_condition %.0f); "
-            "kept the greedy E-optimal points instead (condition %.0f)",
+            "%s (condition %.0f)",
             self.n_points,
-            self.condition_,
+            som_condition,
             self.max_condition,
+            how,
             condition,
         )
-        self.fallback_ = {"selector": GreedySelector.name, "som_condition": self.condition_, "condition": condition}
+        replaced = int((~torch.isin(kept, chosen)).sum())
+        self.fallback_ = {"replaced": replaced, "som_condition": som_condition, "condition": condition}
         self.condition_ = condition
-        return greedy
+        return kept
 
     def get_params(self) -> dict[str, object]:
         return {
@@ -188,9 +202,3 @@ class SOMSelector(Selector):
             "sigma_end": self.sigma_end,
             "max_condition": self.max_condition,
         }
-
-
-def gram_condition(modes: torch.Tensor, indices: torch.Tensor) -> float:
-    """2-norm condition number of the gappy matrix V[S]^T V[S] of ``modes`` (n_e, n_m) at ``indices``."""
-    v = modes[indices].to(torch.float64)
-    return float(torch.linalg.cond(v.T @ v))
