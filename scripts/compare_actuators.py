@@ -12,6 +12,9 @@ the healthy fraction must lie in [0.15, 0.40].
         --lf reference=ref_lf.report.json --lf rudder=rud_lf.report.json \
         --workbench reference=results/bench_ref.json --workbench rudder=results/bench_rud.json --out cmp.json
 
+``--classifier-heldout name=report.json`` (``scripts/classifier_heldout.py``) takes that actuator's classifier accuracy
+and missed-fault rate from thousands of independent labels instead of the val split's few hundred faulty vectors.
+
 ``--figures name=cmp.json`` takes that actuator's figures from an earlier comparison: all of them when it has no
 ``--run`` (its run directory gone), else only those its run does not give (the LF fit, the workbench); actuators
 named by ``--figures`` come first (the base is the first name).
@@ -71,8 +74,11 @@ def _lf_median(report: dict[str, Any]) -> float | None:
         return None
 
 
-def figures(run: Path, lf: Path | None, bench: Path | None) -> dict[str, float | None]:
-    """Every figure of one actuator (None where its source is missing)."""
+HELDOUT = {"classifier_accuracy": "accuracy", "classifier_missed_fault_rate": "missed_fault_rate"}
+
+
+def figures(run: Path, lf: Path | None, bench: Path | None, heldout: Path | None = None) -> dict[str, float | None]:
+    """Every figure of one actuator (None where its source is missing); the classifier's from ``heldout`` if given."""
     sources = {"train": _read(run / "train" / "metrics.json"), "evaluate": _read(run / "evaluate" / "metrics.json")}
     manifest = _read(run / "data" / "manifest.json")
     out: dict[str, float | None] = {}
@@ -87,6 +93,9 @@ def figures(run: Path, lf: Path | None, bench: Path | None) -> dict[str, float |
         else:
             value = sources[where].get(key)
             out[name] = float(value) if isinstance(value, (int, float)) else None
+    if heldout is not None:
+        report = _read(heldout)
+        out.update({name: float(report[key]) for name, key in HELDOUT.items()})
     out["actuator"] = sources["train"].get("actuator")  # type: ignore[assignment]
     return out
 
@@ -131,12 +140,18 @@ def main() -> None:
     ap.add_argument("--lf", action="append", help="name=phm-fit-lf report JSON")
     ap.add_argument("--workbench", action="append", help="name=bench_workbench JSON")
     ap.add_argument("--figures", action="append", help="name=earlier comparison JSON (its figures of that actuator)")
+    ap.add_argument("--classifier-heldout", action="append", help="name=classifier_heldout.py report JSON")
     ap.add_argument("--factor", type=float, default=1.3, help="allowed factor against the first actuator")
     ap.add_argument("--out", type=Path, default=None, help="JSON written (atomically)")
     args = ap.parse_args()
     if not args.factor >= 1.0:
         raise SystemExit(f"compare_actuators: error: --factor must be >= 1, got {args.factor}")
     runs, lfs, benches = _pairs(args.run, "--run"), _pairs(args.lf, "--lf"), _pairs(args.workbench, "--workbench")
+    heldouts = _pairs(args.classifier_heldout, "--classifier-heldout")
+    if set(heldouts) - set(runs):
+        raise SystemExit(
+            f"compare_actuators: error: --classifier-heldout needs a --run of {sorted(set(heldouts) - set(runs))}"
+        )
     earlier = {}
     for name, path in _pairs(args.figures, "--figures").items():
         recorded = _read(path).get("figures", {})
@@ -145,7 +160,7 @@ def main() -> None:
         earlier[name] = recorded[name]
     table = {}
     for name in dict.fromkeys([*earlier, *runs]):
-        own = figures(runs[name], lfs.get(name), benches.get(name)) if name in runs else {}
+        own = figures(runs[name], lfs.get(name), benches.get(name), heldouts.get(name)) if name in runs else {}
         table[name] = {**earlier.get(name, {}), **{k: v for k, v in own.items() if v is not None}}
     verdicts = compare(table, args.factor)
     print(markdown(table, verdicts))
@@ -158,6 +173,7 @@ def main() -> None:
                     "verdicts": verdicts,
                     "runs": {k: str(v) for k, v in runs.items()},
                     "figures_from": {k: str(v) for k, v in _pairs(args.figures, "--figures").items()},
+                    "classifier_from": {k: str(v) for k, v in heldouts.items()},
                 },
                 fh,
                 indent=2,

@@ -49,3 +49,34 @@ def test_figures_of_an_earlier_comparison_fill_what_a_run_lacks(tmp_path):
         check=False,
     )
     assert bad.returncode != 0 and "holds no figures of 'trim'" in bad.stderr
+
+
+def test_the_classifier_figures_of_a_held_out_report_replace_the_val_splits(tmp_path):
+    base = _run_dir(tmp_path / "reference_run", err_k=0.10)
+    run = _run_dir(tmp_path / "rudder_run", err_k=0.12)
+    report = {"accuracy": 0.98, "missed_fault_rate": 0.011}
+    (tmp_path / "heldout.json").write_text(json.dumps(report))
+    out = tmp_path / "cmp.json"
+    args = ["--run", f"reference={base}", "--run", f"rudder={run}"]
+    args += ["--classifier-heldout", f"rudder={tmp_path / 'heldout.json'}", "--out", str(out)]
+    subprocess.run([sys.executable, str(SCRIPT), *args], check=True, capture_output=True, text=True)
+    done = json.loads(out.read_text())
+    assert done["figures"]["rudder"]["classifier_missed_fault_rate"] == 0.011
+    assert done["figures"]["rudder"]["classifier_accuracy"] == 0.98
+    assert done["figures"]["reference"]["classifier_missed_fault_rate"] == 0.01  # its run's own (val)
+    assert abs(done["verdicts"]["rudder"]["classifier_missed_fault_rate"]["ratio"] - 1.1) < 1e-12
+    assert done["classifier_from"] == {"rudder": str(tmp_path / "heldout.json")}
+    bad = subprocess.run(
+        [
+            sys.executable,
+            str(SCRIPT),
+            "--run",
+            f"rudder={run}",
+            "--classifier-heldout",
+            f"x={tmp_path / 'heldout.json'}",
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert bad.returncode != 0 and "--classifier-heldout needs a --run of ['x']" in bad.stderr
