@@ -1,0 +1,129 @@
+"""Do a store's health labels depend on the sweep grid's density? Relabel vectors near the boundary at another density.
+
+The bandwidth and the gain margin are read between grid points (``assessment.sweep.design.points_per_decade``,
+default 12), so near the boundary the grid can decide a label. This script takes the vectors of a split where that
+matters most and labels them again with the store's own assessment config at another density:
+
+* with ``--bundle``: the bundle's health-classifier errors on the split and as many correctly classified vectors
+  nearest its boundary (how many of the errors are the labels'?);
+* without: the ``--n`` vectors whose measured margins lie nearest the requirements (relative distance, the
+  smallest of the three).
+
+    python scripts/grid_density_check.py --data-dir /tmp/heldout --bundle results/run/train/surrogates.pt \
+        --points-per-decade 36 --out grid36.json
+
+Only an ``auto`` frequency grid has a density; a store whose grid was given as a list is refused. Writes counts of
+changed labels as JSON (docs/own_actuator.md §4: keep the denser grid if they change often).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from phm_torch.checks import build
+from phm_torch.data.labels import LabelComputer
+from phm_torch.data.store import DatasetStore, recorded_actuator
+from phm_torch.io.atomic import write_json
+from phm_torch.surrogates.bundle import SurrogateBundle
+
+
+def assessment_at(metadata: dict[str, Any], points_per_decade: float) -> Any:
+    """The store's assessment function (its recorded actuator and config) with the grid at another density."""
+    config = copy.deepcopy((metadata.get("config") or {}).get("assessment"))
+    params = recorded_actuator(metadata)
+    if config is None or params is None:
+        raise ValueError("the store does not record the actuator and assessment config its labels were made with")
+    sweep = config["sweep"]
+    if sweep.get("frequencies") != "auto":
+        raise ValueError(
+            f"assessment.sweep.frequencies of the store is a list ({sweep.get('frequencies')!r}): it has no density"
+        )
+    sweep["design"] = {**(sweep.get("design") or {}), "points_per_decade": float(points_per_decade)}
+    sweep["compile"] = False  # a few hundred vectors: compiling costs more than it saves
+    return build(config, "assessment", params=params, device="cpu"), params
+
+
+def boundary_distance(margins: np.ndarray, requirements: dict[str, float], nominal_bandwidth: float) -> np.ndarray:
+    """(N,) smallest relative distance of PM, GM and bandwidth from their requirements; a margin not measurable on
+    the grid (nan) is no distance (the vector's label does not hang on a reading between grid points there)."""
+    pm = np.abs(margins[:, 1] - requirements["phase_margin_deg"]) / requirements["phase_margin_deg"]
+    gm = np.abs(margins[:, 3] - requirements["gain_margin_db"]) / max(requirements["gain_margin_db"], 1e-9)
+    bw_req = requirements["bandwidth_fraction"] * nominal_bandwidth
+    bw = np.abs(margins[:, 4] - bw_req) / bw_req
+    return np.fmin(np.fmin(pm, gm), bw)  # fmin: a nan distance loses to any number; all nan stays nan (last)
+
+
+def check(data_dir: str, points_per_decade: float, split: str, bundle: str | None, n: int) -> dict[str, Any]:
+    with DatasetStore(data_dir) as store:
+        metadata = store.metadata
+        group = store.split(split)  # a ValueError naming the splits if absent
+        k = np.asarray(group.K)
+        healthy = np.asarray(group.healthy).astype(bool)
+        margins = np.asarray(group.margins)
+        provenance = store.provenance
+    assessment, params = assessment_at(metadata, points_per_decade)
+    report: dict[str, Any] = {"store": data_dir, "split": split, "points_per_decade": points_per_decade}
+    if bundle is not None:
+        b = SurrogateBundle.load(bundle)
+        b.check_store(provenance, f"store {data_dir}")
+        score = b.health_score(torch.as_tensor(k, dtype=torch.float64)).numpy()
+        pred = score > 0
+        errors = np.flatnonzero(pred != healthy)
+        correct = np.flatnonzero(pred == healthy)
+        near = correct[np.argsort(np.abs(score[correct]))[: len(errors)]]
+        groups = {"errors": errors, "correct_nearest_boundary": near}
+    else:
+        req = dict(vars(assessment.requirements))
+        dist = boundary_distance(margins, req, assessment.nominal_bandwidth_hz)
+        order = np.argsort(np.where(np.isnan(dist), np.inf, dist), kind="stable")
+        groups = {"nearest_requirements": order[:n]}
+    rows = np.concatenate(list(groups.values()))
+    if len(rows) == 0:
+        raise ValueError(f"nothing to relabel in split {split!r} of {data_dir!r}")
+    t0 = time.perf_counter()
+    relabelled = LabelComputer(assessment, params.nominal_faults, len(rows))(k[rows])["healthy"].astype(bool)
+    report["assess_s"] = round(time.perf_counter() - t0, 1)
+    report["frequencies"] = len(assessment.sweep.frequencies)
+    start = 0
+    for name, idx in groups.items():
+        new = relabelled[start : start + len(idx)]
+        start += len(idx)
+        report[name] = {"n": len(idx), "changed": int((new != healthy[idx]).sum())}
+        if name == "errors":
+            missed = pred[idx] & ~healthy[idx]
+            report[name]["missed_faults"] = int(missed.sum())
+            report[name]["missed_faults_changed"] = int((missed & (new != healthy[idx])).sum())
+    return report
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data-dir", required=True, help="a store (phm-generate) with labels")
+    ap.add_argument("--points-per-decade", type=float, default=36.0, help="the density to relabel at")
+    ap.add_argument("--split", default="labels", help="the split whose vectors are relabelled")
+    ap.add_argument("--bundle", default=None, help="relabel this bundle's classifier errors and its nearest correct")
+    ap.add_argument("--n", type=int, default=200, help="without --bundle: vectors nearest the requirements")
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--out", default=None, help="JSON report (default: print only)")
+    args = ap.parse_args()
+    if not args.points_per_decade > 0:
+        raise SystemExit(f"grid_density_check: error: --points-per-decade must be > 0, got {args.points_per_decade}")
+    if args.n < 1:
+        raise SystemExit(f"grid_density_check: error: --n must be >= 1, got {args.n}")
+    torch.set_num_threads(args.threads)
+    report = check(args.data_dir, args.points_per_decade, args.split, args.bundle, args.n)
+    if args.out:
+        write_json(Path(args.out), report)
+    print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()

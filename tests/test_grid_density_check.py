@@ -1,0 +1,63 @@
+"""scripts/grid_density_check.py: a store's labels relabelled at another sweep density, with its own assessment."""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from phm_torch.apps.generate import generate
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "grid_density_check.py"
+TINY_AUTO = (  # a tiny LF store whose sweep grid is derived (auto), with 16 labels
+    "dataset.fidelity=lf",
+    "command.duration=0.02",
+    "dataset.n_train=4",
+    "dataset.n_val=1",
+    "dataset.n_rul=1",
+    "dataset.chunk_size=6",
+    "assessment.sweep.cycles=3",
+    "progress=false",
+    "threads=1",
+    "+dataset.healthy_fraction=null",
+    "dataset.n_labels=16",
+    "+dataset.label_chunk_size=8",
+)
+
+
+def _script():
+    spec = importlib.util.spec_from_file_location("grid_density_check", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_the_stores_own_density_reproduces_its_labels_and_another_is_counted(tmp_path, compose):
+    data_dir = tmp_path / "store"
+    generate(compose("generate", [*TINY_AUTO, f"data_dir={data_dir}"]))
+    script = _script()
+    same = script.check(str(data_dir), 12.0, "labels", None, 6)
+    assert same["nearest_requirements"] == {"n": 6, "changed": 0}  # the labels, made again the same way
+    denser = script.check(str(data_dir), 36.0, "labels", None, 6)
+    assert denser["frequencies"] > 2 * same["frequencies"] and 0 <= denser["nearest_requirements"]["changed"] <= 6
+    # the vectors picked are those whose measured margins lie nearest the requirements
+    from phm_torch.data.store import DatasetStore
+
+    with DatasetStore(str(data_dir)) as store:
+        margins = np.asarray(store.split("labels").margins)
+    dist = script.boundary_distance(
+        margins, {"phase_margin_deg": 45.0, "gain_margin_db": 6.0, "bandwidth_fraction": 0.9}, 20.0
+    )
+    assert dist.shape == (16,) and bool((dist[~np.isnan(dist)] >= 0).all())
+    with pytest.raises(ValueError, match="split 'test' is not in the store"):
+        script.check(str(data_dir), 36.0, "test", None, 6)
+
+
+def test_a_listed_grid_has_no_density(tmp_path, compose):
+    data_dir = tmp_path / "store"
+    listed = [*TINY_AUTO, "assessment.sweep.frequencies=[15,30,60,90,130]", "assessment.sweep.group_size=5"]
+    generate(compose("generate", [*listed, f"data_dir={data_dir}"]))
+    with pytest.raises(ValueError, match="is a list .* it has no density"):
+        _script().check(str(data_dir), 36.0, "labels", None, 4)
