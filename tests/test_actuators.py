@@ -20,6 +20,7 @@ from phm_torch.assessment.actuator_check import (
     linear_figures,
     single_fault_cases,
     step_metrics,
+    tracking_metrics,
 )
 from phm_torch.metrics import nrmse
 from phm_torch.params import CONF_DIR, load_actuator
@@ -185,3 +186,19 @@ def test_the_example_user_folders_hold_a_valid_actuator_and_command(
     fig = linear_figures(params)
     assert fig["spectral_radius"] < 1.0
     assert fig["gain_margin_db"] >= REQ.gain_margin_db and fig["phase_margin_deg"] >= REQ.phase_margin_deg
+
+
+def test_a_slewed_chirps_last_cycle_is_read_with_its_ramp_taken_out(params):
+    """The slew moves the operating point, not the loop: on the LF reference actuator the last cycle of the chirp on
+    a ramp has the plain chirp's amplitude ratio and lag (the ramp removed from command and position before the fit)."""
+    from phm_torch.command import Chirp, SlewedChirp
+
+    k = torch.tensor([params.nominal_faults], dtype=torch.float64)
+    read = {}
+    for name, command in (("plain", Chirp()), ("slewed", SlewedChirp(5e-3, 0.0, 15.0, 0.5, slew_rate=0.02))):
+        sig = EMASimulator(params, "lf").run(k, command, command.duration)
+        tm = tracking_metrics(sig, command, params.end_stop_angle)
+        read[name] = (float(tm["last_cycle_ratio"][0]), float(tm["last_cycle_lag_deg"][0]))
+    assert 0.8 < read["plain"][0] < 1.0 and 20.0 < read["plain"][1] < 40.0  # the datasheet's 0.93 / 30 deg (HF)
+    assert read["slewed"][0] == pytest.approx(read["plain"][0], abs=1e-3)
+    assert read["slewed"][1] == pytest.approx(read["plain"][1], abs=0.1)

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from ..command import Chirp
+from ..command import Chirp, SlewedChirp
 from ..faults import FAULT_NAMES
 from ..metrics import chirp_last_cycle, nrmse
 from ..params import ActuatorParams
@@ -202,9 +202,11 @@ def tracking_metrics(sig: Signals, command: Callable, end_stop_angle: float) -> 
         "peak_speed_rad_s": sig["speed"].abs().amax(-1),
         "bounded": (torch.isfinite(pos).all(-1) & (sig["user_angle"].abs().amax(-1) < end_stop_angle)).double(),
     }
-    if isinstance(command, Chirp) and command.f_start == 0 and command.f_end > 0:
-        last = [
-            chirp_last_cycle(sig.time, cmd[b], pos[b], command.f_end, command.duration) for b in range(pos.shape[0])
+    if isinstance(command, (Chirp, SlewedChirp)) and command.f_start == 0 and command.f_end > 0:
+        ramp = getattr(command, "slew_rate", 0.0) * sig.time  # a slewed chirp's ramp, out of both (the fit's offset
+        last = [  # term takes the position's constant lag behind it)
+            chirp_last_cycle(sig.time, cmd[b] - ramp, pos[b] - ramp, command.f_end, command.duration)
+            for b in range(pos.shape[0])
         ]
         out["last_cycle_ratio"] = torch.tensor([r for r, _ in last], dtype=torch.float64)
         out["last_cycle_lag_deg"] = torch.tensor([lag for _, lag in last], dtype=torch.float64)
