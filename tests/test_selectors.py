@@ -186,8 +186,8 @@ def test_exchange_points_raises_the_smallest_eigenvalue_and_checks_its_input(mod
 
     start = torch.arange(0, 12 * 3, 3)  # 12 early, closely spaced samples: a poorly conditioned set
     before = gram_condition(modes, start)
-    swapped, after = best_swap(modes, start)
-    assert after < before and int((swapped != start).sum()) == 1 and swapped.unique().numel() == 12
+    swapped, (lost, after) = best_swap(modes, start)
+    assert lost == 0 and after < before and int((swapped != start).sum()) == 1 and swapped.unique().numel() == 12
     kept, swaps, condition = exchange_points(modes, start, before / 10)
     assert condition <= before / 10 and swaps >= 1 and condition == pytest.approx(gram_condition(modes, kept))
     assert exchange_points(modes, start, before * 2)[1] == 0  # already within: nothing exchanged
@@ -195,3 +195,16 @@ def test_exchange_points_raises_the_smallest_eigenvalue_and_checks_its_input(mod
         exchange_points(modes, torch.arange(8), 10.0)
     with pytest.raises(ValueError, match="max_condition must be >= 1"):
         exchange_points(modes, start, 0.5)
+
+
+def test_exchange_points_restores_a_rank_deficient_set_one_direction_at_a_time():
+    """20 adjacent samples of smooth modes span only a few directions: G's condition number is rounding noise, and no
+    single swap lowers it, but each restores one lost direction, so the exchange keeps going until the bound."""
+    from phm_torch.surrogates.selectors.exchange import exchange_points, gram_condition
+
+    t = torch.linspace(0.0, 1.0, 2001, dtype=torch.float64)
+    modes, _ = torch.linalg.qr(torch.stack([torch.sin((i + 1) * 3.1 * t + i) for i in range(12)], 1))
+    start = torch.arange(20)
+    assert gram_condition(modes, start) > 1e12
+    kept, swaps, condition = exchange_points(modes, start, 1000.0)
+    assert condition <= 1000.0 and swaps >= 5 and condition == pytest.approx(gram_condition(modes, kept))
