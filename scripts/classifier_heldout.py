@@ -25,6 +25,7 @@ import torch
 from phm_torch.data.store import DatasetStore, read_labelled
 from phm_torch.io.atomic import write_json
 from phm_torch.surrogates.bundle import SurrogateBundle
+from phm_torch.surrogates.metrics import confusion
 
 
 def heldout_confusion(bundle: SurrogateBundle, data_dir: str, split: str = "labels") -> dict[str, float | int]:
@@ -36,17 +37,15 @@ def heldout_confusion(bundle: SurrogateBundle, data_dir: str, split: str = "labe
             raise ValueError(f"store {data_dir} is the one the bundle was trained on: give an independent one")
     k, healthy = read_labelled(data_dir, (split,), ())
     k_t, h = torch.as_tensor(k, dtype=torch.float64), torch.as_tensor(healthy).bool()
-    pred = bundle.is_healthy(k_t)
-    faulty = ~h
-    missed, false_alarms = int((pred & faulty).sum()), int((~pred & h).sum())
+    counts = confusion(bundle.is_healthy(k_t), h)
     return {
         "n": int(h.numel()),
-        "faulty": int(faulty.sum()),
-        "accuracy": float((pred == h).double().mean()),
-        "missed": missed,
-        "missed_fault_rate": missed / max(int(faulty.sum()), 1),
-        "false_alarms": false_alarms,
-        "false_alarm_rate": false_alarms / max(int(h.sum()), 1),
+        "faulty": counts["n_faulty"],
+        "accuracy": counts["accuracy"],
+        "missed": counts["missed_faults"],
+        "missed_fault_rate": counts["missed_fault_rate"],
+        "false_alarms": counts["false_alarms"],
+        "false_alarm_rate": counts["false_alarm_rate"],
     }
 
 

@@ -168,8 +168,8 @@ class SOMSelector(Selector):
         if self.max_condition is None or self.condition_ <= self.max_condition or self.n_points <= modes.shape[1]:
             return chosen
         som_condition = self.condition_
-        kept, swaps, condition = exchange_points(modes, chosen, self.max_condition)
-        how = f"exchanged {swaps} of its points"
+        kept, _, condition = exchange_points(modes, chosen, self.max_condition)
+        how = "exchanged {replaced} of its points"
         if condition > self.max_condition:
             greedy = GreedySelector(self.n_points)._select(modes, time)
             greedy_condition = gram_condition(modes, greedy)
@@ -177,16 +177,16 @@ class SOMSelector(Selector):
                 kept, condition, how = greedy, greedy_condition, "kept the greedy E-optimal points"
         if not condition < som_condition:
             return chosen
+        replaced = int((~torch.isin(kept, chosen)).sum())  # a swap may bring back a point an earlier one removed
         log.warning(
             "selector som: its %d points leave the gappy matrix with condition number %.0f (> max_condition %.0f); "
             "%s (condition %.0f)",
             self.n_points,
             som_condition,
             self.max_condition,
-            how,
+            how.format(replaced=replaced),
             condition,
         )
-        replaced = int((~torch.isin(kept, chosen)).sum())
         self.fallback_ = {"replaced": replaced, "som_condition": som_condition, "condition": condition}
         self.condition_ = condition
         return kept
