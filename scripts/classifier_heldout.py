@@ -56,8 +56,12 @@ def main() -> None:
     ap.add_argument("--split", default="labels", help="the split whose labels judge the classifier")
     ap.add_argument("--out", default=None, help="JSON report (default: print only)")
     args = ap.parse_args()
+    try:
+        counts = heldout_confusion(SurrogateBundle.load(args.bundle), args.data_dir, args.split)
+    except ValueError as e:  # another actuator's store, the training store, a missing split: one line
+        raise SystemExit(f"classifier_heldout: error: {e}") from None
     report = {
-        **heldout_confusion(SurrogateBundle.load(args.bundle), args.data_dir, args.split),
+        **counts,
         "split": args.split,
         "store": args.data_dir,
         "bundle": args.bundle,

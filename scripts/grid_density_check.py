@@ -119,7 +119,10 @@ def main() -> None:
     if args.n < 1:
         raise SystemExit(f"grid_density_check: error: --n must be >= 1, got {args.n}")
     torch.set_num_threads(args.threads)
-    report = check(args.data_dir, args.points_per_decade, args.split, args.bundle, args.n)
+    try:
+        report = check(args.data_dir, args.points_per_decade, args.split, args.bundle, args.n)
+    except ValueError as e:  # another actuator's store or bundle, a listed grid, a missing split: one line
+        raise SystemExit(f"grid_density_check: error: {e}") from None
     if args.out:
         write_json(Path(args.out), report)
     print(json.dumps(report, indent=2))

@@ -42,3 +42,34 @@ def test_counts_on_an_independent_store_and_refuses_the_training_store(tmp_path)
     assert report["accuracy"] == (400 - report["missed"] - report["false_alarms"]) / 400
     refused = subprocess.run([*run, "--data-dir", str(trained)], check=False, capture_output=True, text=True)
     assert refused.returncode != 0 and "is the one the bundle was trained on" in refused.stderr
+
+
+def test_a_store_of_another_actuator_is_refused_in_one_line(tmp_path):
+    import h5py
+
+    from phm_torch import provenance
+    from phm_torch.params import load_actuator
+
+    heldout = write_store(tmp_path / "heldout", {"labels": 50}, seed=5)
+    chirp = {"_target_": "phm_torch.command.Chirp", "amplitude": 5e-3, "f_start": 0.0, "f_end": 15.0, "duration": 0.5}
+    command = provenance.command_record("chirp", chirp)
+    with h5py.File(heldout / "dataset.h5", "r+") as f:  # the store says which actuator it was made for
+        meta = json.loads(f.attrs["metadata"])
+        meta["provenance"] = {
+            "actuator": provenance.actuator_record("ema_reference", load_actuator()),
+            "command": command,
+        }
+        f.attrs["metadata"] = json.dumps(meta)
+    trained = write_store(tmp_path / "trained", {"train": 100}, seed=0)
+    data, _, _ = load_store(str(trained), {"train": "train"}, {})
+    pod = POD(4).fit(data["train"].current)
+    classifier = PolynomialSVM(degree=1).fit(data["train"].k, data["train"].healthy)
+    bundle = SurrogateBundle(pod, torch.arange(0, 12, 2), FDIMLP(4, 5), classifier, 20000.0)
+    rudder = provenance.actuator_record("ema_hvdc_rudder", load_actuator("ema_hvdc_rudder"))
+    bundle.extra["provenance"] = {"actuator": rudder, "command": command}
+    bundle.save(tmp_path / "b.pt")
+    run = [sys.executable, str(SCRIPT), "--bundle", str(tmp_path / "b.pt"), "--data-dir", str(heldout)]
+    refused = subprocess.run(run, check=False, capture_output=True, text=True)
+    assert refused.returncode != 0
+    assert refused.stderr.strip().splitlines()[-1].startswith("classifier_heldout: error: actuator=ema_hvdc_rudder")
+    assert "Traceback" not in refused.stderr
