@@ -13,7 +13,8 @@ import json
 from collections.abc import Mapping
 from typing import Any
 
-# settings that change how phi_a runs, not what it answers
+# settings that change how phi_a runs, not what it answers. group_size is one only within the settling tolerance:
+# with max_extensions 0 it moves a few labels nearest the requirements (docs/dataset.md, "Settling and refinement")
 RUN_ONLY = ("compile", "group_size")
 
 

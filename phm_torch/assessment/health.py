@@ -7,6 +7,7 @@ of the nominal actuator's (measured the same way, so that the measurement's own 
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -18,6 +19,8 @@ from ..faults import as_fault_tensor
 from ..params import ActuatorParams
 from .frequency_response import FrequencyResponse, SineSweep
 from .margins import Margins, margins
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -104,7 +107,7 @@ class AssessmentFunction:
                 self.params, SineSweep(**{**vars(self.sweep), "compile": False}), self.response.device
             )
             k0 = torch.tensor([self.params.nominal_faults], dtype=torch.float64)
-            r = eager.measure(k0)
+            r = eager.refine(k0, eager.measure(k0))
             self._nominal = margins(r.frequencies, r.open_loop, r.closed_loop)
         return self._nominal
 
@@ -133,13 +136,29 @@ class AssessmentFunction:
         out["nominal_margins"] = {k: round(float(v[0]), 4) for k, v in self.nominal.as_dict().items()}
         return out
 
+    def settling(self) -> dict[str, int]:
+        """Responses simulated again because they had not settled (``extended``) and those still moving after
+        ``max_extensions`` (``unsettled``: labelled from their last reading; with ``max_extensions`` 0 every
+        reading that moved by more than ``tolerance``), over every call so far."""
+        return {"extended": self.response.extensions, "unsettled": self.response.unsettled}
+
     def __call__(self, faults: torch.Tensor) -> Assessment:
         """Assess (B, 8) fault vectors."""
         k = as_fault_tensor(faults, torch.float64, self.response.device)
         bw0 = self.nominal_bandwidth_hz
         t0 = time.perf_counter()
-        r = self.response.measure(k)
+        unsettled = self.response.unsettled
+        r = self.response.refine(k, self.response.measure(k))
         m = margins(r.frequencies, r.open_loop, r.closed_loop)
+        if self.sweep.max_extensions and self.response.unsettled > unsettled:  # without extensions: counted only
+            log.warning(
+                "assessment: %d responses of %d vectors still changed by more than %g after %d extensions "
+                "(assessment.sweep.tolerance / max_extensions); labelled from their last reading",
+                self.response.unsettled - unsettled,
+                k.shape[0],
+                self.sweep.tolerance,
+                self.sweep.max_extensions,
+            )
         self.wall_s += time.perf_counter() - t0
         self.vectors += k.shape[0]
         return Assessment(self.requirements.healthy(m, bw0), m)

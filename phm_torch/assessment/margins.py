@@ -91,7 +91,7 @@ def margins(frequencies: torch.Tensor, open_loop: torch.Tensor, closed_loop: tor
     """Margins of a batch of measured loops.
 
     Args:
-        frequencies: (F,) test frequencies [Hz], increasing.
+        frequencies: (F,) test frequencies [Hz], increasing, or (B, F) non-decreasing per vector (refined).
         open_loop: (B, F) complex L(jw).  closed_loop: (B, F) complex T(jw).
     """
     logf = torch.log(frequencies.to(torch.float64))

@@ -227,6 +227,8 @@ def _metrics(
         timing["pilot_s"] = run.pilot_s
     if life is not None:
         metrics["life"] = life
+    if assessment.vectors:  # responses of this process (a resumed or sharded run counts its own)
+        metrics["assessment_settling"] = assessment.settling()
     if timing and assessment.vectors:
         metrics["assessment_ms_per_vector"] = round(1000 * assessment.wall_s / assessment.vectors, 3)
         metrics["timing_s"] = {k: round(v, 2) for k, v in timing.items()}
