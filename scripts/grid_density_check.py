@@ -12,7 +12,9 @@ matters most and labels them again with the store's own assessment config at ano
     python scripts/grid_density_check.py --data-dir /tmp/heldout --bundle results/run/train/surrogates.pt \
         --points-per-decade 36 --out grid36.json
 
-Only an ``auto`` frequency grid has a density; a store whose grid was given as a list is refused. Writes counts of
+``--max-extensions`` and ``--refine`` relabel with the responses extended until they settle and measured again at
+each vector's crossings (docs/dataset.md, "Settling and refinement"): how much of a store's labels hang on the
+sweep's reading. Only an ``auto`` frequency grid has a density; a store whose grid was given as a list is refused. Writes counts of
 changed labels as JSON (docs/own_actuator.md §4: keep the denser grid if they change often).
 """
 
@@ -35,8 +37,9 @@ from phm_torch.io.atomic import write_json
 from phm_torch.surrogates.bundle import SurrogateBundle
 
 
-def assessment_at(metadata: dict[str, Any], points_per_decade: float) -> Any:
-    """The store's assessment function (its recorded actuator and config) with the grid at another density."""
+def assessment_at(metadata: dict[str, Any], points_per_decade: float, max_extensions: int = 0, refine: int = 0) -> Any:
+    """The store's assessment function (its recorded actuator and config) with the grid at another density and,
+    where given, the responses extended until they settle and refined at each vector's crossings."""
     config = copy.deepcopy((metadata.get("config") or {}).get("assessment"))
     params = recorded_actuator(metadata)
     if config is None or params is None:
@@ -48,6 +51,10 @@ def assessment_at(metadata: dict[str, Any], points_per_decade: float) -> Any:
         )
     sweep["design"] = {**(sweep.get("design") or {}), "points_per_decade": float(points_per_decade)}
     sweep["compile"] = False  # a few hundred vectors: compiling costs more than it saves
+    if max_extensions:
+        sweep["max_extensions"] = int(max_extensions)
+    if refine:
+        sweep["refine"] = int(refine)
     return build(config, "assessment", params=params, device="cpu"), params
 
 
@@ -61,7 +68,15 @@ def boundary_distance(margins: np.ndarray, requirements: dict[str, float], nomin
     return np.fmin(np.fmin(pm, gm), bw)  # fmin: a nan distance loses to any number; all nan stays nan (last)
 
 
-def check(data_dir: str, points_per_decade: float, split: str, bundle: str | None, n: int) -> dict[str, Any]:
+def check(
+    data_dir: str,
+    points_per_decade: float,
+    split: str,
+    bundle: str | None,
+    n: int,
+    max_extensions: int = 0,
+    refine: int = 0,
+) -> dict[str, Any]:
     with DatasetStore(data_dir) as store:
         metadata = store.metadata
         group = store.split(split)  # a ValueError naming the splits if absent
@@ -69,8 +84,9 @@ def check(data_dir: str, points_per_decade: float, split: str, bundle: str | Non
         healthy = np.asarray(group.healthy).astype(bool)
         margins = np.asarray(group.margins)
         provenance = store.provenance
-    assessment, params = assessment_at(metadata, points_per_decade)
+    assessment, params = assessment_at(metadata, points_per_decade, max_extensions, refine)
     report: dict[str, Any] = {"store": data_dir, "split": split, "points_per_decade": points_per_decade}
+    report |= {"max_extensions": max_extensions, "refine": refine}
     if bundle is not None:
         b = SurrogateBundle.load(bundle)
         b.check_store(provenance, f"store {data_dir}")
@@ -92,6 +108,7 @@ def check(data_dir: str, points_per_decade: float, split: str, bundle: str | Non
     relabelled = LabelComputer(assessment, params.nominal_faults, len(rows))(k[rows])["healthy"].astype(bool)
     report["assess_s"] = round(time.perf_counter() - t0, 1)
     report["frequencies"] = len(assessment.sweep.frequencies)
+    report["settling"] = assessment.settling()
     start = 0
     for name, idx in groups.items():
         new = relabelled[start : start + len(idx)]
@@ -111,6 +128,8 @@ def main() -> None:
     ap.add_argument("--split", default="labels", help="the split whose vectors are relabelled")
     ap.add_argument("--bundle", default=None, help="relabel this bundle's classifier errors and its nearest correct")
     ap.add_argument("--n", type=int, default=200, help="without --bundle: vectors nearest the requirements")
+    ap.add_argument("--max-extensions", type=int, default=0, help="extend unsettled responses up to N times")
+    ap.add_argument("--refine", type=int, default=0, help="rounds of measurement at each vector's crossings")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default=None, help="JSON report (default: print only)")
     args = ap.parse_args()
@@ -118,9 +137,16 @@ def main() -> None:
         raise SystemExit(f"grid_density_check: error: --points-per-decade must be > 0, got {args.points_per_decade}")
     if args.n < 1:
         raise SystemExit(f"grid_density_check: error: --n must be >= 1, got {args.n}")
+    for name in ("max_extensions", "refine"):
+        if getattr(args, name) < 0:
+            raise SystemExit(
+                f"grid_density_check: error: --{name.replace('_', '-')} must be >= 0, got {getattr(args, name)}"
+            )
     torch.set_num_threads(args.threads)
     try:
-        report = check(args.data_dir, args.points_per_decade, args.split, args.bundle, args.n)
+        report = check(
+            args.data_dir, args.points_per_decade, args.split, args.bundle, args.n, args.max_extensions, args.refine
+        )
     except ValueError as e:  # another actuator's store or bundle, a listed grid, a missing split: one line
         raise SystemExit(f"grid_density_check: error: {e}") from None
     if args.out:

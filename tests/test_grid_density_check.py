@@ -61,3 +61,14 @@ def test_a_listed_grid_has_no_density(tmp_path, compose):
     generate(compose("generate", [*listed, f"data_dir={data_dir}"]))
     with pytest.raises(ValueError, match="is a list .* it has no density"):
         _script().check(str(data_dir), 36.0, "labels", None, 4)
+
+
+def test_relabelling_with_settled_and_refined_responses(tmp_path, compose):
+    data_dir = tmp_path / "store"
+    generate(compose("generate", [*TINY_AUTO, f"data_dir={data_dir}"]))
+    report = _script().check(str(data_dir), 12.0, "labels", None, 4, max_extensions=2, refine=1)
+    assert report["max_extensions"] == 2 and report["refine"] == 1
+    assert report["settling"]["extended"] > 0  # 3 cycles from rest: some readings still move, and were extended
+    assert 0 <= report["nearest_requirements"]["changed"] <= 4
+    plain = _script().check(str(data_dir), 12.0, "labels", None, 4)
+    assert plain["settling"]["extended"] == 0 and plain["nearest_requirements"]["changed"] == 0
