@@ -98,7 +98,11 @@ def check(
         groups = {"errors": errors, "correct_nearest_boundary": near}
     else:
         req = dict(vars(assessment.requirements))
-        dist = boundary_distance(margins, req, assessment.nominal_bandwidth_hz)
+        # the store's margins are judged against the nominal bandwidth they were labelled with (the manifest's), not
+        # the relabelling's: another reading moves it, and with it which vectors look nearest the requirements
+        recorded = ((metadata.get("assessment_sweep") or {}).get("nominal_margins") or {}).get("bandwidth_hz")
+        nominal_bw = float(recorded) if recorded is not None else assessment.nominal_bandwidth_hz
+        dist = boundary_distance(margins, req, nominal_bw)
         order = np.argsort(np.where(np.isnan(dist), np.inf, dist), kind="stable")
         groups = {"nearest_requirements": order[:n]}
     rows = np.concatenate(list(groups.values()))
