@@ -237,7 +237,27 @@ class FrequencyResponse:
 
         with torch.no_grad():
             y = self.sim.run(k, command, periods / f_ctrl, channels=["position"])["position"]
+        # rows sharing a window (on the grid, one per frequency) are read over exactly their two windows; rows of
+        # many different windows (refinement) together over the longest, masked
+        values = torch.unique(window)
+        parts = [window == v for v in values] if len(values) <= 8 else [torch.ones_like(window, dtype=torch.bool)]
+        l1 = torch.empty(k.shape[0], dtype=torch.complex128, device=self.device)
+        t1, change = torch.empty_like(l1), torch.empty(k.shape[0], dtype=torch.float64, device=self.device)
+        for part in parts:
+            rows = torch.nonzero(part)[:, 0]
+            l1[rows], t1[rows], change[rows] = self._two_windows(y[rows], w[rows], window[rows], periods)
+        return l1, t1, change
+
+    def _two_windows(
+        self, y: torch.Tensor, w: torch.Tensor, window: torch.Tensor, periods: int
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """L, T over each row's last ``window`` control periods of y (R, >= periods) and their largest relative
+        change from the window before; w (R,) [rad/s]."""
+        f_ctrl = self.params.pwm_frequency
+        amp = float(self.sweep.amplitude)
         span = 2 * int(window.max())  # the two windows end one period before the last sample
+        if bool((window == window[0]).all()):  # one window, so one frequency: one basis row for all (trig is costly)
+            w, window = w[:1], window[:1]
         t = torch.arange(periods - span, periods, dtype=torch.float64, device=self.device) / f_ctrl
         col = torch.arange(span, device=self.device)[None, :]
         last = col >= span - window[:, None]
