@@ -63,12 +63,16 @@ def test_a_listed_grid_has_no_density(tmp_path, compose):
         _script().check(str(data_dir), 36.0, "labels", None, 4)
 
 
-def test_relabelling_with_settled_and_refined_responses(tmp_path, compose):
+def test_a_store_labelled_with_settled_refined_readings_records_them_and_is_reproduced(tmp_path, compose):
     data_dir = tmp_path / "store"
-    generate(compose("generate", [*TINY_AUTO, f"data_dir={data_dir}"]))
-    report = _script().check(str(data_dir), 12.0, "labels", None, 4, max_extensions=2, refine=1)
-    assert report["max_extensions"] == 2 and report["refine"] == 1
-    assert report["settling"]["extended"] > 0  # 3 cycles from rest: some readings still move, and were extended
-    assert 0 <= report["nearest_requirements"]["changed"] <= 4
-    plain = _script().check(str(data_dir), 12.0, "labels", None, 4)
-    assert plain["settling"]["extended"] == 0 and plain["nearest_requirements"]["changed"] == 0
+    switches = ["+assessment.sweep.max_extensions=1", "+assessment.sweep.refine=1", "dataset.n_labels=4"]
+    metrics, _ = generate(compose("generate", [*TINY_AUTO, *switches, f"data_dir={data_dir}"]))
+    assert metrics["assessment_settling"]["extended"] > 0  # 3 cycles from rest: some readings moved, and were extended
+    from phm_torch.data.store import DatasetStore
+
+    with DatasetStore(str(data_dir)) as store:
+        sweep = store.metadata["config"]["assessment"]["sweep"]
+    assert sweep["max_extensions"] == 1 and sweep["refine"] == 1  # part of the labels' provenance
+    same = _script().check(str(data_dir), 12.0, "labels", None, 4, max_extensions=1, refine=1)
+    assert same["nearest_requirements"]["changed"] == 0 and same["settling"]["extended"] > 0
+    assert same["max_extensions"] == 1 and same["refine"] == 1
