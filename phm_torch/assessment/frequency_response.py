@@ -245,32 +245,38 @@ class FrequencyResponse:
         t1, change = torch.empty_like(l1), torch.empty(k.shape[0], dtype=torch.float64, device=self.device)
         for part in parts:
             rows = torch.nonzero(part)[:, 0]
-            l1[rows], t1[rows], change[rows] = self._two_windows(y[rows], w[rows], window[rows], periods)
+            span = 2 * int(window[rows].max())  # the two windows end one period before the last sample
+            l1[rows], t1[rows], change[rows] = self._two_windows(
+                y[rows, periods - span : periods], w[rows], window[rows], periods
+            )
         return l1, t1, change
 
     def _two_windows(
         self, y: torch.Tensor, w: torch.Tensor, window: torch.Tensor, periods: int
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """L, T over each row's last ``window`` control periods of y (R, >= periods) and their largest relative
-        change from the window before; w (R,) [rad/s]."""
+        """L, T over each row's last ``window`` control periods and their largest relative change from the window
+        before; y (R, 2 max(window)) the samples ending one period before the last, w (R,) [rad/s]."""
         f_ctrl = self.params.pwm_frequency
         amp = float(self.sweep.amplitude)
-        span = 2 * int(window.max())  # the two windows end one period before the last sample
-        if bool((window == window[0]).all()):  # one window, so one frequency: one basis row for all (trig is costly)
-            w, window = w[:1], window[:1]
+        span = y.shape[-1]
         t = torch.arange(periods - span, periods, dtype=torch.float64, device=self.device) / f_ctrl
-        col = torch.arange(span, device=self.device)[None, :]
-        last = col >= span - window[:, None]
-        before = (col >= span - 2 * window[:, None]) & ~last
-        phase = w[:, None] * t[None, :]
-        basis = torch.complex(torch.cos(phase), -torch.sin(phase))
-        y_b = y[:, periods - span : periods].to(basis.dtype) * basis
-        r_b = (amp * torch.sin(phase)).to(basis.dtype) * basis
-        out = []
-        for mask in (last, before):
-            y_h, r_h = (y_b * mask).sum(-1), (r_b * mask).sum(-1)
-            out.append((y_h / (r_h - y_h), y_h / r_h))
-        (l1, t1), (l0, t0) = out
+        if bool((window == window[0]).all()):  # one window, so one frequency: one basis for all, no masks
+            phase = w[0] * t
+            basis = torch.complex(torch.cos(phase), -torch.sin(phase))
+            y_b = y.to(basis.dtype) * basis
+            r_b = (amp * torch.sin(phase)).to(basis.dtype) * basis
+            half = span // 2
+            sums = [(y_b[:, half:].sum(-1), r_b[half:].sum()), (y_b[:, :half].sum(-1), r_b[:half].sum())]
+        else:
+            col = torch.arange(span, device=self.device)[None, :]
+            last = col >= span - window[:, None]
+            before = (col >= span - 2 * window[:, None]) & ~last
+            phase = w[:, None] * t[None, :]
+            basis = torch.complex(torch.cos(phase), -torch.sin(phase))
+            y_b = y.to(basis.dtype) * basis
+            r_b = (amp * torch.sin(phase)).to(basis.dtype) * basis
+            sums = [((y_b * m).sum(-1), (r_b * m).sum(-1)) for m in (last, before)]
+        (l1, t1), (l0, t0) = [(y_h / (r_h - y_h), y_h / r_h) for y_h, r_h in sums]
         change = torch.maximum(
             (l1 - l0).abs() / l1.abs().clamp(min=1e-300), (t1 - t0).abs() / t1.abs().clamp(min=1e-300)
         )
