@@ -86,7 +86,8 @@ def check(
         provenance = store.provenance
     assessment, params = assessment_at(metadata, points_per_decade, max_extensions, refine)
     report: dict[str, Any] = {"store": data_dir, "split": split, "points_per_decade": points_per_decade}
-    report |= {"max_extensions": max_extensions, "refine": refine}
+    # the settings in force: a store generated with them keeps them where the arguments leave them at 0
+    report |= {"max_extensions": assessment.sweep.max_extensions, "refine": assessment.sweep.refine}
     if bundle is not None:
         b = SurrogateBundle.load(bundle)
         b.check_store(provenance, f"store {data_dir}")
@@ -132,8 +133,18 @@ def main() -> None:
     ap.add_argument("--split", default="labels", help="the split whose vectors are relabelled")
     ap.add_argument("--bundle", default=None, help="relabel this bundle's classifier errors and its nearest correct")
     ap.add_argument("--n", type=int, default=200, help="without --bundle: vectors nearest the requirements")
-    ap.add_argument("--max-extensions", type=int, default=0, help="extend unsettled responses up to N times")
-    ap.add_argument("--refine", type=int, default=0, help="rounds of measurement at each vector's crossings")
+    ap.add_argument(
+        "--max-extensions",
+        type=int,
+        default=0,
+        help="extend unsettled responses up to N times (0: as the store was labelled)",
+    )
+    ap.add_argument(
+        "--refine",
+        type=int,
+        default=0,
+        help="rounds of measurement at each vector's crossings (0: as the store was labelled)",
+    )
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default=None, help="JSON report (default: print only)")
     args = ap.parse_args()
