@@ -12,6 +12,11 @@ other vectors) measures it on thousands:
 The store must belong to the bundle's actuator and command (checked), and must not be the one it was trained on
 (its fingerprint is compared). Writes {n, faulty, accuracy, missed, missed_fault_rate, false_alarms,
 false_alarm_rate, split, store, bundle} as JSON.
+
+``--uncertain N``: the classifier's errors and N of its right answers (at random) are assessed again with the
+store's own assessment config, and the report says how many of each have an uncertain label (the window before the
+last reads another label: a reading that has not settled or is not periodic decides it; docs/dataset.md, "Settling
+and refinement") and how many labels the re-assessment reproduces (``uncertain`` in the JSON).
 """
 
 from __future__ import annotations
@@ -20,9 +25,11 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
 import torch
 
-from phm_torch.data.store import DatasetStore, read_labelled
+from phm_torch.checks import build
+from phm_torch.data.store import DatasetStore, read_labelled, recorded_actuator
 from phm_torch.io.atomic import write_json
 from phm_torch.surrogates.bundle import SurrogateBundle
 from phm_torch.surrogates.metrics import confusion
@@ -49,15 +56,58 @@ def heldout_confusion(bundle: SurrogateBundle, data_dir: str, split: str = "labe
     }
 
 
+def uncertain_labels(
+    bundle: SurrogateBundle, data_dir: str, split: str, n_right: int, seed: int = 0
+) -> dict[str, dict[str, int]]:
+    """The classifier's errors on ``split`` of ``data_dir`` (missed faults, false alarms) and ``n_right`` of its right
+    answers assessed again with the store's recorded assessment: per group, how many there are, how many labels
+    the re-assessment reproduces and how many are uncertain (:class:`~phm_torch.assessment.health.Assessment`)."""
+    with DatasetStore(data_dir) as store:
+        metadata = store.metadata
+    config = metadata.get("config") or {}
+    params = recorded_actuator(metadata)
+    if params is None or "assessment" not in config:
+        raise ValueError(f"store {data_dir} does not record its actuator and assessment config")
+    assessment = build(config["assessment"], "assessment", params=params)
+    k, healthy = read_labelled(data_dir, (split,), ())
+    k_t, h = torch.as_tensor(k, dtype=torch.float64), torch.as_tensor(healthy).bool()
+    said = bundle.is_healthy(k_t).bool()
+    right = torch.nonzero(said == h)[:, 0].numpy()
+    rng = np.random.default_rng(seed)
+    groups = {
+        "missed_faults": torch.nonzero(said & ~h)[:, 0].numpy(),
+        "false_alarms": torch.nonzero(~said & h)[:, 0].numpy(),
+        "right": rng.choice(right, size=min(n_right, len(right)), replace=False),
+    }
+    out = {}
+    for name, rows in groups.items():
+        if len(rows) == 0:
+            out[name] = {"n": 0, "reproduced": 0, "uncertain": 0}
+            continue
+        res = assessment(k_t[rows])
+        out[name] = {
+            "n": len(rows),
+            "reproduced": int((res.healthy == h[rows]).sum()),
+            "uncertain": int(res.uncertain.sum()),
+        }
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--bundle", required=True, help="SurrogateBundle (phm-train's surrogates.pt)")
     ap.add_argument("--data-dir", required=True, help="an independent store of the same actuator and command")
     ap.add_argument("--split", default="labels", help="the split whose labels judge the classifier")
     ap.add_argument("--out", default=None, help="JSON report (default: print only)")
+    ap.add_argument("--uncertain", type=int, default=0, metavar="N", help="assess the errors and N right answers again")
     args = ap.parse_args()
+    if args.uncertain < 0:
+        raise SystemExit(f"classifier_heldout: error: --uncertain must be >= 0, got {args.uncertain}")
     try:
-        counts = heldout_confusion(SurrogateBundle.load(args.bundle), args.data_dir, args.split)
+        bundle = SurrogateBundle.load(args.bundle)
+        counts = heldout_confusion(bundle, args.data_dir, args.split)
+        if args.uncertain:
+            counts["uncertain"] = uncertain_labels(bundle, args.data_dir, args.split, args.uncertain)
     except ValueError as e:  # another actuator's store, the training store, a missing split: one line
         raise SystemExit(f"classifier_heldout: error: {e}") from None
     report = {

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -366,3 +367,50 @@ def test_settling_makes_the_response_independent_of_the_batching(params, shipped
     assert gain[3, 1][2] - gain[0, 1][2] > 0.6  # 70 Hz: settled ~-1.5 dB, 4 cycles alone read -2.41 dB
     fr = FrequencyResponse(params, SineSweep(**{**base, "frequencies": (76.6, 80.0), "max_extensions": 2}))
     assert not bool(fr.measure(k).settled[0, 0]) and fr.unsettled >= 1
+
+
+def test_labels_read_from_the_transient_are_uncertain(params, shipped):
+    """A009's three inspections along its damage path (the shipped sweep, uncompiled). Read after a fixed 4 cycles,
+    the labels are not monotone along the path (healthy, faulty, healthy again) and two of the three differ from
+    what the window before reads: the transient decides them, and ``uncertain`` says so. Settled and refined,
+    the labels follow the damage (healthy, healthy, faulty) and at most the one nearest the bandwidth
+    requirement, read from a response that is not periodic, stays uncertain."""
+    k = torch.tensor(A009_PATH)
+    sweep = dataclasses.replace(instantiate(shipped.sweep), compile=False)
+    requirements = instantiate(shipped.requirements)
+    fixed = AssessmentFunction(params, sweep, requirements)(k)
+    settled_fn = AssessmentFunction(params, dataclasses.replace(sweep, max_extensions=2, refine=1), requirements)
+    settled = settled_fn(k)
+    assert fixed.healthy.tolist() == [True, False, True]
+    assert int(fixed.uncertain.sum()) >= 2
+    assert settled.healthy.tolist() == [True, True, False]
+    assert int(settled.uncertain.sum()) <= 1 and not bool(settled.uncertain[:2].any())
+    assert settled_fn.settling()["uncertain_labels"] == int(settled.uncertain.sum())
+    assert settled_fn.settling()["vectors"] == 3
+
+
+def test_compiled_extensions_and_refinement_run_in_a_few_padded_batch_sizes(params, shipped):
+    """With a compiled simulator the extensions' and refinement's varying batches are padded to powers of two (one
+    compilation per size, not per call); the padding repeats rows, so the readings equal the unpadded ones exactly.
+    (Run eager here: the padding is what is tested, ``compile`` only switches it on.)"""
+    k = torch.tensor(A009_PATH[1:])
+    base = {**vars(instantiate(shipped.sweep)), "frequencies": (60.0, 65.0, 70.0, 77.0), "amplitude": 7.96e-5}
+    sweep = SineSweep(**{**base, "compile": False, "max_extensions": 2, "refine": 1})
+    plain = FrequencyResponse(params, sweep)
+    padded = FrequencyResponse(params, sweep)
+    padded.sweep = dataclasses.replace(sweep, compile=True)  # the padding without the compilation
+    sizes = []
+    run = padded.sim.run
+
+    def recording(faults, *args, **kwargs):
+        sizes.append(faults.shape[0])
+        return run(faults, *args, **kwargs)
+
+    padded.sim.run = recording
+    a, b = (fr.refine(k, fr.measure(k)) for fr in (plain, padded))
+    for name in ("frequencies", "open_loop", "closed_loop", "settled", "open_loop_before", "closed_loop_before"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+    assert padded.extensions == plain.extensions > 0
+    grid = 2 * len(padded.groups[0])  # the grid's batches: every vector at every frequency of a group
+    assert all(n == grid or (n >= 64 and n & (n - 1) == 0) for n in sizes), sizes
+    assert any(n != grid for n in sizes)

@@ -218,6 +218,19 @@ def test_paper_experiment_reaches_the_generate_stage():
     assert small.dataset.n_train == 600
 
 
+def test_run_level_sweep_settings_reach_the_generate_stage():
+    """A sweep setting left to its code default in the YAML (settling, refinement), set on phm-run's command line,
+    reaches phm-generate whether or not the run has an experiment; a listed one is overridden."""
+    for extra in ([], ["experiment=paper"]):
+        cfg = compose_stage(
+            "run", [*extra, "+assessment.sweep.max_extensions=2", "+assessment.sweep.refine=1"]
+        )
+        sweep = compose_stage("generate", generate_overrides(cfg)).assessment.sweep
+        assert (sweep.max_extensions, sweep.refine) == (2, 1), extra
+    cfg = compose_stage("run", ["experiment=paper", "assessment.sweep.compile=false"])
+    assert compose_stage("generate", generate_overrides(cfg)).assessment.sweep.compile is False
+
+
 def test_a_later_run_of_some_stages_keeps_the_earlier_metrics(tmp_path):
     (tmp_path / "metrics.json").write_text(json.dumps({"train": {"err_k": 0.05}, "wall_s": {"train": 3.0}}))
     cfg = compose_stage("run", [f"out_dir={tmp_path}", "stages=[cases]", 'cases=["fidelity=lf","duration=0.05"]'])

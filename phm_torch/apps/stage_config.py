@@ -83,10 +83,12 @@ def _searchpath() -> list[str]:
 
 def generate_overrides(cfg: DictConfig) -> list[str]:
     """phm-generate's overrides in a run: the run's ``generate`` list, then the dataset/assessment settings
-    that a data experiment (``phm-run experiment=paper``) put at the run level, which win."""
+    that a data experiment (``phm-run experiment=paper``) or the command line (``phm-run
+    +assessment.sweep.refine=1``) put at the run level, which win. Those are passed as ``++key=value``: a
+    setting whose code default the YAML does not restate is added, one it lists is overridden."""
     return [
         *stage_overrides(cfg.generate, "generate"),
-        *(o for key in DATA_KEYS if key in cfg for o in _dotted(key, cfg[key])),
+        *(f"++{o}" for key in DATA_KEYS if key in cfg for o in _dotted(key, cfg[key])),
     ]
 
 

@@ -1,10 +1,11 @@
 """Health assessment of an actuator from its LF frequency response (ema_reference.md §4)."""
 
 from .design import SweepDesign
-from .frequency_response import FrequencyResponse, LoopResponse, SineSweep
+from .frequency_response import FrequencyResponse, SineSweep
 from .health import Assessment, AssessmentFunction, HealthRequirements
 from .linear import LinearLoop, linear_loop
 from .margins import MARGIN_NAMES, Margins, margins, unmeasurable_counts
+from .readings import LoopResponse
 
 __all__ = [
     "MARGIN_NAMES",

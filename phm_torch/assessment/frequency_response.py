@@ -22,6 +22,12 @@ a degraded loop's resonance the small-amplitude response with backlash need not 
 same actuator at 77 Hz: -8.7, -15.6, -13.3 dB after 4, 8, 64 cycles); those stay unsettled and are counted.
 Off by default (``max_extensions`` 0, ``refine`` 0) so that every store's labels stay as they were.
 
+Uncertain labels: the window before the last is read too (``LoopResponse.open_loop_before``/``closed_loop_before``),
+and :class:`~phm_torch.assessment.health.AssessmentFunction` labels it as well: a vector whose two labels differ
+is ``uncertain`` (its label is decided by when it is read). With the fixed 4 cycles that is a quarter of importance-
+sampled reference vectors (67 of 256); settled and refined, 2 of the same 256: the floor that responses which never
+become periodic put under any classifier's error.
+
 Refinement: between grid points the crossings are interpolated (``margins.py``). ``refine`` rounds then
 measure each vector again at its own interpolated gain crossover, phase crossover and -3 dB bandwidth and
 read the margins off the grid with those points inserted: 3 simulations per vector and round instead of a
@@ -32,7 +38,8 @@ Batching: the frequencies are taken ``group_size`` at a time; one simulator call
 fault vector at every frequency of the group (batch B * group_size, simulated for the longest test of
 the group, the higher frequencies simply getting more settling cycles). Large batches amortise the
 per-period cost of the simulator loop, and a compiled simulator is compiled once (every call has the
-same batch size: the last group is padded by repeating its last frequency).
+same batch size: the last group is padded by repeating its last frequency; the extensions' and the refinement's
+batches, whose sizes vary from call to call, are padded to powers of two).
 """
 
 from __future__ import annotations
@@ -49,6 +56,9 @@ from ..params import ActuatorParams
 from ..simulator import EMASimulator
 from .design import AUTO, SweepDesign
 from .margins import margins
+from .readings import LoopResponse, Readings
+
+BUCKET_MIN = 64  # smallest padded batch of a compiled extension or refinement simulation
 
 
 @dataclass(frozen=True)
@@ -156,23 +166,6 @@ class SineSweep:
         return dataclasses.replace(self, frequencies=freqs, amplitude=amp)
 
 
-@dataclass
-class LoopResponse:
-    """Measured first-harmonic responses.
-
-    Attributes:
-        frequencies: (F,) actual test frequencies [Hz], or (B, F) when each vector has its own (refined).
-        open_loop: (B, F) complex L(jw) = Theta_lvdt / E.
-        closed_loop: (B, F) complex T(jw) = Theta_lvdt / Theta_cmd.
-        settled: (B, F) bool, the response settled within ``tolerance`` (``None`` if not checked).
-    """
-
-    frequencies: torch.Tensor
-    open_loop: torch.Tensor
-    closed_loop: torch.Tensor
-    settled: torch.Tensor | None = None
-
-
 class FrequencyResponse:
     """Measures L(jw) and T(jw) of a batch of LF actuators.
 
@@ -221,11 +214,9 @@ class FrequencyResponse:
         """Simulated control periods per fault vector on the grid before any extension or refinement."""
         return sum(len(grp) * max(self.plan[i][2] for i in grp) for grp in self.groups)
 
-    def _harmonics(
-        self, k: torch.Tensor, f: torch.Tensor, window: torch.Tensor, periods: int
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def _harmonics(self, k: torch.Tensor, f: torch.Tensor, window: torch.Tensor, periods: int) -> Readings:
         """One simulation of rows (k_r, f_r): L and T over each row's last ``window_r`` control periods and
-        their largest relative change from the window before (rows R; k (R, 8), f (R,) snapped, window (R,))."""
+        over the window before (rows R; k (R, 8), f (R,) snapped, window (R,); each (R,) complex)."""
         f_ctrl = self.params.pwm_frequency
         amp = float(self.sweep.amplitude)
         w = 2.0 * math.pi * f
@@ -241,21 +232,20 @@ class FrequencyResponse:
         # many different windows (refinement) together over the longest, masked
         values = torch.unique(window)
         parts = [window == v for v in values] if len(values) <= 8 else [torch.ones_like(window, dtype=torch.bool)]
-        l1 = torch.empty(k.shape[0], dtype=torch.complex128, device=self.device)
-        t1, change = torch.empty_like(l1), torch.empty(k.shape[0], dtype=torch.float64, device=self.device)
+        out = [torch.empty(k.shape[0], dtype=torch.complex128, device=self.device) for _ in range(4)]
         for part in parts:
             rows = torch.nonzero(part)[:, 0]
             span = 2 * int(window[rows].max())  # the two windows end one period before the last sample
-            l1[rows], t1[rows], change[rows] = self._two_windows(
-                y[rows, periods - span : periods], w[rows], window[rows], periods
-            )
-        return l1, t1, change
+            read = self._two_windows(y[rows, periods - span : periods], w[rows], window[rows], periods)
+            for o, r in zip(out, read, strict=True):
+                o[rows] = r
+        return Readings(*out)
 
     def _two_windows(
         self, y: torch.Tensor, w: torch.Tensor, window: torch.Tensor, periods: int
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """L, T over each row's last ``window`` control periods and their largest relative change from the window
-        before; y (R, 2 max(window)) the samples ending one period before the last, w (R,) [rad/s]."""
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """L, T over each row's last ``window`` control periods, then over the window before; y (R, 2 max(window))
+        the samples ending one period before the last, w (R,) [rad/s]."""
         f_ctrl = self.params.pwm_frequency
         amp = float(self.sweep.amplitude)
         span = y.shape[-1]
@@ -277,31 +267,42 @@ class FrequencyResponse:
             r_b = (amp * torch.sin(phase)).to(basis.dtype) * basis
             sums = [((y_b * m).sum(-1), (r_b * m).sum(-1)) for m in (last, before)]
         (l1, t1), (l0, t0) = [(y_h / (r_h - y_h), y_h / r_h) for y_h, r_h in sums]
-        change = torch.maximum(
-            (l1 - l0).abs() / l1.abs().clamp(min=1e-300), (t1 - t0).abs() / t1.abs().clamp(min=1e-300)
-        )
-        return l1, t1, change
+        return l1, t1, l0, t0
+
+    def _bucketed(self, k: torch.Tensor, f: torch.Tensor, window: torch.Tensor, periods: int) -> Readings:
+        """``_harmonics`` of a batch whose size varies from call to call (extensions, refinement): with a compiled
+        simulator the rows are padded (the last one repeated) to the next power of two, so that a few compiled
+        batch sizes serve every call instead of one compilation per size (and eager past the recompile limit)."""
+        n = k.shape[0]
+        if not self.sweep.compile or n == 0:
+            return self._harmonics(k, f, window, periods)
+        pad = max(BUCKET_MIN, 1 << (n - 1).bit_length()) - n
+        idx = torch.cat([torch.arange(n, device=k.device), torch.full((pad,), n - 1, device=k.device)])
+        read = self._harmonics(k[idx], f[idx], window[idx], periods)
+        return Readings(read.last_l[:n], read.last_t[:n], read.before_l[:n], read.before_t[:n])
 
     def _settled(
-        self, k: torch.Tensor, f: torch.Tensor, window: torch.Tensor, periods: int
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        self, k: torch.Tensor, f: torch.Tensor, window: torch.Tensor, periods: int, bucket: bool = False
+    ) -> Readings:
         """``_harmonics`` with the rows that have not settled simulated again for twice as long (the module
-        docstring); returns L, T (R,) complex and settled (R,) bool."""
-        l, t, change = self._harmonics(k, f, window, periods)
-        settled = change <= self.sweep.tolerance
+        docstring); ``settled`` (R,) bool set. ``bucket``: the first simulation's batch size varies too."""
+        read = (self._bucketed if bucket else self._harmonics)(k, f, window, periods)
+        settled = read.change <= self.sweep.tolerance
         todo = torch.nonzero(~settled)[:, 0]
         for _ in range(int(self.sweep.max_extensions)):
             if todo.numel() == 0:
                 break
             periods *= 2
             self.extensions += int(todo.numel())
-            l_x, t_x, c_x = self._harmonics(k[todo], f[todo], window[todo], periods)
-            l[todo], t[todo] = l_x, t_x
-            ok = c_x <= self.sweep.tolerance
+            again = self._bucketed(k[todo], f[todo], window[todo], periods)
+            for name in ("last_l", "last_t", "before_l", "before_t"):
+                getattr(read, name)[todo] = getattr(again, name)
+            ok = again.change <= self.sweep.tolerance
             settled[todo] = ok
             todo = todo[~ok]
         self.unsettled += int(todo.numel())
-        return l, t, settled
+        read.settled = settled
+        return read
 
     def measure(self, faults: torch.Tensor) -> LoopResponse:
         """Frequency response of every fault vector on the grid.
@@ -313,23 +314,18 @@ class FrequencyResponse:
         """
         k = as_fault_tensor(faults, torch.float64, self.device)
         b = k.shape[0]
-        cols: dict[int, tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = {}
+        cols: dict[int, list[torch.Tensor]] = {}
         for grp in self.groups:
             periods = max(self.plan[i][2] for i in grp)
             f = torch.tensor([self.plan[i][0] for i in grp], dtype=torch.float64, device=self.device)
             window = torch.tensor([self.plan[i][1] for i in grp], device=self.device)
             # rows g * B + b: frequency grp[g], fault vector b
-            l, t, ok = self._settled(
-                k.repeat(len(grp), 1), f.repeat_interleave(b), window.repeat_interleave(b), periods
-            )
+            read = self._settled(k.repeat(len(grp), 1), f.repeat_interleave(b), window.repeat_interleave(b), periods)
             for g, i in enumerate(grp):
-                cols.setdefault(i, (l[g * b : (g + 1) * b], t[g * b : (g + 1) * b], ok[g * b : (g + 1) * b]))
-        order = range(len(self.plan))
+                cols.setdefault(i, [x[g * b : (g + 1) * b] for x in read.columns])
         return LoopResponse(
             self.frequencies.to(self.device),
-            torch.stack([cols[i][0] for i in order], -1),
-            torch.stack([cols[i][1] for i in order], -1),
-            torch.stack([cols[i][2] for i in order], -1),
+            *(torch.stack([cols[i][j] for i in range(len(self.plan))], -1) for j in range(5)),
         )
 
     def refine(self, faults: torch.Tensor, r: LoopResponse) -> LoopResponse:
@@ -352,27 +348,23 @@ class FrequencyResponse:
         b = k.shape[0]
         m = margins(r.frequencies, r.open_loop, r.closed_loop)
         freqs = r.frequencies.expand(b, -1) if r.frequencies.ndim == 1 else r.frequencies
-        f_new, l_new, t_new, s_new = [freqs], [r.open_loop], [r.closed_loop], [r.settled]
+        old = (r.open_loop, r.closed_loop, r.settled, r.open_loop_before, r.closed_loop_before)
+        if any(x is None for x in old):
+            raise ValueError("refine needs a response measured by measure() (settled and before-window readings)")
+        new: list[list[torch.Tensor]] = [[freqs], *([x] for x in old)]
         for target in (m.crossover_hz, m.phase_crossover_hz, m.bandwidth_hz):
             # vectors without this crossing repeat their first grid point (a zero-width interval adds nothing)
-            f_col, l_col, t_col = freqs[:, 0].clone(), r.open_loop[:, 0].clone(), r.closed_loop[:, 0].clone()
-            s_col = r.settled[:, 0].clone()
+            cols = [x[:, 0].clone() for x in (freqs, *old)]
             rows = torch.nonzero(torch.isfinite(target))[:, 0]
             if rows.numel():
                 tests = [self._test(float(f)) for f in target[rows]]
                 f_t = torch.tensor([x[0] for x in tests], dtype=torch.float64, device=self.device)
                 window = torch.tensor([x[1] for x in tests], device=self.device)
-                l, t, ok = self._settled(k[rows], f_t, window, max(x[2] for x in tests))
-                f_col[rows], l_col[rows], t_col[rows], s_col[rows] = f_t, l, t, ok
-            f_new.append(f_col[:, None])
-            l_new.append(l_col[:, None])
-            t_new.append(t_col[:, None])
-            s_new.append(s_col[:, None])
-        f_all = torch.cat(f_new, -1)
+                read = self._settled(k[rows], f_t, window, max(x[2] for x in tests), bucket=True)
+                for col, value in zip(cols, (f_t, *read.columns), strict=True):
+                    col[rows] = value
+            for lst, col in zip(new, cols, strict=True):
+                lst.append(col[:, None])
+        f_all = torch.cat(new[0], -1)
         order = torch.argsort(f_all, dim=-1, stable=True)
-        return LoopResponse(
-            f_all.gather(-1, order),
-            torch.cat(l_new, -1).gather(-1, order),
-            torch.cat(t_new, -1).gather(-1, order),
-            torch.cat(s_new, -1).gather(-1, order),
-        )
+        return LoopResponse(*(torch.cat(lst, -1).gather(-1, order) for lst in new))

@@ -64,10 +64,13 @@ class HealthRequirements:
 
 @dataclass
 class Assessment:
-    """phi_a of a batch: ``healthy`` (B,) bool and the measured ``margins``."""
+    """phi_a of a batch: ``healthy`` (B,) bool, the measured ``margins`` and ``uncertain`` (B,) bool: the label read
+    from the window before the last differs (a reading that has not settled, or never becomes periodic, decides it;
+    ``None`` where not known)."""
 
     healthy: torch.Tensor
     margins: Margins
+    uncertain: torch.Tensor | None = None
 
 
 class AssessmentFunction:
@@ -98,6 +101,7 @@ class AssessmentFunction:
         self._nominal: Margins | None = None
         self.wall_s = 0.0  # time spent simulating [s]
         self.vectors = 0  # fault vectors assessed
+        self.uncertain = 0  # labels that the window before the last reads otherwise
 
     @property
     def nominal(self) -> Margins:
@@ -137,10 +141,16 @@ class AssessmentFunction:
         return out
 
     def settling(self) -> dict[str, int]:
-        """Responses simulated again because they had not settled (``extended``) and those still moving after
-        ``max_extensions`` (``unsettled``: labelled from their last reading; with ``max_extensions`` 0 every
-        reading that moved by more than ``tolerance``), over every call so far."""
-        return {"extended": self.response.extensions, "unsettled": self.response.unsettled}
+        """Over every call so far: responses simulated again because they had not settled (``extended``), those
+        still moving after ``max_extensions`` (``unsettled``: labelled from their last reading; with
+        ``max_extensions`` 0 every reading that moved by more than ``tolerance``), the fault vectors assessed
+        (``vectors``) and those whose label the window before the last reads otherwise (``uncertain_labels``)."""
+        return {
+            "extended": self.response.extensions,
+            "unsettled": self.response.unsettled,
+            "vectors": self.vectors,
+            "uncertain_labels": self.uncertain,
+        }
 
     def __call__(self, faults: torch.Tensor) -> Assessment:
         """Assess (B, 8) fault vectors."""
@@ -150,6 +160,11 @@ class AssessmentFunction:
         unsettled = self.response.unsettled
         r = self.response.refine(k, self.response.measure(k))
         m = margins(r.frequencies, r.open_loop, r.closed_loop)
+        healthy = self.requirements.healthy(m, bw0)
+        before = r.before
+        uncertain = healthy != self.requirements.healthy(
+            margins(before.frequencies, before.open_loop, before.closed_loop), bw0
+        )
         if self.sweep.max_extensions and self.response.unsettled > unsettled:  # without extensions: counted only
             log.warning(
                 "assessment: %d responses of %d vectors still changed by more than %g after %d extensions "
@@ -161,4 +176,5 @@ class AssessmentFunction:
             )
         self.wall_s += time.perf_counter() - t0
         self.vectors += k.shape[0]
-        return Assessment(self.requirements.healthy(m, bw0), m)
+        self.uncertain += int(uncertain.sum())
+        return Assessment(healthy, m, uncertain)
