@@ -222,9 +222,7 @@ def test_run_level_sweep_settings_reach_the_generate_stage():
     """A sweep setting left to its code default in the YAML (settling, refinement), set on phm-run's command line,
     reaches phm-generate whether or not the run has an experiment; a listed one is overridden."""
     for extra in ([], ["experiment=paper"]):
-        cfg = compose_stage(
-            "run", [*extra, "+assessment.sweep.max_extensions=2", "+assessment.sweep.refine=1"]
-        )
+        cfg = compose_stage("run", [*extra, "+assessment.sweep.max_extensions=2", "+assessment.sweep.refine=1"])
         sweep = compose_stage("generate", generate_overrides(cfg)).assessment.sweep
         assert (sweep.max_extensions, sweep.refine) == (2, 1), extra
     cfg = compose_stage("run", ["experiment=paper", "assessment.sweep.compile=false"])
