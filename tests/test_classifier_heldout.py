@@ -42,6 +42,12 @@ def test_counts_on_an_independent_store_and_refuses_the_training_store(tmp_path)
     assert report["accuracy"] == (400 - report["missed"] - report["false_alarms"]) / 400
     refused = subprocess.run([*run, "--data-dir", str(trained)], check=False, capture_output=True, text=True)
     assert refused.returncode != 0 and "is the one the bundle was trained on" in refused.stderr
+    # assessing the errors again needs the store's own assessment config; this store (not phm-generate's) has none
+    again = subprocess.run(
+        [*run, "--data-dir", str(heldout), "--uncertain", "5"], check=False, capture_output=True, text=True
+    )
+    assert again.returncode != 0 and "does not record its actuator and assessment config" in again.stderr
+    assert "Traceback" not in again.stderr
 
 
 def test_a_store_of_another_actuator_is_refused_in_one_line(tmp_path):
