@@ -247,9 +247,46 @@ def test_missing_split_and_config_errors(compose, tmp_path):
         ("n_layers=0", "n_layers must be >= 1, got 0"),
         ("n_members=2", "n_members=2 needs model=fdi_adam or model=fdi_e2e"),
         ("+model.network.n_layers=2", "model.network.n_layers: set the top-level n_layers instead"),
+        (
+            "calibration.verdict_max_missed_fault_rate=1.0",
+            r"verdict_max_missed_fault_rate must be in \[0, 1\), got 1.0",
+        ),
+        ("calibration.verdict_max_missed_fault_rate=-0.1", "verdict_max_missed_fault_rate must be >= 0, got -0.1"),
     ):
         with pytest.raises(ValueError, match=message):
             train_surrogates(compose("train", [f"data_dir={store}", *QUICK, override]))
+    for overrides, message in (  # the held-out calibration needs held-out rows and a verdict classifier
+        (["monitor_fraction=0"], "set monitor_fraction > 0"),
+        (["verdict_classifier=false"], "set verdict_classifier=true"),
+    ):
+        with pytest.raises(ValueError, match=message):
+            settings_from_config(
+                compose("train", [f"data_dir={store}", "calibration.verdict_max_missed_fault_rate=0.05", *overrides])
+            )
+
+
+def test_verdict_calibrated_on_the_fdis_monitor_rows(store, compose, tmp_path):
+    """calibration.verdict_max_missed_fault_rate: the verdict is calibrated on the training rows held out from the
+    FDI's fit (the monitor rows, 5 % of 400 here), and metrics.json says what that calibration saw and set."""
+    cfg = compose(
+        "train",
+        [
+            f"data_dir={store}",
+            f"out_dir={tmp_path}",
+            *QUICK,
+            "model.fit.max_epochs=10",
+            "monitor_fraction=0.25",
+            "calibration.verdict_max_missed_fault_rate=0.05",
+        ],
+    )
+    metrics, objects = train_surrogates(cfg)
+    report = json.loads((tmp_path / "metrics.json").read_text())["verdict_calibration"]
+    assert report == metrics["verdict_calibration"]
+    _, monitor = monitor_rows(400, 0.25, 0)
+    assert report["n_held_out"] == len(monitor) == 100 and report["n_faulty"] > 10
+    before, after = report["held_out_missed_fault_rate"]
+    assert after <= 0.05 + 1.0 / report["n_faulty"] and after <= before
+    assert report["threshold"] == pytest.approx(float(objects["bundle"].verdict_classifier.threshold))
 
 
 def test_threads_setting(compose):

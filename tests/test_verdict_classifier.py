@@ -209,3 +209,36 @@ def test_fit_verdict_classifier_script_adds_one_to_a_trained_bundle(tmp_path):
     assert torch.equal(out.health_score(kv), bundle.health_score(kv))  # the health classifier is kept
     with pytest.raises(ValueError, match="split 'test' is not in the store"):
         refit_verdict_classifier(str(tmp_path / "in.pt"), str(store), str(tmp_path / "x.pt"), split="test")
+
+
+def test_verdict_calibrated_on_held_out_estimates_keeps_its_rate_on_unseen_records():
+    """An FDI errs less on the records it was fitted on than on an unseen record. Calibrated on its fitting records'
+    estimates (``max_missed_fault_rate``), the verdict promises a missed-fault rate that unseen records break;
+    calibrated on records held out from the FDI's fit (``calibrate_verdict_held_out``), the rate holds."""
+    from phm_torch.pipelines.train.classifiers import calibrate_verdict_held_out
+
+    k, healthy = fault_vectors(6000, 0)
+    k_held, h_held = fault_vectors(1500, 2)
+    kv, hv = fault_vectors(4000, 1)
+    ones = torch.ones(len(k), dtype=torch.float64)
+
+    def fitted_fdi(s: torch.Tensor, level: torch.Tensor) -> torch.Tensor:  # small error on its own records
+        error = 0.02 * torch.randn(s.shape, generator=torch.Generator().manual_seed(5), dtype=s.dtype)
+        return (shrinking_fdi(s, level) + error).clamp(0.0, 1.0)
+
+    def unseen_fdi(s: torch.Tensor, seed: int) -> torch.Tensor:  # three times that on records it never saw
+        error = 0.06 * torch.randn(s.shape, generator=torch.Generator().manual_seed(seed), dtype=s.dtype)
+        return (shrinking_fdi(s, torch.zeros(len(s))) + error).clamp(0.0, 1.0)
+
+    rate = 0.02
+    in_sample = fit_verdict_classifier(PolynomialSVM(degree=2), fitted_fdi, k, ones, healthy, 0.0, 0, rate)
+    held_out = fit_verdict_classifier(PolynomialSVM(degree=2), fitted_fdi, k, ones, healthy, 0.0, 0)
+    report = calibrate_verdict_held_out(held_out, unseen_fdi(k_held, 7), h_held, rate)
+    assert report["n_held_out"] == 1500 and report["n_faulty"] == int((~h_held).sum())
+    missed_before, missed_after = report["held_out_missed_fault_rate"]
+    assert missed_after <= rate + 1.0 / report["n_faulty"] < missed_before
+    k_hat = unseen_fdi(kv, 8)
+    on_unseen = {name: confusion(c.predict(k_hat), hv) for name, c in (("in", in_sample), ("held", held_out))}
+    assert on_unseen["held"]["missed_fault_rate"] < 0.035  # the promised 2 %, within the held-out set's sampling
+    assert on_unseen["in"]["missed_fault_rate"] > 2 * on_unseen["held"]["missed_fault_rate"]
+    assert on_unseen["held"]["false_alarm_rate"] > on_unseen["in"]["false_alarm_rate"]  # the price, stated

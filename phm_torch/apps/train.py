@@ -89,6 +89,7 @@ def settings_from_config(cfg: DictConfig) -> TrainSettings:
         eval=EvalSettings(cfg.eval.noise, cfg.eval.missing, cfg.eval.ood_quantile, cfg.eval.latency_repeats),
         monitor_fraction=cfg.monitor_fraction,
         max_missed_fault_rate=cfg.calibration.max_missed_fault_rate,
+        verdict_max_missed_fault_rate=cfg.calibration.get("verdict_max_missed_fault_rate"),
         classifier_labels=bool(cfg.classifier_labels),
         refine=BoundaryRefinement(
             refine.rounds, refine.labels_per_round, refine.candidates_per_label, refine.path_labels_per_round

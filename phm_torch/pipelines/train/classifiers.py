@@ -20,7 +20,8 @@ from ...surrogates import rms
 from ...surrogates.classifiers.base import HealthClassifier
 from ...surrogates.classifiers.damage_paths import DamagePathSampler
 from ...surrogates.classifiers.refinement import refine_classifier
-from ...surrogates.verdict_classifier import fit_verdict_classifier
+from ...surrogates.metrics import confusion
+from ...surrogates.verdict_classifier import fit_verdict_classifier, noisy_estimates
 from .data import Reduction, StoreData
 from .settings import TrainSettings
 
@@ -130,14 +131,19 @@ def fit_classifiers(
     network: Any,
     labeller: tuple[Sampler | None, Assessor | None, Sampler | None],
     timing: dict[str, float],
+    fdi_rows: tuple[torch.Tensor, torch.Tensor | None] | None = None,
 ) -> tuple[int, dict[str, Any], HealthClassifier | None]:
     """Fit the health classifier on k (refined on its boundary with the store's assessment, calibrated to
     ``max_missed_fault_rate``) and, with ``settings.verdict_classifier``, a fresh one on the FDI estimates of the
     training records with ``eval.noise`` (the verdict on a measured actuator).
 
+    ``fdi_rows``: the training rows that fitted the FDI and those held out from it (monitor rows; None without);
+    with ``settings.verdict_max_missed_fault_rate`` the verdict is fitted on the former and calibrated on the
+    latter's estimates, which err as an unseen record's do (:func:`calibrate_verdict_held_out`).
+
     Returns:
-        the number of vectors the health classifier was fitted on, the refinement's report, the verdict
-        classifier (None without one).
+        the number of vectors the health classifier was fitted on, the refinement's report (with
+        ``verdict_calibration`` when calibrated), the verdict classifier (None without one).
     """
     train, seed, max_missed = data.train, settings.seed, settings.max_missed_fault_rate
     n_fitted, refine_info = fit_health_classifier(
@@ -147,15 +153,55 @@ def fit_classifiers(
     if settings.verdict_classifier:  # judges estimates: fitted on the training records' own, with eval.noise
         t0 = time.perf_counter()
         gappy = red.gappy
+
+        def estimate(s: torch.Tensor, level: torch.Tensor) -> torch.Tensor:
+            return network(gappy(s)[0], level)
+
+        held_out = settings.verdict_max_missed_fault_rate is not None
+        if held_out and (fdi_rows is None or fdi_rows[1] is None):
+            raise ValueError(
+                "calibration.verdict_max_missed_fault_rate needs the FDI's monitor rows (monitor_fraction > 0)"
+            )
+        rows = fdi_rows[0] if held_out else slice(None)
+        current, healthy = train.current[rows], train.healthy[rows]
         verdict = fit_verdict_classifier(
             make_classifier(),
-            lambda s, level: network(gappy(s)[0], level),
-            red.samples_tr,
-            rms(train.current),
-            train.healthy,
+            estimate,
+            red.samples_tr[rows],
+            rms(current),
+            healthy,
             settings.eval.noise,
             seed + 11,
-            max_missed,
+            None if held_out else max_missed,
         )
+        if held_out:
+            monitor = fdi_rows[1]
+            refine_info["verdict_calibration"] = calibrate_verdict_held_out(
+                verdict,
+                noisy_estimates(
+                    estimate, red.samples_tr[monitor], rms(train.current[monitor]), settings.eval.noise, seed + 13
+                ),
+                train.healthy[monitor],
+                settings.verdict_max_missed_fault_rate,
+            )
         timing["verdict_classifier_fit_s"] = time.perf_counter() - t0
     return n_fitted, refine_info, verdict
+
+
+def calibrate_verdict_held_out(
+    verdict: HealthClassifier, k_hat: torch.Tensor, healthy: torch.Tensor, rate: float
+) -> dict[str, Any]:
+    """Raise the verdict's threshold until at most ``rate`` of the faulty held-out records' estimates k_hat (N, 8)
+    score healthy (``healthy`` (N,) their assessed health); returns what the calibration saw and set."""
+    healthy = healthy.bool()
+    before = confusion(verdict.predict(k_hat), healthy)
+    verdict.calibrate(k_hat, healthy, rate)
+    after = confusion(verdict.predict(k_hat), healthy)
+    return {
+        "max_missed_fault_rate": rate,
+        "n_held_out": int(healthy.numel()),
+        "n_faulty": int((~healthy).sum()),
+        "threshold": float(verdict.threshold),
+        "held_out_missed_fault_rate": [before["missed_fault_rate"], after["missed_fault_rate"]],
+        "held_out_false_alarm_rate": [before["false_alarm_rate"], after["false_alarm_rate"]],
+    }

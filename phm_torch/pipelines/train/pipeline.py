@@ -159,7 +159,7 @@ def train_surrogates(
         return {}, {"trainer": fdi.trainer}
     network, module = fdi.network, fdi.module
     n_classifier, refine_info, verdict = fit_classifiers(
-        settings, classifier, make_classifier, data, red, network, labeller, timing
+        settings, classifier, make_classifier, data, red, network, labeller, timing, (fdi.fit_rows, fdi.monitor_rows)
     )
     metrics, arrays, ood, forward = evaluate(settings, data, red, network, classifier, verdict, timing)
     pod, gappy, info = red.pod, red.gappy, data.info
@@ -187,7 +187,8 @@ def train_surrogates(
         fdi_inputs=settings.model.fit.inputs,
         classifier_threshold=float(classifier.threshold),
         n_classifier_train=n_classifier,
-        classifier_refine=refine_info,
+        classifier_refine={k: v for k, v in refine_info.items() if k != "verdict_calibration"},
+        verdict_calibration=refine_info.get("verdict_calibration"),
         energy_retained=float(pod.cumulative_energy()[settings.n_modes - 1]),
         gappy_condition_number=gappy.condition_number(),
         **ood,

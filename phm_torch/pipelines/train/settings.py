@@ -148,6 +148,9 @@ class TrainSettings:
         model: the ``model`` node.  pod_solver: the POD's SVD solver.  gappy, eval: their nodes.
         monitor_fraction: training signals held out to choose the FDI epoch (in [0, 0.5)).
         max_missed_fault_rate: ``calibration.max_missed_fault_rate`` (None: the classifiers' own thresholds).
+        verdict_max_missed_fault_rate: ``calibration.verdict_max_missed_fault_rate``: None, or the verdict classifier
+            is fitted on the FDI's fitting rows and its threshold raised until at most this fraction of the faulty
+            monitor rows' estimates (held out from the FDI's fit) score healthy.
         classifier_labels: also fit the health classifier on the store's assessment-only labels split.
         refine: the classifier's boundary refinement; refine_device: its simulator device.
         damage: the damage law's config node (``_target_`` and values), whose paths the refinement's path labels
@@ -191,6 +194,7 @@ class TrainSettings:
     drive_range: float | None = None
     fit_within_drive_range: bool = False
     damage: Mapping[str, Any] | None = None
+    verdict_max_missed_fault_rate: float | None = None
 
     def __post_init__(self) -> None:
         _set(self, "seed", integer(self.seed, "seed", 0))
@@ -211,6 +215,22 @@ class TrainSettings:
                 "max_missed_fault_rate",
                 number(self.max_missed_fault_rate, "calibration.max_missed_fault_rate", 0.0),
             )
+        rate = self.verdict_max_missed_fault_rate
+        if rate is not None:
+            rate = number(rate, "calibration.verdict_max_missed_fault_rate", 0.0)
+            if rate >= 1.0:
+                raise ValueError(f"calibration.verdict_max_missed_fault_rate must be in [0, 1), got {rate!r}")
+            if not self.verdict_classifier:
+                raise ValueError(
+                    "calibration.verdict_max_missed_fault_rate calibrates the verdict classifier: set "
+                    "verdict_classifier=true, or leave the rate null"
+                )
+            if self.monitor_fraction == 0:
+                raise ValueError(
+                    "calibration.verdict_max_missed_fault_rate is calibrated on the training signals held out from "
+                    "the FDI's fit: set monitor_fraction > 0"
+                )
+            _set(self, "verdict_max_missed_fault_rate", rate)
         if self.drive_range is not None:
             _set(self, "drive_range", number(self.drive_range, "drive_range", 1.0))
         fraction = number(self.monitor_fraction, "monitor_fraction", 0.0)
