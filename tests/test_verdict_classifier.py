@@ -32,6 +32,16 @@ def shrinking_fdi(samples: torch.Tensor, level: torch.Tensor) -> torch.Tensor:
     return k_hat.clamp(0.0, 1.0)
 
 
+def erring_fdi(std: float, seed: int):
+    """``shrinking_fdi`` plus a Gaussian error of ``std``, the same on every call (seeded)."""
+
+    def fdi(s: torch.Tensor, level: torch.Tensor) -> torch.Tensor:
+        error = std * torch.randn(s.shape, generator=torch.Generator().manual_seed(seed), dtype=s.dtype)
+        return (shrinking_fdi(s, level) + error).clamp(0.0, 1.0)
+
+    return fdi
+
+
 def smooth_records(n: int, seed: int) -> torch.Tensor:
     """(n, 200) smooth records, float32 as a store's: four fixed shapes with random weights."""
     t = torch.linspace(0, 1, 200)
@@ -88,9 +98,7 @@ def test_verdict_classifier_calibrated_to_a_missed_fault_rate():
     kv, hv = fault_vectors(3000, 1)
     ones = torch.ones(len(k), dtype=torch.float64)
 
-    def noisy_fdi(s: torch.Tensor, level: torch.Tensor) -> torch.Tensor:  # the same error on every call
-        error = 0.05 * torch.randn(s.shape, generator=torch.Generator().manual_seed(5), dtype=s.dtype)
-        return (shrinking_fdi(s, level) + error).clamp(0.0, 1.0)
+    noisy_fdi = erring_fdi(0.05, 5)  # the same error on every call
 
     plain = fit_verdict_classifier(PolynomialSVM(degree=2), noisy_fdi, k, ones, healthy, 0.0, seed=0)
     strict = fit_verdict_classifier(
@@ -222,13 +230,10 @@ def test_verdict_calibrated_on_held_out_estimates_keeps_its_rate_on_unseen_recor
     kv, hv = fault_vectors(4000, 1)
     ones = torch.ones(len(k), dtype=torch.float64)
 
-    def fitted_fdi(s: torch.Tensor, level: torch.Tensor) -> torch.Tensor:  # small error on its own records
-        error = 0.02 * torch.randn(s.shape, generator=torch.Generator().manual_seed(5), dtype=s.dtype)
-        return (shrinking_fdi(s, level) + error).clamp(0.0, 1.0)
+    fitted_fdi = erring_fdi(0.02, 5)  # a small error on its own records
 
     def unseen_fdi(s: torch.Tensor, seed: int) -> torch.Tensor:  # three times that on records it never saw
-        error = 0.06 * torch.randn(s.shape, generator=torch.Generator().manual_seed(seed), dtype=s.dtype)
-        return (shrinking_fdi(s, torch.zeros(len(s))) + error).clamp(0.0, 1.0)
+        return erring_fdi(0.06, seed)(s, torch.zeros(len(s)))
 
     rate = 0.02
     in_sample = fit_verdict_classifier(PolynomialSVM(degree=2), fitted_fdi, k, ones, healthy, 0.0, 0, rate)
