@@ -228,14 +228,7 @@ def _metrics(
     if life is not None:
         metrics["life"] = life
     if assessment.vectors:  # responses of this process (a resumed or sharded run counts its own)
-        settling = metrics["assessment_settling"] = assessment.settling()
-        log.info(
-            "assessment: %d of %d labels read otherwise from the window before the last (uncertain; "
-            "docs/dataset.md, 'Settling and refinement')%s",
-            settling["uncertain_labels"],
-            settling["vectors"],
-            "" if assessment.sweep.max_extensions else ": +assessment.sweep.max_extensions=2 settles the responses",
-        )
+        metrics["assessment_settling"] = assessment.settling()  # uncertain_labels: docs/dataset.md
     if timing and assessment.vectors:
         metrics["assessment_ms_per_vector"] = round(1000 * assessment.wall_s / assessment.vectors, 3)
         metrics["timing_s"] = {k: round(v, 2) for k, v in timing.items()}
