@@ -278,8 +278,7 @@ class FrequencyResponse:
             return self._harmonics(k, f, window, periods)
         pad = max(BUCKET_MIN, 1 << (n - 1).bit_length()) - n
         idx = torch.cat([torch.arange(n, device=k.device), torch.full((pad,), n - 1, device=k.device)])
-        read = self._harmonics(k[idx], f[idx], window[idx], periods)
-        return Readings(read.last_l[:n], read.last_t[:n], read.before_l[:n], read.before_t[:n])
+        return self._harmonics(k[idx], f[idx], window[idx], periods).rows(slice(0, n))
 
     def _settled(
         self, k: torch.Tensor, f: torch.Tensor, window: torch.Tensor, periods: int, bucket: bool = False
@@ -295,8 +294,7 @@ class FrequencyResponse:
             periods *= 2
             self.extensions += int(todo.numel())
             again = self._bucketed(k[todo], f[todo], window[todo], periods)
-            for name in ("last_l", "last_t", "before_l", "before_t"):
-                getattr(read, name)[todo] = getattr(again, name)
+            read.put(todo, again)
             ok = again.change <= self.sweep.tolerance
             settled[todo] = ok
             todo = todo[~ok]

@@ -21,6 +21,17 @@ class Readings:
     before_t: torch.Tensor
     settled: torch.Tensor | None = None
 
+    READ = ("last_l", "last_t", "before_l", "before_t")  # the harmonics, without ``settled``
+
+    def rows(self, index: torch.Tensor | slice) -> Readings:
+        """These readings at ``index`` (``settled`` not carried)."""
+        return Readings(*(getattr(self, name)[index] for name in self.READ))
+
+    def put(self, index: torch.Tensor, other: Readings) -> None:
+        """Overwrite the rows ``index`` of the harmonics with ``other``'s (in place)."""
+        for name in self.READ:
+            getattr(self, name)[index] = getattr(other, name)
+
     @property
     def change(self) -> torch.Tensor:
         """(R,) the largest relative change of L and T from the window before to the last."""
