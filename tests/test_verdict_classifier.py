@@ -13,7 +13,11 @@ from phm_torch.prognostics import DamageModel
 from phm_torch.surrogates import POD, SurrogateBundle, confusion
 from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
 from phm_torch.surrogates.fdi_mlp import FDIMLP
-from phm_torch.surrogates.verdict_classifier import fit_verdict_classifier, noisy_estimates
+from phm_torch.surrogates.verdict_classifier import (
+    calibrate_verdict_held_out,
+    fit_verdict_classifier,
+    noisy_estimates,
+)
 
 pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
@@ -223,8 +227,6 @@ def test_verdict_calibrated_on_held_out_estimates_keeps_its_rate_on_unseen_recor
     """An FDI errs less on the records it was fitted on than on an unseen record. Calibrated on its fitting records'
     estimates (``max_missed_fault_rate``), the verdict promises a missed-fault rate that unseen records break;
     calibrated on records held out from the FDI's fit (``calibrate_verdict_held_out``), the rate holds."""
-    from phm_torch.pipelines.train.classifiers import calibrate_verdict_held_out
-
     k, healthy = fault_vectors(6000, 0)
     k_held, h_held = fault_vectors(1500, 2)
     kv, hv = fault_vectors(4000, 1)

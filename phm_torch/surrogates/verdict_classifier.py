@@ -14,11 +14,13 @@ estimates with the rated measurement noise, their true labels): 95 % right and 3
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import torch
 
 from .augment import add_noise
 from .classifiers.base import HealthClassifier
+from .metrics import confusion
 
 Estimator = Callable[[torch.Tensor, torch.Tensor], torch.Tensor]
 BLOCK_ROWS = 8192  # records per FDI call: the network's hidden activations of a block stay small
@@ -84,3 +86,22 @@ def fit_verdict_classifier(
     if max_missed_fault_rate is not None:
         classifier.calibrate(k_hat, healthy.bool(), max_missed_fault_rate)
     return classifier
+
+
+def calibrate_verdict_held_out(
+    verdict: HealthClassifier, k_hat: torch.Tensor, healthy: torch.Tensor, rate: float
+) -> dict[str, Any]:
+    """Raise the verdict's threshold until at most ``rate`` of the faulty held-out records' estimates k_hat (N, 8)
+    score healthy (``healthy`` (N,) their assessed health); returns what the calibration saw and set."""
+    healthy = healthy.bool()
+    before = confusion(verdict.predict(k_hat), healthy)
+    verdict.calibrate(k_hat, healthy, rate)
+    after = confusion(verdict.predict(k_hat), healthy)
+    return {
+        "max_missed_fault_rate": rate,
+        "n_held_out": int(healthy.numel()),
+        "n_faulty": int((~healthy).sum()),
+        "threshold": float(verdict.threshold),
+        "held_out_missed_fault_rate": [before["missed_fault_rate"], after["missed_fault_rate"]],
+        "held_out_false_alarm_rate": [before["false_alarm_rate"], after["false_alarm_rate"]],
+    }

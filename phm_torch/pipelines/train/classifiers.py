@@ -20,8 +20,7 @@ from ...surrogates import rms
 from ...surrogates.classifiers.base import HealthClassifier
 from ...surrogates.classifiers.damage_paths import DamagePathSampler
 from ...surrogates.classifiers.refinement import refine_classifier
-from ...surrogates.metrics import confusion
-from ...surrogates.verdict_classifier import fit_verdict_classifier, noisy_estimates
+from ...surrogates.verdict_classifier import calibrate_verdict_held_out, fit_verdict_classifier, noisy_estimates
 from .data import Reduction, StoreData
 from .settings import TrainSettings
 
@@ -186,22 +185,3 @@ def fit_classifiers(
             )
         timing["verdict_classifier_fit_s"] = time.perf_counter() - t0
     return n_fitted, refine_info, verdict
-
-
-def calibrate_verdict_held_out(
-    verdict: HealthClassifier, k_hat: torch.Tensor, healthy: torch.Tensor, rate: float
-) -> dict[str, Any]:
-    """Raise the verdict's threshold until at most ``rate`` of the faulty held-out records' estimates k_hat (N, 8)
-    score healthy (``healthy`` (N,) their assessed health); returns what the calibration saw and set."""
-    healthy = healthy.bool()
-    before = confusion(verdict.predict(k_hat), healthy)
-    verdict.calibrate(k_hat, healthy, rate)
-    after = confusion(verdict.predict(k_hat), healthy)
-    return {
-        "max_missed_fault_rate": rate,
-        "n_held_out": int(healthy.numel()),
-        "n_faulty": int((~healthy).sum()),
-        "threshold": float(verdict.threshold),
-        "held_out_missed_fault_rate": [before["missed_fault_rate"], after["missed_fault_rate"]],
-        "held_out_false_alarm_rate": [before["false_alarm_rate"], after["false_alarm_rate"]],
-    }
