@@ -28,8 +28,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from phm_torch.checks import build
-from phm_torch.data.store import DatasetStore, read_labelled, recorded_actuator
+from phm_torch.data.store import DatasetStore, read_labelled, recorded_assessment
 from phm_torch.io.atomic import write_json
 from phm_torch.surrogates.bundle import SurrogateBundle
 from phm_torch.surrogates.metrics import confusion
@@ -64,11 +63,10 @@ def uncertain_labels(
     the re-assessment reproduces and how many are uncertain (:class:`~phm_torch.assessment.health.Assessment`)."""
     with DatasetStore(data_dir) as store:
         metadata = store.metadata
-    config = metadata.get("config") or {}
-    params = recorded_actuator(metadata)
-    if params is None or "assessment" not in config:
-        raise ValueError(f"store {data_dir} does not record its actuator and assessment config")
-    assessment = build(config["assessment"], "assessment", params=params)
+    try:
+        assessment, _ = recorded_assessment(metadata)
+    except ValueError as e:
+        raise ValueError(f"store {data_dir}: {e}") from None
     k, healthy = read_labelled(data_dir, (split,), ())
     k_t, h = torch.as_tensor(k, dtype=torch.float64), torch.as_tensor(healthy).bool()
     said = bundle.is_healthy(k_t).bool()

@@ -21,7 +21,6 @@ changed labels as JSON (docs/own_actuator.md §4: keep the denser grid if they c
 from __future__ import annotations
 
 import argparse
-import copy
 import json
 import time
 from pathlib import Path
@@ -30,9 +29,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from phm_torch.checks import build
 from phm_torch.data.labels import LabelComputer
-from phm_torch.data.store import DatasetStore, recorded_actuator
+from phm_torch.data.store import DatasetStore, recorded_assessment
 from phm_torch.io.atomic import write_json
 from phm_torch.surrogates.bundle import SurrogateBundle
 
@@ -40,22 +38,20 @@ from phm_torch.surrogates.bundle import SurrogateBundle
 def assessment_at(metadata: dict[str, Any], points_per_decade: float, max_extensions: int = 0, refine: int = 0) -> Any:
     """The store's assessment function (its recorded actuator and config) with the grid at another density and,
     where given, the responses extended until they settle and refined at each vector's crossings."""
-    config = copy.deepcopy((metadata.get("config") or {}).get("assessment"))
-    params = recorded_actuator(metadata)
-    if config is None or params is None:
-        raise ValueError("the store does not record the actuator and assessment config its labels were made with")
-    sweep = config["sweep"]
-    if sweep.get("frequencies") != "auto":
+    sweep = ((metadata.get("config") or {}).get("assessment") or {}).get("sweep") or {}
+    if sweep.get("frequencies", "auto") != "auto":
         raise ValueError(
             f"assessment.sweep.frequencies of the store is a list ({sweep.get('frequencies')!r}): it has no density"
         )
-    sweep["design"] = {**(sweep.get("design") or {}), "points_per_decade": float(points_per_decade)}
-    sweep["compile"] = False  # a few hundred vectors: compiling costs more than it saves
+    changes: dict[str, Any] = {
+        "design": {**(sweep.get("design") or {}), "points_per_decade": float(points_per_decade)},
+        "compile": False,  # a few hundred vectors: compiling costs more than it saves
+    }
     if max_extensions:
-        sweep["max_extensions"] = int(max_extensions)
+        changes["max_extensions"] = int(max_extensions)
     if refine:
-        sweep["refine"] = int(refine)
-    return build(config, "assessment", params=params, device="cpu"), params
+        changes["refine"] = int(refine)
+    return recorded_assessment(metadata, "cpu", changes)
 
 
 def boundary_distance(margins: np.ndarray, requirements: dict[str, float], nominal_bandwidth: float) -> np.ndarray:

@@ -334,7 +334,7 @@ def test_refinement_reads_the_margins_of_a_fine_grid_from_a_coarse_one(params, m
     for refine, freqs in ((0, coarse), (1, coarse), (2, coarse), ("fine", tuple(np.geomspace(12, 222, 52)))):
         rounds = 0 if refine == "fine" else refine
         fr = FrequencyResponse(lin_params, SineSweep(freqs, 2e-4, 4, 2, 0.02, 1, 6, False, refine=rounds))
-        r = fr.refine(k, fr.measure(k))
+        r = fr.read(k)
         assert r.frequencies.shape == ((len(freqs),) if rounds == 0 else (1, len(freqs) + 3 * rounds))
         got[refine] = {n: float(v[0]) for n, v in margins(r.frequencies, r.open_loop, r.closed_loop).as_dict().items()}
     fine = got["fine"]
@@ -407,7 +407,7 @@ def test_compiled_extensions_and_refinement_run_in_a_few_padded_batch_sizes(para
         return run(faults, *args, **kwargs)
 
     padded.sim.run = recording
-    a, b = (fr.refine(k, fr.measure(k)) for fr in (plain, padded))
+    a, b = (fr.read(k) for fr in (plain, padded))
     for name in ("frequencies", "open_loop", "closed_loop", "settled", "open_loop_before", "closed_loop_before"):
         assert torch.equal(getattr(a, name), getattr(b, name)), name
     assert padded.extensions == plain.extensions > 0

@@ -76,3 +76,24 @@ def test_a_store_labelled_with_settled_refined_readings_records_them_and_is_repr
     same = _script().check(str(data_dir), 12.0, "labels", None, 4, max_extensions=1, refine=1)
     assert same["nearest_requirements"]["changed"] == 0 and same["settling"]["extended"] > 0
     assert same["max_extensions"] == 1 and same["refine"] == 1
+
+
+def test_recorded_assessment_rebuilds_the_stores_phi_a_or_says_what_is_missing(tmp_path, compose):
+    from phm_torch.data.store import DatasetStore, recorded_actuator, recorded_assessment
+
+    data_dir = tmp_path / "store"
+    generate(compose("generate", [*TINY_AUTO, "dataset.n_labels=4", f"data_dir={data_dir}"]))
+    with DatasetStore(str(data_dir)) as store:
+        metadata = store.metadata
+        k, margins = np.asarray(store.split("labels").K), np.asarray(store.split("labels").margins)
+    assessment, params = recorded_assessment(metadata)
+    assert params == recorded_actuator(metadata) and assessment.sweep.cycles == 3
+    import torch
+
+    again = assessment(torch.as_tensor(k)).margins.stacked().numpy()
+    assert np.allclose(again, margins, rtol=1e-6, equal_nan=True)  # the store's own labels, made again
+    denser, _ = recorded_assessment(metadata, sweep={"cycles": 5})
+    assert denser.sweep.cycles == 5 and denser.sweep.frequencies == assessment.sweep.frequencies
+    no_assessment = {"config": {k: v for k, v in metadata["config"].items() if k != "assessment"}}
+    with pytest.raises(ValueError, match="does not record the actuator and assessment config"):
+        recorded_assessment(no_assessment)

@@ -283,7 +283,7 @@ class ActuatorCheck:
 
     def measured_margins(self) -> Margins:
         """LF-measured margins of every case (B = number of cases)."""
-        r = FrequencyResponse(self.params, self.sweep).measure(self.faults(list(self.cases)))
+        r = FrequencyResponse(self.params, self.sweep).read(self.faults(list(self.cases)))
         return margins(r.frequencies, r.open_loop, r.closed_loop)
 
     def simulate(self, fidelity: str, names: Sequence[str]) -> tuple[Signals, Signals]:

@@ -326,6 +326,10 @@ class FrequencyResponse:
             *(torch.stack([cols[i][j] for i in range(len(self.plan))], -1) for j in range(5)),
         )
 
+    def read(self, faults: torch.Tensor) -> LoopResponse:
+        """The response phi_a reads: :meth:`measure` on the grid, then :meth:`refine` (``sweep.refine`` rounds)."""
+        return self.refine(faults, self.measure(faults))
+
     def refine(self, faults: torch.Tensor, r: LoopResponse) -> LoopResponse:
         """``r`` after ``sweep.refine`` rounds (module docstring).
 

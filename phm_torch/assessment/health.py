@@ -111,7 +111,7 @@ class AssessmentFunction:
                 self.params, SineSweep(**{**vars(self.sweep), "compile": False}), self.response.device
             )
             k0 = torch.tensor([self.params.nominal_faults], dtype=torch.float64)
-            r = eager.refine(k0, eager.measure(k0))
+            r = eager.read(k0)
             self._nominal = margins(r.frequencies, r.open_loop, r.closed_loop)
         return self._nominal
 
@@ -158,7 +158,7 @@ class AssessmentFunction:
         bw0 = self.nominal_bandwidth_hz
         t0 = time.perf_counter()
         unsettled = self.response.unsettled
-        r = self.response.refine(k, self.response.measure(k))
+        r = self.response.read(k)
         m = margins(r.frequencies, r.open_loop, r.closed_loop)
         healthy = self.requirements.healthy(m, bw0)
         before = r.before

@@ -26,6 +26,7 @@ The root of ``dataset.h5`` holds ``time`` (n_e,) [s] and ``command`` (n_e,) [rad
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import os
@@ -38,6 +39,8 @@ from typing import Any, Self
 import h5py
 import numpy as np
 
+from ..checks import build
+from ..checks import device as torch_device
 from ..io.atomic import atomic_open
 from ..params import ActuatorParams
 from ..provenance import from_config
@@ -188,6 +191,23 @@ def recorded_actuator(metadata: Mapping[str, Any]) -> ActuatorParams | None:
         if str(e).startswith("actuator"):
             raise
         raise ValueError(f"actuator: {e}") from None
+
+
+def recorded_assessment(
+    metadata: Mapping[str, Any], device: str = "cpu", sweep: Mapping[str, Any] | None = None
+) -> tuple[Any, ActuatorParams]:
+    """The assessment function phi_a a store's labels were made with and its actuator, rebuilt from the
+    generation config its ``metadata`` keeps, so that new labels are the store's own kind; ``sweep`` entries
+    replace the recorded ``assessment.sweep``'s (another grid density, settling). Raises ``ValueError`` when
+    the store records no actuator or assessment config."""
+    config = metadata.get("config") or {}
+    params = recorded_actuator(metadata)
+    if params is None or "assessment" not in config:
+        raise ValueError("the store does not record the actuator and assessment config its labels were made with")
+    assessment = copy.deepcopy(dict(config["assessment"]))
+    if sweep:
+        assessment["sweep"] = {**(assessment.get("sweep") or {}), **sweep}
+    return build(assessment, "assessment", params=params, device=torch_device(device)), params
 
 
 class DatasetStore:

@@ -10,12 +10,12 @@ from typing import Any
 import numpy as np
 import torch
 
-from ...checks import build, device
+from ...checks import build
 from ...data.labels import LabelComputer, label_chunk_rows
 from ...data.life import LifeSpec
 from ...data.sampling import ImportanceSampler
 from ...data.spec import DatasetSpec
-from ...data.store import LABELS, read_labelled, recorded_actuator
+from ...data.store import LABELS, read_labelled, recorded_assessment
 from ...surrogates import rms
 from ...surrogates.classifiers.base import HealthClassifier
 from ...surrogates.classifiers.damage_paths import DamagePathSampler
@@ -59,13 +59,12 @@ def store_labeller(
             f"the actuator, assessment and dataset config its labels were made with; set "
             f"classifier_refine.rounds=0"
         )
-    params = recorded_actuator(metadata)
+    assessment, params = recorded_assessment(metadata, settings.refine_device)
     dataset = config["dataset"]
     # candidates drawn as the store's training vectors were: with its calibrated distance exponent
     exponent = float((metadata.get("sampling") or {}).get("distance_exponent", 1.0))
     uniform = tuple(dataset.get("uniform", []))
     sampler = ImportanceSampler(tuple(params.nominal_faults), uniform, 1.0, distance_exponent=exponent)
-    assessment = build(config["assessment"], "assessment", params=params, device=device(settings.refine_device))
     chunk = int(dataset.get("label_chunk_size", DatasetSpec.label_chunk_size))
     seed = settings.seed
 
