@@ -23,6 +23,7 @@ from .physics.mechanics import MechState, mechanics_step
 from .physics.motor import MOTORS
 from .physics.sensors import ButterworthFilter, lvdt_step
 from .plant import Plant, build_plant
+from .sim_state import SimState
 
 # Channels every fidelity records; a motor adds its own (``Motor.channels``).
 SHARED_CHANNELS = ("position", "current", "speed", "motor_angle", "user_angle")
@@ -30,21 +31,6 @@ SHARED_CHANNELS = ("position", "current", "speed", "motor_angle", "user_angle")
 # instance (fidelity, effects): past its default recompile limit of 8, a process that builds more compiled
 # simulators (one per effect set, e.g. scripts/fdi_model_mismatch.py) would silently run the rest eager.
 RECOMPILE_LIMIT = 64
-
-
-@dataclass
-class SimState:
-    """Everything that evolves; tensors are batch-first."""
-
-    plant: Plant
-    mech: MechState
-    ctrl: ControlState
-    elec: torch.Tensor  # motor-model state: phase currents (B, 3) [A] or DC current (B,) [A]
-    lvdt: torch.Tensor  # LVDT reading (B,) [rad]
-    filt: tuple[torch.Tensor, torch.Tensor]  # Butterworth state (y [A], dy/dt [A/s]), each (B,)
-    envelope: torch.Tensor  # unfiltered envelope at the last substep end (B,) [A]
-    time: torch.Tensor | None = None  # 0-d, start of the next period [s]
-    energy: dict[str, torch.Tensor] | None = None
 
 
 @dataclass
@@ -62,6 +48,7 @@ class Signals:
     fidelity: str
     energy: dict[str, torch.Tensor] | None = None
     meta: dict = field(default_factory=dict)
+    state: SimState | None = None  # where the simulation ended: ``run(..., state=...)`` continues from it
 
     def __getitem__(self, name: str) -> torch.Tensor:
         if name == "time":
@@ -271,8 +258,9 @@ class EMASimulator:
         energy: bool = False,
         channels: Sequence[str] | None = None,
         out_dtype: torch.dtype | None = None,
+        state: SimState | None = None,
     ) -> Signals:
-        """Simulate ``duration`` seconds from rest.
+        """Simulate ``duration`` seconds from rest, or on from ``state``.
 
         Args:
             faults: (B, 8) or (8,) fault vectors in [0, 1].
@@ -283,6 +271,12 @@ class EMASimulator:
             energy: also accumulate the energy terms of the power balance (``Signals.energy``).
             channels: channels to keep (default all); fewer channels, less memory.
             out_dtype: dtype of the stored channels (default the simulation dtype).
+            state: continue from this state (``Signals.state`` of an earlier run of ``faults``, or its
+                :meth:`~phm_torch.sim_state.SimState.rows`) instead of from rest: the grid and the command's time
+                start at its time, and ``duration`` more seconds are simulated, exactly as one longer run would
+                have; ``scales`` and ``energy`` are then the state's.
+        Returns:
+            The acquisition, with the state it ended in (``Signals.state``).
         """
         p = self.params
         n_periods = round(duration * p.pwm_frequency)
@@ -291,8 +285,19 @@ class EMASimulator:
                 f"duration must be a positive whole number of control periods "
                 f"(1/{p.pwm_frequency:g} s), got {duration!r}"
             )
+        # control periods already simulated: times are counted from rest, as in one longer run
+        start = 0 if state is None else round(float(state.time) * p.pwm_frequency)
+        if state is not None and (scales is not None or energy):
+            raise ValueError("scales/energy: a continued run (state given) keeps the state's plant and accounts")
+        first = start * p.sample_rate / p.pwm_frequency  # the acquisition samples already taken
+        if abs(first - round(first)) > 1e-9 or start % self.periods_per_sample:
+            raise ValueError(
+                f"state: at {start} control periods, between two acquisition samples; continue on the grid"
+            )
         grid = time_grid(duration, p.sample_rate, self.dtype, self.device)
-        t_ctrl = torch.arange(n_periods, dtype=self.dtype, device=self.device) * self.period
+        if start:
+            grid = (torch.arange(grid.numel(), dtype=self.dtype, device=self.device) + round(first)) / p.sample_rate
+        t_ctrl = torch.arange(start, start + n_periods, dtype=self.dtype, device=self.device) * self.period
         if callable(command):
             cmd_grid, cmd_ctrl = command(grid), command(t_ctrl)
         else:
@@ -305,7 +310,10 @@ class EMASimulator:
             if not torch.isfinite(cmd_grid).all():
                 raise ValueError("command contains NaN or inf")
             cmd_ctrl = _interp(t_ctrl, grid, cmd_grid)
-        state = self.init(faults, scales, energy)
+        if state is None:
+            state = self.init(faults, scales, energy)
+        elif state.plant.batch != as_fault_tensor(faults, self.dtype, self.device).shape[0]:
+            raise ValueError(f"state: {state.plant.batch} actuators, faults: {len(faults)}; continue the same rows")
         b, n = state.plant.batch, grid.numel()
         available = SHARED_CHANNELS + self.motor.channels
         keep = list(channels) if channels is not None else list(available)
@@ -350,6 +358,7 @@ class EMASimulator:
             self.fidelity,
             state.energy,
             {"substeps": self.motor.substeps, "effects": [repr(e) for e in self.effects]},
+            state,
         )
 
     def iter_chunks(self, faults, command, duration: float, chunk_size: int, **kwargs) -> Iterator[Signals]:

@@ -229,6 +229,27 @@ def test_batch_invariance(fidelity, duration):
 
 
 @pytest.mark.parametrize("fidelity", ["hf", "lf"])
+def test_a_continued_run_is_the_longer_run_and_its_rows_go_on_alone(fidelity):
+    """run(T) then run(T, state=...) is run(2 T) sample for sample (the command's time counted from rest), and a
+    state's rows (SimState.rows) go on as those actuators would have in the whole batch."""
+    sim = EMASimulator(P, fidelity)
+    k = torch.tensor([NOM, [0.3, 0.5, 0.2, 0.1, 0.0, 0.6, 0.9, 0.2], [0.0, 0.9, 0.1, 0.0, 0.4, 0.3, 0.2, 0.0]])
+    long = sim.run(k, CHIRP, 0.02)
+    first = sim.run(k, CHIRP, 0.01)
+    n = first.time.numel() - 1  # the continuation's first sample is the first run's last
+    on = sim.run(k, CHIRP, 0.01, state=first.state)
+    torch.testing.assert_close(on.time, long.time[n:], rtol=0, atol=1e-12)
+    for c in long.channels:
+        assert torch.equal(on[c], long[c][:, n:]), c
+    rows = torch.tensor([2, 0])
+    alone = sim.run(k[rows], CHIRP, 0.01, state=first.state.rows(rows))
+    for c in long.channels:
+        torch.testing.assert_close(alone[c], long[c][rows, n:], rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="continue the same rows"):
+        sim.run(k, CHIRP, 0.01, state=first.state.rows(rows))
+
+
+@pytest.mark.parametrize("fidelity", ["hf", "lf"])
 def test_a_slower_acquisition_reads_the_same_actuator(fidelity):
     """An actuator sampled at half its PWM frequency (5 kHz; the reference samples at twice it, 20 kHz) records every
     fourth sample of its 20 kHz record: the acquisition does not touch the dynamics (a sample every second control

@@ -13,8 +13,8 @@ does not divide by the small 1 - T of the low frequencies.
 Settling: the first harmonic is taken over the last ``measure_cycles`` cycles and over the
 ``measure_cycles`` before them; where L or T changed by more than ``tolerance`` (relative) between the two,
 the response has not settled (``LoopResponse.settled``). With ``max_extensions`` > 0 such a (vector,
-frequency) is simulated again for twice as long, up to that many times, and counted as unsettled if it
-still moves. A fixed number of cycles is not enough: the transient decays with the loop's own time
+frequency) is simulated on from where it stopped to twice the time (the trajectory of a run that long from rest, at
+half its cost), up to that many times, and counted as unsettled if it still moves. A fixed number of cycles is not enough: the transient decays with the loop's own time
 constants (a lightly damped degraded loop, the slow integrator pole: ~0.1 s on the reference actuator), so
 4 cycles at the upper frequencies read the transient (a degraded reference actuator at 70 Hz: |T| -2.41 dB
 after 4 cycles, -1.53 dB settled) and the labels depend on how the frequencies are batched. Near and above
@@ -53,6 +53,7 @@ import torch
 
 from ..faults import as_fault_tensor
 from ..params import ActuatorParams
+from ..sim_state import SimState
 from ..simulator import EMASimulator
 from .design import AUTO, SweepDesign
 from .margins import margins
@@ -80,7 +81,7 @@ class SineSweep:
         design: how the ``"auto"`` values are derived (:class:`~phm_torch.assessment.design.SweepDesign`).
         tolerance: largest relative change of L and T between the last two measurement windows of a settled
             response [-].
-        max_extensions: how many times an unsettled response is simulated again for twice as long (0: never).
+        max_extensions: how many times an unsettled response is simulated on to twice the time (0: never).
         refine: rounds of measurement at each vector's interpolated crossings (0: the grid only).
     """
 
@@ -214,10 +215,14 @@ class FrequencyResponse:
         """Simulated control periods per fault vector on the grid before any extension or refinement."""
         return sum(len(grp) * max(self.plan[i][2] for i in grp) for grp in self.groups)
 
-    def _harmonics(self, k: torch.Tensor, f: torch.Tensor, window: torch.Tensor, periods: int) -> Readings:
-        """One simulation of rows (k_r, f_r): L and T over each row's last ``window_r`` control periods and
-        over the window before (rows R; k (R, 8), f (R,) snapped, window (R,); each (R,) complex)."""
+    def _harmonics(
+        self, k: torch.Tensor, f: torch.Tensor, window: torch.Tensor, periods: int, state: SimState | None = None
+    ) -> tuple[Readings, SimState]:
+        """One simulation of rows (k_r, f_r) for ``periods`` control periods, from rest or on from ``state`` (the
+        rows' own, where an earlier call ended): L and T over each row's last ``window_r`` control periods and over
+        the window before (rows R; k (R, 8), f (R,) snapped, window (R,); each (R,) complex), and the end state."""
         f_ctrl = self.params.pwm_frequency
+        end = periods + (0 if state is None else round(float(state.time) * f_ctrl))  # periods since rest
         amp = float(self.sweep.amplitude)
         w = 2.0 * math.pi * f
 
@@ -227,7 +232,8 @@ class FrequencyResponse:
             return (amp * torch.sin(times[:, None] * w[None, :])).T
 
         with torch.no_grad():
-            y = self.sim.run(k, command, periods / f_ctrl, channels=["position"])["position"]
+            sig = self.sim.run(k, command, periods / f_ctrl, channels=["position"], state=state)
+        y = sig["position"]
         # rows sharing a window (on the grid, one per frequency) are read over exactly their two windows; rows of
         # many different windows (refinement) together over the longest, masked
         values = torch.unique(window)
@@ -236,16 +242,16 @@ class FrequencyResponse:
         for part in parts:
             rows = torch.nonzero(part)[:, 0]
             span = 2 * int(window[rows].max())  # the two windows end one period before the last sample
-            read = self._two_windows(y[rows, periods - span : periods], w[rows], window[rows], periods)
+            read = self._two_windows(y[rows, periods - span : periods], w[rows], window[rows], end)
             for o, r in zip(out, read, strict=True):
                 o[rows] = r
-        return Readings(*out)
+        return Readings(*out), sig.state
 
     def _two_windows(
         self, y: torch.Tensor, w: torch.Tensor, window: torch.Tensor, periods: int
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
         """L, T over each row's last ``window`` control periods, then over the window before; y (R, 2 max(window))
-        the samples ending one period before the last, w (R,) [rad/s]."""
+        the samples ending one period before the last, w (R,) [rad/s], ``periods`` simulated since rest."""
         f_ctrl = self.params.pwm_frequency
         amp = float(self.sweep.amplitude)
         span = y.shape[-1]
@@ -269,34 +275,40 @@ class FrequencyResponse:
         (l1, t1), (l0, t0) = [(y_h / (r_h - y_h), y_h / r_h) for y_h, r_h in sums]
         return l1, t1, l0, t0
 
-    def _bucketed(self, k: torch.Tensor, f: torch.Tensor, window: torch.Tensor, periods: int) -> Readings:
+    def _bucketed(
+        self, k: torch.Tensor, f: torch.Tensor, window: torch.Tensor, periods: int, state: SimState | None = None
+    ) -> tuple[Readings, SimState]:
         """``_harmonics`` of a batch whose size varies from call to call (extensions, refinement): with a compiled
         simulator the rows are padded (the last one repeated) to the next power of two, so that a few compiled
         batch sizes serve every call instead of one compilation per size (and eager past the recompile limit)."""
         n = k.shape[0]
         if not self.sweep.compile or n == 0:
-            return self._harmonics(k, f, window, periods)
+            return self._harmonics(k, f, window, periods, state)
         pad = max(BUCKET_MIN, 1 << (n - 1).bit_length()) - n
         idx = torch.cat([torch.arange(n, device=k.device), torch.full((pad,), n - 1, device=k.device)])
-        return self._harmonics(k[idx], f[idx], window[idx], periods).rows(slice(0, n))
+        read, end = self._harmonics(k[idx], f[idx], window[idx], periods, None if state is None else state.rows(idx))
+        return read.rows(slice(0, n)), end.rows(slice(0, n))
 
     def _settled(
         self, k: torch.Tensor, f: torch.Tensor, window: torch.Tensor, periods: int, bucket: bool = False
     ) -> Readings:
-        """``_harmonics`` with the rows that have not settled simulated again for twice as long (the module
+        """``_harmonics`` with the rows that have not settled simulated on to twice as long (the module
         docstring); ``settled`` (R,) bool set. ``bucket``: the first simulation's batch size varies too."""
-        read = (self._bucketed if bucket else self._harmonics)(k, f, window, periods)
+        read, state = (self._bucketed if bucket else self._harmonics)(k, f, window, periods)
         settled = read.change <= self.sweep.tolerance
         todo = torch.nonzero(~settled)[:, 0]
+        state = state.rows(todo)  # the end states of the rows in todo, in its order
         for _ in range(int(self.sweep.max_extensions)):
             if todo.numel() == 0:
                 break
-            periods *= 2
+            # on from where the rows stopped to twice the time: the trajectory of a run that long from rest
             self.extensions += int(todo.numel())
-            again = self._bucketed(k[todo], f[todo], window[todo], periods)
+            again, state = self._bucketed(k[todo], f[todo], window[todo], periods, state)
+            periods *= 2
             read.put(todo, again)
             ok = again.change <= self.sweep.tolerance
             settled[todo] = ok
+            state = state.rows(torch.nonzero(~ok)[:, 0])
             todo = todo[~ok]
         self.unsettled += int(todo.numel())
         read.settled = settled
