@@ -370,7 +370,8 @@ def test_settling_makes_the_response_independent_of_the_batching(params, shipped
 
 
 def test_labels_read_from_the_transient_are_uncertain(params, shipped):
-    """A009's three inspections along its damage path (the shipped sweep, uncompiled). Read after a fixed 4 cycles,
+    """A009's three inspections along its damage path (the shipped sweep, uncompiled). Read after a fixed 4 cycles
+    (``max_extensions`` 0, ``refine`` 0, as before 2026-11-28),
     the labels are not monotone along the path (healthy, faulty, healthy again) and two of the three differ from
     what the window before reads: the transient decides them, and ``uncertain`` says so. Settled and refined,
     the labels follow the damage (healthy, healthy, faulty) and at most the one nearest the bandwidth
@@ -378,8 +379,9 @@ def test_labels_read_from_the_transient_are_uncertain(params, shipped):
     k = torch.tensor(A009_PATH)
     sweep = dataclasses.replace(instantiate(shipped.sweep), compile=False)
     requirements = instantiate(shipped.requirements)
-    fixed = AssessmentFunction(params, sweep, requirements)(k)
-    settled_fn = AssessmentFunction(params, dataclasses.replace(sweep, max_extensions=2, refine=1), requirements)
+    assert (sweep.max_extensions, sweep.refine) == (2, 1)  # the shipped sweep settles and refines
+    fixed = AssessmentFunction(params, dataclasses.replace(sweep, max_extensions=0, refine=0), requirements)(k)
+    settled_fn = AssessmentFunction(params, sweep, requirements)
     settled = settled_fn(k)
     assert fixed.healthy.tolist() == [True, False, True]
     assert int(fixed.uncertain.sum()) >= 2
@@ -414,3 +416,23 @@ def test_compiled_extensions_and_refinement_run_in_a_few_padded_batch_sizes(para
     grid = 2 * len(padded.groups[0])  # the grid's batches: every vector at every frequency of a group
     assert all(n == grid or (n >= 64 and n & (n - 1) == 0) for n in sizes), sizes
     assert any(n != grid for n in sizes)
+
+
+def test_a_vectors_settled_refined_reading_does_not_depend_on_its_batch(params, shipped):
+    """Each vector's reading, settled and refined, is the same assessed alone or beside others (eager: the simulator
+    is batch invariant): every simulation of a row lasts as long as its own test says, never the batch's longest.
+    (The refinement once simulated a batch for its longest test, so a label depended on the other rows.)"""
+    near = torch.tensor([0.05, 0.05, 0.1, 0.0, 0.0, 0.05, 0.3, 0.02], dtype=torch.float64)
+    k = torch.stack([torch.tensor(A009_PATH[1]), near, torch.tensor(A009_PATH[2])]).double()
+    base = {**vars(instantiate(shipped.sweep)), "frequencies": (20.0, 40.0, 70.0, 90.0), "amplitude": 7.96e-5}
+    fr = FrequencyResponse(params, SineSweep(**{**base, "compile": False, "max_extensions": 1, "refine": 1}))
+    together = fr.read(k)
+    for i in range(len(k)):
+        alone = fr.read(k[i : i + 1])
+        for name in ("frequencies", "open_loop", "closed_loop", "settled"):
+            a, b = getattr(together, name)[i], getattr(alone, name)[0]
+            assert (
+                torch.allclose(a, b, rtol=0, atol=1e-10)
+                if a.is_floating_point() or a.is_complex()
+                else bool(torch.equal(a, b))
+            ), (i, name)

@@ -46,7 +46,7 @@ def test_counts_on_an_independent_store_and_refuses_the_training_store(tmp_path)
     again = subprocess.run(
         [*run, "--data-dir", str(heldout), "--uncertain", "5"], check=False, capture_output=True, text=True
     )
-    assert again.returncode != 0 and "does not record its actuator and assessment config" in again.stderr
+    assert again.returncode != 0 and "does not record the actuator and assessment config" in again.stderr
     assert "Traceback" not in again.stderr
 
 

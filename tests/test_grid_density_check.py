@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import copy
 import importlib.util
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +21,8 @@ TINY_AUTO = (  # a tiny LF store whose sweep grid is derived (auto), with 16 lab
     "dataset.n_rul=1",
     "dataset.chunk_size=6",
     "assessment.sweep.cycles=3",
+    "assessment.sweep.max_extensions=0",  # the 4-cycle reading, unless a test switches settling on
+    "assessment.sweep.refine=0",
     "progress=false",
     "threads=1",
     "+dataset.healthy_fraction=null",
@@ -63,11 +67,18 @@ def test_a_listed_grid_has_no_density(tmp_path, compose):
         _script().check(str(data_dir), 36.0, "labels", None, 4)
 
 
-def test_a_store_labelled_with_settled_refined_readings_records_them_and_is_reproduced(tmp_path, compose):
+def test_a_store_labelled_with_settled_refined_readings_records_them_and_is_reproduced(tmp_path, compose, caplog):
     data_dir = tmp_path / "store"
-    switches = ["+assessment.sweep.max_extensions=1", "+assessment.sweep.refine=1", "dataset.n_labels=4"]
-    metrics, _ = generate(compose("generate", [*TINY_AUTO, *switches, f"data_dir={data_dir}"]))
-    assert metrics["assessment_settling"]["extended"] > 0  # 3 cycles from rest: some readings moved, and were extended
+    switches = ["assessment.sweep.max_extensions=1", "assessment.sweep.refine=1", "dataset.n_labels=4"]
+    with caplog.at_level(logging.INFO, logger="phm_torch.pipelines.generate.pipeline"):
+        metrics, _ = generate(compose("generate", [*TINY_AUTO, *switches, f"data_dir={data_dir}"]))
+    settling = metrics["assessment_settling"]
+    assert settling["extended"] > 0  # 3 cycles from rest: some readings moved, and were extended
+    # one line sums it up (a warning, with what to raise, above 2 % uncertain labels)
+    said = [r for r in caplog.records if "labels" in r.getMessage() and "uncertain" in r.getMessage()]
+    assert len(said) == 1 and f"{settling['uncertain_labels']} of {settling['vectors']} labels" in said[0].getMessage()
+    many = settling["uncertain_labels"] > 0.02 * settling["vectors"]
+    assert (said[0].levelno == logging.WARNING) == many and ("raise assessment.sweep" in said[0].getMessage()) == many
     from phm_torch.data.store import DatasetStore
 
     with DatasetStore(str(data_dir)) as store:
@@ -92,6 +103,21 @@ def test_recorded_assessment_rebuilds_the_stores_phi_a_or_says_what_is_missing(t
 
     again = assessment(torch.as_tensor(k)).margins.stacked().numpy()
     assert np.allclose(again, margins, rtol=1e-6, equal_nan=True)  # the store's own labels, made again
+    assert (assessment.sweep.max_extensions, assessment.sweep.refine) == (0, 0)  # as TINY_AUTO's config records
+    # a store recording settling is rebuilt with it; one made before it was the default records neither: it was
+    # labelled without them, and is rebuilt so (not with the shipped YAML's 2 and 1)
+    settled = copy.deepcopy(dict(metadata))
+    settled["config"]["assessment"]["sweep"].update(max_extensions=2, refine=1)
+    assert (recorded_assessment(settled)[0].sweep.max_extensions, recorded_assessment(settled)[0].sweep.refine) == (
+        2,
+        1,
+    )
+    for key in ("max_extensions", "refine"):
+        del settled["config"]["assessment"]["sweep"][key]
+    assert (recorded_assessment(settled)[0].sweep.max_extensions, recorded_assessment(settled)[0].sweep.refine) == (
+        0,
+        0,
+    )
     denser, _ = recorded_assessment(metadata, sweep={"cycles": 5})
     assert denser.sweep.cycles == 5 and denser.sweep.frequencies == assessment.sweep.frequencies
     no_assessment = {"config": {k: v for k, v in metadata["config"].items() if k != "assessment"}}

@@ -19,7 +19,8 @@ pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on p
 
 TINY_LIFE = (
     'generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=4","dataset.chunk_size=64",'
-    '"dataset.fidelity=lf","dataset.life.n_actuators=2","dataset.life.compile=false"]'
+    '"dataset.fidelity=lf","dataset.life.n_actuators=2",'
+    '"assessment.sweep.max_extensions=0","assessment.sweep.refine=0","dataset.life.compile=false"]'
 )
 
 
@@ -95,6 +96,7 @@ def test_phm_run_tiny_end_to_end(tmp_path):
             (
                 'generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=4","dataset.chunk_size=64",'
                 '"dataset.fidelity=lf","dataset.life.n_actuators=0","assessment.sweep.cycles=3",'
+                '"assessment.sweep.max_extensions=0","assessment.sweep.refine=0",'
                 # the paper's sampling: the healthy-fraction pilot (1,536 uncompiled phi_a labels) took 2 of the 3 min
                 '"+dataset.healthy_fraction=null"]'
             ),
@@ -219,12 +221,21 @@ def test_paper_experiment_reaches_the_generate_stage():
 
 
 def test_run_level_sweep_settings_reach_the_generate_stage():
-    """A sweep setting left to its code default in the YAML (settling, refinement), set on phm-run's command line,
-    reaches phm-generate whether or not the run has an experiment; a listed one is overridden."""
+    """A sweep setting left to its code default in the YAML (the tolerance), or one it lists (settling,
+    refinement), set on phm-run's command line, reaches phm-generate whether or not the run has an experiment; a
+    listed one is overridden."""
     for extra in ([], ["experiment=paper"]):
-        cfg = compose_stage("run", [*extra, "+assessment.sweep.max_extensions=2", "+assessment.sweep.refine=1"])
+        sweep = compose_stage("generate", generate_overrides(compose_stage("run", extra))).assessment.sweep
+        assert (sweep.max_extensions, sweep.refine) == (2, 1), extra  # the shipped default
+        # phm-run has no assessment node of its own: its settings are added (+) and passed on (++)
+        switches = [
+            "+assessment.sweep.max_extensions=0",
+            "+assessment.sweep.refine=0",
+            "+assessment.sweep.tolerance=0.01",
+        ]
+        cfg = compose_stage("run", [*extra, *switches])
         sweep = compose_stage("generate", generate_overrides(cfg)).assessment.sweep
-        assert (sweep.max_extensions, sweep.refine) == (2, 1), extra
+        assert (sweep.max_extensions, sweep.refine, sweep.tolerance) == (0, 0, 0.01), extra
     cfg = compose_stage("run", ["experiment=paper", "assessment.sweep.compile=false"])
     assert compose_stage("generate", generate_overrides(cfg)).assessment.sweep.compile is False
 
@@ -302,7 +313,8 @@ def test_phm_run_on_the_second_actuator_end_to_end(tmp_path):
             "stages=[cases,generate,train,evaluate,workbench,report]",  # tracking: the life test above
             (
                 'generate=["dataset.n_train=300","dataset.n_val=60","dataset.n_rul=8","dataset.chunk_size=128",'
-                '"dataset.fidelity=lf","dataset.n_labels=512","+dataset.pilot_size=768"]'
+                '"dataset.fidelity=lf","dataset.n_labels=512","+dataset.pilot_size=768",'
+                '"assessment.sweep.max_extensions=0","assessment.sweep.refine=0"]'
             ),
             'cases=["fidelity=lf","duration=0.05"]',
             'train=["n_modes=8","n_points=24","selector=qdeim","classifier_refine.rounds=1"]',

@@ -130,7 +130,9 @@ def test_ray_shards_on_a_local_instance(reference, spawn_cli, tmp_path):
     _ray()
     data_dir, run = _sharded(spawn_cli, tmp_path, ["hydra/launcher=ray_cluster", "+hydra.launcher.ray.init.num_cpus=2"])
     assert "Started a local Ray instance" in run.stderr
-    assert len(set(re.findall(r"\(_run_job pid=(\d+)\)", run.stdout))) >= 1  # the shards' output, from Ray workers
+    assert (
+        len(set(re.findall(r"\(_run_job pid=(\d+)\)", run.stdout + run.stderr))) >= 1
+    )  # the shards' output, from Ray workers
     assert _manifest(data_dir) == reference
 
 

@@ -20,7 +20,8 @@ constants (a lightly damped degraded loop, the slow integrator pole: ~0.1 s on t
 after 4 cycles, -1.53 dB settled) and the labels depend on how the frequencies are batched. Near and above
 a degraded loop's resonance the small-amplitude response with backlash need not be periodic at all (the
 same actuator at 77 Hz: -8.7, -15.6, -13.3 dB after 4, 8, 64 cycles); those stay unsettled and are counted.
-Off by default (``max_extensions`` 0, ``refine`` 0) so that every store's labels stay as they were.
+The code's defaults are ``max_extensions`` 0, ``refine`` 0 (a store whose config records neither was labelled so);
+the shipped config sets 2 and 1.
 
 Uncertain labels: the window before the last is read too (``LoopResponse.open_loop_before``/``closed_loop_before``),
 and :class:`~phm_torch.assessment.health.AssessmentFunction` labels it as well: a vector whose two labels differ
@@ -370,13 +371,18 @@ class FrequencyResponse:
             # vectors without this crossing repeat their first grid point (a zero-width interval adds nothing)
             cols = [x[:, 0].clone() for x in (freqs, *old)]
             rows = torch.nonzero(torch.isfinite(target))[:, 0]
-            if rows.numel():
-                tests = [self._test(float(f)) for f in target[rows]]
-                f_t = torch.tensor([x[0] for x in tests], dtype=torch.float64, device=self.device)
-                window = torch.tensor([x[1] for x in tests], device=self.device)
-                read = self._settled(k[rows], f_t, window, max(x[2] for x in tests), bucket=True)
+            tests = [self._test(float(f)) for f in target[rows]]
+            # each row for its own test's duration rounded up to a power of two control periods, with the rows of
+            # that duration: a reading that depends on the other rows of the batch (the longest test's duration for
+            # all) would make a label depend on the batch (the grid's groups are fixed by the plan)
+            spans = torch.tensor([1 << (x[2] - 1).bit_length() for x in tests], dtype=torch.long)
+            for span in torch.unique(spans).tolist():
+                part = torch.nonzero(spans == span)[:, 0]
+                f_t = torch.tensor([tests[i][0] for i in part], dtype=torch.float64, device=self.device)
+                window = torch.tensor([tests[i][1] for i in part], device=self.device)
+                read = self._settled(k[rows[part]], f_t, window, int(span), bucket=True)
                 for col, value in zip(cols, (f_t, *read.columns), strict=True):
-                    col[rows] = value
+                    col[rows[part]] = value
             for lst, col in zip(new, cols, strict=True):
                 lst.append(col[:, None])
         f_all = torch.cat(new[0], -1)

@@ -165,8 +165,8 @@ class AssessmentFunction:
         uncertain = healthy != self.requirements.healthy(
             margins(before.frequencies, before.open_loop, before.closed_loop), bw0
         )
-        if self.sweep.max_extensions and self.response.unsettled > unsettled:  # without extensions: counted only
-            log.warning(
+        if self.sweep.max_extensions and self.response.unsettled > unsettled:  # counted (settling()); apps sum up
+            log.debug(
                 "assessment: %d responses of %d vectors still changed by more than %g after %d extensions "
                 "(assessment.sweep.tolerance / max_extensions); labelled from their last reading",
                 self.response.unsettled - unsettled,

@@ -31,6 +31,9 @@ from .records import fingerprint, store_records
 from .settings import GenerateSettings
 
 log = logging.getLogger(__name__)
+# share of uncertain labels above which they are as much the sweep's reading as the actuator's: settled and refined,
+# 0.7 % (reference) and 1.3 % (rudder) at paper scale; the fixed 4 cycles, ~26 % (docs/dataset.md)
+UNCERTAIN_WARN = 0.02
 
 
 @dataclass
@@ -228,7 +231,23 @@ def _metrics(
     if life is not None:
         metrics["life"] = life
     if assessment.vectors:  # responses of this process (a resumed or sharded run counts its own)
-        metrics["assessment_settling"] = assessment.settling()  # uncertain_labels: docs/dataset.md
+        metrics["assessment_settling"] = settling = assessment.settling()  # uncertain_labels: docs/dataset.md
+        share = settling["uncertain_labels"] / settling["vectors"]
+        many = share > UNCERTAIN_WARN
+        (log.warning if many else log.info)(
+            "assessment: %d of %d labels (%.1f %%) uncertain (the window before the last reads otherwise); %d "
+            "responses extended, %d still moving after assessment.sweep.max_extensions=%d%s",
+            settling["uncertain_labels"],
+            settling["vectors"],
+            100 * share,
+            settling["extended"],
+            settling["unsettled"],
+            assessment.sweep.max_extensions,
+            "; near the health boundary the labels are the sweep's reading: raise assessment.sweep.max_extensions "
+            "(or cycles for a slow loop)"
+            if many
+            else "",
+        )
     if timing and assessment.vectors:
         metrics["assessment_ms_per_vector"] = round(1000 * assessment.wall_s / assessment.vectors, 3)
         metrics["timing_s"] = {k: round(v, 2) for k, v in timing.items()}
