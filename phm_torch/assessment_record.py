@@ -16,10 +16,14 @@ from typing import Any
 # settings that change how phi_a runs, not what it answers. group_size is one only within the settling tolerance:
 # with max_extensions 0 it moves a few labels nearest the requirements (docs/dataset.md, "Settling and refinement")
 RUN_ONLY = ("compile", "group_size")
+# sweep settings a config may leave out, and what that means (SineSweep's code defaults): a store made before the
+# shipped config set settling records none of them, and labels as one that records them at these values
+SWEEP_DEFAULTS = {"tolerance": 0.005, "max_extensions": 0, "refine": 0}
 
 
 def labelling(assessment: Mapping[str, Any] | None) -> dict[str, Any] | None:
-    """The assessment config without its run-only settings (``RUN_ONLY``, at any depth); None for None."""
+    """The assessment config without its run-only settings (``RUN_ONLY``, at any depth) and with the sweep's
+    ``SWEEP_DEFAULTS`` filled in where it leaves them out; None for None."""
     if assessment is None:
         return None
 
@@ -30,7 +34,10 @@ def labelling(assessment: Mapping[str, Any] | None) -> dict[str, Any] | None:
             return [strip(v) for v in node]
         return node
 
-    return strip(assessment)
+    out = strip(assessment)
+    if isinstance(out.get("sweep"), dict):
+        out["sweep"] = {**SWEEP_DEFAULTS, **out["sweep"]}
+    return out
 
 
 def same_labels(a: Mapping[str, Any] | None, b: Mapping[str, Any] | None) -> bool | None:

@@ -23,3 +23,18 @@ def test_another_grid_or_requirement_labels_differently_and_unknown_is_none():
     stricter = {**DERIVED, "requirements": {"gain_margin_db": 8.0}}
     assert same_labels(DERIVED, hand_tuned) is False and same_labels(DERIVED, stricter) is False
     assert same_labels(None, DERIVED) is None and labelling(None) is None
+
+
+def test_a_sweep_setting_left_out_is_its_code_default():
+    """A store made before the shipped config set settling records no max_extensions/refine: it labels as one that
+    records 0 (SineSweep's defaults, which SWEEP_DEFAULTS must follow), and not as the settled one."""
+    import dataclasses
+
+    from phm_torch.assessment import SineSweep
+    from phm_torch.assessment_record import SWEEP_DEFAULTS
+
+    code = {f.name: f.default for f in dataclasses.fields(SineSweep) if f.name in SWEEP_DEFAULTS}
+    assert code == SWEEP_DEFAULTS
+    explicit = {**DERIVED, "sweep": {**SWEEP, "max_extensions": 0, "refine": 0}}
+    settled = {**DERIVED, "sweep": {**SWEEP, "max_extensions": 2, "refine": 1}}
+    assert same_labels(DERIVED, explicit) is True and same_labels(DERIVED, settled) is False
