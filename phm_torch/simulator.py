@@ -274,7 +274,8 @@ class EMASimulator:
             state: continue from this state (``Signals.state`` of an earlier run of ``faults``, or its
                 :meth:`~phm_torch.sim_state.SimState.rows`) instead of from rest: the grid and the command's time
                 start at its time, and ``duration`` more seconds are simulated, exactly as one longer run would
-                have; ``scales`` and ``energy`` are then the state's.
+                have. The plant (``scales``) and the energy accounts are the state's (passing either is an error);
+                the accounts go on accumulating in the state's own dict.
         Returns:
             The acquisition, with the state it ended in (``Signals.state``).
         """
