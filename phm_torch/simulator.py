@@ -311,10 +311,11 @@ class EMASimulator:
             if not torch.isfinite(cmd_grid).all():
                 raise ValueError("command contains NaN or inf")
             cmd_ctrl = _interp(t_ctrl, grid, cmd_grid)
+        k_t = as_fault_tensor(faults, self.dtype, self.device)
         if state is None:
-            state = self.init(faults, scales, energy)
-        elif state.plant.batch != as_fault_tensor(faults, self.dtype, self.device).shape[0]:
-            raise ValueError(f"state: {state.plant.batch} actuators, faults: {len(faults)}; continue the same rows")
+            state = self.init(k_t, scales, energy)
+        elif state.plant.batch != k_t.shape[0]:
+            raise ValueError(f"state: {state.plant.batch} actuators, faults: {k_t.shape[0]}; continue the same rows")
         b, n = state.plant.batch, grid.numel()
         available = SHARED_CHANNELS + self.motor.channels
         keep = list(channels) if channels is not None else list(available)
@@ -351,7 +352,6 @@ class EMASimulator:
         else:
             out = bufs
         out["command"] = cmd_grid.to(dtype).expand(b, -1)  # (n,) or (B, n) -> (B, n)
-        k_t = as_fault_tensor(faults, self.dtype, self.device)
         return Signals(
             grid,
             out,
