@@ -27,6 +27,7 @@ fingerprint, so only the first run pays the pilot.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Callable, Mapping
@@ -42,6 +43,7 @@ from .sampling import ImportanceSampler
 from .store import read_json, write_json
 
 CALIBRATION_FILE = "sampling.json"
+log = logging.getLogger(__name__)
 MAX_DISTANCE_EXPONENT = 3.0  # the largest q: 12.5 % of the vectors within half the radius (step 5 above)
 
 
@@ -200,9 +202,17 @@ def calibrate_spec(spec: Any, nominal: Any, assessment: Any, seed: int) -> dict[
     labeller = LabelComputer(assessment, nominal, spec.chunk_size)
 
     def assess(k: np.ndarray) -> np.ndarray:
-        return np.concatenate(
-            [labeller(k[i : i + spec.chunk_size])["healthy"] for i in range(0, len(k), spec.chunk_size)]
-        ).astype(bool)
+        # the pilot is the first thing a new actuator's store computes, and on a slow loop it takes minutes:
+        # say what it is doing, chunk by chunk
+        healthy = []
+        for i in range(0, len(k), spec.chunk_size):
+            healthy.append(labeller(k[i : i + spec.chunk_size])["healthy"])
+            log.info(
+                "importance sampling: healthy-fraction pilot, %d of %d vectors assessed (cached afterwards)",
+                min(i + spec.chunk_size, len(k)),
+                len(k),
+            )
+        return np.concatenate(healthy).astype(bool)
 
     return calibrate(
         sampler,

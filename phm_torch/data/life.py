@@ -255,6 +255,13 @@ class LifeGenerator:
                 done[p] = min(int(done[p]) + ROUND, cap)
                 if first[p] < 0 and not health[p, : done[p]].all():
                     first[p] = int((~health[p, : done[p]]).double().argmax())
+            # phi_a along the paths comes before any record is simulated and takes minutes: say how far it is
+            log.info(
+                "life: phi_a at %d inspections of %d actuators, %d of them past their first faulty one",
+                int(done.sum()),
+                n_p,
+                int((first >= 0).sum()),
+            )
         eol = self._locate_eol(traj, first, eps, scale)
         out = []
         for p, _ in enumerate(indices):
