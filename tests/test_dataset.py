@@ -526,3 +526,35 @@ def test_calibrated_sampling_is_recorded_and_cached(compose, tmp_path):
     assert manifest["splits"]["train"]["unmeasurable"]["gain_margin"] == int(np.isnan(margins[:, 3]).sum())
     again, _ = generate(compose("generate", [*args, "stage=merge"]))
     assert again["sampling"]["pilot_s"] == 0 and _manifest(tmp_path) == manifest
+
+
+def test_the_pilot_reads_the_same_labels_whatever_its_batch(compose, monkeypatch):
+    """An uncompiled pilot is assessed in batches of up to label_chunk_size instead of chunk_size (per vector
+    several times cheaper); a label does not depend on its batch, so the calibration is the same (settled labels;
+    the refinement's rows are checked alone against a batch in test_assessment)."""
+    import dataclasses
+
+    from phm_torch.apps.generate import settings_from_config
+    from phm_torch.data import calibration
+
+    over = [o for o in TINY if "max_extensions" not in o and "refine" not in o and "healthy_fraction" not in o]
+    cfg = compose(
+        "generate",
+        [*over, "assessment.sweep.max_extensions=1", "assessment.sweep.refine=0", "+dataset.healthy_fraction=0.5"],
+    )
+    settings, assessment = settings_from_config(cfg)
+    batches: list[list[int]] = []
+    records = []
+    real = calibration.LabelComputer
+
+    def spy(a, nominal, chunk_size):  # the batch the pilot assesses at
+        batches[-1].append(chunk_size)
+        return real(a, nominal, chunk_size)
+
+    monkeypatch.setattr(calibration, "LabelComputer", spy)
+    for chunk, label_chunk in ((6, 6), (6, 16)):
+        batches.append([])
+        spec = dataclasses.replace(settings.spec, chunk_size=chunk, label_chunk_size=label_chunk, pilot_size=16)
+        records.append(calibration.calibrate_spec(spec, settings.params.nominal_faults, assessment, 3))
+    assert batches == [[6], [16]]
+    assert records[0] == records[1] and records[0]["pilot_size"] == 16
