@@ -211,12 +211,18 @@ def calibrate_spec(spec: Any, nominal: Any, assessment: Any, seed: int) -> dict[
         # the pilot is the first thing a new actuator's store computes, and on a slow loop it takes minutes:
         # say what it is doing, chunk by chunk
         healthy = []
+        t0 = time.perf_counter()
         for i in range(0, len(k), batch):
             healthy.append(labeller(k[i : i + batch])["healthy"])
+            done = min(i + batch, len(k))
+            per_vector = (time.perf_counter() - t0) / done
             log.info(
-                "importance sampling: healthy-fraction pilot, %d of %d vectors assessed (cached afterwards)",
-                min(i + batch, len(k)),
+                "importance sampling: healthy-fraction pilot, %d of %d vectors assessed, %.3f s a vector, "
+                "~%.0f min left (cached afterwards; the store's labels cost the same per vector)",
+                done,
                 len(k),
+                per_vector,
+                per_vector * (len(k) - done) / 60,
             )
         return np.concatenate(healthy).astype(bool)
 
