@@ -371,7 +371,7 @@ def test_settling_makes_the_response_independent_of_the_batching(params, shipped
 
 def test_labels_read_from_the_transient_are_uncertain(params, shipped):
     """A009's three inspections along its damage path (the shipped sweep, uncompiled). Read after a fixed 4 cycles
-    (``max_extensions`` 0, ``refine`` 0, as before 2026-11-28),
+    (``max_extensions`` 0, ``refine`` 0, the shipped reading),
     the labels are not monotone along the path (healthy, faulty, healthy again) and two of the three differ from
     what the window before reads: the transient decides them, and ``uncertain`` says so. Settled and refined,
     the labels follow the damage (healthy, healthy, faulty) and at most the one nearest the bandwidth
@@ -379,9 +379,9 @@ def test_labels_read_from_the_transient_are_uncertain(params, shipped):
     k = torch.tensor(A009_PATH)
     sweep = dataclasses.replace(instantiate(shipped.sweep), compile=False)
     requirements = instantiate(shipped.requirements)
-    assert (sweep.max_extensions, sweep.refine) == (2, 1)  # the shipped sweep settles and refines
-    fixed = AssessmentFunction(params, dataclasses.replace(sweep, max_extensions=0, refine=0), requirements)(k)
-    settled_fn = AssessmentFunction(params, sweep, requirements)
+    assert (sweep.max_extensions, sweep.refine) == (0, 0)  # the shipped sweep reads 4 cycles (docs/dataset.md)
+    fixed = AssessmentFunction(params, sweep, requirements)(k)
+    settled_fn = AssessmentFunction(params, dataclasses.replace(sweep, max_extensions=2, refine=1), requirements)
     settled = settled_fn(k)
     assert fixed.healthy.tolist() == [True, False, True]
     assert int(fixed.uncertain.sum()) >= 2

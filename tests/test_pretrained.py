@@ -228,8 +228,8 @@ def test_the_shipped_near_nominal_fdi_belongs_to_the_pretrained_pipeline_and_is_
 def test_the_pretrained_classifiers_learned_the_labels_of_the_shipped_assessment_function(compose):
     """The health classifier (the RUL's event, phm-track's end of life) and the verdict classifier learned the
     labels of the phi_a that phm-generate ships: a life split generated with the defaults is labelled alike, so
-    phm-track judges the pipeline against its own boundary (against the 4-cycle phi_a's labels it flagged the end of
-    life early for 28 % of 100 histories)."""
+    phm-track judges the pipeline against its own boundary (against settled labels it flagged the end of life early
+    for 28 % of 100 histories; refit on them, 16 were never flagged: pretrained/README.md)."""
     from omegaconf import OmegaConf
 
     from phm_torch.assessment_record import same_labels
@@ -238,4 +238,3 @@ def test_the_pretrained_classifiers_learned_the_labels_of_the_shipped_assessment
     shipped = OmegaConf.to_container(compose("generate", []).assessment, resolve=True)
     recorded = read_metadata(PIPELINE)["assessment"]
     assert same_labels(recorded, shipped) is True
-    assert recorded["sweep"]["max_extensions"] >= 1 and recorded["sweep"]["refine"] >= 1
