@@ -226,16 +226,16 @@ def test_run_level_sweep_settings_reach_the_generate_stage():
     listed one is overridden."""
     for extra in ([], ["experiment=paper"]):
         sweep = compose_stage("generate", generate_overrides(compose_stage("run", extra))).assessment.sweep
-        assert (sweep.max_extensions, sweep.refine) == (2, 1), extra  # the shipped default
+        assert (sweep.max_extensions, sweep.refine) == (0, 0), extra  # the shipped default: 4 cycles
         # phm-run has no assessment node of its own: its settings are added (+) and passed on (++)
         switches = [
-            "+assessment.sweep.max_extensions=0",
-            "+assessment.sweep.refine=0",
+            "+assessment.sweep.max_extensions=2",
+            "+assessment.sweep.refine=1",
             "+assessment.sweep.tolerance=0.01",
         ]
         cfg = compose_stage("run", [*extra, *switches])
         sweep = compose_stage("generate", generate_overrides(cfg)).assessment.sweep
-        assert (sweep.max_extensions, sweep.refine, sweep.tolerance) == (0, 0, 0.01), extra
+        assert (sweep.max_extensions, sweep.refine, sweep.tolerance) == (2, 1, 0.01), extra
     cfg = compose_stage("run", ["experiment=paper", "assessment.sweep.compile=false"])
     assert compose_stage("generate", generate_overrides(cfg)).assessment.sweep.compile is False
 
