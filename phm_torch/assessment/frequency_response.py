@@ -20,8 +20,9 @@ constants (a lightly damped degraded loop, the slow integrator pole: ~0.1 s on t
 after 4 cycles, -1.53 dB settled) and the labels depend on how the frequencies are batched. Near and above
 a degraded loop's resonance the small-amplitude response with backlash need not be periodic at all (the
 same actuator at 77 Hz: -8.7, -15.6, -13.3 dB after 4, 8, 64 cycles); those stay unsettled and are counted.
-The code's defaults are ``max_extensions`` 0, ``refine`` 0 (a store whose config records neither was labelled so);
-the shipped config sets 2 and 1.
+The code's defaults are ``max_extensions`` 0, ``refine`` 0 (a store whose config records neither was labelled so),
+and so is the shipped config: along run-to-failure paths settled readings put single non-periodic faulty readings
+that no classifier learns, at 4.85-14x the cost (docs/dataset.md, "Why it is not the default").
 
 Uncertain labels: the window before the last is read too (``LoopResponse.open_loop_before``/``closed_loop_before``),
 and :class:`~phm_torch.assessment.health.AssessmentFunction` labels it as well: a vector whose two labels differ
