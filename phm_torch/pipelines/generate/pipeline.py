@@ -237,6 +237,14 @@ def _metrics(
         # uncertain on ~26 % of the labels by design, the start transient deciding them the same way every time
         settling_on = assessment.sweep.max_extensions > 0
         many = share > UNCERTAIN_WARN
+        advice = ""
+        if many and settling_on:
+            advice = (
+                "; near the health boundary the labels are the sweep's reading: raise assessment.sweep.max_extensions "
+                "(or cycles for a slow loop)"
+            )
+        elif many:
+            advice = " (the 4-cycle reading; docs/dataset.md, 'Settling and refinement')"
         (log.warning if many and settling_on else log.info)(
             "assessment: %d of %d labels (%.1f %%) uncertain (the window before the last reads otherwise); %d "
             "responses extended, %d still moving after assessment.sweep.max_extensions=%d%s",
@@ -246,14 +254,7 @@ def _metrics(
             settling["extended"],
             settling["unsettled"],
             assessment.sweep.max_extensions,
-            (
-                "; near the health boundary the labels are the sweep's reading: raise assessment.sweep.max_extensions "
-                "(or cycles for a slow loop)"
-                if settling_on
-                else " (the 4-cycle reading; docs/dataset.md, 'Settling and refinement')"
-            )
-            if many
-            else "",
+            advice,
         )
     if timing and assessment.vectors:
         metrics["assessment_ms_per_vector"] = round(1000 * assessment.wall_s / assessment.vectors, 3)
