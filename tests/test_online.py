@@ -21,6 +21,7 @@ from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
 from phm_torch.surrogates.fdi_mlp import FDIMLP
 from phm_torch.surrogates.full_signal_check import FullSignalCheck
 from phm_torch.surrogates.gappy_pod import GappyPOD
+from phm_torch.surrogates.ood_calibration import plateau_threshold
 
 pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
@@ -437,3 +438,39 @@ def test_shape_statistics_flag_noise_clipping_and_crests_but_not_smooth_records(
     assert check.plateau(smooth[None]).item() < 0.005 < check.plateau(clipped).item()
     x = torch.cat([smooth[None], noise, clipped, smooth[None] + 0.01 * noise])
     assert check(x).tolist() == [False, True, True, False]  # 1 % noise is a measurement, not garbage
+
+
+def test_a_slow_crest_is_not_a_plateau_on_a_short_record_or_at_the_end_of_a_slow_chirp():
+    """The plateau threshold never asks for fewer than three sampled points on the plateau, and phm-train raises
+    it above the clean training records' own: a test command ending on a slow crest sampled at 10 kHz put 2-3
+    of 313 points within 0.1 % of the range from the maximum, and 9 % of such a training set was called clipped.
+    A record clipped at 70 % of its peak stays flagged (at 80 %: 97 % of them)."""
+    n = 5001  # 0.5 s at 10 kHz: 313 sampled points at stride 16
+    t = torch.linspace(0.0, 0.5, n, dtype=torch.float64)
+    phase = 2 * math.pi * 6.0 * t**2  # 0-6 Hz over 0.5 s: a last crest a few ms broad
+    g = torch.Generator().manual_seed(3)
+    amplitude = 3.0 + 0.3 * torch.rand(64, 1, dtype=torch.float64, generator=g)
+    offset = 2 * math.pi * torch.rand(64, 1, dtype=torch.float64, generator=g)
+    records = 1.0 + amplitude * torch.sin(phase + offset) * torch.exp(-(((t - 0.48) / 0.2) ** 2))
+    modes = torch.linalg.qr(torch.randn(n, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(0)))[0]
+    check = FullSignalCheck(modes, torch.zeros(n, dtype=torch.float64))
+    assert check.plateau_threshold == pytest.approx(2.5 / 313)
+    assert float(check.plateau(records).max()) > 2.5 / 313  # the physical default alone flags some
+    threshold = plateau_threshold(records, check, 0.999)
+    assert threshold > float(check.plateau(records).max())
+    calibrated = FullSignalCheck(modes, torch.zeros(n, dtype=torch.float64), plateau_threshold=threshold)
+    assert not calibrated(records).any()
+    clipped = torch.minimum(records, 0.7 * records.amax(1, keepdim=True))
+    assert calibrated(clipped).all()
+    clipped = torch.minimum(records, 0.8 * records.amax(1, keepdim=True))
+    assert float(calibrated(clipped).double().mean()) > 0.9
+    # records whose peak is sharp keep the physical default
+    short = torch.linspace(0.0, 1.0, 1001, dtype=torch.float64)
+    sharp = torch.exp(-(((short - 0.3) / 0.01) ** 2))[None].repeat(4, 1)
+    eye = torch.eye(1001, 2, dtype=torch.float64)
+    short_check = FullSignalCheck(eye, torch.zeros(1001, dtype=torch.float64))
+    assert short_check.plateau_threshold == pytest.approx(2.5 / 63)  # 0.5 % would be a third of one point
+    assert plateau_threshold(sharp, short_check, 0.999) == short_check.plateau_threshold
+    assert not short_check(sharp).any()
+    with pytest.raises(ValueError, match="ood_quantile"):
+        plateau_threshold(records, check, 1.5)

@@ -21,7 +21,6 @@ from torch import nn
 
 from ..prognostics.damage import DamageModel
 from ..surrogates.augment import noise_level
-from ..surrogates.full_signal_check import FullSignalCheck
 from ..surrogates.metrics import ECC_PHASE
 from .consistency import ConsistencyCheck
 from .fdi_interval import DEFAULT_CLASSES, DEFAULT_LEVEL
@@ -208,8 +207,7 @@ class OnlinePipeline(nn.Module, RULPropagation):
         forward surrogate when it has one: the consistency check, thresholds from ``consistency``, the
         ``{"thresholds", "noise_levels"}`` of :func:`~phm_torch.online.consistency.calibrate_consistency`;
         ``residual_limits`` that of :func:`~phm_torch.online.noise_threshold.calibrate_gappy_residual`)."""
-        threshold = float(bundle.full_residual_threshold)
-        check = FullSignalCheck(bundle.pod.modes_, bundle.pod.mean_, residual_threshold=threshold)
+        check = bundle.full_signal_check()
         return cls(
             bundle.gappy,
             bundle.network,

@@ -23,13 +23,21 @@ rest of the online step in a batch.
 
 The two shape thresholds are physical defaults, not training quantiles: a measurement from another
 bench (more ripple, ADC quantisation) should not be rejected for differing from this simulator in
-detail, only for not looking like an envelope current at all.
+detail, only for not looking like an envelope current at all. The plateau's is only ever raised: to three
+sampled points on a short record, and by ``phm-train`` above the training records' own where the
+actuator's test command ends on a slow crest (a 10 Hz chirp's last crest sampled at 10 kHz puts 2-3 of
+313 points within the tolerance of the maximum: 9 % of a clean training set was called clipped).
 """
 
 from __future__ import annotations
 
 import torch
 from torch import nn
+
+DEFAULT_PLATEAU_THRESHOLD = 0.005
+# a record's maximum is always on its plateau, and a slow crest puts a second sampled point within the
+# tolerance of it: a plateau needs a third (on a short record 0.5 % is fewer than one sampled point)
+PLATEAU_MIN_POINTS = 2.5
 
 
 class FullSignalCheck(nn.Module):
@@ -40,7 +48,9 @@ class FullSignalCheck(nn.Module):
         stride: use every ``stride``-th sample for the POD residual (>= 1).
         residual_threshold: POD residual (fraction) above which a record is foreign (inf: never).
         roughness_threshold: roughness above which a record is noise-dominated.
-        plateau_threshold: plateau fraction above which a record is clipped.
+        plateau_threshold: plateau fraction above which a record is clipped; raised to
+            ``PLATEAU_MIN_POINTS`` sampled points where the record has too few for it (``phm-train`` also
+            raises it above the training records' own, :func:`~.ood_calibration.plateau_threshold`).
         plateau_tolerance: distance from the maximum, as a fraction of the record's range, that counts
             as "on the plateau".
     """
@@ -52,7 +62,7 @@ class FullSignalCheck(nn.Module):
         stride: int = 16,
         residual_threshold: float = float("inf"),
         roughness_threshold: float = 1.0,
-        plateau_threshold: float = 0.005,
+        plateau_threshold: float = DEFAULT_PLATEAU_THRESHOLD,
         plateau_tolerance: float = 1e-3,
     ):
         super().__init__()
@@ -84,7 +94,7 @@ class FullSignalCheck(nn.Module):
         self.n_full = int(modes.shape[0])
         self.residual_threshold = float(residual_threshold)
         self.roughness_threshold = float(roughness_threshold)
-        self.plateau_threshold = float(plateau_threshold)
+        self.plateau_threshold = max(float(plateau_threshold), PLATEAU_MIN_POINTS / float(rows.shape[0]))
         self.plateau_tolerance = float(plateau_tolerance)
 
     def _check(self, signals: torch.Tensor) -> None:

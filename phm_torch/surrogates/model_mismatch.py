@@ -13,7 +13,6 @@ import torch
 
 from .augment import noise_level, rms
 from .bundle import SurrogateBundle
-from .full_signal_check import FullSignalCheck
 from .metrics import confusion, err_k, fdi_mae
 
 
@@ -52,9 +51,7 @@ def mismatch_metrics(
     spread = (reference.amax(1) - reference.amin(1)).clamp(min=1e-12)
     nrmse = rms(signals - reference) / spread
     dtype = bundle.pod.mean_.dtype
-    check = FullSignalCheck(
-        bundle.pod.modes_, bundle.pod.mean_, residual_threshold=float(bundle.full_residual_threshold)
-    )
+    check = bundle.full_signal_check()
     with torch.no_grad():
         # a noise-aware network is told each record's estimated noise, as the online pipeline does
         found = bundle.diagnose(bundle.compress(signals.to(dtype)), noise=noise_level(signals).to(dtype))

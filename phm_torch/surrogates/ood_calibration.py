@@ -51,3 +51,31 @@ def ood_thresholds(
         float(torch.quantile(torch.cat(gappy_resid), quantile)),
         float(torch.quantile(torch.cat(full_resid), quantile)),
     )
+
+
+def plateau_threshold(
+    signals: torch.Tensor, check: FullSignalCheck, quantile: float, margin: float = 1.5, block_rows: int = 8192
+) -> float:
+    """The plateau threshold of a trained pipeline: the check's own (physical default) unless the clean training
+    records reach ``quantile`` of it, then ``margin`` times their quantile.
+
+    Clean records, not noisy ones: noise breaks a smooth crest into separate samples (a lower plateau) but
+    leaves a clipped record's flat top flat, so the clean records bound what a valid record can reach.
+
+    Args:
+        signals: (n, n_e) training records [A].   check: the full-record check (its plateau statistic).
+        quantile: the quantile taken, in [0, 1] (``eval.ood_quantile``).
+        margin: factor above the training quantile (> 1: one sampled point more than the training set's
+            worst lies within it on a ~300-point record).
+        block_rows: records checked at a time.
+    """
+    if not 0.0 <= quantile <= 1.0:
+        raise ValueError(f"eval.ood_quantile must be in [0, 1], got {quantile!r}")
+    if not margin >= 1.0:
+        raise ValueError(f"plateau margin must be >= 1, got {margin!r}")
+    with torch.no_grad():
+        blocks = [check.plateau(signals[i : i + block_rows]) for i in range(0, signals.shape[0], block_rows)]
+    plateau = torch.cat(blocks).to(torch.float64) if blocks else torch.empty(0)
+    if plateau.numel() == 0:
+        return check.plateau_threshold
+    return max(check.plateau_threshold, margin * float(torch.quantile(plateau, quantile)))
