@@ -141,6 +141,9 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     # the verdict's Platt scaling (on the noisy val records) travels the same way, and phm-predict reports it
     a, b = calibration["verdict"]
     assert saved["evaluate"]["verdict_calibration"] == [a, b]
+    # and the fault rate it was calibrated at, which phm-track's verdict evidence reads from either file
+    assert 0.0 < recorded["verdict_prior_faulty"] == calibration["verdict_prior_faulty"] < 1.0
+    assert read_metadata(tmp_path / "export" / "online.pt")["verdict_prior_faulty"] == recorded["verdict_prior_faulty"]
     assert float(first.verdict_scale) == pytest.approx(a, rel=1e-6)  # the pipeline's dtype
     assert float(objects["pipeline"].verdict_offset) == pytest.approx(b, rel=1e-6, abs=1e-7)
     assert 0.0 <= saved["evaluate"]["verdict_brier"] <= 1.0

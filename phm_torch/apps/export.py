@@ -16,7 +16,7 @@ from omegaconf import DictConfig
 
 from .. import provenance
 from ..online import OnlinePipeline
-from ..online.export import read_metadata
+from ..online.export import calibration_metadata, read_metadata
 from ..online.formats import check_dtype, check_formats, in_dtype, write_checked
 from ..online.from_torchscript import rewrite_pipeline
 from ..surrogates.bundle import SurrogateBundle
@@ -184,18 +184,7 @@ def export(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             cal_path,
         )
     out = Path(cfg.out)
-    extra = {
-        key: cal[key]
-        # the input contract's, and the fault rate P(faulty) was calibrated at (phm-track's verdict evidence)
-        for key in (
-            "tracking_nrmse",
-            "tracking_nrmse_healthy",
-            "shape_correlation_min",
-            "unexplained_ratio_max",
-            "verdict_prior_faulty",
-        )
-        if cal.get(key) is not None
-    }
+    extra = calibration_metadata(cal)
     extra["damage"] = _damage(cal, cfg, cal_path)  # the tracker's process model (phm-track)
     for key in ("drive_current_bound", "assessment"):  # the input contract's overcurrent; phm-track's phi_a check
         if bundle.extra.get(key) is not None:

@@ -16,6 +16,22 @@ from .pipeline import OnlinePipeline
 
 METADATA_FILE = "phm_metadata.json"  # the extra file of the archive with the pipeline's provenance
 FDI_PROGRAM = "fdi"  # an aoti package's FDI alone: complete selected samples (B, n_points) -> k_hat (B, 8)
+# rul_calibration.json's entries an exported pipeline's metadata carries, whichever app exports it (phm-evaluate
+# or phm-export): the input contract's thresholds and the fault rate P(faulty) was calibrated at (phm-track's
+# verdict evidence)
+CALIBRATION_METADATA = (
+    "tracking_nrmse",
+    "tracking_nrmse_healthy",
+    "shape_correlation_min",
+    "unexplained_ratio_max",
+    "verdict_prior_faulty",
+)
+
+
+def calibration_metadata(calibration: Mapping[str, Any]) -> dict[str, Any]:
+    """The :data:`CALIBRATION_METADATA` entries of a calibration record (rul_calibration.json's content) that
+    are set."""
+    return {key: calibration[key] for key in CALIBRATION_METADATA if calibration.get(key) is not None}
 
 
 def export_torchscript(

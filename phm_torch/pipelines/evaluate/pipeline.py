@@ -22,6 +22,7 @@ from ...faults import FAULT_NAMES
 from ...io.atomic import write_json
 from ...online import OnlinePipeline
 from ...online.consistency import calibrate_consistency
+from ...online.export import calibration_metadata
 from ...online.fdi_interval import interval_quality
 from ...online.input_contract import calibrate_shape_min
 from ...online.noise_threshold import calibrate_gappy_residual
@@ -182,12 +183,9 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
     metrics["unexplained_ratio_max"] = c.unexplained
     export_metadata = {
         "provenance": prov,
-        "tracking_nrmse": inp.tracking,
-        "tracking_nrmse_healthy": inp.tracking_healthy,
+        **calibration_metadata(calibration),  # as phm-export writes them: verdict_prior_faulty included
         "identifiability": c.r2,
         "drive_current_bound": inp.bundle.extra.get("drive_current_bound"),  # the input contract's overcurrent
-        "shape_correlation_min": c.shape_min,  # the input contract's shape check
-        "unexplained_ratio_max": c.unexplained,  # its unexplained check
         "assessment": inp.bundle.extra.get("assessment"),  # the phi_a its classifiers learned (phm-track checks it)
         "damage": dict(settings.damage),  # phm-track's process model
     }
