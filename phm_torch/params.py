@@ -120,11 +120,8 @@ class ActuatorParams:
                 f"actuator.static_friction ({self.static_friction}) must be >= "
                 f"coulomb_friction ({self.coulomb_friction})"
             )
-        if (
-            self.sample_rate % 1
-            or (2 * self.pwm_frequency) % self.sample_rate
-            and self.sample_rate % self.pwm_frequency
-        ):
+        # the acquisition grid falls on control periods (a divisor) or on substeps of each (a multiple)
+        if self.sample_rate % 1 or self.pwm_frequency % self.sample_rate and self.sample_rate % self.pwm_frequency:
             raise ValueError(
                 f"actuator.sample_rate ({self.sample_rate}) must be a multiple or divisor "
                 f"of pwm_frequency ({self.pwm_frequency})"

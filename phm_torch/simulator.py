@@ -20,7 +20,7 @@ from .params import ActuatorParams
 from .physics import energy as energy_balance
 from .physics.controller import ControlState, controller_step
 from .physics.mechanics import MechState, mechanics_step
-from .physics.motor import MOTORS
+from .physics.motor import MOTORS, default_substeps
 from .physics.sensors import ButterworthFilter, lvdt_step
 from .plant import Plant, build_plant
 from .sim_state import SimState
@@ -66,7 +66,7 @@ class EMASimulator:
         fidelity: a motor model of ``physics.motor.MOTORS``: ``"hf"`` or ``"lf"``.
         effects: list of effects or a ``{name: {param: value}}`` mapping.
         substeps: substeps per PWM period (default the motor's ``default_substeps``: 10 for HF -> 10 us,
-            2 for LF -> 50 us).
+            2 for LF -> 50 us; raised to a multiple of the samples per period, ``physics.motor.default_substeps``).
         dtype, device: tensor placement; float64 by default (the backlash is ~1e-3 of the stroke).
         compile: fuse with ``torch.compile`` (same equations, equal to eager within 1e-9): each HF
             substep, or each whole LF period; several times faster for large batches after a one-off
@@ -88,7 +88,7 @@ class EMASimulator:
         self.params = params
         self.fidelity = fidelity
         motor = MOTORS[fidelity]
-        self.motor = motor(substeps or motor.default_substeps)
+        self.motor = motor(substeps or default_substeps(motor, params.pwm_frequency, params.sample_rate))
         # copies on the simulation dtype/device (grads kept): the caller's effects are left as given
         given = build_effects(effects) if effects is None or isinstance(effects, Mapping) else effects
         self.effects = [eff.to(dtype, device) for eff in given]

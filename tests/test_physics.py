@@ -269,6 +269,34 @@ def test_a_slower_acquisition_reads_the_same_actuator(fidelity):
         assert torch.equal(slow.channels[channel], fast.channels[channel][:, ::every]), channel
 
 
+@pytest.mark.parametrize("fidelity", ["hf", "lf"])
+@pytest.mark.parametrize("per_period", [3, 4])
+def test_a_faster_acquisition_refines_the_substeps_and_reads_the_same_actuator(fidelity, per_period):
+    """Sampled at 3 or 4 times its PWM frequency (30 / 40 kHz: not a whole number of the fidelity's default
+    substeps, which refused the actuator), the simulator takes the least multiple of both (HF 30 / 20, LF 6 / 4
+    substeps) and every 3rd / 2nd sample of the record is the 20 kHz record within 0.5 % (a finer step of the same
+    equations)."""
+    import dataclasses
+
+    p = load_actuator()
+    k = torch.zeros(2, 8, dtype=torch.float64)
+    k[:, 6:] = 0.5
+    k[1, 2] = 0.3
+    base = EMASimulator(p, fidelity)
+    fast_p = dataclasses.replace(p, sample_rate=per_period * p.pwm_frequency)
+    fast = EMASimulator(fast_p, fidelity)
+    assert fast.motor.substeps == math.lcm(base.motor.substeps, per_period)
+    a, b = base.run(k, Chirp(), 0.02), fast.run(k, Chirp(), 0.02)
+    common = math.gcd(round(p.sample_rate), round(fast_p.sample_rate))  # 10 kHz for 30 kHz, 20 kHz for 40 kHz
+    a_c = a.channels["current"][:, :: round(p.sample_rate) // common]
+    b_c = b.channels["current"][:, :: round(fast_p.sample_rate) // common]
+    assert a_c.shape == b_c.shape
+    nrmse = (a_c - b_c).pow(2).mean(1).sqrt() / a_c.pow(2).mean(1).sqrt()
+    assert (nrmse < 5e-3).all(), nrmse
+    with pytest.raises(ValueError, match="multiple or divisor"):
+        dataclasses.replace(p, sample_rate=0.4 * p.pwm_frequency)  # 4 kHz: samples between control periods
+
+
 def test_compiled_substep_equals_eager():
     k = torch.tensor([NOM, [0.3, 0.5, 0.2, 0.1, 0.0, 0.6, 0.9, 0.2]])
     eager = EMASimulator(P, "lf").run(k, CHIRP, 0.01)

@@ -8,6 +8,7 @@ default substep and what one compiled graph covers.
 
 from __future__ import annotations
 
+import math
 from typing import ClassVar, Protocol, runtime_checkable
 
 import torch
@@ -81,3 +82,14 @@ class Motor(Protocol):
 
 
 MOTORS: dict[str, type[Motor]] = {cls.fidelity: cls for cls in (BLDCMotor, DCMotor)}
+
+
+def default_substeps(motor: type[Motor], pwm_frequency: float, sample_rate: float) -> int:
+    """Substeps per PWM period when the caller gives none: the fidelity's default, raised to a multiple of the
+    acquisition samples per period (sample_rate / pwm_frequency, when it is a whole number above 1) so that
+    every sample falls on a substep boundary (a 40 kHz acquisition of a 10 kHz HF drive: 20, not 10)."""
+    per_period = sample_rate / pwm_frequency
+    whole = round(per_period)
+    if whole > 1 and abs(per_period - whole) < 1e-9:
+        return math.lcm(motor.default_substeps, whole)
+    return motor.default_substeps
