@@ -21,7 +21,7 @@ from phm_torch.surrogates.classifiers.polynomial_svm import PolynomialSVM
 from phm_torch.surrogates.fdi_mlp import FDIMLP
 from phm_torch.surrogates.full_signal_check import FullSignalCheck
 from phm_torch.surrogates.gappy_pod import GappyPOD
-from phm_torch.surrogates.ood_calibration import plateau_threshold
+from phm_torch.surrogates.ood_calibration import shape_thresholds
 
 pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
 
@@ -456,9 +456,12 @@ def test_a_slow_crest_is_not_a_plateau_on_a_short_record_or_at_the_end_of_a_slow
     check = FullSignalCheck(modes, torch.zeros(n, dtype=torch.float64))
     assert check.plateau_threshold == pytest.approx(2.5 / 313)
     assert float(check.plateau(records).max()) > 2.5 / 313  # the physical default alone flags some
-    threshold = plateau_threshold(records, check, 0.999)
+    rough, threshold = shape_thresholds(records, check, 0.999)
+    assert rough == check.roughness_threshold  # smooth records: the physical default
     assert threshold > float(check.plateau(records).max())
-    calibrated = FullSignalCheck(modes, torch.zeros(n, dtype=torch.float64), plateau_threshold=threshold)
+    calibrated = FullSignalCheck(
+        modes, torch.zeros(n, dtype=torch.float64), roughness_threshold=rough, plateau_threshold=threshold
+    )
     assert not calibrated(records).any()
     clipped = torch.minimum(records, 0.7 * records.amax(1, keepdim=True))
     assert calibrated(clipped).all()
@@ -470,7 +473,30 @@ def test_a_slow_crest_is_not_a_plateau_on_a_short_record_or_at_the_end_of_a_slow
     eye = torch.eye(1001, 2, dtype=torch.float64)
     short_check = FullSignalCheck(eye, torch.zeros(1001, dtype=torch.float64))
     assert short_check.plateau_threshold == pytest.approx(2.5 / 63)  # 0.5 % would be a third of one point
-    assert plateau_threshold(sharp, short_check, 0.999) == short_check.plateau_threshold
+    assert shape_thresholds(sharp, short_check, 0.999)[1] == short_check.plateau_threshold
     assert not short_check(sharp).any()
     with pytest.raises(ValueError, match="ood_quantile"):
-        plateau_threshold(records, check, 1.5)
+        shape_thresholds(records, check, 1.5)
+
+
+def test_a_coarsely_sampled_record_is_not_noise_and_white_noise_still_is():
+    """phm-train raises the roughness threshold above the clean training records' own (a smooth current sampled a
+    few times above its content is rough from sample to sample: the reference's heaviest fault reads 0.25 at
+    20 kHz and 0.76 at 5 kHz), at most to 1.3: white noise (sqrt 2) is flagged whatever the training set."""
+    n = 2001
+    t = torch.arange(n, dtype=torch.float64)
+    g = torch.Generator().manual_seed(4)
+    fast = 0.17 + 0.02 * torch.rand(32, 1, dtype=torch.float64, generator=g)  # cycles per sample
+    records = torch.sin(2 * math.pi * 0.002 * t) + 0.9 * torch.sin(2 * math.pi * fast * t)
+    modes = torch.eye(n, 2, dtype=torch.float64)
+    check = FullSignalCheck(modes, torch.zeros(n, dtype=torch.float64))
+    roughness = check.roughness(records)
+    assert 0.5 < float(roughness.min()) and float(roughness.max()) < 1.0  # valid, below the physical default
+    rough, _ = shape_thresholds(records, check, 0.999)
+    assert 1.0 < rough == pytest.approx(min(1.3, 1.5 * float(torch.quantile(roughness, 0.999))))
+    rougher = torch.sin(2 * math.pi * 0.002 * t) + 2.0 * torch.sin(2 * math.pi * 0.2 * t)  # the same kind, 1.14
+    calibrated = FullSignalCheck(modes, torch.zeros(n, dtype=torch.float64), roughness_threshold=rough)
+    assert check.roughness(rougher[None]).item() > 1.0 and not calibrated(rougher[None]).item()
+    noise = torch.randn(1, n, dtype=torch.float64, generator=g)
+    assert calibrated.roughness(noise).item() > 1.3 and calibrated(noise).item()
+    assert shape_thresholds(3.0 * noise.repeat(4, 1), check, 0.999)[0] == 1.3  # never above the cap

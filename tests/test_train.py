@@ -136,6 +136,8 @@ def test_bundle_round_trip(lm_run, store):
     assert 0.0 < written["ood_full_residual_threshold"] < 1.0
     assert float(bundle.plateau_threshold) == pytest.approx(written["ood_plateau_threshold"])
     assert bundle.full_signal_check().plateau_threshold == pytest.approx(written["ood_plateau_threshold"])
+    assert bundle.full_signal_check().roughness_threshold == pytest.approx(written["ood_roughness_threshold"])
+    assert 1.0 <= written["ood_roughness_threshold"] <= 1.3
     # the verdict on estimates comes from the verdict classifier, fitted on the training records' estimates
     assert bundle.verdict_classifier is not None and bundle.verdict_classifier.name == bundle.classifier.name
     torch.testing.assert_close(bundle.verdict_score(arrays["k_hat"]), arrays["score_chain"].to(torch.float64))

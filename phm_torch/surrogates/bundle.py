@@ -57,7 +57,7 @@ from .classifiers import HealthClassifier, build_classifier
 from .fdi_ensemble import FDIEnsemble, build_fdi_network
 from .fdi_mlp import FDIMLP
 from .forward import ForwardSurrogate
-from .full_signal_check import DEFAULT_PLATEAU_THRESHOLD, FullSignalCheck
+from .full_signal_check import DEFAULT_PLATEAU_THRESHOLD, DEFAULT_ROUGHNESS_THRESHOLD, FullSignalCheck
 from .gappy_pod import GappyPOD
 from .pod import POD
 
@@ -90,8 +90,8 @@ class SurrogateBundle(nn.Module):
             the verdict on a measured actuator; None: ``classifier`` gives it too.
         forward_model: fitted :class:`~.forward.ForwardSurrogate` k -> alpha, the online consistency check's
             (analysis by synthesis, :mod:`phm_torch.online.consistency`); None: no such check.
-        plateau_threshold: plateau fraction of a full record above which it is clipped (the check's physical
-            default for bundles saved without one).
+        roughness_threshold, plateau_threshold: the full-record check's shape thresholds
+            (:func:`~.ood_calibration.shape_thresholds`; its physical defaults for bundles saved without them).
     """
 
     __jit_unused_properties__: ClassVar[list[str]] = [
@@ -115,6 +115,7 @@ class SurrogateBundle(nn.Module):
         nominal_record: torch.Tensor | None = None,
         verdict_classifier: HealthClassifier | None = None,
         forward_model: ForwardSurrogate | None = None,
+        roughness_threshold: float = DEFAULT_ROUGHNESS_THRESHOLD,
         plateau_threshold: float = DEFAULT_PLATEAU_THRESHOLD,
     ):
         super().__init__()
@@ -133,6 +134,7 @@ class SurrogateBundle(nn.Module):
         self.register_buffer("sample_times", self.gappy.indices.to(torch.float64) / self.sample_rate)
         self.register_buffer("residual_threshold", torch.tensor(float(residual_threshold)))
         self.register_buffer("full_residual_threshold", torch.tensor(float(full_residual_threshold)))
+        self.register_buffer("roughness_threshold", torch.tensor(float(roughness_threshold)))
         self.register_buffer("plateau_threshold", torch.tensor(float(plateau_threshold)))
         if nominal_record is not None and tuple(nominal_record.shape) != tuple(pod.mean_.shape):
             raise ValueError(
@@ -147,6 +149,7 @@ class SurrogateBundle(nn.Module):
             self.pod.modes_,
             self.pod.mean_,
             residual_threshold=float(self.full_residual_threshold),
+            roughness_threshold=float(self.roughness_threshold),
             plateau_threshold=float(self.plateau_threshold),
         )
 
@@ -271,6 +274,7 @@ class SurrogateBundle(nn.Module):
             sample_times=self.sample_times.cpu(),
             residual_threshold=self.residual_threshold.cpu(),
             full_residual_threshold=self.full_residual_threshold.cpu(),
+            roughness_threshold=self.roughness_threshold.cpu(),
             plateau_threshold=self.plateau_threshold.cpu(),
         )
         tensors.update({f"gappy.{k}": v for k, v in self.gappy_statistics.items()})
@@ -372,6 +376,7 @@ class SurrogateBundle(nn.Module):
             t.get("nominal_record"),
             verdict,
             forward_model.eval() if forward_model else None,
+            float(t.get("roughness_threshold", DEFAULT_ROUGHNESS_THRESHOLD)),
             float(t.get("plateau_threshold", DEFAULT_PLATEAU_THRESHOLD)),
         )
         return bundle.eval()

@@ -23,10 +23,12 @@ rest of the online step in a batch.
 
 The two shape thresholds are physical defaults, not training quantiles: a measurement from another
 bench (more ripple, ADC quantisation) should not be rejected for differing from this simulator in
-detail, only for not looking like an envelope current at all. The plateau's is only ever raised: to three
-sampled points on a short record, and by ``phm-train`` above the training records' own where the
-actuator's test command ends on a slow crest (a 10 Hz chirp's last crest sampled at 10 kHz puts 2-3 of
-313 points within the tolerance of the maximum: 9 % of a clean training set was called clipped).
+detail, only for not looking like an envelope current at all. They are only ever raised: the plateau's
+to three sampled points on a short record, and both by ``phm-train`` above the clean training records'
+own (:func:`~.ood_calibration.shape_thresholds`) where the actuator's sampling makes them reach it: a
+test command ending on a slow crest (a 10 Hz chirp's last crest sampled at 10 kHz puts 2-3 of 313 points
+within the tolerance of the maximum: 9 % of a clean training set was called clipped), a sample rate a few
+times the filter's cutoff (roughness grows as the rate falls).
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+DEFAULT_ROUGHNESS_THRESHOLD = 1.0
 DEFAULT_PLATEAU_THRESHOLD = 0.005
 # a record's maximum is always on its plateau, and a slow crest puts a second sampled point within the
 # tolerance of it: a plateau needs a third (on a short record 0.5 % is fewer than one sampled point)
@@ -47,10 +50,11 @@ class FullSignalCheck(nn.Module):
         modes: POD modes (n_e, n_m).   mean: mean record (n_e,) [A].
         stride: use every ``stride``-th sample for the POD residual (>= 1).
         residual_threshold: POD residual (fraction) above which a record is foreign (inf: never).
-        roughness_threshold: roughness above which a record is noise-dominated.
+        roughness_threshold: roughness above which a record is noise-dominated (``phm-train`` raises it above
+            the training records' own where the sampling is coarse).
         plateau_threshold: plateau fraction above which a record is clipped; raised to
             ``PLATEAU_MIN_POINTS`` sampled points where the record has too few for it (``phm-train`` also
-            raises it above the training records' own, :func:`~.ood_calibration.plateau_threshold`).
+            raises it above the training records' own, :func:`~.ood_calibration.shape_thresholds`).
         plateau_tolerance: distance from the maximum, as a fraction of the record's range, that counts
             as "on the plateau".
     """
@@ -61,7 +65,7 @@ class FullSignalCheck(nn.Module):
         mean: torch.Tensor,
         stride: int = 16,
         residual_threshold: float = float("inf"),
-        roughness_threshold: float = 1.0,
+        roughness_threshold: float = DEFAULT_ROUGHNESS_THRESHOLD,
         plateau_threshold: float = DEFAULT_PLATEAU_THRESHOLD,
         plateau_tolerance: float = 1e-3,
     ):

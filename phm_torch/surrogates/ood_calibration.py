@@ -12,6 +12,9 @@ import torch
 
 from .augment import add_noise, rms
 from .full_signal_check import FullSignalCheck
+
+# the most the roughness threshold is raised to: white noise (sqrt 2) stays above it whatever the sampling
+ROUGHNESS_MAX = 1.3
 from .gappy_pod import GappyPOD
 
 
@@ -53,29 +56,42 @@ def ood_thresholds(
     )
 
 
-def plateau_threshold(
+def shape_thresholds(
     signals: torch.Tensor, check: FullSignalCheck, quantile: float, margin: float = 1.5, block_rows: int = 8192
-) -> float:
-    """The plateau threshold of a trained pipeline: the check's own (physical default) unless the clean training
-    records reach ``quantile`` of it, then ``margin`` times their quantile.
+) -> tuple[float, float]:
+    """The roughness and plateau thresholds of a trained pipeline: each the check's own (a physical default)
+    unless the clean training records reach ``quantile`` of it, then ``margin`` times their quantile.
 
-    Clean records, not noisy ones: noise breaks a smooth crest into separate samples (a lower plateau) but
-    leaves a clipped record's flat top flat, so the clean records bound what a valid record can reach.
+    Both statistics depend on the sampling as much as on the signal: the roughness of a smooth record grows as
+    the sample rate falls (the reference's heaviest fault: 0.25 at 20 kHz, 0.76 at 5 kHz), and a test command
+    that ends on a slow crest puts several sampled points within the plateau's tolerance of the maximum (a
+    0-10 Hz chirp at 10 kHz: 9 % of the clean training records above 0.5 %). Clean records, not noisy ones:
+    noise breaks a smooth crest into separate samples but leaves a clipped record's flat top flat, and a
+    record rougher than the clean training set's roughest by half again is noise-dominated whatever its rate.
 
     Args:
-        signals: (n, n_e) training records [A].   check: the full-record check (its plateau statistic).
+        signals: (n, n_e) training records [A].   check: the full-record check (its shape statistics).
         quantile: the quantile taken, in [0, 1] (``eval.ood_quantile``).
-        margin: factor above the training quantile (> 1: one sampled point more than the training set's
-            worst lies within it on a ~300-point record).
+        margin: factor above the training quantile (>= 1; 1.5: one sampled point more than the training set's
+            worst lies within the plateau on a ~300-point record).
         block_rows: records checked at a time.
+
+    Returns:
+        (roughness threshold (at most ``ROUGHNESS_MAX`` when raised), plateau threshold).
     """
     if not 0.0 <= quantile <= 1.0:
         raise ValueError(f"eval.ood_quantile must be in [0, 1], got {quantile!r}")
     if not margin >= 1.0:
-        raise ValueError(f"plateau margin must be >= 1, got {margin!r}")
+        raise ValueError(f"shape threshold margin must be >= 1, got {margin!r}")
+    rough, plateau = [], []
     with torch.no_grad():
-        blocks = [check.plateau(signals[i : i + block_rows]) for i in range(0, signals.shape[0], block_rows)]
-    plateau = torch.cat(blocks).to(torch.float64) if blocks else torch.empty(0)
-    if plateau.numel() == 0:
-        return check.plateau_threshold
-    return max(check.plateau_threshold, margin * float(torch.quantile(plateau, quantile)))
+        for start in range(0, signals.shape[0], block_rows):
+            _, r, p = check.statistics(signals[start : start + block_rows])
+            rough.append(r.to(torch.float64))
+            plateau.append(p.to(torch.float64))
+    out = []
+    for values, default in ((rough, check.roughness_threshold), (plateau, check.plateau_threshold)):
+        v = torch.cat(values) if values else torch.empty(0, dtype=torch.float64)
+        v = v[torch.isfinite(v)]  # a flat record has no roughness
+        out.append(default if v.numel() == 0 else max(default, margin * float(torch.quantile(v, quantile))))
+    return max(check.roughness_threshold, min(out[0], ROUGHNESS_MAX)), out[1]

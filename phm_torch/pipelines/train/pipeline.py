@@ -27,7 +27,7 @@ from ...surrogates.evaluate import evaluate_classifier, evaluate_fdi, measure_la
 from ...surrogates.forward import fit_forward_check
 from ...surrogates.full_signal_check import FullSignalCheck
 from ...surrogates.metrics import err_k
-from ...surrogates.ood_calibration import ood_thresholds, plateau_threshold
+from ...surrogates.ood_calibration import ood_thresholds, shape_thresholds
 from ...surrogates.selectors.base import Selector
 from .classifiers import fit_classifiers, store_labeller
 from .data import Reduction, StoreData, fit_reduction, load_data
@@ -74,14 +74,17 @@ def evaluate(
     threshold, full_threshold = ood_thresholds(
         calibrating, gappy, FullSignalCheck(pod.modes_, pod.mean_), ev.noise, ev.ood_quantile, seed + 7
     )
-    plateau = plateau_threshold(calibrating, FullSignalCheck(pod.modes_, pod.mean_), ev.ood_quantile)
-    check = FullSignalCheck(pod.modes_, pod.mean_, residual_threshold=full_threshold, plateau_threshold=plateau)
+    rough, plateau = shape_thresholds(calibrating, FullSignalCheck(pod.modes_, pod.mean_), ev.ood_quantile)
+    check = FullSignalCheck(
+        pod.modes_, pod.mean_, residual_threshold=full_threshold, roughness_threshold=rough, plateau_threshold=plateau
+    )
     with torch.no_grad():  # report how much of the (clean) val records the full-record check rejects
         full_ood_val = float(check(val.current).double().mean()) if len(val) else float("nan")
     ood = {
         "ood_residual_threshold": threshold,
         "ood_rate_val": float((arrays["residual"] > threshold).float().mean()),
         "ood_full_residual_threshold": full_threshold,
+        "ood_roughness_threshold": rough,
         "ood_plateau_threshold": plateau,
         "ood_full_rate_val": full_ood_val,
     }
@@ -121,6 +124,7 @@ def make_bundle(
             "assessment": (data.info["metadata"].get("config") or {}).get("assessment"),  # the labels' phi_a
         },
         full_residual_threshold=ood["ood_full_residual_threshold"],
+        roughness_threshold=ood["ood_roughness_threshold"],
         plateau_threshold=ood["ood_plateau_threshold"],
         gappy_statistics=red.statistics,
         nominal_record=data.info["nominal"],
