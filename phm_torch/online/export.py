@@ -25,6 +25,7 @@ CALIBRATION_METADATA = (
     "shape_correlation_min",
     "unexplained_ratio_max",
     "verdict_prior_faulty",
+    "spike_step_max",
 )
 
 

@@ -52,7 +52,7 @@ From the current, against the noise calibration and the training model's nominal
   * ``shape`` (no large fault) - the record's correlation with the nominal record below ``SHAPE_MIN``, or below
     the pipeline's own calibrated threshold (``shape_correlation_min``, :func:`calibrate_shape_min`) when lower;
   * ``spikes`` (no large fault) - a second difference far above the record's noise and above the steps the
-    filtered current takes itself.
+    filtered current takes itself (:mod:`.spike_check`; the pipeline's own ``spike_step_max`` when higher).
 
 A record whose k_hat has large faults skips the shape and spike comparisons: heavy faults reshape the record (24
 val-like vectors: correlation with the nominal record down to 0.22); the consistency of such an answer is the
@@ -60,7 +60,7 @@ forward surrogate's (``inconsistent``). The rest window stays the nominal one's 
 shorted pair (:mod:`.rest_offset_check`; the 0.9 of its RMS measured once came from two phases shorted at 0.8 and
 0.63). The thresholds were measured on clean records of the reference actuator (``scripts/corruption_suite.py``,
 docs/prognostics.md): over 24 random fault vectors at 0-3 % noise, records with no large fault in k_hat correlate
->= 0.968 with the nominal one, sit within 0.012 of its RMS over the rest window, and step by at most 0.39 of it.
+>= 0.968 with the nominal one and sit within 0.012 of its RMS over the rest window.
 """
 
 from __future__ import annotations
@@ -77,6 +77,7 @@ from .command_check import CommandCheck, check_command
 from .corruptions import Record
 from .rest_offset_check import REST_MIN, rest_offset, rest_window
 from .run_checks import run_reasons
+from .spike_check import SPIKE_STEP, has_spikes
 from .unexplained_check import UNEXPLAINED_RATIO, checked, unexplained_ratio
 
 PIPELINE_CHECKS = ("missing", "flat", "gappy_residual", "pod_residual", "roughness", "plateau", "inconsistent")
@@ -94,8 +95,6 @@ SHAPE_MIN = 0.9  # correlation with the nominal record (the most a calibrated pi
 SHAPE_MARGIN = 1.5  # a calibrated threshold: 1 - this x (1 - the lowest correlation of the held-out records)
 NOISE_MAX = 0.1  # relative noise limit of a pipeline that does not record its calibrated levels
 NOISE_MARGIN = 1.5  # the intervals are held at their highest calibrated level up to this factor above it
-SPIKE_SIGMA = 12.0  # a spike: a second difference above this many noise std of a second difference...
-SPIKE_STEP = 0.8  # ... and above this fraction of the nominal RMS current (the current's own steps)
 MIN_PRESENT = 0.9  # a command or position column is checked on its finite samples if at least this share is finite
 
 
@@ -121,6 +120,12 @@ def _large_faults(model: Any, k_hat: torch.Tensor | None) -> int | None:
     return int((((k_hat.to(nominal.dtype).flatten() - nominal).abs() * mask) > level).sum())
 
 
+def no_large_fault(model: Any, k_hat: torch.Tensor) -> torch.Tensor:
+    """(B,) bool: the estimates k_hat (B, 8) with no large fault, as the pipeline's intervals count them (the
+    records the near-nominal checks apply to)."""
+    return torch.tensor([_large_faults(model, k) == 0 for k in k_hat], dtype=torch.bool)
+
+
 def calibrate_shape_min(model: Any, signals: torch.Tensor, k_hat: torch.Tensor) -> float | None:
     """The ``shape`` check's threshold for a pipeline, from held-out records (B, n_full) [A] and its estimates
     k_hat (B, 8): 1 - SHAPE_MARGIN x (1 - the lowest correlation with the nominal record among the records whose
@@ -130,7 +135,7 @@ def calibrate_shape_min(model: Any, signals: torch.Tensor, k_hat: torch.Tensor) 
     nominal = getattr(model, "nominal_record", None)
     if nominal is None or signals.shape[0] == 0 or nominal.numel() != signals.shape[1]:
         return None
-    none_large = torch.tensor([_large_faults(model, k) == 0 for k in k_hat], dtype=torch.bool)
+    none_large = no_large_fault(model, k_hat)
     if not bool(none_large.any()):
         return None
     corr = nominal_correlation(signals[none_large].double(), nominal.double())
@@ -236,6 +241,7 @@ class InputContract:
     shape_min: float = SHAPE_MIN  # the ``shape`` check's lowest correlation (metadata ``shape_correlation_min``)
     residual_floor: float | None = None  # [A] the ``unexplained`` check's r_0 (None: unchecked; diagnosis.contract_for)
     unexplained_ratio: float = UNEXPLAINED_RATIO  # its threshold (metadata ``unexplained_ratio_max``: never lower)
+    spike_step: float = SPIKE_STEP  # the ``spikes`` check's step (metadata ``spike_step_max``: never lower)
 
     @classmethod
     def of(
@@ -248,7 +254,7 @@ class InputContract:
         nominal = getattr(model, "nominal_record", None)
         usable = nominal is not None and bool(torch.isfinite(nominal).all()) and float(nominal.abs().max()) > 0
         bound, shape = metadata.get("drive_current_bound"), metadata.get("shape_correlation_min")
-        ratio = metadata.get("unexplained_ratio_max")
+        ratio, step = metadata.get("unexplained_ratio_max"), metadata.get("spike_step_max")
         return cls(
             command,
             tracking,
@@ -258,6 +264,7 @@ class InputContract:
             None if bound is None else float(bound),
             SHAPE_MIN if shape is None else min(SHAPE_MIN, float(shape)),
             unexplained_ratio=UNEXPLAINED_RATIO if ratio is None else max(UNEXPLAINED_RATIO, float(ratio)),
+            spike_step=SPIKE_STEP if step is None else max(SPIKE_STEP, float(step)),
         )
 
     def _tracking(self, record: Record, healthy: bool | None = None) -> dict[str, Any]:
@@ -321,10 +328,7 @@ class InputContract:
             reasons.append("unexplained")
         if not bool(nominal_correlation(x, nominal) >= self.shape_min):
             reasons.append("shape")
-        d2 = (x[2:] - 2.0 * x[1:-1] + x[:-2]).abs()
-        d2 = d2[torch.isfinite(d2)]
-        # sqrt(6) sigma: the std of a second difference of white noise
-        if d2.numel() and float(d2.max()) > max(SPIKE_SIGMA * math.sqrt(6.0) * sigma, SPIKE_STEP * scale):
+        if has_spikes(x, sigma, scale, self.spike_step):
             reasons.append("spikes")
         return reasons
 

@@ -24,8 +24,9 @@ from ...online import OnlinePipeline
 from ...online.consistency import calibrate_consistency
 from ...online.export import calibration_metadata
 from ...online.fdi_interval import interval_quality
-from ...online.input_contract import calibrate_shape_min
+from ...online.input_contract import calibrate_shape_min, no_large_fault
 from ...online.noise_threshold import calibrate_gappy_residual
+from ...online.spike_check import calibrate_spike_step
 from ...online.unexplained_check import calibrate_ratio
 from ...online.verdict import verdict_quality
 from ...params import ActuatorParams
@@ -181,6 +182,7 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
     metrics["calibration_beyond_drive_range"] = inp.band_beyond_drive_range  # left out of every calibration
     metrics["shape_correlation_min"] = c.shape_min
     metrics["unexplained_ratio_max"] = c.unexplained
+    metrics["spike_step_max"] = c.spike_step
     export_metadata = {
         "provenance": prov,
         **calibration_metadata(calibration),  # as phm-export writes them: verdict_prior_faulty included
@@ -240,6 +242,9 @@ def _calibrate(settings: EvaluateSettings, pipeline: OnlinePipeline, inp: Simple
         r2=r2,
         shape_min=calibrate_shape_min(pipeline, band_signals[~band_ood], band_k_hat[~band_ood]),
         unexplained=calibrate_ratio(pipeline, band_signals[~band_ood], band_k_hat[~band_ood]),
+        spike_step=calibrate_spike_step(
+            pipeline, band_signals[~band_ood], no_large_fault(pipeline, band_k_hat[~band_ood])
+        ),
         unidentified=unidentified,
         band=band,
         verdict=verdict,
@@ -332,6 +337,7 @@ def _calibration_record(
         "tracking_nrmse_healthy": inp.tracking_healthy,
         "shape_correlation_min": c.shape_min,
         "unexplained_ratio_max": c.unexplained,
+        "spike_step_max": c.spike_step,
         "consistency": c.consistency,
         "gappy_residual": c.gappy_residual,
         "damage": dict(settings.damage),
