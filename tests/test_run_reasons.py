@@ -53,3 +53,21 @@ def test_a_stuck_value_a_burst_of_zeros_a_gap_and_held_data_are_flagged():
     for k in (2, 5, 20):
         held = x[(torch.arange(N) // k) * k]
         assert run_reasons(held) == ["held"], k
+
+
+def test_a_short_record_needs_a_run_of_a_dozen_samples():
+    """0.5 % of a 501-sample record (0.1 s at 5 kHz) is 2.5 samples: a clean record's runs of 3-4 equal samples
+    would be `stuck`. The threshold is never below STUCK_MIN samples."""
+    from phm_torch.online.run_checks import STUCK_MIN
+
+    x = _record(0.01)[::20][:501]
+    for run in (3, 4, STUCK_MIN - 1):  # equal samples
+        short = x.clone()
+        short[200 : 199 + run] = short[199]
+        assert run_reasons(short) == [], run
+        gap = x.clone()
+        gap[300 : 300 + run] = float("nan")
+        assert run_reasons(gap) == [], run
+    stuck = x.clone()
+    stuck[200 : 199 + STUCK_MIN] = stuck[199]
+    assert run_reasons(stuck) == ["stuck"]

@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 
 STUCK_RUN = 0.005  # of the record (50 samples, 2.5 ms of the chirp): 12 x the longest run of a clean HF record
+STUCK_MIN = 12  # samples, on a short or slowly sampled record (0.005 of 501 samples is 2.5): 3 x that longest run
 MOVING_SHARE = 0.01  # ... in a record whose other neighbours are equal at most this often (noisy data: ~0)
 HELD_SHARE = 0.4  # held data: equal neighbours (held x2: 50 %)...
 HELD_ALIGNED = 0.9  # ... and this share of its changes on one residue of a period k (quantised data: ~1 / k)
@@ -37,10 +38,12 @@ def run_reasons(current: torch.Tensor) -> list[str]:
     if bool(missing.any()):  # the longest gap: the running count of missing samples, reset at every present one
         filled = torch.cumsum(missing, 0)
         gap = filled - torch.cummax(torch.where(missing == 0, filled, torch.zeros_like(filled)), 0).values
-        if int(gap.max()) >= STUCK_RUN * x.numel():
+        if int(gap.max()) >= max(STUCK_RUN * x.numel(), STUCK_MIN):
             reasons.append("gap")
     moving = (repeats - longest) <= MOVING_SHARE * max(1, pairs - longest)  # the rest of the record moves
-    if longest + 1 >= STUCK_RUN * x.numel() and moving:  # a run of m equal neighbours holds m + 1 samples
+    if (
+        longest + 1 >= max(STUCK_RUN * x.numel(), STUCK_MIN) and moving
+    ):  # a run of m equal neighbours holds m + 1 samples
         reasons.append("stuck")
     if repeats >= HELD_SHARE * pairs and change.numel() >= HELD_MIN_CHANGES:
         starts = change + 1  # where a new value starts: every k-th sample for data held k times
