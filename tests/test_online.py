@@ -500,3 +500,20 @@ def test_a_coarsely_sampled_record_is_not_noise_and_white_noise_still_is():
     noise = torch.randn(1, n, dtype=torch.float64, generator=g)
     assert calibrated.roughness(noise).item() > 1.3 and calibrated(noise).item()
     assert shape_thresholds(3.0 * noise.repeat(4, 1), check, 0.999)[0] == 1.3  # never above the cap
+
+
+def test_a_short_record_is_read_at_a_finer_stride_so_its_pod_residual_still_sees_noise():
+    """501 samples at every 16th are 32 rows: a 40-mode basis spans them all and the POD residual of white noise
+    would be 0 (the check silently off). record_stride keeps 8 rows per mode; the reference's 10,001 samples keep
+    16 (626 rows)."""
+    from phm_torch.surrogates.full_signal_check import STRIDE, record_stride
+
+    assert record_stride(10001, 22) == STRIDE and record_stride(10001, 40) == STRIDE
+    assert record_stride(501, 40) == 1 and record_stride(2501, 22) == 14
+    n, n_m = 501, 40
+    g = torch.Generator().manual_seed(0)
+    modes = torch.linalg.qr(torch.randn(n, n_m, dtype=torch.float64, generator=g))[0]
+    noise = torch.randn(3, n, dtype=torch.float64, generator=g)
+    zero = torch.zeros(n, dtype=torch.float64)
+    assert (FullSignalCheck(modes, zero, stride=STRIDE).residual(noise) < 1e-6).all()  # blind at a stride of 16
+    assert (FullSignalCheck(modes, zero).residual(noise) > 0.9).all()  # ~sqrt(1 - 40 / 501)

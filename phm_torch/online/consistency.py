@@ -25,7 +25,8 @@ import torch
 from torch import nn
 
 from ..surrogates.augment import add_noise, noise_level, rms
-from ..surrogates.forward import STRIDE, ForwardSurrogate, consistency_statistic
+from ..surrogates.forward import ForwardSurrogate, consistency_statistic
+from ..surrogates.full_signal_check import record_stride
 from .noise_threshold import conformal_quantile, interpolate_levels
 
 NOISE_WINDOW = 1024
@@ -56,7 +57,8 @@ class ConsistencyCheck(nn.Module):
         super().__init__()
         dtype = modes.dtype
         self.model = model
-        rows = torch.arange(0, mean.shape[0], STRIDE)
+        stride = record_stride(int(mean.shape[0]), int(modes.shape[1]))
+        rows = torch.arange(0, mean.shape[0], stride)
         idx = torch.as_tensor(indices, dtype=torch.long)
         self.register_buffer("rows", rows)
         self.register_buffer("indices", idx)
@@ -66,7 +68,7 @@ class ConsistencyCheck(nn.Module):
         self.register_buffer("modes_hat", modes[idx].clone().contiguous())
         self.register_buffer("floors", torch.stack([model.floor_full_, model.floor_samples_]).to(dtype))
         self.n_full, self.n_points = int(mean.shape[0]), int(idx.numel())
-        self.stride = STRIDE
+        self.stride = stride
         self.noise_window = NOISE_WINDOW
         self.set_thresholds(thresholds, noise_levels)
 

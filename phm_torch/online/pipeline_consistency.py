@@ -19,7 +19,8 @@ from typing import Any
 import torch
 from torch import nn
 
-from ..surrogates.forward import STRIDE, ForwardSurrogate, fit_forward_on_coefficients
+from ..surrogates.forward import ForwardSurrogate, fit_forward_on_coefficients
+from ..surrogates.full_signal_check import record_stride
 from .consistency import ConsistencyCheck
 
 BASIS_TOLERANCE = 1e-4  # largest relative misfit of the shared samples' modes accepted for the recovered basis
@@ -38,17 +39,18 @@ def pipeline_basis(pipeline: nn.Module) -> tuple[torch.Tensor, torch.Tensor]:
         raise ValueError("pipeline: no full-record check (its basis at every 16th sample is needed)")
     n_full = int(pipeline.n_full)
     rows = check.rows.to(torch.long)
-    if not torch.equal(rows, torch.arange(0, n_full, STRIDE)):
-        raise ValueError(f"pipeline: the full-record check's rows are not every {STRIDE}th sample")
     gappy = pipeline.gappy
     idx = gappy.indices.to(torch.long)
     q, modes_hat = check.basis.to(torch.float64), gappy.modes_hat.to(torch.float64)
     n_m = int(modes_hat.shape[1])
+    stride = record_stride(n_full, n_m)
+    if not torch.equal(rows, torch.arange(0, n_full, stride)):
+        raise ValueError(f"pipeline: the full-record check's rows are not every {stride}th sample")
     row_of = {int(r): i for i, r in enumerate(rows.tolist())}
     shared = [(row_of[int(v)], j) for j, v in enumerate(idx.tolist()) if int(v) in row_of]
     if len(shared) < n_m:
         raise ValueError(
-            f"pipeline: its selected samples and every {STRIDE}th sample share {len(shared)} samples, fewer than "
+            f"pipeline: its selected samples and every {stride}th sample share {len(shared)} samples, fewer than "
             f"its {n_m} modes: the basis at the rows cannot be recovered"
         )
     ri, ji = (torch.tensor(v) for v in zip(*shared))

@@ -29,6 +29,7 @@ import torch
 from torch import nn
 
 from ..faults import N_FAULTS
+from .full_signal_check import record_stride
 from .metrics import ECC_AMPLITUDE, ECC_PHASE
 
 
@@ -254,9 +255,6 @@ def consistency_statistic(
     return torch.where(present.any(1), ratio / scale, torch.full_like(ratio, float("nan")))
 
 
-STRIDE = 16  # every 16th sample of a full record: 626 of 10,001, as FullSignalCheck's POD residual
-
-
 @torch.no_grad()
 def fit_forward_check(
     pod: nn.Module,
@@ -311,13 +309,13 @@ def fit_forward_on_coefficients(
             without its bundle, the gappy estimates of its selected samples).
         k: (N, 8) their fault vectors.  current: (N, n_e) the records [A].
         gappy, network: the FDI's gappy layer and network (alpha [, noise] -> k_hat), for the floors.
-        mean: (n_e,) POD mean [A] and modes: (n_e, n_m) POD modes; only every ``STRIDE``-th row is read.
+        mean: (n_e,) POD mean [A] and modes: (n_e, n_m) POD modes; only the rows of :func:`record_stride` are read.
         nominal, seed, params: as :func:`fit_forward_check`.
 
     The fit's wall time [s] is ``fit_s_``; :meth:`ForwardSurrogate.summary` gives the figures phm-train reports.
     ``floor_full_`` and ``floor_samples_`` are the medians over the held-out rows of the relative residual
     (:func:`consistency_statistic` with noise 0 and floor 1) of the noise-free records at the FDI's own estimates,
-    on every ``STRIDE``-th sample and on the selected samples."""
+    on the full-record check's rows and on the selected samples."""
     t0 = time.perf_counter()
     if nominal is not None:
         params.setdefault("nominal_eccentricity", float(nominal[ECC_AMPLITUDE]))
@@ -338,7 +336,7 @@ def fit_forward_on_coefficients(
     )
     pred = model(k_hat)
     zero, one = torch.zeros(len(hold)), torch.tensor(1.0)
-    rows = torch.arange(0, mean.shape[0], STRIDE)
+    rows = torch.arange(0, mean.shape[0], record_stride(int(mean.shape[0]), int(modes.shape[1])))
     full = consistency_statistic(y[:, rows], mean[rows], modes[rows], pred, zero, one)
     sel = consistency_statistic(samples, gappy.mean_hat, gappy.modes_hat, pred, zero, one)
     model.floor_full_ = full.median().to(model.floor_full_.dtype)

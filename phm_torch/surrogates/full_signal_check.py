@@ -36,6 +36,8 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+STRIDE = 16  # every 16th sample of a full record: 626 of 10,001 ...
+ROWS_PER_MODE = 8  # ... or fewer on a short record, so that the rows outnumber the POD modes this many times
 DEFAULT_ROUGHNESS_THRESHOLD = 1.0
 DEFAULT_PLATEAU_THRESHOLD = 0.005
 # a record's maximum is always on its plateau, and a slow crest puts a second sampled point within the
@@ -43,12 +45,19 @@ DEFAULT_PLATEAU_THRESHOLD = 0.005
 PLATEAU_MIN_POINTS = 2.5
 
 
+def record_stride(n_samples: int, n_modes: int) -> int:
+    """The stride of the rows the full-record statistics (and the consistency check) read: ``STRIDE``, less on a
+    record too short for ``ROWS_PER_MODE`` rows per POD mode (a basis that spans every row it is read on leaves
+    no residual: 501 samples at a stride of 16 are 32 rows, fewer than 40 modes)."""
+    return max(1, min(STRIDE, n_samples // (ROWS_PER_MODE * max(1, n_modes))))
+
+
 class FullSignalCheck(nn.Module):
     """Out-of-distribution flag of full records from their POD residual, roughness and plateau.
 
     Args:
         modes: POD modes (n_e, n_m).   mean: mean record (n_e,) [A].
-        stride: use every ``stride``-th sample for the POD residual (>= 1).
+        stride: use every ``stride``-th sample for the POD residual (>= 1; None: :func:`record_stride`).
         residual_threshold: POD residual (fraction) above which a record is foreign (inf: never).
         roughness_threshold: roughness above which a record is noise-dominated (``phm-train`` raises it above
             the training records' own where the sampling is coarse).
@@ -63,13 +72,15 @@ class FullSignalCheck(nn.Module):
         self,
         modes: torch.Tensor,
         mean: torch.Tensor,
-        stride: int = 16,
+        stride: int | None = None,
         residual_threshold: float = float("inf"),
         roughness_threshold: float = DEFAULT_ROUGHNESS_THRESHOLD,
         plateau_threshold: float = DEFAULT_PLATEAU_THRESHOLD,
         plateau_tolerance: float = 1e-3,
     ):
         super().__init__()
+        if stride is None:
+            stride = record_stride(int(modes.shape[0]), int(modes.shape[1]) if modes.dim() == 2 else 1)
         if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
             raise ValueError(f"full_signal_check.stride must be an integer >= 1, got {stride!r}")
         if modes.dim() != 2 or mean.shape != modes.shape[:1]:
