@@ -9,7 +9,7 @@ candidate at strength 0. The signatures are projected off the span of the free p
 
     T = u^T V^-1 u  ~  chi2(q)  under "effect absent",
 
-q the rank of the candidate's directions. V is the Newey-West (Bartlett, ``hac_lags``) long-run variance of
+q the rank of the candidate's directions. V is the Newey-West (Bartlett, ``hac_window``) long-run variance of
 the score contributions g_t = S_t e_t, e the residual once the candidate's own least-squares fit is removed
 (the Wald form: a strong missing effect is not counted as noise against itself). It reduces to
 sigma^2 S^T S for a white residual and stays valid when the residual carries other unmodelled, coloured
@@ -41,7 +41,8 @@ from .parameters import effect_defaults
 class ScoreSettings:
     """Attributes:
     step: strength of the probe rows, as a fraction of the parameter's declared scale.
-    hac_lags: Bartlett window of the Newey-West variance [samples].
+    hac_window: Bartlett window of the Newey-West variance [s] (200 samples at 20 kHz): the residual's
+        correlation time is the loop's and the filter's, not the acquisition's.
     alpha: family-wise significance level (Bonferroni over the candidates tested).
     grid: {effect: {shape parameter: [values]}} probed besides the defaults (directions of the test).
     alias_ratio: candidates whose signature keeps less than this fraction of its energy after projecting
@@ -57,7 +58,7 @@ class ScoreSettings:
     """
 
     step: float = 0.1
-    hac_lags: int = 200
+    hac_window: float = 0.01
     alpha: float = 0.01
     grid: Mapping[str, Mapping[str, Sequence[float]]] = field(default_factory=dict)
     alias_ratio: float = 1e-3
@@ -87,7 +88,7 @@ class ScoreSettings:
             "step": step,
             "alpha": alpha,
             "grid": grid,
-            "hac_lags": checks.integer(self.hac_lags, "score.hac_lags", 0),
+            "hac_window": checks.number(self.hac_window, "score.hac_window", 0.0),
             "alias_ratio": checks.number(self.alias_ratio, "score.alias_ratio", 0.0),
             "rank_tol": checks.number(self.rank_tol, "score.rank_tol", 0.0),
             "min_gain": checks.number(self.min_gain, "score.min_gain", 0.0),
@@ -243,9 +244,10 @@ def _test(
     coef = torch.linalg.lstsq(sb, r.unsqueeze(-1)).solution
     r_alt = r - (sb @ coef).squeeze(-1)
     v = np.zeros_like(a)
-    for part_e, part_r in zip(cal.evaluator.split(eff.T), cal.evaluator.split(r_alt), strict=True):
+    parts = zip(cal.evaluator.records, cal.evaluator.split(eff.T), cal.evaluator.split(r_alt), strict=True)
+    for rec, part_e, part_r in parts:
         g = sum(part_e[c].numpy().T * part_r[c].numpy()[:, None] for c in part_e)
-        v += newey_west(np.asarray(g), settings.hac_lags)
+        v += newey_west(np.asarray(g), round(settings.hac_window * rec.sample_rate))
     # The robust variance never below the white-noise one: Newey-West is noisy for signatures concentrated in
     # few samples (e.g. at current zero crossings) and could understate it.
     s2 = float(r_alt @ r_alt) / max(len(r_alt) - jac.shape[1] - basis.shape[1], 1)
