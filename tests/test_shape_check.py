@@ -8,6 +8,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
+from contract_model import contract_model
 
 from phm_torch.online.input_contract import SHAPE_MARGIN, SHAPE_MIN, InputContract, calibrate_shape_min
 
@@ -17,13 +18,7 @@ NOMINAL = torch.sin(2 * math.pi * 5 * T * T) * (T > 0.05)
 
 
 def model() -> SimpleNamespace:
-    return SimpleNamespace(
-        nominal_record=NOMINAL,
-        interval_level=0.3,
-        nominal=torch.tensor([0.0] * 6 + [0.5, 0.5], dtype=torch.float64),
-        interval_mask=torch.tensor([1.0] * 6 + [0.0, 1.0], dtype=torch.float64),
-        n_full=N,
-    )
+    return contract_model(NOMINAL)
 
 
 def record(mix: float) -> torch.Tensor:

@@ -8,6 +8,7 @@ from types import SimpleNamespace
 
 import pytest
 import torch
+from contract_model import contract_model
 
 from phm_torch.online.input_contract import InputContract, no_large_fault
 from phm_torch.online.spike_check import SPIKE_MARGIN, SPIKE_STEP, calibrate_spike_step, has_spikes, largest_step
@@ -25,13 +26,7 @@ NOMINAL = coarse(N, 0.15)
 
 
 def model() -> SimpleNamespace:
-    return SimpleNamespace(
-        nominal_record=NOMINAL,
-        interval_level=0.3,
-        nominal=torch.tensor([0.0] * 6 + [0.5, 0.5], dtype=torch.float64),
-        interval_mask=torch.tensor([1.0] * 6 + [0.0, 1.0], dtype=torch.float64),
-        n_full=N,
-    )
+    return contract_model(NOMINAL)
 
 
 def test_a_coarsely_sampled_record_steps_by_itself_and_the_calibrated_step_lets_it_through():
