@@ -76,3 +76,21 @@ def test_align_trigger_restores_every_channel_and_leaves_other_commands_alone():
     # another command (twice the chirp rate) is no trigger offset: left for the command check to refuse
     other = Record(T, Chirp(f_end=30.0)(T), position, current)
     assert align_trigger(other, CHIRP)[1] == 0.0
+
+
+def test_a_long_test_command_is_searched_over_a_tenth_of_its_record():
+    """A 5 s chirp at 2 kHz recorded 0.2 s late is realigned: the search reaches 0.05 s or a tenth of the record,
+    the longer (0.5 s here; 0.05 s on the reference's 0.5 s record, as before)."""
+    from phm_torch.online.command_check import lag_limit
+
+    assert lag_limit(10001, 20000.0) == 1000 and lag_limit(10001, 2000.0) == 1000
+    rate = 2000.0
+    t = torch.arange(10001, dtype=torch.float64) / rate
+    chirp = Chirp(amplitude=0.01, f_end=2.0, duration=5.0)
+    command = chirp(t)
+    current = 1.0 + torch.sin(2 * math.pi * 3 * t)
+    lag = 400  # 0.2 s
+    late = Record(t, _delayed(command, lag), _delayed(0.97 * command, lag), _delayed(current, lag))
+    aligned, offset = align_trigger(late, chirp)
+    assert offset == lag / rate
+    torch.testing.assert_close(aligned.current[: t.numel() - lag], current[: t.numel() - lag])

@@ -22,7 +22,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from .command_check import MAX_LAG_S, NRMSE_TOLERANCE, command_lag, command_nrmse, lag_residuals, shifted
+from .command_check import NRMSE_TOLERANCE, command_lag, command_nrmse, lag_limit, lag_residuals, shifted
 from .corruptions import Record
 
 CLOCK_MAX = 0.025  # the largest relative clock error corrected (a window's shift is searched up to a quarter of it)
@@ -95,8 +95,8 @@ def align_clock(record: Record, command: Callable[[torch.Tensor], torch.Tensor] 
     if not CLOCK_MIN <= abs(error) <= CLOCK_MAX:
         return record, 0.0
     rate = (n - 1) / float(t[-1])
-    max_lag = round(MAX_LAG_S * rate)
-    before, after = _miss(cmd, expected, 0.0, max_lag), _miss(cmd, expected, error, max_lag)
+    lags = lag_limit(n, rate)
+    before, after = _miss(cmd, expected, 0.0, lags), _miss(cmd, expected, error, lags)
     if not (after <= NRMSE_TOLERANCE and after <= 0.5 * before):
         return record, 0.0
     channels = (stretched(c, error) for c in (record.command, record.position, record.current))

@@ -12,7 +12,14 @@ from dataclasses import dataclass
 import torch
 
 NRMSE_TOLERANCE = 0.05  # RMS of (recorded - expected command) over the expected command's range
-MAX_LAG_S = 0.05  # the trigger offsets searched for the message [s]
+MAX_LAG_S = 0.05  # the trigger offsets searched [s] (a tenth of the reference's 0.5 s record) ...
+MAX_LAG_SHARE = 0.1  # ... or this share of a longer record (a 5 s test command: 0.5 s)
+
+
+def lag_limit(n_samples: int, sample_rate: float) -> int:
+    """The largest trigger offset [samples] the command check and the record corrections search, for a record of
+    ``n_samples`` at ``sample_rate`` [Hz]: ``MAX_LAG_S`` or ``MAX_LAG_SHARE`` of the record, the longer."""
+    return round(max(MAX_LAG_S, MAX_LAG_SHARE * (n_samples - 1) / sample_rate) * sample_rate)
 
 
 @dataclass(frozen=True)
@@ -22,7 +29,7 @@ class CommandCheck:
     Attributes:
         nrmse: RMS difference between the recorded and the expected command over the expected one's range.
         best_lag_s: the shift [s] of the recorded command that matches the expected one best (positive: the
-            record starts late), within +-``MAX_LAG_S``.
+            record starts late), within +- :func:`lag_limit`.
         gain: least-squares gain of the recorded command on the expected one at that lag (1: same size).
         ok: ``nrmse <= tolerance``.
     """
@@ -63,7 +70,7 @@ def check_command(
         gain = float((recorded * expected).sum() / expected.pow(2).sum())
         return CommandCheck(nrmse, 0.0, gain, True)
     n = recorded.numel()
-    lag = command_lag(recorded, expected, round(MAX_LAG_S * sample_rate))  # recorded[i] = expected[i - lag]
+    lag = command_lag(recorded, expected, lag_limit(n, sample_rate))  # recorded[i] = expected[i - lag]
     r, e = recorded[max(lag, 0) : n + min(lag, 0)], expected[max(-lag, 0) : n - max(lag, 0)]
     gain = float((r * e).sum() / e.pow(2).sum().clamp_min(1e-300))
     return CommandCheck(nrmse, lag / sample_rate, gain, False)

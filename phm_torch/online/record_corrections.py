@@ -17,7 +17,7 @@ import torch
 
 from ..metrics import finite_mean
 from .clock_alignment import align_clock
-from .command_check import MAX_LAG_S, NRMSE_TOLERANCE, command_lag, command_nrmse, shifted
+from .command_check import NRMSE_TOLERANCE, command_lag, command_nrmse, lag_limit, shifted
 from .corruptions import Record
 from .input_contract import REVERSED_CORRELATION, nominal_correlation
 
@@ -42,7 +42,7 @@ def align_trigger(
     t = (record.time - record.time[0]).double()
     rate = (t.numel() - 1) / float(t[-1])
     expected = command(t)
-    lag = command_lag(cmd[:m], expected[:m], round(MAX_LAG_S * rate))
+    lag = command_lag(cmd[:m], expected[:m], lag_limit(t.numel(), rate))
     if lag == 0:
         return record, 0.0
     before, after = command_nrmse(cmd, expected), command_nrmse(shifted(cmd.double(), lag), expected)
@@ -54,7 +54,7 @@ def align_trigger(
     if (
         position is not None
         and bool(torch.isfinite(position[:m]).all())
-        and command_lag(position[:m], cmd[:m], round(MAX_LAG_S * rate)) < 0
+        and command_lag(position[:m], cmd[:m], lag_limit(t.numel(), rate)) < 0
     ):
         return record, 0.0
     aligned = Record(record.time, shifted(cmd, lag), shifted(record.position, lag), shifted(record.current, lag))
