@@ -202,3 +202,17 @@ def test_a_slewed_chirps_last_cycle_is_read_with_its_ramp_taken_out(params):
     assert 0.8 < read["plain"][0] < 1.0 and 20.0 < read["plain"][1] < 40.0  # the datasheet's 0.93 / 30 deg (HF)
     assert read["slewed"][0] == pytest.approx(read["plain"][0], abs=1e-3)
     assert read["slewed"][1] == pytest.approx(read["plain"][1], abs=0.1)
+
+
+@pytest.mark.parametrize(("pwm", "rate"), [(10000.0, 20000.0), (16384.0, 32768.0), (20000.0, 10000.0)])
+def test_the_step_test_lasts_whole_control_periods_and_samples(pwm, rate):
+    """check_actuator's step test: 10 ms multiples are no whole number of periods of a 16.384 kHz PWM (the simulator
+    refused the duration); the length is rounded up to whole periods and samples, >= 0.1 s."""
+    from phm_torch.assessment.actuator_check import step_duration
+
+    d = step_duration(load_actuator("ema_reference", pwm_frequency=pwm, sample_rate=rate))
+    assert 0.1 <= d < 0.11
+    assert d * pwm == pytest.approx(round(d * pwm), abs=1e-9) and d * rate == pytest.approx(round(d * rate), abs=1e-9)
+    EMASimulator(load_actuator("ema_reference", pwm_frequency=pwm, sample_rate=rate), "lf").run(
+        torch.zeros(1, 8, dtype=torch.float64), torch.zeros_like, d, channels=["position"]
+    )

@@ -144,10 +144,14 @@ def default_sweep_amplitude(params: ActuatorParams, command_amplitude: float) ->
 
 def step_duration(params: ActuatorParams) -> float:
     """Step-test length [s]: 2.5 periods of the linear crossover (>= 15 closed-loop time constants), at least
-    0.1 s, rounded up to 10 ms (a whole number of control periods)."""
+    0.1 s, rounded up to 10 ms and then to a whole number of control periods and acquisition samples (a
+    16.384 kHz PWM has no whole number of periods in 10 ms)."""
     fc = linear_figures(params)["crossover_hz"]
-    t = max(0.1, 2.5 / fc) if math.isfinite(fc) and fc > 0 else 0.1
-    return math.ceil(t * 100 - 1e-9) / 100
+    t = math.ceil(max(0.1, 2.5 / fc) * 100 - 1e-9) / 100 if math.isfinite(fc) and fc > 0 else 0.1
+    periods = math.ceil(t * params.pwm_frequency - 1e-6)
+    # a whole number of samples too: a rate below the PWM frequency takes one every (f_pwm / f_s) periods
+    every = max(1, round(params.pwm_frequency / params.sample_rate))
+    return math.ceil(periods / every) * every / params.pwm_frequency
 
 
 def step_metrics(
