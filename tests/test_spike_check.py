@@ -55,6 +55,10 @@ def test_a_coarsely_sampled_record_steps_by_itself_and_the_calibrated_step_lets_
     assert "spikes" not in calibrated.current_reasons(m, NOMINAL, 0.0, near)
     assert "spikes" in calibrated.current_reasons(m, spiked, 0.0, near)
     assert InputContract.of(m, {"spike_step_max": 0.1}, None).spike_step == SPIKE_STEP
+    # a record drawing 1.4x the nominal current steps 1.4x as much: measured against its own RMS, not a spike
+    # (a 5 kHz probe's near-end-of-life inspections: steps 1.47 of the nominal RMS at a calibrated 1.35)
+    assert "spikes" not in calibrated.current_reasons(m, 1.4 * NOMINAL, 0.0, near)
+    assert "spikes" in calibrated.current_reasons(m, 1.4 * spiked, 0.0, near)
     # smooth records below SPIKE_STEP keep it; nothing near nominal: nothing to calibrate
     smooth = torch.sin(torch.linspace(0.0, 6.0, N, dtype=torch.float64))[None]
     assert calibrate_spike_step(SimpleNamespace(nominal_record=smooth[0]), smooth, torch.tensor([True])) == SPIKE_STEP

@@ -328,7 +328,7 @@ class InputContract:
             reasons.append("unexplained")
         if not bool(nominal_correlation(x, nominal) >= self.shape_min):
             reasons.append("shape")
-        if has_spikes(x, sigma, scale, self.spike_step):
+        if has_spikes(x, sigma, max(scale, rms), self.spike_step):
             reasons.append("spikes")
         return reasons
 
