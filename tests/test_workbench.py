@@ -397,3 +397,15 @@ def test_retrain_overrides_compose_into_the_dataset_spec(compose):
         "aero_hinge_load": {"stiffness": 1015.01, "bias": 0.989639},
         "cogging_torque": {"amplitude": 0.0041, "phase": -0.3},
     }
+
+
+def test_measurements_compared_with_the_default_datasheet_are_said_to_be():
+    """phm-workbench without actuator= reads the measurements against its default datasheet: a record of another
+    actuator at the same sample rate passes every file check, so the command line is told which one it got."""
+    from phm_torch.apps.workbench import default_actuator_note
+
+    note = default_actuator_note(["measurements=my.csv"], "ema_reference")
+    assert note is not None and "default datasheet ema_reference" in note and "actuator=<name>" in note
+    for given in ("actuator=my_ema", "+actuator=my_ema", "actuator=ema_reference"):
+        assert default_actuator_note(["measurements=my.csv", given], "my_ema") is None
+    assert default_actuator_note(["actuator.gear_ratio=150"], "ema_reference") is not None  # a field, not a choice

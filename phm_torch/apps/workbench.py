@@ -169,9 +169,26 @@ def run_workbench(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     return metrics, {"result": result, "report": report, "workbench": wb, "paths": paths}
 
 
+def default_actuator_note(overrides: list[str], name: str | None) -> str | None:
+    """The warning for measurements compared with the app's default datasheet because no ``actuator=`` was given
+    (a record of another actuator at the same sample rate passes every file check and is misread); None when one
+    was given (``overrides``: the command line's Hydra overrides)."""
+    if any(o.lstrip("+~").split("=", 1)[0] == "actuator" for o in overrides):
+        return None
+    return (
+        f"no actuator= given: the measurements are compared with the default datasheet {name}; for your own "
+        "actuator give actuator=<name> with its folder on hydra.searchpath (docs/own_actuator.md)"
+    )
+
+
 @hydra.main(config_path=common.CONFIG_PATH, config_name="workbench", version_base="1.3")
 @common.report_errors("phm-workbench")
 def main(cfg: DictConfig) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
+    note = default_actuator_note(list(HydraConfig.get().overrides.task), common.choice(cfg, "actuator"))
+    if note:
+        log.warning(note)
     metrics, _ = run_workbench(cfg)
     log.info("wrote %s", metrics["report"])
     print(json.dumps(metrics, indent=2), flush=True)
