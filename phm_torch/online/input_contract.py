@@ -30,9 +30,9 @@ From the current, against the noise calibration and the training model's nominal
   round; the envelope current of any fault vector keeps its sign);
 * ``overcurrent`` - the current exceeds the drive range the FDI was trained within (``current_bound``): a record a
   protected drive would not have finished (two nearly shorted phases), or a probe scaled wrong;
-* ``stuck`` - the current holds one exact value for ``STUCK_RUN`` of the record (``STUCK_MIN`` samples at least) or longer (a stuck sensor, a burst
-  of zeros) while it moves everywhere else (at most ``MOVING_SHARE`` equal neighbours outside that run), a
-  leading run (an actuator at rest before the recorder's trigger) aside;
+* ``stuck`` - the current holds one exact value for ``STUCK_RUN`` of the record (``STUCK_MIN`` samples at least) or
+  longer (a stuck sensor, a burst of zeros) while it moves everywhere else (at most ``MOVING_SHARE`` equal neighbours
+  outside that run), a leading run (an actuator at rest before the recorder's trigger) aside;
 * ``gap`` - ``STUCK_RUN`` of the record or more missing in one stretch (a logger's dropout): the FDI and its
   intervals were trained and calibrated with a few scattered missing samples, and a gap takes out a whole stretch
   of the chirp (5 % gaps moved k_hat out of its interval on 4 of 8 corrupted records, unflagged);

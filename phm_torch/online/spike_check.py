@@ -2,8 +2,9 @@
 
 A spike is a second difference ``|x[i+1] - 2 x[i] + x[i-1]|`` above both ``SPIKE_SIGMA`` noise std of a second
 difference of white noise (sqrt(6) sigma) and ``step`` x the RMS current (the nominal record's, or the record's own
-where larger: a record drawing more current steps more), the most the filtered current steps by itself. ``SPIKE_STEP`` (0.8) was measured on the reference at 20 kHz, where clean records with no
-large fault step by at most 0.39 of that RMS. The second difference of a smooth current grows as the square of
+where larger: a record drawing more current steps more), the most the filtered current steps by itself.
+``SPIKE_STEP`` (0.8) was measured on the reference at 20 kHz, where clean records with no large fault step by at
+most 0.39 of that RMS. The second difference of a smooth current grows as the square of
 the sampling period: at 5 kHz the same records step by 0.5-0.9, so a pipeline calibrates its own ``step`` on
 held-out records (:func:`calibrate_spike_step`, metadata ``spike_step_max``), never below ``SPIKE_STEP``.
 """

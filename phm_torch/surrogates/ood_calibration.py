@@ -12,10 +12,10 @@ import torch
 
 from .augment import add_noise, rms
 from .full_signal_check import FullSignalCheck
+from .gappy_pod import GappyPOD
 
 # the most the roughness threshold is raised to: white noise (sqrt 2) stays above it whatever the sampling
 ROUGHNESS_MAX = 1.3
-from .gappy_pod import GappyPOD
 
 
 def ood_thresholds(
