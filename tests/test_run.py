@@ -243,6 +243,16 @@ def test_run_level_sweep_settings_reach_the_generate_stage():
     assert compose_stage("generate", generate_overrides(cfg)).assessment.sweep.compile is False
 
 
+def test_a_run_level_data_setting_keeps_the_generate_stage_defaults():
+    """phm-run +dataset.n_train=300 changes that one setting; the stage's default list (chunk size 256, compiled
+    simulator and sweep) stays, which a command-line 'generate=[...]' list would have replaced."""
+    cfg = compose_stage("generate", generate_overrides(compose_stage("run", ["+dataset.n_train=300"])))
+    assert cfg.dataset.n_train == 300 and cfg.dataset.chunk_size == 256
+    assert cfg.dataset.compile is True and cfg.assessment.sweep.compile is True
+    replaced = compose_stage("generate", generate_overrides(compose_stage("run", ['generate=["dataset.n_train=300"]'])))
+    assert replaced.dataset.n_train == 300 and replaced.dataset.chunk_size != 256  # the whole list replaced
+
+
 def test_a_later_run_of_some_stages_keeps_the_earlier_metrics(tmp_path):
     (tmp_path / "metrics.json").write_text(json.dumps({"train": {"err_k": 0.05}, "wall_s": {"train": 3.0}}))
     cfg = compose_stage("run", [f"out_dir={tmp_path}", "stages=[cases]", 'cases=["fidelity=lf","duration=0.05"]'])
