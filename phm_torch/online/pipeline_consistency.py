@@ -36,7 +36,7 @@ def pipeline_basis(pipeline: nn.Module) -> tuple[torch.Tensor, torch.Tensor]:
     """
     check = getattr(pipeline, "full_check", None)
     if check is None or not hasattr(check, "basis"):
-        raise ValueError("pipeline: no full-record check (its basis at every 16th sample is needed)")
+        raise ValueError("pipeline: no full-record check (its basis at the full-record rows is needed)")
     n_full = int(pipeline.n_full)
     rows = check.rows.to(torch.long)
     gappy = pipeline.gappy

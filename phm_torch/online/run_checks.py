@@ -34,16 +34,15 @@ def run_reasons(current: torch.Tensor) -> list[str]:
     longest = int(lengths[1:].max()) if lengths.numel() > 1 else 0
     repeats = int(same.sum())
     reasons = []
+    limit = max(STUCK_RUN * x.numel(), STUCK_MIN)  # samples of a stuck run or a gap
     missing = (~torch.isfinite(x)).to(torch.int64)
     if bool(missing.any()):  # the longest gap: the running count of missing samples, reset at every present one
         filled = torch.cumsum(missing, 0)
         gap = filled - torch.cummax(torch.where(missing == 0, filled, torch.zeros_like(filled)), 0).values
-        if int(gap.max()) >= max(STUCK_RUN * x.numel(), STUCK_MIN):
+        if int(gap.max()) >= limit:
             reasons.append("gap")
     moving = (repeats - longest) <= MOVING_SHARE * max(1, pairs - longest)  # the rest of the record moves
-    if (
-        longest + 1 >= max(STUCK_RUN * x.numel(), STUCK_MIN) and moving
-    ):  # a run of m equal neighbours holds m + 1 samples
+    if longest + 1 >= limit and moving:  # a run of m equal neighbours holds m + 1 samples
         reasons.append("stuck")
     if repeats >= HELD_SHARE * pairs and change.numel() >= HELD_MIN_CHANGES:
         starts = change + 1  # where a new value starts: every k-th sample for data held k times

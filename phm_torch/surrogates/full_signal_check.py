@@ -79,14 +79,14 @@ class FullSignalCheck(nn.Module):
         plateau_tolerance: float = 1e-3,
     ):
         super().__init__()
-        if stride is None:
-            stride = record_stride(int(modes.shape[0]), int(modes.shape[1]) if modes.dim() == 2 else 1)
-        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
-            raise ValueError(f"full_signal_check.stride must be an integer >= 1, got {stride!r}")
         if modes.dim() != 2 or mean.shape != modes.shape[:1]:
             raise ValueError(
                 f"modes (n_e, n_m) and mean (n_e,) expected, got {tuple(modes.shape)} and {tuple(mean.shape)}"
             )
+        if stride is None:
+            stride = record_stride(int(modes.shape[0]), int(modes.shape[1]))
+        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+            raise ValueError(f"full_signal_check.stride must be an integer >= 1, got {stride!r}")
         for name, value in (
             ("residual_threshold", residual_threshold),
             ("roughness_threshold", roughness_threshold),

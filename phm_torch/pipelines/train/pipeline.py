@@ -71,10 +71,9 @@ def evaluate(
     metrics.update(evaluate_classifier(classifier, val.k, val.healthy, arrays["k_hat"], verdict))
     metrics.update(measure_latency(gappy, network, classifier, red.samples_va, ev.latency_repeats))
     calibrating = data.train.current if data.inside is None else data.train.current[data.inside]
-    threshold, full_threshold = ood_thresholds(
-        calibrating, gappy, FullSignalCheck(pod.modes_, pod.mean_), ev.noise, ev.ood_quantile, seed + 7
-    )
-    rough, plateau = shape_thresholds(calibrating, FullSignalCheck(pod.modes_, pod.mean_), ev.ood_quantile)
+    base = FullSignalCheck(pod.modes_, pod.mean_)  # default thresholds: the statistics the calibrations read
+    threshold, full_threshold = ood_thresholds(calibrating, gappy, base, ev.noise, ev.ood_quantile, seed + 7)
+    rough, plateau = shape_thresholds(calibrating, base, ev.ood_quantile)
     check = FullSignalCheck(
         pod.modes_, pod.mean_, residual_threshold=full_threshold, roughness_threshold=rough, plateau_threshold=plateau
     )
