@@ -34,7 +34,7 @@ from phm_torch.data.store import recorded_actuator
 from phm_torch.effects import EFFECTS
 from phm_torch.io.atomic import write_json
 from phm_torch.simulator import EMASimulator
-from phm_torch.surrogates.bundle import load_named_bundles
+from phm_torch.surrogates.bundle_specs import load_named_bundles
 from phm_torch.surrogates.model_mismatch import mismatch_metrics
 
 

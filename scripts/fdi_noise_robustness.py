@@ -26,7 +26,7 @@ from phm_torch.data import DatasetStore
 from phm_torch.data.store import recorded_actuator
 from phm_torch.io.atomic import write_json
 from phm_torch.surrogates import SurrogateBundle, add_noise, err_k, fdi_mae, noise_level, rms
-from phm_torch.surrogates.bundle import load_named_bundles
+from phm_torch.surrogates.bundle_specs import load_named_bundles
 from phm_torch.surrogates.metrics import ECC_PHASE, err_k_by_fault_count
 
 

@@ -25,7 +25,7 @@ import time
 import torch
 
 from phm_torch.io.atomic import write_json
-from phm_torch.surrogates.bundle import load_named_bundles
+from phm_torch.surrogates.bundle_specs import load_named_bundles
 from phm_torch.surrogates.compare import ranking, squared_errors, verdict_table
 
 

@@ -60,7 +60,7 @@ def test_ranking_of_a_uniformly_better_bundle(rank):
 
 
 def test_bundle_specs_name_the_bundles(tmp_path, monkeypatch):
-    from phm_torch.surrogates import bundle as bundle_module
+    from phm_torch.surrogates import bundle_specs as bundle_module
 
     monkeypatch.setattr(bundle_module.SurrogateBundle, "load", classmethod(lambda cls, path: f"loaded {path}"))
     sweep = "multirun/0/n_hidden=20/surrogates.pt"  # a Hydra sweep's path keeps its '='

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import io
 import os
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -403,21 +403,3 @@ def _classifier(spec: Mapping[str, Any], state: Mapping[str, torch.Tensor], path
 
 def _prefixed(tensors: Mapping[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
     return {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
-
-
-def load_named_bundles(specs: Sequence[str]) -> dict[str, SurrogateBundle]:
-    """Bundles from command-line specs ``[name=]path`` (the comparison scripts' ``--bundle``), in order.
-
-    The name ends at the first ``=`` and holds no path separator, so a path from a Hydra sweep
-    (``multirun/.../n_hidden=20/surrogates.pt``) stays whole, named or not. A spec without a name is called
-    ``bundle<i>`` (``bundle`` when it is the only one)."""
-    out = {}
-    for i, spec in enumerate(specs):
-        name, sep, path = spec.partition("=")
-        if not sep or "/" in name or os.sep in name or Path(spec).is_file():
-            name, path = "", spec
-        name = name or (f"bundle{i}" if len(specs) > 1 else "bundle")
-        if name in out:
-            raise ValueError(f"--bundle name {name!r} is given twice")
-        out[name] = SurrogateBundle.load(path)
-    return out
