@@ -11,6 +11,7 @@ plant and the driven-pair current.
 from __future__ import annotations
 
 import math
+from types import SimpleNamespace
 from typing import ClassVar
 
 import pytest
@@ -241,6 +242,30 @@ def test_every_default_is_visible(lf):
         assert max(nrmse) > 2e-3, (name, nrmse)
 
 
+def test_typical_magnitudes_follow_the_actuator_size():
+    """The workbench normalises, bounds and probes an effect parameter by its typical magnitude on the actuator
+    being fitted: on the default datasheet that is the effect's declared default, on the 270 V rudder (5 x the
+    peak motor torque, 10 x the hinge moment) torques and damping scale with it, absolute ones do not."""
+    rudder = load_actuator("ema_hvdc_rudder")
+    torque_ratio = (rudder.back_emf_constant * rudder.current_limit) / (P.back_emf_constant * P.current_limit)
+    assert torque_ratio == pytest.approx(5.0)
+    for name in BUILTIN:
+        for key, spec in EFFECTS[name].PARAMS.items():
+            if key in EFFECTS[name].STRENGTH or spec.per:
+                assert spec.scale_for(P) == pytest.approx(abs(spec.default), rel=1e-12), (name, key)
+    assert EFFECTS["cogging_torque"].PARAMS["amplitude"].scale_for(rudder) == pytest.approx(5 * 4e-3)
+    hinge = EFFECTS["aero_hinge_load"].PARAMS["bias"]
+    assert hinge.scale_for(rudder) == pytest.approx(
+        hinge.scale_for(P) * torque_ratio * rudder.gear_ratio / P.gear_ratio
+    )
+    lag = EFFECTS["position_sensor_lag"].PARAMS["time_constant"]
+    assert not lag.per and lag.scale_for(rudder) == lag.scale_for(P) == lag.scale
+    with pytest.raises(ValueError, match="unknown actuator unit 'stall_torque'"):
+        EffectParam(0.0, "N m", "x", per="stall_torque")
+    with pytest.raises(ValueError, match="'peak_user_torque' must be positive"):  # a datasheet refuses it first
+        hinge.scale_for(SimpleNamespace(back_emf_constant=0.0, current_limit=15.0, gear_ratio=200.0))
+
+
 def test_gradients_of_strengths_at_zero_match_finite_differences():
     """Score test: d(loss)/d(strength) at 0 by autograd, every strength of every effect in one short run.
 
@@ -251,7 +276,7 @@ def test_gradients_of_strengths_at_zero_match_finite_differences():
     leaves = [(n, k) for n in BUILTIN for k in EFFECTS[n].STRENGTH]
     b = 1 + len(leaves)
     zeros = {leaf: torch.zeros(b, dtype=torch.float64, requires_grad=True) for leaf in leaves}
-    steps = {leaf: 1e-5 * EFFECTS[leaf[0]].PARAMS[leaf[1]].scale for leaf in leaves}
+    steps = {leaf: 1e-5 * EFFECTS[leaf[0]].PARAMS[leaf[1]].scale_for(P) for leaf in leaves}
     spec: dict[str, dict[str, torch.Tensor]] = {n: {} for n in BUILTIN}
     for r, leaf in enumerate(leaves, start=1):
         bump = torch.zeros(b, dtype=torch.float64)

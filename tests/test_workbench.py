@@ -409,3 +409,29 @@ def test_measurements_compared_with_the_default_datasheet_are_said_to_be():
     for given in ("actuator=my_ema", "+actuator=my_ema", "actuator=ema_reference"):
         assert default_actuator_note(["measurements=my.csv", given], "my_ema") is None
     assert default_actuator_note(["actuator.gear_ratio=150"], "ema_reference") is not None  # a field, not a choice
+
+
+def test_a_trim_load_sized_by_the_actuator_is_found_fitted_and_explains_the_error():
+    """On the 270 V rudder a trim load of 300 N m (an eighth of its stall hinge moment) is hidden. The effect's
+    probe, normalisation and bound follow the actuator's size (with the reference-sized ones, 1 N m and a bound
+    of 100 N m, the hinge load was not even significant here and a closure was fitted instead). The
+    calibration first bends friction and inertia to absorb the load; the chosen candidate's fit is continued
+    until it converges, so they come back and the error falls to the noise floor."""
+    from hydra.utils import instantiate
+
+    from phm_torch.command import load_command_node
+
+    rudder = load_actuator("ema_hvdc_rudder")
+    node = {**load_command_node("chirp_hvdc_rudder")[1], "duration": 0.3}
+    hidden = Case({"aero_hinge_load": {"stiffness": 0.0, "bias": 300.0}}, {"current": 0.05, "position": 2e-5}, seed=5)
+    m = synthesize(rudder, [hidden], instantiate(node), 0.3)[0]
+    wb = Workbench(rudder, settings=quick_settings(rounds=1, refit_top=1))
+    res = wb.run([record_from_measurement(m, rudder, ["position", "current"], "trim_load")])
+    best = res.candidates[0]
+    assert best.effect == "aero_hinge_load" and best.significant, [(c.effect, c.log10_p) for c in res.candidates]
+    assert res.added == ["aero_hinge_load"] and res.closure is None
+    fitted = res.final.fitted()
+    assert fitted["aero_hinge_load.bias"][0] == pytest.approx(300.0, rel=0.01), fitted
+    assert fitted["dry_friction"][0] == pytest.approx(1.0, abs=0.05), fitted
+    after = res.metrics["model + aero_hinge_load"]
+    assert after["nrmse"]["total"] <= 1.1 * after["noise_floor"]["total"], after

@@ -15,8 +15,12 @@ class AeroHingeLoad(Effect):
 
     name = "aero_hinge_load"
     PARAMS: ClassVar[dict[str, EffectParam]] = {
-        "stiffness": EffectParam(1000.0, "N m/rad", "aerodynamic hinge stiffness K_h, user side", None, 1000.0),
-        "bias": EffectParam(1.0, "N m", "constant hinge moment M_0 (trim load), user side", None, 1.0),
+        "stiffness": EffectParam(
+            1000.0, "N m/rad", "aerodynamic hinge stiffness K_h, user side", None, 0.02, "output_stiffness"
+        ),
+        "bias": EffectParam(
+            1.0, "N m", "constant hinge moment M_0 (trim load), user side", None, 1 / 240, "peak_user_torque"
+        ),
     }
     STRENGTH = ("stiffness", "bias")
     explains = "current error in phase with the surface position plus a constant offset (load torque / (N k_t))"

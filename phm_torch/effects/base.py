@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -29,7 +29,9 @@ class EffectParam:
         unit: physical unit, for reports.
         description: one line.
         minimum: smallest admissible value (``None`` = any finite value).
-        scale: typical magnitude, used to normalise fits and score tests.
+        scale: typical magnitude, used to normalise fits and score tests [unit], or, with ``per``, a multiple
+            of that actuator quantity (``ACTUATOR_UNITS``); read it through :meth:`scale_for`.
+        per: name of the actuator quantity ``scale`` is a multiple of; ``""``: ``scale`` is absolute.
     """
 
     default: float
@@ -37,6 +39,40 @@ class EffectParam:
     description: str
     minimum: float | None = 0.0
     scale: float = 1.0
+    per: str = ""
+
+    def __post_init__(self) -> None:
+        if self.per and self.per not in ACTUATOR_UNITS:
+            raise ValueError(f"EffectParam.per: unknown actuator unit {self.per!r}; known: {sorted(ACTUATOR_UNITS)}")
+
+    def scale_for(self, params: Any) -> float:
+        """The typical magnitude on the actuator ``params`` [unit]: ``scale`` itself, or ``scale`` times the
+        actuator quantity ``per`` (so a fit's normalisation and bound and a score test's probe follow the
+        actuator's size, not the reference's)."""
+        if not self.per:
+            return self.scale
+        unit = ACTUATOR_UNITS[self.per](params)
+        if not (math.isfinite(unit) and unit > 0):
+            raise ValueError(f"actuator unit {self.per!r} must be positive and finite, got {unit!r}")
+        return self.scale * unit
+
+
+def _peak_motor_torque(params: Any) -> float:
+    # torque of the conducting pair at the current limit, 2 k_e I_max [N m]: every datasheet has it (all > 0)
+    return 2.0 * float(params.back_emf_constant) * float(params.current_limit)
+
+
+# Actuator quantities an effect parameter's typical magnitude may be a multiple of (``EffectParam.per``).
+ACTUATOR_UNITS: dict[str, Callable[[Any], float]] = {
+    "peak_motor_torque": _peak_motor_torque,  # [N m], motor side
+    "peak_user_torque": lambda p: _peak_motor_torque(p) * float(p.gear_ratio),  # [N m], user side
+    "motor_damping": lambda p: _peak_motor_torque(p) / float(p.speed_limit),  # [N m s/rad], motor side
+    "speed_limit": lambda p: float(p.speed_limit),  # [rad/s], motor side
+    "current_limit": lambda p: float(p.current_limit),  # [A]
+    "pwm_period": lambda p: 1.0 / float(p.pwm_frequency),  # [s]
+    "output_stiffness": lambda p: float(p.output_stiffness),  # [N m/rad], user side
+    "output_compliance": lambda p: 1.0 / float(p.output_stiffness),  # [rad/(N m)], user side
+}
 
 
 @dataclass

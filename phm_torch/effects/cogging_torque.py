@@ -25,7 +25,9 @@ class CoggingTorque(Effect):
 
     name = "cogging_torque"
     PARAMS: ClassVar[dict[str, EffectParam]] = {
-        "amplitude": EffectParam(4.0e-3, "N m", "cogging torque amplitude A, motor side", 0.0, 4.0e-3),
+        "amplitude": EffectParam(
+            4.0e-3, "N m", "cogging torque amplitude A, motor side", 0.0, 1 / 300, "peak_motor_torque"
+        ),
         "phase": EffectParam(0.0, "rad", "phase of the cogging wave at theta_m = 0", None, math.pi),
     }
     STRENGTH = ("amplitude",)

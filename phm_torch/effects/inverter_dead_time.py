@@ -19,8 +19,10 @@ class InverterDeadTime(Effect):
 
     name = "inverter_dead_time"
     PARAMS: ClassVar[dict[str, EffectParam]] = {
-        "dead_time": EffectParam(2.0e-6, "s", "dead time t_d per switching edge", 0.0, 2.0e-6),
-        "current_scale": EffectParam(0.1, "A", "current I_eps over which the error changes sign", 1.0e-6, 0.1),
+        "dead_time": EffectParam(2.0e-6, "s", "dead time t_d per switching edge", 0.0, 0.02, "pwm_period"),
+        "current_scale": EffectParam(
+            0.1, "A", "current I_eps over which the error changes sign", 1.0e-6, 1 / 150, "current_limit"
+        ),
     }
     STRENGTH = ("dead_time",)
     explains = (

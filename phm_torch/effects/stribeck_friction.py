@@ -19,8 +19,10 @@ class StribeckFriction(Effect):
 
     name = "stribeck_friction"
     PARAMS: ClassVar[dict[str, EffectParam]] = {
-        "amplitude": EffectParam(5.0e-3, "N m", "extra friction at zero speed, motor side", 0.0, 5.0e-3),
-        "velocity": EffectParam(5.0, "rad/s", "Stribeck velocity omega_s (motor side)", 1.0e-6, 5.0),
+        "amplitude": EffectParam(
+            5.0e-3, "N m", "extra friction at zero speed, motor side", 0.0, 1 / 240, "peak_motor_torque"
+        ),
+        "velocity": EffectParam(5.0, "rad/s", "Stribeck velocity omega_s (motor side)", 1.0e-6, 1 / 60, "speed_limit"),
     }
     STRENGTH = ("amplitude",)
     explains = "current error concentrated at low motor speed, i.e. around velocity reversals, sign of the speed"

@@ -16,7 +16,7 @@ class TorqueConstantSaturation(Effect):
     name = "torque_constant_saturation"
     PARAMS: ClassVar[dict[str, EffectParam]] = {
         "coefficient": EffectParam(0.3, "-", "saturation coefficient a", 0.0, 0.3),
-        "current_scale": EffectParam(5.0, "A", "current scale I_s", 1.0e-6, 5.0),
+        "current_scale": EffectParam(5.0, "A", "current scale I_s", 1.0e-6, 1 / 3, "current_limit"),
     }
     STRENGTH = ("coefficient",)
     explains = "current error growing with the square of the current (cubic in the load), largest at peak current"

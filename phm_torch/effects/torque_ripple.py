@@ -24,7 +24,7 @@ class TorqueRipple(Effect):
     name = "torque_ripple"
     PARAMS: ClassVar[dict[str, EffectParam]] = {
         "order": EffectParam(1.0, "1/rev", "periods per motor mechanical turn h", 0.0, 10.0),
-        "amplitude": EffectParam(4.0e-3, "N m", "ripple amplitude A, motor side", 0.0, 4.0e-3),
+        "amplitude": EffectParam(4.0e-3, "N m", "ripple amplitude A, motor side", 0.0, 1 / 300, "peak_motor_torque"),
         "phase": EffectParam(0.0, "rad", "phase of the ripple at theta_m = 0", None, math.pi),
     }
     STRENGTH = ("amplitude",)

@@ -17,7 +17,9 @@ class TransmissionCompliance(Effect):
 
     name = "transmission_compliance"
     PARAMS: ClassVar[dict[str, EffectParam]] = {
-        "compliance": EffectParam(1.0e-5, "rad/(N m)", "extra series compliance C, user side", 0.0, 1.0e-5),
+        "compliance": EffectParam(
+            1.0e-5, "rad/(N m)", "extra series compliance C, user side", 0.0, 0.5, "output_compliance"
+        ),
     }
     STRENGTH = ("compliance",)
     explains = (

@@ -19,7 +19,9 @@ class ViscousFriction(Effect):
 
     name = "viscous_friction"
     PARAMS: ClassVar[dict[str, EffectParam]] = {
-        "coefficient": EffectParam(1.0e-4, "N m s/rad", "extra motor-side viscous coefficient c", 0.0, 1.0e-4),
+        "coefficient": EffectParam(
+            1.0e-4, "N m s/rad", "extra motor-side viscous coefficient c", 0.0, 1 / 40, "motor_damping"
+        ),
     }
     STRENGTH = ("coefficient",)
     explains = "current error proportional to motor speed, largest at peak speed and zero at velocity reversals"

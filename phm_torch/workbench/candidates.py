@@ -32,6 +32,7 @@ from scipy import special, stats
 
 from .. import checks
 from ..effects import EFFECTS
+from ..params import ActuatorParams
 from .calibrate import Calibration
 from .model import Evaluator
 from .parameters import effect_defaults
@@ -138,18 +139,24 @@ class Candidate:
     delta_bic: float | None = None
 
 
-def directions(names: Sequence[str], settings: ScoreSettings) -> list[Direction]:
-    """Probe directions of the candidates: every strength parameter x every grid point of shape parameters."""
+def directions(names: Sequence[str], settings: ScoreSettings, params: ActuatorParams) -> list[Direction]:
+    """Probe directions of the candidates: every strength parameter x every grid point of shape parameters.
+
+    Strengths are probed at ``step`` x their typical magnitude on the actuator ``params``; shape parameters
+    sized by the actuator (``EffectParam.per``, e.g. a current scale) at that magnitude, the others at their
+    defaults, unless the grid gives them.
+    """
     out = []
     for name in names:
         cls = EFFECTS[name]
         grid = settings.grid.get(name, {})
         keys = list(grid)
+        sized = {k: spec.scale_for(params) for k, spec in cls.PARAMS.items() if spec.per and k not in cls.STRENGTH}
         for combo in itertools.product(*[list(grid[k]) for k in keys]) if keys else [()]:
-            base = effect_defaults(name, dict(zip(keys, combo)))
+            base = effect_defaults(name, {**sized, **dict(zip(keys, combo))})
             for s in cls.STRENGTH:
                 vals = {
-                    k: (settings.step * cls.PARAMS[k].scale if k == s else 0.0) if k in cls.STRENGTH else v
+                    k: (settings.step * cls.PARAMS[k].scale_for(params) if k == s else 0.0) if k in cls.STRENGTH else v
                     for k, v in base.items()
                 }
                 out.append(Direction(name, s, vals))
@@ -180,7 +187,7 @@ def score_tests(
     names = [n for n in names if n not in cal.space.effects]
     if not names:
         return []
-    dirs = directions(names, settings)
+    dirs = directions(names, settings, cal.space.params)
     ev: Evaluator = cal.evaluator
     x = cal.x.reshape(1, -1)
     blocks = [cal.space.with_effect(d.effect, d.values, [], cal.x, 1.0, label=d.effect) for d in dirs]
@@ -270,9 +277,9 @@ def _test(
     explained = float(u @ np.linalg.pinv(a, rcond=1e-10, hermitian=True) @ u) / rr if rr > 0 else 0.0
     d = dirs[best]
     start = dict(d.values)
-    start[d.strength] = (
-        max(float(theta[best]), 0.0 if minimum[best] is not None else -math.inf) * cls.PARAMS[d.strength].scale
-    )
+    start[d.strength] = max(float(theta[best]), 0.0 if minimum[best] is not None else -math.inf) * cls.PARAMS[
+        d.strength
+    ].scale_for(cal.space.params)
     if minimum[best] is not None:
         start[d.strength] = max(start[d.strength], minimum[best])
     contribution = float(theta[best]) * eff[:, best] if gain[best] > 0 else torch.zeros_like(r)

@@ -218,6 +218,21 @@ class Workbench:
                 c.significant = c.significant and c.delta_bic < 0 and gain >= self.settings.score.min_gain
         return sorted(cands, key=_order)
 
+    def finish(self, cal: Calibration) -> Calibration:
+        """``cal``'s fit continued with the calibration's settings (the added candidate's model is calibrated
+        like the configured one): the refits that confirm the candidates stop after ``refit.max_iter``, too
+        few for a large effect (a trim load of a tenth of the stall torque: the friction and inertia the
+        calibration had bent to absorb it come back in a few more iterations)."""
+        return fit_models(
+            cal.evaluator,
+            [cal.space],
+            [cal.x],
+            cal.sigma,
+            self.noise,
+            self.settings.calibration,
+            on_iteration=_progress("finish"),
+        )[0]
+
     def add(self, cal: Calibration, name: str, values: Mapping[str, float] | None = None) -> Calibration:
         """Refit ``cal``'s model with effect ``name`` added (its strength and ``refit_free`` parameters free)."""
         keys = self.settings.refit_free.get(name, EFFECTS[name].STRENGTH)
@@ -273,6 +288,9 @@ class Workbench:
             if k == 0:
                 timing.update(rank_s=t2 - t1, refit_s=t3 - t2, loop_s=t3 - t0, loop_cpu_s=time.process_time() - c0)
             best = next((c for c in cands if c.significant and c.refit is not None), None)
+            if best is not None and not best.refit.result.converged:
+                best.refit = self.finish(best.refit)
+                best.delta_bic = best.refit.bic - current.bic
             rounds.append(Round(current, cands, best.effect if best else None, best.refit if best else None))
             if best is None:
                 break

@@ -6,7 +6,7 @@ list of parameters a fit may move. The fit works on a normalised vector x:
 * ``scale``: x = log(multiplier) of one datasheet field or of a named group of fields (e.g. ``dry_friction``
   = Coulomb and static friction together); value reported = nominal * multiplier (a group: the multiplier);
 * ``fault``: x = k_i, the fault-vector entry, in [0, 1];
-* ``effect``: x = value / scale of an effect parameter (``EffectParam.scale``);
+* ``effect``: x = value / scale of an effect parameter (``EffectParam.scale_for`` the actuator);
 * ``closure``: x = one output weight of the neural closure.
 
 ``settings(X)`` turns a batch (P, n) of such vectors into the simulator's faults (P, 8), scales and effect
@@ -163,7 +163,7 @@ class ParameterSpace:
         if name in self.effects:
             raise ValueError(f"effect {name!r} is already in the model")
         full = effect_defaults(name, values)
-        new_free = [effect_parameter(name, key, full[key], fd_step) for key in free]
+        new_free = [effect_parameter(name, key, full[key], fd_step, self.params) for key in free]
         space = replace(
             self,
             effects={**self.effects, name: full},
@@ -203,16 +203,18 @@ def effect_defaults(name: str, values: Mapping[str, Any] | None = None) -> dict[
     return out
 
 
-def effect_parameter(name: str, key: str, value: float, fd_step: float) -> FreeParameter:
-    """A free effect parameter, normalised by its declared scale; bounds from its declared minimum."""
+def effect_parameter(name: str, key: str, value: float, fd_step: float, params: ActuatorParams) -> FreeParameter:
+    """A free effect parameter, normalised by its typical magnitude on the actuator ``params``
+    (``EffectParam.scale_for``); bounds from its declared minimum."""
     cls = EFFECTS[name]
     if key not in cls.PARAMS:
         raise ValueError(f"effects.{name}: unknown parameter {key!r}; known: {sorted(cls.PARAMS)}")
     spec = cls.PARAMS[key]
-    lower = -EFFECT_BOUND if spec.minimum is None else spec.minimum / spec.scale
-    x0 = min(max(value / spec.scale, lower), EFFECT_BOUND)
+    scale = spec.scale_for(params)
+    lower = -EFFECT_BOUND if spec.minimum is None else spec.minimum / scale
+    x0 = min(max(value / scale, lower), EFFECT_BOUND)
     return FreeParameter(
-        f"{name}.{key}", "effect", (name, key), x0, lower, EFFECT_BOUND, fd_step, spec.unit, factor=spec.scale
+        f"{name}.{key}", "effect", (name, key), x0, lower, EFFECT_BOUND, fd_step, spec.unit, factor=scale
     )
 
 
@@ -279,7 +281,7 @@ def build_space(
             )
         elif "." in name and name.split(".", 1)[0] in model_effects:
             eff, key = name.split(".", 1)
-            out.append(effect_parameter(eff, key, model_effects[eff].get(key, math.nan), fd_step))
+            out.append(effect_parameter(eff, key, model_effects[eff].get(key, math.nan), fd_step, params))
         else:
             raise ValueError(
                 f"free: unknown parameter {name!r}; use a datasheet field {list(TENSOR_FIELDS)}, "
@@ -289,7 +291,7 @@ def build_space(
         keys = (effect_free or {}).get(eff, EFFECTS[eff].STRENGTH)
         for key in keys:
             if f"{eff}.{key}" not in [p.name for p in out]:
-                out.append(effect_parameter(eff, key, model_effects[eff][key], fd_step))
+                out.append(effect_parameter(eff, key, model_effects[eff][key], fd_step, params))
     names = [p.name for p in out]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
