@@ -435,3 +435,15 @@ def test_a_trim_load_sized_by_the_actuator_is_found_fitted_and_explains_the_erro
     assert fitted["dry_friction"][0] == pytest.approx(1.0, abs=0.05), fitted
     after = res.metrics["model + aero_hinge_load"]
     assert after["nrmse"]["total"] <= 1.1 * after["noise_floor"]["total"], after
+
+
+def test_closure_output_unit_follows_the_actuator_unless_given():
+    from phm_torch.workbench.closure import ClosureSettings, output_scale
+
+    rudder = load_actuator("ema_hvdc_rudder")
+    assert output_scale(ClosureSettings(), P) == pytest.approx(1e-3)  # the former fixed unit, on the default
+    assert output_scale(ClosureSettings(), rudder) == pytest.approx(5e-3)  # 5 x the peak motor torque
+    assert output_scale(ClosureSettings(equation="voltage"), rudder) == pytest.approx(270 / 28000)
+    assert output_scale(ClosureSettings(output_scale=2e-3), rudder) == 2e-3
+    with pytest.raises(ValueError, match="closure.output_scale"):
+        ClosureSettings(output_scale=-1.0)

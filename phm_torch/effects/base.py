@@ -70,6 +70,7 @@ ACTUATOR_UNITS: dict[str, Callable[[Any], float]] = {
     "speed_limit": lambda p: float(p.speed_limit),  # [rad/s], motor side
     "current_limit": lambda p: float(p.current_limit),  # [A]
     "pwm_period": lambda p: 1.0 / float(p.pwm_frequency),  # [s]
+    "supply_voltage": lambda p: float(p.supply_voltage),  # [V]
     "output_stiffness": lambda p: float(p.output_stiffness),  # [N m/rad], user side
     "output_compliance": lambda p: 1.0 / float(p.output_stiffness),  # [rad/(N m)], user side
 }

@@ -28,6 +28,8 @@ import torch
 
 from .. import checks
 from ..effects import EFFECTS
+from ..effects.base import ACTUATOR_UNITS
+from ..params import ActuatorParams
 from ..simulator import EMASimulator
 from .calibrate import Calibration, FitSettings, fit_models
 from .closure_net import EQUATIONS, ClosureNet, NeuralClosure
@@ -70,6 +72,21 @@ def scales_from(simulated: Sequence[dict[str, torch.Tensor]]) -> tuple[float, fl
     return top("speed"), top("current"), top("user_angle")
 
 
+# The unit of the closure's output weights on an actuator, when ``closure.output_scale`` is not given: a
+# 1200th of its peak motor torque 2 k_e I_max (torque equation) or a 28,000th of its bus voltage (voltage),
+# 1e-3 N m and 1e-3 V on the default datasheet. The ridge prior and the weights' bound are in this unit, so a
+# fixed one would shrink a larger actuator's closure (its missing torque needs larger weights).
+OUTPUT_UNIT = {"torque": ("peak_motor_torque", 1 / 1200), "voltage": ("supply_voltage", 1 / 28000)}
+
+
+def output_scale(cs: ClosureSettings, params: ActuatorParams) -> float:
+    """The closure's output unit [N m] or [V]: ``cs.output_scale``, or sized by the actuator ``params``."""
+    if cs.output_scale is not None:
+        return float(cs.output_scale)
+    unit, fraction = OUTPUT_UNIT[cs.equation]
+    return fraction * ACTUATOR_UNITS[unit](params)
+
+
 @dataclass(frozen=True)
 class ClosureSettings:
     """Neural closure: ``enabled`` ``auto`` (when no candidate is significant, the residual is not white and the
@@ -80,8 +97,8 @@ class ClosureSettings:
     (:func:`~.orders.closure_orders`: 1, 2, p, 2p, the cogging order and its double, 6p, the pinion's teeth)
     plus the residual's ``data_orders`` strongest orders. ``equation``: ``torque`` (motor shaft) or
     ``voltage`` (driven pair). ``hidden``: random tanh units (the output weights are fitted through the
-    simulator); ``output_scale``: [N m] (torque) or [V] (voltage) per unit weight; ``ridge``: prior weight on
-    the output weights; ``fit``: its Gauss-Newton iterations (the calibrated model frozen; one simulator call
+    simulator); ``output_scale``: [N m] (torque) or [V] (voltage) per unit weight, ``None`` (default): sized
+    by the actuator (:data:`OUTPUT_UNIT`); ``ridge``: prior weight on the output weights; ``fit``: its Gauss-Newton iterations (the calibrated model frozen; one simulator call
     each)."""
 
     enabled: str = "auto"
@@ -89,7 +106,7 @@ class ClosureSettings:
     harmonics: tuple[int, ...] | None = None
     data_orders: int = 3
     hidden: int = 8
-    output_scale: float = _NET["output_scale"].default
+    output_scale: float | None = None
     ridge: float = 1.0
     fd_step: float = 0.05
     ratio: float = 1.5
@@ -106,12 +123,13 @@ class ClosureSettings:
         values = {
             "data_orders": checks.integer(self.data_orders, "closure.data_orders", 0),
             "hidden": checks.integer(self.hidden, "closure.hidden", 0),
-            "output_scale": checks.number(self.output_scale, "closure.output_scale", 0.0, True),
             "ridge": checks.number(self.ridge, "closure.ridge", 0.0),
             "fd_step": checks.number(self.fd_step, "closure.fd_step", 0.0, True),
             "ratio": checks.number(self.ratio, "closure.ratio", 0.0, True),
             "seed": checks.integer(self.seed, "closure.seed", 0),
         }
+        if self.output_scale is not None:  # None: sized by the actuator
+            values["output_scale"] = checks.number(self.output_scale, "closure.output_scale", 0.0, True)
         if self.harmonics is not None:  # None: from the actuator's orders and the residual's
             if isinstance(self.harmonics, (str, bytes)) or not hasattr(self.harmonics, "__iter__"):
                 raise ValueError(f"closure.harmonics must be null or a list of orders, got {self.harmonics!r}")
@@ -149,17 +167,13 @@ def fit_closure(
     harmonics = cs.harmonics if harmonics is None else harmonics
     if harmonics is None:
         raise ValueError("closure.harmonics: no orders given (the workbench derives them from the actuator)")
+    scale = output_scale(cs, cal.space.params)
     net = ClosureNet(
-        harmonics,
-        cs.hidden,
-        *scales_from(cal.simulated),
-        equation=cs.equation,
-        output_scale=cs.output_scale,
-        seed=cs.seed,
+        harmonics, cs.hidden, *scales_from(cal.simulated), equation=cs.equation, output_scale=scale, seed=cs.seed
     )
     unit = "N m" if cs.equation == "torque" else "V"
     weights = tuple(
-        FreeParameter(f"closure.w{i}", "closure", (i,), 0.0, -1e3, 1e3, cs.fd_step, unit, factor=cs.output_scale)
+        FreeParameter(f"closure.w{i}", "closure", (i,), 0.0, -1e3, 1e3, cs.fd_step, unit, factor=scale)
         for i in range(net.n_weights)
     )
     base = freeze(cal)
