@@ -230,6 +230,9 @@ def main() -> None:
     )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
+        "--only", type=int, nargs="+", default=None, help="run only these cases (1-based; the draws are unchanged)"
+    )
+    ap.add_argument(
         "--data-fidelity",
         choices=("lf", "hf"),
         default="lf",
@@ -298,6 +301,11 @@ def main() -> None:
             (c, {**info, "strength": {"mode": "default", "snr": s}} if info["effect"] else info)
             for (c, info), s in zip(built, snrs, strict=True)
         ]
+    if args.only:
+        bad = [i for i in args.only if not 1 <= i <= len(built)]
+        if bad:
+            raise ValueError(f"--only: case numbers {bad} outside 1..{len(built)}")
+        built = [built[i - 1] for i in args.only]
     ms = synthesize(params, [c for c, _ in built], command, args.duration, fidelity=args.data_fidelity)
     cases = []
     for i, ((_, info), m) in enumerate(zip(built, ms, strict=True)):

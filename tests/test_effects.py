@@ -251,8 +251,11 @@ def test_typical_magnitudes_follow_the_actuator_size():
     assert torque_ratio == pytest.approx(5.0)
     for name in BUILTIN:
         for key, spec in EFFECTS[name].PARAMS.items():
-            if key in EFFECTS[name].STRENGTH or spec.per:
+            if (key in EFFECTS[name].STRENGTH or spec.per) and name != "transmission_compliance":
                 assert spec.scale_for(P) == pytest.approx(abs(spec.default), rel=1e-12), (name, key)
+    compliance = EFFECTS["transmission_compliance"].PARAMS["compliance"]
+    assert compliance.scale_for(P) == pytest.approx(4 / P.output_stiffness)  # probed at 0.4 / K_t
+    assert compliance.scale_for(rudder) == pytest.approx(4 / rudder.output_stiffness)
     assert EFFECTS["cogging_torque"].PARAMS["amplitude"].scale_for(rudder) == pytest.approx(5 * 4e-3)
     hinge = EFFECTS["aero_hinge_load"].PARAMS["bias"]
     assert hinge.scale_for(rudder) == pytest.approx(

@@ -17,8 +17,11 @@ class TransmissionCompliance(Effect):
 
     name = "transmission_compliance"
     PARAMS: ClassVar[dict[str, EffectParam]] = {
+        # typical magnitude 4 x the nominal compliance 1 / K_t: the signature is strongly nonlinear in C (the
+        # resonance moves), and a probe (0.1 of it) much below 1 / K_t reads only the local slope, which the
+        # sensor lag's matches (a rudder compliance of 5.7 / K_t was named a sensor lag with a 0.05 / K_t probe)
         "compliance": EffectParam(
-            1.0e-5, "rad/(N m)", "extra series compliance C, user side", 0.0, 0.5, "output_compliance"
+            1.0e-5, "rad/(N m)", "extra series compliance C, user side", 0.0, 4.0, "output_compliance"
         ),
     }
     STRENGTH = ("compliance",)
