@@ -10,7 +10,8 @@ import pytest
 import torch
 from contract_model import contract_model
 
-from phm_torch.online.input_contract import InputContract, no_large_fault
+from phm_torch.online.fault_count import no_large_fault
+from phm_torch.online.input_contract import InputContract
 from phm_torch.online.spike_check import SPIKE_MARGIN, SPIKE_STEP, calibrate_spike_step, has_spikes, largest_step
 
 
@@ -42,7 +43,7 @@ def test_a_coarsely_sampled_record_steps_by_itself_and_the_calibrated_step_lets_
     wild[300] += 5 * scale  # a large fault's record is not compared: it does not set the threshold
     signals, k_hat = torch.stack([NOMINAL, 0.9 * NOMINAL, wild]), torch.stack([near, near, heavy])
     assert no_large_fault(m, k_hat).tolist() == [True, True, False]
-    step = calibrate_spike_step(m, signals, no_large_fault(m, k_hat))
+    step = calibrate_spike_step(m, signals, k_hat)
     assert step == pytest.approx(SPIKE_MARGIN * own)
     assert not has_spikes(NOMINAL, 0.0, scale, step)
     spiked = NOMINAL.clone()
@@ -61,5 +62,6 @@ def test_a_coarsely_sampled_record_steps_by_itself_and_the_calibrated_step_lets_
     assert "spikes" in calibrated.current_reasons(m, 1.4 * spiked, 0.0, near)
     # smooth records below SPIKE_STEP keep it; nothing near nominal: nothing to calibrate
     smooth = torch.sin(torch.linspace(0.0, 6.0, N, dtype=torch.float64))[None]
-    assert calibrate_spike_step(SimpleNamespace(nominal_record=smooth[0]), smooth, torch.tensor([True])) == SPIKE_STEP
-    assert calibrate_spike_step(m, signals[2:], torch.tensor([False])) is None
+    assert calibrate_spike_step(contract_model(smooth[0]), smooth, near[None]) == SPIKE_STEP
+    assert calibrate_spike_step(m, signals[2:], heavy[None]) is None
+    assert calibrate_spike_step(SimpleNamespace(nominal_record=NOMINAL), signals, k_hat) is None  # no intervals

@@ -75,6 +75,7 @@ import torch
 from ..metrics import finite_mean, nrmse
 from .command_check import CommandCheck, check_command
 from .corruptions import Record
+from .fault_count import large_faults, no_large_fault
 from .rest_offset_check import REST_MIN, rest_offset, rest_window
 from .run_checks import run_reasons
 from .spike_check import SPIKE_STEP, has_spikes
@@ -107,23 +108,6 @@ class ContractChecks:
     command: CommandCheck | None
     tracking: dict[str, Any] | None
     messages: list[str] = field(default_factory=list)
-
-
-def _large_faults(model: Any, k_hat: torch.Tensor | None) -> int | None:
-    """Large faults in k_hat (8,), as the pipeline's intervals count them; None without an estimate or a count."""
-    try:
-        level, nominal, mask = float(model.interval_level), model.nominal, model.interval_mask
-    except (AttributeError, RuntimeError):
-        return None
-    if k_hat is None:
-        return None
-    return int((((k_hat.to(nominal.dtype).flatten() - nominal).abs() * mask) > level).sum())
-
-
-def no_large_fault(model: Any, k_hat: torch.Tensor) -> torch.Tensor:
-    """(B,) bool: the estimates k_hat (B, 8) with no large fault, as the pipeline's intervals count them (the
-    records the near-nominal checks apply to)."""
-    return torch.tensor([_large_faults(model, k) == 0 for k in k_hat], dtype=torch.bool)
 
 
 def calibrate_shape_min(model: Any, signals: torch.Tensor, k_hat: torch.Tensor) -> float | None:
@@ -313,7 +297,7 @@ class InputContract:
         mean = float(finite_mean(x))
         if mean * float(nominal.mean()) < 0:
             reasons.append("sign")
-        large = _large_faults(model, k_hat)
+        large = large_faults(model, k_hat)
         if large is None:
             return reasons
         rms = float(finite_mean(x.pow(2)).sqrt())

@@ -16,6 +16,8 @@ from typing import Any
 
 import torch
 
+from .fault_count import no_large_fault
+
 SPIKE_SIGMA = 12.0  # a spike: a second difference above this many noise std of a second difference...
 SPIKE_STEP = 0.8  # ... and above this fraction of the nominal RMS current (the current's own steps)
 SPIKE_MARGIN = 1.5  # a calibrated step: this x the largest step of the held-out records with no large fault
@@ -35,12 +37,15 @@ def has_spikes(x: torch.Tensor, sigma: float, scale: float, step: float = SPIKE_
     return float(largest_step(x)) > max(SPIKE_SIGMA * math.sqrt(6.0) * sigma, step * scale)
 
 
-def calibrate_spike_step(model: Any, signals: torch.Tensor, none_large: torch.Tensor) -> float | None:
+def calibrate_spike_step(model: Any, signals: torch.Tensor, k_hat: torch.Tensor) -> float | None:
     """The ``spikes`` check's step for a pipeline: ``SPIKE_MARGIN`` x the largest second difference, over the
     larger of the nominal record's RMS and the record's own, of the held-out records (B, n_full) [A] whose estimate
-    has no large fault (``none_large`` (B,) bool), never below ``SPIKE_STEP``. None: nothing to calibrate on."""
+    (k_hat (B, 8)) has no large fault, never below ``SPIKE_STEP``. None: nothing to calibrate on."""
     nominal = getattr(model, "nominal_record", None)
-    if nominal is None or nominal.numel() != signals.shape[1] or not bool(none_large.any()):
+    if nominal is None or nominal.numel() != signals.shape[1]:
+        return None
+    none_large = no_large_fault(model, k_hat)
+    if not bool(none_large.any()):
         return None
     scale = float(nominal.double().pow(2).mean().sqrt())
     if not scale > 0:

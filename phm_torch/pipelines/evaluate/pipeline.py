@@ -24,7 +24,7 @@ from ...online import OnlinePipeline
 from ...online.consistency import calibrate_consistency
 from ...online.export import calibration_metadata
 from ...online.fdi_interval import interval_quality
-from ...online.input_contract import calibrate_shape_min, no_large_fault
+from ...online.input_contract import calibrate_shape_min
 from ...online.noise_threshold import calibrate_gappy_residual
 from ...online.spike_check import calibrate_spike_step
 from ...online.unexplained_check import calibrate_ratio
@@ -242,9 +242,7 @@ def _calibrate(settings: EvaluateSettings, pipeline: OnlinePipeline, inp: Simple
         r2=r2,
         shape_min=calibrate_shape_min(pipeline, band_signals[~band_ood], band_k_hat[~band_ood]),
         unexplained=calibrate_ratio(pipeline, band_signals[~band_ood], band_k_hat[~band_ood]),
-        spike_step=calibrate_spike_step(
-            pipeline, band_signals[~band_ood], no_large_fault(pipeline, band_k_hat[~band_ood])
-        ),
+        spike_step=calibrate_spike_step(pipeline, band_signals[~band_ood], band_k_hat[~band_ood]),
         unidentified=unidentified,
         band=band,
         verdict=verdict,
