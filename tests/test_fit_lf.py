@@ -128,8 +128,13 @@ def test_bad_config_names_the_field(compose, tmp_path, override, message):
     assert not (tmp_path / "act").exists()  # validated before anything is written
 
 
-def test_app_tiny_run_writes_usable_actuator_yaml(compose, tmp_path):
-    metrics, objects = fit_lf(_cfg(compose, tmp_path))
+def test_app_tiny_run_writes_usable_actuator_yaml(compose, tmp_path, monkeypatch, caplog):
+    import phm_torch.apps.fit_lf as app
+
+    monkeypatch.setattr(app, "LONG_FIT_PERIODS", 50)  # this tiny run's 0.01 s at 10 kHz are 100 periods
+    with caplog.at_level("WARNING", logger=app.__name__):
+        metrics, objects = fit_lf(_cfg(compose, tmp_path))
+    assert "100 control periods per simulated vector" in caplog.text and "fit.duration=<s>" in caplog.text
     path = objects["yaml"]
     written = load_actuator(str(path))
     assert isinstance(written, ActuatorParams)

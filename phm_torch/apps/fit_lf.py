@@ -32,6 +32,7 @@ from ..io.atomic import atomic_open
 from . import common
 
 log = logging.getLogger(__name__)
+LONG_FIT_PERIODS = 20_000  # control periods per simulated vector above which the fit says how to shorten it
 
 
 def output_path(value: Any, default_name: str) -> Path:
@@ -110,6 +111,16 @@ def fit_lf(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     stem = yaml_path.with_suffix("")
     report_path, plot_path = Path(f"{stem}.report.json"), Path(f"{stem}.report.png")
 
+    periods = duration * float(params.pwm_frequency)
+    if periods > LONG_FIT_PERIODS:
+        log.warning(
+            "phm-fit-lf: %.0f control periods per simulated vector (%g s at %g Hz PWM); the fit's cost grows with "
+            "them (48,000 took 14 min on one thread, 7,500 take 2 min): fit.duration=<s> fits on the first part of "
+            "the command",
+            periods,
+            duration,
+            float(params.pwm_frequency),
+        )
     t0 = time.perf_counter()
     result = lf_fit.run_fit(params, command, settings)
     wall = time.perf_counter() - t0
