@@ -156,3 +156,19 @@ def test_phm_track_auto_reads_the_rule_beside_the_pipeline():
     assert auto_rule(None) == defaults and auto_rule(near) == defaults  # the shipped file records none
     near.provenance = {"life_split": "lifetrain", "tracker_rule": {"verdict": "posterior", "faulty_at": "p5"}}
     assert auto_rule(near) == {"verdict": "posterior", "faulty_at": "p5"}
+
+
+def test_phm_track_auto_says_when_the_chosen_rule_flags_most_ends_of_life_early(caplog):
+    """A robust actuator whose test command leaves a component unidentified: the companions' choice took a rule that
+    flagged 80 % of the ends of life early (the steer270 probe); phm-track says so, and what the others did."""
+    near = NearNominalFDI(4)
+    rules = {"record/p5": {"eol_flagged_early": 0.8}, "record/p50": {"eol_flagged_early": 0.4}}
+    near.provenance = {"life_split": "life", "tracker_rule": {"verdict": "record", "faulty_at": "p5", "rules": rules}}
+    with caplog.at_level("WARNING", logger="phm_torch.apps.track"):
+        assert auto_rule(near) == {"verdict": "record", "faulty_at": "p5"}
+    assert "flagged 80 % of the ends of life on that split early" in caplog.text and "record/p50" in caplog.text
+    caplog.clear()
+    near.provenance["tracker_rule"] = {"verdict": "record", "faulty_at": "p50", "rules": rules}
+    with caplog.at_level("WARNING", logger="phm_torch.apps.track"):
+        auto_rule(near)
+    assert "early" not in caplog.text

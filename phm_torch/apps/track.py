@@ -61,6 +61,7 @@ def _sha256(path: Path) -> str:
 
 
 AUTO_KEYS = ("verdict", "faulty_at")  # "auto" in conf/track.yaml: the near-nominal FDI's recorded choice (auto_rule)
+EARLY_WARNING = 0.5  # phm-track warns when the rule chosen flagged more of its companion split's ends of life early
 # TrackerSettings' fields set at the top level of conf/track.yaml; their defaults are composed in from the
 # dataclass (/schema/track), so the YAML does not restate them
 TRACKER_KEYS = (
@@ -106,6 +107,15 @@ def auto_rule(near: NearNominalFDI | None) -> dict[str, str]:
             rule,
             near.provenance["life_split"],
         )
+        figures = (chosen.get("rules") or {}).get(f"{rule['verdict']}/{rule['faulty_at']}") or {}
+        early = figures.get("eol_flagged_early")
+        if early is not None and early > EARLY_WARNING:
+            log.warning(
+                "tracker rule=auto: the rule chosen flagged %.0f %% of the ends of life on that split early (flagging "
+                "late or never weighs more); expect RULs of 0 well before the end of life. Every rule's figures: %s",
+                100 * early,
+                chosen["rules"],
+            )
     return rule
 
 
