@@ -277,9 +277,8 @@ def _test(
     explained = float(u @ np.linalg.pinv(a, rcond=1e-10, hermitian=True) @ u) / rr if rr > 0 else 0.0
     d = dirs[best]
     start = dict(d.values)
-    start[d.strength] = max(float(theta[best]), 0.0 if minimum[best] is not None else -math.inf) * cls.PARAMS[
-        d.strength
-    ].scale_for(cal.space.params)
+    magnitude = cls.PARAMS[d.strength].scale_for(cal.space.params)  # the probe's unit: theta is in it
+    start[d.strength] = max(float(theta[best]), 0.0 if minimum[best] is not None else -math.inf) * magnitude
     if minimum[best] is not None:
         start[d.strength] = max(start[d.strength], minimum[best])
     contribution = float(theta[best]) * eff[:, best] if gain[best] > 0 else torch.zeros_like(r)
