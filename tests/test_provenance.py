@@ -189,6 +189,28 @@ def test_workbench_records_the_command_and_checks_the_files_against_it(compose):
         command_provenance(compose("workbench", [f"measurements={demo}", "command=sine"]), records)
 
 
+def test_workbench_refuses_a_measurement_recorded_on_another_actuator(compose, tmp_path):
+    """The shipped demo's sidecar says it was recorded on ema_reference: compared with the rudder's datasheet it
+    passed every file check and the report blamed missing physics (a closure was fitted); now it is an error
+    naming both. Its own actuator, chosen or default, passes, and a file without a sidecar is not checked."""
+    from phm_torch.apps.workbench import build_workbench, check_recorded_actuator
+
+    demo = Path(__file__).resolve().parent.parent / "examples" / "workbench_hidden_cogging.csv"
+    cfg = compose("workbench", [f"measurements={demo}", "actuator=ema_hvdc_rudder"])
+    records = build_workbench(cfg).load(str(demo))
+    with pytest.raises(
+        ValueError,
+        match=r"actuator=ema_hvdc_rudder .* differs from the actuator measurement .*"
+        r"workbench_hidden_cogging.csv was made for: ema_reference",
+    ):
+        check_recorded_actuator(cfg, records)
+    for overrides in ([], ["actuator=ema_reference"]):
+        check_recorded_actuator(compose("workbench", [f"measurements={demo}", *overrides]), records)
+    bare = tmp_path / "bare.csv"
+    bare.write_bytes(demo.read_bytes())  # no sidecar: nothing recorded to check
+    check_recorded_actuator(cfg, build_workbench(cfg).load(str(bare)))
+
+
 def test_a_slewed_chirp_is_the_chirp_on_a_ramp_and_hashes_apart_from_it():
     """SlewedChirp = Chirp + r t on the acquisition grid; its record (class included) never matches a plain chirp's,
     and a bad slew rate is refused by name."""

@@ -23,7 +23,7 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from .. import checks
+from .. import checks, provenance
 from ..online.command_check import check_command
 from ..workbench import (
     ClosureSettings,
@@ -136,6 +136,21 @@ def command_provenance(cfg: DictConfig, records: list[Any]) -> dict[str, Any]:
     return requested
 
 
+def check_recorded_actuator(cfg: DictConfig, records: list[Any]) -> None:
+    """A measurement file that says which actuator it was recorded on (a sidecar ``<file>.json`` with a
+    ``provenance`` record, as the shipped demo has) must be of the actuator the model is built from, chosen or
+    default: a difference is an error naming both (compared with another datasheet, its record passes every file
+    check and the report blames missing physics)."""
+    used = {"actuator": common.requested_provenance(cfg)["actuator"]}
+    for record in records:
+        sidecar = Path(record.path).with_suffix(".json") if record.path is not None else None
+        if sidecar is None or not sidecar.is_file():
+            continue
+        recorded = json.loads(sidecar.read_text()).get("provenance") or {}
+        if recorded.get("actuator") is not None:
+            provenance.require_same({"actuator": recorded["actuator"]}, used, f"measurement {record.path}")
+
+
 def run_workbench(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     """Run the whole loop on the configured measurements and write the report.
 
@@ -147,6 +162,7 @@ def run_workbench(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     wb = build_workbench(cfg)
     measurements = common.plain(cfg.measurements)
     records = wb.load(measurements, resample=bool(cfg.resample))
+    check_recorded_actuator(cfg, records)
     command = command_provenance(cfg, records)
     out_dir = Path(str(cfg.out_dir)).expanduser()
     result = wb.run(records)
