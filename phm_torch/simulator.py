@@ -90,7 +90,7 @@ class EMASimulator:
         motor = MOTORS[fidelity]
         self.motor = motor(substeps or default_substeps(motor, params.pwm_frequency, params.sample_rate))
         # copies on the simulation dtype/device (grads kept): the caller's effects are left as given
-        given = build_effects(effects) if effects is None or isinstance(effects, Mapping) else effects
+        given = build_effects(effects, params) if effects is None or isinstance(effects, Mapping) else effects
         self.effects = [eff.to(dtype, device) for eff in given]
         self.dtype, self.device = dtype, torch.device(device)
         self.period = params.control_period

@@ -105,7 +105,8 @@ def random_case(
         if name == "cogging_torque":
             vals["phase"] = rng.uniform(0.0, 2 * math.pi)
         if name == "stribeck_friction":
-            vals["velocity"] = rng.uniform(3.0, 10.0)
+            # 0.6-2 x its typical magnitude (speed limit / 60): 3-10 rad/s on the reference
+            vals["velocity"] = cls.PARAMS["velocity"].scale_for(params) * rng.uniform(0.6, 2.0)
         if name == "torque_ripple":  # an order the library does not name: >= 4 from the cogging order
             cog = actuator_orders(params)["cogging"]
             vals["order"] = float(rng.choice([h for h in range(8, max_order(params) - 3) if abs(h - cog) >= 4]))

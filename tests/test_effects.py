@@ -269,6 +269,38 @@ def test_typical_magnitudes_follow_the_actuator_size():
         hinge.scale_for(SimpleNamespace(back_emf_constant=0.0, current_limit=15.0, gear_ratio=200.0))
 
 
+def test_shape_parameters_sized_by_the_actuator_default_to_its_size_and_grids_are_multiples():
+    """An effect added without its sized shape parameters takes the actuator's size (the rudder's Stribeck
+    velocity: its 600 rad/s speed limit / 60, not the reference's 5 rad/s), in the simulator, the apps and the
+    workbench alike; strengths keep their declared defaults; the workbench's probe grid lists sized parameters
+    in multiples of that size (the shipped Stribeck grid: 2, 5, 15 rad/s on the reference, 4, 10, 30 on the
+    rudder)."""
+    from phm_torch.apps.common import effects as app_effects
+    from phm_torch.workbench.candidates import ScoreSettings, directions
+    from phm_torch.workbench.parameters import effect_defaults
+
+    rudder = load_actuator("ema_hvdc_rudder")
+    spec = {"stribeck_friction": {}, "torque_constant_saturation": {"current_scale": 7.0}}
+    for built in (build_effects(spec, rudder), app_effects(spec, rudder), EMASimulator(rudder, "lf", spec).effects):
+        by_name = {e.name: e for e in built}
+        assert float(by_name["stribeck_friction"]["velocity"]) == pytest.approx(rudder.speed_limit / 60)
+        assert (
+            float(by_name["stribeck_friction"]["amplitude"]) == EFFECTS["stribeck_friction"].PARAMS["amplitude"].default
+        )
+        assert float(by_name["torque_constant_saturation"]["current_scale"]) == 7.0  # given: kept
+    assert float(build_effects(spec)[0]["velocity"]) == EFFECTS["stribeck_friction"].PARAMS["velocity"].default
+    for params in (P, rudder):
+        assert effect_defaults("inverter_dead_time", None, params)["current_scale"] == pytest.approx(
+            params.current_limit / 150
+        )
+    assert effect_defaults("stribeck_friction", None, P) == effect_defaults("stribeck_friction")  # the reference
+    grid = ScoreSettings(grid={"stribeck_friction": {"velocity": [0.4, 1.0, 3.0]}, "cogging_torque": {"phase": [1.0]}})
+    for params, expect in ((P, [2.0, 5.0, 15.0]), (rudder, [4.0, 10.0, 30.0])):
+        dirs = directions(["stribeck_friction", "cogging_torque"], grid, params)
+        assert [d.values["velocity"] for d in dirs if d.effect == "stribeck_friction"] == pytest.approx(expect)
+        assert [d.values["phase"] for d in dirs if d.effect == "cogging_torque"] == [1.0]  # not sized: its unit
+
+
 def test_gradients_of_strengths_at_zero_match_finite_differences():
     """Score test: d(loss)/d(strength) at 0 by autograd, every strength of every effect in one short run.
 

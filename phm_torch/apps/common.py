@@ -154,17 +154,18 @@ def set_threads(cfg: DictConfig) -> None:
         torch.set_num_threads(integer(threads, "threads", 1))
 
 
-def effects(value: Any) -> list[Effect]:
-    """Instantiate the ``effects`` mapping (``{name: {param: value}}``); unknown names are errors."""
+def effects(value: Any, params: ActuatorParams | None = None) -> list[Effect]:
+    """Instantiate the ``effects`` mapping (``{name: {param: value}}``); unknown names are errors. With the
+    actuator ``params``, shape parameters sized by it default to their typical magnitude there."""
     spec = plain(value) or {}
     if not isinstance(spec, Mapping):
         raise ValueError(f"effects must be a mapping {{name: {{param: value}}}}, got {spec!r}")
-    for key, params in spec.items():
-        if params is not None and not isinstance(params, Mapping):
+    for key, values in spec.items():
+        if values is not None and not isinstance(values, Mapping):
             raise ValueError(
-                f"effects.{key} must be a mapping of parameters (e.g. +effects.{key}={{}}), got {params!r}"
+                f"effects.{key} must be a mapping of parameters (e.g. +effects.{key}={{}}), got {values!r}"
             )
-    return build_effects(spec)
+    return build_effects(spec, params)
 
 
 def command(node: Any) -> Callable[[torch.Tensor], torch.Tensor]:
@@ -197,7 +198,14 @@ def simulation_settings(cfg: DictConfig) -> SimulationSettings:
     cmd = command(cfg.command)
     dur = number(cfg.duration, "duration", 0.0, strict=True)  # the YAML's default: ${command.duration}
     return SimulationSettings(
-        params, fid, cmd, dur, integer(cfg.seed, "seed", 0), noise(cfg), effects(cfg.effects), device(cfg.device)
+        params,
+        fid,
+        cmd,
+        dur,
+        integer(cfg.seed, "seed", 0),
+        noise(cfg),
+        effects(cfg.effects, params),
+        device(cfg.device),
     )
 
 

@@ -94,7 +94,7 @@ def build_workbench(cfg: DictConfig) -> Workbench:
     params = common.actuator(cfg)
     fid = common.fidelity(cfg.fidelity)
     faults = None if cfg.faults is None else common.fault_vector(cfg.faults)  # None: the actuator's nominal
-    effects = common.effects(cfg.effects)  # validates names and values like phm-simulate
+    effects = common.effects(cfg.effects, params)  # validates names and values like phm-simulate
     spec = {e.name: {k: float(v) for k, v in e.values.items()} for e in effects}
     groups = {k: checks.names(v, f"groups.{k}") for k, v in checks.mapping(common.plain(cfg.groups), "groups").items()}
     bounds = checks.numbers(common.plain(cfg.scale_bounds), "scale_bounds", 0.0, True)

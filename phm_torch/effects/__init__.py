@@ -1,7 +1,7 @@
 """Library of optional physical effects; importing it registers every built-in effect."""
 
 from .aero_hinge_load import AeroHingeLoad
-from .base import EFFECTS, Effect, EffectContext, EffectParam, build_effects, register_effect
+from .base import EFFECTS, Effect, EffectContext, EffectParam, build_effects, register_effect, sized_defaults
 from .cogging_torque import CoggingTorque
 from .inverter_dead_time import InverterDeadTime
 from .position_sensor_lag import PositionSensorLag
@@ -29,4 +29,5 @@ __all__ = [
     "WindingTemperature",
     "build_effects",
     "register_effect",
+    "sized_defaults",
 ]

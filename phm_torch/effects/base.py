@@ -183,13 +183,26 @@ def register_effect(cls: type[Effect]) -> type[Effect]:
     return cls
 
 
-def build_effects(spec: Mapping[str, Mapping[str, Any] | None] | None) -> list[Effect]:
-    """Instantiate effects from a ``{name: {param: value}}`` mapping (``None``/``{}`` = defaults)."""
+def sized_defaults(name: str, params: Any | None) -> dict[str, float]:
+    """Defaults of effect ``name``'s shape parameters sized by the actuator (``EffectParam.per``, e.g. a
+    Stribeck velocity or a saturation current) on ``params``: their typical magnitude there, so an effect added
+    without them takes the actuator's size, not the reference's (where each equals its declared default).
+    Strengths keep their declared defaults; ``params`` None: no sized defaults (the declared ones apply)."""
+    if params is None:
+        return {}
+    cls = EFFECTS[name]
+    return {k: spec.scale_for(params) for k, spec in cls.PARAMS.items() if spec.per and k not in cls.STRENGTH}
+
+
+def build_effects(spec: Mapping[str, Mapping[str, Any] | None] | None, params: Any | None = None) -> list[Effect]:
+    """Instantiate effects from a ``{name: {param: value}}`` mapping (``None``/``{}`` = defaults; with the
+    actuator ``params``, shape parameters sized by it default to their typical magnitude there,
+    :func:`sized_defaults`)."""
     effects = []
     for name, values in (spec or {}).items():
         if name not in EFFECTS:
             raise ValueError(f"effects: unknown effect {name!r}; available: {sorted(EFFECTS)}")
-        values = dict(values or {})
+        values = {**sized_defaults(name, params), **dict(values or {})}
         for key, v in values.items():
             if isinstance(v, bool) or (not torch.is_tensor(v) and not isinstance(v, (int, float))):
                 raise ValueError(f"effects.{name}.{key} must be a number, got {v!r}")

@@ -45,7 +45,10 @@ class ScoreSettings:
     hac_window: Bartlett window of the Newey-West variance [s] (200 samples at 20 kHz): the residual's
         correlation time is the loop's and the filter's, not the acquisition's.
     alpha: family-wise significance level (Bonferroni over the candidates tested).
-    grid: {effect: {shape parameter: [values]}} probed besides the defaults (directions of the test).
+    grid: {effect: {shape parameter: [values]}} probed besides the defaults (directions of the test); a
+        parameter sized by the actuator (``EffectParam.per``: the Stribeck velocity, the current scales) is
+        listed in multiples of its typical magnitude there ([0.4, 1, 3]: 2, 5 and 15 rad/s of Stribeck velocity
+        on the reference's 300 rad/s speed limit), any other in its unit.
     alias_ratio: candidates whose signature keeps less than this fraction of its energy after projecting
         off the free parameters are reported as aliased (not testable with these free parameters).
     rank_tol: directions of a candidate whose information is below this fraction of its largest are
@@ -144,16 +147,16 @@ def directions(names: Sequence[str], settings: ScoreSettings, params: ActuatorPa
 
     Strengths are probed at ``step`` x their typical magnitude on the actuator ``params``; shape parameters
     sized by the actuator (``EffectParam.per``, e.g. a current scale) at that magnitude, the others at their
-    defaults, unless the grid gives them.
+    defaults, unless the grid gives them (sized ones as multiples of that magnitude).
     """
     out = []
     for name in names:
         cls = EFFECTS[name]
         grid = settings.grid.get(name, {})
         keys = list(grid)
-        sized = {k: spec.scale_for(params) for k, spec in cls.PARAMS.items() if spec.per and k not in cls.STRENGTH}
+        unit = {k: cls.PARAMS[k].scale_for(params) if cls.PARAMS[k].per else 1.0 for k in keys}
         for combo in itertools.product(*[list(grid[k]) for k in keys]) if keys else [()]:
-            base = effect_defaults(name, {**sized, **dict(zip(keys, combo))})
+            base = effect_defaults(name, {k: v * unit[k] for k, v in zip(keys, combo)}, params)
             for s in cls.STRENGTH:
                 vals = {
                     k: (settings.step * cls.PARAMS[k].scale_for(params) if k == s else 0.0) if k in cls.STRENGTH else v

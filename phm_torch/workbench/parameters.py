@@ -23,7 +23,7 @@ from typing import Any
 
 import torch
 
-from ..effects import EFFECTS
+from ..effects import EFFECTS, sized_defaults
 from ..faults import FAULT_NAMES, N_FAULTS
 from ..params import ActuatorParams
 from ..plant import TENSOR_FIELDS
@@ -162,7 +162,7 @@ class ParameterSpace:
         """
         if name in self.effects:
             raise ValueError(f"effect {name!r} is already in the model")
-        full = effect_defaults(name, values)
+        full = effect_defaults(name, values, self.params)
         new_free = [effect_parameter(name, key, full[key], fd_step, self.params) for key in free]
         space = replace(
             self,
@@ -183,8 +183,11 @@ class ParameterSpace:
         return out
 
 
-def effect_defaults(name: str, values: Mapping[str, Any] | None = None) -> dict[str, float]:
-    """Every parameter of effect ``name``: the given values, the declared defaults for the rest."""
+def effect_defaults(
+    name: str, values: Mapping[str, Any] | None = None, params: ActuatorParams | None = None
+) -> dict[str, float]:
+    """Every parameter of effect ``name``: the given values, the defaults for the rest (with the actuator
+    ``params``, shape parameters sized by it at their typical magnitude there: :func:`~phm_torch.effects.sized_defaults`)."""
     if name not in EFFECTS:
         raise ValueError(f"effects: unknown effect {name!r}; available: {sorted(EFFECTS)}")
     cls = EFFECTS[name]
@@ -192,6 +195,7 @@ def effect_defaults(name: str, values: Mapping[str, Any] | None = None) -> dict[
     unknown = sorted(set(values) - set(cls.PARAMS))
     if unknown:
         raise ValueError(f"effects.{name}: unknown parameter(s) {unknown}; known: {sorted(cls.PARAMS)}")
+    values = {**sized_defaults(name, params), **values}
     out = {}
     for key, spec in cls.PARAMS.items():
         v = values.get(key, spec.default)
@@ -258,7 +262,7 @@ def build_space(
                 f"groups.{gname}: unknown or missing datasheet field(s) {bad or fields_}; known: {list(TENSOR_FIELDS)}"
             )
     base_faults = tuple(float(v) for v in (faults if faults is not None else params.nominal_faults))
-    model_effects = {name: effect_defaults(name, vals) for name, vals in (effects or {}).items()}
+    model_effects = {name: effect_defaults(name, vals, params) for name, vals in (effects or {}).items()}
     out: list[FreeParameter] = []
     for name in free:
         if not isinstance(name, str):

@@ -55,7 +55,7 @@ def synthesize(
         cls = EFFECTS[name]
         cols: dict[str, list[float]] = {k: [] for k in cls.PARAMS}
         for c in cases:
-            vals = effect_defaults(name, c.effects.get(name)) if name in c.effects else effect_defaults(name)
+            vals = effect_defaults(name, c.effects.get(name), params)
             for k in cls.PARAMS:
                 off = name not in c.effects and k in cls.STRENGTH
                 cols[k].append(0.0 if off else vals[k])
