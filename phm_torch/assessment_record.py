@@ -18,7 +18,7 @@ from typing import Any
 RUN_ONLY = ("compile", "group_size")
 # sweep settings a config may leave out, and what that means (SineSweep's code defaults): a store made before the
 # shipped config set settling records none of them, and labels as one that records them at these values
-SWEEP_DEFAULTS = {"tolerance": 0.005, "max_extensions": 0, "refine": 0}
+SWEEP_DEFAULTS = {"tolerance": 0.005, "max_extensions": 0, "refine": 0, "rotor_positions": 1}
 
 
 def labelling(assessment: Mapping[str, Any] | None) -> dict[str, Any] | None:

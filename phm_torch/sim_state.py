@@ -50,3 +50,12 @@ class SimState:
     def rows(self, index: torch.Tensor | slice) -> SimState:
         """The state of the actuators ``index`` of the batch (a tensor of row numbers or a slice), at the same time."""
         return take_rows(self, index)
+
+
+def at_rotor_angle(state: SimState, theta_m: float, gear_ratio: float) -> SimState:
+    """``state`` (at rest) moved to the motor angle ``theta_m`` [rad]: the user side, gear and LVDT at
+    theta_m / N, so the actuator rests there as it does at zero (no twist, no position error left to the loop
+    if the command is offset by the same theta_m / N)."""
+    th = torch.full_like(state.mech.theta_m, theta_m)
+    mech = MechState(th, torch.zeros_like(th), th / gear_ratio, torch.zeros_like(th))
+    return dataclasses.replace(state, mech=mech, lvdt=th / gear_ratio)

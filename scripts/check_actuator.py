@@ -8,11 +8,17 @@ Usage:
 Prints a summary and writes the JSON report (phm_torch/assessment/actuator_check.py describes every figure).
 Exit status 1 when a requirement fails (nominal margins below the requirements, or a single fault at k = 1
 unstable). One torch thread; the HF runs take about a minute for 12 cases of a 0.75 s command.
+
+Then what the health labels will see (phm_torch/assessment/label_check.py): the single faults assessed by phi_a with
+the assessment config the data will be labelled with (``--assessment``, default the shipped
+conf/assessment/frequency_response.yaml; ``--rotor-positions`` overrides its sweep's), a warning for each fault the
+labels cannot see and the backlash level above which the play is wider than the labels' sweep.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -20,11 +26,15 @@ from pathlib import Path
 
 import torch
 from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
 from phm_torch.assessment.actuator_check import ActuatorCheck, single_fault_cases
+from phm_torch.assessment.frequency_response import SineSweep
+from phm_torch.assessment.health import HealthRequirements
+from phm_torch.assessment.label_check import label_visibility
 from phm_torch.command import load_command_node
 from phm_torch.io.atomic import atomic_open
-from phm_torch.params import load_actuator
+from phm_torch.params import CONF_DIR, load_actuator
 from phm_torch.provenance import actuator_record, command_record
 
 
@@ -34,11 +44,44 @@ def load_command(name: str) -> tuple[str, dict, object]:
     return Path(label).stem, node, instantiate(node)
 
 
-def _fmt(v: float, spec: str = ".1f") -> str:
+def _fmt(v: float, spec: str = ".1f", cap: float = math.inf) -> str:
     if v is None or (isinstance(v, float) and math.isnan(v)):
         return "n/a"
-    # a gain margin above 100 dB: |L| ~ 0 at the phase crossover (e.g. a play wider than the sweep amplitude)
-    return ">100" if v > 100 else format(v, spec)
+    # a gain margin above 100 dB (cap): |L| ~ 0 at the phase crossover (e.g. a play wider than the sweep amplitude)
+    return f">{cap:g}" if v > cap else format(v, spec)
+
+
+def load_assessment(path: str, rotor_positions: int | None) -> tuple[SineSweep, HealthRequirements]:
+    """The sweep and requirements of an assessment config YAML (``_target_`` nodes ``sweep`` and ``requirements``)."""
+    node = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    if not isinstance(node, dict) or "sweep" not in node or "requirements" not in node:
+        raise ValueError(f"--assessment: {path!r} has no 'sweep' and 'requirements' nodes")
+    sweep = instantiate(node["sweep"])
+    if rotor_positions is not None:
+        sweep = dataclasses.replace(sweep, rotor_positions=rotor_positions)
+    return sweep, instantiate(node["requirements"])
+
+
+def label_summary(labels: dict) -> str:
+    sw = labels["sweep"]
+    lines = [
+        f"labels (phi_a): sweep {sw['frequencies'][0]:g}..{sw['frequencies'][-1]:g} Hz at {sw['amplitude']:.3g} rad, "
+        f"{sw['rotor_positions']} rotor position(s); healthy at k = 1: "
+        + ", ".join(n for n, c in labels["cases"].items() if c["healthy"] and n != "nominal")
+    ]
+    for name in labels["invisible"]:
+        lines.append(
+            f"WARNING: {name} at k = 1 reads exactly the nominal margins: the health labels cannot see it "
+            "(the sweep keeps the rotor in one commutation sector); label with "
+            "+assessment.sweep.rotor_positions=3 (check it here with --rotor-positions 3)"
+        )
+    k2 = labels["k2_play_exceeds_sweep"]
+    if k2 is not None:
+        lines.append(
+            f"note: above k2 = {k2:g} the play is wider than the labels' sweep amplitude: margins unmeasurable, "
+            "labelled faulty (docs/own_actuator.md, the assessment check)"
+        )
+    return "\n".join(lines)
 
 
 def summary(report: dict) -> str:
@@ -65,7 +108,7 @@ def summary(report: dict) -> str:
         hf = {True: "ok", False: "FAIL", None: "-"}[row.get("hf_step_stable")]
         lines.append(
             f"{name:<12}{_fmt(row['crossover_hz']):>8}{_fmt(row['phase_margin_deg']):>8}"
-            f"{_fmt(row['phase_crossover_hz']):>9}{_fmt(row['gain_margin_db'], '.2f'):>8}"
+            f"{_fmt(row['phase_crossover_hz']):>9}{_fmt(row['gain_margin_db'], '.2f', 100.0):>8}"
             f"{_fmt(row['bandwidth_hz']):>8}{'ok' if row['lf_step_stable'] else 'FAIL':>9}{hf:>9}"
             f"{_fmt(agr.get('current_nrmse', math.nan) * 100, '.2f') + '%' if agr else '-':>9}"
             f"{_fmt(agr.get('position_nrmse', math.nan) * 100, '.3f') + '%' if agr else '-':>10}"
@@ -94,6 +137,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hf-cases", nargs="*", help="cases simulated on HF too (default all; see --list-cases)")
     ap.add_argument("--no-hf", action="store_true", help="LF only (seconds)")
     ap.add_argument("--list-cases", action="store_true", help="print the single-fault case names and exit")
+    ap.add_argument("--assessment", default=str(CONF_DIR / "assessment" / "frequency_response.yaml"))
+    ap.add_argument("--rotor-positions", type=int, help="the labels' sweep.rotor_positions (default: the config's)")
     ap.add_argument("--out", help="JSON report (default results/check_<actuator>_<command>.json)")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
@@ -114,10 +159,12 @@ def main(argv: list[str] | None = None) -> int:
         log=lambda msg: print(msg, file=sys.stderr, flush=True),
     )
     report = {"actuator": actuator_record(act_name, params), "command": command_record(cmd_name, node), **check.run()}
+    report["labels"] = label_visibility(params, *load_assessment(args.assessment, args.rotor_positions))
     out = Path(args.out or f"results/check_{act_name}_{cmd_name}.json")
     with atomic_open(out) as fh:
         json.dump(report, fh, indent=2)
     print(summary(report))
+    print(label_summary(report["labels"]))
     print(f"report: {out}")
     return 0 if report["verdict"]["pass"] else 1
 

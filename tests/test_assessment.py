@@ -436,3 +436,36 @@ def test_a_vectors_settled_refined_reading_does_not_depend_on_its_batch(params, 
                 if a.is_floating_point() or a.is_complex()
                 else bool(torch.equal(a, b))
             ), (i, name)
+
+
+def test_a_short_in_the_phase_off_at_rest_is_invisible_and_three_rotor_positions_see_every_phase(params, shipped):
+    """The sweep's few electrical degrees keep the rotor in one commutation sector: at rest at 0 phase A does not
+    conduct, so a short of 0.98 there reads exactly the nominal margins (labelled healthy) while one in B or C
+    fails. Resting the rotor at 0, 60 and 120 electrical degrees and taking the worst, each phase conducts once:
+    the three shorts read alike and fail; the nominal actuator reads the same at every position."""
+    k = torch.tensor([params.nominal_faults] * 4, dtype=torch.float64)
+    for i in range(3):
+        k[1 + i, 2 + i] = 0.98
+    one = _assessment(params, shipped)
+    three = _assessment(params, shipped, rotor_positions=3)
+    a1, a3 = one(k), three(k)
+    m1, m3 = a1.margins.stacked(), a3.margins.stacked()
+    assert torch.equal(m1[1], m1[0]) and a1.healthy.tolist() == [True, True, False, False]
+    assert one.invisible_faults() == ["short_a"] and one.record()["invisible_faults"] == ["short_a"]
+    assert a3.healthy.tolist() == [True, False, False, False] and three.invisible_faults() == []
+    assert torch.allclose(m3[1], m3[2], rtol=1e-6) and torch.allclose(m3[2], m3[3], rtol=1e-6)
+    assert torch.allclose(m3[0], m1[0], rtol=1e-9)  # no fault, no position dependence
+    assert float(m3[1, 4]) < 0.5 * float(m3[0, 4])  # the short's bandwidth loss, now seen
+    with pytest.raises(ValueError, match="rotor_positions must be an integer in \\[1, 6\\], got 0"):
+        _assessment(params, shipped, rotor_positions=0)
+
+
+def test_label_check_names_the_invisible_fault_and_the_play_the_sweep_measures(params, shipped):
+    """scripts/check_actuator.py's labels section: what phi_a reads of each single fault at k = 1."""
+    from phm_torch.assessment.label_check import label_visibility
+
+    found = label_visibility(params, instantiate(shipped.sweep), instantiate(shipped.requirements))
+    assert found["invisible"] == ["k3"]
+    assert found["cases"]["k3"]["healthy"] and not found["cases"]["k4"]["healthy"]
+    amp = found["sweep"]["amplitude"]
+    assert params.backlash * (1 + 99 * found["k2_play_exceeds_sweep"]) == pytest.approx(amp, rel=1e-3)

@@ -38,3 +38,6 @@ def test_a_sweep_setting_left_out_is_its_code_default():
     explicit = {**DERIVED, "sweep": {**SWEEP, "max_extensions": 0, "refine": 0}}
     settled = {**DERIVED, "sweep": {**SWEEP, "max_extensions": 2, "refine": 1}}
     assert same_labels(DERIVED, explicit) is True and same_labels(DERIVED, settled) is False
+    # a store labelled before rotor positions existed read the loop at rest at 0 only
+    assert same_labels(DERIVED, {**DERIVED, "sweep": {**SWEEP, "rotor_positions": 1}}) is True
+    assert same_labels(DERIVED, {**DERIVED, "sweep": {**SWEEP, "rotor_positions": 3}}) is False

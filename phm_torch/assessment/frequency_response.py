@@ -36,6 +36,11 @@ read the margins off the grid with those points inserted: 3 simulations per vect
 denser grid for every vector (on the reference actuator at 12 points per decade the interpolated bandwidth of
 the vectors nearest the requirements was off by 2.7 Hz median, ~3.6 %).
 
+Rotor position: the test amplitude is a few electrical degrees, so the rotor stays in one commutation sector
+and only the phases conducting there act; a short in the third phase is invisible (the reference at rest at 0: a
+short of 0.98 in phase A reads the nominal margins, in B or C it fails). ``rotor_angle`` [rad, electrical] rests
+the actuator elsewhere (the command offset by as much); ``rotor_positions`` takes the worst over several.
+
 Batching: the frequencies are taken ``group_size`` at a time; one simulator call simulates every
 fault vector at every frequency of the group (batch B * group_size, simulated for the longest test of
 the group, the higher frequencies simply getting more settling cycles). Large batches amortise the
@@ -55,7 +60,7 @@ import torch
 
 from ..faults import as_fault_tensor
 from ..params import ActuatorParams
-from ..sim_state import SimState
+from ..sim_state import SimState, at_rotor_angle
 from ..simulator import EMASimulator
 from .design import AUTO, SweepDesign
 from .margins import margins
@@ -85,6 +90,9 @@ class SineSweep:
             response [-].
         max_extensions: how many times an unsettled response is simulated on to twice the time (0: never).
         refine: rounds of measurement at each vector's interpolated crossings (0: the grid only).
+        rotor_positions: the loop is measured with the rotor resting at this many electrical angles 0, 60, 120,
+            ... deg (one commutation sector apart) and each vector labelled by its worst (1: at 0 only, every
+            store labelled before 2026-11-28; 3: each phase out of conduction once; at most 6).
     """
 
     frequencies: tuple[float, ...] | str
@@ -99,6 +107,7 @@ class SineSweep:
     tolerance: float = 0.005
     max_extensions: int = 0
     refine: int = 0
+    rotor_positions: int = 1
 
     def __post_init__(self) -> None:
         if isinstance(self.frequencies, str):
@@ -154,6 +163,9 @@ class SineSweep:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 0:
                 raise ValueError(f"assessment.sweep.{name} must be an integer >= 0, got {v!r}")
+        v = self.rotor_positions
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 6:
+            raise ValueError(f"assessment.sweep.rotor_positions must be an integer in [1, 6], got {v!r}")
 
     @property
     def is_resolved(self) -> bool:
@@ -179,7 +191,10 @@ class FrequencyResponse:
         device: where to simulate (float64).
     """
 
-    def __init__(self, params: ActuatorParams, sweep: SineSweep, device: str | torch.device = "cpu"):
+    def __init__(
+        self, params: ActuatorParams, sweep: SineSweep, device: str | torch.device = "cpu", rotor_angle: float = 0.0
+    ):
+        self.rotor_angle = float(rotor_angle)  # [rad, electrical] where the rotor rests (module docstring)
         self.params = params.replace(sample_rate=params.pwm_frequency)
         self.sweep = sweep = sweep.resolve(params)
         self.device = torch.device(device)
@@ -227,11 +242,15 @@ class FrequencyResponse:
         end = periods + (0 if state is None else round(float(state.time) * f_ctrl))  # periods since rest
         amp = float(self.sweep.amplitude)
         w = 2.0 * math.pi * f
+        theta_m = self.rotor_angle / self.params.pole_pairs
+        rest = theta_m / self.params.gear_ratio  # [rad, user side]: 0 unless the rotor rests elsewhere
+        if state is None and theta_m:
+            state = at_rotor_angle(self.sim.init(k), theta_m, self.params.gear_ratio)
 
         def command(times: torch.Tensor) -> torch.Tensor:
             # (R, n) as the transpose of a contiguous (n, R): the simulator reads one column per control
             # period, contiguous whatever n, so a compiled step is not specialised on n.
-            return (amp * torch.sin(times[:, None] * w[None, :])).T
+            return (amp * torch.sin(times[:, None] * w[None, :]) + rest).T
 
         with torch.no_grad():
             sig = self.sim.run(k, command, periods / f_ctrl, channels=["position"], state=state)

@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from ..faults import as_fault_tensor
+from ..faults import FAULT_NAMES, as_fault_tensor
 from ..params import ActuatorParams
 from .frequency_response import FrequencyResponse, SineSweep
 from .margins import Margins, margins
@@ -73,6 +73,16 @@ class Assessment:
     uncertain: torch.Tensor | None = None
 
 
+def worst_margins(readings: list[Margins]) -> Margins:
+    """Every margin's smallest over the readings of the same vectors at several rotor positions (a nan, not
+    measurable at one of them, stays nan): the requirements hold at every position exactly when they hold here."""
+    if len(readings) == 1:
+        return readings[0]
+    stacked = torch.stack([m.stacked() for m in readings])  # (P, B, 5)
+    worst = torch.where(stacked.isnan().any(0), torch.nan, stacked.amin(0))
+    return Margins(*worst.unbind(-1))
+
+
 class AssessmentFunction:
     """phi_a(k) from the LF model's measured frequency response.
 
@@ -97,8 +107,14 @@ class AssessmentFunction:
         self.sweep = sweep.resolve(params)
         self.auto = {name: isinstance(getattr(sweep, name), str) for name in ("frequencies", "amplitude")}
         self.requirements = requirements
-        self.response = FrequencyResponse(params, self.sweep, device)
+        # one per rotor position (SineSweep.rotor_positions), one commutation sector (60 electrical deg) apart
+        self.responses = [
+            FrequencyResponse(params, self.sweep, device, rotor_angle=j * math.pi / 3)
+            for j in range(self.sweep.rotor_positions)
+        ]
+        self.response = self.responses[0]
         self._nominal: Margins | None = None
+        self._invisible: list[str] | None = None
         self.wall_s = 0.0  # time spent simulating [s]
         self.vectors = 0  # fault vectors assessed
         self.uncertain = 0  # labels that the window before the last reads otherwise
@@ -138,7 +154,29 @@ class AssessmentFunction:
         if any(self.auto.values()):
             out["design"] = self.sweep.design.record(self.params)
         out["nominal_margins"] = {k: round(float(v[0]), 4) for k, v in self.nominal.as_dict().items()}
+        out["rotor_positions"] = self.sweep.rotor_positions
+        out["invisible_faults"] = self.invisible_faults()
         return out
+
+    def invisible_faults(self) -> list[str]:
+        """The phase shorts (k3-k5 at 1, one at a time) whose label readings are exactly the nominal actuator's:
+        faults the labels cannot see, because the sweep keeps the rotor in one commutation sector where that phase
+        does not conduct (``sweep.rotor_positions`` = 3 reads every phase). Measured once, uncompiled (cached)."""
+        if self._invisible is None:
+            eager = [
+                FrequencyResponse(
+                    self.params, SineSweep(**{**vars(self.sweep), "compile": False}), r.device, r.rotor_angle
+                )
+                for r in self.responses
+            ]
+            k = torch.tensor([self.params.nominal_faults] * 4, dtype=torch.float64)
+            k[1:, 2:5] += torch.eye(3, dtype=torch.float64) * (1.0 - k[1:, 2:5])
+            found = worst_margins(
+                [margins(x.frequencies, x.open_loop, x.closed_loop) for x in (e.read(k) for e in eager)]
+            ).stacked()
+            same = ((found[1:] - found[:1]).abs() <= 1e-9 * found[:1].abs().clamp(min=1.0)).all(1)
+            self._invisible = [FAULT_NAMES[2 + i] for i in range(3) if bool(same[i])]
+        return list(self._invisible)
 
     def settling(self) -> dict[str, int]:
         """Over every call so far: responses simulated again because they had not settled (``extended``), those
@@ -146,8 +184,8 @@ class AssessmentFunction:
         ``max_extensions`` 0 every reading that moved by more than ``tolerance``), the fault vectors assessed
         (``vectors``) and those whose label the window before the last reads otherwise (``uncertain_labels``)."""
         return {
-            "extended": self.response.extensions,
-            "unsettled": self.response.unsettled,
+            "extended": sum(r.extensions for r in self.responses),
+            "unsettled": sum(r.unsettled for r in self.responses),
             "vectors": self.vectors,
             "uncertain_labels": self.uncertain,
         }
@@ -157,19 +195,21 @@ class AssessmentFunction:
         k = as_fault_tensor(faults, torch.float64, self.response.device)
         bw0 = self.nominal_bandwidth_hz
         t0 = time.perf_counter()
-        unsettled = self.response.unsettled
-        r = self.response.read(k)
-        m = margins(r.frequencies, r.open_loop, r.closed_loop)
+        unsettled = self.settling()["unsettled"]
+        last, before = [], []
+        for response in self.responses:
+            r = response.read(k)
+            last.append(margins(r.frequencies, r.open_loop, r.closed_loop))
+            before.append(margins(r.before.frequencies, r.before.open_loop, r.before.closed_loop))
+        m = worst_margins(last)
         healthy = self.requirements.healthy(m, bw0)
-        before = r.before
-        uncertain = healthy != self.requirements.healthy(
-            margins(before.frequencies, before.open_loop, before.closed_loop), bw0
-        )
-        if self.sweep.max_extensions and self.response.unsettled > unsettled:  # counted (settling()); apps sum up
+        uncertain = healthy != self.requirements.healthy(worst_margins(before), bw0)
+        now_unsettled = self.settling()["unsettled"]
+        if self.sweep.max_extensions and now_unsettled > unsettled:  # counted (settling()); apps sum up
             log.debug(
                 "assessment: %d responses of %d vectors still changed by more than %g after %d extensions "
                 "(assessment.sweep.tolerance / max_extensions); labelled from their last reading",
-                self.response.unsettled - unsettled,
+                now_unsettled - unsettled,
                 k.shape[0],
                 self.sweep.tolerance,
                 self.sweep.max_extensions,

@@ -1,0 +1,70 @@
+"""What the health labels can see on an actuator: each single fault at k = 1 assessed by phi_a itself.
+
+The design check (:mod:`~phm_torch.assessment.actuator_check`) measures the loop with a sweep of its own, a tenth
+of the test command, to judge stability. The labels are read with the assessment's sweep (``conf/assessment``:
+derived from the friction, usually far smaller), so what the check shows is not what the labels see. This
+module runs the labels' own :class:`~phm_torch.assessment.health.AssessmentFunction` on the single faults and
+reports:
+
+* **invisible faults**: a fault at k = 1 whose label readings equal the nominal ones. The sweep's few electrical
+  degrees keep the rotor in one commutation sector, so a short in the phase that does not conduct there changes
+  nothing (the reference at rest at 0: phase A); ``assessment.sweep.rotor_positions=3`` reads the worst of three
+  sectors, where each phase conducts;
+* **the play the sweep can measure**: above ``k2_play_exceeds_sweep`` the faulted play b0 (1 + 99 k2) is wider
+  than the sweep amplitude and the margins become unmeasurable (labelled faulty).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+
+from ..params import ActuatorParams
+from .actuator_check import single_fault_cases
+from .frequency_response import SineSweep
+from .health import AssessmentFunction, HealthRequirements
+
+# readings closer than this to the nominal ones (relative) are the same reading
+SAME = 1e-9
+
+
+def label_visibility(params: ActuatorParams, sweep: SineSweep, requirements: HealthRequirements) -> dict[str, Any]:
+    """JSON-able account of what phi_a (``sweep``, ``requirements``) reads of each single fault at k = 1.
+
+    Returns:
+        ``sweep``: the resolved frequencies [Hz], amplitude [rad] and rotor positions; ``cases``: {case: {healthy,
+        margins}}; ``invisible``: the fault cases whose readings equal the nominal one; ``k2_play_exceeds_sweep``:
+        the backlash level above which the play is wider than the sweep amplitude (None: never within [0, 1]).
+    """
+    phi = AssessmentFunction(params, sweep, requirements)
+    cases = single_fault_cases(params.nominal_faults)
+    names = list(cases)
+    found = phi(torch.tensor([cases[n] for n in names], dtype=torch.float64))
+    stacked = found.margins.stacked()
+    nominal = stacked[names.index("nominal")]
+    out_cases, invisible = {}, []
+    for i, name in enumerate(names):
+        row = stacked[i]
+        same = bool(((row - nominal).abs() <= SAME * nominal.abs().clamp(min=1.0)).all())
+        if name != "nominal" and same and cases[name] != cases["nominal"]:
+            invisible.append(name)
+        out_cases[name] = {
+            "healthy": bool(found.healthy[i]),
+            **{k: round(float(v[i]), 3) for k, v in found.margins.as_dict().items()},
+        }
+    amp, b0 = float(phi.sweep.amplitude), float(params.backlash)
+    k2 = max(0.0, (amp / b0 - 1.0) / 99.0) if b0 > 0 else None  # b0 (1 + 99 k2) = amp; 0: already at nominal
+    return {
+        "sweep": {
+            "frequencies": [float(f) for f in phi.sweep.frequencies],
+            "amplitude": amp,
+            "rotor_positions": phi.sweep.rotor_positions,
+        },
+        "cases": out_cases,
+        "invisible": invisible,
+        "k2_play_exceeds_sweep": round(k2, 4) if k2 is not None and k2 <= 1.0 else None,
+    }
+
+
+__all__ = ["label_visibility"]
