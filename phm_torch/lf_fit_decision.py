@@ -49,9 +49,10 @@ def decide(
         gain = 1.0 - a / b if b > 0 else 0.0
         if gain < min_gain:
             ok = False
+            change = f"falls by {100 * gain:.1f} %" if gain > 0 else f"rises by {-100 * gain:.1f} %"
             reasons.append(
-                f"{name} median current NRMSE falls by {100 * gain:.1f} % "
-                f"({100 * b:.2f} -> {100 * a:.2f} %), less than the {100 * min_gain:g} % required"
+                f"{name} median current NRMSE {change} ({100 * b:.2f} -> {100 * a:.2f} %), "
+                f"less than the {100 * min_gain:g} % fall required"
             )
     if ok:
         gains = ", ".join(

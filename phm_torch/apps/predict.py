@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -218,12 +219,22 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         for message in record["messages"]:  # a correction (a reversed probe read as -current) is answered
             log.warning("%s: %s%s", path, message, ood)
         if record["noise_above_calibration"]:
+            levels = getattr(model, "interval_noise", None)
+            top = float(levels.max()) if levels is not None and levels.numel() else float("nan")
+            intervals = (
+                f"the k intervals follow it (calibrated up to {100 * top:.2f} %)"
+                if record["noise"] <= top
+                else f"so are the k intervals (calibrated up to {100 * top:.2f} %)"
+                if math.isfinite(top)
+                else "so may be the k intervals"
+            )
             log.warning(
-                "%s: estimated current noise %.2f %% of its RMS, more than twice the %.2f %% the "
-                "uncertainty outputs were calibrated at: they are too narrow",
+                "%s: estimated current noise %.2f %% of its RMS, more than twice the %.2f %% P(faulty) and the RUL "
+                "band were calibrated at: they are too narrow; %s",
                 path,
                 100 * record["noise"],
                 100 * float(model.calibration_noise),
+                intervals,
             )
         records.append(record)
     if cfg.out:

@@ -31,7 +31,7 @@ class CoggingTorque(Effect):
         "phase": EffectParam(0.0, "rad", "phase of the cogging wave at theta_m = 0", None, math.pi),
     }
     STRENGTH = ("amplitude",)
-    explains = "current error periodic in rotor angle at the slot harmonic (Z_s periods per revolution)"
+    explains = "current error periodic in rotor angle at the cogging order (lcm(Z_s, 2p) periods per revolution)"
 
     def motor_torque(self, ctx: EffectContext) -> torch.Tensor:
         z = float(cogging_periods(ctx.plant))

@@ -66,8 +66,8 @@ def scale_message(current: torch.Tensor, nominal: torch.Tensor | None) -> str | 
         return None
     units = " (the current written in mA? name the column 'current [mA]')" if 500.0 <= ratio <= 2000.0 else ""
     return (
-        f"the current's RMS is {ratio:.3g} x the nominal record's: a record of another actuator or test, or a probe's "
-        f"range or units{units}"
+        f"the current's RMS is {ratio:.3g} x the nominal record's: a record of another actuator or test, a probe's "
+        f"range or units{units}, or this actuator far past the faults it was trained on (a current-limited run)"
     )
 
 
