@@ -250,3 +250,11 @@ def test_a_removed_probe_offset_widens_the_near_nominal_reading_by_its_own_error
     assert bool((widened >= w - 1e-9).all()) and float((widened / w).max()) > 1.5
     inside = (bounds(shifted)[:, 0] <= reading(plain)) & (reading(plain) <= bounds(shifted)[:, 1])
     assert bool(inside.all()), (reading(plain), bounds(shifted))
+
+
+def test_a_position_range_of_a_units_factor_names_the_unit():
+    """A position logged in degrees (57.3 x the command's range) or mrad (1000 x) gets a unit hint, like mA."""
+    from phm_torch.online.input_contract import _angle_units
+
+    assert "position [deg]" in _angle_units(57.0) and "position [mrad]" in _angle_units(1003.0)
+    assert _angle_units(1.0) == "" and _angle_units(8.0) == ""
