@@ -338,8 +338,15 @@ def test_a_fleet_offset_that_a_current_probe_explains_is_named_and_a_baseline_ca
         "a probe error, which a healthy record of this bench as baseline= calibrates"
         in refused["fleet_check"]["message"]
     )
+    # a pipeline whose intervals are too wide to see the k_hat offset: the mean record still shows the probe
+    wide, _ = track("probe", "fleet_check.z_threshold=1000")
+    assert wide["fleet_check"]["offset"] and not wide["fleet_check"]["components"] and wide["fused"] == 0
+    assert wide["fleet_check"]["probe_suspected"]["gain"] == pytest.approx(1.02, abs=2e-3)
+    assert "the k_hat offset it leaves is within the intervals" in wide["fleet_check"]["message"]
     clean, clean_objects = track("clean", "fleet_check.action=warn")
     assert "probe_suspected" not in clean["fleet_check"] and clean["probe_calibration"] is None
+    quiet, _ = track("clean", "fleet_check.z_threshold=1000")
+    assert not quiet["fleet_check"]["offset"] and quiet["fused"] == 12
     base = f"baseline={tmp_path / 'healthy.csv'}"
     calibrated, objects = track("probe", base, "fleet_check.action=warn")
     assert calibrated["probe_calibration"]["gain"] == pytest.approx(1.02, abs=1e-9)

@@ -27,11 +27,10 @@ from ..assessment_record import same_labels
 from ..online.bench_check import check_bench
 from ..online.diagnosis import contract_for
 from ..online.loaded import TorchScriptPipeline, load_pipeline
-from ..online.probe_calibration import fit_probe
 from ..online.record_corrections import prepare_record
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
 from ..tracking.companions import companion, missing_message
-from ..tracking.fleet_check import FleetCheckSettings, check_fleet
+from ..tracking.fleet_check import FleetCheckSettings, check_fleet, probe_in_fleet
 from ..tracking.information_limit import information_limit, track_truth
 from ..tracking.inspection import inspect_record
 from ..tracking.near_nominal import NearNominalFDI
@@ -179,19 +178,8 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         return found
 
     fleet = _fleet_check(cfg, model, index, diagnose_first)
-    if fleet["offset"] and bench_nominal is None:
-        # no baseline: does the fleet's mean first record show a current probe's error? Said, not applied: read off
-        # the fleet (whose small initial damages it absorbs), it left the 100 histories of a x1.05 probe tracked at
-        # coverage 71 %, alpha-lambda 47 % (a healthy record as baseline: 87 %, 81 %, as clean records)
-        mean_first = torch.stack(first_currents).double().nanmean(0)
-        suspected = fit_probe(mean_first, loaded.nominal_record if loaded.can_rebase else None)
-        if suspected is not None:
-            fleet["probe_suspected"] = suspected.as_dict()
-            fleet["message"] += (
-                f"; their mean record reads as the nominal one through a current probe of gain {suspected.gain:.3f} "
-                f"and offset {suspected.offset:+.3g} A ({100 * suspected.explained:.1f} % of its difference "
-                "explained): a probe error, which a healthy record of this bench as baseline= calibrates"
-            )
+    if fleet["checked"] and bench_nominal is None and first_currents:
+        fleet = probe_in_fleet(fleet, first_currents, loaded.nominal_record if loaded.can_rebase else None)
     first_currents.clear()
     _log_fleet_check(cfg, fleet)
     if fleet["offset"] and cfg.fleet_check.action == "refuse":
