@@ -19,6 +19,10 @@ def test_recovers_a_known_logistic_law():
     q = verdict_quality(p, faulty)
     assert q["brier"] < q["brier_base_rate"]  # it knows more than the base rate
     assert 0.5 < q["accuracy"] <= 1.0
+    assert q["faulty_fraction"] == pytest.approx(float(faulty.double().mean()))
+    # a split of healthy records only: the base rate's 0 is hindsight, not a reference
+    one_class = verdict_quality(p[:100], torch.zeros(100, dtype=torch.bool))
+    assert one_class["brier_base_rate"] is None and one_class["faulty_fraction"] == 0.0
 
 
 def test_separable_records_give_a_steep_but_finite_law():

@@ -69,12 +69,15 @@ def shift_prior(offset: float, calibration_prior: float, prior: float) -> float:
     return offset + math.log(prior / (1 - prior)) - math.log(calibration_prior / (1 - calibration_prior))
 
 
-def verdict_quality(p_faulty: torch.Tensor, faulty: torch.Tensor) -> dict[str, float]:
+def verdict_quality(p_faulty: torch.Tensor, faulty: torch.Tensor) -> dict[str, float | None]:
     """Brier score of P(faulty) (N,) against the actual health (N,) bool, beside that of the constant base
-    rate (what a verdict without information scores), and the accuracy of p > 0.5."""
+    rate (what a verdict without information scores; None where the records hold one class only: the base rate
+    then scores 0 with hindsight, and nothing compares with it), the faulty fraction, and the accuracy of p > 0.5."""
     p, y = p_faulty.to(torch.float64), faulty.to(torch.float64)
+    rate = float(y.mean())
     return {
         "brier": float((p - y).pow(2).mean()),
-        "brier_base_rate": float((y.mean() - y).pow(2).mean()),
+        "brier_base_rate": float((rate - y).pow(2).mean()) if 0.0 < rate < 1.0 else None,
+        "faulty_fraction": rate,
         "accuracy": float(((p > 0.5).to(torch.float64) == y).to(torch.float64).mean()),
     }

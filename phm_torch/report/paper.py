@@ -287,7 +287,8 @@ def _uncertainty(r: HtmlReport, ev: dict[str, Any]) -> None:
         ["P(faulty) on the evaluated split", "ours"],
         [
             ["Brier score", ev.get("verdict_brier")],
-            ["Brier score of the base rate", ev.get("verdict_brier_base_rate")],
+            ["Brier score of the base rate (– where the split holds one class)", ev.get("verdict_brier_base_rate")],
+            ["faulty fraction of the split", ev.get("verdict_faulty_fraction")],
             ["accuracy [%]", percent(ev.get("verdict_accuracy"))],
             ["prior P(faulty)", ev.get("verdict_prior_faulty")],
         ],
