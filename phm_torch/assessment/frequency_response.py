@@ -36,10 +36,9 @@ read the margins off the grid with those points inserted: 3 simulations per vect
 denser grid for every vector (on the reference actuator at 12 points per decade the interpolated bandwidth of
 the vectors nearest the requirements was off by 2.7 Hz median, ~3.6 %).
 
-Rotor position: the test amplitude is a few electrical degrees, so the rotor stays in one commutation sector
-and only the phases conducting there act; a short in the third phase is invisible (the reference at rest at 0: a
-short of 0.98 in phase A reads the nominal margins, in B or C it fails). ``rotor_angle`` [rad, electrical] rests
-the actuator elsewhere (the command offset by as much); ``rotor_positions`` takes the worst over several.
+Rotor position: the test amplitude is a few electrical degrees, so only the phases conducting in the rotor's sector
+act (at rest at 0 a short in phase A reads the nominal margins); ``rotor_angle`` [rad, electrical] rests the
+actuator elsewhere, the command offset by as much (``rotor_positions``: the worst of several, health.py).
 
 Batching: the frequencies are taken ``group_size`` at a time; one simulator call simulates every
 fault vector at every frequency of the group (batch B * group_size, simulated for the longest test of
@@ -159,13 +158,11 @@ class SineSweep:
             isinstance(self.tolerance, (int, float)) and math.isfinite(self.tolerance) and self.tolerance > 0
         ):
             raise ValueError(f"assessment.sweep.tolerance must be > 0, got {self.tolerance!r}")
-        for name in ("max_extensions", "refine"):
+        for name, low, high in (("max_extensions", 0, math.inf), ("refine", 0, math.inf), ("rotor_positions", 1, 6)):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                raise ValueError(f"assessment.sweep.{name} must be an integer >= 0, got {v!r}")
-        v = self.rotor_positions
-        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 6:
-            raise ValueError(f"assessment.sweep.rotor_positions must be an integer in [1, 6], got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, int) or not low <= v <= high:
+                bound = f">= {low}" if high == math.inf else f"in [{low}, {high}]"
+                raise ValueError(f"assessment.sweep.{name} must be an integer {bound}, got {v!r}")
 
     @property
     def is_resolved(self) -> bool:
