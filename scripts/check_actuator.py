@@ -18,7 +18,6 @@ labels cannot see and the backlash level above which the play is wider than the 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import sys
@@ -26,15 +25,12 @@ from pathlib import Path
 
 import torch
 from hydra.utils import instantiate
-from omegaconf import OmegaConf
 
 from phm_torch.assessment.actuator_check import ActuatorCheck, single_fault_cases
-from phm_torch.assessment.frequency_response import SineSweep
-from phm_torch.assessment.health import HealthRequirements
-from phm_torch.assessment.label_check import label_visibility
+from phm_torch.assessment.label_check import label_visibility, load_assessment
 from phm_torch.command import load_command_node
 from phm_torch.io.atomic import atomic_open
-from phm_torch.params import CONF_DIR, load_actuator
+from phm_torch.params import load_actuator
 from phm_torch.provenance import actuator_record, command_record
 
 
@@ -49,17 +45,6 @@ def _fmt(v: float, spec: str = ".1f", cap: float = math.inf) -> str:
         return "n/a"
     # a gain margin above 100 dB (cap): |L| ~ 0 at the phase crossover (e.g. a play wider than the sweep amplitude)
     return f">{cap:g}" if v > cap else format(v, spec)
-
-
-def load_assessment(path: str, rotor_positions: int | None) -> tuple[SineSweep, HealthRequirements]:
-    """The sweep and requirements of an assessment config YAML (``_target_`` nodes ``sweep`` and ``requirements``)."""
-    node = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
-    if not isinstance(node, dict) or "sweep" not in node or "requirements" not in node:
-        raise ValueError(f"--assessment: {path!r} has no 'sweep' and 'requirements' nodes")
-    sweep = instantiate(node["sweep"])
-    if rotor_positions is not None:
-        sweep = dataclasses.replace(sweep, rotor_positions=rotor_positions)
-    return sweep, instantiate(node["requirements"])
 
 
 def label_summary(labels: dict) -> str:
@@ -137,7 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hf-cases", nargs="*", help="cases simulated on HF too (default all; see --list-cases)")
     ap.add_argument("--no-hf", action="store_true", help="LF only (seconds)")
     ap.add_argument("--list-cases", action="store_true", help="print the single-fault case names and exit")
-    ap.add_argument("--assessment", default=str(CONF_DIR / "assessment" / "frequency_response.yaml"))
+    ap.add_argument("--assessment", help="assessment config YAML (default the shipped conf/assessment)")
     ap.add_argument("--rotor-positions", type=int, help="the labels' sweep.rotor_positions (default: the config's)")
     ap.add_argument("--out", help="JSON report (default results/check_<actuator>_<command>.json)")
     args = ap.parse_args(argv)

@@ -16,11 +16,15 @@ reports:
 
 from __future__ import annotations
 
+import dataclasses
+from pathlib import Path
 from typing import Any
 
 import torch
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
 
-from ..params import ActuatorParams
+from ..params import CONF_DIR, ActuatorParams
 from .actuator_check import single_fault_cases
 from .frequency_response import SineSweep
 from .health import AssessmentFunction, HealthRequirements
@@ -67,4 +71,19 @@ def label_visibility(params: ActuatorParams, sweep: SineSweep, requirements: Hea
     }
 
 
-__all__ = ["label_visibility"]
+def load_assessment(
+    path: str | Path | None = None, rotor_positions: int | None = None
+) -> tuple[SineSweep, HealthRequirements]:
+    """The sweep and requirements of an assessment config YAML (``_target_`` nodes ``sweep`` and ``requirements``;
+    default the shipped ``conf/assessment/frequency_response.yaml``), ``rotor_positions`` replacing the sweep's."""
+    path = Path(path) if path is not None else CONF_DIR / "assessment" / "frequency_response.yaml"
+    node = OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+    if not isinstance(node, dict) or "sweep" not in node or "requirements" not in node:
+        raise ValueError(f"assessment: {str(path)!r} has no 'sweep' and 'requirements' nodes")
+    sweep = instantiate(node["sweep"])
+    if rotor_positions is not None:
+        sweep = dataclasses.replace(sweep, rotor_positions=rotor_positions)
+    return sweep, instantiate(node["requirements"])
+
+
+__all__ = ["label_visibility", "load_assessment"]
