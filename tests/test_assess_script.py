@@ -2,26 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
-
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "assess.py"
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("assess_script", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+from script_module import script_module
 
 
 def test_labels_from_the_command_line_and_a_csv_with_the_shipped_assessment(tmp_path, capsys):
     """A short in phase B at 0.98 fails (bandwidth ~22 Hz against ~76); in phase A it reads the nominal margins at
     one rotor position and fails at three; a CSV by fault names reads the same; bad vectors are refused by name."""
-    script = _script()
+    script = script_module("assess")
     assert script.main(["--faults", "0,0,0,0.98,0,0,0.5,0.5", "0,0,0.98,0,0,0,0.5,0.5"]) == 0
     b, a = (json.loads(line) for line in capsys.readouterr().out.splitlines())
     assert not b["healthy"] and b["bandwidth_hz"] == pytest.approx(22.1, abs=1.0)

@@ -3,27 +3,20 @@ rates are per whole chirp, and its online section compares the device's answers 
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
 from pathlib import Path
 
 import pytest
+from script_module import script_module
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _script():
-    spec = importlib.util.spec_from_file_location("bench_device", ROOT / "scripts" / "bench_device.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_simulate_rate_is_per_whole_chirp():
     import torch
 
-    bench = _script()
+    bench = script_module("bench_device")
     r = bench.bench_simulate(torch.device("cpu"), "lf", 8, 0.002, False, 1)
     assert r["fidelity"] == "lf" and r["batch"] == 8 and r["peak_gpu_gb"] is None
     # 8 signals of 2 ms in wall_s: 8 * 0.002 / 0.5 whole chirps
@@ -37,7 +30,7 @@ def test_the_script_writes_every_section_and_equal_answers_on_one_device(tmp_pat
     argv += ["--repeats", "3", "--cpu-threads", "1", "--cpu-sim-batch", "4", "--work", "16", "--out", str(out)]
     monkeypatch.setattr(sys, "argv", argv)
     monkeypatch.chdir(ROOT)
-    _script().main()
+    script_module("bench_device").main()
     report = json.loads(out.read_text())
     assert report["machine"]["device"] == "cpu"
     errors = {k: v["error"] for k, v in report.items() if isinstance(v, dict) and "error" in v}
@@ -51,5 +44,5 @@ def test_the_script_writes_every_section_and_equal_answers_on_one_device(tmp_pat
 def test_bad_duration_is_refused(monkeypatch, capsys):
     monkeypatch.setattr(sys, "argv", ["bench_device.py", "--device", "cpu", "--duration", "2"])
     with pytest.raises(SystemExit) as e:
-        _script().main()
+        script_module("bench_device").main()
     assert e.value.code == 2 and "--duration must be in (0, 0.5], got 2.0" in capsys.readouterr().err

@@ -3,16 +3,14 @@
 from __future__ import annotations
 
 import copy
-import importlib.util
 import logging
-from pathlib import Path
 
 import numpy as np
 import pytest
+from script_module import script_module
 
 from phm_torch.apps.generate import generate
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "grid_density_check.py"
 TINY_AUTO = (  # a tiny LF store whose sweep grid is derived (auto), with 16 labels
     "dataset.fidelity=lf",
     "command.duration=0.02",
@@ -31,17 +29,10 @@ TINY_AUTO = (  # a tiny LF store whose sweep grid is derived (auto), with 16 lab
 )
 
 
-def _script():
-    spec = importlib.util.spec_from_file_location("grid_density_check", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_the_stores_own_density_reproduces_its_labels_and_another_is_counted(tmp_path, compose):
     data_dir = tmp_path / "store"
     generate(compose("generate", [*TINY_AUTO, f"data_dir={data_dir}"]))
-    script = _script()
+    script = script_module("grid_density_check")
     same = script.check(str(data_dir), 12.0, "labels", None, 6)
     assert same["nearest_requirements"] == {"n": 6, "changed": 0}  # the labels, made again the same way
     denser = script.check(str(data_dir), 36.0, "labels", None, 6)
@@ -64,7 +55,7 @@ def test_a_listed_grid_has_no_density(tmp_path, compose):
     listed = [*TINY_AUTO, "assessment.sweep.frequencies=[15,30,60,90,130]", "assessment.sweep.group_size=5"]
     generate(compose("generate", [*listed, f"data_dir={data_dir}"]))
     with pytest.raises(ValueError, match="is a list .* it has no density"):
-        _script().check(str(data_dir), 36.0, "labels", None, 4)
+        script_module("grid_density_check").check(str(data_dir), 36.0, "labels", None, 4)
 
 
 def test_a_store_labelled_with_settled_refined_readings_records_them_and_is_reproduced(tmp_path, compose, caplog):
@@ -84,7 +75,7 @@ def test_a_store_labelled_with_settled_refined_readings_records_them_and_is_repr
     with DatasetStore(str(data_dir)) as store:
         sweep = store.metadata["config"]["assessment"]["sweep"]
     assert sweep["max_extensions"] == 1 and sweep["refine"] == 1  # part of the labels' provenance
-    same = _script().check(str(data_dir), 12.0, "labels", None, 4, max_extensions=1, refine=1)
+    same = script_module("grid_density_check").check(str(data_dir), 12.0, "labels", None, 4, max_extensions=1, refine=1)
     assert same["nearest_requirements"]["changed"] == 0 and same["settling"]["extended"] > 0
     assert same["max_extensions"] == 1 and same["refine"] == 1
 
