@@ -73,6 +73,12 @@ class Assessment:
     uncertain: torch.Tensor | None = None
 
 
+def reads_as(rows: torch.Tensor, reference: torch.Tensor, rtol: float = 1e-9) -> torch.Tensor:
+    """(B,) bool: each row of stacked margins (B, 5) equals ``reference`` (5,) or (1, 5) to ``rtol`` (of at least 1):
+    the same reading, e.g. a fault the labels cannot see (a nan, unmeasurable, never equals)."""
+    return ((rows - reference).abs() <= rtol * reference.abs().clamp(min=1.0)).all(-1)
+
+
 def worst_margins(readings: list[Margins]) -> Margins:
     """Every margin's smallest over the readings of the same vectors at several rotor positions (a nan, not
     measurable at one of them, stays nan): the requirements hold at every position exactly when they hold here."""
@@ -174,7 +180,7 @@ class AssessmentFunction:
             found = worst_margins(
                 [margins(x.frequencies, x.open_loop, x.closed_loop) for x in (e.read(k) for e in eager)]
             ).stacked()
-            same = ((found[1:] - found[:1]).abs() <= 1e-9 * found[:1].abs().clamp(min=1.0)).all(1)
+            same = reads_as(found[1:], found[:1])
             self._invisible = [FAULT_NAMES[2 + i] for i in range(3) if bool(same[i])]
         return list(self._invisible)
 

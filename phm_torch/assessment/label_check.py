@@ -27,10 +27,7 @@ from omegaconf import OmegaConf
 from ..params import CONF_DIR, ActuatorParams
 from .actuator_check import single_fault_cases
 from .frequency_response import SineSweep
-from .health import AssessmentFunction, HealthRequirements
-
-# readings closer than this to the nominal ones (relative) are the same reading
-SAME = 1e-9
+from .health import AssessmentFunction, HealthRequirements, reads_as
 
 
 def label_visibility(params: ActuatorParams, sweep: SineSweep, requirements: HealthRequirements) -> dict[str, Any]:
@@ -50,7 +47,7 @@ def label_visibility(params: ActuatorParams, sweep: SineSweep, requirements: Hea
     out_cases, invisible = {}, []
     for i, name in enumerate(names):
         row = stacked[i]
-        same = bool(((row - nominal).abs() <= SAME * nominal.abs().clamp(min=1.0)).all())
+        same = bool(reads_as(row, nominal))
         if name != "nominal" and same and cases[name] != cases["nominal"]:
             invisible.append(name)
         out_cases[name] = {
