@@ -90,8 +90,10 @@ class SineSweep:
         max_extensions: how many times an unsettled response is simulated on to twice the time (0: never).
         refine: rounds of measurement at each vector's interpolated crossings (0: the grid only).
         rotor_positions: the loop is measured with the rotor resting at this many electrical angles 0, 60, 120,
-            ... deg (one commutation sector apart) and each vector labelled by its worst (1: at 0 only, every
-            store labelled before 2026-11-28; 3: each phase out of conduction once; at most 6).
+            ... deg (one commutation sector apart) and each vector labelled by its worst (3, the shipped config:
+            each phase out of conduction once; 1: at 0 only, which cannot see a short in the phase out of
+            conduction there, every store labelled before 2026-11-29 and what an unrecorded value means,
+            ``assessment_record.SWEEP_DEFAULTS``; at most 6).
     """
 
     frequencies: tuple[float, ...] | str
