@@ -2,13 +2,15 @@
 
 Usage:
     python scripts/assess.py --actuator ema_reference --faults 0.5,0,0,0,0,0,0.5,0.5 0,0.15,0,0,0,0,0.5,0.7
-    python scripts/assess.py --actuator $MY_CONF/actuator/my_ema.yaml --csv vectors.csv [--rotor-positions 3]
+    python scripts/assess.py --actuator $MY_CONF/actuator/my_ema.yaml --csv vectors.csv [--rotor-positions 1]
 
 Each vector is k1..k8 (comma-separated, in [0, 1]); ``--csv`` reads a file with a header and the columns k1..k8 (or
 the fault names of phm_torch.faults). The assessment config is the shipped one unless ``--assessment`` names
 another (it must be the one your data were labelled with for the label to be the pipeline's truth). Prints one JSON
 line per vector: the vector, ``healthy``, ``uncertain`` (the window before the last reads otherwise) and the margins
-[Hz, deg, dB]. Uncompiled, one thread: ~20 ms a vector in a batch at the reference's sweep, 3x with 3 rotor positions.
+[Hz, deg, dB]. Uncompiled, one thread: ~20 ms a vector in a batch at the reference's sweep and one rotor position; the shipped
+three read a vector at the next position only while it passes (up to 3x; the margins of a vector that failed early
+are the worst of the positions read).
 """
 
 from __future__ import annotations

@@ -58,7 +58,7 @@ def label_summary(labels: dict) -> str:
         lines.append(
             f"WARNING: {name} at k = 1 reads exactly the nominal margins: the health labels cannot see it "
             "(the sweep keeps the rotor in one commutation sector); label with "
-            "+assessment.sweep.rotor_positions=3 (check it here with --rotor-positions 3)"
+            "assessment.sweep.rotor_positions=3, the shipped value (check it here with --rotor-positions 3)"
         )
     k2 = labels["k2_play_exceeds_sweep"]
     if k2 is not None:

@@ -20,6 +20,7 @@ from phm_torch.assessment import (
     margins,
     unmeasurable_counts,
 )
+from phm_torch.assessment.health import worst_margins
 from phm_torch.physics import mechanics
 
 FINE = np.geomspace(5.0, 300.0, 3000)
@@ -446,13 +447,19 @@ def test_a_short_in_the_phase_off_at_rest_is_invisible_and_three_rotor_positions
     k = torch.tensor([params.nominal_faults] * 4, dtype=torch.float64)
     for i in range(3):
         k[1 + i, 2 + i] = 0.98
-    one = _assessment(params, shipped)
-    three = _assessment(params, shipped, rotor_positions=3)
+    one = _assessment(params, shipped, rotor_positions=1)
+    three = _assessment(params, shipped)  # the shipped sweep reads three positions
+    assert three.sweep.rotor_positions == 3
     a1, a3 = one(k), three(k)
-    m1, m3 = a1.margins.stacked(), a3.margins.stacked()
+    m1 = a1.margins.stacked()
     assert torch.equal(m1[1], m1[0]) and a1.healthy.tolist() == [True, True, False, False]
     assert one.invisible_faults() == ["short_a"] and one.record()["invisible_faults"] == ["short_a"]
     assert a3.healthy.tolist() == [True, False, False, False] and three.invisible_faults() == []
+    # every position read for every vector (phi_a stops reading a vector at its first failing position)
+    m3 = worst_margins(
+        [margins(r.frequencies, r.open_loop, r.closed_loop) for r in (x.read(k) for x in three.responses)]
+    )
+    m3 = m3.stacked()
     assert torch.allclose(m3[1], m3[2], rtol=1e-6) and torch.allclose(m3[2], m3[3], rtol=1e-6)
     assert torch.allclose(m3[0], m1[0], rtol=1e-9)  # no fault, no position dependence
     assert float(m3[1, 4]) < 0.5 * float(m3[0, 4])  # the short's bandwidth loss, now seen
@@ -460,11 +467,43 @@ def test_a_short_in_the_phase_off_at_rest_is_invisible_and_three_rotor_positions
         _assessment(params, shipped, rotor_positions=0)
 
 
+def test_reading_stops_at_the_first_failing_rotor_position_and_labels_as_reading_every_one(params, shipped):
+    """phi_a reads a vector at the next rotor position only while it passes in either window: the labels and the
+    uncertain flags are those of reading every position, the margins those of the positions read (all of them for
+    a healthy vector), and a batch that fails everywhere at the first position is read once."""
+    g = torch.Generator().manual_seed(3)
+    u = torch.rand(24, 8, generator=g, dtype=torch.float64)
+    k = u**4 * 0.3  # near nominal: both classes
+    k[:, 6] = u[:, 6]
+    k[:, 7] = 0.5 + 0.1 * (u[:, 7] - 0.5)
+    k[:4, 2:5] = torch.tensor([[0.9, 0, 0], [0, 0.9, 0], [0, 0, 0.9], [0.0, 0, 0]], dtype=torch.float64)
+    phi = _assessment(params, shipped)
+    a = phi(k)
+    reads = [x.read(k) for x in phi.responses]
+    last = worst_margins([margins(r.frequencies, r.open_loop, r.closed_loop) for r in reads])
+    before = worst_margins([margins(r.before.frequencies, r.before.open_loop, r.before.closed_loop) for r in reads])
+    bw0 = phi.nominal_bandwidth_hz
+    healthy = phi.requirements.healthy(last, bw0)
+    assert 4 <= int(healthy.sum()) <= 20  # both classes, so both paths are exercised
+    assert torch.equal(a.healthy, healthy)
+    assert torch.equal(a.uncertain, healthy != phi.requirements.healthy(before, bw0))
+    assert torch.equal(a.margins.stacked()[healthy], last.stacked()[healthy])
+    first = margins(reads[0].frequencies, reads[0].open_loop, reads[0].closed_loop)
+    first_before = margins(reads[0].before.frequencies, reads[0].before.open_loop, reads[0].before.closed_loop)
+    passing = phi.requirements.healthy(first, bw0) | phi.requirements.healthy(first_before, bw0)
+    calls = []
+    second = phi.responses[1]
+    second.read = lambda kk, _read=second.read: calls.append(kk.shape[0]) or _read(kk)
+    phi(k)
+    assert calls == [int(passing.sum())] and int(passing.sum()) < k.shape[0]
+
+
 def test_label_check_names_the_invisible_fault_and_the_play_the_sweep_measures(params, shipped):
     """scripts/check_actuator.py's labels section: what phi_a reads of each single fault at k = 1."""
     from phm_torch.assessment.label_check import label_visibility
 
-    found = label_visibility(params, instantiate(shipped.sweep), instantiate(shipped.requirements))
+    one = SineSweep(**{**vars(instantiate(shipped.sweep)), "rotor_positions": 1})
+    found = label_visibility(params, one, instantiate(shipped.requirements))
     assert found["invisible"] == ["k3"]
     assert found["cases"]["k3"]["healthy"] and not found["cases"]["k4"]["healthy"]
     amp = found["sweep"]["amplitude"]

@@ -8,7 +8,7 @@ reports:
 
 * **invisible faults**: a fault at k = 1 whose label readings equal the nominal ones. The sweep's few electrical
   degrees keep the rotor in one commutation sector, so a short in the phase that does not conduct there changes
-  nothing (the reference at rest at 0: phase A); ``assessment.sweep.rotor_positions=3`` reads the worst of three
+  nothing (the reference at rest at 0: phase A); ``assessment.sweep.rotor_positions=3`` (shipped) reads the worst of three
   sectors, where each phase conducts;
 * **the play the sweep can measure**: above ``k2_play_exceeds_sweep`` the faulted play b0 (1 + 99 k2) is wider
   than the sweep amplitude and the margins become unmeasurable (labelled faulty).

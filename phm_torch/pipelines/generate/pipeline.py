@@ -211,8 +211,8 @@ def _metrics(
     if metrics["assessment_sweep"]["invisible_faults"]:
         log.warning(
             "the health labels cannot see %s: at k = 1 it reads exactly the nominal margins (the sweep keeps the "
-            "rotor in one commutation sector, where that phase does not conduct); +assessment.sweep.rotor_positions=3 "
-            "labels the worst of three sectors (docs/dataset.md, 'Which faults the labels see')",
+            "rotor in one commutation sector, where that phase does not conduct); assessment.sweep.rotor_positions=3 "
+            "(the shipped value) labels the worst of three sectors (docs/dataset.md, 'Which faults the labels see')",
             ", ".join(metrics["assessment_sweep"]["invisible_faults"]),
         )
     if manifest is not None:
