@@ -191,13 +191,20 @@ class FrequencyResponse:
     """
 
     def __init__(
-        self, params: ActuatorParams, sweep: SineSweep, device: str | torch.device = "cpu", rotor_angle: float = 0.0
+        self,
+        params: ActuatorParams,
+        sweep: SineSweep,
+        device: str | torch.device = "cpu",
+        rotor_angle: float = 0.0,
+        simulator: EMASimulator | None = None,
     ):
         self.rotor_angle = float(rotor_angle)  # [rad, electrical] where the rotor rests (module docstring)
         self.params = params.replace(sample_rate=params.pwm_frequency)
         self.sweep = sweep = sweep.resolve(params)
         self.device = torch.device(device)
-        self.sim = EMASimulator(
+        # ``simulator``: another position's (the rest angle is a state and a command offset, not a simulator
+        # setting), so that its compiled graphs serve every position: dynamo guards them on the instance
+        self.sim = simulator or EMASimulator(
             self.params, "lf", substeps=int(sweep.substeps), device=self.device, compile=bool(sweep.compile)
         )
         self.plan = [self._test(f) for f in sweep.frequencies]

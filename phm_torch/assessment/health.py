@@ -129,11 +129,11 @@ class AssessmentFunction:
         self.auto = {name: isinstance(getattr(sweep, name), str) for name in ("frequencies", "amplitude")}
         self.requirements = requirements
         # one per rotor position (SineSweep.rotor_positions), one commutation sector (60 electrical deg) apart
-        self.responses = [
-            FrequencyResponse(params, self.sweep, device, rotor_angle=j * math.pi / 3)
-            for j in range(self.sweep.rotor_positions)
+        self.response = FrequencyResponse(params, self.sweep, device)
+        self.responses = [self.response] + [
+            FrequencyResponse(params, self.sweep, device, rotor_angle=j * math.pi / 3, simulator=self.response.sim)
+            for j in range(1, self.sweep.rotor_positions)
         ]
-        self.response = self.responses[0]
         self._nominal: Margins | None = None
         self._invisible: list[str] | None = None
         self.wall_s = 0.0  # time spent simulating [s]
@@ -211,13 +211,14 @@ class AssessmentFunction:
             "uncertain_labels": self.uncertain,
         }
 
-    def _read(self, response: FrequencyResponse, k: torch.Tensor, subset: bool = False) -> tuple[Margins, Margins]:
-        """Margins of k (B, 8) at one rotor position over the last window and the window before. ``subset``: rows
-        of a batch, a size that varies from call to call, which a compiled simulator reads padded to a bucket
-        (:func:`bucket_size`, the last row repeated) so that a few compiled batch sizes serve every call."""
+    def _read(self, response: FrequencyResponse, k: torch.Tensor, batch: int = 0) -> tuple[Margins, Margins]:
+        """Margins of k (B, 8) at one rotor position over the last window and the window before. ``batch`` > 0: k
+        is a subset of rows of a batch that size, which a compiled simulator reads padded to a bucket
+        (:func:`bucket_size`, at most ``batch``; the last row repeated) so that a few compiled batch sizes serve
+        every call, the positions sharing one simulator and so its compiled graphs."""
         n = k.shape[0]
-        if subset and self.sweep.compile:
-            k = torch.cat([k, k[-1:].expand(bucket_size(n) - n, -1)])
+        if batch and self.sweep.compile:  # never past the whole batch's size, compiled at the first position
+            k = torch.cat([k, k[-1:].expand(min(bucket_size(n), batch) - n, -1)])
         r = response.read(k)
         return tuple(  # type: ignore[return-value]
             Margins(*margins(x.frequencies, x.open_loop, x.closed_loop).stacked()[:n].unbind(-1)) for x in (r, r.before)
@@ -237,7 +238,7 @@ class AssessmentFunction:
             rows = torch.nonzero(self.requirements.healthy(m, bw0) | self.requirements.healthy(m_before, bw0))[:, 0]
             if rows.numel() == 0:
                 break
-            last, before = self._read(response, k[rows], subset=True)
+            last, before = self._read(response, k[rows], batch=k.shape[0])
             m, m_before = (_put_worst(a, rows, b) for a, b in ((m, last), (m_before, before)))
         healthy = self.requirements.healthy(m, bw0)
         uncertain = healthy != self.requirements.healthy(m_before, bw0)
