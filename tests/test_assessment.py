@@ -312,8 +312,14 @@ def test_a_denser_grid_reads_the_margins_monotonically_along_a_damage_path(param
     design = instantiate(shipped.sweep.design)
     read = {}
     for ppd in (36.0, 72.0):
-        sweep = instantiate(shipped.sweep)
-        sweep = SineSweep(**{**vars(sweep), "design": type(design)(**{**vars(design), "points_per_decade": ppd})})
+        sweep = instantiate(shipped.sweep)  # one rest angle: the grid's density is what is tested
+        sweep = SineSweep(
+            **{
+                **vars(sweep),
+                "rotor_positions": 1,
+                "design": type(design)(**{**vars(design), "points_per_decade": ppd}),
+            }
+        )
         m = AssessmentFunction(params, sweep, instantiate(shipped.requirements))(torch.tensor(A009_PATH)).margins
         read[ppd] = (m.bandwidth_hz.numpy(), m.gain_margin_db.numpy())
     for bw, gm in read.values():
@@ -378,7 +384,8 @@ def test_labels_read_from_the_transient_are_uncertain(params, shipped):
     the labels follow the damage (healthy, healthy, faulty) and at most the one nearest the bandwidth
     requirement, read from a response that is not periodic, stays uncertain."""
     k = torch.tensor(A009_PATH)
-    sweep = dataclasses.replace(instantiate(shipped.sweep), compile=False)
+    # one rest angle: the transient is what is tested (at three, the third inspection fails at another angle)
+    sweep = dataclasses.replace(instantiate(shipped.sweep), compile=False, rotor_positions=1)
     requirements = instantiate(shipped.requirements)
     assert (sweep.max_extensions, sweep.refine) == (0, 0)  # the shipped sweep reads 4 cycles (docs/dataset.md)
     fixed = AssessmentFunction(params, sweep, requirements)(k)
@@ -419,6 +426,7 @@ def test_compiled_extensions_and_refinement_run_in_a_few_padded_batch_sizes(para
     assert any(n != grid for n in sizes)
 
 
+@pytest.mark.slow  # ~60 s on 2 cores
 def test_a_vectors_settled_refined_reading_does_not_depend_on_its_batch(params, shipped):
     """Each vector's reading, settled and refined, is the same assessed alone or beside others (eager: the simulator
     is batch invariant): every simulation of a row lasts as long as its own test says, never the batch's longest.
@@ -441,28 +449,14 @@ def test_a_vectors_settled_refined_reading_does_not_depend_on_its_batch(params, 
 
 def test_a_short_in_the_phase_off_at_rest_is_invisible_and_three_rotor_positions_see_every_phase(params, shipped):
     """The sweep's few electrical degrees keep the rotor in one commutation sector: at rest at 0 phase A does not
-    conduct, so a short of 0.98 there reads exactly the nominal margins (labelled healthy) while one in B or C
-    fails. Resting the rotor at 0, 60 and 120 electrical degrees and taking the worst, each phase conducts once:
-    the three shorts read alike and fail; the nominal actuator reads the same at every position."""
-    k = torch.tensor([params.nominal_faults] * 4, dtype=torch.float64)
-    for i in range(3):
-        k[1 + i, 2 + i] = 0.98
+    conduct, so a short there reads exactly the nominal margins (labelled healthy) while one in B or C fails.
+    Resting the rotor at 0, 60 and 120 electrical degrees and taking the worst, each phase conducts once: nothing
+    is invisible (the shorts' readings are in the next test)."""
     one = _assessment(params, shipped, rotor_positions=1)
     three = _assessment(params, shipped)  # the shipped sweep reads three positions
     assert three.sweep.rotor_positions == 3
-    a1, a3 = one(k), three(k)
-    m1 = a1.margins.stacked()
-    assert torch.equal(m1[1], m1[0]) and a1.healthy.tolist() == [True, True, False, False]
     assert one.invisible_faults() == ["short_a"] and one.record()["invisible_faults"] == ["short_a"]
-    assert a3.healthy.tolist() == [True, False, False, False] and three.invisible_faults() == []
-    # every position read for every vector (phi_a stops reading a vector at its first failing position)
-    m3 = worst_margins(
-        [margins(r.frequencies, r.open_loop, r.closed_loop) for r in (x.read(k) for x in three.responses)]
-    )
-    m3 = m3.stacked()
-    assert torch.allclose(m3[1], m3[2], rtol=1e-6) and torch.allclose(m3[2], m3[3], rtol=1e-6)
-    assert torch.allclose(m3[0], m1[0], rtol=1e-9)  # no fault, no position dependence
-    assert float(m3[1, 4]) < 0.5 * float(m3[0, 4])  # the short's bandwidth loss, now seen
+    assert three.invisible_faults() == []
     with pytest.raises(ValueError, match="rotor_positions must be an integer in \\[1, 6\\], got 0"):
         _assessment(params, shipped, rotor_positions=0)
 
@@ -470,13 +464,17 @@ def test_a_short_in_the_phase_off_at_rest_is_invisible_and_three_rotor_positions
 def test_reading_stops_at_the_first_failing_rotor_position_and_labels_as_reading_every_one(params, shipped):
     """phi_a reads a vector at the next rotor position only while it passes in either window: the labels and the
     uncertain flags are those of reading every position, the margins those of the positions read (all of them for
-    a healthy vector), and a batch that fails everywhere at the first position is read once."""
+    a healthy vector), and a batch that fails everywhere at the first position is read once. The first four rows
+    are the nominal actuator and a 0.98 short in phase A, B, C: at 0 degrees alone the phase-A short reads the
+    nominal margins; over the three positions the shorts read alike and fail."""
     g = torch.Generator().manual_seed(3)
-    u = torch.rand(24, 8, generator=g, dtype=torch.float64)
+    u = torch.rand(20, 8, generator=g, dtype=torch.float64)
     k = u**4 * 0.3  # near nominal: both classes
     k[:, 6] = u[:, 6]
     k[:, 7] = 0.5 + 0.1 * (u[:, 7] - 0.5)
-    k[:4, 2:5] = torch.tensor([[0.9, 0, 0], [0, 0.9, 0], [0, 0, 0.9], [0.0, 0, 0]], dtype=torch.float64)
+    k[:4] = torch.tensor([params.nominal_faults] * 4, dtype=torch.float64)
+    for i in range(3):
+        k[1 + i, 2 + i] = 0.98
     phi = _assessment(params, shipped)
     a = phi(k)
     reads = [x.read(k) for x in phi.responses]
@@ -484,12 +482,19 @@ def test_reading_stops_at_the_first_failing_rotor_position_and_labels_as_reading
     before = worst_margins([margins(r.before.frequencies, r.before.open_loop, r.before.closed_loop) for r in reads])
     bw0 = phi.nominal_bandwidth_hz
     healthy = phi.requirements.healthy(last, bw0)
-    assert 4 <= int(healthy.sum()) <= 20  # both classes, so both paths are exercised
+    assert 4 <= int(healthy.sum()) <= 16  # both classes, so both paths are exercised
     assert torch.equal(a.healthy, healthy)
     assert torch.equal(a.uncertain, healthy != phi.requirements.healthy(before, bw0))
     assert torch.equal(a.margins.stacked()[healthy], last.stacked()[healthy])
     first = margins(reads[0].frequencies, reads[0].open_loop, reads[0].closed_loop)
     first_before = margins(reads[0].before.frequencies, reads[0].before.open_loop, reads[0].before.closed_loop)
+    # the shorts: invisible in phase A at one position, alike and failing over three
+    m1, m3 = first.stacked(), last.stacked()
+    assert torch.equal(m1[1], m1[0]) and phi.requirements.healthy(first, bw0)[:4].tolist() == [True, True, False, False]
+    assert a.healthy[:4].tolist() == [True, False, False, False]
+    assert torch.allclose(m3[1], m3[2], rtol=1e-6) and torch.allclose(m3[2], m3[3], rtol=1e-6)
+    assert torch.allclose(m3[0], m1[0], rtol=1e-9)  # no fault, no position dependence
+    assert float(m3[1, 4]) < 0.5 * float(m3[0, 4])  # the short's bandwidth loss, now seen
     passing = phi.requirements.healthy(first, bw0) | phi.requirements.healthy(first_before, bw0)
     calls = []
     second = phi.responses[1]

@@ -43,6 +43,7 @@ TINY = (
     "assessment.sweep.group_size=5",
     "assessment.sweep.max_extensions=0",  # the 4-cycle reading: these tests are about the store, not the labels
     "assessment.sweep.refine=0",
+    "assessment.sweep.rotor_positions=1",  # one rest angle: a third of the shipped labels' cost
     "progress=false",
     "threads=1",
     "+dataset.healthy_fraction=null",  # the paper's scaling: no calibration pilot

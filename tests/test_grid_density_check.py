@@ -21,6 +21,7 @@ TINY_AUTO = (  # a tiny LF store whose sweep grid is derived (auto), with 16 lab
     "assessment.sweep.cycles=3",
     "assessment.sweep.max_extensions=0",  # the 4-cycle reading, unless a test switches settling on
     "assessment.sweep.refine=0",
+    "assessment.sweep.rotor_positions=1",  # one rest angle: these tests are about the check, not the angles
     "progress=false",
     "threads=1",
     "+dataset.healthy_fraction=null",
@@ -29,6 +30,7 @@ TINY_AUTO = (  # a tiny LF store whose sweep grid is derived (auto), with 16 lab
 )
 
 
+@pytest.mark.slow  # 2-4 min on 2 cores
 def test_the_stores_own_density_reproduces_its_labels_and_another_is_counted(tmp_path, compose):
     data_dir = tmp_path / "store"
     generate(compose("generate", [*TINY_AUTO, f"data_dir={data_dir}"]))
@@ -58,6 +60,7 @@ def test_a_listed_grid_has_no_density(tmp_path, compose):
         script_module("grid_density_check").check(str(data_dir), 36.0, "labels", None, 4)
 
 
+@pytest.mark.slow  # 2-4 min on 2 cores
 def test_a_store_labelled_with_settled_refined_readings_records_them_and_is_reproduced(tmp_path, compose, caplog):
     data_dir = tmp_path / "store"
     switches = ["assessment.sweep.max_extensions=1", "assessment.sweep.refine=1", "dataset.n_labels=4"]

@@ -53,8 +53,10 @@ def test_estimates_intervals_and_verdict_on_fresh_records(records):
     inside = (truth >= lower - 1e-9) & (truth <= upper + 1e-9)
     assert float(inside[:, DAMAGE].double().mean()) >= 0.8, (lower, upper)  # 90 % intervals: 26 of these 28
     assert float(upper[0, 0] - lower[0, 0]) < 0.05  # tight near nominal
-    assert bool(score[0] > 0) and bool(score[2] > 0)  # healthy: nominal, a 40 % short on one phase
-    assert bool(score[1] < 0) and bool(score[3] < 0)  # faulty: friction x1.6, backlash x20 + drift
+    assert bool(score[0] > 0)  # healthy: nominal
+    # faulty: friction x1.6, a 40 % short on phase A (fails at the 60 and 120 degree rest angles the shipped
+    # assessment reads; at 0 degrees alone it reads nominal margins), backlash x20 + drift
+    assert bool(score[1] < 0) and bool(score[2] < 0) and bool(score[3] < 0)
     assert float(p_faulty[0]) < 0.2 and float(p_faulty[1]) > 0.9
     assert torch.isfinite(rul[0]).all() and float(rul[1].max()) == 0.0
 

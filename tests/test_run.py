@@ -20,7 +20,8 @@ pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on p
 TINY_LIFE = (
     'generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=4","dataset.chunk_size=64",'
     '"dataset.fidelity=lf","dataset.life.n_actuators=2",'
-    '"assessment.sweep.max_extensions=0","assessment.sweep.refine=0","dataset.life.compile=false"]'
+    '"assessment.sweep.max_extensions=0","assessment.sweep.refine=0","assessment.sweep.rotor_positions=1",'
+    '"dataset.life.compile=false"]'
 )
 
 
@@ -96,7 +97,7 @@ def test_phm_run_tiny_end_to_end(tmp_path):
             (
                 'generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=4","dataset.chunk_size=64",'
                 '"dataset.fidelity=lf","dataset.life.n_actuators=0","assessment.sweep.cycles=3",'
-                '"assessment.sweep.max_extensions=0","assessment.sweep.refine=0",'
+                '"assessment.sweep.max_extensions=0","assessment.sweep.refine=0","assessment.sweep.rotor_positions=1",'
                 # the paper's sampling: the healthy-fraction pilot (1,536 uncompiled phi_a labels) took 2 of the 3 min
                 '"+dataset.healthy_fraction=null"]'
             ),
@@ -327,7 +328,7 @@ def test_phm_run_on_the_second_actuator_end_to_end(tmp_path):
             (
                 'generate=["dataset.n_train=300","dataset.n_val=60","dataset.n_rul=8","dataset.chunk_size=128",'
                 '"dataset.fidelity=lf","dataset.n_labels=512","+dataset.pilot_size=768",'
-                '"assessment.sweep.max_extensions=0","assessment.sweep.refine=0"]'
+                '"assessment.sweep.max_extensions=0","assessment.sweep.refine=0","assessment.sweep.rotor_positions=1"]'
             ),
             'cases=["fidelity=lf","duration=0.05"]',
             'train=["n_modes=8","n_points=24","selector=qdeim","classifier_refine.rounds=1"]',

@@ -411,6 +411,7 @@ def test_measurements_compared_with_the_default_datasheet_are_said_to_be():
     assert default_actuator_note(["actuator.gear_ratio=150"], "ema_reference") is not None  # a field, not a choice
 
 
+@pytest.mark.slow  # 2-4 min on 2 cores
 def test_a_trim_load_sized_by_the_actuator_is_found_fitted_and_explains_the_error():
     """On the 270 V rudder a trim load of 300 N m (an eighth of its stall hinge moment) is hidden. The effect's
     probe, normalisation and bound follow the actuator's size (with the reference-sized ones, 1 N m and a bound
