@@ -20,6 +20,7 @@ from phm_torch.assessment import (
     margins,
     unmeasurable_counts,
 )
+from phm_torch.assessment.frequency_response import padded_size
 from phm_torch.assessment.health import worst_margins
 from phm_torch.physics import mechanics
 
@@ -400,7 +401,7 @@ def test_labels_read_from_the_transient_are_uncertain(params, shipped):
 
 
 def test_compiled_extensions_and_refinement_run_in_a_few_padded_batch_sizes(params, shipped):
-    """With a compiled simulator the extensions' and refinement's varying batches are padded to powers of two (one
+    """With a compiled simulator the extensions' and refinement's varying batches are padded to a few sizes (one
     compilation per size, not per call); the padding repeats rows, so the readings equal the unpadded ones exactly.
     (Run eager here: the padding is what is tested, ``compile`` only switches it on.)"""
     k = torch.tensor(A009_PATH[1:])
@@ -422,7 +423,7 @@ def test_compiled_extensions_and_refinement_run_in_a_few_padded_batch_sizes(para
         assert torch.equal(getattr(a, name), getattr(b, name)), name
     assert padded.extensions == plain.extensions > 0
     grid = 2 * len(padded.groups[0])  # the grid's batches: every vector at every frequency of a group
-    assert all(n == grid or (n >= 64 and n & (n - 1) == 0) for n in sizes), sizes
+    assert all(n == grid or n == padded_size(n) for n in sizes), sizes
     assert any(n != grid for n in sizes)
 
 
@@ -513,3 +514,18 @@ def test_label_check_names_the_invisible_fault_and_the_play_the_sweep_measures(p
     assert found["cases"]["k3"]["healthy"] and not found["cases"]["k4"]["healthy"]
     amp = found["sweep"]["amplitude"]
     assert params.backlash * (1 + 99 * found["k2_play_exceeds_sweep"]) == pytest.approx(amp, rel=1e-3)
+
+
+def test_padded_sizes_waste_at_most_a_third_and_margins_rows_round_trip():
+    from phm_torch.assessment import Margins
+
+    sizes = [padded_size(n) for n in range(1, 5000)]
+    assert sizes[:64] == [64] * 64 and padded_size(65) == 96 and padded_size(97) == 128 and padded_size(129) == 192
+    assert all(s >= n and (s <= 64 or n > 0.66 * s) for n, s in zip(range(1, 5000), sizes, strict=True))
+    assert len(set(sizes)) <= 2 * 7 + 1  # two sizes an octave
+    m = Margins.from_stacked(torch.arange(20, dtype=torch.float64).reshape(4, 5))
+    rows = torch.tensor([2, 0])
+    assert torch.equal(m.take_rows(rows).stacked(), m.stacked()[rows])
+    back = m.put_rows(rows, m.take_rows(torch.tensor([0, 2])))
+    assert torch.equal(back.stacked()[[0, 2]], m.stacked()[[2, 0]]) and torch.equal(back.stacked()[1], m.stacked()[1])
+    assert torch.equal(m.stacked()[0], torch.arange(5, dtype=torch.float64))  # m itself unchanged

@@ -39,9 +39,10 @@ from ..metrics import chirp_last_cycle, nrmse
 from ..params import ActuatorParams
 from ..plant import build_plant
 from ..simulator import EMASimulator, Signals
-from .frequency_response import FrequencyResponse, SineSweep
+from .frequency_response import FrequencyResponse
 from .linear import linear_loop
 from .margins import Margins, margins
+from .sweep import SineSweep
 
 FAULT_EXTREMES = {
     "k1": (0, 1.0),

@@ -17,8 +17,9 @@ import torch
 
 from ..faults import FAULT_NAMES, as_fault_tensor
 from ..params import ActuatorParams
-from .frequency_response import FrequencyResponse, SineSweep
+from .frequency_response import FrequencyResponse, padded_size
 from .margins import Margins, margins
+from .sweep import SineSweep
 
 log = logging.getLogger(__name__)
 
@@ -86,22 +87,7 @@ def worst_margins(readings: list[Margins]) -> Margins:
         return readings[0]
     stacked = torch.stack([m.stacked() for m in readings])  # (P, B, 5)
     worst = torch.where(stacked.isnan().any(0), torch.nan, stacked.amin(0))
-    return Margins(*worst.unbind(-1))
-
-
-def bucket_size(n: int, smallest: int = 64) -> int:
-    """The smallest of smallest * 2^j and 1.5 * smallest * 2^j that holds n rows (at most a third padding)."""
-    size = smallest
-    while size < n:
-        size = size * 3 // 2 if size & (size - 1) == 0 else size * 4 // 3
-    return size
-
-
-def _put_worst(m: Margins, rows: torch.Tensor, other: Margins) -> Margins:
-    """m with its ``rows`` replaced by the worst of theirs and ``other`` (one reading of those rows)."""
-    out = m.stacked().clone()
-    out[rows] = worst_margins([Margins(*out[rows].unbind(-1)), other]).stacked()
-    return Margins(*out.unbind(-1))
+    return Margins.from_stacked(worst)
 
 
 class AssessmentFunction:
@@ -214,14 +200,14 @@ class AssessmentFunction:
     def _read(self, response: FrequencyResponse, k: torch.Tensor, batch: int = 0) -> tuple[Margins, Margins]:
         """Margins of k (B, 8) at one rotor position over the last window and the window before. ``batch`` > 0: k
         is a subset of rows of a batch that size, which a compiled simulator reads padded to a bucket
-        (:func:`bucket_size`, at most ``batch``; the last row repeated) so that a few compiled batch sizes serve
+        (:func:`~phm_torch.assessment.frequency_response.padded_size`, at most ``batch``; the last row repeated) so that a few compiled batch sizes serve
         every call, the positions sharing one simulator and so its compiled graphs."""
         n = k.shape[0]
         if batch and self.sweep.compile:  # never past the whole batch's size, compiled at the first position
-            k = torch.cat([k, k[-1:].expand(min(bucket_size(n), batch) - n, -1)])
+            k = torch.cat([k, k[-1:].expand(min(padded_size(n), batch) - n, -1)])
         r = response.read(k)
         return tuple(  # type: ignore[return-value]
-            Margins(*margins(x.frequencies, x.open_loop, x.closed_loop).stacked()[:n].unbind(-1)) for x in (r, r.before)
+            margins(x.frequencies, x.open_loop, x.closed_loop).take_rows(slice(0, n)) for x in (r, r.before)
         )
 
     def __call__(self, faults: torch.Tensor) -> Assessment:
@@ -239,7 +225,9 @@ class AssessmentFunction:
             if rows.numel() == 0:
                 break
             last, before = self._read(response, k[rows], batch=k.shape[0])
-            m, m_before = (_put_worst(a, rows, b) for a, b in ((m, last), (m_before, before)))
+            m, m_before = (
+                a.put_rows(rows, worst_margins([a.take_rows(rows), b])) for a, b in ((m, last), (m_before, before))
+            )
         healthy = self.requirements.healthy(m, bw0)
         uncertain = healthy != self.requirements.healthy(m_before, bw0)
         now_unsettled = self.settling()["unsettled"]

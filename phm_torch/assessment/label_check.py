@@ -26,8 +26,8 @@ from omegaconf import OmegaConf
 
 from ..params import CONF_DIR, ActuatorParams
 from .actuator_check import single_fault_cases
-from .frequency_response import SineSweep
 from .health import AssessmentFunction, HealthRequirements, reads_as
+from .sweep import SineSweep
 
 
 def label_visibility(params: ActuatorParams, sweep: SineSweep, requirements: HealthRequirements) -> dict[str, Any]:

@@ -40,6 +40,21 @@ class Margins:
         """(B, 5) in the order of ``MARGIN_NAMES``."""
         return torch.stack([getattr(self, n) for n in MARGIN_NAMES], -1)
 
+    @classmethod
+    def from_stacked(cls, stacked: torch.Tensor) -> Margins:
+        """The inverse of :meth:`stacked`: (B, 5) in the order of ``MARGIN_NAMES``."""
+        return cls(*stacked.unbind(-1))
+
+    def take_rows(self, rows: torch.Tensor | slice) -> Margins:
+        """The margins of ``rows`` (an index tensor or a slice)."""
+        return Margins.from_stacked(self.stacked()[rows])
+
+    def put_rows(self, rows: torch.Tensor, other: Margins) -> Margins:
+        """A copy with ``rows`` replaced by ``other`` (one row of other per index)."""
+        out = self.stacked().clone()
+        out[rows] = other.stacked()
+        return Margins.from_stacked(out)
+
 
 # The requirements that a margin column decides, and its column: a nan there is "not measurable on the grid".
 UNMEASURABLE_COLUMNS = {"phase_margin": 1, "gain_margin": 3, "bandwidth": 4}
