@@ -142,20 +142,33 @@ HF_CHIRP_FAULTS = (
 
 
 @pytest.fixture(scope="session")
-def hf_reference_chirp() -> Callable[[Sequence[Sequence[float]]], dict[str, object]]:
+def hf_reference_chirp(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> Callable[[Sequence[Sequence[float]]], dict[str, object]]:
     """select(k) -> the HF records of fault vectors k (each one of HF_CHIRP_FAULTS) on the reference actuator's
-    chirp: ``{"time": (n,), channel: (len(k), n)}`` for every channel, from one session-wide simulation."""
+    chirp: ``{"time": (n,), channel: (len(k), n)}`` for every channel, from one simulation per test run: the
+    first xdist worker to ask simulates (~100 s) and saves it, the others wait for the file and load it."""
     import torch
+    from filelock import FileLock
 
     from phm_torch.command import Chirp
     from phm_torch.simulator import EMASimulator
 
-    command = Chirp()
-    rows = torch.tensor(HF_CHIRP_FAULTS, dtype=torch.float64)
-    run = EMASimulator(load_actuator(), "hf").run(rows, command, command.duration)
+    shared = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        shared = shared.parent  # the run's directory, above every worker's own
+    path = shared / "hf_reference_chirp.pt"
+    with FileLock(str(path) + ".lock"):
+        if not path.exists():
+            command = Chirp()
+            rows = torch.tensor(HF_CHIRP_FAULTS, dtype=torch.float64)
+            run = EMASimulator(load_actuator(), "hf").run(rows, command, command.duration)
+            torch.save({"time": run.time, **run.channels}, path.with_suffix(".tmp"))
+            path.with_suffix(".tmp").replace(path)
+        saved = torch.load(path, weights_only=True)
 
     def select(k: Sequence[Sequence[float]]) -> dict[str, object]:
         index = [HF_CHIRP_FAULTS.index(tuple(float(v) for v in row)) for row in k]
-        return {"time": run.time} | {c: v[index] for c, v in run.channels.items()}
+        return {"time": saved["time"]} | {c: v[index] for c, v in saved.items() if c != "time"}
 
     return select

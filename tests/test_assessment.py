@@ -306,6 +306,7 @@ A009_PATH = [
 ]
 
 
+@pytest.mark.slow  # 40-100 s on 2 cores
 def test_a_denser_grid_reads_the_margins_monotonically_along_a_damage_path(params, shipped):
     """docs/prognostics.md, 'What the histories leave to know': at 36 points per decade the bandwidth and the gain
     margin fall steadily as the damage grows (the shipped 12 per decade read them 2-4 Hz and about 1 dB off near
@@ -377,6 +378,7 @@ def test_settling_makes_the_response_independent_of_the_batching(params, shipped
     assert not bool(fr.measure(k).settled[0, 0]) and fr.unsettled >= 1
 
 
+@pytest.mark.slow  # 40-100 s on 2 cores
 def test_labels_read_from_the_transient_are_uncertain(params, shipped):
     """A009's three inspections along its damage path (the shipped sweep, uncompiled). Read after a fixed 4 cycles
     (``max_extensions`` 0, ``refine`` 0, the shipped reading),

@@ -309,6 +309,7 @@ def test_launcher_configs_name_their_plugins():
         assert cfg["defaults"] == [plugin]
 
 
+@pytest.mark.slow  # 40-100 s on 2 cores
 def test_joblib_shards_then_merge(reference, tmp_path):
     pytest.importorskip("hydra_plugins.hydra_joblib_launcher")
     data_dir = tmp_path / "joblib"
@@ -457,6 +458,7 @@ def test_labels_resume_and_repair(labelled, compose, tmp_path):
     assert _manifest(data_dir) == _manifest(labelled[0])
 
 
+@pytest.mark.slow  # 40-100 s on 2 cores
 def test_labels_shards_give_the_same_manifest(labelled, compose, tmp_path):
     data_dir = tmp_path / "sharded"
     base = [*LABELLED, f"data_dir={data_dir}", "shard.count=2"]
@@ -529,6 +531,7 @@ def test_calibrated_sampling_is_recorded_and_cached(compose, tmp_path):
     assert again["sampling"]["pilot_s"] == 0 and _manifest(tmp_path) == manifest
 
 
+@pytest.mark.slow  # 40-100 s on 2 cores
 def test_the_pilot_reads_the_same_labels_whatever_its_batch(compose, monkeypatch):
     """An uncompiled pilot is assessed in batches of up to label_chunk_size instead of chunk_size (per vector
     several times cheaper); a label does not depend on its batch, so the calibration is the same (settled labels;

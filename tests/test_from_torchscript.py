@@ -405,6 +405,7 @@ def test_conversion_does_not_copy_a_stale_fold_flag(tmp_path):
     assert converted.fdi_folded
 
 
+@pytest.mark.slow  # 40-100 s on 2 cores
 def test_export_app_writes_a_float64_file_of_a_float32_one(compose, run_cli, tmp_path):
     """dtype=float64: the file computes in float64 (its metadata says so, phm-predict casts records to it) and
     equals the float32 file within the float32 floor; a bad dtype is one line naming it, exit status 2."""
