@@ -220,7 +220,7 @@ class AssessmentFunction:
         for response in self.responses[1:]:
             # a vector failing at every position read so far, in both windows, is faulty whatever the others read:
             # only the rest are read again (the labels and `uncertain` are those of reading every position; at
-            # three positions ~1.5x the cost of one on the paper's importance-sampled batch, not 3x)
+            # three positions 1.73x the cost of one on the paper's importance-sampled batch, not 3x: bench_generate)
             rows = torch.nonzero(self.requirements.healthy(m, bw0) | self.requirements.healthy(m_before, bw0))[:, 0]
             if rows.numel() == 0:
                 break
