@@ -184,3 +184,21 @@ def test_train_refuses_refinement_on_a_store_without_its_assessment(compose, tmp
                 ],
             )
         )
+
+
+def test_labels_of_the_same_assessment_are_reused_by_vector_across_keys(tmp_path):
+    """phi_a is a function of k: under the same ``labels_of`` a run whose round keys differ (here the seed in the
+    key) takes the labels of the vectors the cache already holds and assesses none again; under another identity
+    (another store's phi_a) it assesses them all."""
+    k0 = importance(600, 3)
+    settings = BoundaryRefinement(rounds=2, labels_per_round=0.25, candidates_per_label=10)
+    first = Counting()
+    k1, h1, _ = refine_classifier(small_mlp(), k0, phi(k0), sample, first, settings, 0, tmp_path, labels_of="store")
+    again = Counting()
+    k2, h2, info = refine_classifier(small_mlp(), k0, phi(k0), sample, again, settings, 1, tmp_path, labels_of="store")
+    assert info["cached"] == [False, False]  # another key ...
+    assert again.rows == 0 and info["reused_labels"] == info["added"] == 300  # ... the same vectors' labels
+    assert torch.equal(k1, k2) and torch.equal(h1, h2)
+    other = Counting()
+    _, _, info = refine_classifier(small_mlp(), k0, phi(k0), sample, other, settings, 2, tmp_path, labels_of="another")
+    assert other.rows == 300 and info["reused_labels"] == 0

@@ -112,6 +112,7 @@ def fit_health_classifier(
         settings.out_dir / "classifier_labels",
         {"data": fingerprint, "damage": settings.damage},
         sample_paths,
+        labels_of=fingerprint,  # the store's fingerprint fixes its recorded phi_a
     )
     if settings.max_missed_fault_rate is not None:  # on the importance-sampled set: the refined one crowds the boundary
         classifier.calibrate(k_cls, healthy_cls, settings.max_missed_fault_rate)

@@ -19,7 +19,11 @@ With ``path_labels_per_round`` > 0 each round also keeps the least sure of candi
 paths (:mod:`.damage_paths`): the boundary where a prognosis crosses it, which the RUL's event time depends on.
 
 Each round's labels are cached in ``cache_dir`` (``round_<r>.npz``, written atomically, keyed by
-everything that determines them), so an interrupted training resumes without re-running phi_a.
+everything that determines them), so an interrupted training resumes without re-running phi_a. phi_a is a pure
+function of k: given ``labels_of`` (the assessment's identity, e.g. the store's fingerprint), a round whose key
+misses still takes the labels of the vectors any round file of that identity holds, whatever its round, key or
+order (a re-run whose classifier ranks the same candidates in another order, a refit on the same store), and
+assesses only the rest.
 """
 
 from __future__ import annotations
@@ -120,9 +124,34 @@ def _load_round(path: Path, key: str) -> tuple[np.ndarray, np.ndarray] | None:
         return z["K"], z["healthy"].astype(bool)
 
 
-def _save_round(path: Path, key: str, k: np.ndarray, healthy: np.ndarray) -> None:
+def _save_round(path: Path, key: str, k: np.ndarray, healthy: np.ndarray, labels_of: str | None) -> None:
     with atomic_open(path, "wb") as fh:
-        np.savez(fh, key=np.array(key), K=k, healthy=healthy.astype(np.uint8))
+        np.savez(fh, key=np.array(key), K=k, healthy=healthy.astype(np.uint8), labels_of=np.array(labels_of or ""))
+
+
+def _known_labels(cache_dir: Path, labels_of: str) -> dict[bytes, bool]:
+    """Every vector's label held by the round files of ``cache_dir`` made under ``labels_of`` (by the row's bytes)."""
+    known: dict[bytes, bool] = {}
+    for path in sorted(cache_dir.glob("round_*.npz")):
+        with np.load(path, allow_pickle=False) as z:
+            if "labels_of" not in z.files or str(z["labels_of"]) != labels_of:
+                continue
+            k = np.ascontiguousarray(z["K"], dtype=np.float64)
+            known.update(zip((row.tobytes() for row in k), z["healthy"].astype(bool).tolist(), strict=True))
+    return known
+
+
+def _assess_unknown(assess: Assessor, k: np.ndarray, known: dict[bytes, bool]) -> tuple[np.ndarray, int]:
+    """phi_a(k) (n,) bool, the rows in ``known`` taken from it; and how many rows were assessed."""
+    rows = [row.tobytes() for row in np.ascontiguousarray(k, dtype=np.float64)]
+    todo = [i for i, row in enumerate(rows) if row not in known]
+    h = np.array([known.get(row, False) for row in rows], dtype=bool)
+    if todo:
+        got = np.asarray(assess(k[todo]), dtype=bool)
+        if got.shape != (len(todo),):
+            raise ValueError(f"classifier_refine: the assessment returned shape {got.shape} for {len(todo)} vectors")
+        h[todo] = got
+    return h, len(todo)
 
 
 def _least_sure(classifier: HealthClassifier, cand: np.ndarray, n: int) -> tuple[np.ndarray, torch.Tensor]:
@@ -144,6 +173,7 @@ def refine_classifier(
     cache_dir: Path | None = None,
     context: Mapping[str, Any] | None = None,
     sample_paths: Sampler | None = None,
+    labels_of: str | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, dict[str, Any]]:
     """Fit ``classifier`` on (k, healthy), then refine it for ``settings.rounds`` rounds (see the module).
 
@@ -158,12 +188,15 @@ def refine_classifier(
         context: extra identity of the labels for the cache key (e.g. the data fingerprint).
         sample_paths: ``sample_paths(n, r)`` -> (n, 8) candidates on the damage law's paths
             (:class:`~.damage_paths.DamagePathSampler`); required when ``settings.path_labels_per_round`` > 0.
+        labels_of: the identity of the labels' assessment (e.g. the store's fingerprint): labels cached under it
+            are reused by vector across rounds and keys (the module docstring); None: by the round's key only.
 
     Returns:
         k_all (N + added, 8) float64, healthy_all (N + added,) bool (the final training set) and ``info``:
         ``rounds``, ``labels_per_round``, ``path_labels_per_round``, ``added``, per-round ``boundary_accuracy``
         (the previous classifier's accuracy on that round's importance-sampled labels) and
-        ``path_boundary_accuracy`` (on its path labels), ``healthy_fraction``, ``cached`` and ``assess_s``.
+        ``path_boundary_accuracy`` (on its path labels), ``healthy_fraction``, ``cached``, ``reused_labels`` (rows
+        taken from other rounds' files by ``labels_of``) and ``assess_s``.
     """
     k_all, h_all = k.to(torch.float64), healthy.bool()
     n_new, n_path = settings.n_labels(len(h_all)), settings.n_path_labels(len(h_all))
@@ -181,6 +214,7 @@ def refine_classifier(
         "path_boundary_accuracy": [],
         "healthy_fraction": [],
         "cached": [],
+        "reused_labels": 0,
         "assess_s": 0.0,
     }
     classifier.fit(k_all, h_all)
@@ -198,15 +232,13 @@ def refine_classifier(
             h_new = cached[1]
         else:
             cached = None
+            known = {} if cache_dir is None or not labels_of else _known_labels(Path(cache_dir), labels_of)
             t0 = time.perf_counter()
-            h_new = np.asarray(assess(k_new), dtype=bool)
+            h_new, assessed = _assess_unknown(assess, k_new, known)
             info["assess_s"] += time.perf_counter() - t0
-            if h_new.shape != (len(k_new),):
-                raise ValueError(
-                    f"classifier_refine: the assessment returned shape {h_new.shape} for {len(k_new)} vectors"
-                )
+            info["reused_labels"] += len(k_new) - assessed
             if path is not None:
-                _save_round(path, key, k_new, h_new)
+                _save_round(path, key, k_new, h_new, labels_of)
         right = (score > 0).numpy() == h_new
         info["boundary_accuracy"].append(float(right[:n_new].mean()))
         if n_path:
