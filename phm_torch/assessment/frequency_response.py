@@ -74,6 +74,12 @@ def padded_size(n: int, smallest: int = BUCKET_MIN) -> int:
     return size
 
 
+def padding_index(n: int, size: int, device: torch.device | str) -> torch.Tensor:
+    """(size,) row index of n rows padded to ``size`` by repeating the last one (the padded rows' readings are
+    dropped: a vector's reading does not depend on its batch)."""
+    return torch.cat([torch.arange(n, device=device), torch.full((size - n,), n - 1, device=device)])
+
+
 class FrequencyResponse:
     """Measures L(jw) and T(jw) of a batch of LF actuators.
 
@@ -206,8 +212,7 @@ class FrequencyResponse:
         n = k.shape[0]
         if not self.sweep.compile or n == 0:
             return self._harmonics(k, f, window, periods, state)
-        pad = padded_size(n) - n
-        idx = torch.cat([torch.arange(n, device=k.device), torch.full((pad,), n - 1, device=k.device)])
+        idx = padding_index(n, padded_size(n), k.device)
         read, end = self._harmonics(k[idx], f[idx], window[idx], periods, None if state is None else state.rows(idx))
         return read.rows(slice(0, n)), end.rows(slice(0, n))
 

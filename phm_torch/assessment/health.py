@@ -17,7 +17,7 @@ import torch
 
 from ..faults import FAULT_NAMES, as_fault_tensor
 from ..params import ActuatorParams
-from .frequency_response import FrequencyResponse, padded_size
+from .frequency_response import FrequencyResponse, padded_size, padding_index
 from .margins import Margins, margins
 from .sweep import SineSweep
 
@@ -199,12 +199,12 @@ class AssessmentFunction:
 
     def _read(self, response: FrequencyResponse, k: torch.Tensor, batch: int = 0) -> tuple[Margins, Margins]:
         """Margins of k (B, 8) at one rotor position over the last window and the window before. ``batch`` > 0: k
-        is a subset of rows of a batch that size, which a compiled simulator reads padded to a bucket
-        (:func:`~phm_torch.assessment.frequency_response.padded_size`, at most ``batch``; the last row repeated) so that a few compiled batch sizes serve
-        every call, the positions sharing one simulator and so its compiled graphs."""
+        is a subset of rows of a batch that size, which a compiled simulator reads padded (``padded_size``, at
+        most ``batch``; the last row repeated) so that a few compiled batch sizes serve every call, the positions
+        sharing one simulator and so its compiled graphs."""
         n = k.shape[0]
         if batch and self.sweep.compile:  # never past the whole batch's size, compiled at the first position
-            k = torch.cat([k, k[-1:].expand(min(padded_size(n), batch) - n, -1)])
+            k = k[padding_index(n, min(padded_size(n), batch), k.device)]
         r = response.read(k)
         return tuple(  # type: ignore[return-value]
             margins(x.frequencies, x.open_loop, x.closed_loop).take_rows(slice(0, n)) for x in (r, r.before)
