@@ -188,6 +188,7 @@ def test_the_example_user_folders_hold_a_valid_actuator_and_command(
     assert fig["gain_margin_db"] >= REQ.gain_margin_db and fig["phase_margin_deg"] >= REQ.phase_margin_deg
 
 
+@pytest.mark.slow  # an optional command; ~25 s
 def test_a_slewed_chirps_last_cycle_is_read_with_its_ramp_taken_out(params):
     """The slew moves the operating point, not the loop: on the LF reference actuator the last cycle of the chirp on
     a ramp has the plain chirp's amplitude ratio and lag (the ramp removed from command and position before the fit)."""

@@ -8,6 +8,7 @@ import pytest
 from script_module import script_module
 
 
+@pytest.mark.slow  # the shipped sweep on several vectors; ~40 s
 def test_labels_from_the_command_line_and_a_csv_with_the_shipped_assessment(tmp_path, capsys):
     """A short in phase B at 0.98 fails (bandwidth ~22 Hz against ~76); in phase A it reads the nominal margins at
     one rotor position and fails at the shipped three; a CSV by fault names reads the same; bad vectors are refused

@@ -50,6 +50,7 @@ def run_script(*args: str) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.slow  # trains a network; ~55 s
 @pytest.mark.torchscript
 def test_the_script_fits_a_calibrated_whole_record_network(tmp_path):
     pipe = make_pipeline()

@@ -284,6 +284,7 @@ def test_a_file_that_is_no_torchscript_pipeline_is_a_value_error(tmp_path):
             pipeline_from_torchscript(path)
 
 
+@pytest.mark.slow  # every format; ~40 s (test_export_formats writes each fast)
 def test_export_app_rewrites_a_torchscript_file_in_other_formats(compose, tmp_path):
     from phm_torch.apps.export import export
 

@@ -52,6 +52,7 @@ def test_the_stores_own_density_reproduces_its_labels_and_another_is_counted(tmp
         script.check(str(data_dir), 36.0, "test", None, 6)
 
 
+@pytest.mark.slow  # a diagnostic script on a store; ~30 s
 def test_a_listed_grid_has_no_density(tmp_path, compose):
     data_dir = tmp_path / "store"
     listed = [*TINY_AUTO, "assessment.sweep.frequencies=[15,30,60,90,130]", "assessment.sweep.group_size=5"]
@@ -83,6 +84,7 @@ def test_a_store_labelled_with_settled_refined_readings_records_them_and_is_repr
     assert same["max_extensions"] == 1 and same["refine"] == 1
 
 
+@pytest.mark.slow  # a diagnostic script on a store; ~65 s
 def test_recorded_assessment_rebuilds_the_stores_phi_a_or_says_what_is_missing(tmp_path, compose):
     from phm_torch.data.store import DatasetStore, recorded_actuator, recorded_assessment
 

@@ -78,6 +78,7 @@ def test_command_check_names_shift_scale_and_other_command():
         check_command(expected[:-1], expected, fs)
 
 
+@pytest.mark.slow  # a store and a training; ~55 s (the refusal: test_user_config_folder_reaches_every_stage)
 def test_train_refuses_a_store_of_another_actuator_and_evaluate_adopts_it(compose, tmp_path):
     """A store made for one actuator: phm-train with another explicit actuator stops before any work;
     without actuator= the bundle records the store's."""

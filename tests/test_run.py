@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 import torch
@@ -82,18 +81,19 @@ def test_phm_run_tiny_with_the_life_split_and_the_track_stage(tmp_path):
     assert set(life["limit"]["tracking"]) == set(life["tracker"]) and life["limit"]["error_std"] == 1e-4
     report = (tmp_path / "report" / "index.html").read_text()
     assert "Life tracking" in report and "fed the true k" in report
+    assert "Workbench" in report
+    top = json.loads((tmp_path / "workbench" / "report.json").read_text())["candidates"][0]["effect"]
+    assert top == "cogging_torque"  # the hidden effect is found
 
 
 def test_phm_run_tiny_end_to_end(tmp_path):
-    # the workbench stage on the example's first 0.2 s (the workbench's own tests check what it finds)
-    lines = Path("examples/workbench_hidden_cogging.csv").read_text().splitlines()[:4002]
-    measurement = tmp_path / "workbench_short.csv"
-    measurement.write_text("\n".join(lines) + "\n")
+    # the workbench stage runs in the slow life-split run above (the same LF model on the same HF record's first
+    # 0.2 s: tests/test_workbench.py::test_cross_fidelity_lf_model_finds_the_effect_hidden_in_hf_data)
     cfg = compose_stage(
         "run",
         [
             f"out_dir={tmp_path}",
-            "stages=[cases,generate,train,evaluate,workbench,report]",
+            "stages=[cases,generate,train,evaluate,report]",
             (
                 'generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=4","dataset.chunk_size=64",'
                 '"dataset.fidelity=lf","dataset.life.n_actuators=0","assessment.sweep.cycles=3",'
@@ -102,9 +102,9 @@ def test_phm_run_tiny_end_to_end(tmp_path):
                 '"+dataset.healthy_fraction=null"]'
             ),
             'cases=["fidelity=lf","duration=0.05"]',
-            'train=["n_modes=8","n_points=16","selector=qdeim"]',
+            # one refinement round of phi_a labels (three in the paper run; tests/test_refinement.py for more)
+            'train=["n_modes=8","n_points=16","selector=qdeim","classifier_refine.rounds=1"]',
             'evaluate=["rul.n_samples=20","reference.step_hours=2000.0","reference.refine_iterations=4"]',
-            f'workbench=["measurements={measurement}","refit.top=1","refit.rounds=1"]',
             "report.hidden_neurons=[4,8]",
             "report.hidden_epochs=5",
             "report.latency_repeats=20",
@@ -112,7 +112,7 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     )
     run_all(cfg)
     saved = json.loads((tmp_path / "metrics.json").read_text())
-    assert set(saved) >= {"cases", "generate", "train", "evaluate", "workbench", "report", "wall_s"}
+    assert set(saved) >= {"cases", "generate", "train", "evaluate", "report", "wall_s"}
     assert 0.0 <= saved["train"]["err_k"] < 1.0
     assert saved["evaluate"]["export_max_abs_diff"] < 1e-5  # TorchScript reloads equal to eager
     assert saved["evaluate"]["fdi_band_n_used"] >= 10  # the full-flow band is calibrated on val
@@ -205,13 +205,10 @@ def test_phm_run_tiny_end_to_end(tmp_path):
         "RUL vs expected RUL",
         "Three-panel RUL error comparison",
         "Online latencies",
-        "Workbench",
         "k_hat intervals and P(faulty)",
     ):
         assert heading in html, heading
     assert html.count("data:image/png;base64,") >= 6  # figures embedded, offline
-    top = json.loads((tmp_path / "workbench" / "report.json").read_text())["candidates"][0]["effect"]
-    assert top == "cogging_torque"  # the hidden effect is found
 
 
 def test_paper_experiment_reaches_the_generate_stage():

@@ -125,6 +125,7 @@ def test_hidden_order_17_ripple_is_named_by_its_order_and_the_error_falls_to_the
     assert "torque_ripple, order 17" in page and "ema_reference (sha256 " in page and "gear_mesh.csv" in page
 
 
+@pytest.mark.slow  # a closure fit on the order-17 record; ~45 s
 def test_closure_fed_the_residual_orders_names_the_ripple_order(ripple_run):
     """The issue's case: with fixed slot orders the closure named order 2; fed the residual's orders it has
     the ripple's own order as input and names it as its lead."""
