@@ -534,3 +534,25 @@ def test_padded_sizes_waste_at_most_a_third_and_margins_rows_round_trip():
     back = m.put_rows(rows, m.take_rows(torch.tensor([0, 2])))
     assert torch.equal(back.stacked()[[0, 2]], m.stacked()[[2, 0]]) and torch.equal(back.stacked()[1], m.stacked()[1])
     assert torch.equal(m.stacked()[0], torch.arange(5, dtype=torch.float64))  # m itself unchanged
+
+
+def test_the_nominal_reading_is_measured_once_per_actuator_and_sweep(params, shipped, monkeypatch):
+    """A second assessment function of the same actuator, sweep and device takes the nominal margins and the invisible
+    faults of the first (no simulation); another actuator's, or another sweep's, measures its own."""
+    from phm_torch.assessment import health
+
+    monkeypatch.setattr(health, "_MEASURED", {})
+    reads = []
+    real = FrequencyResponse.read
+    monkeypatch.setattr(FrequencyResponse, "read", lambda self, k: reads.append(k.shape[0]) or real(self, k))
+    cheap = {"frequencies": (20.0, 40.0, 70.0, 110.0), "cycles": 3, "rotor_positions": 1}
+    first = _assessment(params, shipped, **cheap)
+    nominal, invisible = first.nominal.stacked(), first.invisible_faults()
+    assert reads == [1, 4] and invisible == ["short_a"]
+    again = _assessment(params, shipped, **cheap, compile=True)  # compiling changes no uncompiled reading
+    assert torch.equal(again.nominal.stacked(), nominal) and again.invisible_faults() == invisible
+    assert reads == [1, 4]
+    geared = dataclasses.replace(params, gear_ratio=180.0)
+    other = [_assessment(geared, shipped, **cheap), _assessment(params, shipped, **{**cheap, "cycles": 4})]
+    assert all(math.isfinite(float(phi.nominal.bandwidth_hz[0])) for phi in other)
+    assert reads == [1, 4, 1, 1]

@@ -17,11 +17,17 @@ import torch
 
 from ..faults import FAULT_NAMES, as_fault_tensor
 from ..params import ActuatorParams
+from ..provenance import actuator_values, digest
 from .frequency_response import FrequencyResponse, padded_size, padding_index
 from .margins import Margins, margins
 from .sweep import SineSweep
 
 log = logging.getLogger(__name__)
+
+# The nominal margins and the invisible faults depend only on the actuator's values, the resolved sweep and the
+# device, and are measured uncompiled: one measurement serves every assessment function built alike in a process
+# (a generate run builds several: the sampling pilot's, the labels', the records'; a phm-run more).
+_MEASURED: dict[tuple[str, str, str], dict[str, Any]] = {}
 
 
 @dataclass(frozen=True)
@@ -100,7 +106,8 @@ class AssessmentFunction:
         requirements: thresholds.
         device: simulation device.
 
-    The nominal bandwidth is measured once, on first use, with an uncompiled batch of one.
+    The nominal bandwidth is measured on first use, with an uncompiled batch of one, once per process for the
+    same actuator values, resolved sweep and device (every assessment function built alike shares it).
     """
 
     def __init__(
@@ -126,9 +133,17 @@ class AssessmentFunction:
         self.vectors = 0  # fault vectors assessed
         self.uncertain = 0  # labels that the window before the last reads otherwise
 
+    def _measured(self) -> dict[str, Any]:
+        """This process's measurements of the same actuator, sweep and device (``_MEASURED``)."""
+        sweep = sorted((k, v) for k, v in vars(self.sweep).items() if k != "compile")
+        key = (digest(actuator_values(self.params)), repr(sweep), str(self.response.device))
+        return _MEASURED.setdefault(key, {})
+
     @property
     def nominal(self) -> Margins:
         """Margins of the nominal actuator (batch of one)."""
+        if self._nominal is None and "nominal" in (shared := self._measured()):
+            self._nominal = Margins.from_stacked(shared["nominal"].clone())
         if self._nominal is None:
             eager = FrequencyResponse(
                 self.params, SineSweep(**{**vars(self.sweep), "compile": False}), self.response.device
@@ -136,6 +151,7 @@ class AssessmentFunction:
             k0 = torch.tensor([self.params.nominal_faults], dtype=torch.float64)
             r = eager.read(k0)
             self._nominal = margins(r.frequencies, r.open_loop, r.closed_loop)
+            self._measured()["nominal"] = self._nominal.stacked().clone()
         return self._nominal
 
     @property
@@ -169,6 +185,8 @@ class AssessmentFunction:
         """The phase shorts (k3-k5 at 1, one at a time) whose label readings are exactly the nominal actuator's:
         faults the labels cannot see, because the sweep keeps the rotor in one commutation sector where that phase
         does not conduct (``sweep.rotor_positions`` = 3 reads every phase). Measured once, uncompiled (cached)."""
+        if self._invisible is None and "invisible" in (shared := self._measured()):
+            self._invisible = list(shared["invisible"])
         if self._invisible is None:
             eager = [
                 FrequencyResponse(
@@ -183,6 +201,7 @@ class AssessmentFunction:
             ).stacked()
             same = reads_as(found[1:], found[:1])
             self._invisible = [FAULT_NAMES[2 + i] for i in range(3) if bool(same[i])]
+            self._measured()["invisible"] = list(self._invisible)
         return list(self._invisible)
 
     def settling(self) -> dict[str, int]:
