@@ -161,7 +161,8 @@ def test_user_config_folder_reaches_every_stage(run_cli, tmp_path):
         "stages=[generate]",
         'generate=["dataset.n_train=8","dataset.n_val=4","dataset.n_rul=2","dataset.chunk_size=8",'
         '"dataset.fidelity=lf","dataset.n_labels=0","+dataset.healthy_fraction=null","progress=false",'
-        '"assessment.sweep.max_extensions=0","assessment.sweep.refine=0","assessment.sweep.rotor_positions=1"]',
+        '"assessment.sweep.max_extensions=0","assessment.sweep.refine=0","assessment.sweep.rotor_positions=1",'
+        '"assessment.sweep.frequencies=[15,30,60,90,130]","assessment.sweep.cycles=3"]',  # a short sweep
         timeout=300,
     )
     assert done.returncode == 0, done.stderr[-2000:]

@@ -98,6 +98,7 @@ def test_phm_run_tiny_end_to_end(tmp_path):
                 'generate=["dataset.n_train=96","dataset.n_val=48","dataset.n_rul=4","dataset.chunk_size=64",'
                 '"dataset.fidelity=lf","dataset.life.n_actuators=0","assessment.sweep.cycles=3",'
                 '"assessment.sweep.max_extensions=0","assessment.sweep.refine=0","assessment.sweep.rotor_positions=1",'
+                '"dataset.n_labels=128",'
                 # the paper's sampling: the healthy-fraction pilot (1,536 uncompiled phi_a labels) took 2 of the 3 min
                 '"+dataset.healthy_fraction=null"]'
             ),
