@@ -129,21 +129,19 @@ class AssessmentFunction:
         ]
         self._nominal: Margins | None = None
         self._invisible: list[str] | None = None
+        # this process's measurements of the same actuator, sweep and device (``_MEASURED``)
+        sweep_values = sorted((k, v) for k, v in vars(self.sweep).items() if k != "compile")
+        key = (digest(actuator_values(params)), repr(sweep_values), str(self.response.device))
+        self._shared = _MEASURED.setdefault(key, {})
         self.wall_s = 0.0  # time spent simulating [s]
         self.vectors = 0  # fault vectors assessed
         self.uncertain = 0  # labels that the window before the last reads otherwise
 
-    def _measured(self) -> dict[str, Any]:
-        """This process's measurements of the same actuator, sweep and device (``_MEASURED``)."""
-        sweep = sorted((k, v) for k, v in vars(self.sweep).items() if k != "compile")
-        key = (digest(actuator_values(self.params)), repr(sweep), str(self.response.device))
-        return _MEASURED.setdefault(key, {})
-
     @property
     def nominal(self) -> Margins:
         """Margins of the nominal actuator (batch of one)."""
-        if self._nominal is None and "nominal" in (shared := self._measured()):
-            self._nominal = Margins.from_stacked(shared["nominal"].clone())
+        if self._nominal is None and "nominal" in self._shared:
+            self._nominal = Margins.from_stacked(self._shared["nominal"].clone())
         if self._nominal is None:
             eager = FrequencyResponse(
                 self.params, SineSweep(**{**vars(self.sweep), "compile": False}), self.response.device
@@ -151,7 +149,7 @@ class AssessmentFunction:
             k0 = torch.tensor([self.params.nominal_faults], dtype=torch.float64)
             r = eager.read(k0)
             self._nominal = margins(r.frequencies, r.open_loop, r.closed_loop)
-            self._measured()["nominal"] = self._nominal.stacked().clone()
+            self._shared["nominal"] = self._nominal.stacked().clone()
         return self._nominal
 
     @property
@@ -185,8 +183,8 @@ class AssessmentFunction:
         """The phase shorts (k3-k5 at 1, one at a time) whose label readings are exactly the nominal actuator's:
         faults the labels cannot see, because the sweep keeps the rotor in one commutation sector where that phase
         does not conduct (``sweep.rotor_positions`` = 3 reads every phase). Measured once, uncompiled (cached)."""
-        if self._invisible is None and "invisible" in (shared := self._measured()):
-            self._invisible = list(shared["invisible"])
+        if self._invisible is None and "invisible" in self._shared:
+            self._invisible = list(self._shared["invisible"])
         if self._invisible is None:
             eager = [
                 FrequencyResponse(
@@ -201,7 +199,7 @@ class AssessmentFunction:
             ).stacked()
             same = reads_as(found[1:], found[:1])
             self._invisible = [FAULT_NAMES[2 + i] for i in range(3) if bool(same[i])]
-            self._measured()["invisible"] = list(self._invisible)
+            self._shared["invisible"] = list(self._invisible)
         return list(self._invisible)
 
     def settling(self) -> dict[str, int]:
