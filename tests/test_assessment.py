@@ -248,6 +248,37 @@ def test_derived_amplitude_refused_against_the_limits(params):
         instantiate_sweep().resolve(sticky)
 
 
+def test_a_speed_limit_that_cannot_carry_the_amplitude_lowers_the_grids_top(params):
+    """A long-stroke transmission (a ball screw, user side in metres: gear ratio 2 pi / lead ~ 1,600) or a low speed
+    limit: the derived amplitude at the top of the grid would need more motor speed than half the limit. The top comes
+    down to where it does not, keeping min_high_margin (1.25) above the phase crossover; below that, refused."""
+    design = SweepDesign()
+    fig = design.loop_figures(params)
+    f_top = max(fig["phase_crossover_hz"], fig["bandwidth_hz"])
+    shipped = instantiate_sweep().resolve(params)
+    amp = design.lower_amplitude(params)
+    assert shipped.amplitude == pytest.approx(amp, rel=1e-3)
+
+    def speed_for(f_hz: float) -> float:  # the speed limit whose half carries amp at f_hz
+        return 2.0 * math.pi * f_hz * amp * params.gear_ratio / design.limit_fraction
+
+    slow = params.replace(speed_limit=speed_for(1.5 * f_top))
+    lowered = instantiate_sweep().resolve(slow)
+    assert lowered.frequencies[-1] == pytest.approx(1.5 * f_top, rel=2e-3)  # not 1.8 x
+    assert lowered.frequencies[-1] < shipped.frequencies[-1]
+    assert lowered.frequencies[0] == shipped.frequencies[0] and lowered.amplitude == shipped.amplitude
+    # the loop figures do not depend on the (saturating) speed limit: the same linear loop, only the top moved
+    assert design.loop_figures(slow) == fig
+    # an explicit amplitude is what the top is checked against
+    explicit = SineSweep("auto", 0.5 * amp, 4, 2, 0.02, 1, 4, False).resolve(slow)
+    assert explicit.frequencies[-1] == shipped.frequencies[-1]
+    # too slow even at 1.25 x the phase crossover: refused, naming the speed limit
+    with pytest.raises(ValueError, match="assessment.sweep.amplitude: auto.*speed limit"):
+        instantiate_sweep().resolve(params.replace(speed_limit=speed_for(1.1 * f_top)))
+    with pytest.raises(ValueError, match="min_high_margin"):
+        SweepDesign(min_high_margin=2.0)
+
+
 def test_unmeasurable_counts():
     # nan = no crossing on the grid (counted, labelled faulty); inf bandwidth = above the grid (a bound, not counted)
     nan, inf = math.nan, math.inf

@@ -6,7 +6,10 @@ bandwidth f_bw on a fine grid up to the control Nyquist frequency. The test grid
 
     f_lo = f_c / low_margin,    f_hi = max(f_180, f_bw) * high_margin    (capped at f_ctrl / 4),
 
-log-spaced at ``points_per_decade``. The lower margin covers the dry friction, which at a small test
+log-spaced at ``points_per_decade``. When the speed limit cannot carry the test amplitude (below) up to f_hi, the
+top comes down to the frequency where it can, but not below max(f_180, f_bw) * min_high_margin (a stiff, fast
+loop behind a long-stroke transmission, e.g. a ball screw whose user side is in metres: its phase crossover is
+high and its gear ratio large). The lower margin covers the dry friction, which at a small test
 amplitude lowers the measured crossover (reference: 28 -> 20.5 Hz), and the loss of loop gain of the
 degraded actuators whose bandwidth still matters; the upper one covers the measurement's own phase lag
 and the faults that move the phase crossover up. Defaults 2.3 / 1.8 / 12 per decade reproduce the span
@@ -53,6 +56,8 @@ class SweepDesign:
     Attributes:
         low_margin: f_lo = linear gain crossover / low_margin [-], > 1.
         high_margin: f_hi = max(linear phase crossover, linear -3 dB bandwidth) * high_margin [-], > 1.
+        min_high_margin: the speed limit may lower f_hi to max(phase crossover, bandwidth) * min_high_margin,
+            no lower [-], in (1, high_margin].
         points_per_decade: density of the log-spaced grid [1/decade].
         friction_factor: amplitude = friction_factor * the break-away position error [-].
         backlash_factor: amplitude >= backlash_factor * the nominal play [-].
@@ -62,6 +67,7 @@ class SweepDesign:
 
     low_margin: float = 2.3
     high_margin: float = 1.8
+    min_high_margin: float = 1.25
     points_per_decade: float = 12.0
     friction_factor: float = 4.0
     backlash_factor: float = 10.0
@@ -72,6 +78,7 @@ class SweepDesign:
         for name in (
             "low_margin",
             "high_margin",
+            "min_high_margin",
             "points_per_decade",
             "friction_factor",
             "backlash_factor",
@@ -84,6 +91,11 @@ class SweepDesign:
         for name in ("low_margin", "high_margin"):
             if getattr(self, name) <= 1.0:
                 raise ValueError(f"assessment.sweep.design.{name} must be > 1, got {getattr(self, name)}")
+        if not 1.0 < self.min_high_margin <= self.high_margin:
+            raise ValueError(
+                f"assessment.sweep.design.min_high_margin must be in (1, high_margin={self.high_margin}], "
+                f"got {self.min_high_margin}"
+            )
         if self.points_per_decade < 2:
             raise ValueError(f"assessment.sweep.design.points_per_decade must be >= 2, got {self.points_per_decade}")
         if self.friction_factor <= 0 or self.backlash_factor < 0:
@@ -127,11 +139,21 @@ class SweepDesign:
         return out
 
     # -- the grid --------------------------------------------------------------------------------------
-    def frequencies(self, params: ActuatorParams, figures: dict[str, float] | None = None) -> tuple[float, ...]:
-        """The log-spaced test frequencies [Hz] bracketing the nominal loop (4 significant digits)."""
+    def frequencies(
+        self, params: ActuatorParams, figures: dict[str, float] | None = None, amplitude: float | None = None
+    ) -> tuple[float, ...]:
+        """The log-spaced test frequencies [Hz] bracketing the nominal loop (4 significant digits), their top
+        lowered (to no less than ``min_high_margin``) where the speed limit cannot carry ``amplitude`` [rad] there
+        (default: the derived amplitude's lower bound)."""
         fig = figures or self.loop_figures(params)
         f_lo = fig["crossover_hz"] / self.low_margin
-        f_hi = min(max(fig["phase_crossover_hz"], fig["bandwidth_hz"]) * self.high_margin, params.pwm_frequency / 4)
+        f_top = max(fig["phase_crossover_hz"], fig["bandwidth_hz"])
+        f_hi = min(f_top * self.high_margin, params.pwm_frequency / 4)
+        amp = self.lower_amplitude(params) if amplitude is None else amplitude
+        # 0.999: the grid is rounded to 4 significant digits, which must not lift its top past the speed bound
+        f_speed = 0.999 * self.limit_fraction * params.speed_limit / (2.0 * math.pi * amp * params.gear_ratio)
+        if f_speed < f_hi:  # the speed limit would cap the amplitude at the top: bring the top down instead
+            f_hi = min(f_hi, max(f_speed, f_top * self.min_high_margin))
         if f_hi <= f_lo * 1.5:
             raise ValueError(
                 f"assessment.sweep: auto: derived band [{f_lo:.4g}, {f_hi:.4g}] Hz is too narrow "
@@ -154,6 +176,11 @@ class SweepDesign:
             "speed": self.limit_fraction * p.speed_limit / (2.0 * math.pi * f_max * p.gear_ratio),
             "current": self.limit_fraction * p.current_limit / gain,
         }
+
+    def lower_amplitude(self, params: ActuatorParams) -> float:
+        """The largest lower bound of the amplitude [rad] (friction, backlash); it does not depend on the grid."""
+        b = self.amplitude_bounds(params, 1.0)
+        return max(b["friction"], b["backlash"])
 
     def amplitude(self, params: ActuatorParams, f_max: float) -> float:
         """The test amplitude [rad]: the largest lower bound, checked against the smallest upper bound."""

@@ -119,6 +119,10 @@ class SineSweep:
         """This sweep with ``"auto"`` frequencies and amplitude derived for ``params`` (explicit values win)."""
         if self.is_resolved:
             return self
-        freqs = self.design.frequencies(params) if isinstance(self.frequencies, str) else self.frequencies
+        explicit_amp = None if isinstance(self.amplitude, str) else float(self.amplitude)
+        if isinstance(self.frequencies, str):
+            freqs = self.design.frequencies(params, amplitude=explicit_amp)
+        else:
+            freqs = self.frequencies
         amp = self.design.amplitude(params, freqs[-1]) if isinstance(self.amplitude, str) else self.amplitude
         return dataclasses.replace(self, frequencies=freqs, amplitude=amp)
