@@ -11,6 +11,7 @@ from omegaconf import open_dict
 from phm_torch.apps.export import export
 from phm_torch.apps.predict import predict
 from phm_torch.apps.run import compose_stage, generate_overrides, run_all
+from phm_torch.apps.stage_config import dropped_defaults
 from phm_torch.online.export import read_metadata
 
 pytestmark = pytest.mark.torchscript  # scripts, saves or loads TorchScript on purpose
@@ -248,8 +249,17 @@ def test_a_run_level_data_setting_keeps_the_generate_stage_defaults():
     cfg = compose_stage("generate", generate_overrides(compose_stage("run", ["+dataset.n_train=300"])))
     assert cfg.dataset.n_train == 300 and cfg.dataset.chunk_size == 256
     assert cfg.dataset.compile is True and cfg.assessment.sweep.compile is True
-    replaced = compose_stage("generate", generate_overrides(compose_stage("run", ['generate=["dataset.n_train=300"]'])))
+    run_cfg = compose_stage("run", ['generate=["dataset.n_train=300"]'])
+    replaced = compose_stage("generate", generate_overrides(run_cfg))
     assert replaced.dataset.n_train == 300 and replaced.dataset.chunk_size != 256  # the whole list replaced
+    # ... which phm-run says, listing the defaults lost (a run-level setting loses none)
+    lost = dropped_defaults(run_cfg)
+    assert list(lost) == ["generate"] and "dataset.chunk_size=256" in lost["generate"]
+    assert "dataset.n_train=600" not in lost["generate"]  # set again by the user's list
+    assert dropped_defaults(compose_stage("run", ["+dataset.n_train=300"])) == {}
+    assert dropped_defaults(compose_stage("run", ['generate=["dataset.chunk_size=256"]', "cases=[]"]))["cases"] == [
+        "fidelity=hf"
+    ]
 
 
 def test_a_later_run_of_some_stages_keeps_the_earlier_metrics(tmp_path):

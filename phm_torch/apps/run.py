@@ -35,6 +35,7 @@ from .stage_config import (
     SHARED_GROUPS,
     compose_stage,
     damage_overrides,
+    dropped_defaults,
     generate_overrides,
     shared_overrides,
     stage_overrides,
@@ -221,6 +222,19 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     gen_over = generate_overrides(cfg)
     shared = shared_overrides(cfg)
     damage = damage_overrides(cfg)
+    for stage, lost in dropped_defaults(cfg).items():
+        if stage in stages:
+            keep = (
+                "write data settings at the run level instead (phm-run +dataset.n_train=300), or repeat them"
+                if stage == "generate"
+                else "repeat them in your list to keep them"
+            )
+            log.warning(
+                "%s: the run's list replaces conf/run.yaml's default list, so these defaults are not applied: %s (%s)",
+                stage,
+                ", ".join(lost),
+                keep,
+            )
     plan = {
         "cases": ("cases", [*shared, f"out_dir={run_dir / 'cases'}", *stage_overrides(cfg.cases, "cases")]),
         "generate": ("generate", [*shared, *damage, f"data_dir={data_dir}", *gen_over]),

@@ -92,6 +92,27 @@ def generate_overrides(cfg: DictConfig) -> list[str]:
     ]
 
 
+STAGE_LISTS = ("cases", "generate", "train", "evaluate", "track", "workbench")  # phm-run's per-stage override lists
+
+
+def dropped_defaults(cfg: DictConfig) -> dict[str, list[str]]:
+    """Per stage, the entries of conf/run.yaml's default list whose setting the run's list no longer makes: a list
+    given on the command line (``'generate=["dataset.n_train=300"]'``) replaces the whole default list (chunk size,
+    compiled simulator, ...), which a run-level setting (``+dataset.n_train=300``) would have kept."""
+    shipped = compose_stage("run", [])
+    out: dict[str, list[str]] = {}
+    for stage in STAGE_LISTS:
+        given = common.plain(cfg.get(stage)) or []
+        default = common.plain(shipped.get(stage)) or []
+        if not isinstance(given, list) or not isinstance(default, list):
+            continue
+        keys = {str(item).partition("=")[0].lstrip("+~") for item in given}
+        lost = [str(item) for item in default if str(item).partition("=")[0].lstrip("+~") not in keys]
+        if lost:
+            out[stage] = lost
+    return out
+
+
 def stage_overrides(value: Any, name: str) -> list[str]:
     items = common.plain(value) or []
     if not isinstance(items, list) or not all(isinstance(v, str) for v in items):
