@@ -290,6 +290,12 @@ def test_workbench_demo_is_the_shipped_record_only_for_its_own_actuator(tmp_path
     assert sim.actuator.coulomb_friction == 0.02 and sim.fidelity == "hf"
     assert sim.effects.cogging_torque.amplitude == pytest.approx(0.4 * 0.02)
     assert sim.noise.current == pytest.approx(3.3e-3 * sim.actuator.current_limit)
+    assert sim.noise.position == pytest.approx(4e-3 * 5e-3, rel=1e-3)  # 2e-5 rad on the reference's chirp
+    # the position noise follows the command's size (a ball screw in metres: a 0.5 mm chirp, 2 um of noise)
+    calls.clear()
+    small = compose_stage("run", ["command.amplitude=5e-4"])
+    run_app.workbench_measurement(small, run_app.shared_overrides(small), tmp_path)
+    assert calls[0].noise.position == pytest.approx(2e-6, rel=1e-3)
 
 
 def test_stage_lists_cannot_change_the_actuator_of_one_stage():

@@ -69,6 +69,13 @@ def workbench_measurement(cfg: DictConfig, shared: list[str], out_dir: Path) -> 
         * params.coulomb_friction
     )
     noise = common.number(demo.current_noise_per_limit, "workbench_demo.current_noise_per_limit", 0.0)
+    # the position noise follows the command's size, so an actuator whose user side is in metres (a ball screw)
+    # gets as clean a position channel as the reference (2e-5 rad on its 5e-3 rad chirp)
+    cmd = common.command(cfg.command)
+    peak = float(cmd(torch.linspace(0.0, float(cmd.duration), 20001, dtype=torch.float64)).abs().max())
+    position_noise = (
+        common.number(demo.position_noise_per_command, "workbench_demo.position_noise_per_command", 0.0) * peak
+    )
     out = out_dir / f"hidden_{effect}.csv"
     print(
         f"[phm-run] workbench: simulating a record of {common.choice(cfg, 'actuator')} with a hidden {effect} "
@@ -85,7 +92,7 @@ def workbench_measurement(cfg: DictConfig, shared: list[str], out_dir: Path) -> 
                 *(f"+effects.{effect}.{k}={json.dumps(v)}" for k, v in (common.plain(demo.params) or {}).items()),
                 f"seed={common.integer(demo.seed, 'workbench_demo.seed', 0)}",
                 f"noise.current={noise * params.current_limit}",
-                f"noise.position={common.number(demo.position_noise, 'workbench_demo.position_noise', 0.0)}",
+                f"noise.position={position_noise}",
                 f"out={out}",
                 "plot=false",
             ],
