@@ -46,3 +46,27 @@ def test_the_threshold_is_the_lowest_held_out_correlation_widened_and_never_abov
     assert "shape" in strict.current_reasons(m, x, 0.0, near) and "shape" not in own.current_reasons(m, x, 0.0, near)
     assert "shape" in own.current_reasons(m, record(0.95), 0.0, near)
     assert InputContract.of(m, {"shape_correlation_min": 0.99}, None).shape_min == SHAPE_MIN  # never stricter
+
+
+def test_the_thresholds_calibrate_on_records_near_nominal_in_truth_not_only_in_the_answer():
+    """A faulty record the FDI misreads as near nominal is what the shape check exists to refuse; calibrating on it
+    would lower the threshold below that record's correlation (a 28 V ball-screw sketch's fell to -0.58)."""
+    from phm_torch.pipelines.evaluate.pipeline import near_nominal_rows
+
+    m = model()
+    near = torch.tensor([0.0] * 6 + [0.5, 0.5], dtype=torch.float64)
+    heavy = near.clone()
+    heavy[2] = 0.9
+    signals = torch.stack([record(0.0), record(0.1), record(0.9)])
+    k_hat = torch.stack([near, near, near])  # all three answered near nominal ...
+    k_true = torch.stack([near, near, heavy])  # ... the third wrongly
+    rows = near_nominal_rows(m, k_true, torch.zeros(3, dtype=torch.bool))
+    assert rows.tolist() == [True, True, False]
+    assert not near_nominal_rows(m, k_true, torch.tensor([True, False, False]))[0]  # out of distribution: left out
+    widened = calibrate_shape_min(m, signals, k_hat)
+    own = calibrate_shape_min(m, signals[rows], k_hat[rows])
+    misread = torch.corrcoef(torch.stack([record(0.9), NOMINAL]))[0, 1].item()
+    assert widened < misread < own  # the misread record passes the widened check and is refused by the right one
+    assert "shape" in InputContract.of(m, {"shape_correlation_min": own}, None).current_reasons(
+        m, record(0.9), 0.0, near
+    )
