@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -40,6 +41,8 @@ from ...surrogates.metrics import IDENTIFIED_R2
 from .calibration import fdi_band, fdi_intervals, identifiability, verdict_scaling
 from .inputs import read_inputs
 from .settings import EvaluateSettings
+
+log = logging.getLogger(__name__)
 
 
 def reference_ruls(
@@ -182,6 +185,16 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
     metrics.update(actuator=provenance.describe(prov["actuator"]), command=provenance.describe(prov["command"]))
     metrics["calibration_beyond_drive_range"] = inp.band_beyond_drive_range  # left out of every calibration
     metrics["shape_correlation_min"] = c.shape_min
+    brier, base = metrics.get("verdict_brier"), metrics.get("verdict_brier_base_rate")
+    if brier is not None and base is not None and brier > base:
+        # a P(faulty) no better than a constant: say so, the verdict's probabilities are not to be read as such
+        log.warning(
+            "P(faulty) scores a Brier of %.3f on the evaluated (rul) records, worse than their constant faulty "
+            "fraction's %.3f: on records like these the verdict's probability carries no information; read the "
+            "verdict with its RUL band and the k_hat intervals",
+            brier,
+            base,
+        )
     metrics["unexplained_ratio_max"] = c.unexplained
     metrics["spike_step_max"] = c.spike_step
     export_metadata = {
