@@ -185,7 +185,7 @@ class SweepDesign:
     def amplitude(self, params: ActuatorParams, f_max: float) -> float:
         """The test amplitude [rad]: the largest lower bound, checked against the smallest upper bound."""
         b = self.amplitude_bounds(params, f_max)
-        lower = max(b["friction"], b["backlash"])
+        lower = self.lower_amplitude(params)
         upper_name = min(("stroke", "speed", "current"), key=b.__getitem__)
         if lower > b[upper_name]:
             raise ValueError(
