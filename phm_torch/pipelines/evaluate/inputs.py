@@ -20,6 +20,8 @@ from .settings import EvaluateSettings
 
 log = logging.getLogger(__name__)
 
+TRAINING = "train"  # the split the near-nominal checks' calibration may add rows from (near_nominal.py)
+
 
 def read_inputs(settings: EvaluateSettings) -> SimpleNamespace:
     """Everything the evaluation reads: provenance (reconciled with the config), assessment config, actuator, damage
@@ -67,6 +69,9 @@ def read_inputs(settings: EvaluateSettings) -> SimpleNamespace:
         band_healthy = torch.as_tensor(band_view.healthy[()]).bool()
         healthy = torch.as_tensor(view.healthy[()]).bool()
         tracking, tracking_healthy = tracking_ranges(store)
+        training_k = (
+            torch.as_tensor(store.split(TRAINING).K[()], dtype=torch.float64) if TRAINING in store.splits else None
+        )
     if k.shape[0] == 0:
         raise ValueError(f"split {settings.split!r} of {settings.data_dir} is empty")
     bound = bundle.extra.get("drive_current_bound")
@@ -90,7 +95,15 @@ def read_inputs(settings: EvaluateSettings) -> SimpleNamespace:
         band_healthy=band_healthy,
         tracking=tracking,
         tracking_healthy=tracking_healthy,
+        training_k=training_k,
+        read_training=lambda rows: _read_rows(settings.data_dir, TRAINING, rows),
     )
+
+
+def _read_rows(data_dir: str, split: str, rows: list[int]) -> torch.Tensor:
+    """The clean current records (len(rows), n_full) [A] of a store's split at sorted row indices."""
+    with DatasetStore(data_dir) as store:
+        return torch.as_tensor(store.split(split).current[rows], dtype=torch.float64)
 
 
 def _actuator(record: Any, fallback: ActuatorParams | None) -> ActuatorParams:

@@ -24,7 +24,6 @@ from ...io.atomic import write_json
 from ...online import OnlinePipeline
 from ...online.consistency import calibrate_consistency
 from ...online.export import calibration_metadata
-from ...online.fault_count import no_large_fault
 from ...online.fdi_interval import interval_quality
 from ...online.input_contract import calibrate_shape_min
 from ...online.noise_threshold import calibrate_gappy_residual
@@ -40,6 +39,7 @@ from ...prognostics.rul import VARIANTS
 from ...surrogates.metrics import IDENTIFIED_R2
 from .calibration import fdi_band, fdi_intervals, identifiability, verdict_scaling
 from .inputs import read_inputs
+from .near_nominal import near_nominal_calibration
 from .settings import EvaluateSettings
 
 log = logging.getLogger(__name__)
@@ -185,6 +185,7 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
     metrics.update(actuator=provenance.describe(prov["actuator"]), command=provenance.describe(prov["command"]))
     metrics["calibration_beyond_drive_range"] = inp.band_beyond_drive_range  # left out of every calibration
     metrics["shape_correlation_min"] = c.shape_min
+    metrics["near_nominal_calibration_rows"] = c.near_rows
     brier, base = metrics.get("verdict_brier"), metrics.get("verdict_brier_base_rate")
     if brier is not None and base is not None and brier > base:
         # a P(faulty) no better than a constant: say so, the verdict's probabilities are not to be read as such
@@ -216,15 +217,6 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
         "export_metadata": export_metadata,
         "probe": signals[:8],
     }
-
-
-def near_nominal_rows(pipeline: Any, k_true: torch.Tensor, ood: torch.Tensor) -> torch.Tensor:
-    """(B,) bool: the held-out records the near-nominal checks (shape, unexplained, spikes) calibrate on: in
-    distribution and with no large fault in their true k (B, 8). Each check then keeps those its FDI also answers near
-    nominal. Not every record the FDI answers near nominal: an FDI that identifies the command poorly (a 28 V ball
-    screw: R^2 0.03-0.67) reads faulty records as near nominal, and calibrating on them widened the shape threshold to
-    -0.58, a check that refuses nothing, where it exists to refuse exactly those answers."""
-    return ~ood.to(torch.bool) & no_large_fault(pipeline, k_true)
 
 
 def _calibrate(settings: EvaluateSettings, pipeline: OnlinePipeline, inp: SimpleNamespace) -> SimpleNamespace:
@@ -261,12 +253,23 @@ def _calibrate(settings: EvaluateSettings, pipeline: OnlinePipeline, inp: Simple
         if pipeline.has_consistency
         else None
     )
-    near = near_nominal_rows(pipeline, band_k, band_ood)
+    held_out = SimpleNamespace(signals=band_signals, k=band_k, k_hat=band_k_hat, ood=band_ood)
+    bound = inp.bundle.extra.get("drive_current_bound")
+    near = near_nominal_calibration(
+        pipeline,
+        held_out,
+        inp.training_k,
+        inp.read_training,
+        cal.noise,
+        settings.seed,
+        None if bound is None else float(bound),
+    )
     return SimpleNamespace(
         r2=r2,
-        shape_min=calibrate_shape_min(pipeline, band_signals[near], band_k_hat[near]),
-        unexplained=calibrate_ratio(pipeline, band_signals[near], band_k_hat[near]),
-        spike_step=calibrate_spike_step(pipeline, band_signals[near], band_k_hat[near]),
+        shape_min=calibrate_shape_min(pipeline, near.signals, near.k_hat),
+        unexplained=calibrate_ratio(pipeline, near.signals, near.k_hat),
+        spike_step=calibrate_spike_step(pipeline, near.signals, near.k_hat),
+        near_rows={"held_out": near.held_out, "training": near.training},
         unidentified=unidentified,
         band=band,
         verdict=verdict,
