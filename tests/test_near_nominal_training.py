@@ -16,7 +16,7 @@ from phm_torch.apps.run_companions import RULES, choose_end_of_life_rule, compan
 from phm_torch.apps.track import auto_rule
 from phm_torch.online.export import export_torchscript
 from phm_torch.tracking.companions import companion
-from phm_torch.tracking.near_nominal import NearNominalFDI
+from phm_torch.tracking.near_nominal import NearNominalFDI, TooFewNearNominalRecords
 from phm_torch.tracking.near_nominal_training import NearNominalTraining, store_records, train_near_nominal
 
 
@@ -81,7 +81,7 @@ def test_a_store_split_is_read_where_every_damage_is_near_nominal(tmp_path):
 def test_a_life_split_that_leaves_nothing_to_train_on_is_refused(exported, tmp_path):
     root, pipe = exported
     life_split(tmp_path / "life", pipe, n_actuators=1, n_inspections=2)
-    with pytest.raises(ValueError, match="leave none to train on"):
+    with pytest.raises(TooFewNearNominalRecords, match="leave none to train on"):
         train_near_nominal(root / "online.pt", tmp_path / "life", NearNominalTraining(steps=10))
     with pytest.raises(ValueError, match="no truth.json"):
         train_near_nominal(root / "online.pt", tmp_path, NearNominalTraining(steps=10))
@@ -113,6 +113,41 @@ def test_bad_companion_settings_are_refused_before_any_work(tmp_path, override, 
     with pytest.raises(ValueError, match=message):
         run_companions(cfg, tmp_path, tmp_path / "data", tmp_path / "online.pt", [], [], [])
     assert not (tmp_path / "companions").exists()
+
+
+def test_too_few_near_nominal_histories_skip_the_near_nominal_fdi_not_the_run(tmp_path, monkeypatch, caplog):
+    """A robust actuator's histories leave nominal early: a 28 V ball screw's 40 gave 6 held-out records within the
+    gate, 20 needed, and phm-run stopped at the companions stage. The stage now writes no near-nominal FDI, says
+    why and which setting gives more, and the run goes on (the tracker reads the pipeline's k_hat there)."""
+    import phm_torch.apps.generate as generate_app
+    import phm_torch.apps.run_companions as stage
+    import phm_torch.apps.track as track_app
+
+    pipeline = tmp_path / "online.pt"
+    pipeline.write_text("x")
+
+    def fake_generate(cfg):
+        life = tmp_path / "companions" / "data" / "life"
+        life.mkdir(parents=True)
+        (life / "index.csv").write_text("actuator,hours,file\nA000,0.0,A000/0000.csv\n")
+        (life / "A000").mkdir()
+        (life / "A000" / "0000.csv").write_text("time,current\n0.0,0.0\n")
+        return {"life": {"n_actuators": 5}}, None
+
+    def too_few(*args, **kwargs):
+        raise TooFewNearNominalRecords("near-nominal FDI: 6 held-out records within the gate, 20 needed")
+
+    monkeypatch.setattr(generate_app, "generate", fake_generate)
+    monkeypatch.setattr(track_app, "track", lambda cfg: ({"inspections": 1}, None))
+    monkeypatch.setattr(stage, "train_near_nominal", too_few)
+    cfg = compose_stage("run", [f"out_dir={tmp_path}"])
+    with caplog.at_level("WARNING"):
+        got = run_companions(cfg, tmp_path, tmp_path / "data", pipeline, [], [], [])
+    assert got["near_nominal"] is None and got["tracker_rule"] is None
+    assert "6 held-out records within the gate" in got["near_nominal_skipped"]
+    assert got["response"] is None and got["life_inspections"] == 1  # one inspection: too few for a response too
+    assert "no near-nominal FDI written" in caplog.text and "companions.life_actuators=" in caplog.text
+    assert not companion_paths(pipeline)["near_nominal"].exists()
 
 
 def test_the_stage_needs_the_evaluate_stage_pipeline(tmp_path):

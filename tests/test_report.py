@@ -261,6 +261,10 @@ def test_the_life_section_says_what_the_companions_stage_gave_the_tracker(run_di
     assert "record/p50 22.5 % / 7.5 %; posterior/p5 70 % / 5 %)" in text
     without = html.unescape(build_report(run_dir, _metrics(600), _studies()).read_text())
     assert "histories of their own" not in without
+    skipped = {**companions, "tracker_rule": None, "near_nominal_skipped": "6 held-out records within the gate"}
+    text = html.unescape(build_report(run_dir, {**_metrics(600), "companions": skipped}, _studies()).read_text())
+    assert "no near-nominal FDI (6 held-out records within the gate: the pipeline's k_hat read near nominal" in text
+    assert "the tracker's default end-of-life rule" in text
 
 
 def test_the_life_section_puts_the_tracking_limit_beside_the_tracker(run_dir):

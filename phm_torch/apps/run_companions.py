@@ -23,6 +23,7 @@ from omegaconf import DictConfig
 
 from ..tracking import read_index
 from ..tracking.companions import SUFFIXES
+from ..tracking.near_nominal import TooFewNearNominalRecords
 from ..tracking.near_nominal_training import NearNominalTraining, train_near_nominal
 from ..tracking.response import RESPONSE_BINS, RESPONSE_MIN_COUNT, FDIResponse
 from . import common, schema
@@ -163,11 +164,17 @@ def run_companions(
     try:
         store = data_dir if (data_dir / "dataset.h5").is_file() else None
         net, report = train_near_nominal(pipeline, life, settings, store)
-    except ValueError as err:  # too few histories to train on or to calibrate with: say which setting gives more
-        raise ValueError(
-            f"companions: {err} (companions.life_actuators={n_actuators}: give more histories, or "
-            "companions.near_nominal.holdout / gate to calibrate on more of them)"
-        ) from err
+    except TooFewNearNominalRecords as err:
+        # too few histories near nominal (a robust actuator's lives leave it early): the run goes on without this
+        # file, as phm-track does, and says which setting gives more
+        log.warning(
+            "companions: %s: no near-nominal FDI written; the tracker reads the pipeline's k_hat near nominal too, "
+            "with its default end-of-life rule (companions.life_actuators=%d: give more histories, or "
+            "companions.near_nominal.holdout / gate to calibrate on more of them)",
+            err,
+            n_actuators,
+        )
+        return _metrics(n_actuators, seed, raw, gen_metrics, paths, fit, skipped=str(err))
     finally:
         torch.set_num_threads(previous)
     net.save(paths["near_nominal"])
@@ -194,17 +201,35 @@ def run_companions(
     net.provenance["tracker_rule"] = chosen
     net.save(paths["near_nominal"])
     log.info("companions of %s: %s", pipeline, ", ".join(str(p) for p in paths.values() if p.is_file()))
-    response = FDIResponse.load(paths["response"]) if fit else None
     return {
-        "life_actuators": n_actuators,
-        "life_seed": seed,
-        "life_inspections": raw["inspections"],
+        **_metrics(n_actuators, seed, raw, gen_metrics, paths, fit),
         "tracker_rule": chosen,
-        "life_generate": gen_metrics.get("life"),
-        "response": None if response is None else str(paths["response"]),
-        "response_corrected": None if response is None else response.corrected,
         "near_nominal": str(paths["near_nominal"]),
         "near_nominal_settings": {k: common.plain(v) for k, v in vars(settings).items()},
         "near_nominal_records": {"life": report["life_records"], "store": report["store_records"]},
         "near_nominal_heldout_rms": report["heldout"],
     }
+
+
+def _metrics(
+    n_actuators: int,
+    seed: int,
+    raw: dict[str, Any],
+    gen_metrics: dict[str, Any],
+    paths: dict[str, Path],
+    fit: bool,
+    skipped: str | None = None,
+) -> dict[str, Any]:
+    """The stage's metrics every outcome shares; ``skipped``: why no near-nominal FDI was written (None: it was)."""
+    response = FDIResponse.load(paths["response"]) if fit else None
+    out = {
+        "life_actuators": n_actuators,
+        "life_seed": seed,
+        "life_inspections": raw["inspections"],
+        "life_generate": gen_metrics.get("life"),
+        "response": None if response is None else str(paths["response"]),
+        "response_corrected": None if response is None else response.corrected,
+    }
+    if skipped is not None:
+        out.update(near_nominal=None, near_nominal_skipped=skipped, tracker_rule=None)
+    return out

@@ -135,13 +135,19 @@ def life_section(r: HtmlReport, run_dir: Path, companions: dict[str, Any] | None
             f"The tracker read the companions stage's files, made from {companions.get('life_actuators')} histories of "
             f"their own ({companions.get('life_inspections')} inspections, not the ones scored here): "
             + ("an FDI response, " if companions.get("response") else "no FDI response (too few inspections), ")
-            + f"a near-nominal FDI, and the end-of-life rule {rule.get('verdict')}/{rule.get('faulty_at')}, chosen "
-            + "there (ends of life flagged within one inspection / late or never: "
-            + "; ".join(
-                f"{name} {pct(f.get('eol_flagged_within_one_inspection'))} / {pct(f.get('eol_flagged_late_or_never'))}"
-                for name, f in (rule.get("rules") or {}).items()
+            + (
+                f"no near-nominal FDI ({companions['near_nominal_skipped']}: the pipeline's k_hat read near nominal "
+                "too) and the tracker's default end-of-life rule."
+                if companions.get("near_nominal_skipped")
+                else f"a near-nominal FDI, and the end-of-life rule {rule.get('verdict')}/{rule.get('faulty_at')}, "
+                + "chosen there (ends of life flagged within one inspection / late or never: "
+                + "; ".join(
+                    f"{name} {pct(f.get('eol_flagged_within_one_inspection'))} / "
+                    f"{pct(f.get('eol_flagged_late_or_never'))}"
+                    for name, f in (rule.get("rules") or {}).items()
+                )
+                + ")."
             )
-            + ")."
         )
     targets = scores.get("targets", {})
 

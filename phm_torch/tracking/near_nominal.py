@@ -47,6 +47,10 @@ PHASE_INDEX = FAULT_NAMES.index("eccentricity_phase")  # not a damage: never gat
 MISSING_MAX = 0.05
 
 
+class TooFewNearNominalRecords(ValueError):
+    """The life histories hold too few records to train the near-nominal FDI on or to calibrate it with."""
+
+
 class NearNominalFDI(nn.Module):
     """MLP gappy coefficients alpha (B, n_m) [A] -> k (B, 8), for records near nominal.
 
@@ -207,7 +211,9 @@ class NearNominalFDI(nn.Module):
         rms (8,), the number of records)."""
         used = self.gated(k_pipeline, noise)
         if int(used.sum()) < 20:
-            raise ValueError(f"near-nominal FDI: {int(used.sum())} held-out records within the gate, 20 needed")
+            raise TooFewNearNominalRecords(
+                f"near-nominal FDI: {int(used.sum())} held-out records within the gate, 20 needed"
+            )
         with torch.no_grad():
             rms = (self(alpha[used], noise[used]) - k_true[used].to(torch.float64)).pow(2).mean(0).sqrt()
         self.half_widths_[level] = Z95 * rms

@@ -26,7 +26,7 @@ from .. import provenance
 from ..faults import FAULT_NAMES
 from ..io import read_measurement
 from ..online.loaded import load_pipeline
-from .near_nominal import PHASE_INDEX, NearNominalFDI, fit_near_nominal
+from .near_nominal import PHASE_INDEX, NearNominalFDI, TooFewNearNominalRecords, fit_near_nominal
 from .response import probe_k_hat
 
 
@@ -154,7 +154,9 @@ def train_near_nominal(
     actuators = sorted(set(who))
     held = {a for i, a in enumerate(actuators) if i % s.holdout == 0}
     if len(held) == len(actuators):
-        raise ValueError(f"life: {len(actuators)} actuator(s) leave none to train on with holdout = {s.holdout}")
+        raise TooFewNearNominalRecords(
+            f"life: {len(actuators)} actuator(s) leave none to train on with holdout = {s.holdout}"
+        )
     cal = np.array([a in held for a in who])
     if store is not None:
         store_s, store_scale, store_k = store_records(Path(store), idx, nominal, s.max_damage, s.store_split)
