@@ -254,7 +254,11 @@ def test_a_removed_probe_offset_widens_the_near_nominal_reading_by_its_own_error
 
 def test_a_position_range_of_a_units_factor_names_the_unit():
     """A position logged in degrees (57.3 x the command's range) or mrad (1000 x) gets a unit hint, like mA."""
-    from phm_torch.online.input_contract import _angle_units
+    from phm_torch.online.command_check import CommandCheck, unit_hint
 
-    assert "position [deg]" in _angle_units(57.0) and "position [mrad]" in _angle_units(1003.0)
-    assert _angle_units(1.0) == "" and _angle_units(8.0) == ""
+    assert "position [deg]" in unit_hint("position", 57.0) and "position [mrad]" in unit_hint("position", 1003.0)
+    assert "'[mm]'" in unit_hint("position", 1003.0) and "'[mm]'" not in unit_hint("position", 57.0)
+    assert unit_hint("position", 1.0) == "" and unit_hint("position", 8.0) == ""
+    # the command check names the unit too: a record whose command column was logged in degrees
+    assert "command [deg]" in CommandCheck(18.97, 0.0, 57.30, False).reason()
+    assert "written in" not in CommandCheck(0.31, 0.002, 1.02, False).reason()

@@ -221,6 +221,20 @@ def test_a_bench_csv_with_units_in_its_header_semicolons_and_decimal_commas(tmp_
     assert list(m.extra) == ["temperature [C]"] and m.sample_rate == pytest.approx(20000.0)
 
 
+def test_a_linear_actuators_record_in_millimetres_is_read_in_metres(tmp_path):
+    """A ball-screw bench logs its stroke in mm: the user coordinate's SI unit is then the metre."""
+    path = tmp_path / "screw.csv"
+    path.write_text(
+        "time,command [mm],position [mm],current\n" + "".join(f"{5e-5 * i},{i},{2 * i},1\n" for i in range(4))
+    )
+    m = read_measurement(path, expected_rate=20000.0)
+    np.testing.assert_allclose(m.command, 1e-3 * np.arange(4), rtol=1e-12)
+    np.testing.assert_allclose(m.position, 2e-3 * np.arange(4), rtol=1e-12)
+    path.write_text("time,command,position,current,motor_angle [mm]\n0,0,0,1,0\n5e-5,0,0,1,0\n")
+    with pytest.raises(ValueError, match="unknown unit 'mm' for 'motor_angle'"):  # the motor side turns
+        read_measurement(path)
+
+
 def test_an_unknown_unit_and_a_time_column_in_milliseconds_are_named(tmp_path):
     path = tmp_path / "furlongs.csv"
     path.write_text("time [fortnight],command,position,current\n0,0,0,1\n1,0,0,1\n")

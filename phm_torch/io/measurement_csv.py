@@ -3,12 +3,14 @@
 Format (one file = one acquisition):
 
 * a header row naming the columns, then one row per sample, comma separated;
-* uniform sampling; the columns ``time`` [s], ``command`` [rad, user side], ``position`` [rad, LVDT]
+* uniform sampling; the columns ``time`` [s], ``command`` [rad, user side; m for a linear actuator], ``position``
+  [rad, LVDT; m]
   and ``current`` [A, filtered envelope of the phase currents] are required, in any order;
 * any further numeric columns are optional channels, e.g. ``ia``, ``ib``, ``ic`` [A], ``speed``
   [rad/s, motor], ``motor_angle`` [rad].
 * as benches write them: the known columns' names in any case, with a unit in brackets or parentheses
-  (``Time [ms]``, ``current (mA)``, ``position [deg]``: :data:`UNIT_SCALES`, converted to the units above on reading;
+  (``Time [ms]``, ``current (mA)``, ``position [deg]``, ``command [mm]``: :data:`UNIT_SCALES`, converted to the units
+  above on reading;
   an unknown unit is an error naming it), comma, semicolon or tab separated (with a semicolon or a tab, decimal
   commas are read too).
 
@@ -47,13 +49,15 @@ UNITS = {
 
 # Units a known column may carry in its header ("current [mA]"): the factor to this module's unit (UNITS)
 _ANGLE = {"rad": 1.0, "mrad": 1e-3, "deg": math.pi / 180.0, "°": math.pi / 180.0}
+# the user side's coordinate: an angle [rad], or a length [m] on a linear actuator (docs/own_actuator.md)
+_USER = {**_ANGLE, "m": 1.0, "mm": 1e-3, "um": 1e-6, "µm": 1e-6}
 _CURRENT = {"a": 1.0, "ma": 1e-3}
 UNIT_SCALES = {
     "time": {"s": 1.0, "ms": 1e-3, "us": 1e-6, "µs": 1e-6},
-    "command": _ANGLE,
-    "position": _ANGLE,
+    "command": _USER,
+    "position": _USER,
     "motor_angle": _ANGLE,
-    "user_angle": _ANGLE,
+    "user_angle": _USER,
     "current": _CURRENT,
     "ia": _CURRENT,
     "ib": _CURRENT,

@@ -7,6 +7,7 @@ onto confident but wrong fault estimates, so the command is checked before the a
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -14,6 +15,16 @@ import torch
 NRMSE_TOLERANCE = 0.05  # RMS of (recorded - expected command) over the expected command's range
 MAX_LAG_S = 0.05  # the trigger offsets searched [s] (a tenth of the reference's 0.5 s record) ...
 MAX_LAG_SHARE = 0.1  # ... or this share of a longer record (a 5 s test command: 0.5 s)
+
+
+def unit_hint(column: str, gain: float) -> str:
+    """A hint when a recorded ``column`` (``command`` or ``position``) is ``gain`` x what the pipeline expects and
+    that is a unit's factor: degrees (57.3 x), mrad or, on a linear actuator, mm (1000 x); else ``""``."""
+    for unit, factor in (("deg", 180.0 / math.pi), ("mrad", 1000.0)):
+        if 0.8 * factor <= gain <= 1.25 * factor:
+            other = " (or mm on a linear actuator: '[mm]')" if unit == "mrad" else ""
+            return f" (the {column} written in {unit}? name the column '{column} [{unit}]'{other})"
+    return ""
 
 
 def lag_limit(n_samples: int, sample_rate: float) -> int:
@@ -43,7 +54,7 @@ class CommandCheck:
         """One line for the user, e.g. ``command differs from the pipeline's test command: NRMSE 0.31, ...``."""
         return (
             f"command differs from the pipeline's test command: NRMSE {self.nrmse:.2f}, best lag "
-            f"{1000 * self.best_lag_s:.1f} ms, gain {self.gain:.2f}"
+            f"{1000 * self.best_lag_s:.1f} ms, gain {self.gain:.2f}{unit_hint('command', self.gain)}"
         )
 
 

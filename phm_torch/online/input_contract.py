@@ -73,7 +73,7 @@ from typing import Any
 import torch
 
 from ..metrics import finite_mean, nrmse
-from .command_check import CommandCheck, check_command
+from .command_check import CommandCheck, check_command, unit_hint
 from .corruptions import Record
 from .fault_count import large_faults, no_large_fault
 from .rest_offset_check import REST_MIN, rest_offset, rest_window
@@ -364,7 +364,7 @@ class InputContract:
                     f"position does not follow the command as this actuator can: tracking NRMSE "
                     f"{tracking['nrmse']:.3f} outside [{tracking['range'][0]:.3f}, "
                     f"{tracking['range'][1]:.3f}], position range {tracking['position_gain']:.2f} "
-                    f"x the command's, correlation {tracking['correlation']:.2f}{_angle_units(tracking['position_gain'])}"
+                    f"x the command's, correlation {tracking['correlation']:.2f}{unit_hint('position', tracking['position_gain'])}"
                 )
         else:  # no command or position column, or a constant command: nothing to follow
             skipped.append("tracking")
@@ -384,11 +384,3 @@ def _present(x: torch.Tensor | None) -> torch.Tensor | None:
         return None
     seen = torch.isfinite(x)
     return seen if float(seen.double().mean()) >= MIN_PRESENT else None
-
-
-def _angle_units(gain: float) -> str:
-    """A hint when a position range ``gain`` x the command's is a unit's factor (degrees 57.3, mrad 1000)."""
-    for unit, factor in (("deg", 180.0 / math.pi), ("mrad", 1000.0)):
-        if 0.8 * factor <= gain <= 1.25 * factor:
-            return f" (the position written in {unit}? name the column 'position [{unit}]')"
-    return ""
