@@ -271,6 +271,16 @@ def test_a_later_run_of_some_stages_keeps_the_earlier_metrics(tmp_path):
     assert set(saved["wall_s"]) == {"train", "cases"}
 
 
+def test_a_stage_that_fails_keeps_the_metrics_of_the_stages_before_it(tmp_path):
+    """Written after every stage: a ball-screw run that stopped at its companions stage had lost its generate and
+    train metrics from the run-level file, and the report of the resumed run showed dashes for them."""
+    cfg = compose_stage("run", [f"out_dir={tmp_path}", "stages=[cases,track]", 'cases=["fidelity=lf","duration=0.05"]'])
+    with pytest.raises(ValueError, match="track needs the life split"):
+        run_all(cfg)
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert "cases" in saved and "track" not in saved and set(saved["wall_s"]) == {"cases"}
+
+
 def test_workbench_demo_is_the_shipped_record_only_for_its_own_actuator(tmp_path, monkeypatch):
     """The bundled hidden-cogging CSV belongs to the reference actuator and chirp (its .json says so); a run
     of another actuator simulates its own hidden-effect record, scaled to that actuator."""

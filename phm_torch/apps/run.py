@@ -326,8 +326,8 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             metrics[stage] = stage_metrics
         timings[stage] = round(time.perf_counter() - t0, 2)
         print(f"[phm-run] {stage} done in {timings[stage]:.1f} s", flush=True)
-    metrics["wall_s"] = timings
-    common.write_json(run_dir / "metrics.json", json.loads(json.dumps(metrics, default=str)))
+        # after every stage, not once at the end: a later stage that fails, or a session that ends, keeps these
+        common.write_json(run_dir / "metrics.json", json.loads(json.dumps(metrics, default=str)))
     return metrics, objects
 
 
