@@ -54,11 +54,22 @@ def label_summary(labels: dict) -> str:
         f"{sw['rotor_positions']} rotor position(s); healthy at k = 1: "
         + ", ".join(n for n, c in labels["cases"].items() if c["healthy"] and n != "nominal")
     ]
-    for name in labels["invisible"]:
+    absent = labels.get("absent") or {}
+    for name, value in absent.items():
         lines.append(
-            f"WARNING: {name} at k = 1 reads exactly the nominal margins: the health labels cannot see it "
-            "(the sweep keeps the rotor in one commutation sector); label with "
-            "assessment.sweep.rotor_positions=3, the shipped value (check it here with --rotor-positions 3)"
+            f"WARNING: {name} scales the actuator's {value}, which is 0: this fault does not exist on it; the labels "
+            "cannot see it and no command can identify it (its estimate is the training prior). Give the datasheet's "
+            "value if it has one"
+        )
+    for name in (n for n in labels["invisible"] if n not in absent):
+        cause = (
+            "the sweep keeps the rotor in one commutation sector; label with assessment.sweep.rotor_positions=3, "
+            "the shipped value (check it here with --rotor-positions 3)"
+            if sw["rotor_positions"] < 3
+            else f"even at {sw['rotor_positions']} rotor positions: its effect is below what the sweep resolves"
+        )
+        lines.append(
+            f"WARNING: {name} at k = 1 reads exactly the nominal margins: the health labels cannot see it ({cause})"
         )
     k2 = labels["k2_play_exceeds_sweep"]
     if k2 is not None:
@@ -144,12 +155,16 @@ def main(argv: list[str] | None = None) -> int:
         log=lambda msg: print(msg, file=sys.stderr, flush=True),
     )
     report = {"actuator": actuator_record(act_name, params), "command": command_record(cmd_name, node), **check.run()}
-    report["labels"] = label_visibility(params, *load_assessment(args.assessment, args.rotor_positions))
+    try:
+        report["labels"] = label_visibility(params, *load_assessment(args.assessment, args.rotor_positions))
+    except ValueError as err:  # e.g. an unstable nominal loop: no sweep to derive; the verdict above says why
+        report["labels"] = {"error": str(err)}
     out = Path(args.out or f"results/check_{act_name}_{cmd_name}.json")
     with atomic_open(out) as fh:
         json.dump(report, fh, indent=2)
     print(summary(report))
-    print(label_summary(report["labels"]))
+    error = report["labels"].get("error")
+    print(f"labels (phi_a): not derived: {error}" if error else label_summary(report["labels"]))
     print(f"report: {out}")
     return 0 if report["verdict"]["pass"] else 1
 

@@ -217,3 +217,24 @@ def test_the_step_test_lasts_whole_control_periods_and_samples(pwm, rate):
     EMASimulator(load_actuator("ema_reference", pwm_frequency=pwm, sample_rate=rate), "lf").run(
         torch.zeros(1, 8, dtype=torch.float64), torch.zeros_like, d, channels=["position"]
     )
+
+
+def test_the_design_check_says_why_a_fault_is_invisible():
+    """An absent fault (a datasheet value of 0) is named as such, not blamed on the commutation sector; a short
+    invisible at one rotor position is told to use three, and one invisible at three is not told to."""
+    from script_module import script_module
+
+    summary = script_module("check_actuator").label_summary
+    labels = {
+        "sweep": {"frequencies": [12.0, 160.0], "amplitude": 8e-5, "rotor_positions": 3},
+        "cases": {"nominal": {"healthy": True}, "k2": {"healthy": True}, "k3": {"healthy": True}},
+        "invisible": ["k2", "k3"],
+        "absent": {"k2": "backlash"},
+        "k2_play_exceeds_sweep": None,
+    }
+    text = summary(labels)
+    assert "k2 scales the actuator's backlash, which is 0: this fault does not exist on it" in text
+    assert "k2 at k = 1 reads exactly" not in text
+    assert "k3 at k = 1 reads exactly the nominal margins" in text and "even at 3 rotor positions" in text
+    one = summary({**labels, "sweep": {**labels["sweep"], "rotor_positions": 1}, "absent": {}})
+    assert "label with assessment.sweep.rotor_positions=3" in one

@@ -610,3 +610,31 @@ def test_the_lf_loop_reads_the_hf_loops_margins_as_the_position_gain_changes(par
     for name in ("bandwidth_hz", "phase_crossover_hz"):
         assert ((a[name] - b[name]).abs() / b[name]).max() < 0.03, name
     assert ((a["crossover_hz"][keep] - b["crossover_hz"][keep]).abs() / b["crossover_hz"][keep]).max() < 0.01
+
+
+def test_an_ideal_position_sensor_is_the_limit_of_a_fast_one(params):
+    """lvdt_time_constant may be 0 (an ideal sensor, docs/own_actuator.md): the linear loop then reads theta_u itself
+    (it divided by zero before), and its margins are the limit of a sensor lag going to 0."""
+    from phm_torch.assessment.design import SweepDesign
+
+    ideal = SweepDesign.loop_figures(params.replace(lvdt_time_constant=0.0))
+    fast = SweepDesign.loop_figures(params.replace(lvdt_time_constant=1e-7))
+    slow = SweepDesign.loop_figures(params)  # 0.2 ms
+    for name in ("crossover_hz", "phase_margin_deg", "gain_margin_db", "bandwidth_hz"):
+        assert ideal[name] == pytest.approx(fast[name], rel=1e-3), name
+    assert ideal["phase_margin_deg"] > slow["phase_margin_deg"]  # a lag only takes phase away
+
+
+def test_a_fault_of_a_value_the_actuator_does_not_have_is_named_absent(params):
+    """k = 1 scales the datasheet's value: with no play (or no friction) that fault does not exist on the actuator,
+    and the derived sweep amplitude, sized from friction and play, has nothing to size it with both at 0."""
+    from phm_torch.assessment.design import SweepDesign
+    from phm_torch.assessment.label_check import absent_faults
+
+    assert absent_faults(params) == {}
+    assert absent_faults(params.replace(backlash=0.0)) == {"k2": "backlash"}
+    frictionless = params.replace(static_friction=0.0, coulomb_friction=0.0)
+    assert list(absent_faults(frictionless)) == ["k1"]
+    assert SweepDesign().lower_amplitude(params.replace(backlash=0.0)) > 0  # friction alone sizes it
+    with pytest.raises(ValueError, match="static_friction, coulomb_friction and backlash are all 0"):
+        SweepDesign().lower_amplitude(frictionless.replace(backlash=0.0))

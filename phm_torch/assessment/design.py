@@ -119,8 +119,9 @@ class SweepDesign:
         lp = linear_loop(params)
         if np.abs(np.linalg.eigvals(lp.closed.A)).max() >= 1.0:
             raise ValueError(
-                "assessment.sweep: auto: the linearised nominal position loop of the actuator is "
-                "unstable; set assessment.sweep.frequencies and amplitude explicitly"
+                "assessment.sweep: auto: the linearised nominal position loop of the actuator is unstable, so no "
+                "sweep can measure its margins; retune its loop gains (position_gain, speed_gain, current_gain and "
+                "their integral gains; scripts/check_actuator.py reports the loop)"
             )
         f_ctrl = params.pwm_frequency
         fine = np.geomspace(f_ctrl * 1e-5, 0.499 * f_ctrl, 4000)
@@ -178,9 +179,21 @@ class SweepDesign:
         }
 
     def lower_amplitude(self, params: ActuatorParams) -> float:
-        """The largest lower bound of the amplitude [rad] (friction, backlash); it does not depend on the grid."""
+        """The largest lower bound of the amplitude [rad] (friction, backlash); it does not depend on the grid.
+
+        Raises:
+            ValueError: the actuator has neither friction nor play, so nothing sizes the amplitude.
+        """
         b = self.amplitude_bounds(params, 1.0)
-        return max(b["friction"], b["backlash"])
+        lower = max(b["friction"], b["backlash"])
+        if not lower > 0:
+            raise ValueError(
+                "assessment.sweep.amplitude: auto: the actuator's static_friction, coulomb_friction and backlash are "
+                "all 0, and the derived amplitude is sized from the break-away friction and the play; set "
+                "assessment.sweep.amplitude explicitly [rad, user side] (a real drive has some friction: with none, "
+                "the dry-friction fault k1, which scales it, cannot be seen either)"
+            )
+        return lower
 
     def amplitude(self, params: ActuatorParams, f_max: float) -> float:
         """The test amplitude [rad]: the largest lower bound, checked against the smallest upper bound."""

@@ -10,6 +10,8 @@ reports:
   degrees keep the rotor in one commutation sector, so a short in the phase that does not conduct there changes
   nothing (the reference at rest at 0: phase A); ``assessment.sweep.rotor_positions=3`` (shipped) reads the worst of three
   sectors, where each phase conducts;
+* **absent faults**: a fault that scales a datasheet value of 0 (no friction: k1; no play: k2) does not exist on
+  the actuator (:func:`absent_faults`);
 * **the play the sweep can measure**: above ``k2_play_exceeds_sweep`` the faulted play b0 (1 + 99 k2) is wider
   than the sweep amplitude and the margins become unmeasurable (labelled faulty).
 """
@@ -54,6 +56,7 @@ def label_visibility(params: ActuatorParams, sweep: SineSweep, requirements: Hea
             "healthy": bool(found.healthy[i]),
             **{k: round(float(v[i]), 3) for k, v in found.margins.as_dict().items()},
         }
+    absent = absent_faults(params)
     amp, b0 = float(phi.sweep.amplitude), float(params.backlash)
     k2 = max(0.0, (amp / b0 - 1.0) / 99.0) if b0 > 0 else None  # b0 (1 + 99 k2) = amp; 0: already at nominal
     return {
@@ -64,6 +67,7 @@ def label_visibility(params: ActuatorParams, sweep: SineSweep, requirements: Hea
         },
         "cases": out_cases,
         "invisible": invisible,
+        "absent": absent,
         "k2_play_exceeds_sweep": round(k2, 4) if k2 is not None and k2 <= 1.0 else None,
     }
 
@@ -84,3 +88,15 @@ def load_assessment(
 
 
 __all__ = ["label_visibility", "load_assessment"]
+
+
+def absent_faults(params: ActuatorParams) -> dict[str, str]:
+    """{case: the datasheet value it scales} for the faults this actuator does not have: k = 1 multiplies its value
+    (phm_torch/faults.py), and a value of 0 stays 0 (no friction: k1; no play: k2). The labels cannot see such a
+    fault, and no test command can: the FDI's estimate of it is its training prior."""
+    out = {}
+    if not max(params.static_friction, params.coulomb_friction) > 0:
+        out["k1"] = "static_friction and coulomb_friction"
+    if not params.backlash > 0:
+        out["k2"] = "backlash"
+    return out

@@ -73,7 +73,12 @@ def linear_loop(params: ActuatorParams, position_gain_scale: float = 1.0) -> Lin
     a[4, 2] = ct / n / p.user_inertia
     a[4, 3] = -kt / p.user_inertia
     a[4, 4] = -(ct + p.user_damping) / p.user_inertia
-    a[5, 3], a[5, 5] = 1.0 / p.lvdt_time_constant, -1.0 / p.lvdt_time_constant
+    if p.lvdt_time_constant > 0:
+        a[5, 3], a[5, 5] = 1.0 / p.lvdt_time_constant, -1.0 / p.lvdt_time_constant
+        sensor = 5
+    else:  # an ideal sensor (the datasheet's 0): the loop reads theta_u itself; state 5 decays unused
+        a[5, 5] = -1.0 / dt
+        sensor = 3
     b = np.zeros((6, 1))
     b[0, 0] = 1.0 / l_eq
     m = np.zeros((7, 7))
@@ -102,7 +107,7 @@ def linear_loop(params: ActuatorParams, position_gain_scale: float = 1.0) -> Lin
     big_b[7, 0] = kci * dt * cref_u
     big_a[8] = v_z  # computed now, applied from the next period
     big_b[8, 0] = v_u
-    c = _unit(9, 5)[None, :]
+    c = _unit(9, sensor)[None, :]
     d = np.zeros((1, 1))
     open_ss = scipy.signal.StateSpace(big_a, big_b, c, d, dt=dt)
     closed_ss = scipy.signal.StateSpace(big_a - big_b @ c, big_b, c, d, dt=dt)  # u = r - y

@@ -20,6 +20,7 @@ from typing import Any
 
 from ... import provenance
 from ...assessment import AssessmentFunction
+from ...assessment.label_check import absent_faults
 from ...command import time_grid
 from ...data import calibration, merge
 from ...data import generation as gen
@@ -214,6 +215,15 @@ def _metrics(
             "rotor in one commutation sector, where that phase does not conduct); assessment.sweep.rotor_positions=3 "
             "(the shipped value) labels the worst of three sectors (docs/dataset.md, 'Which faults the labels see')",
             ", ".join(metrics["assessment_sweep"]["invisible_faults"]),
+        )
+    absent = absent_faults(assessment.params)
+    metrics["absent_faults"] = absent
+    for name, value in absent.items():
+        log.warning(
+            "%s scales the actuator's %s, which is 0: this fault does not exist on it; no label or command can see it "
+            "and the FDI's estimate of it is its training prior (give the datasheet's value if it has one)",
+            name,
+            value,
         )
     if manifest is not None:
         metrics["splits"] = {
