@@ -111,6 +111,20 @@ def test_phm_predict_takes_a_record_a_few_samples_off_the_test_length(records, c
             assert record["k_hat"][name] == pytest.approx(value, abs=0.005), name
     with pytest.raises(ValueError, match=r"cut.csv: current has 9000 samples; the model expects 10001"):
         run("cut", 9000)
+    # a bench with a pre-trigger buffer: 1,000 samples at rest before t = 0 and 1,500 logged after the test; its time
+    # column places the test, which is cut from it (one without a sample at t = 0 stays an error)
+    before, after = 1000, 1500
+    tt = np.concatenate([(np.arange(-before, 0)) / 20000.0, t, t[-1] + (np.arange(after) + 1) / 20000.0])
+    pad = lambda a, rest: np.concatenate([np.full(before, rest), a, np.full(after, a[-1])])
+    path = tmp_path / "buffered.csv"
+    write_measurement(path, Measurement(tt, pad(cmd, 0.0), pad(pos, 0.0), pad(cur, 0.0), sample_rate=20000.0))
+    buffered = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements={path}"]))[1]["records"][0]
+    assert not buffered["out_of_distribution"]
+    for name, value in full["k_hat"].items():
+        assert buffered["k_hat"][name] == pytest.approx(value, abs=1e-9), name
+    write_measurement(path, Measurement(tt + 0.3 / 20000.0 + 1.0, pad(cmd, 0.0), pad(pos, 0.0), pad(cur, 0.0)))
+    with pytest.raises(ValueError, match="whose time column puts the test's start at t = 0 is cut to it"):
+        predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements={path}"]))
 
 
 def test_phm_predict_drops_missing_current_cells(records, compose, tmp_path):

@@ -50,6 +50,7 @@ distribution with the reason ``bench`` (:mod:`phm_torch.online.bench_check`; the
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import math
@@ -64,6 +65,7 @@ from omegaconf import DictConfig
 
 from .. import provenance
 from ..io import read_measurement
+from ..io.measurement_csv import Measurement
 from ..online.bench_check import check_bench
 from ..online.corruptions import Record
 from ..online.diagnosis import NOISE_FLOOR, contract_for, diagnose
@@ -105,6 +107,7 @@ def _read(path: str, model: LoadedPipeline, resample: bool) -> tuple[torch.Tenso
         missing_ok=("current",),
         optional=("command", "position"),
     )
+    m = _test_window(m, int(model.n_full), path)
     current = torch.as_tensor(m.current, dtype=model.dtype).unsqueeze(0)
     n, n_full = current.shape[1], int(model.n_full)
     if n == n_full:
@@ -112,7 +115,8 @@ def _read(path: str, model: LoadedPipeline, resample: bool) -> tuple[torch.Tenso
     if abs(n - n_full) > LENGTH_TOLERANCE * n_full:
         raise ValueError(
             f"{path}: current has {n} samples; the model expects {n_full} (the full test record; "
-            f"within {LENGTH_TOLERANCE:.0%} of that length the record is cut or its tail marked missing)"
+            f"within {LENGTH_TOLERANCE:.0%} of that length the record is cut or its tail marked missing; a longer "
+            "record whose time column puts the test's start at t = 0 is cut to it)"
         )
     log.warning(
         "%s: %d samples instead of %d: %s",
@@ -124,6 +128,34 @@ def _read(path: str, model: LoadedPipeline, resample: bool) -> tuple[torch.Tenso
     if n > n_full:
         return current[:, :n_full], m
     return torch.cat([current, current.new_full((1, n_full - n), float("nan"))], 1), m
+
+
+def _test_window(m: Measurement, n_full: int, path: str) -> Measurement:
+    """The measurement cut to the test record where its time column places the test's start: a bench that keeps a
+    pre-trigger buffer writes samples at negative times and the trigger at t = 0, and may log on after the test. With
+    a sample within half a step of t = 0, the ``n_full`` samples from it are kept (fewer where the record ends first);
+    a record whose time starts elsewhere (another origin) is read from its first sample, as before."""
+    step = 1.0 / m.sample_rate
+    i0 = int(np.argmin(np.abs(m.time)))
+    if abs(float(m.time[i0])) > 0.5 * step or (i0 == 0 and len(m) <= n_full):
+        return m
+    window = slice(i0, i0 + n_full)
+    log.warning(
+        "%s: the test window is cut from the record by its time column: %d samples before t = 0 and %d after the "
+        "test's %d dropped",
+        path,
+        i0,
+        max(0, len(m) - i0 - n_full),
+        n_full,
+    )
+    return dataclasses.replace(
+        m,
+        time=m.time[window],
+        command=m.command[window],
+        position=m.position[window],
+        current=m.current[window],
+        extra={name: x[window] for name, x in m.extra.items()},
+    )
 
 
 def _pipeline_command(
