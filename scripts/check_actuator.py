@@ -27,7 +27,7 @@ import torch
 from hydra.utils import instantiate
 
 from phm_torch.assessment.actuator_check import ActuatorCheck, single_fault_cases
-from phm_torch.assessment.label_check import label_visibility, load_assessment
+from phm_torch.assessment.label_check import absent_fault_message, label_visibility, load_assessment
 from phm_torch.command import load_command_node
 from phm_torch.io.atomic import atomic_open
 from phm_torch.params import load_actuator
@@ -56,11 +56,7 @@ def label_summary(labels: dict) -> str:
     ]
     absent = labels.get("absent") or {}
     for name, value in absent.items():
-        lines.append(
-            f"WARNING: {name} scales the actuator's {value}, which is 0: this fault does not exist on it; the labels "
-            "cannot see it and no command can identify it (its estimate is the training prior). Give the datasheet's "
-            "value if it has one"
-        )
+        lines.append(f"WARNING: {absent_fault_message(name, value)}")
     for name in (n for n in labels["invisible"] if n not in absent):
         cause = (
             "the sweep keeps the rotor in one commutation sector; label with assessment.sweep.rotor_positions=3, "

@@ -100,3 +100,11 @@ def absent_faults(params: ActuatorParams) -> dict[str, str]:
     if not params.backlash > 0:
         out["k2"] = "backlash"
     return out
+
+
+def absent_fault_message(name: str, value: str) -> str:
+    """The one line that names an absent fault (:func:`absent_faults`), for the design check and phm-generate."""
+    return (
+        f"{name} scales the actuator's {value}, which is 0: this fault does not exist on it; no label or command can "
+        "see it and the FDI's estimate of it is its training prior (give the datasheet's value if it has one)"
+    )

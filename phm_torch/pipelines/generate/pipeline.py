@@ -20,7 +20,7 @@ from typing import Any
 
 from ... import provenance
 from ...assessment import AssessmentFunction
-from ...assessment.label_check import absent_faults
+from ...assessment.label_check import absent_fault_message, absent_faults
 from ...command import time_grid
 from ...data import calibration, merge
 from ...data import generation as gen
@@ -219,12 +219,7 @@ def _metrics(
     absent = absent_faults(assessment.params)
     metrics["absent_faults"] = absent
     for name, value in absent.items():
-        log.warning(
-            "%s scales the actuator's %s, which is 0: this fault does not exist on it; no label or command can see it "
-            "and the FDI's estimate of it is its training prior (give the datasheet's value if it has one)",
-            name,
-            value,
-        )
+        log.warning("%s", absent_fault_message(name, value))
     if manifest is not None:
         metrics["splits"] = {
             s: {
