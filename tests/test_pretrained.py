@@ -122,8 +122,12 @@ def test_phm_predict_takes_a_record_a_few_samples_off_the_test_length(records, c
     assert not buffered["out_of_distribution"]
     for name, value in full["k_hat"].items():
         assert buffered["k_hat"][name] == pytest.approx(value, abs=1e-9), name
+    long = tmp_path / "another_test.csv"  # from t = 0 and 25 % longer: no trigger evidence, refused for its length
+    write_measurement(long, Measurement(tt - tt[0], pad(cmd, 0.0), pad(pos, 0.0), pad(cur, 0.0), sample_rate=20000.0))
+    with pytest.raises(ValueError, match="another_test.csv: current has 12501 samples"):
+        predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements={long}"]))
     write_measurement(path, Measurement(tt + 0.3 / 20000.0 + 1.0, pad(cmd, 0.0), pad(pos, 0.0), pad(cur, 0.0)))
-    with pytest.raises(ValueError, match="whose time column puts the test's start at t = 0 is cut to it"):
+    with pytest.raises(ValueError, match="a pre-trigger buffer, samples at negative times and one at t = 0"):
         predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements={path}"]))
 
 

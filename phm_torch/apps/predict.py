@@ -115,8 +115,8 @@ def _read(path: str, model: LoadedPipeline, resample: bool) -> tuple[torch.Tenso
     if abs(n - n_full) > LENGTH_TOLERANCE * n_full:
         raise ValueError(
             f"{path}: current has {n} samples; the model expects {n_full} (the full test record; "
-            f"within {LENGTH_TOLERANCE:.0%} of that length the record is cut or its tail marked missing; a longer "
-            "record whose time column puts the test's start at t = 0 is cut to it)"
+            f"within {LENGTH_TOLERANCE:.0%} of that length the record is cut or its tail marked missing; a record "
+            "with a pre-trigger buffer, samples at negative times and one at t = 0, is cut to the test from t = 0)"
         )
     log.warning(
         "%s: %d samples instead of %d: %s",
@@ -133,11 +133,13 @@ def _read(path: str, model: LoadedPipeline, resample: bool) -> tuple[torch.Tenso
 def _test_window(m: Measurement, n_full: int, path: str) -> Measurement:
     """The measurement cut to the test record where its time column places the test's start: a bench that keeps a
     pre-trigger buffer writes samples at negative times and the trigger at t = 0, and may log on after the test. With
-    a sample within half a step of t = 0, the ``n_full`` samples from it are kept (fewer where the record ends first);
-    a record whose time starts elsewhere (another origin) is read from its first sample, as before."""
+    samples before t = 0 and one within half a step of it, the ``n_full`` samples from it are kept (fewer where the
+    record ends first); a record whose time starts at 0 or elsewhere (another origin) is read from its first sample."""
     step = 1.0 / m.sample_rate
     i0 = int(np.argmin(np.abs(m.time)))
-    if abs(float(m.time[i0])) > 0.5 * step or (i0 == 0 and len(m) <= n_full):
+    if abs(float(m.time[i0])) > 0.5 * step or i0 == 0:
+        # no samples before t = 0: no evidence of a triggered acquisition, and a longer record from t = 0 may be
+        # another test (another actuator's, 15,001 samples, would be cut and read): the length rule below decides
         return m
     window = slice(i0, i0 + n_full)
     log.warning(
