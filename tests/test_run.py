@@ -150,6 +150,12 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     assert float(first.verdict_scale) == pytest.approx(a, rel=1e-6)  # the pipeline's dtype
     assert float(objects["pipeline"].verdict_offset) == pytest.approx(b, rel=1e-6, abs=1e-7)
     assert 0.0 <= saved["evaluate"]["verdict_brier"] <= 1.0
+    # the verdict's held-out error rates travel too: in the calibration record and both exported files
+    quality = saved["evaluate"]["held_out_quality"]
+    assert quality["split"] == "val" and quality["records"] <= 48 and quality == calibration["held_out_quality"]
+    assert (
+        recorded["held_out_quality"] == quality == read_metadata(tmp_path / "export" / "online.pt")["held_out_quality"]
+    )
     # so do the k_hat intervals (conformal on the noisy val records), evaluated on the rul split
     widths = torch.tensor(calibration["fdi_interval"]["half_widths"])  # (noise levels, classes, 8)
     assert widths.shape == (3, 4, 8) and calibration["fdi_interval"]["noise_levels"] == [0.01, 0.03, 0.1]
@@ -181,6 +187,9 @@ def test_phm_run_tiny_end_to_end(tmp_path):
         for name, (lower, upper) in record["k_interval"].items():
             assert 0.0 <= lower <= record["k_hat"][name] <= upper <= 1.0
     assert 0.0 < record["noise"] < 0.1 and isinstance(record["noise_above_calibration"], bool)
+    if not record["out_of_distribution"]:  # the rate of wrong verdicts of its kind on the held-out records
+        kind = "missed_faulty" if record["healthy"] else "false_alarm"
+        assert record["verdict_held_out_error"] == quality[kind]
     # a healthy record of the measuring bench as baseline: the record itself then reads as the training
     # model's own nominal record (the store's nominal split, carried by the bundle into the pipeline)
     metrics, rebased = predict(

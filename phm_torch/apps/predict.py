@@ -11,6 +11,10 @@ Each record holds:
   given that score, calibrated on held-out records by phm-evaluate (``null`` out of distribution);
 * ``rul_hours`` {p5, p50, p95} (``null`` out of distribution: never a confident RUL from garbage); a bound
   beyond the pipeline's horizon is ``null`` with ``rul_censored`` true, never the horizon written as a number;
+* ``verdict_held_out_error``: how often a verdict of this kind was wrong on phm-evaluate's held-out records of this
+  actuator and command (a healthy verdict: the share of faulty records answered healthy; a faulty one: the share of
+  healthy ones answered faulty; ``null`` out of distribution or for a pipeline exported without that measurement);
+  the run warns once where either passes 10 % (:mod:`phm_torch.online.quality`);
 * ``k_not_identified``: the components the pipeline's test command does not identify (R^2 below 0.25 on
   phm-evaluate's held-out records): their ``k_hat`` is mostly the training prior, not a measurement;
 * ``out_of_distribution`` and the gappy ``residual`` [A];
@@ -71,6 +75,7 @@ from ..online.corruptions import Record
 from ..online.diagnosis import NOISE_FLOOR, contract_for, diagnose
 from ..online.loaded import LoadedPipeline, UnservedRecord, load_pipeline
 from ..online.probe_calibration import ProbeCalibration, fit_probe
+from ..online.quality import held_out, quality_warnings
 from ..online.record_corrections import polarity_reversal
 from . import common
 
@@ -219,6 +224,9 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     prov, command = _pipeline_command(cfg, metadata, model_path)
     if not model.calibrated:
         log.warning("%s was exported before the verdict calibration existed: p_faulty is null", model_path)
+    quality = held_out(metadata)
+    for line in quality_warnings(quality):
+        log.warning("%s: %s", model_path, line)
     bench_nominal, probe = _bench_nominal(cfg, model)
     if bench_nominal is None and model.can_rebase:
         # a bench differing from the training model by 0.5 % of the current can turn 14 % of the faults
@@ -282,6 +290,7 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "actuator": provenance.describe(prov["actuator"]),
         "command": provenance.describe(prov["command"]),
         "noise_above_calibration": sum(bool(r["noise_above_calibration"]) for r in records),
+        "held_out_quality": quality,
     }, {"records": records}
 
 

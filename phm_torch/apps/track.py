@@ -27,6 +27,7 @@ from ..assessment_record import same_labels
 from ..online.bench_check import check_bench
 from ..online.diagnosis import contract_for
 from ..online.loaded import TorchScriptPipeline, load_pipeline
+from ..online.quality import held_out, quality_warnings
 from ..online.record_corrections import prepare_record
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
 from ..tracking.companions import companion, missing_message
@@ -130,6 +131,8 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         )
     metadata = loaded.metadata
     prov, command = _pipeline_command(cfg, metadata, model_path)
+    for line in quality_warnings(held_out(metadata)):  # the verdicts the end-of-life rule reads
+        log.warning("%s: %s", model_path, line)
     model = loaded.module
     response = companion("response", cfg.response, model_path, model)
     near = companion("near_nominal", cfg.near_nominal, model_path, model)

@@ -22,6 +22,7 @@ from .corruptions import Record
 from .input_contract import InputContract
 from .loaded import as_loaded
 from .probe_calibration import ProbeCalibration
+from .quality import held_out, verdict_error
 from .reason_text import reason_lines
 from .record_corrections import prepare_record
 from .rest_offset_check import offset_std, probe_offset
@@ -189,6 +190,7 @@ def diagnose(
         "p_faulty": None if out or math.isnan(p_faulty) else p_faulty,
         "rul_hours": rul_hours,
         "rul_censored": rul_censored,
+        "verdict_held_out_error": None if out else verdict_error(held_out(model.metadata), bool(score[0] > 0)),
         "k_not_identified": not_identified(model.metadata),
         "out_of_distribution": out,
         "ood_reasons": checks.reasons,

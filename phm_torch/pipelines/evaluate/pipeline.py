@@ -40,6 +40,7 @@ from ...surrogates.metrics import IDENTIFIED_R2
 from .calibration import fdi_band, fdi_intervals, identifiability, verdict_scaling
 from .inputs import read_inputs
 from .near_nominal import near_nominal_calibration
+from .quality import held_out_quality
 from .settings import EvaluateSettings
 
 log = logging.getLogger(__name__)
@@ -173,7 +174,9 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
         ),
         "rul_errors": error_panels(reference, true_k, full_flow.to(torch.float64), out_dir / "rul_errors.png"),
     }
+    metrics["held_out_quality"] = held_out_quality(pipeline, inp.band_signals, inp.band_healthy, cal.split, metrics)
     calibration = _calibration_record(settings, pipeline, det, deltas, c, inp)
+    calibration["held_out_quality"] = metrics["held_out_quality"]  # exported with the pipeline (phm-predict reads it)
     predictions = {
         "k": k.tolist(),
         "k_hat": k_hat.tolist(),
