@@ -4,6 +4,8 @@ it is near nominal, the stale companions of a replaced pipeline removed, bad sta
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import h5py
 import numpy as np
 import pytest
@@ -18,6 +20,7 @@ from phm_torch.online.export import export_torchscript
 from phm_torch.tracking.companions import companion
 from phm_torch.tracking.near_nominal import NearNominalFDI, TooFewNearNominalRecords
 from phm_torch.tracking.near_nominal_training import NearNominalTraining, store_records, train_near_nominal
+from phm_torch.tracking.tracker_check import TrackerCheck
 
 
 @pytest.mark.parametrize(
@@ -90,7 +93,11 @@ def test_a_life_split_that_leaves_nothing_to_train_on_is_refused(exported, tmp_p
 def test_the_companions_of_a_replaced_pipeline_are_removed(tmp_path):
     pipeline = tmp_path / "online.pt"
     paths = companion_paths(pipeline)
-    assert {p.name for p in paths.values()} == {"online.fdi_response.json", "online.near_nominal.pt"}
+    assert {p.name for p in paths.values()} == {
+        "online.fdi_response.json",
+        "online.near_nominal.pt",
+        "online.tracker_check.json",
+    }
     for path in paths.values():
         path.write_text("x")
     (tmp_path / "other.near_nominal.pt").write_text("x")
@@ -137,9 +144,18 @@ def test_too_few_near_nominal_histories_skip_the_near_nominal_fdi_not_the_run(tm
     def too_few(*args, **kwargs):
         raise TooFewNearNominalRecords("near-nominal FDI: 6 held-out records within the gate, 20 needed")
 
+    tracked = []
+
+    def fake_track(cfg):  # the ball screw's figures with the default rule (measured: coverage 41 %, all early)
+        tracked.append(cfg)
+        figures = {"coverage_5_95": 0.41, "eol_flagged_early": 1.0, "eol_flagged_within_one_inspection": 0.0}
+        return {"inspections": 1, "actuators": 1, "tracker": figures}, None
+
     monkeypatch.setattr(generate_app, "generate", fake_generate)
-    monkeypatch.setattr(track_app, "track", lambda cfg: ({"inspections": 1}, None))
+    monkeypatch.setattr(track_app, "track", fake_track)
     monkeypatch.setattr(stage, "train_near_nominal", too_few)
+    monkeypatch.setattr(stage, "load_pipeline", lambda path: SimpleNamespace(module=None))
+    monkeypatch.setattr(stage, "probe_k_hat", lambda model: [0.0] * 8)
     cfg = compose_stage("run", [f"out_dir={tmp_path}"])
     with caplog.at_level("WARNING"):
         got = run_companions(cfg, tmp_path, tmp_path / "data", pipeline, [], [], [])
@@ -148,6 +164,14 @@ def test_too_few_near_nominal_histories_skip_the_near_nominal_fdi_not_the_run(tm
     assert got["response"] is None and got["life_inspections"] == 1  # one inspection: too few for a response too
     assert "no near-nominal FDI written" in caplog.text and "companions.life_actuators=" in caplog.text
     assert not companion_paths(pipeline)["near_nominal"].exists()
+    # the tracker as phm-track will run it (the default rule, no near-nominal FDI) measured on these histories, its
+    # figures written beside the pipeline and their shortfall said
+    assert [tracked[-1].verdict, tracked[-1].faulty_at, tracked[-1].near_nominal] == ["record", "p50", None]
+    check = TrackerCheck.load(companion_paths(pipeline)["tracker_check"])
+    assert check.figures["coverage_5_95"] == 0.41 and check.rule == {"verdict": "record", "faulty_at": "p50"}
+    assert got["tracker_check_figures"]["eol_flagged_early"] == 1.0
+    assert "held the true RUL on 41 % of the inspections" in caplog.text
+    assert "flagged 100 % of the ends of life early" in caplog.text
 
 
 def test_the_stage_needs_the_evaluate_stage_pipeline(tmp_path):

@@ -427,3 +427,42 @@ def test_a_whole_record_near_nominal_fdi_is_read_on_every_sample(fleet, compose,
         expected = near(alpha, torch.tensor([first["noise"]], dtype=torch.float64))[0]
     got = torch.tensor([first["k_hat_near_nominal"][n] for n in FAULT_NAMES], dtype=torch.float64)
     assert bool(readable[0]) and torch.allclose(got[:6], expected[:6], atol=1e-6), actuator
+
+
+def test_a_tracker_check_beside_the_pipeline_is_warned_of_and_one_for_another_pipeline_refused(
+    fleet, compose, tmp_path, caplog
+):
+    """The companions stage's figures of the tracker on simulated histories of this actuator: phm-track reads them
+    beside the pipeline, warns where they fall short (a ball screw's 41 % coverage), records them in its metrics,
+    and refuses a file measured with another pipeline."""
+    import shutil
+
+    from phm_torch.online.loaded import load_pipeline
+    from phm_torch.tracking.response import probe_k_hat
+    from phm_torch.tracking.tracker_check import TrackerCheck
+
+    shutil.copy(fleet / "online.pt", tmp_path / "online.pt")
+    probe = probe_k_hat(load_pipeline(tmp_path / "online.pt").module)
+    figures = {"coverage_5_95": 0.41, "eol_flagged_early": 1.0, "alpha_lambda": 0.33}
+    rule = {"verdict": "record", "faulty_at": "p50"}
+    TrackerCheck(figures, rule, 40, 843, {"probe_k_hat": probe, "source": "online.pt"}).save(
+        tmp_path / "online.tracker_check.json"
+    )
+    with caplog.at_level("WARNING", logger="phm_torch.apps.track"):
+        metrics, _ = run(compose, fleet, tmp_path / "out", f"pipeline={tmp_path / 'online.pt'}")
+    assert "on 40 simulated run-to-failure histories of this actuator (843 inspections" in caplog.text
+    assert "held the true RUL on 41 %" in caplog.text and "flagged 100 % of the ends of life early" in caplog.text
+    assert metrics["tracker_check"]["figures"]["coverage_5_95"] == 0.41
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="phm_torch.apps.track"):  # another rule than the one measured: said
+        run(compose, fleet, tmp_path / "p5", f"pipeline={tmp_path / 'online.pt'}", "faulty_at=p5")
+    assert "was not the one measured" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="phm_torch.apps.track"):
+        none = run(compose, fleet, tmp_path / "none", f"pipeline={tmp_path / 'online.pt'}", "tracker_check=null")[0]
+    assert none["tracker_check"] is None and "simulated run-to-failure" not in caplog.text
+    TrackerCheck(figures, rule, 40, 843, {"probe_k_hat": [v + 0.01 for v in probe], "source": "other.pt"}).save(
+        tmp_path / "other.json"
+    )
+    with pytest.raises(ValueError, match=r"tracker check was measured for another pipeline \(other.pt\)"):
+        run(compose, fleet, tmp_path / "x", f"tracker_check={tmp_path / 'other.json'}")

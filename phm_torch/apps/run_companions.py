@@ -21,11 +21,13 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
+from ..online.loaded import load_pipeline
 from ..tracking import read_index
 from ..tracking.companions import SUFFIXES
 from ..tracking.near_nominal import TooFewNearNominalRecords
 from ..tracking.near_nominal_training import NearNominalTraining, train_near_nominal
-from ..tracking.response import RESPONSE_BINS, RESPONSE_MIN_COUNT, FDIResponse
+from ..tracking.response import RESPONSE_BINS, RESPONSE_MIN_COUNT, FDIResponse, probe_k_hat
+from ..tracking.tracker_check import TrackerCheck
 from . import common, schema
 from .stage_config import compose_stage
 
@@ -174,7 +176,16 @@ def run_companions(
             err,
             n_actuators,
         )
-        return _metrics(n_actuators, seed, raw, gen_metrics, paths, fit, skipped=str(err))
+        rule = dict(zip(("verdict", "faulty_at"), RULES[0]))
+        tracked = track(  # the tracker as phm-track will run it: the response alone, the default rule
+            compose_stage(
+                "track",
+                [*life_args, f"out_dir={root / 'track_default'}", "response=auto", "near_nominal=null"]
+                + [f"{key}={value}" for key, value in rule.items()],
+            )
+        )[0]
+        check = _tracker_check(pipeline, paths, tracked, rule)
+        return {**_metrics(n_actuators, seed, raw, gen_metrics, paths, fit, skipped=str(err)), **check}
     finally:
         torch.set_num_threads(previous)
     net.save(paths["near_nominal"])
@@ -200,15 +211,31 @@ def run_companions(
     chosen = choose_end_of_life_rule(tracked)
     net.provenance["tracker_rule"] = chosen
     net.save(paths["near_nominal"])
+    rule = {key: chosen[key] for key in ("verdict", "faulty_at")}
+    check = _tracker_check(pipeline, paths, tracked[(rule["verdict"], rule["faulty_at"])], rule)
     log.info("companions of %s: %s", pipeline, ", ".join(str(p) for p in paths.values() if p.is_file()))
     return {
         **_metrics(n_actuators, seed, raw, gen_metrics, paths, fit),
+        **check,
         "tracker_rule": chosen,
         "near_nominal": str(paths["near_nominal"]),
         "near_nominal_settings": {k: common.plain(v) for k, v in vars(settings).items()},
         "near_nominal_records": {"life": report["life_records"], "store": report["store_records"]},
         "near_nominal_heldout_rms": report["heldout"],
     }
+
+
+def _tracker_check(
+    pipeline: Path, paths: dict[str, Path], tracked: dict[str, Any], rule: dict[str, str]
+) -> dict[str, Any]:
+    """Write the tracker's figures on this stage's life split (phm-track's metrics ``tracked``, under ``rule``)
+    beside the pipeline, where phm-track's ``tracker_check=auto`` reads them; the stage's metrics of it."""
+    made_for = {"source": str(pipeline), "probe_k_hat": probe_k_hat(load_pipeline(pipeline).module)}
+    check = TrackerCheck.from_metrics(tracked, rule, made_for)
+    check.save(paths["tracker_check"])
+    for line in check.warnings():
+        log.warning("companions: %s", line)
+    return {"tracker_check": str(paths["tracker_check"]), "tracker_check_figures": dict(check.figures)}
 
 
 def _metrics(

@@ -84,17 +84,17 @@ schema.register(
 )
 
 
-def _settings(cfg: DictConfig, near: NearNominalFDI | None = None) -> TrackerSettings:
+def _settings(cfg: DictConfig, near: NearNominalFDI | None = None, announce: bool = True) -> TrackerSettings:
     values = {key: cfg[key] for key in TRACKER_KEYS}
     if values["measurement_dof"] in (".inf", "inf"):  # the command line's spelling of infinity
         values["measurement_dof"] = math.inf
-    for key, value in auto_rule(near).items():
+    for key, value in auto_rule(near, announce).items():
         if values[key] == "auto":
             values[key] = value
     return TrackerSettings(**values)
 
 
-def auto_rule(near: NearNominalFDI | None) -> dict[str, str]:
+def auto_rule(near: NearNominalFDI | None, announce: bool = True) -> dict[str, str]:
     """What ``verdict=auto`` and ``faulty_at=auto`` become: the rule the near-nominal FDI's maker chose on its own life
     split (phm-run's companions stage records ``tracker_rule`` in its provenance), else the tracker's defaults
     (``record``, ``p50``)."""
@@ -109,7 +109,7 @@ def auto_rule(near: NearNominalFDI | None) -> dict[str, str]:
         )
         figures = (chosen.get("rules") or {}).get(f"{rule['verdict']}/{rule['faulty_at']}") or {}
         early = figures.get("eol_flagged_early")
-        if early is not None and early > EARLY_WARNING:
+        if announce and early is not None and early > EARLY_WARNING:  # else the tracker check says it
             log.warning(
                 "tracker rule=auto: the rule chosen flagged %.0f %% of the ends of life on that split early (flagging "
                 "late or never weighs more); expect RULs of 0 well before the end of life. Every rule's figures: %s",
@@ -136,7 +136,10 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     model = loaded.module
     response = companion("response", cfg.response, model_path, model)
     near = companion("near_nominal", cfg.near_nominal, model_path, model)
-    settings = _settings(cfg, near)
+    check = companion("tracker_check", cfg.tracker_check, model_path, model)
+    settings = _settings(cfg, near, announce=check is None)
+    for line in check.warnings({key: getattr(settings, key) for key in AUTO_KEYS}) if check else []:
+        log.warning("%s: %s", model_path, line)
     for kind, found in (("response", response), ("near_nominal", near)):
         if found is None and str(cfg[kind]) == "auto":
             log.warning(missing_message(kind, model_path))
@@ -243,6 +246,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "probe_calibration": None if probe is None else probe.as_dict(),
         "fleet_check": fleet,
         "damage_source": described["damage_source"],
+        "tracker_check": None if check is None else check.to_json(),
         "out_dir": str(out_dir),
         "actuator": provenance.describe(prov["actuator"]),
         "command": provenance.describe(prov["command"]),

@@ -149,6 +149,14 @@ def life_section(r: HtmlReport, run_dir: Path, companions: dict[str, Any] | None
                 + ")."
             )
         )
+        seen = companions.get("tracker_check_figures")
+        if seen:
+            r.note(
+                "On those histories the tracker, as phm-track runs it beside this pipeline, held the true RUL in its "
+                f"5-95 % band on {pct(seen.get('coverage_5_95'))} of the inspections and flagged "
+                f"{pct(seen.get('eol_flagged_early'))} of the ends of life early: written beside the pipeline "
+                "(.tracker_check.json), phm-track warns of either below 70 % / above 50 %."
+            )
     targets = scores.get("targets", {})
 
     limit = scores.get("limit")  # the same filter fed the true k (phm-track's limit_error_std), when computed

@@ -1,5 +1,6 @@
-"""Files that travel beside an exported pipeline for the tracker: its FDI response (:mod:`.response`) and its
-near-nominal FDI (:mod:`.near_nominal`). One rule for both: ``auto`` reads ``<pipeline stem><suffix>`` beside the
+"""Files that travel beside an exported pipeline for the tracker: its FDI response (:mod:`.response`), its
+near-nominal FDI (:mod:`.near_nominal`) and the tracker's figures on simulated histories of its actuator
+(:mod:`.tracker_check`). One rule for all three: ``auto`` reads ``<pipeline stem><suffix>`` beside the
 pipeline where there is one, ``null`` none, anything else is a path that must exist; each then checks that it
 belongs to the pipeline."""
 
@@ -11,14 +12,20 @@ from typing import Any
 
 from .near_nominal import NearNominalFDI
 from .response import FDIResponse
+from .tracker_check import TrackerCheck
 
 log = logging.getLogger(__name__)
 
-SUFFIXES = {"response": ".fdi_response.json", "near_nominal": ".near_nominal.pt"}
-LOADERS = {"response": FDIResponse.load, "near_nominal": NearNominalFDI.load}
+SUFFIXES = {
+    "response": ".fdi_response.json",
+    "near_nominal": ".near_nominal.pt",
+    "tracker_check": ".tracker_check.json",
+}
+LOADERS = {"response": FDIResponse.load, "near_nominal": NearNominalFDI.load, "tracker_check": TrackerCheck.load}
 MAKERS = {  # how a user makes each for their own pipeline (docs/prognostics.md, "Life tracking")
     "response": "phm-track index=<a life split's index.csv> truth=<its truth.json> response_out=<path>",
     "near_nominal": "python scripts/fit_near_nominal.py --pipeline <pipeline> --life <life split> --store <store>",
+    "tracker_check": "phm-run stages=[companions] (the tracker on simulated histories of the pipeline's actuator)",
 }
 
 
@@ -33,8 +40,10 @@ def missing_message(kind: str, pipeline_path: Path) -> str:
     )
 
 
-def companion(kind: str, setting: Any, pipeline_path: Path, model: Any) -> FDIResponse | NearNominalFDI | None:
-    """The ``kind`` (``response`` or ``near_nominal``) file the setting names for the pipeline at ``pipeline_path``,
+def companion(
+    kind: str, setting: Any, pipeline_path: Path, model: Any
+) -> FDIResponse | NearNominalFDI | TrackerCheck | None:
+    """The ``kind`` (``response``, ``near_nominal`` or ``tracker_check``) file the setting names for the pipeline at ``pipeline_path``,
     loaded and checked against ``model`` (ValueError naming the setting for a missing or foreign file)."""
     if kind not in SUFFIXES:
         raise ValueError(f"companion: unknown kind {kind!r} (one of {sorted(SUFFIXES)})")
