@@ -72,6 +72,38 @@ class SlewedChirp:
 
 
 @dataclass(frozen=True)
+class LogChirp:
+    """Exponential (logarithmic) sweep: theta_cmd(t) = A sin(2 pi f0 T (r^(t/T) - 1) / ln r), r = f1 / f0.
+
+    Its instantaneous frequency f0 r^(t/T) spends equal time on each octave: a test that must see a loop's low
+    corner and its crossover within one record, as many benches run it. Its own class, so that the parameters
+    (and hashes) of every linear chirp stay what they were.
+
+    Attributes:
+        amplitude: A [rad, user side].  f_start: f0 > 0 [Hz].  f_end: f1 > 0, != f0 [Hz].  duration: T [s].
+    """
+
+    amplitude: float
+    f_start: float
+    f_end: float
+    duration: float
+
+    def __post_init__(self) -> None:
+        Chirp(self.amplitude, self.f_start, self.f_end, self.duration)  # the same checks
+        if not (self.f_start > 0 and self.f_end > 0 and self.f_start != self.f_end):
+            raise ValueError(
+                f"command: a log chirp needs f_start > 0, f_end > 0 and f_start != f_end, got {self.f_start}, "
+                f"{self.f_end} (a sweep from 0 Hz is the linear chirp, _target_ phm_torch.command.Chirp)"
+            )
+
+    def __call__(self, t: torch.Tensor) -> torch.Tensor:
+        """Command [rad] at times t [s] (any shape)."""
+        log_ratio = math.log(self.f_end / self.f_start)
+        phase = self.f_start * self.duration / log_ratio * torch.expm1(t * (log_ratio / self.duration))
+        return self.amplitude * torch.sin(2.0 * math.pi * phase)
+
+
+@dataclass(frozen=True)
 class Sine:
     """theta_cmd(t) = offset + A sin(2 pi f t): a single-frequency test (frequency response)."""
 
@@ -98,6 +130,7 @@ COMMANDS = {
     "chirp": Chirp,
     "slewed_chirp": SlewedChirp,
     "sine": Sine,
+    "log_chirp": LogChirp,
 }  # command kinds: conf/command/<name>.yaml composes in the defaults of one
 
 

@@ -229,3 +229,30 @@ def test_a_slewed_chirp_is_the_chirp_on_a_ramp_and_hashes_apart_from_it():
         SlewedChirp(5e-3, 0.0, 15.0, 0.5, slew_rate=float("inf"))
     with pytest.raises(ValueError, match="command.amplitude must be > 0"):
         SlewedChirp(0.0, 0.0, 15.0, 0.5, slew_rate=0.0)
+
+
+def test_a_log_chirp_sweeps_each_octave_in_equal_time_and_hashes_apart(tmp_path):
+    """LogChirp: instantaneous frequency f0 (f1/f0)^(t/T) (from the phase's slope), bad sweeps refused by name, a
+    user's YAML read as any command file, and its record never a linear chirp's."""
+    from phm_torch.command import COMMANDS, LogChirp, load_command_node
+
+    sweep = LogChirp(5e-3, 1.0, 16.0, 0.8)
+    t = time_grid(0.8, 20_000.0)
+    # the phase is the integral of the instantaneous frequency f0 (f1/f0)^(t/T): 2, 4, 8 Hz at 0.2, 0.4, 0.6 s
+    f = 1.0 * 16.0 ** (t / 0.8)
+    phase = torch.cat([torch.zeros(1, dtype=t.dtype), torch.cumulative_trapezoid(f, t)])
+    torch.testing.assert_close(sweep(t), 5e-3 * torch.sin(2 * torch.pi * phase), atol=1e-9, rtol=0)
+    assert COMMANDS["log_chirp"] is LogChirp
+    for f0, f1 in ((0.0, 15.0), (5.0, 5.0), (5.0, 0.0)):
+        with pytest.raises(ValueError, match="a log chirp needs f_start > 0"):
+            LogChirp(5e-3, f0, f1, 0.5)
+    with pytest.raises(ValueError, match="command frequencies must be >= 0"):
+        LogChirp(5e-3, -1.0, 5.0, 0.5)
+    path = tmp_path / "my_sweep.yaml"
+    path.write_text(
+        "_target_: phm_torch.command.LogChirp\namplitude: 5.0e-3\nf_start: 1.0\nf_end: 16.0\nduration: 0.8\n"
+    )
+    name, node = load_command_node(str(path))
+    assert name == str(path) and node["f_end"] == 16.0
+    linear = {**node, "_target_": "phm_torch.command.Chirp"}
+    assert provenance.command_record("s", node)["sha256"] != provenance.command_record("s", linear)["sha256"]
