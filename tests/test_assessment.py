@@ -86,6 +86,55 @@ def test_margin_conventions():
     assert float(m.gain_margin_db[0]) == pytest.approx(-20 * math.log10(math.sqrt(0.5 * 0.25)), abs=1e-5)
 
 
+def test_a_reading_stuck_in_dry_friction_bounds_the_gain_margin_instead_of_voiding_it():
+    """A ball screw's damaged loop, read at three rotor positions (measured, rounded): past its crossover the phase
+    nears -180 deg at -18 dB, then the output sticks (-47 dB and below, phase noise). With every reading, the phase
+    never falls through -180 deg on the grid at one position: gain margin nan, the vector faulty, healthy again at
+    the next inspection. Below the floor a reading is no response: the margin is the -|L| of the last responding
+    one, a lower bound; a loop crossing -180 deg while it responds keeps its margin, a wholly responding grid its nan."""
+    f = torch.tensor([20.0, 28.0, 36.0, 46.0, 60.0, 80.0])
+    mag_db = torch.tensor([-6.1, -9.1, -17.6, -47.4, -319.7, -313.4])
+    phase = torch.tensor([-142.5, -165.7, -176.6, -111.7, -88.9, -124.1])
+    stuck = torch.polar(10 ** (mag_db / 20), torch.deg2rad(phase))[None].to(torch.complex128)
+    t = torch.ones_like(stuck)
+    assert math.isnan(float(margins(f, stuck, t).gain_margin_db[0]))  # every reading counts: "unmeasurable"
+    bounded = margins(f, stuck, t, no_response_db=-40.0)
+    assert float(bounded.gain_margin_db[0]) == pytest.approx(17.6, abs=1e-6) and math.isnan(
+        float(bounded.phase_crossover_hz[0])
+    )
+    crossing = torch.tensor([-142.5, -165.7, -185.0, -111.7, -88.9, -124.1])  # falls through -180 while responding
+    loop = torch.polar(10 ** (mag_db / 20), torch.deg2rad(crossing))[None].to(torch.complex128)
+    torch.testing.assert_close(
+        margins(f, loop, t, no_response_db=-40.0).stacked(), margins(f, loop, t).stacked(), equal_nan=True
+    )
+    responding = torch.polar(10 ** (mag_db.clamp(min=-30.0) / 20), torch.deg2rad(phase))[None].to(torch.complex128)
+    assert math.isnan(float(margins(f, responding, t, no_response_db=-40.0).gain_margin_db[0]))
+    with pytest.raises(ValueError, match="no_response_db must be a negative level"):
+        SineSweep((1.0, 2.0), 1e-3, 4, 2, 0.02, 1, 4, False, no_response_db=3.0)
+
+
+def test_the_no_response_floor_leaves_the_reference_labels_as_they_were(params, shipped):
+    """Stores labelled before the floor existed are read as labelled with it (assessment_record.SWEEP_DEFAULTS):
+    on the reference actuator it must change no label (measured: 0 of 512 of the paper store's vectors, the
+    unmeasurable gain margins 93 -> 15). Here on 48 importance-sampled-like vectors at every rotor position."""
+    g = torch.Generator().manual_seed(3)
+    k = torch.rand(48, 8, generator=g, dtype=torch.float64) ** 4  # mostly near nominal, a few heavy faults
+    k[:, 6] = torch.rand(48, generator=g, dtype=torch.float64)
+    k[:, 7] = 0.5 + 0.5 * (2 * torch.rand(48, generator=g, dtype=torch.float64) - 1) ** 3  # drift about nominal 0.5
+    with_floor = _assessment(params, shipped, compile=False)
+    without = _assessment(params, shipped, compile=False, no_response_db=None)
+    assert with_floor.sweep.no_response_db == -40.0 and labelling_default() == -40.0
+    a, b = with_floor(k), without(k)
+    assert torch.equal(a.healthy, b.healthy)
+    assert 0.1 < float(a.healthy.double().mean()) < 0.9  # both classes present: the comparison says something
+
+
+def labelling_default() -> float:
+    from phm_torch.assessment_record import labelling
+
+    return labelling({"sweep": {}})["sweep"]["no_response_db"]
+
+
 def _linear_transmission(state, plant):
     n = plant.gear_ratio
     return plant.output_stiffness * (state.theta_m / n - state.theta_u) + plant.output_damping * (

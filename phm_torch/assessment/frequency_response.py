@@ -287,7 +287,7 @@ class FrequencyResponse:
 
     def _refine_once(self, k: torch.Tensor, r: LoopResponse) -> LoopResponse:
         b = k.shape[0]
-        m = margins(r.frequencies, r.open_loop, r.closed_loop)
+        m = margins(r.frequencies, r.open_loop, r.closed_loop, self.sweep.no_response_db)
         freqs = r.frequencies.expand(b, -1) if r.frequencies.ndim == 1 else r.frequencies
         old = (r.open_loop, r.closed_loop, r.settled, r.open_loop_before, r.closed_loop_before)
         if any(x is None for x in old):

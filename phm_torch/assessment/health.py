@@ -148,7 +148,7 @@ class AssessmentFunction:
             )
             k0 = torch.tensor([self.params.nominal_faults], dtype=torch.float64)
             r = eager.read(k0)
-            self._nominal = margins(r.frequencies, r.open_loop, r.closed_loop)
+            self._nominal = margins(r.frequencies, r.open_loop, r.closed_loop, self.sweep.no_response_db)
             self._shared["nominal"] = self._nominal.stacked().clone()
         return self._nominal
 
@@ -195,7 +195,10 @@ class AssessmentFunction:
             k = torch.tensor([self.params.nominal_faults] * 4, dtype=torch.float64)
             k[1:, 2:5] += torch.eye(3, dtype=torch.float64) * (1.0 - k[1:, 2:5])
             found = worst_margins(
-                [margins(x.frequencies, x.open_loop, x.closed_loop) for x in (e.read(k) for e in eager)]
+                [
+                    margins(x.frequencies, x.open_loop, x.closed_loop, self.sweep.no_response_db)
+                    for x in (e.read(k) for e in eager)
+                ]
             ).stacked()
             same = reads_as(found[1:], found[:1])
             self._invisible = [FAULT_NAMES[2 + i] for i in range(3) if bool(same[i])]
@@ -224,7 +227,8 @@ class AssessmentFunction:
             k = k[padding_index(n, min(padded_size(n), batch), k.device)]
         r = response.read(k)
         return tuple(  # type: ignore[return-value]
-            margins(x.frequencies, x.open_loop, x.closed_loop).take_rows(slice(0, n)) for x in (r, r.before)
+            margins(x.frequencies, x.open_loop, x.closed_loop, self.sweep.no_response_db).take_rows(slice(0, n))
+            for x in (r, r.before)
         )
 
     def __call__(self, faults: torch.Tensor) -> Assessment:

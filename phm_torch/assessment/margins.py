@@ -20,6 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+# |L| [dB] below which a sweep reading is no response (SineSweep.no_response_db's default): 1 % of the command, where a
+# loop whose output sticks in dry friction reads -47 to -320 dB and a responding one, past its phase crossover, -9 to -20
+NO_RESPONSE_DB = -40.0
 MARGIN_NAMES = ("crossover_hz", "phase_margin_deg", "phase_crossover_hz", "gain_margin_db", "bandwidth_hz")
 
 
@@ -102,12 +105,21 @@ def unwrapped_phase_deg(h: torch.Tensor) -> torch.Tensor:
     return torch.rad2deg(torch.cat([ph[:, :1], ph[:, :1] + torch.cumsum(d, -1)], -1))
 
 
-def margins(frequencies: torch.Tensor, open_loop: torch.Tensor, closed_loop: torch.Tensor) -> Margins:
+def margins(
+    frequencies: torch.Tensor,
+    open_loop: torch.Tensor,
+    closed_loop: torch.Tensor,
+    no_response_db: float | None = None,
+) -> Margins:
     """Margins of a batch of measured loops.
 
     Args:
         frequencies: (F,) test frequencies [Hz], increasing, or (B, F) non-decreasing per vector (refined).
         open_loop: (B, F) complex L(jw).  closed_loop: (B, F) complex T(jw).
+        no_response_db: |L| [dB] below which a reading is no response (the output stuck in dry friction: its phase
+            is noise). The phase crossover is then sought only up to the first such reading, and where the phase has
+            not fallen through -180 deg there, the gain margin is the lower bound -|L| [dB] at the last responding
+            frequency (the phase crossover stays nan). None: every reading counts.
     """
     logf = torch.log(frequencies.to(torch.float64))
     nan = torch.full(open_loop.shape[:1], math.nan, dtype=torch.float64, device=open_loop.device)
@@ -118,9 +130,15 @@ def margins(frequencies: torch.Tensor, open_loop: torch.Tensor, closed_loop: tor
     crossover = torch.where(ok, torch.exp(_at(logf, i, s)), nan)
     pm = torch.where(ok, 180.0 + _at(phase, i, s), nan)
 
-    i, s, ok = first_fall(phase, -180.0)
+    responding = torch.ones_like(gain_db, dtype=torch.bool)
+    if no_response_db is not None:  # the readings up to the first one that does not respond
+        responding = (gain_db > no_response_db).to(torch.int64).cumprod(-1).bool()
+    i, s, ok = first_fall(torch.where(responding, phase, math.inf), -180.0)
     phase_crossover = torch.where(ok, torch.exp(_at(logf, i, s)), nan)
     gm = torch.where(ok, -_at(gain_db, i, s), nan)
+    last = responding.sum(-1) - 1  # the last responding reading; a tail that does not respond bounds the margin
+    bounded = ~ok & (last >= 0) & (last < gain_db.shape[-1] - 1)
+    gm = torch.where(bounded, -gain_db.gather(-1, last.clamp(min=0)[:, None])[:, 0], gm)
 
     t_db = 20.0 * torch.log10(closed_loop.abs().clamp(min=1e-300))
     level = -10.0 * math.log10(2.0)

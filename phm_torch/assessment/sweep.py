@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 from ..params import ActuatorParams
 from .design import AUTO, SweepDesign
+from .margins import NO_RESPONSE_DB
 
 
 @dataclass(frozen=True)
@@ -38,6 +39,12 @@ class SineSweep:
             each phase out of conduction once; 1: at 0 only, which cannot see a short in the phase out of
             conduction there, every store labelled before 2026-11-29 and what an unrecorded value means,
             ``assessment_record.SWEEP_DEFAULTS``; at most 6).
+        no_response_db: an open-loop reading |L| below this [dB] is no response (the output stuck in dry friction,
+            its phase noise): the phase crossover is sought only below the first such frequency, and a loop whose
+            phase has not reached -180 deg there gets the gain margin -|L| [dB] of its last responding reading, a
+            lower bound (:func:`~phm_torch.assessment.margins.margins`). None: every reading counts, and a stuck
+            reading could make a vector with a 10 dB gain margin "unmeasurable", so faulty (a ball screw's damage
+            paths turned faulty and healthy again on 19 of 40 histories; docs/dataset.md).
     """
 
     frequencies: tuple[float, ...] | str
@@ -53,8 +60,15 @@ class SineSweep:
     max_extensions: int = 0
     refine: int = 0
     rotor_positions: int = 1
+    no_response_db: float | None = NO_RESPONSE_DB
 
     def __post_init__(self) -> None:
+        if self.no_response_db is not None and not (
+            math.isfinite(float(self.no_response_db)) and float(self.no_response_db) < 0.0
+        ):
+            raise ValueError(
+                f"assessment.sweep.no_response_db must be a negative level [dB] or null, got {self.no_response_db!r}"
+            )
         if isinstance(self.frequencies, str):
             if self.frequencies != AUTO:
                 raise ValueError(
