@@ -59,6 +59,18 @@ def check_probe(recorded: Mapping[str, Any], model: Any, source: str, what: str,
         )
 
 
+def read_companion_json(path: str | os.PathLike, fmt: str, what: str) -> dict[str, Any]:
+    """The JSON object of a companion file (``what`` names it in errors) whose ``format`` must be ``fmt``."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{what} {path}: cannot read it ({exc})") from exc
+    if not isinstance(data, dict) or data.get("format") != fmt:
+        found = data.get("format") if isinstance(data, dict) else type(data).__name__
+        raise ValueError(f"{what} {path}: not a {fmt} file (format {found!r})")
+    return data
+
+
 @dataclass(frozen=True)
 class FDIResponse:
     """Per component j, the knots (true k, mean k_hat) of h_j; an empty tuple leaves component j as measured.
@@ -135,12 +147,7 @@ class FDIResponse:
     @classmethod
     def load(cls, path: str | os.PathLike) -> FDIResponse:
         """Read a response written by :meth:`save` (JSON only)."""
-        try:
-            data = json.loads(Path(path).read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ValueError(f"fdi response {path}: cannot read it ({exc})") from exc
-        if not isinstance(data, dict) or data.get("format") != FORMAT:
-            raise ValueError(f"fdi response {path}: not a {FORMAT} file (format {data.get('format')!r})")
+        data = read_companion_json(path, FORMAT, "fdi response")
         comps = data.get("components", {})
         missing = [n for n in FAULT_NAMES if n not in comps]
         if missing:

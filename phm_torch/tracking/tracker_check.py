@@ -11,15 +11,13 @@ the near-nominal FDI, so the figures lean to optimism: a shortfall here is a flo
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
-from ..io.atomic import atomic_open
-from .response import check_probe
+from ..io.atomic import write_json
+from .response import check_probe, read_companion_json
 
 FORMAT = "phm_torch.tracker_check/1"
 FIGURES = (  # phm_torch.prognostics.life_metrics' figures of the tracker, as recorded
@@ -108,18 +106,12 @@ class TrackerCheck:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write the check as JSON, atomically."""
-        with atomic_open(Path(path), "w") as fh:
-            json.dump(self.to_json(), fh, indent=1)
+        write_json(path, self.to_json())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> TrackerCheck:
         """Read a check written by :meth:`save` (JSON only)."""
-        try:
-            data = json.loads(Path(path).read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise ValueError(f"tracker check {path}: cannot read it ({exc})") from exc
-        if not isinstance(data, dict) or data.get("format") != FORMAT:
-            raise ValueError(f"tracker check {path}: not a {FORMAT} file")
+        data = read_companion_json(path, FORMAT, "tracker check")
         try:
             return cls(
                 data["figures"], data["rule"], int(data["histories"]), int(data["inspections"]), data["pipeline"]
