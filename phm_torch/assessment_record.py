@@ -13,6 +13,8 @@ import json
 from collections.abc import Mapping
 from typing import Any
 
+from .assessment.margins import NO_RESPONSE_DB
+
 # settings that change how phi_a runs, not what it answers. group_size is one only within the settling tolerance:
 # with max_extensions 0 it moves a few labels nearest the requirements (docs/dataset.md, "Settling and refinement")
 RUN_ONLY = ("compile", "group_size")
@@ -21,7 +23,13 @@ RUN_ONLY = ("compile", "group_size")
 # no_response_db (2026-11-29): a store labelled before it read every sweep reading; its records are read as labelled
 # with the floor, which changes no label of 512 of the reference's importance-sampled vectors, 3 of 384 of the rudder's
 # and 7 of 384 of a ball screw whose sweep sticks in dry friction (measured): re-generate such a store's labels
-SWEEP_DEFAULTS = {"tolerance": 0.005, "max_extensions": 0, "refine": 0, "rotor_positions": 1, "no_response_db": -40.0}
+SWEEP_DEFAULTS = {
+    "tolerance": 0.005,
+    "max_extensions": 0,
+    "refine": 0,
+    "rotor_positions": 1,
+    "no_response_db": NO_RESPONSE_DB,
+}
 
 
 def labelling(assessment: Mapping[str, Any] | None) -> dict[str, Any] | None:
