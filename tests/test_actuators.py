@@ -12,7 +12,7 @@ import torch
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from phm_torch.assessment import FrequencyResponse, SineSweep, margins
+from phm_torch.assessment import FrequencyResponse, SineSweep
 from phm_torch.assessment.actuator_check import (
     CheckRequirements,
     default_frequencies,
@@ -98,8 +98,8 @@ def measured(hvdc, command):
     cases = single_fault_cases(hvdc.nominal_faults)
     amp = default_sweep_amplitude(hvdc, command.amplitude)
     sweep = SineSweep(tuple(np.geomspace(4.0, 100.0, 9)), amp, 3, 2, 0.0, 1, 9, False)
-    r = FrequencyResponse(hvdc, sweep).measure(torch.tensor(list(cases.values()), dtype=torch.float64))
-    m = margins(r.frequencies, r.open_loop, r.closed_loop)
+    response = FrequencyResponse(hvdc, sweep)
+    m = response.margins_of(response.measure(torch.tensor(list(cases.values()), dtype=torch.float64)))
     return {n: {k: float(v[i]) for k, v in m.as_dict().items()} for i, n in enumerate(cases)}, amp
 
 

@@ -568,16 +568,16 @@ def test_reading_stops_at_the_first_failing_rotor_position_and_labels_as_reading
     a = phi(k)
     asked = list(calls)  # the batch's own calls (the reads below ask again for every row)
     reads = [x.read(k) for x in phi.responses]
-    last = worst_margins([margins(r.frequencies, r.open_loop, r.closed_loop) for r in reads])
-    before = worst_margins([margins(r.before.frequencies, r.before.open_loop, r.before.closed_loop) for r in reads])
+    last = worst_margins([x.margins_of(r) for x, r in zip(phi.responses, reads, strict=True)])
+    before = worst_margins([x.margins_of(r.before) for x, r in zip(phi.responses, reads, strict=True)])
     bw0 = phi.nominal_bandwidth_hz
     healthy = phi.requirements.healthy(last, bw0)
     assert 4 <= int(healthy.sum()) <= 16  # both classes, so both paths are exercised
     assert torch.equal(a.healthy, healthy)
     assert torch.equal(a.uncertain, healthy != phi.requirements.healthy(before, bw0))
     assert torch.equal(a.margins.stacked()[healthy], last.stacked()[healthy])
-    first = margins(reads[0].frequencies, reads[0].open_loop, reads[0].closed_loop)
-    first_before = margins(reads[0].before.frequencies, reads[0].before.open_loop, reads[0].before.closed_loop)
+    first = phi.responses[0].margins_of(reads[0])
+    first_before = phi.responses[0].margins_of(reads[0].before)
     # the shorts: invisible in phase A at one position, alike and failing over three
     m1, m3 = first.stacked(), last.stacked()
     assert torch.equal(m1[1], m1[0]) and phi.requirements.healthy(first, bw0)[:4].tolist() == [True, True, False, False]
@@ -650,7 +650,7 @@ def test_the_lf_loop_reads_the_hf_loops_margins_as_the_position_gain_changes(par
     k[:, 7] = torch.tensor([0.5, 0.2, 0.8, 1.0], dtype=torch.float64)
     lf = FrequencyResponse(params, sweep)
     hf = FrequencyResponse(params, sweep, simulator=EMASimulator(lf.params, "hf"))
-    a, b = (margins(r.frequencies, r.open_loop, r.closed_loop).as_dict() for r in (lf.read(k), hf.read(k)))
+    a, b = (x.margins_of(x.read(k)).as_dict() for x in (lf, hf))
     assert torch.isnan(a["phase_margin_deg"][1]) and torch.isnan(b["phase_margin_deg"][1])  # below 0 dB everywhere
     assert (a["gain_margin_db"] - b["gain_margin_db"]).abs().max() < 0.5
     assert (a["gain_margin_db"][[0, 2, 3]] > b["gain_margin_db"][[0, 2, 3]]).all()  # the HF loop's extra lag

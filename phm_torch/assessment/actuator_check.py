@@ -288,8 +288,8 @@ class ActuatorCheck:
 
     def measured_margins(self) -> Margins:
         """LF-measured margins of every case (B = number of cases)."""
-        r = FrequencyResponse(self.params, self.sweep).read(self.faults(list(self.cases)))
-        return margins(r.frequencies, r.open_loop, r.closed_loop, self.sweep.no_response_db)
+        response = FrequencyResponse(self.params, self.sweep)
+        return response.margins_of(response.read(self.faults(list(self.cases))))
 
     def simulate(self, fidelity: str, names: Sequence[str]) -> tuple[Signals, Signals]:
         """(step, command) records of ``names`` on one fidelity."""

@@ -58,7 +58,7 @@ from ..faults import as_fault_tensor
 from ..params import ActuatorParams
 from ..sim_state import SimState, at_rotor_angle
 from ..simulator import EMASimulator
-from .margins import margins
+from .margins import Margins, margins
 from .readings import LoopResponse, Readings
 from .sweep import SineSweep
 
@@ -265,6 +265,11 @@ class FrequencyResponse:
             *(torch.stack([cols[i][j] for i in range(len(self.plan))], -1) for j in range(5)),
         )
 
+    def margins_of(self, r: LoopResponse) -> Margins:
+        """Margins of ``r``, a response this sweep measured, read with the sweep's no-response floor (every swept
+        loop's margins go through here, so that no caller reads a reading stuck in dry friction as a response)."""
+        return margins(r.frequencies, r.open_loop, r.closed_loop, self.sweep.no_response_db)
+
     def read(self, faults: torch.Tensor) -> LoopResponse:
         """The response phi_a reads: :meth:`measure` on the grid, then :meth:`refine` (``sweep.refine`` rounds)."""
         return self.refine(faults, self.measure(faults))
@@ -287,7 +292,7 @@ class FrequencyResponse:
 
     def _refine_once(self, k: torch.Tensor, r: LoopResponse) -> LoopResponse:
         b = k.shape[0]
-        m = margins(r.frequencies, r.open_loop, r.closed_loop, self.sweep.no_response_db)
+        m = self.margins_of(r)
         freqs = r.frequencies.expand(b, -1) if r.frequencies.ndim == 1 else r.frequencies
         old = (r.open_loop, r.closed_loop, r.settled, r.open_loop_before, r.closed_loop_before)
         if any(x is None for x in old):

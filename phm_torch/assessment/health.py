@@ -19,7 +19,7 @@ from ..faults import FAULT_NAMES, as_fault_tensor
 from ..params import ActuatorParams
 from ..provenance import actuator_values, digest
 from .frequency_response import FrequencyResponse, padded_size, padding_index
-from .margins import Margins, margins
+from .margins import Margins
 from .sweep import SineSweep
 
 log = logging.getLogger(__name__)
@@ -148,7 +148,7 @@ class AssessmentFunction:
             )
             k0 = torch.tensor([self.params.nominal_faults], dtype=torch.float64)
             r = eager.read(k0)
-            self._nominal = margins(r.frequencies, r.open_loop, r.closed_loop, self.sweep.no_response_db)
+            self._nominal = eager.margins_of(r)
             self._shared["nominal"] = self._nominal.stacked().clone()
         return self._nominal
 
@@ -194,12 +194,7 @@ class AssessmentFunction:
             ]
             k = torch.tensor([self.params.nominal_faults] * 4, dtype=torch.float64)
             k[1:, 2:5] += torch.eye(3, dtype=torch.float64) * (1.0 - k[1:, 2:5])
-            found = worst_margins(
-                [
-                    margins(x.frequencies, x.open_loop, x.closed_loop, self.sweep.no_response_db)
-                    for x in (e.read(k) for e in eager)
-                ]
-            ).stacked()
+            found = worst_margins([e.margins_of(e.read(k)) for e in eager]).stacked()
             same = reads_as(found[1:], found[:1])
             self._invisible = [FAULT_NAMES[2 + i] for i in range(3) if bool(same[i])]
             self._shared["invisible"] = list(self._invisible)
@@ -227,8 +222,7 @@ class AssessmentFunction:
             k = k[padding_index(n, min(padded_size(n), batch), k.device)]
         r = response.read(k)
         return tuple(  # type: ignore[return-value]
-            margins(x.frequencies, x.open_loop, x.closed_loop, self.sweep.no_response_db).take_rows(slice(0, n))
-            for x in (r, r.before)
+            response.margins_of(x).take_rows(slice(0, n)) for x in (r, r.before)
         )
 
     def __call__(self, faults: torch.Tensor) -> Assessment:
