@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import importlib
+import itertools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -116,6 +117,119 @@ class Sine:
         return self.offset + self.amplitude * torch.sin(2.0 * math.pi * self.frequency * t)
 
 
+def _floats(values: Any, field: str) -> tuple[float, ...]:
+    """``values`` (a YAML list) as a tuple of finite floats, or a ValueError naming ``field``."""
+    try:
+        out = tuple(float(v) for v in values)
+    except (TypeError, ValueError):
+        raise ValueError(f"command.{field} must be a list of numbers, got {values!r}") from None
+    if not all(math.isfinite(v) for v in out):
+        raise ValueError(f"command.{field} must hold finite numbers, got {list(out)}")
+    return out
+
+
+@dataclass(frozen=True)
+class Profile:
+    """A piecewise-linear position profile through breakpoints: steps, ramps, trapezoids, doublets, as acceptance
+    test procedures write them.
+
+    theta_cmd is linear between consecutive breakpoints, holds the first position before the first time and the last
+    after the last; two breakpoints at the same time are a step (the later position from that time on). The
+    breakpoints are the command's parameters, so a profile's provenance hash changes with any of them.
+
+    Attributes:
+        times: breakpoint times [s], non-decreasing, >= 0, at most two equal in a row.
+        positions: theta_cmd at each breakpoint [rad, user side].
+        duration: T [s], the record's length (may run past the last breakpoint: the position holds).
+    """
+
+    times: tuple[float, ...]
+    positions: tuple[float, ...]
+    duration: float
+
+    def __post_init__(self) -> None:
+        times, positions = _floats(self.times, "times"), _floats(self.positions, "positions")
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "positions", positions)
+        if len(times) < 2 or len(times) != len(positions):
+            raise ValueError(
+                f"command: a profile needs >= 2 breakpoints and as many positions as times, got {len(times)} "
+                f"times and {len(positions)} positions"
+            )
+        steps = [b - a for a, b in itertools.pairwise(times)]
+        if times[0] < 0 or any(d < 0 for d in steps):
+            raise ValueError(f"command.times must be >= 0 and non-decreasing, got {list(times)}")
+        if any(a == 0 and b == 0 for a, b in itertools.pairwise(steps)):
+            raise ValueError(f"command.times: at most two breakpoints at one time (a step), got {list(times)}")
+        if not (math.isfinite(self.duration) and self.duration > 0):
+            raise ValueError(f"command.duration must be > 0, got {self.duration}")
+        if self.amplitude <= 0:
+            raise ValueError(f"command.positions: a profile that never leaves 0 tests nothing, got {list(positions)}")
+
+    @property
+    def amplitude(self) -> float:
+        """The largest |theta_cmd| [rad] (what the sweep's and the step check's sizes derive from)."""
+        return max(abs(p) for p in self.positions)
+
+    def __call__(self, t: torch.Tensor) -> torch.Tensor:
+        """Command [rad] at times t [s] (any shape)."""
+        times = torch.tensor(self.times, dtype=t.dtype, device=t.device)
+        positions = torch.tensor(self.positions, dtype=t.dtype, device=t.device)
+        # segment [i - 1, i] with times[i - 1] <= t < times[i]; at a step's time the later segment
+        i = torch.searchsorted(times, t.contiguous(), right=True).clamp(1, len(self.times) - 1)
+        t0, t1 = times[i - 1], times[i]
+        width = t1 - t0
+        w = torch.where(width > 0, (t - t0) / torch.where(width > 0, width, 1.0), (t >= t1).to(t.dtype))
+        p0, p1 = positions[i - 1], positions[i]
+        return p0 + w.clamp(0.0, 1.0) * (p1 - p0)
+
+
+@dataclass(frozen=True)
+class Multisine:
+    """A sum of sines theta_cmd(t) = sum_i A_i sin(2 pi f_i t + phi_i): a broadband test of chosen lines.
+
+    Attributes:
+        amplitudes: A_i [rad, user side], > 0.  frequencies: f_i [Hz], > 0.  phases: phi_i [rad] (empty: all 0;
+            a Schroeder phasing keeps the peak low).  duration: T [s].
+    """
+
+    amplitudes: tuple[float, ...]
+    frequencies: tuple[float, ...]
+    duration: float
+    phases: tuple[float, ...] = ()
+
+    def __post_init__(self) -> None:
+        amplitudes, frequencies = _floats(self.amplitudes, "amplitudes"), _floats(self.frequencies, "frequencies")
+        phases = _floats(self.phases, "phases") or (0.0,) * len(amplitudes)
+        for field, value in (("amplitudes", amplitudes), ("frequencies", frequencies), ("phases", phases)):
+            object.__setattr__(self, field, value)
+        if not amplitudes or len(frequencies) != len(amplitudes) or len(phases) != len(amplitudes):
+            raise ValueError(
+                f"command: a multisine needs as many frequencies (and phases, if any) as amplitudes, got "
+                f"{len(amplitudes)} amplitudes, {len(frequencies)} frequencies, {len(phases)} phases"
+            )
+        if any(a <= 0 for a in amplitudes) or any(f <= 0 for f in frequencies):
+            raise ValueError(
+                f"command: a multisine's amplitudes and frequencies must be > 0, got {list(amplitudes)}, "
+                f"{list(frequencies)}"
+            )
+        if not (math.isfinite(self.duration) and self.duration > 0):
+            raise ValueError(f"command.duration must be > 0, got {self.duration}")
+
+    @property
+    def amplitude(self) -> float:
+        """sum |A_i| [rad]: the peak the lines can reach together (what the sweep's and the step check's sizes
+        derive from)."""
+        return float(sum(self.amplitudes))
+
+    def __call__(self, t: torch.Tensor) -> torch.Tensor:
+        """Command [rad] at times t [s] (any shape)."""
+        out = torch.zeros_like(t)
+        for a, f, phi in zip(self.amplitudes, self.frequencies, self.phases, strict=True):
+            out = out + a * torch.sin(2.0 * math.pi * f * t + phi)
+        return out
+
+
 def time_grid(
     duration: float, sample_rate: float, dtype: torch.dtype = torch.float64, device: str | torch.device = "cpu"
 ) -> torch.Tensor:
@@ -131,6 +245,8 @@ COMMANDS = {
     "slewed_chirp": SlewedChirp,
     "sine": Sine,
     "log_chirp": LogChirp,
+    "profile": Profile,
+    "multisine": Multisine,
 }  # command kinds: conf/command/<name>.yaml composes in the defaults of one
 
 

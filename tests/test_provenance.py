@@ -256,3 +256,62 @@ def test_a_log_chirp_sweeps_each_octave_in_equal_time_and_hashes_apart(tmp_path)
     assert name == str(path) and node["f_end"] == 16.0
     linear = {**node, "_target_": "phm_torch.command.Chirp"}
     assert provenance.command_record("s", node)["sha256"] != provenance.command_record("s", linear)["sha256"]
+
+
+def test_a_profile_steps_ramps_and_holds_through_its_breakpoints(tmp_path):
+    """Profile: linear between breakpoints, a step at two equal times (the later position from that time on), the
+    first position held before and the last after; amplitude the largest |position|; bad profiles refused by field;
+    a user's YAML read as any command file, and a moved breakpoint a different command."""
+    from hydra.utils import instantiate
+
+    from phm_torch.command import COMMANDS, Profile, load_command_node
+
+    doublet = Profile([0.0, 0.1, 0.1, 0.3, 0.4], [1e-3, 1e-3, 4e-3, 4e-3, -2e-3], 0.5)
+    t = torch.tensor([0.0, 0.0999, 0.1, 0.2, 0.3, 0.35, 0.4, 0.5], dtype=torch.float64)
+    want = [1e-3, 1e-3, 4e-3, 4e-3, 4e-3, 1e-3, -2e-3, -2e-3]
+    torch.testing.assert_close(doublet(t), torch.tensor(want, dtype=torch.float64), atol=1e-12, rtol=0)
+    late = Profile([0.05, 0.15], [0.0, 2e-3], 0.2)  # the first position held from t = 0
+    torch.testing.assert_close(late(torch.tensor([0.0, 0.1, 0.2])), torch.tensor([0.0, 1e-3, 2e-3]))
+    assert doublet.amplitude == 4e-3 and COMMANDS["profile"] is Profile
+    bad = {
+        "times must be >= 0 and non-decreasing": ([0.0, 0.2, 0.1], [0.0, 1e-3, 0.0]),
+        "at most two breakpoints at one time": ([0.0, 0.1, 0.1, 0.1], [0.0, 1e-3, 0.0, 1e-3]),
+        "as many positions as times": ([0.0, 0.1], [0.0, 1e-3, 0.0]),
+        "never leaves 0": ([0.0, 0.1], [0.0, 0.0]),
+        "positions must be a list of numbers": ([0.0, 0.1], ["a", 1e-3]),
+        "times must hold finite numbers": ([0.0, float("nan")], [0.0, 1e-3]),
+    }
+    for message, (times, positions) in bad.items():
+        with pytest.raises(ValueError, match=message):
+            Profile(times, positions, 0.5)
+    with pytest.raises(ValueError, match="command.duration must be > 0"):
+        Profile([0.0, 0.1], [0.0, 1e-3], 0.0)
+    path = tmp_path / "doublet.yaml"
+    path.write_text(
+        "_target_: phm_torch.command.Profile\ntimes: [0.0, 0.1, 0.1, 0.5]\npositions: [0.0, 0.0, 2.0e-3, 2.0e-3]\n"
+        "duration: 0.5\n"
+    )
+    name, node = load_command_node(str(path))
+    assert instantiate(node)(torch.tensor([0.05, 0.1], dtype=torch.float64)).tolist() == [0.0, 2e-3]
+    moved = {**node, "times": [0.0, 0.12, 0.12, 0.5]}
+    assert provenance.command_record(name, node)["sha256"] != provenance.command_record(name, moved)["sha256"]
+
+
+def test_a_multisine_sums_its_lines_and_reads_them_back():
+    """Multisine: the record's DFT reads each line's amplitude and phase (whole cycles of every line in the record);
+    the amplitude is the lines' summed peak; mismatched or non-positive lines refused by field."""
+    from phm_torch.command import COMMANDS, Multisine
+
+    lines = Multisine([2e-3, 1e-3, 5e-4], [2.0, 6.0, 14.0], 0.5, phases=[0.0, 1.0, -2.0])
+    t = time_grid(0.5, 20_000.0)[:-1]  # 10,000 samples: whole cycles of 2, 6 and 14 Hz
+    spectrum = torch.fft.rfft(lines(t)) * 2 / t.numel()
+    for a, f, phi in zip(lines.amplitudes, lines.frequencies, lines.phases, strict=True):
+        line = spectrum[round(f * 0.5)]  # bin spacing 2 Hz
+        want = a * complex(math.cos(phi - math.pi / 2), math.sin(phi - math.pi / 2))  # sin = cos(. - pi/2)
+        assert abs(complex(line) - want) < 1e-9 * a
+    assert lines.amplitude == pytest.approx(3.5e-3) and COMMANDS["multisine"] is Multisine
+    assert Multisine([1e-3], [3.0], 0.5).phases == (0.0,)
+    with pytest.raises(ValueError, match="as many frequencies"):
+        Multisine([1e-3, 1e-3], [3.0], 0.5)
+    with pytest.raises(ValueError, match="must be > 0"):
+        Multisine([1e-3], [0.0], 0.5)

@@ -48,8 +48,29 @@ MOTOR = ("back_emf_constant", "phase_resistance", "phase_inductance", "motor_ine
 SIMULATED = {  # kinds simulated under changed conditions: severities, unit, description
     "other_actuator": ((0.1, 0.3, 0.6), "motor values x (1 + s)", f"another motor: {', '.join(MOTOR)} scaled"),
     "command_amplitude": ((0.2, 0.5, 1.0), "amplitude x (1 + s)", "the test run at another amplitude"),
-    "command_frequency": ((0.2, 0.5, 1.0), "end frequency x (1 + s)", "the test run at another chirp rate"),
+    "command_frequency": (
+        (0.2, 0.5, 1.0),
+        "end frequency (or playback rate) x (1 + s)",
+        "the test run at another chirp rate (a command without an end frequency: played faster)",
+    ),
 }
+
+
+@dataclass(frozen=True)
+class _Replayed:
+    """``base`` played with its positions x ``gain`` and its time axis x ``speed``: the wrong-amplitude and wrong-rate
+    runs of a command that has no ``amplitude`` or ``f_end`` parameter to change (a profile, a multisine)."""
+
+    base: Any
+    gain: float = 1.0
+    speed: float = 1.0
+
+    @property
+    def duration(self) -> float:
+        return float(self.base.duration)
+
+    def __call__(self, t: torch.Tensor) -> torch.Tensor:
+        return self.gain * self.base(t * self.speed)
 
 
 @dataclass(frozen=True)
@@ -135,9 +156,14 @@ def suite_records(
             if kind == "other_actuator":
                 p = params.replace(**{name: getattr(params, name) * (1.0 + s) for name in MOTOR})
             elif kind == "command_amplitude":
-                cmd = instantiate({**node, "amplitude": node["amplitude"] * (1.0 + s)})
-            else:
+                if "amplitude" in node:
+                    cmd = instantiate({**node, "amplitude": node["amplitude"] * (1.0 + s)})
+                else:
+                    cmd = _Replayed(command, gain=1.0 + s)
+            elif "f_end" in node:
                 cmd = instantiate({**node, "f_end": node["f_end"] * (1.0 + s)})
+            else:
+                cmd = _Replayed(command, speed=1.0 + s)
             changed[kind][s] = _cases(_simulate(p, pair, cmd, cache, kind), model, SUITE_NOISE, rng)
     return base, changed
 
