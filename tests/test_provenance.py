@@ -143,19 +143,21 @@ def test_unknown_actuator_lists_the_available_ones(run_cli, app):
 
 def test_user_config_folder_reaches_every_stage(run_cli, tmp_path):
     """A user's own actuator and command YAML outside the repository, found through Hydra's search path:
-    phm-run passes the choice (and the folder) to its stages, and the store records it."""
+    phm-run passes the choice (and the folder) to its stages, and the store records it. The command is a step
+    profile (``Profile``): a test shape that is not a sweep reaches the store the same way."""
     folder = tmp_path / "my_conf"
     (folder / "actuator").mkdir(parents=True)
     (folder / "command").mkdir()
     text = (CONF_DIR / "actuator" / "ema_reference.yaml").read_text()
     (folder / "actuator" / "my_ema.yaml").write_text(text.replace("gear_ratio: 200.0", "gear_ratio: 160.0"))
-    (folder / "command" / "my_chirp.yaml").write_text(
-        "_target_: phm_torch.command.Chirp\namplitude: 4.0e-3\nf_start: 0.0\nf_end: 12.0\nduration: 0.1\n"
+    (folder / "command" / "my_step.yaml").write_text(
+        "_target_: phm_torch.command.Profile\ntimes: [0.0, 0.02, 0.02, 0.1]\npositions: [0.0, 0.0, 4.0e-3, 4.0e-3]\n"
+        "duration: 0.1\n"
     )
     done = run_cli(
         "phm_torch.apps.run",
         "actuator=my_ema",
-        "command=my_chirp",
+        "command=my_step",
         f"hydra.searchpath=[file://{folder}]",
         f"out_dir={tmp_path}/run",
         "stages=[generate]",
@@ -173,7 +175,7 @@ def test_user_config_folder_reaches_every_stage(run_cli, tmp_path):
         actuator["sha256"]
         == provenance.actuator_record("x", load_actuator(str(folder / "actuator" / "my_ema.yaml")))["sha256"]
     )
-    assert command["name"] == "my_chirp" and command["params"]["f_end"] == 12.0
+    assert command["name"] == "my_step" and command["params"]["times"] == [0.0, 0.02, 0.02, 0.1]
     # a consumer told another actuator explicitly refuses, naming both
     refused = run_cli("phm_torch.apps.train", f"data_dir={tmp_path}/run/data", "actuator=ema_reference", timeout=120)
     assert refused.returncode == 2
