@@ -10,13 +10,16 @@ import numpy as np
 import pytest
 import torch
 
-from phm_torch.command import Chirp, Sine
+from phm_torch.command import Chirp, Profile, Sine
 from phm_torch.online.clock_alignment import CLOCK_MIN, align_clock, stretched
 from phm_torch.online.corruptions import Record
 from phm_torch.online.record_corrections import align_trigger
 
 RATE = 20000.0
 CHIRP = Chirp(amplitude=5e-3, f_start=0.0, f_end=15.0, duration=0.5)
+# profiles that hold still in most of the record's windows: a doublet of steps, a trapezoid of ramps and holds
+DOUBLET = Profile([0.0, 0.02, 0.02, 0.18, 0.18, 0.34, 0.34, 0.5], [0.0, 0.0, 4e-3, 4e-3, -4e-3, -4e-3, 0.0, 0.0], 0.5)
+TRAPEZOID = Profile([0.0, 0.05, 0.15, 0.3, 0.4, 0.5], [0.0, 0.0, 4e-3, 4e-3, 0.0, 0.0], 0.5)
 
 
 def _record(command, error: float = 0.0, delay: int = 0) -> Record:
@@ -39,6 +42,23 @@ def test_the_stretch_is_read_off_the_command_column_and_undone(error):
     span = float(truth.current.max() - truth.current.min())
     assert float((record.current[:n] - truth.current[:n]).abs().max()) < 2e-3 * span
     assert torch.equal(torch.isfinite(record.position), torch.isfinite(record.current))  # every channel alike
+
+
+@pytest.mark.parametrize("command", [DOUBLET, TRAPEZOID], ids=["doublet", "trapezoid"])
+@pytest.mark.parametrize("error", [0.002, 0.005, -0.005, 0.01, -0.02])
+def test_a_profile_that_holds_still_is_read_where_it_moves(command, error):
+    """Before, the windows of the record's second half held still (the doublet's last step at 0.34 s, the
+    trapezoid's hold) and no stretch was found: the record went on stretched, its k_hat moved and nothing was
+    flagged. Now the windows where the command moves give it, refined on the command column's own fit."""
+    truth = _record(command)
+    record, found = align_clock(_record(command, error), command)
+    assert found == pytest.approx(error, abs=2e-4)
+    n = int(torch.isfinite(record.current).int().cumprod(0).sum())
+    span = float(truth.current.max() - truth.current.min())
+    # a step lands within a sample of its place; elsewhere the channels are undone
+    wrong = (record.current[:n] - truth.current[:n]).abs() > 2e-2 * span
+    assert int(wrong.sum()) <= 6
+    assert align_clock(_record(command), command)[1] == 0.0  # the right clock: left as it came
 
 
 def test_with_a_trigger_offset_the_stretch_then_the_shift():
