@@ -135,7 +135,9 @@ class Profile:
 
     theta_cmd is linear between consecutive breakpoints, holds the first position before the first time and the last
     after the last; two breakpoints at the same time are a step (the later position from that time on). The
-    breakpoints are the command's parameters, so a profile's provenance hash changes with any of them.
+    breakpoints are the command's parameters, so a profile's provenance hash changes with any of them. Every
+    simulation starts at rest at 0: a first position other than 0 is a step at t = 0 (a bench that pre-positions
+    the actuator records something else; start the profile at 0 and move from there).
 
     Attributes:
         times: breakpoint times [s], non-decreasing, >= 0, at most two equal in a row.
