@@ -6,10 +6,11 @@ import dataclasses
 import importlib
 import itertools
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
 import torch
 
 
@@ -184,6 +185,43 @@ class Profile:
         w = torch.where(width > 0, (t - t0) / torch.where(width > 0, width, 1.0), (t >= t1).to(t.dtype))
         p0, p1 = positions[i - 1], positions[i]
         return p0 + w.clamp(0.0, 1.0) * (p1 - p0)
+
+
+def profile_from_samples(
+    times: Sequence[float] | np.ndarray, positions: Sequence[float] | np.ndarray, tolerance: float
+) -> Profile:
+    """The :class:`Profile` through as few of a sampled command's points as keep every sample within ``tolerance``
+    of it (Ramer-Douglas-Peucker): a bench's recorded command as a test command config, its hash that of every point
+    kept.
+
+    Args:
+        times: (n,) sample times [s], increasing (the first becomes t = 0).
+        positions: (n,) the command at them [rad, user side].
+        tolerance: the largest |profile - sample| allowed [rad], > 0.
+    """
+    t = np.asarray(times, dtype=np.float64)
+    x = np.asarray(positions, dtype=np.float64)
+    if t.ndim != 1 or t.shape != x.shape or t.size < 2:
+        raise ValueError(f"command samples: times and positions must be (n,) with n >= 2, got {t.shape}, {x.shape}")
+    if not (np.isfinite(t).all() and np.isfinite(x).all()) or not bool((np.diff(t) > 0).all()):
+        raise ValueError("command samples: times must increase and every value be finite")
+    if not (math.isfinite(tolerance) and tolerance > 0):
+        raise ValueError(f"tolerance must be > 0 [rad], got {tolerance!r}")
+    t = t - t[0]
+    keep = np.zeros(t.size, dtype=bool)
+    keep[[0, -1]] = True
+    spans = [(0, t.size - 1)]
+    while spans:  # split each span at its farthest sample until every sample is within the tolerance
+        a, b = spans.pop()
+        if b - a < 2:
+            continue
+        line = x[a] + (x[b] - x[a]) * (t[a + 1 : b] - t[a]) / (t[b] - t[a])
+        off = np.abs(x[a + 1 : b] - line)
+        i = int(np.argmax(off))
+        if off[i] > tolerance:
+            keep[a + 1 + i] = True
+            spans += [(a, a + 1 + i), (a + 1 + i, b)]
+    return Profile(tuple(t[keep].tolist()), tuple(x[keep].tolist()), float(t[-1]))
 
 
 @dataclass(frozen=True)
