@@ -448,3 +448,27 @@ def test_closure_output_unit_follows_the_actuator_unless_given():
     assert output_scale(ClosureSettings(output_scale=2e-3), rudder) == 2e-3
     with pytest.raises(ValueError, match="closure.output_scale"):
         ClosureSettings(output_scale=-1.0)
+
+
+@pytest.mark.slow  # 2.4 min beside two other jobs
+def test_the_lf_models_own_error_on_a_command_is_measured_against_the_noise():
+    """fidelity_gap: on a step doublet (the motor at its speed and voltage limits, where the LF model is at its
+    worst) the HF model with the calibrated parameters differs from the LF one by more than the record's noise, and
+    most at the reversal; on a chirp recorded with a bench's noise it differs by less than that noise."""
+    from phm_torch.command import Profile
+    from phm_torch.workbench.fidelity_gap import fidelity_gap
+
+    duration = 0.12
+    doublet = Profile([0.0, 0.02, 0.02, 0.06, 0.06, duration], [0.0, 0.0, 4e-3, 4e-3, -4e-3, -4e-3], duration)
+    settings = quick_settings(calibration=quick_settings().calibration.__class__(max_iter=2))
+    noisy = {"current": 0.1, "position": 1e-4}
+    found = {}
+    for name, command, noise in (("doublet", doublet, NOISE), ("chirp", Chirp(duration=duration), noisy)):
+        m = synthesize(P, [Case({}, noise, seed=5)], command, duration, fidelity="hf")[0]
+        wb = Workbench(P, settings=settings)
+        cal = wb.calibrate(wb.evaluator([record_from_measurement(m, P, ["position", "current"], name)]))
+        floor = wb.metrics(cal, cal.sigma)["noise_floor"]["total"]
+        found[name] = fidelity_gap(cal, floor)
+    assert found["doublet"]["above_floor"] and found["doublet"]["nrmse"]["total"] > 5 * found["doublet"]["noise_floor"]
+    assert 0.06 < found["doublet"]["worst_t"][0] < 0.08  # the reversal at 0.06 s
+    assert not found["chirp"]["above_floor"] and found["chirp"]["nrmse"]["total"] > 0

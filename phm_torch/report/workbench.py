@@ -47,6 +47,15 @@ def html_page(report: dict, figs: dict[str, bytes]) -> str:
         )
     else:
         summary += "No library effect explains the residual beyond noise."
+    gap = report.get("fidelity_gap")
+    if gap and gap["above_floor"]:
+        summary += (
+            f" <b>On these records' commands the LF model itself differs from the HF model by "
+            f"{_pct(gap['nrmse'], 'total')}</b>, above the noise floor (most at "
+            f"{', '.join(f'{t:g} s' for t in gap['worst_t'])}): an effect smaller than that can be hidden by the LF "
+            "model's own error. Run the workbench with fidelity=hf, or measure on a command that keeps the motor "
+            "below its speed and voltage limits."
+        )
     r.markup(f"<p>{summary}</p>")
     orders = ", ".join(f"{k} {v}" for k, v in report["orders"].get("actuator", {}).items())
     residual = ", ".join(map(str, report["orders"].get("residual", []))) or "–"

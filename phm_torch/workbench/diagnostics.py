@@ -28,7 +28,9 @@ class DiagnosticSettings:
     """Attributes: window [s] and count of worst windows; bins of the maps; max_harmonic (mechanical
     order; ``None``: twice the actuator's highest structural order, see :func:`~.orders.max_order`);
     max_lag [samples] of the correlation plots; whiteness_lags for the Ljung-Box test; reversal
-    half-window [s]; alpha of the tests."""
+    half-window [s]; alpha of the tests; fidelity_gap: at LF fidelity, when nothing in the library explains the
+    residual, simulate the final model at HF too (one HF run a record) and report how far the two differ against the
+    noise floor (:mod:`~.fidelity_gap`)."""
 
     window: float = 0.025
     worst: int = 5
@@ -38,8 +40,11 @@ class DiagnosticSettings:
     whiteness_lags: int = 50
     reversal_window: float = 0.01
     alpha: float = 0.01
+    fidelity_gap: bool = True
 
     def __post_init__(self) -> None:
+        if not isinstance(self.fidelity_gap, bool):
+            raise ValueError(f"diagnostics.fidelity_gap must be true or false, got {self.fidelity_gap!r}")
         for name in ("worst", "bins", "max_harmonic", "max_lag", "whiteness_lags"):
             if getattr(self, name) is None and name == "max_harmonic":
                 continue

@@ -21,13 +21,12 @@ import torch
 
 from ..effects import EFFECTS
 from ..params import ActuatorParams
-from ..plant import build_plant
 from .calibrate import Calibration, estimate_sigma, fit_models
 from .candidates import Candidate, ScoreSettings, score_tests
 from .closure import ClosureResult, fit_closure
+from .coordinates import coordinates
 from .data import Record, load_records
 from .diagnostics import (
-    Coordinates,
     cross_correlation,
     error_metrics,
     harmonics,
@@ -37,6 +36,7 @@ from .diagnostics import (
     worst_windows,
 )
 from .evidence import evidence, groups
+from .fidelity_gap import fidelity_gap
 from .model import Evaluator
 from .noise import HighBandNoise
 from .orders import NAMED_ORDERS, actuator_orders, closure_orders, max_order, residual_orders
@@ -302,8 +302,12 @@ class Workbench:
         for rnd in rounds:
             rnd.candidates.sort(key=_order)
         noise = estimate_sigma(ev, current.simulated, self.noise)
-        closure = None
+        closure, gap = None, None
         if self._wants_closure(current, rounds, noise):
+            t1 = time.perf_counter()  # nothing in the library explains it: how far is the LF model from HF here?
+            floor = self.metrics(current, noise)["noise_floor"]["total"]
+            gap = fidelity_gap(current, floor) if s.diagnostics.fidelity_gap else None
+            timing["fidelity_gap_s"] = time.perf_counter() - t1
             t1 = time.perf_counter()
             closure = self.fit_closure(current)
             timing["closure_s"] = time.perf_counter() - t1
@@ -342,6 +346,7 @@ class Workbench:
             self.fidelity,
             self.actuator,
             orders,
+            gap,
         )
 
     def _wants_closure(self, cal: Calibration, rounds: list[Round], noise: list[dict[str, float]]) -> bool:
@@ -353,27 +358,6 @@ class Workbench:
         white = all(v["white"] for v in whiteness(cal.normalised(), self.settings.diagnostics).values())
         m = self.metrics(cal, noise)
         return not white and m["nrmse"]["total"] > self.settings.closure.ratio * m["noise_floor"]["total"]
-
-
-def coordinates(cal: Calibration) -> list[Coordinates]:
-    """Motor speed, angle and torque sign of the calibrated model and the measured current, per record.
-
-    The motor torque is rebuilt from the model's states with its calibrated parameters:
-    J_m dω/dt + c_m ω + T_c sign(ω) + K_t (θ_m / N - θ_u) / N (backlash and output damping neglected: only
-    its sign is used).
-    """
-    k, scales, _, _ = cal.space.settings(cal.x.reshape(1, -1))
-    plant = build_plant(cal.space.params, k, scales)
-    jm, cm, tc = (float(getattr(plant, f)[0]) for f in ("motor_inertia", "motor_viscous", "coulomb_friction"))
-    kt, n = float(plant.output_stiffness[0]), float(plant.gear_ratio[0])
-    out = []
-    for s, rec in zip(cal.simulated, cal.evaluator.records, strict=True):
-        w, th, thu = (s[c].numpy() for c in ("speed", "motor_angle", "user_angle"))
-        torque = jm * np.gradient(w) * rec.sample_rate + cm * w + tc * np.sign(w) + kt * (th / n - thu) / n
-        out.append(
-            Coordinates(w, th, rec.measured.get("current", s["current"]).numpy(), np.where(torque >= 0, 1.0, -1.0))
-        )
-    return out
 
 
 def _explain_away(rounds: list[Round]) -> None:

@@ -205,6 +205,7 @@ def report_dict(res: WorkbenchResult) -> dict:
         },
         "before_after": rows,
         "closure": closure,
+        "fidelity_gap": res.fidelity_gap,
         "retrain": generate_overrides(res.final.space.effect_values(res.final.x)) if res.added else None,
         "timing": res.timing,
     }

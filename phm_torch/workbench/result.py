@@ -40,6 +40,7 @@ class WorkbenchResult:
     fidelity: str
     actuator: str = "unnamed"
     orders: dict[str, Any] = field(default_factory=dict)
+    fidelity_gap: dict[str, Any] | None = None  # the LF model against HF on the records (fidelity_gap.py)
 
     @property
     def candidates(self) -> list[Candidate]:
