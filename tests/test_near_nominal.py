@@ -4,6 +4,7 @@ noise low, it round-trips through its file (weights_only) and refuses another pi
 
 from __future__ import annotations
 
+import copy
 import math
 
 import pytest
@@ -160,3 +161,27 @@ def test_a_full_record_network_projects_every_sample_on_an_orthonormal_basis(tmp
     assert again.n_full == n_full and torch.equal(again.basis_, net.basis_)
     with pytest.raises(ValueError, match="reads records of 200 samples"):
         again.check_for(make_pipeline(), "the synthetic pipeline")
+
+
+def test_its_held_out_r2_names_what_it_does_not_identify(fitted, tmp_path):
+    fitted = copy.deepcopy(fitted)
+    alpha, k = synthetic(500, 1)
+    fitted.calibrate(0, alpha, k, k, torch.full((500,), 0.01, dtype=torch.float64))
+    # the synthetic records do not see the phase: its estimate is the training prior
+    assert fitted.not_identified(0.01) == ["eccentricity_phase"]
+    # beyond the last calibrated level, that level's (this network was trained at 0.01 alone)
+    names = ["dry_friction", "backlash", "short_a", "short_b", "short_c", "eccentricity", "eccentricity_phase"]
+    last = [n for n, v in zip([*names, "gain_drift"], fitted.r2_[1].tolist()) if v < 0.25]
+    assert fitted.not_identified(0.05) == last and "eccentricity_phase" in last
+    with torch.no_grad():
+        mse = (fitted(alpha, torch.full((500,), 0.01, dtype=torch.float64)) - k).pow(2).mean(0)
+    torch.testing.assert_close(fitted.r2_[0], 1.0 - mse / k.var(0, unbiased=False), rtol=0, atol=1e-9)
+    assert float(fitted.r2_[0, 6]) < 0.25 < float(fitted.r2_[0, [0, 1, 2, 3, 4, 5, 7]].min())
+    # a file calibrated before R^2 was measured loads, and says it does not know
+    fitted.save(tmp_path / "nn.pt")
+    data = torch.load(tmp_path / "nn.pt", weights_only=True)
+    data["state"] = {name: v for name, v in data["state"].items() if name != "r2_"}
+    torch.save(data, tmp_path / "old.pt")
+    old = NearNominalFDI.load(tmp_path / "old.pt")
+    assert old.not_identified(0.01) is None
+    torch.testing.assert_close(old.half_widths_, fitted.half_widths_)

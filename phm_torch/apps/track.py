@@ -74,6 +74,7 @@ TRACKER_KEYS = (
     "verdict_evidence",
     "faulty_at",
     "boundary_std_hours",
+    "new_spread",
 )
 schema.register(
     "track",

@@ -6,8 +6,9 @@ from .builder import build_tracker
 from .damage_law import DamageLaw
 from .fleet import fleet_list, track_fleet
 from .index import Inspection, read_index
-from .particle_filter import Posterior, Tracker, TrackerSettings
+from .particle_filter import Posterior, Tracker
 from .particle_rul import ParticleRUL
+from .tracker_settings import TrackerSettings
 
 __all__ = [
     "DamageLaw",

@@ -7,11 +7,13 @@ import logging
 from collections.abc import Mapping
 from typing import Any
 
+from ..online.diagnosis import not_identified
 from .damage_law import DamageLaw, damage_config
 from .inspection import require_calibrated
-from .particle_filter import Tracker, TrackerSettings
+from .particle_filter import Tracker
 from .particle_rul import ParticleRUL, eps_log_sigmas
 from .response import FDIResponse
+from .tracker_settings import TrackerSettings
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +61,15 @@ def build_tracker(
             "are not weighed into the RUL",
             source,
         )
-    tracker = Tracker(law, rul, settings, None if prior is None else float(prior), response)
+    unread = not_identified(metadata)
+    if unread:
+        log.info(
+            "%s does not identify %s (R^2 below 0.25 on held-out records): they are not fused; the filter holds them "
+            "at the damage law's prediction from new",
+            source,
+            ", ".join(unread),
+        )
+    tracker = Tracker(law, rul, settings, None if prior is None else float(prior), response, unread)
     return tracker, {
         "damage": damage,
         "damage_source": where,
@@ -67,5 +77,6 @@ def build_tracker(
         "eps_log_sigmas": list(eps),
         "band_included_rate_scale": with_s,
         "verdict_prior_faulty": tracker.verdict_prior,
+        "not_fused": unread,
         "fdi_response": None if response is None else {"corrected": response.corrected, **response.pipeline},
     }

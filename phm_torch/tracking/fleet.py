@@ -19,7 +19,7 @@ import torch
 from ..faults import FAULT_NAMES
 from ..online.diagnosis import QUANTILES, censor
 from .index import Inspection
-from .inspection import measurement
+from .inspection import measurement, unread
 from .measurement import interval_scale, verdict_odds
 from .particle_filter import Posterior, Tracker
 from .state import fingerprint, load_state, save_state
@@ -51,11 +51,13 @@ def inspection_record(
     horizon: float,
     record_verdict: bool = False,
     k_corrected: tuple[list[float], list[float], list[float]] | None = None,
+    held: list[str] | None = None,
 ) -> dict[str, Any]:
     """One inspection of ``track.json`` (row ``i`` of the batch summary ``post``); ``k_corrected``: (k, lower,
     upper), the reading the filter fused where a response is used, k_hat and its interval through the FDI response's
     inverse (written as ``k_hat_corrected`` and ``k_hat_corrected_interval``; the near-nominal FDI's reading, where
-    it has one, as ``k_hat_near_nominal`` and ``k_hat_near_nominal_interval``)."""
+    it has one, as ``k_hat_near_nominal`` and ``k_hat_near_nominal_interval``); ``held``: the components of a fused
+    reading the filter did not read (:func:`~.inspection.unread`), written as ``k_not_fused``."""
     tracked = bool(post.tracked[i])
     rul, rul_censored = censor(post.rul[i].tolist(), horizon) if tracked else (None, False)
     snap = diagnosis.get("rul_hours")
@@ -81,6 +83,7 @@ def inspection_record(
         "out_of_distribution": bool(diagnosis["out_of_distribution"]),
         "ood_reasons": list(diagnosis.get("ood_reasons", [])),
         "fused": fused,
+        "k_not_fused": list(held or []) if fused else None,
         "snapshot_rul_hours": snapshot,
         "snapshot_rul_censored": snap_censored,
         "noise": diagnosis.get("noise"),
@@ -118,6 +121,8 @@ def _run_chunk(
             pipeline_read = torch.tensor([d.get("k_near_nominal") is None for d in diag]).unsqueeze(1)
             k_hat, lower, upper = (torch.where(pipeline_read, c, v) for c, v in zip(corrected, (k_hat, lower, upper)))
         scale = interval_scale(k_hat, lower, upper, dof)
+        held = [unread(d, tracker.not_identified) for d in diag]
+        observed = torch.tensor([[n not in h for n in FAULT_NAMES] for h in held])
         fuse = torch.tensor([not d["out_of_distribution"] for d in diag])
         record_verdict = tracker.settings.verdict == "record"
         faulty = torch.tensor([not d["healthy"] and record_verdict for d in diag])
@@ -132,6 +137,7 @@ def _run_chunk(
             faulty,
             restart,
             odds,
+            observed,
         )
         for i, (row, d) in enumerate(zip(batch, diag)):
             out[row.actuator].append(
@@ -144,6 +150,7 @@ def _run_chunk(
                     tracker.law.horizon_hours,
                     record_verdict,
                     None if tracker.response is None else (k_hat[i].tolist(), lower[i].tolist(), upper[i].tolist()),
+                    held[i],
                 )
             )
     return out

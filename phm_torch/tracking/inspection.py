@@ -70,6 +70,7 @@ def inspect_record(
         found["k_near_nominal_interval"] = {
             n: [a, b] for n, a, b in zip(FAULT_NAMES, lower[0].tolist(), upper[0].tolist())
         }
+        found["k_near_nominal_not_identified"] = near_nominal.not_identified(found["noise"])
     return found
 
 
@@ -148,7 +149,17 @@ def inspect_currents(
         if near is not None and near[0][i] and not bad:
             out[-1]["k_near_nominal"] = dict(zip(FAULT_NAMES, near[1][i]))
             out[-1]["k_near_nominal_interval"] = {n: [a, b] for n, a, b in zip(FAULT_NAMES, near[2][i], near[3][i])}
+            out[-1]["k_near_nominal_not_identified"] = near_nominal.not_identified(noise_list[i])
     return out
+
+
+def unread(diagnosis: dict[str, Any], pipeline_unread: list[str]) -> list[str]:
+    """The components of one diagnosis's reading (:func:`measurement`) that measure nothing (their estimate is the
+    training prior): the near-nominal FDI's own (R^2 on its held-out records at the record's noise) where it reads
+    the record and carries them, else ``pipeline_unread`` (the pipeline's, from phm-evaluate's ``identifiability``:
+    :func:`~phm_torch.online.diagnosis.not_identified`)."""
+    own = diagnosis.get("k_near_nominal_not_identified") if diagnosis.get("k_near_nominal") is not None else None
+    return list(own) if own is not None else list(pipeline_unread)
 
 
 def measurement(model: Any, diagnosis: dict[str, Any]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

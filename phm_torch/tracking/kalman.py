@@ -42,10 +42,11 @@ def predict(
 
 
 def update(
-    m: torch.Tensor, c: torch.Tensor, k_hat: torch.Tensor, scale: torch.Tensor
+    m: torch.Tensor, c: torch.Tensor, k_hat: torch.Tensor, scale: torch.Tensor, observed: torch.Tensor | None = None
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Kalman update with the estimates k_hat (B, 8) of error scales (B, 8): (m, c, log-likelihood (B, P) up to a
-    constant per row).
+    constant per row). ``observed`` (B, 8) bool: the components read (None: all); an unread one (an estimate that
+    is its training prior, not a measurement of k) moves nothing and weighs nothing.
 
     The errors of the components are independent, so the components are read one after the other (scalar
     updates, exact; no batched 8 x 8 factorisation, which costs more than the filter itself). A censored
@@ -59,7 +60,10 @@ def update(
     y_all = k_hat.unsqueeze(1).to(m).expand(b, p, n)
     loglik = torch.zeros(b, p, dtype=m.dtype)
     c = c.reshape(b * p, n, n).clone()  # updated in place
+    read = None if observed is None else observed.to(torch.bool).reshape(b, 1, n)
     for j in range(n):
+        if read is not None and not bool(read[..., j].any()):
+            continue
         cj = c[:, :, j].reshape(b, p, n).clone()  # (B, P, 8)
         mu, cjj, rj = m[..., j], cj[..., j], r[..., j]
         var = cjj + rj
@@ -75,22 +79,81 @@ def update(
             keep = (a * lam + lam * lam).clamp(1e-12, 1.0)  # 1 - Var[u | cut] / var
             shift = torch.where(lo_j, -sd * lam, sd * lam) / keep
             d, s_eff, ll = torch.where(cut, shift, d), torch.where(cut, var / keep, var), torch.where(cut, log_cut, ll)
+        if read is not None:
+            ll, d = ll * read[..., j], d * read[..., j]
+            s_eff = torch.where(read[..., j], s_eff, torch.full_like(s_eff, math.inf))
         loglik = loglik + ll
-        g = cj / s_eff.unsqueeze(-1)  # gain (B, P, 8)
+        g = cj / s_eff.unsqueeze(-1)  # gain (B, P, 8); 0 for an unread component
         m = m + g * d.unsqueeze(-1)
         c.addcmul_(g.reshape(-1, n, 1), cj.reshape(-1, 1, n), value=-1.0)  # c - g cj'
     c = c.reshape(b, p, n, n)
     return m, 0.5 * (c + c.transpose(-1, -2)), loglik
 
 
-def start(k_hat: torch.Tensor, scale: torch.Tensor, p: int) -> tuple[torch.Tensor, torch.Tensor]:
+def start(
+    k_hat: torch.Tensor,
+    scale: torch.Tensor,
+    p: int,
+    observed: torch.Tensor | None = None,
+    prior: tuple[torch.Tensor, torch.Tensor] | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Mean (B, P, 8) and covariance (B, P, 8, 8) of k after an actuator's first inspection (a flat prior read
     through it): k_hat and the error variance; a censored component, whose reading says only k <= 0 (or >= 1),
-    sits at the bound with the same variance."""
+    sits at the bound with the same variance. ``observed`` (B, 8) bool (None: all): an unread component takes
+    ``prior``'s mean (B, P, 8) and covariance (B, P, 8, 8) (:func:`from_nominal`), uncorrelated with the read ones."""
     b = k_hat.shape[0]
     m = k_hat.to(torch.float64).unsqueeze(1).expand(b, p, N_FAULTS).clone()
     c = torch.diag_embed(scale.to(torch.float64) ** 2).unsqueeze(1).expand(b, p, N_FAULTS, N_FAULTS).clone()
+    if observed is None or bool(observed.all()):
+        return m, c
+    if prior is None:
+        raise ValueError("kalman.start: unread components need a prior")
+    held = ~observed.to(torch.bool).reshape(b, 1, N_FAULTS)
+    both = (held.unsqueeze(-1) & held.unsqueeze(-2)).expand_as(c)
+    either = (held.unsqueeze(-1) | held.unsqueeze(-2)).expand_as(c)
+    m = torch.where(held, prior[0].to(m), m)
+    c = torch.where(both, prior[1].to(c), torch.where(either, torch.zeros_like(c), c))
     return m, c
+
+
+FROM_NOMINAL_STEPS = 16  # sub-steps of the law from new to a first inspection (F grows what eps has added)
+CONSTANT_VARIANCE = 1.0 / 12.0  # an unread constant of the law (the eccentricity phase): uniform on [0, 1]
+
+
+def from_nominal(
+    law: DamageLaw, s: torch.Tensor, hours: torch.Tensor, new_spread: float = 0.0
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The law's own prediction of k, (mean (B, P, 8), covariance (B, P, 8, 8)), ``hours`` (B,) [h] after new at
+    wear-rate scales s (B, P): the fleet prior of a component no reading measures.
+
+    New, each damage is nominal plus a uniform deviation up to ``new_spread`` toward the inside of [0, 1] (either
+    side for a nominal inside: the life histories' draw), its mean and variance; a constant of the law (no rate, no
+    eps: the eccentricity phase, drawn once per actuator) is anywhere in [0, 1] (the uniform's mean 0.5 and
+    variance). Then the deviation's mean and spread grow by expm(s F h), and the variance of int eps over the whole
+    interval (its block correlation included) is added in equal shares at the middle of ``FROM_NOMINAL_STEPS``
+    sub-steps, each grown over the rest."""
+    b, p = s.shape
+    nominal = law.nominal.to(torch.float64)
+    d = float(new_spread)
+    constant = (law.noise_std == 0) & (law.rate == 0).all(0) & (law.rate == 0).all(1)
+    side = (nominal <= 0.0).to(torch.float64) - (nominal >= 1.0).to(torch.float64)
+    offset = torch.where(constant, 0.5 - nominal, side * d / 2.0)  # the mean deviation from k0, new
+    var0 = torch.full_like(nominal, d * d / 3.0)
+    var0[side != 0] = d * d / 12.0
+    var0[constant] = CONSTANT_VARIANCE
+    hours = hours.to(torch.float64).clamp(min=0.0).reshape(b)
+    tau = (s * hours.unsqueeze(1)).reshape(-1)
+    m = nominal + law.propagate(offset.expand(b * p, N_FAULTS), tau).reshape(b, p, N_FAULTS)
+    c = torch.diag_embed(var0).expand(b, p, N_FAULTS, N_FAULTS).clone()
+    if not bool((hours > 0).any()):
+        return m, c
+    share = torch.diag_embed(law.noise_std_over(hours) ** 2 / FROM_NOMINAL_STEPS).unsqueeze(1)  # (B, 1, 8, 8)
+    a = law.expm(tau / FROM_NOMINAL_STEPS).reshape(b, p, N_FAULTS, N_FAULTS)
+    half = law.expm(tau / (2 * FROM_NOMINAL_STEPS)).reshape(b, p, N_FAULTS, N_FAULTS)
+    share = half @ share @ half.transpose(-1, -2)
+    for _ in range(FROM_NOMINAL_STEPS):
+        c = a @ c @ a.transpose(-1, -2) + share
+    return m, 0.5 * (c + c.transpose(-1, -2))
 
 
 def sample(m: torch.Tensor, c: torch.Tensor, z: torch.Tensor) -> torch.Tensor:

@@ -35,6 +35,7 @@ from torch import nn
 from ..faults import FAULT_NAMES, N_FAULTS
 from ..io.atomic import atomic_open
 from ..online.noise_threshold import interpolate_levels
+from ..surrogates.metrics import IDENTIFIED_R2
 from .response import check_probe
 
 FORMAT = "phm_torch.near_nominal_fdi/1"
@@ -64,7 +65,8 @@ class NearNominalFDI(nn.Module):
             sample (white noise averages over 10x more samples than the selected ones).
 
     Fitted buffers: ``input_mean_``, ``input_std_`` (n_m,) coefficient scaling; ``half_widths_`` (n_levels, 8)
-    calibrated 90 % half-widths [k units] of its estimates at ``noise_levels`` (NaN until calibrated); with
+    calibrated 90 % half-widths [k units] of its estimates at ``noise_levels`` (NaN until calibrated); ``r2_``
+    (n_levels, 8) their R^2 on the same held-out records (NaN in a file calibrated before it was measured); with
     ``n_full``: ``record_mean_`` (n_full,) [A] and ``basis_`` (n_full, n_m) orthonormal columns (:meth:`fit_basis`;
     stored in float32).
     """
@@ -102,6 +104,7 @@ class NearNominalFDI(nn.Module):
         self.register_buffer("input_std_", torch.ones(n_modes, dtype=torch.float64))
         self.register_buffer("noise_levels", torch.tensor(levels, dtype=torch.float64))
         self.register_buffer("half_widths_", torch.full((len(levels), N_FAULTS), math.nan, dtype=torch.float64))
+        self.register_buffer("r2_", torch.full((len(levels), N_FAULTS), math.nan, dtype=torch.float64))
         if n_full is not None and (isinstance(n_full, bool) or not isinstance(n_full, int) or n_full <= n_modes):
             raise ValueError(f"near_nominal.n_full must be an integer above n_modes ({n_modes}), got {n_full!r}")
         self.n_full = n_full
@@ -177,6 +180,16 @@ class NearNominalFDI(nn.Module):
             [interpolate_levels(self.noise_levels, self.half_widths_[:, j], noise) for j in range(N_FAULTS)], 1
         )
 
+    def not_identified(self, noise: float) -> list[str] | None:
+        """The components whose held-out R^2 at the record's relative ``noise`` (interpolated between the
+        calibrated levels) is below :data:`~phm_torch.surrogates.metrics.IDENTIFIED_R2` (their reading is the
+        training prior near nominal), or None where the file does not carry R^2 (calibrated before it was)."""
+        if bool(torch.isnan(self.r2_).any()):
+            return None
+        x = torch.tensor([float(noise)], dtype=torch.float64)
+        r2 = [float(interpolate_levels(self.noise_levels, self.r2_[:, j], x)[0]) for j in range(N_FAULTS)]
+        return [n for n, v in zip(FAULT_NAMES, r2) if not v >= IDENTIFIED_R2]
+
     def gated(self, k_pipeline: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """(B,) bool: where this network is read, given the pipeline's k_hat (B, 8) and the records' noise (B,)."""
         damage = (k_pipeline.to(torch.float64) - self.nominal).abs()
@@ -208,15 +221,18 @@ class NearNominalFDI(nn.Module):
         """Set row ``level`` of ``half_widths_`` (the calibrated noise level ``noise_levels[level]``) to the 90 %
         half-width of a Gaussian of the estimates' rms error per component, on held-out records at that noise
         (alpha (N, n_m), true k (N, 8), noise (N,)) that the gate admits (the pipeline's k_hat (N, 8)); returns (that
-        rms (8,), the number of records)."""
+        rms (8,), the number of records). Row ``level`` of ``r2_`` gets their R^2 about the records' own mean."""
         used = self.gated(k_pipeline, noise)
         if int(used.sum()) < 20:
             raise TooFewNearNominalRecords(
                 f"near-nominal FDI: {int(used.sum())} held-out records within the gate, 20 needed"
             )
         with torch.no_grad():
-            rms = (self(alpha[used], noise[used]) - k_true[used].to(torch.float64)).pow(2).mean(0).sqrt()
+            truth = k_true[used].to(torch.float64)
+            rms = (self(alpha[used], noise[used]) - truth).pow(2).mean(0).sqrt()
         self.half_widths_[level] = Z95 * rms
+        spread = truth.var(0, unbiased=False)
+        self.r2_[level] = torch.where(spread > 0, 1.0 - rms.pow(2) / spread.clamp(min=1e-300), -1.0)
         return rms, int(used.sum())
 
     def check_for(self, model: Any, source: str) -> None:
@@ -267,6 +283,8 @@ class NearNominalFDI(nn.Module):
             header["noise_levels"],
             header.get("n_full"),
         )
+        if "r2_" not in state:  # calibrated before R^2 was measured: unknown (the pipeline's identifiability stands)
+            state = {**state, "r2_": torch.full_like(model.r2_, math.nan)}
         model.load_state_dict(state)
         model.provenance = dict(header.get("provenance", {}))
         return model.eval()

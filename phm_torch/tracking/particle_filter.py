@@ -42,80 +42,7 @@ from .damage_law import DamageLaw
 from .particle_rul import HUGE, ParticleRUL, weighted_quantiles
 from .resampling import liu_west, systematic_indices
 from .response import FDIResponse
-
-FAULTY_AT = {"p5": 0, "p50": 1}  # TrackerSettings.faulty_at: its column in the RUL quantiles (5, 50, 95 %)
-
-
-@dataclass
-class TrackerSettings:
-    """Settings of the tracker (the ``tracker`` node of conf/track.yaml).
-
-    Args:
-        n_particles: particles per actuator.
-        rul_particles: particles (the first this many, weighted) whose RUL makes the 5/50/95 % band.
-        seed: base seed of the per-(actuator, inspection) generators.
-        measurement_dof: degrees of freedom of the Student-t whose 90 % interval is the calibrated one; the
-            Kalman filters read its scale as a Gaussian's (inf: the Gaussian of that interval).
-        shrink: Liu-West a in (0, 1] (1: no kernel step).
-        max_rate_scale: the particles' s stays within [1 / this, this].
-        bisections: halvings of the RUL crossing interval (cold search).
-        resample_ess: resample when the effective sample size is below this fraction of n_particles.
-        verdict: ``posterior``: an inspection is faulty where the posterior's median RUL is 0; ``record``: also
-            where the record's own verdict (phm-predict's) is faulty, whose RUL 5 % and 50 % are then 0.
-        verdict_evidence: weigh the RUL particles already faulty by the record's P(faulty) as a likelihood ratio
-            (:func:`~.measurement.verdict_odds`; needs the pipeline's ``verdict_prior_faulty``).
-        faulty_at: the posterior RUL quantile whose reaching 0 makes an inspection faulty: ``p50`` (most of the
-            probability past the health boundary) or ``p5`` (5 % of it: an earlier flag, fewer ends of life flagged
-            late); a faulty inspection's RUL 5 % and 50 % are 0, as where the record's own verdict decides.
-        boundary_std_hours: [h] the health classifier's timing error against phi_a where a damage path crosses the
-            boundary, given to each healthy RUL particle (:class:`~.particle_rul.ParticleRUL`). 60: the std measured
-            along 60 histories of the reference actuator (50-69 h; docs/prognostics.md); 0: none.
-    """
-
-    n_particles: int = 128
-    rul_particles: int = 64
-    seed: int = 0
-    measurement_dof: float = math.inf
-    shrink: float = 0.9
-    max_rate_scale: float = 8.0
-    bisections: int = 6
-    resample_ess: float = 0.5
-    verdict: str = "record"
-    verdict_evidence: bool = True
-    faulty_at: str = "p50"
-    boundary_std_hours: float = 60.0
-
-    def __post_init__(self) -> None:
-        for name in ("n_particles", "rul_particles", "seed", "bisections"):
-            value = getattr(self, name)
-            if (
-                isinstance(value, bool)
-                or not isinstance(value, int)
-                or value < (0 if name in ("seed", "bisections") else 2)
-            ):
-                raise ValueError(
-                    f"tracker.{name} must be an integer >= {0 if name in ('seed', 'bisections') else 2}, got {value!r}"
-                )
-        if self.rul_particles > self.n_particles:
-            raise ValueError(
-                f"tracker.rul_particles ({self.rul_particles}) must be <= tracker.n_particles ({self.n_particles})"
-            )
-        if not 0.0 <= float(self.resample_ess) <= 1.0:
-            raise ValueError(f"tracker.resample_ess must be in [0, 1], got {self.resample_ess!r}")
-        if self.verdict not in ("posterior", "record"):
-            raise ValueError(f"tracker.verdict must be 'posterior' or 'record', got {self.verdict!r}")
-        if self.faulty_at not in FAULTY_AT:
-            raise ValueError(f"tracker.faulty_at must be one of {list(FAULTY_AT)}, got {self.faulty_at!r}")
-        self.measurement_dof = float(self.measurement_dof)
-        if not self.measurement_dof > 0:
-            raise ValueError(f"tracker.measurement_dof must be > 0 (inf: Gaussian), got {self.measurement_dof!r}")
-        if not 0.0 < float(self.shrink) <= 1.0:
-            raise ValueError(f"tracker.shrink must be in (0, 1], got {self.shrink!r}")
-        if not float(self.max_rate_scale) > 1.0:
-            raise ValueError(f"tracker.max_rate_scale must be > 1, got {self.max_rate_scale!r}")
-        self.boundary_std_hours = float(self.boundary_std_hours)
-        if not (math.isfinite(self.boundary_std_hours) and self.boundary_std_hours >= 0.0):
-            raise ValueError(f"tracker.boundary_std_hours must be finite and >= 0, got {self.boundary_std_hours!r}")
+from .tracker_settings import FAULTY_AT, TrackerSettings
 
 
 @dataclass
@@ -159,6 +86,8 @@ class Tracker:
             ``verdict_prior_faulty``); None, or ``settings.verdict_evidence`` false: the records' verdicts weigh nothing.
         response: the FDI's response near nominal (:class:`~.response.FDIResponse`), inverted before each k_hat
             is fused (:func:`~.fleet.track_fleet`); None: k_hat read as centred on k.
+        not_identified: the components the pipeline's k_hat does not measure (its training prior), which
+            :func:`~.fleet.track_fleet` does not fuse (:meth:`update`'s ``observed``).
 
     State per actuator id, rows of: ``k`` (A, P, 8) and ``k_cov`` (A, P, 8, 8) the Gaussian of k per particle,
     ``log_s`` (A, P), ``log_w`` (A, P) normalised log weights, ``z_k`` (A, P, 8) the normals of each particle's
@@ -176,8 +105,10 @@ class Tracker:
         settings: TrackerSettings | None = None,
         verdict_prior: float | None = None,
         response: FDIResponse | None = None,
+        not_identified: Sequence[str] = (),
     ):
         self.law, self.rul_model, self.response = law, rul, response
+        self.not_identified = list(not_identified)
         self.settings = settings or TrackerSettings()
         # the fault rate P(faulty) was calibrated at (None: the record's verdict is not weighed)
         self.verdict_prior = verdict_prior if self.settings.verdict_evidence else None
@@ -252,6 +183,7 @@ class Tracker:
         faulty: torch.Tensor | None = None,
         restart: torch.Tensor | None = None,
         faulty_odds: torch.Tensor | None = None,
+        observed: torch.Tensor | None = None,
     ) -> Posterior:
         """One inspection of each of ``actuators`` (distinct ids).
 
@@ -262,6 +194,11 @@ class Tracker:
             fuse: (B,) bool, False for an out-of-distribution inspection (predicted, not fused).
             faulty: (B,) bool, the inspection's verdict; a fused faulty one has RUL 5 % = 50 % = 0.
             restart: (B,) bool, maintenance before this inspection: the track starts again.
+            observed: (B, 8) bool, the components k_hat measures (None: all). An unread one (its estimate is the
+                training prior: phm-evaluate's R^2 below 0.25) is not fused: it starts at the law's prediction from
+                new over the inspection's hours (from nominal at a restart; :func:`~.kalman.from_nominal`) and
+                follows the law, since fusing a prior mean as a reading pulls k there with a confidence that grows
+                with every inspection.
         """
         if len(set(actuators)) != len(actuators):
             raise ValueError("Tracker.update: one inspection per actuator per call")
@@ -274,6 +211,8 @@ class Tracker:
         fuse = torch.as_tensor(fuse, dtype=torch.bool).reshape(b)
         faulty = torch.zeros(b, dtype=torch.bool) if faulty is None else torch.as_tensor(faulty).bool().reshape(b)
         restart = torch.zeros(b, dtype=torch.bool) if restart is None else torch.as_tensor(restart).bool().reshape(b)
+        if observed is not None:
+            observed = torch.as_tensor(observed).bool().reshape(b, N_FAULTS)
         z = self._normals(actuators, rows)
         st = {name: getattr(self, name)[rows] for name in self.PARTICLE_FIELDS}
         tracked = self.tracked[rows] & ~restart
@@ -291,15 +230,20 @@ class Tracker:
         if bool(init.any()):
             i = init.nonzero().flatten()
             p = st["log_s"].shape[1]
-            st["k"][i], st["k_cov"][i] = kalman.start(k_hat[i], scale[i], p)
             st["log_s"][i] = (self.law.rate_scale_sigma * z[i, :, N_FAULTS]).clamp(-cap, cap)
+            seen = None if observed is None else observed[i]
+            prior = None
+            if seen is not None and not bool(seen.all()):
+                since_new = torch.where(restart[i], torch.zeros_like(hours[i]), hours[i])
+                prior = kalman.from_nominal(self.law, st["log_s"][i].exp(), since_new, self.settings.new_spread)
+            st["k"][i], st["k_cov"][i] = kalman.start(k_hat[i], scale[i], p, seen, prior)
             st["log_w"][i] = -math.log(p)
             st["z_k"][i] = z[i, :, :N_FAULTS]
             st["tau"][i] = float("nan")
         # 3. fuse the tracked in-distribution rows
         upd = tracked & fuse
         if bool(upd.any()):
-            self._fuse(st, k_hat, scale, z, upd, cap)
+            self._fuse(st, k_hat, scale, z, upd, cap, observed)
         now_tracked = tracked | init
         odds = None if faulty_odds is None else torch.where(fuse, torch.as_tensor(faulty_odds).reshape(b), 1.0)
         post = self._summary(st, now_tracked, z[:, :, N_FAULTS + 3], fuse & faulty, odds, z[:, :, N_FAULTS + 5])
@@ -318,11 +262,15 @@ class Tracker:
         z: torch.Tensor,
         rows: torch.Tensor,
         cap: float,
+        observed: torch.Tensor | None = None,
     ) -> None:
-        """Kalman-update and reweight the particles of ``rows`` (B,) bool in ``st`` (in place); resample and move
-        those whose ESS fell below the threshold."""
+        """Kalman-update (the ``observed`` (B, 8) components, None: all) and reweight the particles of ``rows`` (B,)
+        bool in ``st`` (in place); resample and move those whose ESS fell below the threshold."""
         idx = rows.nonzero().flatten()
-        st["k"][idx], st["k_cov"][idx], loglik = kalman.update(st["k"][idx], st["k_cov"][idx], k_hat[idx], scale[idx])
+        seen = None if observed is None else observed[idx]
+        st["k"][idx], st["k_cov"][idx], loglik = kalman.update(
+            st["k"][idx], st["k_cov"][idx], k_hat[idx], scale[idx], seen
+        )
         log_w = st["log_w"][idx] + loglik
         log_w = log_w - torch.logsumexp(log_w, dim=1, keepdim=True)
         st["log_w"][idx] = log_w
