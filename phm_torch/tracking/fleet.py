@@ -123,6 +123,7 @@ def _run_chunk(
         scale = interval_scale(k_hat, lower, upper, dof)
         held = [unread(d, tracker.not_identified) for d in diag]
         observed = torch.tensor([[n not in h for n in FAULT_NAMES] for h in held])
+        observed = None if bool(observed.all()) else observed  # every component read: the plain update
         fuse = torch.tensor([not d["out_of_distribution"] for d in diag])
         record_verdict = tracker.settings.verdict == "record"
         faulty = torch.tensor([not d["healthy"] and record_verdict for d in diag])
