@@ -146,9 +146,14 @@ def test_too_few_near_nominal_histories_skip_the_near_nominal_fdi_not_the_run(tm
 
     tracked = []
 
-    def fake_track(cfg):  # the ball screw's figures with the default rule (measured: coverage 41 %, all early)
+    def fake_track(cfg):  # the ball screw's figures with the record rule (measured: coverage 41 %, all early)
         tracked.append(cfg)
-        figures = {"coverage_5_95": 0.41, "eol_flagged_early": 1.0, "eol_flagged_within_one_inspection": 0.0}
+        if cfg.verdict == "posterior" and cfg.faulty_at == "p5":  # in time, 5 % late
+            figures = {"coverage_5_95": 0.41, "eol_flagged_early": 0.05, "eol_flagged_within_one_inspection": 0.9}
+        elif cfg.verdict == "posterior":  # 30 % late: not eligible
+            figures = {"coverage_5_95": 0.41, "eol_flagged_early": 0.0, "eol_flagged_within_one_inspection": 0.7}
+        else:
+            figures = {"coverage_5_95": 0.41, "eol_flagged_early": 1.0, "eol_flagged_within_one_inspection": 0.0}
         return {"inspections": 1, "actuators": 1, "tracker": figures}, None
 
     monkeypatch.setattr(generate_app, "generate", fake_generate)
@@ -159,19 +164,22 @@ def test_too_few_near_nominal_histories_skip_the_near_nominal_fdi_not_the_run(tm
     cfg = compose_stage("run", [f"out_dir={tmp_path}"])
     with caplog.at_level("WARNING"):
         got = run_companions(cfg, tmp_path, tmp_path / "data", pipeline, [], [], [])
-    assert got["near_nominal"] is None and got["tracker_rule"] is None
+    assert got["near_nominal"] is None
     assert "6 held-out records within the gate" in got["near_nominal_skipped"]
     assert got["response"] is None and got["life_inspections"] == 1  # one inspection: too few for a response too
     assert "no near-nominal FDI written" in caplog.text and "companions.life_actuators=" in caplog.text
     assert not companion_paths(pipeline)["near_nominal"].exists()
-    # the tracker as phm-track will run it (the default rule, no near-nominal FDI) measured on these histories, its
-    # figures written beside the pipeline and their shortfall said
-    assert [tracked[-1].verdict, tracked[-1].faulty_at, tracked[-1].near_nominal] == ["record", "p50", None]
+    # the tracker as phm-track will run it (no near-nominal FDI) measured on these histories under each end-of-life
+    # rule, the rule chosen as with one, its figures written beside the pipeline (where phm-track's auto reads the
+    # rule) and their shortfall said
+    runs = [(c.verdict, c.faulty_at, c.near_nominal) for c in tracked[1:]]
+    assert runs == [(v, f, None) for v, f in RULES]
+    assert (got["tracker_rule"]["verdict"], got["tracker_rule"]["faulty_at"]) == ("posterior", "p5")
     check = TrackerCheck.load(companion_paths(pipeline)["tracker_check"])
-    assert check.figures["coverage_5_95"] == 0.41 and check.rule == {"verdict": "record", "faulty_at": "p50"}
-    assert got["tracker_check_figures"]["eol_flagged_early"] == 1.0
+    assert check.figures["coverage_5_95"] == 0.41 and check.rule == {"verdict": "posterior", "faulty_at": "p5"}
+    assert got["tracker_check_figures"]["eol_flagged_early"] == 0.05
     assert "held the true RUL on 41 % of the inspections" in caplog.text
-    assert "flagged 100 % of the ends of life early" in caplog.text
+    assert auto_rule(None, check=check) == {"verdict": "posterior", "faulty_at": "p5"}
 
 
 def test_the_stage_needs_the_evaluate_stage_pipeline(tmp_path):
@@ -215,6 +223,10 @@ def test_phm_track_auto_reads_the_rule_beside_the_pipeline():
     assert auto_rule(None) == defaults and auto_rule(near) == defaults  # the shipped file records none
     near.provenance = {"life_split": "lifetrain", "tracker_rule": {"verdict": "posterior", "faulty_at": "p5"}}
     assert auto_rule(near) == {"verdict": "posterior", "faulty_at": "p5"}
+    # without a near-nominal FDI (the companions stage could not train one), the tracker check's rule
+    check = TrackerCheck({"coverage_5_95": 0.9}, {"verdict": "posterior", "faulty_at": "p50"}, 40, 900)
+    assert auto_rule(None, check=check) == {"verdict": "posterior", "faulty_at": "p50"}
+    assert auto_rule(near, check=check) == {"verdict": "posterior", "faulty_at": "p5"}  # the FDI's choice first
 
 
 def test_phm_track_auto_says_when_the_chosen_rule_flags_most_ends_of_life_early(caplog):

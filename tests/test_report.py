@@ -264,7 +264,10 @@ def test_the_life_section_says_what_the_companions_stage_gave_the_tracker(run_di
     skipped = {**companions, "tracker_rule": None, "near_nominal_skipped": "6 held-out records within the gate"}
     text = html.unescape(build_report(run_dir, {**_metrics(600), "companions": skipped}, _studies()).read_text())
     assert "no near-nominal FDI (6 held-out records within the gate: the pipeline's k_hat read near nominal" in text
-    assert "the tracker's default end-of-life rule" in text
+    assert "the tracker's default end-of-life rule" in text  # a run before the stage chose one without the FDI
+    chose = {**companions, "near_nominal_skipped": "6 held-out records within the gate"}
+    text = html.unescape(build_report(run_dir, {**_metrics(600), "companions": chose}, _studies()).read_text())
+    assert "read near nominal too), and the end-of-life rule posterior/p5, chosen there" in text
 
 
 def test_the_life_section_puts_the_tracking_limit_beside_the_tracker(run_dir):

@@ -170,44 +170,30 @@ def run_companions(
         # too few histories near nominal (a robust actuator's lives leave it early): the run goes on without this
         # file, as phm-track does, and says which setting gives more
         log.warning(
-            "companions: %s: no near-nominal FDI written; the tracker reads the pipeline's k_hat near nominal too, "
-            "with its default end-of-life rule (companions.life_actuators=%d: give more histories, or "
-            "companions.near_nominal.holdout / gate to calibrate on more of them)",
+            "companions: %s: no near-nominal FDI written; the tracker reads the pipeline's k_hat near nominal too "
+            "(companions.life_actuators=%d: give more histories, or companions.near_nominal.holdout / gate to "
+            "calibrate on more of them)",
             err,
             n_actuators,
         )
-        rule = dict(zip(("verdict", "faulty_at"), RULES[0]))
-        tracked = track(  # the tracker as phm-track will run it: the response alone, the default rule
-            compose_stage(
-                "track",
-                [*life_args, f"out_dir={root / 'track_default'}", "response=auto", "near_nominal=null"]
-                + [f"{key}={value}" for key, value in rule.items()],
-            )
-        )[0]
-        check = _tracker_check(pipeline, paths, tracked, rule)
-        return {**_metrics(n_actuators, seed, raw, gen_metrics, paths, fit, skipped=str(err)), **check}
+        # the end-of-life rule is still chosen, on the tracker as phm-track will run it (the response alone), and
+        # recorded in the tracker check, which phm-track's verdict=auto / faulty_at=auto then read
+        tracked = _tracked_by_rule(life_args, root, near_nominal="null")
+        chosen = choose_end_of_life_rule(tracked)
+        rule = {key: chosen[key] for key in ("verdict", "faulty_at")}
+        check = _tracker_check(pipeline, paths, tracked[(rule["verdict"], rule["faulty_at"])], rule)
+        return {
+            **_metrics(n_actuators, seed, raw, gen_metrics, paths, fit, skipped=str(err)),
+            **check,
+            "tracker_rule": chosen,
+        }
     finally:
         torch.set_num_threads(previous)
     net.save(paths["near_nominal"])
     # the tracker as the track stage will run it (both files beside the pipeline) under each end-of-life rule; the
     # rule chosen is recorded in the near-nominal FDI (phm-track verdict=auto). Most of these histories trained it:
     # its reading is sharper on them than on new ones, so a rule's flags look later here than they will be
-    tracked = {
-        rule: track(
-            compose_stage(
-                "track",
-                [
-                    *life_args,
-                    f"out_dir={root / ('track_' + '_'.join(rule))}",
-                    "response=auto",
-                    "near_nominal=auto",
-                    f"verdict={rule[0]}",
-                    f"faulty_at={rule[1]}",
-                ],
-            )
-        )[0]
-        for rule in RULES
-    }
+    tracked = _tracked_by_rule(life_args, root, near_nominal="auto")
     chosen = choose_end_of_life_rule(tracked)
     net.provenance["tracker_rule"] = chosen
     net.save(paths["near_nominal"])
@@ -222,6 +208,29 @@ def run_companions(
         "near_nominal_settings": {k: common.plain(v) for k, v in vars(settings).items()},
         "near_nominal_records": {"life": report["life_records"], "store": report["store_records"]},
         "near_nominal_heldout_rms": report["heldout"],
+    }
+
+
+def _tracked_by_rule(life_args: list[str], root: Path, near_nominal: str) -> dict[tuple[str, str], dict[str, Any]]:
+    """phm-track's metrics of this stage's life split under each end-of-life rule of :data:`RULES`, with the FDI
+    response beside the pipeline and ``near_nominal`` (``auto``: the file beside it; ``null``: none)."""
+    from .track import track
+
+    return {
+        rule: track(
+            compose_stage(
+                "track",
+                [
+                    *life_args,
+                    f"out_dir={root / ('track_' + '_'.join(rule))}",
+                    "response=auto",
+                    f"near_nominal={near_nominal}",
+                    f"verdict={rule[0]}",
+                    f"faulty_at={rule[1]}",
+                ],
+            )
+        )[0]
+        for rule in RULES
     }
 
 

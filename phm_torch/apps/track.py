@@ -37,6 +37,7 @@ from ..tracking.inspection import inspect_record
 from ..tracking.near_nominal import NearNominalFDI
 from ..tracking.response import fit_response, pairs_from_track, probe_k_hat
 from ..tracking.state import fingerprint
+from ..tracking.tracker_check import TrackerCheck
 from . import common, schema
 from .predict import _bench_nominal, _pipeline_command, _read, _record  # phm-predict's record path, reused as is
 
@@ -85,22 +86,29 @@ schema.register(
 )
 
 
-def _settings(cfg: DictConfig, near: NearNominalFDI | None = None, announce: bool = True) -> TrackerSettings:
+def _settings(
+    cfg: DictConfig, near: NearNominalFDI | None = None, announce: bool = True, check: TrackerCheck | None = None
+) -> TrackerSettings:
     values = {key: cfg[key] for key in TRACKER_KEYS}
     if values["measurement_dof"] in (".inf", "inf"):  # the command line's spelling of infinity
         values["measurement_dof"] = math.inf
-    for key, value in auto_rule(near, announce).items():
+    for key, value in auto_rule(near, announce, check).items():
         if values[key] == "auto":
             values[key] = value
     return TrackerSettings(**values)
 
 
-def auto_rule(near: NearNominalFDI | None, announce: bool = True) -> dict[str, str]:
+def auto_rule(near: NearNominalFDI | None, announce: bool = True, check: TrackerCheck | None = None) -> dict[str, str]:
     """What ``verdict=auto`` and ``faulty_at=auto`` become: the rule the near-nominal FDI's maker chose on its own life
-    split (phm-run's companions stage records ``tracker_rule`` in its provenance), else the tracker's defaults
-    (``record``, ``p50``)."""
+    split (phm-run's companions stage records ``tracker_rule`` in its provenance); without one, the rule of the
+    tracker check beside the pipeline (the same stage chose it there when it could not train a near-nominal FDI);
+    else the tracker's defaults (``record``, ``p50``)."""
     defaults = {key: getattr(TrackerSettings(), key) for key in AUTO_KEYS}
     chosen = (near.provenance.get("tracker_rule") or {}) if near is not None else {}
+    if chosen.get("verdict") is None and check is not None:
+        rule = {key: str(check.rule.get(key) or default) for key, default in defaults.items()}
+        log.info("tracker rule=auto: %s, the rule of the tracker check beside the pipeline", rule)
+        return rule
     rule = {key: str(chosen.get(key) or default) for key, default in defaults.items()}
     if chosen.get("verdict") is not None:
         log.info(
@@ -138,7 +146,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     response = companion("response", cfg.response, model_path, model)
     near = companion("near_nominal", cfg.near_nominal, model_path, model)
     check = companion("tracker_check", cfg.tracker_check, model_path, model)
-    settings = _settings(cfg, near, announce=check is None)
+    settings = _settings(cfg, near, announce=check is None, check=check)
     for line in check.warnings({key: getattr(settings, key) for key in AUTO_KEYS}) if check else []:
         log.warning("%s: %s", model_path, line)
     for kind, found in (("response", response), ("near_nominal", near)):

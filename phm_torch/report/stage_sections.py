@@ -137,9 +137,12 @@ def life_section(r: HtmlReport, run_dir: Path, companions: dict[str, Any] | None
             + ("an FDI response, " if companions.get("response") else "no FDI response (too few inspections), ")
             + (
                 f"no near-nominal FDI ({companions['near_nominal_skipped']}: the pipeline's k_hat read near nominal "
-                "too) and the tracker's default end-of-life rule."
+                "too), "
                 if companions.get("near_nominal_skipped")
-                else f"a near-nominal FDI, and the end-of-life rule {rule.get('verdict')}/{rule.get('faulty_at')}, "
+                else "a near-nominal FDI, "
+            )
+            + (
+                f"and the end-of-life rule {rule.get('verdict')}/{rule.get('faulty_at')}, "
                 + "chosen there (ends of life flagged within one inspection / late or never: "
                 + "; ".join(
                     f"{name} {pct(f.get('eol_flagged_within_one_inspection'))} / "
@@ -147,6 +150,8 @@ def life_section(r: HtmlReport, run_dir: Path, companions: dict[str, Any] | None
                     for name, f in (rule.get("rules") or {}).items()
                 )
                 + ")."
+                if rule.get("verdict")
+                else "and the tracker's default end-of-life rule."
             )
         )
         seen = companions.get("tracker_check_figures")
