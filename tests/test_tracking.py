@@ -88,6 +88,17 @@ def truth_path(law: DamageLaw, k_start: list[float], s: float, n: int, every: fl
     return torch.stack(out)
 
 
+def filter_state(seed: int, level: float, jitter: float) -> tuple[torch.Tensor, ...]:
+    """A random Kalman state of 2 actuators x 3 particles: means (2, 3, 8) around ``level``, covariances (2, 3, 8, 8)
+    with ``jitter`` on the diagonal, readings k_hat (2, 8) around it and their error scales (2, 8) of 0.01."""
+    g = torch.Generator().manual_seed(seed)
+    a = torch.randn(2, 3, 8, 8, generator=g, dtype=torch.float64)
+    c = a @ a.transpose(-1, -2) * 1e-4 + jitter * torch.eye(8, dtype=torch.float64)
+    m = level + 0.05 * torch.randn(2, 3, 8, generator=g, dtype=torch.float64)
+    k_hat = level + 0.05 * torch.randn(2, 8, generator=g, dtype=torch.float64)
+    return m, c, k_hat, torch.full((2, 8), 0.01, dtype=torch.float64)
+
+
 def scale_of(k: torch.Tensor, width: float = HALF_WIDTH) -> torch.Tensor:
     s = torch.full_like(k, width / 2.132)
     s[..., 6] = 0.4 / 2.132
@@ -373,12 +384,7 @@ def test_a_pipeline_calibrated_before_the_rate_scale_tracks_s_with_the_composed_
 def test_the_kalman_update_is_the_joint_one_and_a_clamped_reading_is_a_bound():
     from phm_torch.tracking import kalman
 
-    g = torch.Generator().manual_seed(4)
-    a = torch.randn(2, 3, 8, 8, generator=g, dtype=torch.float64)
-    c = a @ a.transpose(-1, -2) * 1e-4 + 1e-6 * torch.eye(8, dtype=torch.float64)
-    m = 0.3 + 0.05 * torch.randn(2, 3, 8, generator=g, dtype=torch.float64)
-    k_hat = 0.3 + 0.05 * torch.randn(2, 8, generator=g, dtype=torch.float64)
-    scale = torch.full((2, 8), 0.01, dtype=torch.float64)
+    m, c, k_hat, scale = filter_state(4, 0.3, 1e-6)
     m1, c1, ll = kalman.update(m, c, k_hat, scale)
     s_mat = c + torch.diag_embed(scale**2).unsqueeze(1)
     gain = c @ torch.linalg.inv(s_mat)

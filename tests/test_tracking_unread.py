@@ -8,7 +8,7 @@ from __future__ import annotations
 import math
 
 import torch
-from test_tracking import damage_config, make_pipeline, scale_of, tracker, truth_path
+from test_tracking import damage_config, filter_state, make_pipeline, scale_of, tracker, truth_path
 
 from phm_torch.tracking import DamageLaw, kalman
 from phm_torch.tracking.inspection import unread
@@ -18,12 +18,7 @@ LAW = DamageLaw.from_config(damage_config(), PIPELINE, "test")
 
 
 def test_an_unread_component_is_left_alone_and_weighs_nothing():
-    g = torch.Generator().manual_seed(0)
-    a = torch.randn(2, 3, 8, 8, generator=g, dtype=torch.float64)
-    c = a @ a.transpose(-1, -2) * 1e-4 + 1e-5 * torch.eye(8, dtype=torch.float64)
-    m = 0.1 + 0.05 * torch.rand(2, 3, 8, generator=g, dtype=torch.float64)
-    k_hat = 0.1 + 0.05 * torch.rand(2, 8, generator=g, dtype=torch.float64)
-    scale = torch.full((2, 8), 0.01, dtype=torch.float64)
+    m, c, k_hat, scale = filter_state(0, 0.3, 1e-5)
     observed = torch.ones(2, 8, dtype=torch.bool)
     observed[:, 5] = False
     observed[1, 2] = False
