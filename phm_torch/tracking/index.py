@@ -2,9 +2,10 @@
 
 One row per inspection; ``file`` is a measurement CSV (phm-predict's format) relative to the index; hours
 [h] are the actuator's operating hours since new (the tracker's prior of a component the FDI does not identify is
-the damage law's prediction from new over them) and increase strictly within an actuator (rows of different actuators may interleave); ``event`` is empty or
-``maintenance`` (the actuator was overhauled before this inspection: its track starts again). Every problem is
-one ValueError naming the index, its line (the header is line 1) and the value.
+the damage law's prediction from new over them) and increase strictly within an actuator (rows of different
+actuators may interleave); ``event`` is empty or ``maintenance`` (the actuator was overhauled before this
+inspection: its track starts again). Every problem is one ValueError naming the index, its line (the header is
+line 1) and the value.
 """
 
 from __future__ import annotations

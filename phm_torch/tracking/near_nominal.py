@@ -35,7 +35,7 @@ from torch import nn
 from ..faults import FAULT_NAMES, N_FAULTS
 from ..io.atomic import atomic_open
 from ..online.noise_threshold import interpolate_levels
-from ..surrogates.metrics import IDENTIFIED_R2
+from ..surrogates.metrics import IDENTIFIED_R2, fdi_identifiability
 from .response import check_probe
 
 FORMAT = "phm_torch.near_nominal_fdi/1"
@@ -229,10 +229,11 @@ class NearNominalFDI(nn.Module):
             )
         with torch.no_grad():
             truth = k_true[used].to(torch.float64)
-            rms = (self(alpha[used], noise[used]) - truth).pow(2).mean(0).sqrt()
+            estimate = self(alpha[used], noise[used])
+            rms = (estimate - truth).pow(2).mean(0).sqrt()
         self.half_widths_[level] = Z95 * rms
-        spread = truth.var(0, unbiased=False)
-        self.r2_[level] = torch.where(spread > 0, 1.0 - rms.pow(2) / spread.clamp(min=1e-300), -1.0)
+        # a component that does not vary over these records (NaN) is not identified either
+        self.r2_[level] = torch.tensor(fdi_identifiability(estimate, truth), dtype=torch.float64).nan_to_num(-1.0)
         return rms, int(used.sum())
 
     def check_for(self, model: Any, source: str) -> None:
