@@ -11,6 +11,7 @@ import pytest
 import torch
 from test_tracking import make_pipeline
 
+from phm_torch.faults import FAULT_NAMES
 from phm_torch.tracking.near_nominal import NearNominalFDI, fit_near_nominal
 from phm_torch.tracking.response import probe_k_hat
 
@@ -185,3 +186,29 @@ def test_its_held_out_r2_names_what_it_does_not_identify(fitted, tmp_path):
     old = NearNominalFDI.load(tmp_path / "old.pt")
     assert old.not_identified(0.01) is None
     torch.testing.assert_close(old.half_widths_, fitted.half_widths_)
+
+
+def test_the_gate_reads_only_the_components_the_pipeline_identifies(fitted, tmp_path):
+    # a pipeline whose test command does not identify the eccentricity reads its training prior there (0.45 on a store
+    # sampled far from nominal): gated on every damage, no new actuator would reach the network
+    net = copy.deepcopy(fitted)
+    _, k = synthetic(6, 6)
+    k_pipeline = k.clone()
+    k_pipeline[:, 5] = 0.45  # the eccentricity's prior
+    k_pipeline[1, 2] = 0.4  # a large short the pipeline does see
+    noise = torch.full((6,), 0.01, dtype=torch.float64)
+    assert not bool(net.gated(k_pipeline, noise).any())
+    net.gate_on(["eccentricity", "eccentricity_phase", "gain_drift"])
+    assert net.gated(k_pipeline, noise).tolist() == [True, False, True, True, True, True]
+    assert net.gate_components_.tolist() == [True] * 5 + [False] * 3
+    # kept in the file; a file from before it gates on every damage
+    net.save(tmp_path / "nn.pt")
+    assert torch.equal(NearNominalFDI.load(tmp_path / "nn.pt").gate_components_, net.gate_components_)
+    data = torch.load(tmp_path / "nn.pt", weights_only=True)
+    data["state"] = {name: v for name, v in data["state"].items() if name != "gate_components_"}
+    torch.save(data, tmp_path / "old.pt")
+    assert NearNominalFDI.load(tmp_path / "old.pt").gate_components_.tolist() == [True] * 6 + [False, True]
+    with pytest.raises(ValueError, match="unknown fault names"):
+        net.gate_on(["eccentricty"])
+    with pytest.raises(ValueError, match="identifies no damage"):
+        net.gate_on(list(FAULT_NAMES))

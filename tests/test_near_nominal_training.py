@@ -16,6 +16,7 @@ from test_tracking import N_FULL, damage_config, make_pipeline
 from phm_torch.apps.run import compose_stage
 from phm_torch.apps.run_companions import RULES, choose_end_of_life_rule, companion_paths, remove_stale, run_companions
 from phm_torch.apps.track import auto_rule
+from phm_torch.faults import FAULT_NAMES
 from phm_torch.online.export import export_torchscript
 from phm_torch.tracking.companions import companion
 from phm_torch.tracking.near_nominal import NearNominalFDI, TooFewNearNominalRecords
@@ -57,11 +58,25 @@ def test_the_library_trains_a_network_that_belongs_to_its_pipeline_and_beats_the
     assert report is net.provenance and report["calibration_actuators"] == 2 and report["life_records"] == 80
     assert report["width_factor"] == 1.25 and report["store"] is None and report["store_records"] == 0
     assert net.n_full == N_FULL and net.n_modes == 8
+    # a pipeline exported without identifiability: the gate reads every damage
+    assert report["gate_components"] == [n for n in FAULT_NAMES if n != "eccentricity_phase"]
     rms = torch.tensor([report["heldout"]["0.01"]["rms"][n] for n in ("dry_friction", "backlash", "short_a")])
     assert float(rms.max()) < 0.75 * 0.2 / 12**0.5, rms  # below the truth's own spread (uniform on [0, 0.2])
     net.save(root / "online.near_nominal.pt")
     read = companion("near_nominal", "auto", root / "online.pt", pipe)  # phm-track's auto finds it and checks it
     assert isinstance(read, NearNominalFDI) and read.provenance["steps"] == 3000
+
+
+@pytest.mark.torchscript
+def test_the_gate_skips_what_the_pipeline_does_not_identify(exported, tmp_path):
+    _, pipe = exported
+    r2 = dict.fromkeys(FAULT_NAMES, 0.9) | {"eccentricity": 0.05, "eccentricity_phase": 0.0, "gain_drift": 0.1}
+    export_torchscript(pipe, tmp_path / "online.pt", {"damage": damage_config(), "identifiability": r2})
+    life_split(tmp_path / "life", pipe, n_actuators=10, n_inspections=10)
+    settings = NearNominalTraining(full_record=8, steps=20, gate=1.0, noise_levels=(0.01, 0.02))
+    net, report = train_near_nominal(tmp_path / "online.pt", tmp_path / "life", settings)
+    assert report["gate_components"] == ["dry_friction", "backlash", "short_a", "short_b", "short_c"]
+    assert net.gate_components_.tolist() == [True] * 5 + [False] * 3
 
 
 def test_a_store_split_is_read_where_every_damage_is_near_nominal(tmp_path):

@@ -8,8 +8,14 @@ import numpy as np
 import pytest
 from scipy.stats import kstest
 
-from phm_torch.data.calibration import MAX_DISTANCE_EXPONENT, ExponentCalibrator, calibrate, isotonic_decreasing
-from phm_torch.data.sampling import ImportanceSampler
+from phm_torch.data.calibration import (
+    MAX_DISTANCE_EXPONENT,
+    ExponentCalibrator,
+    calibrate,
+    isotonic_decreasing,
+    store_sampler,
+)
+from phm_torch.data.sampling import ImportanceSampler, radial_cdf, radial_quantile
 
 NOMINAL = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.5, 0.5)
 
@@ -182,3 +188,76 @@ def test_bad_calibration_config(kwargs, field):
         ExponentCalibrator(**kwargs)
     with pytest.raises(ValueError, match="sampling.distance_exponent"):
         ImportanceSampler(NOMINAL, (6,), 1.0, 0.0)
+
+
+# -- the floor under the near-nominal density (near_nominal_share) ------------------------------------------------
+
+
+@pytest.mark.parametrize("q, share", [(3.0, 0.25), (2.0, 0.5)])
+def test_near_nominal_share_is_the_mixture_law(q, share):
+    # P(d <= a) = s a + (1 - s) a^q, reached radially: the directions and k7 are the paper's
+    s = ImportanceSampler(NOMINAL, (6,), 1.0, q, share)
+    k = s.sample(6000, 5)
+    d = s.distance(k)
+    for a in (0.05, 0.1, 0.3, 0.5, 0.8):
+        assert (d <= a).mean() == pytest.approx(share * a + (1 - share) * a**q, abs=0.015)
+    paper = ImportanceSampler(NOMINAL, (6,), 1.0).sample(6000, 5)
+    ratio = k[:, :6] / np.maximum(paper[:, :6], 1e-300)
+    assert np.allclose(ratio, (d / ImportanceSampler(NOMINAL, (6,), 1.0).distance(paper))[:, None])
+    assert np.array_equal(k[:, 6], paper[:, 6])
+    # the quantile inverts the law
+    u = np.linspace(0.0, 1.0, 101)
+    assert np.allclose(radial_cdf(radial_quantile(u, q, share), q, share), u, atol=1e-12)
+    # share 0 is the plain exponent, bit for bit
+    assert np.array_equal(
+        ImportanceSampler(NOMINAL, (6,), 1.0, q, 0.0).sample(300, 6),
+        ImportanceSampler(NOMINAL, (6,), 1.0, q).sample(300, 6),
+    )
+
+
+def test_calibration_keeps_a_floor_near_nominal_when_it_moves_samples_out():
+    # healthy <=> d <= 0.7: a target of 0.3 needs q = ln 0.3 / ln 0.7 = 3.4 alone (capped at 3: 0.343). With a share
+    # of 0.25 at the paper's scaling the law at q = 3 gives 0.25 * 0.7 + 0.75 * 0.343 = 0.432: not reached, said so,
+    # and the near-nominal region holds a quarter of the paper's density
+    sampler = ImportanceSampler(NOMINAL, (6,), 1.0)
+
+    def assess(k):
+        return sampler.distance(k) <= 0.7
+
+    rec = calibrate(sampler, assess, 0.3, 0.02, 2000, np.random.SeedSequence(1), near_nominal_share=0.25)
+    assert rec["near_nominal_share"] == 0.25 and not rec["reached"]
+    assert rec["distance_exponent"] == MAX_DISTANCE_EXPONENT
+    assert rec["expected_healthy_fraction"] == pytest.approx(0.25 * 0.7 + 0.75 * 0.7**3, abs=0.02)
+    drawn = store_sampler(rec, NOMINAL, (6,))
+    k = drawn.sample(4000, 2)
+    assert assess(k).mean() == pytest.approx(rec["expected_healthy_fraction"], abs=0.02)
+    assert (drawn.distance(k) <= 0.1).mean() == pytest.approx(0.25 * 0.1 + 0.75 * 0.1**3, abs=0.008)
+    # a reachable target under the mixture: q solved for it (healthy <=> d <= 0.6, target 0.35: q = 2.62)
+    rec = calibrate(
+        sampler,
+        lambda k: sampler.distance(k) <= 0.6,
+        0.35,
+        0.02,
+        2000,
+        np.random.SeedSequence(1),
+        near_nominal_share=0.25,
+    )
+    assert rec["reached"] and 1.0 < rec["distance_exponent"] < MAX_DISTANCE_EXPONENT
+    assert 0.25 * 0.6 + 0.75 * 0.6 ** rec["distance_exponent"] == pytest.approx(0.35, abs=0.01)
+    # the samples move towards nominal (q < 1): the law is denser there already, no share applied
+    rec = calibrate(
+        sampler,
+        lambda k: sampler.distance(k) <= 0.2,
+        0.3,
+        0.02,
+        2000,
+        np.random.SeedSequence(1),
+        near_nominal_share=0.25,
+    )
+    assert rec["distance_exponent"] < 1.0 and rec["near_nominal_share"] == 0.0
+    # a record from before the share reads as none
+    assert store_sampler({"distance_exponent": 2.0}, NOMINAL, (6,)).near_nominal_share == 0.0
+    with pytest.raises(ValueError, match="near_nominal_share"):
+        ExponentCalibrator(0.3, near_nominal_share=1.0)
+    with pytest.raises(ValueError, match="near_nominal_share"):
+        ImportanceSampler(NOMINAL, (6,), 1.0, 2.0, -0.1)

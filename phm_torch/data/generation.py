@@ -102,12 +102,19 @@ class Plan:
         return chunk * self.chunk_size, min((chunk + 1) * self.chunk_size, self.n_rows)
 
 
-def make_plan(spec: DatasetSpec, nominal: Sequence[float], seed: int, distance_exponent: float = 1.0) -> Plan:
+def make_plan(
+    spec: DatasetSpec,
+    nominal: Sequence[float],
+    seed: int,
+    distance_exponent: float = 1.0,
+    near_nominal_share: float = 0.0,
+) -> Plan:
     """Sample every signal split (seeds spawned from ``seed``: one independent stream per split); train and
-    val with the calibrated ``distance_exponent`` (``calibration.py``; 1 = the paper), rul with the paper's
-    scaling on its restricted domain (near-nominal actuators whatever the calibration)."""
+    val with the calibrated ``distance_exponent`` and ``near_nominal_share`` (``calibration.py``; 1 and 0 = the
+    paper), rul with the paper's scaling on its restricted domain (near-nominal actuators whatever the
+    calibration)."""
     streams = {name: s for name, s in seed_streams(seed).items() if name in spec.counts}
-    full = ImportanceSampler(tuple(nominal), spec.uniform, 1.0, distance_exponent)
+    full = ImportanceSampler(tuple(nominal), spec.uniform, 1.0, distance_exponent, near_nominal_share)
     near = ImportanceSampler(tuple(nominal), spec.uniform, float(spec.rul_radius))
     blocks, offsets, start = [], {}, 0
     for name, n in spec.counts.items():

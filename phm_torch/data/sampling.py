@@ -23,6 +23,13 @@ on [0, m], so the normalised deviations d_i / d = (u_i / m) ** n_r do not depend
 is the same function whatever q (changing the exponent of every parameter instead would change the
 direction too: measured, a calibration built on that assumption missed its target 0.3 by 0.26).
 ``calibration.py`` chooses q so that a configured fraction of the sampled actuators is healthy.
+
+``near_nominal_share`` s keeps a floor under the density near nominal when q > 1 moves the samples out:
+P(d' <= a) = s (a/r) + (1 - s) (a/r) ** q, the mixture of the paper's scaling (weight s) and exponent q,
+reached by the same radial map with d' = r F^-1(d / r) (monotone, so the Latin hypercube's strata and the
+directions are kept). Without it, a robust actuator (its faults leave it healthy far out) pushed q to its
+bound and its store to 0.1 % of the vectors within a tenth of the radius: its FDI then read new actuators
+high, and their tracking flagged every end of life early (docs/dataset.md).
 """
 
 from __future__ import annotations
@@ -46,12 +53,15 @@ class ImportanceSampler:
         uniform: 0-based indices of the parameters left uniform on [0, 1] (k7 -> index 6).
         radius: r in (0, 1], the largest normalised distance from nominal.
         distance_exponent: q > 0, P(d <= a) = (a / r) ** q (1: the paper's scaling, d uniform).
+        near_nominal_share: s in [0, 1), the weight of the paper's scaling in the radial law
+            P(d <= a) = s (a / r) + (1 - s) (a / r) ** q (0: exponent q alone).
     """
 
     nominal: tuple[float, ...]
     uniform: tuple[int, ...]
     radius: float
     distance_exponent: float = 1.0
+    near_nominal_share: float = 0.0
 
     def __post_init__(self) -> None:
         nominal = tuple(float(v) for v in self.nominal)
@@ -71,6 +81,9 @@ class ImportanceSampler:
         q = self.distance_exponent
         if isinstance(q, bool) or not isinstance(q, (int, float)) or not (math.isfinite(q) and q > 0):
             raise ValueError(f"sampling.distance_exponent must be a number > 0, got {q!r}")
+        share = self.near_nominal_share
+        if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0.0 <= share < 1.0:
+            raise ValueError(f"sampling.near_nominal_share must be in [0, 1), got {share!r}")
 
     @property
     def rescaled(self) -> tuple[int, ...]:
@@ -105,9 +118,13 @@ class ImportanceSampler:
                 u = np.abs(2.0 * j[:, i] - 1.0) ** p
                 k[:, i] = np.where(j[:, i] >= 0.5, k0 + r * (1.0 - k0) * u, k0 - r * k0 * u)
         k = np.clip(k, 0.0, 1.0)
-        if self.distance_exponent != 1.0:  # radial remapping d -> r (d/r) ** (1/q)
+        q, share = self.distance_exponent, self.near_nominal_share
+        if q != 1.0:  # radial remapping d -> r F^-1(d / r), with F the radial law's distribution function
             d = self.distance(k)
-            scale = np.where(d > 0, (d / r) ** (1.0 / self.distance_exponent - 1.0), 1.0)
+            if share == 0.0:  # F(a) = a ** q, inverted in closed form
+                scale = np.where(d > 0, (d / r) ** (1.0 / q - 1.0), 1.0)
+            else:
+                scale = np.where(d > 0, radial_quantile(d / r, q, share) / np.where(d > 0, d / r, 1.0), 1.0)
             cols = list(self.rescaled)
             k0 = np.asarray(self.nominal)[cols]
             k[:, cols] = np.clip(k0 + (k[:, cols] - k0) * scale[:, None], 0.0, 1.0)
@@ -124,3 +141,21 @@ class ImportanceSampler:
             reach = np.where(d >= 0, 1.0 - k0, k0)
             out = np.maximum(out, np.abs(d) / np.where(reach > 0, reach, 1.0))
         return out
+
+
+def radial_cdf(a: np.ndarray | float, exponent: float, share: float = 0.0) -> np.ndarray:
+    """F(a) = s a + (1 - s) a ** q: P(d <= a r) under the sampler's radial law, a in [0, 1]."""
+    a = np.asarray(a, dtype=np.float64)
+    return share * a + (1.0 - share) * a**exponent
+
+
+def radial_quantile(u: np.ndarray, exponent: float, share: float) -> np.ndarray:
+    """F^-1(u) of :func:`radial_cdf` (u (n,) in [0, 1]), by bisection: F is increasing from F(0) = 0 to F(1) = 1.
+    60 halvings bring the bracket below 1e-18, under float64's resolution of a."""
+    u = np.asarray(u, dtype=np.float64)
+    lo, hi = np.zeros_like(u), np.ones_like(u)
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        below = radial_cdf(mid, exponent, share) < u
+        lo, hi = np.where(below, mid, lo), np.where(below, hi, mid)
+    return 0.5 * (lo + hi)

@@ -47,6 +47,9 @@ class DatasetSpec:
             for: the importance sampler's distance exponent is calibrated on a pilot of assessment labels
             (:mod:`phm_torch.data.calibration`); null = the paper's scaling, no pilot.
         healthy_fraction_tolerance: the paper's scaling is kept when the pilot is within this of the target.
+        near_nominal_share: where the calibration moves the samples away from nominal (exponent > 1: a robust
+            actuator), this share of the radial law stays the paper's, a floor under the density near nominal
+            (:mod:`phm_torch.data.calibration`, step 6); 0 = none.
         pilot_size: fault vectors of the calibration pilot (assessed in batches of ``chunk_size``).
         life: the run-to-failure ``life`` split (:class:`~phm_torch.data.life.LifeSpec`, or a mapping of its
             fields); ``n_actuators`` 0 (the default) = none. Not part of the store's fingerprint: a life split
@@ -69,6 +72,7 @@ class DatasetSpec:
     randomized: tuple[randomization.RandomizedParam, ...] = field(init=False, repr=False, default=())
     healthy_fraction: float | None = 0.3
     healthy_fraction_tolerance: float = 0.05
+    near_nominal_share: float = 0.25
     pilot_size: int = 1536
     life: LifeSpec | Mapping[str, Any] | None = None
 
@@ -107,6 +111,9 @@ class DatasetSpec:
             raise ValueError(f"dataset.healthy_fraction must be in (0, 1) or null, got {h!r}")
         if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not 0.0 <= tol < 1.0:
             raise ValueError(f"dataset.healthy_fraction_tolerance must be in [0, 1), got {tol!r}")
+        share = self.near_nominal_share
+        if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0.0 <= share < 1.0:
+            raise ValueError(f"dataset.near_nominal_share must be in [0, 1), got {share!r}")
 
     @property
     def counts(self) -> dict[str, int]:

@@ -10,7 +10,10 @@ records only give 2-3 times smaller errors there (docs/prognostics.md, "A near-n
 with the noise, so a network can instead read every sample of the record on its own principal basis (``n_full``),
 2-4 times more precise again (the shipped one; "The shipped near-nominal FDI reads the whole record"). The network is gated
 by the pipeline's own estimate: used where its largest damage is at most ``gate`` and the record's noise at most
-the last calibrated noise level; elsewhere the pipeline's k_hat stands. It is told each record's noise level (the
+the last calibrated noise level; elsewhere the pipeline's k_hat stands. The gate reads only the components the
+pipeline identifies (``gate_components_``): one its test command does not identify reads its training prior, which
+on a store sampled far from nominal (a robust actuator) sat above the gate for almost every new actuator and shut
+the network out where it is made to be read. It is told each record's noise level (the
 noise-aware networks' input); its 90 % half-widths are calibrated on held-out histories at each of its noise levels,
 per component.
 
@@ -66,7 +69,9 @@ class NearNominalFDI(nn.Module):
 
     Fitted buffers: ``input_mean_``, ``input_std_`` (n_m,) coefficient scaling; ``half_widths_`` (n_levels, 8)
     calibrated 90 % half-widths [k units] of its estimates at ``noise_levels`` (NaN until calibrated); ``r2_``
-    (n_levels, 8) their R^2 on the same held-out records (NaN in a file calibrated before it was measured); with
+    (n_levels, 8) their R^2 on the same held-out records (NaN in a file calibrated before it was measured);
+    ``gate_components_`` (8,) bool, the pipeline's components the gate reads (:meth:`gate_on`; every damage until
+    set, never the eccentricity phase); with
     ``n_full``: ``record_mean_`` (n_full,) [A] and ``basis_`` (n_full, n_m) orthonormal columns (:meth:`fit_basis`;
     stored in float32).
     """
@@ -105,6 +110,7 @@ class NearNominalFDI(nn.Module):
         self.register_buffer("noise_levels", torch.tensor(levels, dtype=torch.float64))
         self.register_buffer("half_widths_", torch.full((len(levels), N_FAULTS), math.nan, dtype=torch.float64))
         self.register_buffer("r2_", torch.full((len(levels), N_FAULTS), math.nan, dtype=torch.float64))
+        self.register_buffer("gate_components_", self.default_gate_components())
         if n_full is not None and (isinstance(n_full, bool) or not isinstance(n_full, int) or n_full <= n_modes):
             raise ValueError(f"near_nominal.n_full must be an integer above n_modes ({n_modes}), got {n_full!r}")
         self.n_full = n_full
@@ -190,10 +196,30 @@ class NearNominalFDI(nn.Module):
         r2 = [float(interpolate_levels(self.noise_levels, self.r2_[:, j], x)[0]) for j in range(N_FAULTS)]
         return [n for n, v in zip(FAULT_NAMES, r2) if not v >= IDENTIFIED_R2]
 
+    @staticmethod
+    def default_gate_components() -> torch.Tensor:
+        """(8,) bool: every damage, not the eccentricity phase (the gate of a pipeline without identifiability)."""
+        on = torch.ones(N_FAULTS, dtype=torch.bool)
+        on[PHASE_INDEX] = False
+        return on
+
+    def gate_on(self, not_identified: Sequence[str]) -> None:
+        """Gate on the pipeline's components but ``not_identified`` (fault names; the pipeline's
+        :func:`~phm_torch.online.diagnosis.not_identified`). ValueError for an unknown name, or for none left."""
+        unknown = [n for n in not_identified if n not in FAULT_NAMES]
+        if unknown:
+            raise ValueError(f"near-nominal FDI: unknown fault names {unknown}; known: {list(FAULT_NAMES)}")
+        on = self.default_gate_components()
+        for name in not_identified:
+            on[FAULT_NAMES.index(name)] = False
+        if not bool(on.any()):
+            raise ValueError("near-nominal FDI: the pipeline identifies no damage to gate on")
+        self.gate_components_.copy_(on)
+
     def gated(self, k_pipeline: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """(B,) bool: where this network is read, given the pipeline's k_hat (B, 8) and the records' noise (B,)."""
         damage = (k_pipeline.to(torch.float64) - self.nominal).abs()
-        damage[:, PHASE_INDEX] = 0.0
+        damage = torch.where(self.gate_components_, damage, torch.zeros_like(damage))
         return (damage.amax(1) <= self.gate) & (noise.to(torch.float64) <= self.noise_max)
 
     @torch.no_grad()
@@ -286,6 +312,8 @@ class NearNominalFDI(nn.Module):
         )
         if "r2_" not in state:  # calibrated before R^2 was measured: unknown (the pipeline's identifiability stands)
             state = {**state, "r2_": torch.full_like(model.r2_, math.nan)}
+        if "gate_components_" not in state:  # from before the gate read identified components only: every damage
+            state = {**state, "gate_components_": cls.default_gate_components()}
         model.load_state_dict(state)
         model.provenance = dict(header.get("provenance", {}))
         return model.eval()

@@ -25,6 +25,7 @@ import torch
 from .. import provenance
 from ..faults import FAULT_NAMES
 from ..io import read_measurement
+from ..online.diagnosis import not_identified
 from ..online.loaded import load_pipeline
 from .near_nominal import PHASE_INDEX, NearNominalFDI, TooFewNearNominalRecords, fit_near_nominal
 from .response import probe_k_hat
@@ -171,6 +172,8 @@ def train_near_nominal(
         noise_levels=levels,
         n_full=int(model.n_full) if full else None,
     )
+    # the gate reads what the pipeline identifies (its phm-evaluate R^2; every damage for a pipeline without it)
+    net.gate_on(not_identified(loaded.metadata))
     explained = None
     held_selected = life_s[cal][:, model.gappy.indices.numpy()] if full else life_s[cal]  # what the pipeline reads
     if full:  # the basis from the training rows; every row projected once: noise is then added to the coefficients,
@@ -245,6 +248,7 @@ def train_near_nominal(
         "noise_levels": levels,
         "steps": s.steps,
         "input": f"full record, {s.full_record} principal directions" if full else "the pipeline's gappy coefficients",
+        "gate_components": [n for n, on in zip(FAULT_NAMES, net.gate_components_.tolist()) if on],
         **({"basis_variance_fraction": explained} if full else {}),
         "heldout": calibration,
     }

@@ -108,9 +108,10 @@ def _plan(settings: GenerateSettings, assessment: AssessmentFunction) -> _Run:
         settings.data_dir, fp, lambda: calibration.calibrate_spec(spec, nominal, assessment, seed)
     )
     q = float(sampling["distance_exponent"])
+    share = float(sampling.get("near_nominal_share", 0.0))  # a cached record from before the share: none
     _log_sampling(sampling)
-    plan = gen.make_plan(spec, nominal, seed, q)
-    return _Run(fp, sampling, pilot_s, plan, make_label_plan(spec, nominal, seed, q))
+    plan = gen.make_plan(spec, nominal, seed, q, share)
+    return _Run(fp, sampling, pilot_s, plan, make_label_plan(spec, nominal, seed, q, share))
 
 
 def _log_sampling(sampling: dict) -> None:
@@ -119,6 +120,13 @@ def _log_sampling(sampling: dict) -> None:
     if target is None:
         return
     expected, pilot = sampling.get("expected_healthy_fraction"), sampling.get("pilot_healthy_fraction")
+    share = sampling.get("near_nominal_share") or 0.0
+    if share:
+        log.info(
+            "importance sampling: %.0f %% of the radial law kept at the paper's scaling (dataset.near_nominal_share), "
+            "so the store keeps vectors near nominal while the rest move out",
+            100 * share,
+        )
     if sampling.get("reached", True):
         log.info(
             "importance sampling: distance exponent %s for a healthy fraction of %s (the paper's scaling gave %s)",
@@ -135,8 +143,8 @@ def _log_sampling(sampling: dict) -> None:
         )
         log.warning(
             "importance sampling: the healthy fraction %s is not reached; distance exponent %s (its bound) gives %s "
-            "(the paper's scaling: %s); %s (docs/dataset.md). Set dataset.healthy_fraction to a reachable value, "
-            "or null for the paper's scaling",
+            "(the paper's scaling: %s); %s (docs/dataset.md). Set dataset.healthy_fraction to a reachable value "
+            "(or dataset.near_nominal_share lower), or null for the paper's scaling",
             target,
             sampling["distance_exponent"],
             expected,

@@ -11,9 +11,9 @@ import numpy as np
 import torch
 
 from ...checks import build
+from ...data.calibration import store_sampler
 from ...data.labels import LabelComputer, label_chunk_rows
 from ...data.life import LifeSpec
-from ...data.sampling import ImportanceSampler
 from ...data.spec import DatasetSpec
 from ...data.store import LABELS, read_labelled, recorded_assessment
 from ...surrogates import rms
@@ -61,10 +61,8 @@ def store_labeller(
         )
     assessment, params = recorded_assessment(metadata, settings.refine_device)
     dataset = config["dataset"]
-    # candidates drawn as the store's training vectors were: with its calibrated distance exponent
-    exponent = float((metadata.get("sampling") or {}).get("distance_exponent", 1.0))
-    uniform = tuple(dataset.get("uniform", []))
-    sampler = ImportanceSampler(tuple(params.nominal_faults), uniform, 1.0, distance_exponent=exponent)
+    # candidates drawn as the store's training vectors were: with its calibrated radial law
+    sampler = store_sampler(metadata.get("sampling"), params.nominal_faults, dataset.get("uniform", []))
     chunk = int(dataset.get("label_chunk_size", DatasetSpec.label_chunk_size))
     seed = settings.seed
 
@@ -81,7 +79,7 @@ def store_labeller(
         law = build(settings.damage, "damage", nominal=list(params.nominal_faults))
         # initial damage as the store's life split draws it (the same default when it has none)
         initial = (dataset.get("life") or {}).get("initial_damage", LifeSpec.initial_damage)
-        paths = DamagePathSampler(law, float(initial), uniform, seed + PATH_STREAM).sample
+        paths = DamagePathSampler(law, float(initial), sampler.uniform, seed + PATH_STREAM).sample
     return sample, assess, paths
 
 
