@@ -191,6 +191,11 @@ def test_eol_delay_in_inspections_and_early_flags():
     assert [per[a]["tracker"]["eol_flagged_within_one_inspection"] for a in per] == [True, False, False]
     assert r["tracker"]["eol_flagged_within_one_inspection"] == pytest.approx(1 / 3)
     assert r["tracker"]["eol_flagged_early"] == pytest.approx(1 / 3)
+    # how far beyond one interval, in intervals: A001 350 h late = 0.75, A002 450 h early = 1.25, A000 none
+    assert [per[a]["tracker"]["eol_intervals_late"] for a in per] == pytest.approx([0.0, 0.75, 0.0])
+    assert [per[a]["tracker"]["eol_intervals_early"] for a in per] == pytest.approx([0.0, 0.0, 1.25])
+    assert r["tracker"]["eol_intervals_late"] == pytest.approx(0.25)
+    assert r["tracker"]["eol_intervals_early"] == pytest.approx(1.25 / 3)
     # the verdict says faulty while p50 >= 1 h: A000 at 1200, 1400; A001 at 1400; A002 at 600..1400
     assert r["tracker"]["positive_p50_when_faulty"] == 2 + 1 + 5
     assert not r["targets"]["positive_p50_when_faulty"]["passed"]
@@ -204,6 +209,8 @@ def test_never_flagged_is_infinite_delay():
     r = lm.evaluate_life(track, truth)
     assert r["per_actuator"]["A000"]["tracker"]["eol_detection_delay_hours"] is None
     assert r["tracker"]["eol_never_flagged"] == 1 and r["tracker"]["eol_flagged_within_one_inspection"] == 0.0
+    # counted as flagged one interval after the last inspection (1400 h): 550 h late, 1.75 intervals
+    assert r["tracker"]["eol_intervals_late"] == pytest.approx(1.75) and r["tracker"]["eol_intervals_early"] == 0.0
     json.dumps(r, allow_nan=False)
 
 

@@ -14,7 +14,14 @@ from test_fit_near_nominal_script import life_split
 from test_tracking import N_FULL, damage_config, make_pipeline
 
 from phm_torch.apps.run import compose_stage
-from phm_torch.apps.run_companions import RULES, choose_end_of_life_rule, companion_paths, remove_stale, run_companions
+from phm_torch.apps.run_companions import (
+    LATE_WEIGHT,
+    RULES,
+    choose_end_of_life_rule,
+    companion_paths,
+    remove_stale,
+    run_companions,
+)
 from phm_torch.apps.track import auto_rule
 from phm_torch.faults import FAULT_NAMES
 from phm_torch.online.export import export_torchscript
@@ -163,12 +170,17 @@ def test_too_few_near_nominal_histories_skip_the_near_nominal_fdi_not_the_run(tm
 
     def fake_track(cfg):  # the ball screw's figures with the record rule (measured: coverage 41 %, all early)
         tracked.append(cfg)
-        if cfg.verdict == "posterior" and cfg.faulty_at == "p5":  # in time, 5 % late
-            figures = {"coverage_5_95": 0.41, "eol_flagged_early": 0.05, "eol_flagged_within_one_inspection": 0.9}
-        elif cfg.verdict == "posterior":  # 30 % late: not eligible
-            figures = {"coverage_5_95": 0.41, "eol_flagged_early": 0.0, "eol_flagged_within_one_inspection": 0.7}
+        figures = {"coverage_5_95": 0.41, "eol_intervals_late": 0.0}
+        if cfg.verdict == "posterior" and cfg.faulty_at == "p5":  # in time, 5 % early by a little
+            figures |= {
+                "eol_flagged_early": 0.05,
+                "eol_flagged_within_one_inspection": 0.9,
+                "eol_intervals_early": 0.02,
+            }
+        elif cfg.verdict == "posterior":  # 30 % late, a whole interval each
+            figures |= {"eol_flagged_early": 0.0, "eol_flagged_within_one_inspection": 0.7, "eol_intervals_late": 0.3}
         else:
-            figures = {"coverage_5_95": 0.41, "eol_flagged_early": 1.0, "eol_flagged_within_one_inspection": 0.0}
+            figures |= {"eol_flagged_early": 1.0, "eol_flagged_within_one_inspection": 0.0, "eol_intervals_early": 4.0}
         return {"inspections": 1, "actuators": 1, "tracker": figures}, None
 
     monkeypatch.setattr(generate_app, "generate", fake_generate)
@@ -205,31 +217,34 @@ def test_the_stage_needs_the_evaluate_stage_pipeline(tmp_path):
 
 def _tracked(figures: dict[tuple[str, str], tuple[float | None, float]]) -> dict:
     return {
-        rule: {"tracker": {"eol_flagged_within_one_inspection": within, "eol_flagged_early": early}}
-        for rule, (within, early) in figures.items()
+        rule: {"tracker": {"eol_intervals_early": early, "eol_intervals_late": late, "eol_flagged_early": 0.1}}
+        for rule, (early, late) in figures.items()
     }
 
 
-# (within one inspection, early) per rule of RULES, in its order: record/p50, record/p5, posterior/p50, posterior/p5
+# (mean intervals flagged early, late) per rule of RULES, in its order: record/p50, record/p5, posterior/p50,
+# posterior/p5; the cost is early + LATE_WEIGHT (5) x late
 CASES = [
-    # a pipeline whose own verdict false-alarms near nominal (the reference's default scale, measured): record flags
-    # early; the posterior's median flags 76 % in time but 24 % late or never, its 5 % quantile 64 % with 6 % late
-    ([(0.07, 0.88), (0.07, 0.90), (0.76, 0.0), (0.64, 0.30)], ("posterior", "p5")),
-    # the pretrained pipeline (60 held-out histories): a tie on the flags in time keeps the default
-    ([(0.967, 0.017), (0.967, 0.033), (0.867, 0.0), (0.9, 0.05)], ("record", "p50")),
-    # most in time, but late on a third of the lives: not eligible
-    ([(0.5, 0.45), (0.45, 0.53), (0.6, 0.0), (0.55, 0.1)], ("record", "p50")),
+    # the ball-screw sketch at its default store (measured, 40 histories): record flags 62 % of the lives early by up to
+    # 21 intervals, posterior/p5 15 % late by at most a quarter of one, posterior/p50 one life never
+    ([(5.249, 0.001), (5.249, 0.001), (0.0, 0.132), (0.0, 0.012)], ("posterior", "p5")),
+    # a tie keeps the earlier rule (the default first)
+    ([(0.01, 0.0), (0.01, 0.0), (0.0, 0.05), (0.02, 0.01)], ("record", "p50")),
+    # late weighs more: one interval early on every life beats 0.3 late (cost 1.5)
+    ([(1.0, 0.0), (1.2, 0.0), (0.0, 0.3), (0.5, 0.2)], ("record", "p50")),
+    # a rule without its figures is not scored
     ([(None, 0.0), (0.3, 0.6), (0.2, 0.7), (0.1, 0.85)], ("record", "p5")),
 ]
 
 
 @pytest.mark.parametrize(("figures", "chosen"), CASES)
-def test_the_end_of_life_rule_flags_most_in_time_among_those_rarely_late(figures, chosen):
+def test_the_end_of_life_rule_flags_least_far_out_late_weighing_more(figures, chosen):
     verdict = choose_end_of_life_rule(_tracked(dict(zip(RULES, figures))))
     assert (verdict["verdict"], verdict["faulty_at"]) == chosen
-    first = verdict["rules"]["record/p50"]
-    if figures[0][0] is not None:
-        assert first["eol_flagged_late_or_never"] == pytest.approx(1.0 - figures[0][0] - figures[0][1])
+    for rule, (early, late) in zip(RULES, figures):
+        cost = verdict["rules"]["/".join(rule)]["cost"]
+        assert cost is None if early is None else cost == pytest.approx(early + LATE_WEIGHT * late)
+    assert verdict["late_weight"] == LATE_WEIGHT
 
 
 def test_phm_track_auto_reads_the_rule_beside_the_pipeline():

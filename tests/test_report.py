@@ -250,7 +250,12 @@ def test_the_life_section_says_what_the_companions_stage_gave_the_tracker(run_di
             "verdict": "posterior",
             "faulty_at": "p5",
             "rules": {
-                "record/p50": {"eol_flagged_within_one_inspection": 0.225, "eol_flagged_late_or_never": 0.075},
+                "record/p50": {
+                    "eol_flagged_within_one_inspection": 0.225,
+                    "eol_flagged_late_or_never": 0.075,
+                    "eol_intervals_early": 3.1,
+                    "eol_intervals_late": 0.004,
+                },
                 "posterior/p5": {"eol_flagged_within_one_inspection": 0.7, "eol_flagged_late_or_never": 0.05},
             },
         },
@@ -258,7 +263,7 @@ def test_the_life_section_says_what_the_companions_stage_gave_the_tracker(run_di
     text = html.unescape(build_report(run_dir, {**_metrics(600), "companions": companions}, _studies()).read_text())
     assert "made from 40 histories of their own (772 inspections" in text
     assert "an FDI response, a near-nominal FDI, and the end-of-life rule posterior/p5, chosen there" in text
-    assert "record/p50 22.5 % / 7.5 %; posterior/p5 70 % / 5 %)" in text
+    assert "record/p50 22.5 %, 7.5 %, 3.10 / 0.00; posterior/p5 70 %, 5 %, - / -)" in text  # a run before the intervals
     without = html.unescape(build_report(run_dir, _metrics(600), _studies()).read_text())
     assert "histories of their own" not in without
     skipped = {**companions, "tracker_rule": None, "near_nominal_skipped": "6 held-out records within the gate"}

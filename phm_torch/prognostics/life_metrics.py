@@ -111,6 +111,19 @@ def eol_detection_delay(hours: np.ndarray, flagged: np.ndarray, eol: float) -> f
     return float(hours[idx[0]] - eol) if idx.size else math.inf
 
 
+def eol_intervals_off(delay: float, every: float, hours: np.ndarray, eol: float) -> dict[str, float]:
+    """How far beyond one inspection interval the end of life was flagged, in intervals: ``eol_intervals_early``
+    max(0, -delay / every - 1), ``eol_intervals_late`` max(0, delay / every - 1); a flag within one interval costs
+    nothing. A life never flagged counts as flagged one interval after its last inspection (``hours`` (n,) [h]), a
+    lower bound."""
+    if math.isinf(delay):
+        delay = (float(hours[-1]) if len(hours) else eol) + every - eol
+    return {
+        "eol_intervals_early": max(0.0, -delay / every - 1.0),
+        "eol_intervals_late": max(0.0, delay / every - 1.0),
+    }
+
+
 # ---------------------------------------------------------------- reading track.json / truth.json
 
 
@@ -226,6 +239,7 @@ def _actuator(
             "eol_detection_delay_hours": _finite_or_none(delay),
             "eol_flagged_within_one_inspection": bool(abs(delay) <= every + HOURS_TOLERANCE),
             "eol_flagged_early": bool(delay < -every - HOURS_TOLERANCE),
+            **eol_intervals_off(delay, every, hours[~ood], eol),
             "positive_p50_when_faulty": violations,
         }
         pooled[method] = {
@@ -270,6 +284,8 @@ def _fleet(per: Mapping[str, Mapping[str, Any]], method: str) -> dict[str, Any]:
         ),
         "eol_flagged_early": float(np.mean([v["eol_flagged_early"] for v in vals])) if vals else None,
         "eol_never_flagged": int(sum(math.isinf(d) for d in delays)),
+        "eol_intervals_early": float(np.mean([v["eol_intervals_early"] for v in vals])) if vals else None,
+        "eol_intervals_late": float(np.mean([v["eol_intervals_late"] for v in vals])) if vals else None,
         "positive_p50_when_faulty": int(sum(viol)) if viol else None,
         "_width_raw": _median(width) if width.size else None,
     }

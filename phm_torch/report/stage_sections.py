@@ -131,6 +131,9 @@ def life_section(r: HtmlReport, run_dir: Path, companions: dict[str, Any] | None
         def pct(v: float | None) -> str:
             return "-" if v is None else f"{fmt(100 * v)} %"
 
+        def intervals(v: float | None) -> str:
+            return "-" if v is None else f"{v:.2f}"
+
         r.note(
             f"The tracker read the companions stage's files, made from {companions.get('life_actuators')} histories of "
             f"their own ({companions.get('life_inspections')} inspections, not the ones scored here): "
@@ -143,10 +146,12 @@ def life_section(r: HtmlReport, run_dir: Path, companions: dict[str, Any] | None
             )
             + (
                 f"and the end-of-life rule {rule.get('verdict')}/{rule.get('faulty_at')}, "
-                + "chosen there (ends of life flagged within one inspection / late or never: "
+                + "chosen there (ends of life flagged within one inspection, late or never, and the mean inspection "
+                + "intervals flagged early / late beyond one: "
                 + "; ".join(
-                    f"{name} {pct(f.get('eol_flagged_within_one_inspection'))} / "
-                    f"{pct(f.get('eol_flagged_late_or_never'))}"
+                    f"{name} {pct(f.get('eol_flagged_within_one_inspection'))}, "
+                    f"{pct(f.get('eol_flagged_late_or_never'))}, "
+                    f"{intervals(f.get('eol_intervals_early'))} / {intervals(f.get('eol_intervals_late'))}"
                     for name, f in (rule.get("rules") or {}).items()
                 )
                 + ")."
