@@ -13,7 +13,6 @@ from phm_torch.data.calibration import (
     ExponentCalibrator,
     calibrate,
     isotonic_decreasing,
-    store_sampler,
 )
 from phm_torch.data.sampling import ImportanceSampler, radial_cdf, radial_quantile
 
@@ -228,35 +227,32 @@ def test_calibration_keeps_a_floor_near_nominal_when_it_moves_samples_out():
     assert rec["near_nominal_share"] == 0.25 and not rec["reached"]
     assert rec["distance_exponent"] == MAX_DISTANCE_EXPONENT
     assert rec["expected_healthy_fraction"] == pytest.approx(0.25 * 0.7 + 0.75 * 0.7**3, abs=0.02)
-    drawn = store_sampler(rec, NOMINAL, (6,))
+    drawn = ImportanceSampler.from_record(rec, NOMINAL, (6,))
     k = drawn.sample(4000, 2)
     assert assess(k).mean() == pytest.approx(rec["expected_healthy_fraction"], abs=0.02)
     assert (drawn.distance(k) <= 0.1).mean() == pytest.approx(0.25 * 0.1 + 0.75 * 0.1**3, abs=0.008)
+
     # a reachable target under the mixture: q solved for it (healthy <=> d <= 0.6, target 0.35: q = 2.62)
-    rec = calibrate(
-        sampler,
-        lambda k: sampler.distance(k) <= 0.6,
-        0.35,
-        0.02,
-        2000,
-        np.random.SeedSequence(1),
-        near_nominal_share=0.25,
-    )
+    def healthy_within(c: float, target: float) -> dict:
+        """The calibration with the floor of a health function healthy <=> d <= c."""
+        return calibrate(
+            sampler,
+            lambda k: sampler.distance(k) <= c,
+            target,
+            0.02,
+            2000,
+            np.random.SeedSequence(1),
+            near_nominal_share=0.25,
+        )
+
+    rec = healthy_within(0.6, 0.35)
     assert rec["reached"] and 1.0 < rec["distance_exponent"] < MAX_DISTANCE_EXPONENT
     assert 0.25 * 0.6 + 0.75 * 0.6 ** rec["distance_exponent"] == pytest.approx(0.35, abs=0.01)
     # the samples move towards nominal (q < 1): the law is denser there already, no share applied
-    rec = calibrate(
-        sampler,
-        lambda k: sampler.distance(k) <= 0.2,
-        0.3,
-        0.02,
-        2000,
-        np.random.SeedSequence(1),
-        near_nominal_share=0.25,
-    )
+    rec = healthy_within(0.2, 0.3)
     assert rec["distance_exponent"] < 1.0 and rec["near_nominal_share"] == 0.0
     # a record from before the share reads as none
-    assert store_sampler({"distance_exponent": 2.0}, NOMINAL, (6,)).near_nominal_share == 0.0
+    assert ImportanceSampler.from_record({"distance_exponent": 2.0}, NOMINAL, (6,)).near_nominal_share == 0.0
     with pytest.raises(ValueError, match="near_nominal_share"):
         ExponentCalibrator(0.3, near_nominal_share=1.0)
     with pytest.raises(ValueError, match="near_nominal_share"):

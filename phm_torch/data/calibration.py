@@ -255,16 +255,3 @@ def calibrate_spec(spec: Any, nominal: Any, assessment: Any, seed: int) -> dict[
         seed_streams(seed)["pilot"],
         float(spec.near_nominal_share),
     )
-
-
-def store_sampler(sampling: Mapping[str, Any] | None, nominal: Any, uniform: Any) -> ImportanceSampler:
-    """The full-domain sampler of a store from its calibration record (``sampling.json``, the manifest's
-    ``sampling``): its exponent and applied near-nominal share (a record from before the share: 0)."""
-    record = sampling or {}
-    return ImportanceSampler(
-        tuple(nominal),
-        tuple(uniform),
-        1.0,
-        float(record.get("distance_exponent", 1.0)),
-        float(record.get("near_nominal_share", 0.0)),
-    )

@@ -103,18 +103,13 @@ class Plan:
 
 
 def make_plan(
-    spec: DatasetSpec,
-    nominal: Sequence[float],
-    seed: int,
-    distance_exponent: float = 1.0,
-    near_nominal_share: float = 0.0,
+    spec: DatasetSpec, nominal: Sequence[float], seed: int, sampling: Mapping[str, Any] | None = None
 ) -> Plan:
     """Sample every signal split (seeds spawned from ``seed``: one independent stream per split); train and
-    val with the calibrated ``distance_exponent`` and ``near_nominal_share`` (``calibration.py``; 1 and 0 = the
-    paper), rul with the paper's scaling on its restricted domain (near-nominal actuators whatever the
-    calibration)."""
+    val with the calibrated ``sampling`` record (``calibration.py``; None = the paper's scaling), rul with the
+    paper's scaling on its restricted domain (near-nominal actuators whatever the calibration)."""
     streams = {name: s for name, s in seed_streams(seed).items() if name in spec.counts}
-    full = ImportanceSampler(tuple(nominal), spec.uniform, 1.0, distance_exponent, near_nominal_share)
+    full = ImportanceSampler.from_record(sampling, nominal, spec.uniform)
     near = ImportanceSampler(tuple(nominal), spec.uniform, float(spec.rul_radius))
     blocks, offsets, start = [], {}, 0
     for name, n in spec.counts.items():

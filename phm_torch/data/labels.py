@@ -16,7 +16,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -36,19 +37,15 @@ def label_chunk_rows(n_labels: int, label_chunk_size: int) -> int:
 
 
 def make_label_plan(
-    spec: DatasetSpec,
-    nominal: Sequence[float],
-    seed: int,
-    distance_exponent: float = 1.0,
-    near_nominal_share: float = 0.0,
+    spec: DatasetSpec, nominal: Sequence[float], seed: int, sampling: Mapping[str, Any] | None = None
 ) -> Plan | None:
-    """The labels split's row list: K (n_labels, 8) from the full-domain importance sampler (with the
-    calibrated ``distance_exponent`` and ``near_nominal_share``, as train) and the ``labels`` seed stream; None
-    when ``spec.n_labels`` is 0 (the store then has no labels split)."""
+    """The labels split's row list: K (n_labels, 8) from the full-domain importance sampler (with the calibrated
+    ``sampling`` record, as train) and the ``labels`` seed stream; None when ``spec.n_labels`` is 0 (the store then
+    has no labels split)."""
     streams = seed_streams(seed)
     if spec.n_labels == 0:
         return None
-    full = ImportanceSampler(tuple(nominal), spec.uniform, 1.0, distance_exponent, near_nominal_share)
+    full = ImportanceSampler.from_record(sampling, nominal, spec.uniform)
     k = full.sample(spec.n_labels, streams[LABELS])
     rows = label_chunk_rows(spec.n_labels, spec.label_chunk_size)
     return Plan(k, {LABELS: (0, spec.n_labels)}, rows, seed_record({LABELS: streams[LABELS]}), LABEL_CHUNKS)

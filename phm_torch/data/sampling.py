@@ -35,8 +35,9 @@ high, and their tracking flagged every end of life early (docs/dataset.md).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.stats import qmc
@@ -84,6 +85,22 @@ class ImportanceSampler:
         share = self.near_nominal_share
         if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0.0 <= share < 1.0:
             raise ValueError(f"sampling.near_nominal_share must be in [0, 1), got {share!r}")
+
+    @classmethod
+    def from_record(
+        cls, sampling: Mapping[str, Any] | None, nominal: Sequence[float], uniform: Sequence[int]
+    ) -> ImportanceSampler:
+        """The full-domain sampler (radius 1) of a store from its calibration record (``calibration.py``: its
+        ``sampling.json``, the manifest's ``sampling``): its exponent and applied near-nominal share; None, or a
+        record from before the share, reads as the paper's scaling and no share."""
+        record = sampling or {}
+        return cls(
+            tuple(nominal),
+            tuple(uniform),
+            1.0,
+            float(record.get("distance_exponent", 1.0)),
+            float(record.get("near_nominal_share", 0.0)),
+        )
 
     @property
     def rescaled(self) -> tuple[int, ...]:

@@ -107,11 +107,9 @@ def _plan(settings: GenerateSettings, assessment: AssessmentFunction) -> _Run:
     sampling, pilot_s = calibration.load_or_calibrate(
         settings.data_dir, fp, lambda: calibration.calibrate_spec(spec, nominal, assessment, seed)
     )
-    q = float(sampling["distance_exponent"])
-    share = float(sampling.get("near_nominal_share", 0.0))  # a cached record from before the share: none
     _log_sampling(sampling)
-    plan = gen.make_plan(spec, nominal, seed, q, share)
-    return _Run(fp, sampling, pilot_s, plan, make_label_plan(spec, nominal, seed, q, share))
+    plan = gen.make_plan(spec, nominal, seed, sampling)
+    return _Run(fp, sampling, pilot_s, plan, make_label_plan(spec, nominal, seed, sampling))
 
 
 def _log_sampling(sampling: dict) -> None:

@@ -11,9 +11,9 @@ import numpy as np
 import torch
 
 from ...checks import build
-from ...data.calibration import store_sampler
 from ...data.labels import LabelComputer, label_chunk_rows
 from ...data.life import LifeSpec
+from ...data.sampling import ImportanceSampler
 from ...data.spec import DatasetSpec
 from ...data.store import LABELS, read_labelled, recorded_assessment
 from ...surrogates import rms
@@ -62,7 +62,7 @@ def store_labeller(
     assessment, params = recorded_assessment(metadata, settings.refine_device)
     dataset = config["dataset"]
     # candidates drawn as the store's training vectors were: with its calibrated radial law
-    sampler = store_sampler(metadata.get("sampling"), params.nominal_faults, dataset.get("uniform", []))
+    sampler = ImportanceSampler.from_record(metadata.get("sampling"), params.nominal_faults, dataset.get("uniform", []))
     chunk = int(dataset.get("label_chunk_size", DatasetSpec.label_chunk_size))
     seed = settings.seed
 
