@@ -135,6 +135,7 @@ def test_the_companions_of_a_replaced_pipeline_are_removed(tmp_path):
         ("+companions.near_nominal.layers=3", "companions.near_nominal: .*layers"),
         ("companions.near_nominal.holdout=1", "holdout = 1"),
         ("companions.near_nominal.width_factor=0.5", "width_factor = 0.5"),
+        ("companions.late_weight=-1", "companions.late_weight must be >= 0"),
     ],
 )
 def test_bad_companion_settings_are_refused_before_any_work(tmp_path, override, message):
@@ -245,6 +246,16 @@ def test_the_end_of_life_rule_flags_least_far_out_late_weighing_more(figures, ch
         cost = verdict["rules"]["/".join(rule)]["cost"]
         assert cost is None if early is None else cost == pytest.approx(early + LATE_WEIGHT * late)
     assert verdict["late_weight"] == LATE_WEIGHT
+
+
+def test_the_late_weight_is_a_setting():
+    # the ball screw's figures: record flags far early, posterior/p5 barely late; weighing late 500 times early
+    # (a user for whom an interval late is unacceptable) turns the choice
+    figures = dict(zip(RULES, [(5.249, 0.001), (5.249, 0.001), (0.0, 0.132), (0.0, 0.012)]))
+    assert choose_end_of_life_rule(_tracked(figures))["verdict"] == "posterior"
+    heavy = choose_end_of_life_rule(_tracked(figures), late_weight=500.0)
+    assert (heavy["verdict"], heavy["faulty_at"], heavy["late_weight"]) == ("record", "p50", 500.0)
+    assert compose_stage("run", []).companions.late_weight == LATE_WEIGHT  # the code default, overridable
 
 
 def test_phm_track_auto_reads_the_rule_beside_the_pipeline():

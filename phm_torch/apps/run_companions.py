@@ -21,6 +21,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
+from ..checks import number
 from ..online.loaded import load_pipeline
 from ..tracking import read_index
 from ..tracking.companions import SUFFIXES
@@ -40,14 +41,17 @@ RULES = (("record", "p50"), ("record", "p5"), ("posterior", "p50"), ("posterior"
 LATE_WEIGHT = 5.0
 OWN_KEYS = ("data_dir", "stage", "seed", "dataset.life.n_actuators")  # set by this stage for its life split
 # the near-nominal training's code defaults under companions.near_nominal (conf/run.yaml composes them in first)
-schema.register("run_companions", {"near_nominal": schema.node(NearNominalTraining())})
+# and the end-of-life rule's LATE_WEIGHT as companions.late_weight
+schema.register("run_companions", {"near_nominal": schema.node(NearNominalTraining()), "late_weight": LATE_WEIGHT})
 
 
-def choose_end_of_life_rule(tracked: dict[tuple[str, str], dict[str, Any]]) -> dict[str, Any]:
+def choose_end_of_life_rule(
+    tracked: dict[tuple[str, str], dict[str, Any]], late_weight: float = LATE_WEIGHT
+) -> dict[str, Any]:
     """The tracker's end-of-life rule (``verdict``, ``faulty_at``) for a pipeline, from its tracks of one life split
     under each rule of :data:`RULES` (phm-track's metrics, with the truth): the one whose ends of life are flagged
-    least far outside one inspection interval, late counted ``LATE_WEIGHT`` times early (the mean intervals
-    ``eol_intervals_early`` + ``LATE_WEIGHT`` x ``eol_intervals_late``, a life never flagged as late as its last
+    least far outside one inspection interval, late counted ``late_weight`` times early (the mean intervals
+    ``eol_intervals_early`` + ``late_weight`` x ``eol_intervals_late``, a life never flagged as late as its last
     inspection allows), the earlier in :data:`RULES` on a tie (the first is the tracker's default). How far counts,
     not only how often: on the ball-screw sketch ``record`` flagged 62 % of its ends of life early by up to 21
     intervals (its own verdict raises false alarms near nominal) and ``posterior/p5`` 15 % late by at most a quarter of
@@ -65,7 +69,7 @@ def choose_end_of_life_rule(tracked: dict[tuple[str, str], dict[str, Any]]) -> d
             "eol_flagged_late_or_never": late,
             "eol_intervals_early": off_early,
             "eol_intervals_late": off_late,
-            "cost": None if off_early is None or off_late is None else off_early + LATE_WEIGHT * off_late,
+            "cost": None if off_early is None or off_late is None else off_early + late_weight * off_late,
             "prognostic_horizon": t.get("prognostic_horizon"),
             "alpha_lambda": t.get("alpha_lambda"),
         }
@@ -74,7 +78,7 @@ def choose_end_of_life_rule(tracked: dict[tuple[str, str], dict[str, Any]]) -> d
         chosen = next(iter(tracked))
     else:
         chosen = min(scored, key=lambda r: (round(scored[r]["cost"], 9), RULES.index(r)))
-    return {"verdict": chosen[0], "faulty_at": chosen[1], "rules": figures, "late_weight": LATE_WEIGHT}
+    return {"verdict": chosen[0], "faulty_at": chosen[1], "rules": figures, "late_weight": late_weight}
 
 
 def companion_paths(pipeline: Path) -> dict[str, Path]:
@@ -113,6 +117,7 @@ def run_companions(
         raise ValueError(f"companions must be a mapping, got {node!r}")
     n_actuators = common.integer(node.get("life_actuators"), "companions.life_actuators", 5)
     threads = common.integer(node.get("threads", 1), "companions.threads", 1)
+    late_weight = number(node.get("late_weight", LATE_WEIGHT), "companions.late_weight", 0.0)
     settings = common.build(cfg.companions.near_nominal, "companions.near_nominal")
     if not pipeline.is_file():
         raise ValueError(f"stages: companions needs the evaluate stage's pipeline ({pipeline} does not exist)")
@@ -186,7 +191,7 @@ def run_companions(
         # the end-of-life rule is still chosen, on the tracker as phm-track will run it (the response alone), and
         # recorded in the tracker check, which phm-track's verdict=auto / faulty_at=auto then read
         tracked = _tracked_by_rule(life_args, root, near_nominal="null")
-        chosen = choose_end_of_life_rule(tracked)
+        chosen = choose_end_of_life_rule(tracked, late_weight)
         rule = {key: chosen[key] for key in ("verdict", "faulty_at")}
         check = _tracker_check(pipeline, paths, tracked[(rule["verdict"], rule["faulty_at"])], rule)
         return {
@@ -201,7 +206,7 @@ def run_companions(
     # rule chosen is recorded in the near-nominal FDI (phm-track verdict=auto). Most of these histories trained it:
     # its reading is sharper on them than on new ones, so a rule's flags look later here than they will be
     tracked = _tracked_by_rule(life_args, root, near_nominal="auto")
-    chosen = choose_end_of_life_rule(tracked)
+    chosen = choose_end_of_life_rule(tracked, late_weight)
     net.provenance["tracker_rule"] = chosen
     net.save(paths["near_nominal"])
     rule = {key: chosen[key] for key in ("verdict", "faulty_at")}
