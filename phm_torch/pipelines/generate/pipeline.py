@@ -134,11 +134,12 @@ def _log_sampling(sampling: dict) -> None:
         )
     else:
         at_top = sampling["distance_exponent"] >= sampling.get("max_distance_exponent", float("inf"))
-        why = (
-            "a larger exponent would leave almost no near-nominal vectors in the store"
-            if at_top
-            else "the actuator is faulty almost whatever the damage: check its nominal margins"
-        )
+        if not at_top:
+            why = "the actuator is faulty almost whatever the damage: check its nominal margins"
+        elif share:
+            why = "a larger exponent would empty the middle of the radius (the floor keeps the near-nominal vectors)"
+        else:
+            why = "a larger exponent would leave almost no near-nominal vectors in the store"
         log.warning(
             "importance sampling: the healthy fraction %s is not reached; distance exponent %s (its bound) gives %s "
             "(the paper's scaling: %s); %s (docs/dataset.md). Set dataset.healthy_fraction to a reachable value "
