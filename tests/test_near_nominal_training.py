@@ -187,7 +187,12 @@ def test_too_few_near_nominal_histories_skip_the_near_nominal_fdi_not_the_run(tm
     monkeypatch.setattr(generate_app, "generate", fake_generate)
     monkeypatch.setattr(track_app, "track", fake_track)
     monkeypatch.setattr(stage, "train_near_nominal", too_few)
-    monkeypatch.setattr(stage, "load_pipeline", lambda path: SimpleNamespace(module=None))
+    provenance = {
+        "actuator": {"name": "lin28", "sha256": "faf2dde17f"},
+        "command": {"name": "chirp_lin28", "sha256": "a7"},
+    }
+    loaded = SimpleNamespace(module=None, metadata={"provenance": provenance})
+    monkeypatch.setattr(stage, "load_pipeline", lambda path: loaded)
     monkeypatch.setattr(stage, "probe_k_hat", lambda model: [0.0] * 8)
     cfg = compose_stage("run", [f"out_dir={tmp_path}"])
     with caplog.at_level("WARNING"):
@@ -205,6 +210,9 @@ def test_too_few_near_nominal_histories_skip_the_near_nominal_fdi_not_the_run(tm
     assert (got["tracker_rule"]["verdict"], got["tracker_rule"]["faulty_at"]) == ("posterior", "p5")
     check = TrackerCheck.load(companion_paths(pipeline)["tracker_check"])
     assert check.figures["coverage_5_95"] == 0.41 and check.rule == {"verdict": "posterior", "faulty_at": "p5"}
+    assert check.pipeline["actuator"] == "lin28 (sha256 faf2dde1)" and check.pipeline["command"].startswith(
+        "chirp_lin28"
+    )
     assert got["tracker_check_figures"]["eol_flagged_early"] == 0.05
     assert "held the true RUL on 41 % of the inspections" in caplog.text
     assert auto_rule(None, check=check) == {"verdict": "posterior", "faulty_at": "p5"}

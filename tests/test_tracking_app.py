@@ -104,7 +104,10 @@ def test_track_json_fleet_ood_and_maintenance(fleet, compose, tmp_path):
     width = [i["rate_scale"]["p95"] / i["rate_scale"]["p5"] for i in a2]
     assert width[2] > width[1]  # the restarted track forgets the old wear rate
     assert len(track["fleet"]) == 3
-    assert json.loads((tmp_path / "fleet.json").read_text()) == track["fleet"]
+    fleet_file = json.loads((tmp_path / "fleet.json").read_text())
+    assert fleet_file["fleet"] == track["fleet"]
+    assert fleet_file["actuator"] == track["actuator"]
+    assert fleet_file["command"] == track["command"] and fleet_file["pipeline"] == track["pipeline"]
 
 
 def fleet_truth(with_k: bool = True) -> dict:

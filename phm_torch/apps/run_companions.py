@@ -21,6 +21,7 @@ from typing import Any
 import torch
 from omegaconf import DictConfig
 
+from .. import provenance
 from ..checks import number
 from ..online.loaded import load_pipeline
 from ..tracking import read_index
@@ -251,7 +252,14 @@ def _tracker_check(
 ) -> dict[str, Any]:
     """Write the tracker's figures on this stage's life split (phm-track's metrics ``tracked``, under ``rule``)
     beside the pipeline, where phm-track's ``tracker_check=auto`` reads them; the stage's metrics of it."""
-    made_for = {"source": str(pipeline), "probe_k_hat": probe_k_hat(load_pipeline(pipeline).module)}
+    loaded = load_pipeline(pipeline)
+    prov = loaded.metadata.get("provenance") or {}
+    made_for = {
+        "source": str(pipeline),
+        "probe_k_hat": probe_k_hat(loaded.module),
+        "actuator": provenance.describe(prov.get("actuator")),
+        "command": provenance.describe(prov.get("command")),
+    }
     check = TrackerCheck.from_metrics(tracked, rule, made_for)
     check.save(paths["tracker_check"])
     for line in check.warnings():

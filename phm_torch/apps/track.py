@@ -3,7 +3,8 @@
 Reads the index CSV (``actuator,hours,file[,event]``), runs phm-predict's diagnosis on each record, fuses each
 actuator's in-distribution inspections with a particle filter over (k, s) and writes ``track.json``
 (per inspection: k_hat and its interval, the filtered k, the wear-rate scale, the tracker's RUL 5/50/95 % and
-phm-predict's snapshot RUL, censored bounds null) and ``fleet.json`` (each actuator's latest state, by RUL 5 %).
+phm-predict's snapshot RUL, censored bounds null) and ``fleet.json`` (each actuator's latest state, by RUL 5 %,
+with the pipeline, actuator and command it belongs to).
 With ``truth=`` (a life split's truth.json) it scores both methods (:mod:`phm_torch.prognostics.life_metrics`)
 into ``metrics.json`` and draws the figures. Rerun with the same settings to resume an interrupted run.
 """
@@ -243,7 +244,9 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "fleet": fleet_list(actuators),
     }
     common.write_json(out_dir / "track.json", result)
-    common.write_json(out_dir / "fleet.json", result["fleet"])
+    # the fleet's latest states go to planners without track.json: they say whose states they are
+    fleet_file = {k: result[k] for k in ("pipeline", "actuator", "command", "fleet")}
+    common.write_json(out_dir / "fleet.json", fleet_file)
     inspections = [i for a in actuators.values() for i in a["inspections"]]
     metrics: dict[str, Any] = {
         "actuators": len(actuators),
