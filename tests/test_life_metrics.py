@@ -325,3 +325,24 @@ def test_plot_life_writes_figures_and_fleet_table(tmp_path):
     assert text[0].startswith("actuator,hours,rul_p5") and len(text) == 4
     with pytest.raises(ValueError, match="max_actuators must be an int >= 1, got 0"):
         plot_life(track, truth, tmp_path, max_actuators=0)
+
+
+def test_the_life_figures_name_the_actuator_and_command(tmp_path, monkeypatch):
+    from phm_torch.prognostics import life_plots
+
+    track, truth = make_life([1050.0, 1450.0])
+    assert life_plots.whose(track) == ""  # a track.json without provenance: no title added
+    track["actuator"] = {"name": "lin28", "sha256": "faf2dde1"}
+    track["command"] = {"name": "chirp_lin28", "sha256": "a7894df2"}
+    assert life_plots.whose(track) == "lin28 / chirp_lin28"
+    titles = []
+    save = life_plots.save_figure
+
+    def capture(fig, path):
+        heading = fig._suptitle.get_text() if fig._suptitle is not None else fig.axes[0].get_title()
+        titles.append(heading)
+        return save(fig, path)
+
+    monkeypatch.setattr(life_plots, "save_figure", capture)
+    life_plots.plot_life(track, truth, tmp_path, max_actuators=2)
+    assert len(titles) == 3 and all(t.startswith("lin28 / chirp_lin28") for t in titles)

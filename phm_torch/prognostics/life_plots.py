@@ -40,6 +40,19 @@ def select_actuators(truth: Mapping[str, Any], max_actuators: int) -> list[str]:
     return [ids[i] for i in picks]
 
 
+def whose(track: Mapping[str, Any]) -> str:
+    """``actuator / command`` of a track.json (its pipeline's), for figure titles; '' where it records none."""
+    names = [(track.get(key) or {}).get("name") for key in ("actuator", "command")]
+    return " / ".join(str(n) for n in names if n)
+
+
+def _titled(fig: Any, track: Mapping[str, Any]) -> Any:
+    """Put the actuator and command on the figure: a figure saved alone still says whose life it shows."""
+    if whose(track):
+        fig.suptitle(whose(track), fontsize=10)
+    return fig
+
+
 def _grid(n: int, width: float = 5.0, height: float = 3.6) -> tuple[Any, np.ndarray]:
     cols = min(3, n)
     rows = math.ceil(n / cols)
@@ -117,7 +130,7 @@ def rul_figure(
     for ax, a in zip(axes, ids):
         _rul_panel(ax, a, track["actuators"][a], truth["actuators"][a], alpha, lam, horizon_alpha)
     axes[0].legend(fontsize=7, loc="upper right")
-    return save_figure(fig, path)
+    return save_figure(_titled(fig, track), path)
 
 
 def _named(values: Any, names: Sequence[str]) -> dict[str, float]:
@@ -189,7 +202,7 @@ def damage_figure(track: Mapping[str, Any], truth: Mapping[str, Any], ids: Seque
         ax.grid(alpha=0.3)
     if handles:
         axes[0].legend(list(handles.values()), list(handles), fontsize=7, loc="upper left")
-    return save_figure(fig, path)
+    return save_figure(_titled(fig, track), path)
 
 
 def fleet_rows(track: Mapping[str, Any], truth: Mapping[str, Any] | None = None) -> list[dict[str, Any]]:
@@ -223,8 +236,11 @@ def fleet_rows(track: Mapping[str, Any], truth: Mapping[str, Any] | None = None)
     return rows
 
 
-def fleet_table(rows: Sequence[Mapping[str, Any]], csv_path: Path, png_path: Path, max_rows: int = 25) -> list[Path]:
-    """The fleet list as CSV (every row) and as a PNG table (the first ``max_rows``: the most urgent)."""
+def fleet_table(
+    rows: Sequence[Mapping[str, Any]], csv_path: Path, png_path: Path, max_rows: int = 25, title: str = ""
+) -> list[Path]:
+    """The fleet list as CSV (every row) and as a PNG table (the first ``max_rows``: the most urgent; ``title``,
+    e.g. the actuator and command, leads its heading)."""
     cols = ["actuator", "hours", "rul_p5", "rul_p50", "rul_p95", "rul_censored", "healthy", "p_faulty", "rul_true"]
     cols = [c for c in cols if any(c in r for r in rows)] or cols[:8]
     with atomic_open(csv_path, "w", newline="") as fh:
@@ -248,7 +264,8 @@ def fleet_table(rows: Sequence[Mapping[str, Any]], csv_path: Path, png_path: Pat
         table = ax.table(cellText=[[cell(r.get(c)) for c in cols] for r in shown], colLabels=cols, loc="center")
         table.auto_set_font_size(False)
         table.set_fontsize(7)
-    ax.set_title(f"fleet, sorted by RUL p5 ({len(shown)} of {len(rows)} actuators)", fontsize=9)
+    lead = f"{title}: " if title else ""
+    ax.set_title(f"{lead}fleet, sorted by RUL p5 ({len(shown)} of {len(rows)} actuators)", fontsize=9)
     return [Path(csv_path), save_figure(fig, png_path)]
 
 
@@ -280,5 +297,5 @@ def plot_life(
     if ids:
         paths.append(rul_figure(track, truth, ids, out / "life_rul.png", alpha, lam, horizon_alpha))
         paths.append(damage_figure(track, truth, ids, out / "life_damage.png"))
-    paths += fleet_table(fleet_rows(track, truth), out / "life_fleet.csv", out / "life_fleet.png")
+    paths += fleet_table(fleet_rows(track, truth), out / "life_fleet.csv", out / "life_fleet.png", title=whose(track))
     return paths
