@@ -142,13 +142,14 @@ def _log_sampling(sampling: dict) -> None:
             why = "a larger exponent would leave almost no near-nominal vectors in the store"
         log.warning(
             "importance sampling: the healthy fraction %s is not reached; distance exponent %s (its bound) gives %s "
-            "(the paper's scaling: %s); %s (docs/dataset.md). Set dataset.healthy_fraction to a reachable value "
-            "(or dataset.near_nominal_share lower), or null for the paper's scaling",
+            "(the paper's scaling: %s); %s (docs/dataset.md). Set dataset.healthy_fraction to a reachable value%s, "
+            "or null for the paper's scaling",
             target,
             sampling["distance_exponent"],
             expected,
             pilot,
             why,
+            " (or dataset.near_nominal_share lower)" if share else "",
         )
 
 
