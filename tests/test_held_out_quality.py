@@ -66,20 +66,28 @@ def test_each_verdict_reads_the_rate_of_its_own_kind_and_the_run_warns_above_ten
     assert quality_warnings({"rul_band_coverage_full_flow": 1.0, "rul_uncertainty_median_full_flow": 27.0}) == []
 
 
-@pytest.mark.torchscript
-def test_phm_predict_gives_each_verdict_its_held_out_error(compose, tmp_path, caplog):
-    """The pretrained pipeline with held-out figures added to its metadata, on the nominal record it carries."""
-    from phm_torch.apps.predict import predict
-
+def _with_quality(path, quality):
+    """The shipped pipeline file with ``held_out_quality`` in its metadata replaced (None: removed)."""
     metadata = read_metadata(PIPELINE)
-    metadata["held_out_quality"] = {"split": "val", "records": 500, "missed_faulty": 0.25, "false_alarm": 0.04}
-    path = tmp_path / "with_quality.pt"
+    metadata.pop("held_out_quality", None)
+    if quality is not None:
+        metadata["held_out_quality"] = quality
     with zipfile.ZipFile(PIPELINE) as src, zipfile.ZipFile(path, "w") as dst:
         for item in src.infolist():
             data = src.read(item.filename)
             if item.filename.endswith(f"/extra/{METADATA_FILE}"):
                 data = json.dumps(metadata, sort_keys=True).encode()
             dst.writestr(item, data)
+    return path
+
+
+@pytest.mark.torchscript
+def test_phm_predict_gives_each_verdict_its_held_out_error(compose, tmp_path, caplog):
+    """The pretrained pipeline with held-out figures added to its metadata, on the nominal record it carries."""
+    from phm_torch.apps.predict import predict
+
+    shipped = read_metadata(PIPELINE)
+    path = _with_quality(tmp_path / "with_quality.pt", {"split": "val", "records": 500, "missed_faulty": 0.25})
     model = torch.jit.load(str(path))
     n = model.nominal_record.shape[-1]
     t = torch.arange(n, dtype=torch.float64) / 20000.0
@@ -92,6 +100,15 @@ def test_phm_predict_gives_each_verdict_its_held_out_error(compose, tmp_path, ca
     assert record["healthy"] and record["verdict_held_out_error"] == 0.25
     assert metrics["held_out_quality"]["missed_faulty"] == 0.25
     assert sum("25 % of the faulty ones healthy" in r.getMessage() for r in caplog.records) == 1
-    # the shipped file, exported before the measurement: nothing said, nothing made up
-    _, plain = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements=[{csv}]"]))
+    # the shipped file carries its own figures (scripts/add_held_out_quality.py): 1.2 % of 1,392 faulty records of a
+    # fresh store answered healthy, said in the record, below the warning
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        _, shipped_out = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements=[{csv}]"]))
+    missed = shipped["held_out_quality"]["missed_faulty"]
+    assert shipped_out["records"][0]["verdict_held_out_error"] == missed and 0.0 < missed < 0.05
+    assert not any("of the faulty ones healthy" in r.getMessage() for r in caplog.records)
+    # a file exported before the measurement: nothing said, nothing made up
+    bare = _with_quality(tmp_path / "bare.pt", None)
+    _, plain = predict(compose("predict", [f"pipeline={bare}", f"measurements=[{csv}]"]))
     assert plain["records"][0]["verdict_held_out_error"] is None
