@@ -244,9 +244,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "fleet": fleet_list(actuators),
     }
     common.write_json(out_dir / "track.json", result)
-    # the fleet's latest states go to planners without track.json: they say whose states they are
-    fleet_file = {k: result[k] for k in ("pipeline", "actuator", "command", "fleet")}
-    common.write_json(out_dir / "fleet.json", fleet_file)
+    common.write_json(out_dir / "fleet.json", {k: result[k] for k in ("pipeline", "actuator", "command", "fleet")})
     inspections = [i for a in actuators.values() for i in a["inspections"]]
     metrics: dict[str, Any] = {
         "actuators": len(actuators),
