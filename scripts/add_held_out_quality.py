@@ -53,7 +53,7 @@ def measure(pipeline_path: Path, data_dir: Path, split: str, seed: int) -> dict:
     bound = metadata.get("drive_current_bound")
     inside = torch.ones(k.shape[0], dtype=torch.bool) if bound is None else clean.abs().amax(1) <= float(bound)
     k, clean, healthy = k[inside], clean[inside], healthy[inside]
-    noise = float(pipe.interval_noise[0]) if pipe.interval_noise.numel() else 0.01
+    noise = float(pipe.interval_noise[0])  # the first calibrated level (zeros where the file calibrated none)
     signals = noisy(clean, noise, seed)
     with torch.no_grad():
         k_hat, _, _, ood, _ = pipe(signals.to(pipe.times.dtype))

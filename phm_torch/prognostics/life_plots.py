@@ -48,8 +48,9 @@ def whose(track: Mapping[str, Any]) -> str:
 
 def _titled(fig: Any, track: Mapping[str, Any]) -> Any:
     """Put the actuator and command on the figure: a figure saved alone still says whose life it shows."""
-    if whose(track):
-        fig.suptitle(whose(track), fontsize=10)
+    title = whose(track)
+    if title:
+        fig.suptitle(title, fontsize=10)
     return fig
 
 
