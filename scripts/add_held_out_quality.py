@@ -6,7 +6,7 @@ The shipped pretrained pipeline was exported before phm-evaluate measured either
 without ``verdict_held_out_error`` and listed no component under ``k_not_identified``. This script reads a split of
 a store made for the pipeline's actuator and command (checked; make it with a seed of its own: the pipeline's files
 do not record the store they were trained on), adds white noise at the pipeline's first calibrated level (as phm-evaluate
-does), runs the pipeline as exported (rebuilt eagerly from the TorchScript file), measures both with phm-evaluate's
+does; ``--noise`` for a pipeline exported without that calibration), runs the pipeline as exported (rebuilt eagerly from the TorchScript file), measures both with phm-evaluate's
 own functions and writes the pipeline again, everything else unchanged, in the formats asked for
 (:func:`~phm_torch.online.from_torchscript.rewrite_pipeline`: the written files are checked against the input).
 The RUL figures of ``held_out_quality`` are left out (null): they need the rul split's reference RULs.
@@ -31,11 +31,26 @@ from phm_torch import provenance
 from phm_torch.data import DatasetStore
 from phm_torch.io.atomic import write_json
 from phm_torch.online.from_torchscript import pipeline_from_torchscript, rewrite_pipeline
-from phm_torch.pipelines.evaluate.calibration import identifiability, noisy
+from phm_torch.pipelines.evaluate.calibration import identifiability, noisy, within_drive_range
 from phm_torch.pipelines.evaluate.quality import held_out_quality
 
 
-def measure(pipeline_path: Path, data_dir: Path, split: str, seed: int) -> dict:
+def noise_level(pipe: torch.nn.Module, noise: float | None) -> float:
+    """The relative noise added to the held-out records: ``noise`` if given, else the pipeline's first calibrated
+    level; a pipeline without calibrated intervals records none, and reading it noise-free would flatter it."""
+    if noise is not None:
+        if not noise >= 0.0:
+            raise ValueError(f"--noise must be a relative noise level >= 0, got {noise!r}")
+        return float(noise)
+    if not bool(torch.isfinite(pipe.k_half_widths).any()):
+        raise ValueError(
+            "the pipeline records no calibrated noise level (exported without phm-evaluate's calibration): "
+            "give --noise, e.g. --noise 0.01"
+        )
+    return float(pipe.interval_noise[0])
+
+
+def measure(pipeline_path: Path, data_dir: Path, split: str, seed: int, noise: float | None = None) -> dict:
     """The pipeline's held-out quality and identifiability on ``split`` of the store ``data_dir``, with the store,
     the noise level and the records left out beyond the pipeline's drive range."""
     pipe, metadata = pipeline_from_torchscript(pipeline_path)
@@ -50,10 +65,9 @@ def measure(pipeline_path: Path, data_dir: Path, split: str, seed: int) -> dict:
         fingerprint = store.manifest.get("fingerprint")
     if k.shape[0] < 50:
         raise ValueError(f"split {split!r} of {data_dir} holds {k.shape[0]} records: at least 50 are needed")
-    bound = metadata.get("drive_current_bound")
-    inside = torch.ones(k.shape[0], dtype=torch.bool) if bound is None else clean.abs().amax(1) <= float(bound)
+    inside = within_drive_range(clean, metadata.get("drive_current_bound"))
     k, clean, healthy = k[inside], clean[inside], healthy[inside]
-    noise = float(pipe.interval_noise[0])  # the first calibrated level (zeros where the file calibrated none)
+    noise = noise_level(pipe, noise)
     signals = noisy(clean, noise, seed)
     with torch.no_grad():
         k_hat, _, _, ood, _ = pipe(signals.to(pipe.times.dtype))
@@ -77,9 +91,15 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--split", default="val")
     ap.add_argument("--formats", default="torchscript,export", help="comma-separated phm-export formats")
     ap.add_argument("--seed", type=int, default=0, help="seeds the added noise")
+    ap.add_argument(
+        "--noise",
+        type=float,
+        default=None,
+        help="relative noise added (default: the pipeline's first calibrated level)",
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    figures = measure(args.pipeline, args.data_dir, args.split, args.seed)
+    figures = measure(args.pipeline, args.data_dir, args.split, args.seed, args.noise)
     written = rewrite_pipeline(
         args.pipeline,
         args.out,

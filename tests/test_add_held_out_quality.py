@@ -96,3 +96,21 @@ def test_a_store_of_another_actuator_or_without_the_split_is_refused(exported, t
     with pytest.raises(ValueError, match="split: 'test' not in store"):
         script.main([*args, "--data-dir", str(tmp_path / "reference"), "--split", "test"])
     assert not (tmp_path / "o.pt").exists()
+
+
+def test_a_pipeline_without_calibrated_noise_needs_noise_given(tmp_path, monkeypatch):
+    """Its interval noise levels are placeholders (zeros): reading the records noise-free would flatter it."""
+    pipe = make_pipeline(calibrated=False)
+    reference = provenance.actuator_record("ema_reference", load_actuator())
+    meta = {"damage": damage_config(), "provenance": {"actuator": reference, "command": CHIRP}}
+    export_torchscript(pipe, tmp_path / "raw.pt", meta)
+    _store(tmp_path / "store", pipe, "ema_reference", monkeypatch)
+    script = script_module("add_held_out_quality")
+    args = ["--pipeline", str(tmp_path / "raw.pt"), "--data-dir", str(tmp_path / "store"), "--formats", "torchscript"]
+    with pytest.raises(ValueError, match="no calibrated noise level.*--noise"):
+        script.main([*args, "--out", str(tmp_path / "a.pt")])
+    with pytest.raises(ValueError, match="--noise must be .* got -0.1"):
+        script.main([*args, "--out", str(tmp_path / "a.pt"), "--noise", "-0.1"])
+    assert not (tmp_path / "a.pt").exists()
+    report = script.main([*args, "--out", str(tmp_path / "b.pt"), "--noise", "0.02"])
+    assert report["noise"] == 0.02 and read_metadata(tmp_path / "b.pt")["held_out_quality"]["records"] == 120

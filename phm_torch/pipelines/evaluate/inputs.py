@@ -15,7 +15,7 @@ from ...checks import build
 from ...data.store import DatasetStore
 from ...params import ActuatorParams
 from ...surrogates.bundle import SurrogateBundle
-from .calibration import noisy, tracking_ranges
+from .calibration import noisy, tracking_ranges, within_drive_range
 from .settings import EvaluateSettings
 
 log = logging.getLogger(__name__)
@@ -75,12 +75,11 @@ def read_inputs(settings: EvaluateSettings) -> SimpleNamespace:
     if k.shape[0] == 0:
         raise ValueError(f"split {settings.split!r} of {settings.data_dir} is empty")
     bound = bundle.extra.get("drive_current_bound")
-    inside = None if bound is None else band_clean.abs().amax(1) <= float(bound)
-    if inside is not None:  # the pipeline answers overcurrent beyond its drive range: nothing to calibrate there
-        band_k, band_clean, band_healthy = band_k[inside], band_clean[inside], band_healthy[inside]
+    inside = within_drive_range(band_clean, bound)
+    band_k, band_clean, band_healthy = band_k[inside], band_clean[inside], band_healthy[inside]
     band_signals = noisy(band_clean, cal.noise, settings.seed)
     return SimpleNamespace(
-        band_beyond_drive_range=0 if inside is None else int((~inside).sum()),
+        band_beyond_drive_range=int((~inside).sum()),
         prov=prov,
         assessment=assessment,
         params=params,

@@ -23,7 +23,7 @@ from typing import Any
 import torch
 
 from ...online.fault_count import no_large_fault
-from .calibration import noisy
+from .calibration import noisy, within_drive_range
 
 log = logging.getLogger(__name__)
 
@@ -73,8 +73,7 @@ def near_nominal_calibration(
         index = near.nonzero().flatten()[:TRAINING_ROWS_MAX].tolist()
         if index:
             clean = read_training(index)
-            if drive_bound is not None:
-                clean = clean[clean.abs().amax(1) <= drive_bound]
+            clean = clean[within_drive_range(clean, drive_bound)]
             x = noisy(clean, noise, seed + 1)
             with torch.no_grad():
                 answer = pipeline(x.to(pipeline.times.dtype))
