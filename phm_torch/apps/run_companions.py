@@ -191,10 +191,7 @@ def run_companions(
         )
         # the end-of-life rule is still chosen, on the tracker as phm-track will run it (the response alone), and
         # recorded in the tracker check, which phm-track's verdict=auto / faulty_at=auto then read
-        tracked = _tracked_by_rule(life_args, root, near_nominal="null")
-        chosen = choose_end_of_life_rule(tracked, late_weight)
-        rule = {key: chosen[key] for key in ("verdict", "faulty_at")}
-        check = _tracker_check(pipeline, paths, tracked[(rule["verdict"], rule["faulty_at"])], rule)
+        chosen, check = check_tracker(pipeline, life_args, root, "null", late_weight)
         return {
             **_metrics(n_actuators, seed, raw, gen_metrics, paths, fit, skipped=str(err)),
             **check,
@@ -206,12 +203,9 @@ def run_companions(
     # the tracker as the track stage will run it (both files beside the pipeline) under each end-of-life rule; the
     # rule chosen is recorded in the near-nominal FDI (phm-track verdict=auto). Most of these histories trained it:
     # its reading is sharper on them than on new ones, so a rule's flags look later here than they will be
-    tracked = _tracked_by_rule(life_args, root, near_nominal="auto")
-    chosen = choose_end_of_life_rule(tracked, late_weight)
+    chosen, check = check_tracker(pipeline, life_args, root, "auto", late_weight)
     net.provenance["tracker_rule"] = chosen
     net.save(paths["near_nominal"])
-    rule = {key: chosen[key] for key in ("verdict", "faulty_at")}
-    check = _tracker_check(pipeline, paths, tracked[(rule["verdict"], rule["faulty_at"])], rule)
     log.info("companions of %s: %s", pipeline, ", ".join(str(p) for p in paths.values() if p.is_file()))
     return {
         **_metrics(n_actuators, seed, raw, gen_metrics, paths, fit),
@@ -222,6 +216,20 @@ def run_companions(
         "near_nominal_records": {"life": report["life_records"], "store": report["store_records"]},
         "near_nominal_heldout_rms": report["heldout"],
     }
+
+
+def check_tracker(
+    pipeline: Path, life_args: list[str], root: Path, near_nominal: str, late_weight: float = LATE_WEIGHT
+) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Track a life split (``life_args``: phm-track's overrides naming it and ``pipeline``) under each end-of-life rule
+    of :data:`RULES` with the FDI response beside the pipeline and ``near_nominal`` (``auto`` | ``null``), choose the
+    rule (:func:`choose_end_of_life_rule`) and write the tracker check of it beside the pipeline; the tracks go under
+    ``root``. Returns the chosen rule with every rule's figures, and the metrics of the check written."""
+    tracked = _tracked_by_rule(life_args, root, near_nominal)
+    chosen = choose_end_of_life_rule(tracked, late_weight)
+    rule = {key: chosen[key] for key in ("verdict", "faulty_at")}
+    check = _tracker_check(pipeline, companion_paths(pipeline), tracked[(rule["verdict"], rule["faulty_at"])], rule)
+    return chosen, check
 
 
 def _tracked_by_rule(life_args: list[str], root: Path, near_nominal: str) -> dict[tuple[str, str], dict[str, Any]]:
