@@ -245,6 +245,24 @@ def test_the_shipped_near_nominal_fdi_belongs_to_the_pretrained_pipeline_and_is_
     assert bool(used[0]) and float(k[0, DAMAGE].sub(near.nominal[DAMAGE]).abs().max()) < 0.01
 
 
+def test_the_shipped_tracker_check_belongs_to_the_pretrained_pipeline_and_sets_its_rule():
+    """Measured by scripts/add_tracker_check.py on 100 histories nothing was fitted on (seed 35): phm-track's
+    tracker_check=auto warns from it and verdict=auto / faulty_at=auto take its rule (the near-nominal FDI records
+    none)."""
+    from phm_torch.apps.track import auto_rule
+    from phm_torch.online.loaded import load_pipeline
+    from phm_torch.tracking.near_nominal import NearNominalFDI
+    from phm_torch.tracking.tracker_check import TrackerCheck
+
+    check = TrackerCheck.load(PIPELINE.with_name("online_surrogates_best.tracker_check.json"))
+    check.check_for(load_pipeline(PIPELINE).module, str(PIPELINE))  # raises for another pipeline
+    assert check.pipeline["actuator"].startswith("ema_reference") and check.histories == 100
+    assert check.warnings() == []  # coverage above 70 %, ends of life not flagged early
+    near = NearNominalFDI.load(PIPELINE.with_name("online_surrogates_best.near_nominal.pt"))
+    assert near.provenance.get("tracker_rule") is None
+    assert auto_rule(near, check=check) == check.rule == {"verdict": "posterior", "faulty_at": "p5"}
+
+
 def test_the_pretrained_classifiers_learned_the_labels_of_the_shipped_assessment_function(compose):
     """The health classifier (the RUL's event, phm-track's end of life) and the verdict classifier learned the
     labels of the phi_a that phm-generate ships: a life split generated with the defaults is labelled alike, so
