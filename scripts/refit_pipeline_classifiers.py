@@ -16,7 +16,10 @@ share. This script keeps the FDI and everything calibrated on it, and changes th
 - the two calibrations that read the classifiers are redone on the store's val split, as phm-evaluate does them:
   the FDI band of the full-flow RUL, and P(faulty)'s Platt scaling.
 The classifiers are cast to the pipeline's dtype (``--keep-classifier`` alone does only that and the two
-calibrations). The file's metadata is kept.
+calibrations). With ``--rul-band`` the physics RUL band, whose event is the health classifier, is calibrated again
+first, as phm-evaluate calibrates it (the composed evaluate config's damage law and ``rul`` settings, on the store's
+``rul`` split), and that damage law goes into the metadata (for a pipeline whose band predates the law's wear-rate
+scale; the shipped one keeps its band: measured, pretrained/README.md). The file's metadata is kept otherwise.
 
     python scripts/refit_pipeline_classifiers.py --pipeline tests/data/pretrained_v0.pt --data-dir data/paper \
         --bundle results/train/surrogates.pt --out /tmp/p/online.pt
@@ -24,6 +27,8 @@ calibrations). The file's metadata is kept.
         --data-dir data/paper --fit-classifier --work-dir /tmp/p/fit --out /tmp/p/online.pt
     python scripts/refit_pipeline_classifiers.py --pipeline pretrained/online_surrogates_best.pt \
         --data-dir data/paper40k --keep-classifier --refit-verdict --out /tmp/p/online.pt
+    python scripts/refit_pipeline_classifiers.py --pipeline pretrained/online_surrogates_best.pt \
+        --data-dir data/paper --keep-classifier --rul-band --out /tmp/p/online.pt
     phm-export pipeline=/tmp/p/online.pt format=[torchscript,export] out=/tmp/p2/online_surrogates_best.pt
 """
 
@@ -39,14 +44,18 @@ import torch
 from hydra.utils import instantiate
 
 from phm_torch import provenance
+from phm_torch.apps.common import plain
 from phm_torch.apps.run import compose_stage
 from phm_torch.apps.train import settings_from_config
+from phm_torch.checks import build
 from phm_torch.data import DatasetStore
+from phm_torch.data.store import recorded_actuator
 from phm_torch.io.measurement_csv import read_measurement
 from phm_torch.online.export import export_torchscript
 from phm_torch.online.from_torchscript import pipeline_from_torchscript
 from phm_torch.pipelines.evaluate.calibration import fdi_band, noisy, verdict_scaling
 from phm_torch.pipelines.train import fit_health_classifier, store_labeller
+from phm_torch.prognostics.rul import DeterministicRUL, RULEstimator
 from phm_torch.surrogates import SurrogateBundle
 from phm_torch.surrogates.classifiers import MLPClassifier
 
@@ -102,6 +111,43 @@ def _fit_classifier(args: argparse.Namespace, k: torch.Tensor, healthy: torch.Te
     return classifier, {"vectors": n, "refinement": info, "timing_s": timing}
 
 
+def physics_band(
+    pipe: Any, damage_cfg: dict[str, Any], nominal: list[float], rul: Any, k: torch.Tensor, seed: int
+) -> dict[str, Any]:
+    """Calibrate ``pipe``'s physics RUL band (deltas, direction, rate scales) on the fault vectors ``k`` (B, 8) as
+    phm-evaluate does: the damage law ``damage_cfg`` (a ``conf/damage`` node, built with the actuator's ``nominal``
+    vector) and the ``rul`` settings (``n_samples``, ``refine_iterations``, ``band``, ``delta_bracket``), the
+    pipeline's own health classifier as the event. Returns a report: the band before and after, and how often each
+    holds the law's own Monte Carlo RULs (eps and the wear-rate scale drawn) from the true k."""
+    damage = build(dict(damage_cfg), "damage", nominal=nominal)
+    a, _ = damage.transitions(damage.grid)
+    if a.shape != pipe.propagators.shape or not torch.allclose(a.to(pipe.propagators), pipe.propagators, rtol=1e-5):
+        raise ValueError("--rul-band: the composed damage law's propagators are not the pipeline's (another law)")
+    weights = pipe.times.dtype
+
+    def score(x: torch.Tensor) -> torch.Tensor:
+        return (pipe.classifier(x.to(weights)) - pipe.classifier.threshold).to(torch.float64)
+
+    est = RULEstimator(damage, score, int(rul["n_samples"]), int(rul["refine_iterations"]))
+    det = DeterministicRUL(est, str(rul["band"]))
+    det.calibrate(k, torch.Generator().manual_seed(seed), bracket=float(rul["delta_bracket"]))
+    runs = est.estimate(k, torch.Generator().manual_seed(seed + 1)).samples  # (B, n) RULs of possible actuators
+
+    def holds() -> float:  # share of the Monte Carlo RULs inside the pipeline's true-k band
+        with torch.no_grad():
+            band = pipe.rul(k.to(weights)).to(torch.float64)
+        inside = (runs >= band[:, :1]) & (runs <= band[:, 2:])
+        return float(inside.double().mean())
+
+    before = {"rate_scales": pipe.rate_scales.tolist(), "deltas": pipe.deltas.tolist(), "holds_monte_carlo": holds()}
+    deltas, scales = det.pipeline_parameters()
+    pipe.deltas.copy_(deltas.to(pipe.deltas))
+    pipe.direction.copy_(det.direction.to(pipe.direction))
+    pipe.rate_scales.copy_(scales.to(pipe.rate_scales))
+    after = {"rate_scales": pipe.rate_scales.tolist(), "deltas": pipe.deltas.tolist(), "holds_monte_carlo": holds()}
+    return {"band": det.variant, "vectors": int(k.shape[0]), "before": before, "after": after}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--pipeline", required=True, help="the TorchScript pipeline file to refit")
@@ -131,6 +177,11 @@ def main() -> None:
         action="store_true",
         help="also refit the verdict classifier on the store's training records (fewer than the pipeline's own)",
     )
+    ap.add_argument(
+        "--rul-band",
+        action="store_true",
+        help="also calibrate the physics RUL band again (under the composed damage law, on the rul split)",
+    )
     args = ap.parse_args()
     torch.set_num_threads(1)
     pipe, metadata = pipeline_from_torchscript(args.pipeline)
@@ -141,6 +192,8 @@ def main() -> None:
         provenance.require_same(recorded, metadata.get("provenance") or {}, f"store {args.data_dir}")
         train_k, train_x, train_h = _split(store, "train")
         val_k, val_x, val_h = _split(store, "val")
+        rul_k = torch.as_tensor(np.asarray(store.split("rul").K), dtype=torch.float64) if args.rul_band else None
+        nominal = list(recorded_actuator(store.metadata).nominal_faults)
     dtype = pipe.times.dtype
     before = {}
     with torch.no_grad():
@@ -171,8 +224,13 @@ def main() -> None:
         pipe.verdict_classifier = MLPClassifier(seed=args.seed).fit(k_hat.double(), train_h).to(weights)
     else:
         pipe.verdict_classifier = pipe.verdict_classifier.to(weights)
+    damage_meta, physics = {}, None
+    if rul_k is not None:  # as phm-evaluate: its composed damage law and rul settings, the store actuator's nominal
+        evaluate = compose_stage("evaluate", [f"data_dir={args.data_dir}"])
+        damage_meta = plain(evaluate.damage)
+        physics = physics_band(pipe, damage_meta, nominal, plain(evaluate.rul), rul_k, args.seed)
     band_signals = noisy(val_x, NOISE, args.seed)
-    band = fdi_band(pipe, band_signals, val_k, False)
+    band = fdi_band(pipe, band_signals, val_k, False)  # the full-flow band's FDI share, on top of the physics band
     if band is not None:
         pipe.fdi_deltas.copy_(band.deltas.to(pipe.fdi_deltas))
         pipe.fdi_direction.copy_(band.direction.to(pipe.fdi_direction))
@@ -190,7 +248,8 @@ def main() -> None:
         }
     # the phi_a its health classifier (the RUL event) learned, which phm-track compares with a life split's
     prior = {} if platt is None else {"verdict_prior_faulty": platt[2]}  # phm-track's verdict evidence reads it
-    export_torchscript(pipe, args.out, {**metadata, "assessment": assessment, **prior})
+    damage = {} if rul_k is None else {"damage": damage_meta}  # the law the band was calibrated with (phm-track)
+    export_torchscript(pipe, args.out, {**metadata, "assessment": assessment, **prior, **damage})
     report = {
         "out": args.out,
         "before": before,
@@ -198,6 +257,7 @@ def main() -> None:
         "fdi_band_deltas": None if band is None else band.deltas.tolist(),
         "verdict_platt": None if platt is None else list(platt[:2]),
         "classifier_fit": fit_report,
+        "physics_band": physics,
     }
     Path(args.out).with_suffix(".refit.json").write_text(json.dumps(report, indent=2))
     print(json.dumps(report, indent=2))

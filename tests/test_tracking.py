@@ -381,6 +381,18 @@ def test_a_pipeline_calibrated_before_the_rate_scale_tracks_s_with_the_composed_
     assert described["band_included_rate_scale"]
 
 
+def test_whether_a_band_holds_the_rate_scale_is_read_from_the_damage_config_it_was_calibrated_with():
+    """phm-track removes the wear-rate scale's share from a band only where its calibration held it."""
+    from phm_torch.tracking.damage_law import band_includes_rate_scale
+
+    assert band_includes_rate_scale({"damage": damage_config()})  # rate_scale_sigma 0.35
+    assert not band_includes_rate_scale({"damage": {**damage_config(), "rate_scale_sigma": 0.0}})
+    assert not band_includes_rate_scale(
+        {"damage": {k: v for k, v in damage_config().items() if k != "rate_scale_sigma"}}
+    )
+    assert not band_includes_rate_scale({})  # the shipped pipeline: no damage config at all
+
+
 def test_the_kalman_update_is_the_joint_one_and_a_clamped_reading_is_a_bound():
     from phm_torch.tracking import kalman
 

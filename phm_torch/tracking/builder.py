@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from ..online.diagnosis import not_identified
-from .damage_law import DamageLaw, damage_config
+from .damage_law import DamageLaw, band_includes_rate_scale, damage_config
 from .inspection import require_calibrated
 from .particle_filter import Tracker
 from .particle_rul import ParticleRUL, eps_log_sigmas
@@ -51,7 +51,7 @@ def build_tracker(
         )
         damage = {**damage, "rate_scale_sigma": fallback_damage["rate_scale_sigma"]}
     law = DamageLaw.from_config(damage, model, where)
-    with_s = where.endswith("metadata") and bool(calibrated_sigma) and float(calibrated_sigma) > 0
+    with_s = band_includes_rate_scale(metadata)
     eps = eps_log_sigmas(model, law, with_s)
     rul = ParticleRUL(model, law, settings.max_rate_scale, settings.bisections, eps, settings.boundary_std_hours)
     prior = metadata.get("verdict_prior_faulty")

@@ -187,6 +187,16 @@ class DamageLaw:
         return self.noise_std.to(dt) * var.clamp(min=0.0).sqrt()
 
 
+def band_includes_rate_scale(metadata: Mapping[str, Any]) -> bool:
+    """Whether an exported pipeline's RUL band holds the spread of wear rates between actuators: its metadata's damage
+    config (the law phm-evaluate calibrated the band with) has a wear-rate scale, ``rate_scale_sigma`` > 0, so the
+    calibration's Monte Carlo drew one s per run. A pipeline exported before the scale existed (the shipped one) or
+    with it at 0 has a band of the rate disturbance eps alone."""
+    damage = metadata.get("damage")
+    sigma = damage.get("rate_scale_sigma") if isinstance(damage, Mapping) else None
+    return sigma is not None and float(sigma) > 0
+
+
 def damage_config(
     metadata: Mapping[str, Any], fallback: Mapping[str, Any] | None, source: str
 ) -> tuple[dict[str, Any], str]:
