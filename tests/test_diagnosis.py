@@ -45,6 +45,21 @@ def test_identifiability_is_r2_per_component():
     assert not_identified({}) == [] and IDENTIFIED_R2 == 0.25
 
 
+def test_phm_evaluate_names_the_unidentified_components_and_how_to_tell_why(caplog):
+    """A component read at its prior: the warning says which, and points at the probe that tells a fault the command
+    does not excite from one the pipeline's configuration does not read (docs/own_actuator.md)."""
+    from phm_torch.pipelines.evaluate.calibration import identifiability
+
+    g = torch.Generator().manual_seed(0)
+    k = torch.rand(500, 8, generator=g, dtype=torch.float64)
+    k_hat = k.clone()
+    k_hat[:, 5] = 0.5
+    with caplog.at_level("WARNING"):
+        r2 = identifiability(k_hat, k, torch.zeros(500, dtype=torch.bool))
+    assert r2["eccentricity"] < 0.25 and r2["backlash"] == pytest.approx(1.0)
+    assert "does not identify eccentricity" in caplog.text and "scripts/fdi_capacity_probe.py" in caplog.text
+
+
 @pytest.mark.torchscript
 def test_the_predict_record_names_unidentified_components_and_censors_a_bound_past_the_horizon():
     torch.set_num_threads(1)

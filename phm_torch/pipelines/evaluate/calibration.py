@@ -81,8 +81,10 @@ def identifiability(k_hat: torch.Tensor, k: torch.Tensor, ood: torch.Tensor) -> 
     weak = {name: v for name, v in out.items() if not v >= IDENTIFIED_R2}
     if weak:
         log.warning(
-            "the test command does not identify %s (R^2 %s on held-out records, below %.2f): their k_hat is "
-            "mostly the training prior; phm-predict lists them under k_not_identified",
+            "this pipeline does not identify %s (R^2 %s on held-out records, below %.2f): their k_hat is "
+            "mostly the training prior; phm-predict lists them under k_not_identified. Whether the records carry "
+            "them (more modes and a wider FDI would read them) or the test command does not excite them: "
+            "scripts/fdi_capacity_probe.py",
             ", ".join(weak),
             ", ".join(f"{v:.2f}" for v in weak.values()),
             IDENTIFIED_R2,
