@@ -5,9 +5,9 @@ them (phm-track's ``verdict=auto`` / ``faulty_at=auto`` read it there when the n
 
 The shipped pretrained pipeline's companions (FDI response, near-nominal FDI) were made by hand before the stage
 existed, so phm-track ran it under its default rule with no figures to warn from. This script tracks a life split of
-the pipeline's actuator and command under each rule of the stage (:data:`~phm_torch.apps.run_companions.RULES`) with
-the companion files beside the pipeline, exactly as the stage does (:func:`~phm_torch.apps.run_companions.check_tracker`),
-and writes the check beside the pipeline. Give it histories nothing was fitted on (another seed than the near-nominal
+the pipeline's actuator and command (the truth's records checked against the pipeline's) under each rule of the
+stage (:data:`~phm_torch.apps.run_companions.RULES`) with the companion files beside the pipeline, exactly as the
+stage does (:func:`~phm_torch.apps.run_companions.check_tracker`), and writes the check beside the pipeline. Give it histories nothing was fitted on (another seed than the near-nominal
 FDI's life split): the figures are then what a new fleet will see, not the training split's.
 
     phm-generate stage=life dataset.life.n_actuators=100 seed=35 data_dir=/tmp/life35 threads=1     # ~10 min
@@ -25,19 +25,26 @@ from pathlib import Path
 
 import torch
 
+from phm_torch import provenance
 from phm_torch.apps.run_companions import LATE_WEIGHT, check_tracker, companion_paths
 from phm_torch.io.atomic import write_json
+from phm_torch.online.export import read_metadata
 from phm_torch.tracking.near_nominal import NearNominalFDI
 
 
-def life_files(life: Path) -> tuple[Path, Path]:
-    """The life split's index and truth; a clear error where either is missing."""
+def life_files(life: Path, pipeline: Path) -> tuple[Path, Path]:
+    """The life split's index and truth; a clear error where either is missing, or where the truth records another
+    actuator or test command than the pipeline's (phm-track only warns of that; a check measured on another
+    actuator's histories would be written beside the pipeline as its own)."""
     index, truth = life / "index.csv", life / "truth.json"
     for path in (index, truth):
         if not path.is_file():
             raise ValueError(
                 f"--life: {life} holds no {path.name} (a folder phm-generate stage=life wrote: <data_dir>/life)"
             )
+    recorded = json.loads(truth.read_text())
+    made_for = read_metadata(pipeline).get("provenance") or {}
+    provenance.require_same({key: recorded.get(key) for key in provenance.KEYS}, made_for, f"life split {life}")
     return index, truth
 
 
@@ -53,7 +60,7 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     if not args.pipeline.is_file():
         raise ValueError(f"--pipeline: {args.pipeline} does not exist")
-    index, truth = life_files(args.life)
+    index, truth = life_files(args.life, args.pipeline)
     torch.set_num_threads(args.threads)
     near_path = companion_paths(args.pipeline)["near_nominal"]
     near = NearNominalFDI.load(near_path) if near_path.is_file() else None

@@ -67,3 +67,24 @@ def test_missing_histories_and_a_pipeline_whose_near_nominal_fdi_chose_its_rule_
     with pytest.raises(ValueError, match="records its own end-of-life rule"):
         script.main([*args, "--life", str(life)])
     assert not companion_paths(pipeline)["tracker_check"].exists()
+
+
+def test_histories_of_another_actuator_are_refused_before_any_track(fleet, tmp_path):  # noqa: F811
+    """phm-track only warns of a truth of another actuator; written beside the pipeline, a check measured on those
+    histories would pass as its own."""
+    from test_tracking import damage_config, make_pipeline
+
+    from phm_torch import provenance
+    from phm_torch.online.export import export_torchscript
+    from phm_torch.params import load_actuator
+
+    life, _ = _copy(fleet, tmp_path)
+    pipeline = tmp_path / "made_for_reference.pt"
+    reference = provenance.actuator_record("ema_reference", load_actuator())
+    export_torchscript(make_pipeline(), pipeline, {"damage": damage_config(), "provenance": {"actuator": reference}})
+    rudder = provenance.actuator_record("ema_hvdc_rudder", load_actuator("ema_hvdc_rudder"))
+    (life / "truth.json").write_text(json.dumps({**fleet_truth(), "actuator": rudder}))
+    script = script_module("add_tracker_check")
+    with pytest.raises(ValueError, match="ema_hvdc_rudder"):
+        script.main(["--pipeline", str(pipeline), "--life", str(life), "--work-dir", str(tmp_path / "work")])
+    assert not companion_paths(pipeline)["tracker_check"].exists() and not (tmp_path / "work").exists()
