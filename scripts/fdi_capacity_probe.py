@@ -27,6 +27,7 @@ import torch
 from phm_torch.data import DatasetStore
 from phm_torch.faults import FAULT_NAMES
 from phm_torch.io.atomic import write_json
+from phm_torch.pipelines.evaluate.calibration import within_drive_range
 from phm_torch.pipelines.train.data import drive_bound
 from phm_torch.surrogates.metrics import err_k
 
@@ -63,7 +64,7 @@ def probe(data_dir: str, modes: int, hidden: int, epochs: int, drive_range: floa
             view = store.split(name)
             x = torch.as_tensor(view.current[()], dtype=torch.float32)
             k = torch.as_tensor(view.K[()], dtype=torch.float32)
-            inside = torch.ones(len(x), dtype=torch.bool) if bound is None else x.abs().amax(1) <= bound
+            inside = within_drive_range(x, bound)
             splits[name] = (x[inside], k[inside], int((~inside).sum()))
     (x_tr, k_tr, out_tr), (x_va, k_va, out_va) = splits["train"], splits["val"]
     mean = x_tr.mean(0)

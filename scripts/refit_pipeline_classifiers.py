@@ -192,8 +192,10 @@ def main() -> None:
         provenance.require_same(recorded, metadata.get("provenance") or {}, f"store {args.data_dir}")
         train_k, train_x, train_h = _split(store, "train")
         val_k, val_x, val_h = _split(store, "val")
-        rul_k = torch.as_tensor(np.asarray(store.split("rul").K), dtype=torch.float64) if args.rul_band else None
-        nominal = list(recorded_actuator(store.metadata).nominal_faults)
+        rul_k, nominal = None, None
+        if args.rul_band:  # the band's vectors, and the actuator's nominal vector its damage law is built with
+            rul_k = torch.as_tensor(np.asarray(store.split("rul").K), dtype=torch.float64)
+            nominal = list(recorded_actuator(store.metadata).nominal_faults)
     dtype = pipe.times.dtype
     before = {}
     with torch.no_grad():
