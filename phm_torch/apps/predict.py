@@ -27,7 +27,10 @@ Each record holds:
   ``spikes``, ``gap``, ``stuck``, ``held``, ``bench``), ``checks_skipped`` (``command`` and ``tracking`` for a CSV without command or position
   columns, a current-only record), ``command_check``, ``tracking_check`` and ``messages`` (one line per failed
   check);
-* what was corrected before the pipeline read the record, each said in ``messages``: ``probe_offset`` [A] (an offset
+* what was corrected before the pipeline read the record, each said in ``messages``: ``bench_lines`` (sinusoids of
+  one frequency, amplitude and phase through the whole record, hum on the probe, removed where the answer without
+  them has no fault that makes one: :mod:`phm_torch.online.bench_lines`; each with ``frequency`` [Hz],
+  ``amplitude`` [A], ``phase`` [rad] and ``share`` of the RMS current), ``probe_offset`` [A] (an offset
   read over the rest window and removed where the answer without it is near nominal) with ``probe_offset_std`` [A]
   (its own error: the window mean's noise), ``clock_error`` (a logger's
   relative clock error undone by resampling, from the record's command column; ``null`` without one),

@@ -181,12 +181,18 @@ def clean_records(model: Any, path: Path, n: int = 500, cache: Path = CACHE, see
 
 
 def judge(
-    model: Any, case: Case, record: Record, contract: InputContract, current_only: bool = False
+    model: Any,
+    case: Case,
+    record: Record,
+    contract: InputContract,
+    current_only: bool = False,
+    remove_lines: bool = True,
 ) -> dict[str, Any]:
-    """The diagnosis of a (corrupted) record on phm-predict's path, and whether it is flagged or still right."""
+    """The diagnosis of a (corrupted) record on phm-predict's path, and whether it is flagged or still right
+    (``remove_lines``: as :func:`~.diagnosis.diagnose`)."""
     if current_only:
         record = Record(record.time, None, None, record.current)
-    out = diagnose(model, record, contract)
+    out = diagnose(model, record, contract, remove_lines=remove_lines)
     if out["out_of_distribution"]:
         # flagged: phm-predict reports no interval; the calibrated one at its noise says whether the answer the flag
         # withheld was right (a false rejection) or wrong
