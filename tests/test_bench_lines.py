@@ -128,3 +128,37 @@ def test_the_hum_removal_script_reads_a_40_percent_hum_as_the_clean_records(tmp_
     assert clean["as_read"] == clean["removed"] and report["clean"]["lines_removed"] == 0
     assert hum["removed"]["right_unflagged"] == clean["as_read"]["right_unflagged"]
     assert hum["removed"]["err_k_median"] == pytest.approx(clean["as_read"]["err_k_median"], abs=0.01)
+
+
+@pytest.mark.torchscript  # the shipped TorchScript file
+def test_a_humming_bench_reads_as_a_quiet_one_through_its_baseline(compose, tmp_path):
+    """phm-predict with a baseline: the bench hums at 400 Hz on its healthy record and on the measurement (other
+    phases); both lines are removed, and the answer is the quiet bench's."""
+    from phm_torch.apps.predict import predict
+
+    module = torch.jit.load(str(PIPELINE))
+    nominal = module.nominal_record.double()
+    rms = float(nominal.pow(2).mean().sqrt())
+    t = torch.arange(nominal.numel(), dtype=torch.float64) / RATE
+    g = torch.Generator().manual_seed(4)
+    bench = nominal * 1.01 + 0.01 * rms * torch.randn(nominal.numel(), generator=g, dtype=torch.float64)
+    measured = nominal * 1.01 + 0.01 * rms * torch.randn(nominal.numel(), generator=g, dtype=torch.float64)
+
+    def csv(name, x):
+        path = tmp_path / name
+        path.write_text("time,current\n" + "\n".join(f"{a!r},{b!r}" for a, b in zip(t.tolist(), x.tolist())) + "\n")
+        return path
+
+    def hum(phase):
+        return 0.2 * rms * torch.sin(2.0 * math.pi * 400.0 * t + phase)
+
+    answers = []
+    for loud in (0.0, 1.0):
+        base, rec = csv(f"base{loud}.csv", bench + loud * hum(0.4)), csv(f"rec{loud}.csv", measured + loud * hum(2.0))
+        _, out = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements=[{rec}]", f"baseline=[{base}]"]))
+        answers.append(out["records"][0])
+    quiet, humming = answers
+    assert quiet["bench_lines"] == [] and len(humming["bench_lines"]) == 1
+    assert humming["out_of_distribution"] == quiet["out_of_distribution"]
+    for name in FAULT_NAMES:
+        assert humming["k_hat"][name] == pytest.approx(quiet["k_hat"][name], abs=5e-3), name

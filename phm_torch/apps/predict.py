@@ -74,6 +74,7 @@ from .. import provenance
 from ..io import read_measurement
 from ..io.measurement_csv import Measurement
 from ..online.bench_check import check_bench
+from ..online.bench_lines import find_lines, remove_lines
 from ..online.corruptions import Record
 from ..online.diagnosis import NOISE_FLOOR, contract_for, diagnose
 from ..online.loaded import LoadedPipeline, UnservedRecord, load_pipeline
@@ -208,6 +209,15 @@ def _bench_nominal(cfg: DictConfig, model: LoadedPipeline) -> tuple[torch.Tensor
                 corr,
             )
             current = -current
+        # a healthy record makes no line itself: any line through it is the bench's hum, which would otherwise be
+        # subtracted from every record read (whose own lines diagnose removes)
+        lines = find_lines(current, float(model.sample_rate))
+        if lines:
+            log.warning(
+                "baseline %s: a line through the record at %s: removed", path, ", ".join(x.text() for x in lines)
+            )
+            time = torch.arange(current.numel(), dtype=torch.float64) / float(model.sample_rate)
+            current = remove_lines(current, time, lines)
         records.append(current)
     mean = torch.stack(records).mean(0)
     probe = fit_probe(mean, model.nominal_record)
