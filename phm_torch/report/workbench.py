@@ -56,6 +56,12 @@ def html_page(report: dict, figs: dict[str, bytes]) -> str:
             "model's own error. Run the workbench with fidelity=hf, or measure on a command that keeps the motor "
             "below its speed and voltage limits."
         )
+    for name, found in (report.get("bench_lines") or {}).items():
+        lines = ", ".join(f"{x['frequency']:.5g} Hz ({100.0 * x['share']:.3g} % of the RMS current)" for x in found)
+        summary += (
+            f" <b>The measured current of {esc(name)} carries a line through the whole record at {lines}</b> that the "
+            "model does not make: a bench's hum, not an effect of the actuator; it was removed before calibrating."
+        )
     r.markup(f"<p>{summary}</p>")
     orders = ", ".join(f"{k} {v}" for k, v in report["orders"].get("actuator", {}).items())
     residual = ", ".join(map(str, report["orders"].get("residual", []))) or "–"

@@ -21,6 +21,7 @@ import torch
 
 from ..effects import EFFECTS
 from ..params import ActuatorParams
+from .bench_lines import as_json, bench_lines, without_lines
 from .calibrate import Calibration, estimate_sigma, fit_models
 from .candidates import Candidate, ScoreSettings, score_tests
 from .closure import ClosureResult, fit_closure
@@ -277,6 +278,13 @@ class Workbench:
         t0, c0 = time.perf_counter(), time.process_time()
         ev = self.evaluator(records)
         model = self.calibrate(ev)
+        hum = bench_lines(records, model.simulated, self.params.gear_ratio, self.max_order)
+        if hum:  # the bench's, not the actuator's: calibrate again without them (bench_lines.py)
+            for name, found in hum.items():
+                log.warning("%s: the bench's line(s) removed: %s", name, ", ".join(line.text() for line in found))
+            records = without_lines(records, hum)
+            ev = self.evaluator(records)
+            model = self.calibrate(ev)
         timing = {"calibrate_s": time.perf_counter() - t0}
         current, rounds = model, []
         for k in range(s.rounds):
@@ -347,6 +355,7 @@ class Workbench:
             self.actuator,
             orders,
             gap,
+            as_json(hum),
         )
 
     def _wants_closure(self, cal: Calibration, rounds: list[Round], noise: list[dict[str, float]]) -> bool:

@@ -4,7 +4,9 @@ base64), all written atomically.
 ``report.json`` keys: ``nrmse`` / ``fit_percent`` / ``noise_floor`` ({channel: value, "total": value}, NRMSE
 as fractions) of the calibrated configured model; ``worst_windows`` [{record, t_start, t_end, nrmse}];
 ``candidates`` [{effect, score, dof, p_value, significant, nrmse_after_refit, delta_bic, evidence...}] best
-first; ``fitted`` {parameter: [value, std]}; ``before_after`` rows; ``closure``; ``diagnostics``; ``timing``.
+first; ``fitted`` {parameter: [value, std]}; ``before_after`` rows; ``closure``; ``diagnostics``; ``timing``;
+``bench_lines`` {record: [{frequency, amplitude, phase, share}]}: lines of the measured current the model does not
+make, removed before calibrating (:mod:`phm_torch.workbench.bench_lines`).
 """
 
 from __future__ import annotations
@@ -206,6 +208,7 @@ def report_dict(res: WorkbenchResult) -> dict:
         "before_after": rows,
         "closure": closure,
         "fidelity_gap": res.fidelity_gap,
+        "bench_lines": res.bench_lines,
         "retrain": generate_overrides(res.final.space.effect_values(res.final.x)) if res.added else None,
         "timing": res.timing,
     }

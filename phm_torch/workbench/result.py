@@ -41,6 +41,7 @@ class WorkbenchResult:
     actuator: str = "unnamed"
     orders: dict[str, Any] = field(default_factory=dict)
     fidelity_gap: dict[str, Any] | None = None  # the LF model against HF on the records (fidelity_gap.py)
+    bench_lines: dict[str, list[dict[str, Any]]] = field(default_factory=dict)  # removed per record (bench_lines.py)
 
     @property
     def candidates(self) -> list[Candidate]:
