@@ -387,3 +387,20 @@ def test_phm_run_on_the_second_actuator_end_to_end(tmp_path):
     assert 0.0 <= saved["train"]["err_k"] < 1.0 and saved["evaluate"]["export_max_abs_diff"] < 1e-5
     report = json.loads((tmp_path / "workbench" / "report.json").read_text())
     assert report["candidates"][0]["effect"] == "cogging_torque"
+
+
+def test_the_run_summary_holds_the_headline_figures_its_stages_produced():
+    """phm-run prints these at the end (an outside user found only the report path and stage times there)."""
+    from phm_torch.apps.run import summary
+
+    metrics = {
+        "train": {"err_k": 0.119046, "classifier_accuracy": 0.97},
+        "evaluate": {"held_out_quality": {"missed_faulty": 0.13, "false_alarm": 0.42}, "fdi_not_identified": ["x"]},
+        "workbench": {"added": ["cogging_torque"]},
+    }
+    out = summary(metrics)
+    assert out["err_k (val)"] == 0.119 and out["health classifier accuracy (val)"] == 0.97
+    assert out["verdict: faulty records answered healthy (held out)"] == 0.13
+    assert out["workbench: effects added"] == ["cogging_torque"] and out["components the command does not identify"]
+    assert not any(label.startswith("life tracking") for label in out)  # no track stage: nothing invented
+    assert summary({}) == {}

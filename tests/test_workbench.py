@@ -472,3 +472,6 @@ def test_the_lf_models_own_error_on_a_command_is_measured_against_the_noise():
     assert found["doublet"]["above_floor"] and found["doublet"]["nrmse"]["total"] > 5 * found["doublet"]["noise_floor"]
     assert 0.06 < found["doublet"]["worst_t"][0] < 0.08  # the reversal at 0.06 s
     assert not found["chirp"]["above_floor"] and found["chirp"]["nrmse"]["total"] > 0
+    # the doublet drives the motor to its limits, the gentle chirp keeps it far below: the advice says which
+    assert max(found["doublet"]["limits"].values()) >= 0.5 and "speed and voltage limits" in found["doublet"]["advice"]
+    assert max(found["chirp"]["limits"].values()) < 0.5 and "far from its limits" in found["chirp"]["advice"]

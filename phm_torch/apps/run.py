@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -331,11 +332,39 @@ def run_all(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     return metrics, objects
 
 
+# (stage, key path, label) of the figures phm-run prints at the end; every one is in metrics.json
+SUMMARY = (
+    ("train", ("err_k",), "err_k (val)"),
+    ("train", ("classifier_accuracy",), "health classifier accuracy (val)"),
+    ("evaluate", ("held_out_quality", "missed_faulty"), "verdict: faulty records answered healthy (held out)"),
+    ("evaluate", ("held_out_quality", "false_alarm"), "verdict: healthy records answered faulty (held out)"),
+    ("evaluate", ("fdi_not_identified",), "components the command does not identify"),
+    ("evaluate", ("rul_band_coverage_full_flow",), "RUL band coverage, full flow"),
+    ("evaluate", ("ood_fraction",), "held-out records out of distribution"),
+    ("track", ("tracker", "coverage_5_95"), "life tracking: coverage of the 5-95 % band"),
+    ("track", ("tracker", "eol_flagged_within_one_inspection"), "life tracking: ends of life flagged in time"),
+    ("workbench", ("added",), "workbench: effects added"),
+)
+
+
+def summary(metrics: Mapping[str, Any]) -> dict[str, Any]:
+    """The headline figures of a run's ``metrics`` (``SUMMARY``), those its stages produced."""
+    out: dict[str, Any] = {}
+    for stage, path, label in SUMMARY:
+        value: Any = metrics.get(stage)
+        for key in path:
+            value = value.get(key) if isinstance(value, Mapping) else None
+        if value is not None:
+            out[label] = round(value, 4) if isinstance(value, float) else value
+    return out
+
+
 @hydra.main(config_path=common.CONFIG_PATH, config_name="run", version_base="1.3")
 @common.report_errors("phm-run")
 def main(cfg: DictConfig) -> None:
     metrics, objects = run_all(cfg)
-    print(json.dumps({"report": str(objects.get("report")), "wall_s": metrics["wall_s"]}, indent=2), flush=True)
+    shown = {"report": str(objects.get("report")), "summary": summary(metrics), "wall_s": metrics["wall_s"]}
+    print(json.dumps(shown, indent=2), flush=True)
 
 
 if __name__ == "__main__":

@@ -52,7 +52,13 @@ def rest_offset(x: torch.Tensor, nominal: torch.Tensor, sigma: float, k_hat: tor
     if rest < REST_MIN or rest_current_possible(k_hat):
         return False
     mean = float(finite_mean(x[:rest] - nominal[:rest]))
-    return abs(mean) > OFFSET_MAX * _rms(nominal) + 4.0 * sigma / math.sqrt(rest)
+    return abs(mean) > offset_limit(nominal, sigma)
+
+
+def offset_limit(nominal: torch.Tensor, sigma: float) -> float:
+    """The largest rest-window offset [A] the ``offset`` check lets pass: ``OFFSET_MAX`` of the nominal record's (n,)
+    RMS plus four noise std (``sigma`` [A] the record's white noise) of the window's mean."""
+    return OFFSET_MAX * _rms(nominal) + 4.0 * sigma / math.sqrt(max(rest_window(nominal), 1))
 
 
 # A near-nominal answer draws no current at rest (a shorted pair does, from 0.5), so over the rest window a clean record
@@ -90,3 +96,26 @@ def probe_offset(x: torch.Tensor, nominal: torch.Tensor | None, sigma: float) ->
     if math.isnan(mean) or abs(mean) <= CORRECT_MIN * _rms(nominal) + CORRECT_SIGMAS * offset_std(nominal, sigma):
         return None
     return mean
+
+
+# A shorted pair's rest current is the instability of its loop at the PWM rate, never a constant: over the two-short
+# records of three actuators' stores whose rest window sat more than 0.5 % of the nominal RMS off, its std was 0.7-2.2
+# times its mean. A probe's offset moves the window without spreading it: with 1 % white noise its std read 0.8-1.0
+# noise std; noise-free, the reference's val records without a shorted pair spread it by 0.36 % of the nominal RMS at
+# most. Coloured noise (5 % of the RMS, corner at f_s / 100) wanders there: (std - 0.5 %) / noise std 1.3-2.8 (5-75 %).
+STILL_SIGMAS = 1.3  # a still rest window: std within this many noise std ...
+STILL_LEVEL = 0.004  # ... plus this fraction of the nominal RMS
+
+
+def rest_still(x: torch.Tensor, nominal: torch.Tensor, sigma: float) -> bool:
+    """Whether the record x (n,) [A] sits on the nominal record (n,) [A] over the rest window with no more spread than
+    its white noise ``sigma`` [A] allows (missing samples left out): a constant shift there, which no shorted pair
+    makes. False without a rest window."""
+    rest = rest_window(nominal)
+    if rest < REST_MIN or x.shape != nominal.shape:
+        return False
+    d = x[:rest].double() - nominal[:rest].double()
+    d = d[torch.isfinite(d)]
+    if d.numel() < REST_MIN:
+        return False
+    return float(d.std()) <= STILL_SIGMAS * sigma + STILL_LEVEL * _rms(nominal)

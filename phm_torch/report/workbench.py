@@ -53,8 +53,7 @@ def html_page(report: dict, figs: dict[str, bytes]) -> str:
             f" <b>On these records' commands the LF model itself differs from the HF model by "
             f"{_pct(gap['nrmse'], 'total')}</b>, above the noise floor (most at "
             f"{', '.join(f'{t:g} s' for t in gap['worst_t'])}): an effect smaller than that can be hidden by the LF "
-            "model's own error. Run the workbench with fidelity=hf, or measure on a command that keeps the motor "
-            "below its speed and voltage limits."
+            f"model's own error; {esc(gap.get('advice', 'run the workbench with fidelity=hf'))}."
         )
     for name, found in (report.get("bench_lines") or {}).items():
         lines = ", ".join(f"{x['frequency']:.5g} Hz ({100.0 * x['share']:.3g} % of the RMS current)" for x in found)

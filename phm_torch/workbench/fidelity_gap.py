@@ -31,6 +31,8 @@ from .model import Evaluator
 
 log = logging.getLogger(__name__)
 
+NEAR_LIMIT = 0.5  # a record driving the motor to half its speed or current limit or more is near them
+
 
 def fidelity_gap(cal: Calibration, noise_floor: float) -> dict[str, Any] | None:
     """How far the HF model is from ``cal``'s LF model, with the same parameters, on ``cal``'s records.
@@ -42,7 +44,8 @@ def fidelity_gap(cal: Calibration, noise_floor: float) -> dict[str, Any] | None:
     Returns:
         ``nrmse`` {channel, total}: RMS(HF - LF) / the measured record's range, pooled over records as the
         workbench's NRMSE; ``noise_floor``; ``above_floor``: ``nrmse.total`` > ``noise_floor``; ``worst_t`` [s from
-        each record's start]: where the two differ most.
+        each record's start]: where the two differ most; ``limits``: the HF records' peak motor speed and current
+        over their limits; ``advice``: what to do about a gap (:func:`advice`).
     """
     ev = cal.evaluator
     if ev.fidelity != "lf":
@@ -62,14 +65,42 @@ def fidelity_gap(cal: Calibration, noise_floor: float) -> dict[str, Any] | None:
         for g, s in zip(gap, spans, strict=True)
     ]
     above = bool(nrmse["total"] > noise_floor)
+    # how near the records drive the motor to its limits: the advice differs (an outside user's 160 V actuator, at 12 %
+    # of its speed limit, was told to keep the motor below its limits)
+    limits = {
+        "speed": max(float(out[i]["speed"][0].abs().max()) for i in range(len(ev.records))) / ev.params.speed_limit,
+        "current": max(float(out[i]["current"][0].abs().max()) for i in range(len(ev.records)))
+        / ev.params.current_limit,
+    }
     if above:
         log.warning(
             "the LF model and the HF model differ by %.3g (NRMSE) on these records' commands, most at %s s, above "
             "the noise floor %.3g: an effect whose signature is smaller than that can be hidden by the LF model's own "
-            "error here; run the workbench with fidelity=hf, or measure on a command that keeps the motor below its "
-            "speed and voltage limits",
+            "error here; %s",
             nrmse["total"],
             ", ".join(f"{t:g}" for t in worst_t),
             noise_floor,
+            advice(limits),
         )
-    return {"nrmse": nrmse, "noise_floor": noise_floor, "above_floor": above, "worst_t": worst_t}
+    return {
+        "nrmse": nrmse,
+        "noise_floor": noise_floor,
+        "above_floor": above,
+        "worst_t": worst_t,
+        "limits": limits,
+        "advice": advice(limits),
+    }
+
+
+def advice(limits: dict[str, float]) -> str:
+    """What to do about a fidelity gap, from the peak motor speed and current over their limits (``limits``)."""
+    shares = f"peak speed {100.0 * limits['speed']:.0f} %, current {100.0 * limits['current']:.0f} % of the limits"
+    if max(limits.values()) >= NEAR_LIMIT:
+        return (
+            f"run the workbench with fidelity=hf, or measure on a command that keeps the motor below its speed and "
+            f"voltage limits ({shares})"
+        )
+    return (
+        f"the records keep the motor far from its limits ({shares}), so this is the LF model's own error on this "
+        "actuator (its averaged commutation and PWM): run the workbench with fidelity=hf"
+    )

@@ -1,10 +1,11 @@
-"""What removing bench lines does: a mains hum added to clean val-like records of a pipeline's actuator, each read as
-it is and with its lines removed (``phm_torch.online.bench_lines``), on phm-predict's path. Writes JSON: per hum
-(frequency, share of the RMS current) the right / wrong unflagged and flagged counts both ways, and how many of the
-clean records (0-3 % noise) had a line removed.
+"""What the bench corrections do on clean val-like records of a pipeline's actuator, on phm-predict's path: a mains hum
+added, each record read as it is and with its lines removed (``phm_torch.online.bench_lines``); a probe offset of
+random sign and coloured noise added, read as the code reads them (the rest-window offset removal,
+``phm_torch.online.diagnosis.remove_probe_offset``). Writes JSON: per case the right / wrong unflagged and flagged
+counts, and how many of the clean records (0-3 % noise) had a line removed.
 
-    python scripts/hum_removal_eval.py [--pipeline pretrained/online_surrogates_best.pt] [--vectors 500]
-        [--out docs/trust/hum_removal_pretrained.json]
+    python scripts/record_corrections_eval.py [--pipeline pretrained/online_surrogates_best.pt] [--vectors 500]
+        [--out docs/trust/record_corrections_pretrained.json]
 
 The HF records are the corruption suite's clean ones (simulated once, cached under ``--cache``).
 """
@@ -23,10 +24,12 @@ import torch
 
 from phm_torch.io.atomic import atomic_open
 from phm_torch.online.corruption_suite import CACHE, PIPELINE, Case, clean_records, contract_of, judge
-from phm_torch.online.corruptions import Record
+from phm_torch.online.corruptions import Record, corrupt
 from phm_torch.online.diagnosis import diagnose
 
 HUMS = ((0.0, 400.0), (0.05, 400.0), (0.2, 400.0), (0.4, 400.0), (0.2, 60.0), (0.2, 1234.5))  # (share, Hz)
+OFFSETS = (0.02, 0.05, 0.1, 0.25, 0.5)  # probe offsets, of the RMS current
+COLOURED = (0.05, 0.1, 0.2)  # coloured noise (the corruption suite's kind), of the RMS current
 NOISE_INDEX = 2  # the clean records come at 0, 1, 2, 3 % noise, each twice: the first 1 % draw
 
 
@@ -41,13 +44,16 @@ def with_hum(record: Record, share: float, frequency: float, phase: float) -> Re
     return Record(record.time, record.command, record.position, current + share * rms * tone)
 
 
-def tally(model: Any, path: Path, cases: list[Case], share: float, frequency: float, remove: bool) -> dict[str, Any]:
+def with_offset(record: Record, share: float, sign: float) -> Record:
+    """The record with a probe offset of ``sign`` x ``share`` x its RMS current."""
+    rms = float(record.current.pow(2).mean().sqrt())
+    return Record(record.time, record.command, record.position, record.current + sign * share * rms)
+
+
+def tally(model: Any, path: Path, cases: list[Case], records: list[Record], remove: bool = True) -> dict[str, Any]:
+    """The judgement counts of ``records`` (one per case, corrupted) on phm-predict's path."""
     contract = contract_of(model, path)
-    phases = np.random.default_rng(7).uniform(0.0, 2.0 * math.pi, len(cases))
-    out = [
-        judge(model, c, with_hum(c.record, share, frequency, float(p)), contract, remove_lines=remove)
-        for c, p in zip(cases, phases)
-    ]
+    out = [judge(model, c, r, contract, remove_lines=remove) for c, r in zip(cases, records)]
     return {
         "cases": len(out),
         "right_unflagged": sum(not r["flagged"] and r["right"] for r in out),
@@ -61,7 +67,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pipeline", type=Path, default=PIPELINE)
     parser.add_argument("--vectors", type=int, default=500, help="fault vectors of the clean records")
-    parser.add_argument("--out", type=Path, default=Path("hum_removal.json"))
+    parser.add_argument("--out", type=Path, default=Path("record_corrections.json"))
     parser.add_argument("--cache", type=Path, default=CACHE)
     args = parser.parse_args(argv)
     if args.vectors < 1:
@@ -72,12 +78,27 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     clean = clean_records(model, args.pipeline, args.vectors, args.cache)
     cases = clean[NOISE_INDEX * args.vectors : (NOISE_INDEX + 1) * args.vectors]
     report: dict[str, Any] = {"pipeline": str(args.pipeline), "noise": 0.01, "hums": []}
+    phases = np.random.default_rng(7).uniform(0.0, 2.0 * math.pi, len(cases))
     for share, frequency in HUMS:
-        row = {"share": share, "frequency_hz": frequency}
+        row: dict[str, Any] = {"share": share, "frequency_hz": frequency}
+        humming = [with_hum(c.record, share, frequency, float(p)) for c, p in zip(cases, phases)]
         for remove in (False, True):
-            row["removed" if remove else "as_read"] = tally(model, args.pipeline, cases, share, frequency, remove)
+            row["removed" if remove else "as_read"] = tally(model, args.pipeline, cases, humming, remove)
         report["hums"].append(row)
         print(json.dumps(row), flush=True)
+    signs = np.random.default_rng(11).choice([-1.0, 1.0], len(cases))
+    report["offsets"] = []
+    for share in OFFSETS:
+        shifted = [with_offset(c.record, share, float(s)) for c, s in zip(cases, signs)]
+        report["offsets"].append({"share": share, **tally(model, args.pipeline, cases, shifted)})
+        print(json.dumps(report["offsets"][-1]), flush=True)
+    report["coloured_noise"] = []
+    for share in COLOURED:
+        noisy = [
+            corrupt("coloured_noise", c.record, share, np.random.default_rng(1000 + i)) for i, c in enumerate(cases)
+        ]
+        report["coloured_noise"].append({"share": share, **tally(model, args.pipeline, cases, noisy)})
+        print(json.dumps(report["coloured_noise"][-1]), flush=True)
     contract = contract_of(model, args.pipeline)
     removed = [c.k.tolist() for c in clean if diagnose(model, c.record, contract)["bench_lines"]]
     report["clean"] = {"records": len(clean), "lines_removed": len(removed), "fault_vectors": removed[:20]}
