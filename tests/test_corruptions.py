@@ -246,3 +246,16 @@ def test_a_corrected_reversal_is_not_logged_as_out_of_distribution(suite, compos
         _, out = predict(compose("predict", [f"pipeline={PIPELINE}", f"measurements=[{flipped}]"]))
     assert out["records"][0]["current_reversed"] and not out["records"][0]["out_of_distribution"]
     assert "read reversed" in caplog.text and "out of distribution" not in caplog.text
+
+
+def test_coloured_noise_is_a_one_pole_low_pass_at_a_hundredth_of_the_sample_rate():
+    """The recursion that replaced a 400-tap convolution (which held ~40 MB a call): unit std, and a one-pole
+    spectrum, |H|^2 = 1 / (1 + (f / f_c)^2) with f_c = f_s / 100 (within its estimate's scatter)."""
+    t = torch.arange(200001, dtype=torch.float64) / 20000.0
+    rec = Record(t, None, None, torch.zeros_like(t) + 1.0)  # RMS 1: the noise is the severity's fraction of it
+    noise = (corrupt("coloured_noise", rec, 1.0, np.random.default_rng(4)).current - 1.0).numpy()
+    assert noise.std(ddof=1) == pytest.approx(1.0, rel=1e-9)
+    psd = np.abs(np.fft.rfft(noise)) ** 2
+    f = np.fft.rfftfreq(noise.size, 1.0 / 20000.0)
+    low, corner, high = (psd[(f > a) & (f < b)].mean() for a, b in ((10.0, 40.0), (190.0, 210.0), (1900.0, 2100.0)))
+    assert corner / low == pytest.approx(0.5, rel=0.15) and high / low == pytest.approx(1.0 / 101.0, rel=0.2)

@@ -5,7 +5,9 @@ Per record (:func:`inspect_record`) the tracker takes phm-predict's own path
 interval, verdict, OOD flag and reasons are exactly phm-predict's; the snapshot RUL stored beside the
 tracker's is phm-predict's ``rul_hours``. :func:`inspect_currents` is the same diagnosis for current-only
 records held in memory, batched through the pipeline (the fleet benchmark): a record without command and
-position columns skips the same two checks in :func:`diagnose`.
+position columns skips the same two checks in :func:`diagnose`; it leaves out diagnose's corrections of a bench's
+record (its hum lines, a probe offset read at rest: the benchmark's simulated records have neither), so its figures
+are those of clean records.
 """
 
 from __future__ import annotations
