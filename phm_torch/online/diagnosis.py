@@ -102,9 +102,6 @@ def remove_probe_offset(
     offset = probe_offset(seen, nominal, sigma)
     if offset is None:
         return step, None, None
-    # only a still rest window is a probe's constant shift: a shorted pair's rest current spreads it (so the answer's
-    # shorts need not be trusted: a quarter of the RMS current read as two shorted phases), and so does a baseline
-    # that wanders (coloured noise, whose rest-window mean the offset check had flagged)
     corrected = model.run(current - offset, bench_nominal)
     if bool(corrected.ood[0]):
         return step, None, None
@@ -233,8 +230,8 @@ def diagnose(
         )
     if offset is not None:
         checks.messages.append(
-            f"the current sat {offset:+.4g} A off the nominal record at rest, and still there (a probe's offset: a "
-            "shorted pair, the only fault that draws current at rest, spreads it): removed"
+            f"the current sat {offset:+.4g} A off the nominal record at rest (a probe's offset: the answer without "
+            "it near nominal, or the shift small and still there, which no fault's rest current is): removed"
         )
     if bench is not None and not bench.ok:
         checks.reasons.append("bench")
