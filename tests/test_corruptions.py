@@ -136,7 +136,12 @@ def test_every_case_flagged_or_right_except_the_blind_spots(suite):
                 kind,
                 mode[kind],
             )
-    assert only["time_reversal"]["flagged_from"] == 1.0 and only["trigger_offset"]["flagged_from"] == 0.02
+    assert only["time_reversal"]["flagged_from"] == 1.0
+    # a current-only record's trigger offset: read again moved by every second sample, refused from 5 ms where the
+    # pipeline's own answer explains it far better moved back (timing_check.py; 20 ms before 2026-11-30), blind below
+    trigger = only["trigger_offset"]
+    assert trigger["flagged_from"] == 0.005 and "timing" in trigger["severities"]["0.005"]["reasons"], trigger
+    assert "timing" in full["current_lag"]["severities"]["0.005"]["reasons"], full["current_lag"]  # the current alone
 
 
 def test_pipeline_reasons_explain_its_flag(suite):

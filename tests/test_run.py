@@ -125,6 +125,9 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     # the unexplained check's threshold: the pipeline's own (never below the default) or none to calibrate on
     own = saved["evaluate"]["unexplained_ratio_max"]
     assert recorded.get("unexplained_ratio_max") == own and (own is None or own >= 2.2)
+    # the timing check's threshold: the pipeline's own, from its held-out records' scans (never below the default)
+    timing = saved["evaluate"]["timing_ratio_max"]
+    assert recorded.get("timing_ratio_max") == timing and (timing is None or timing >= 1.8)
     # phm-export rebuilds the same pipeline, FDI band included, from the bundle and rul_calibration.json
     calibration = json.loads((tmp_path / "evaluate" / "rul_calibration.json").read_text())
     assert calibration["fdi_deltas"] == saved["evaluate"]["fdi_band_deltas"]

@@ -78,8 +78,13 @@ def _rms(x: torch.Tensor) -> float:
     return float(finite.pow(2).mean().sqrt())
 
 
-def _rate(time: torch.Tensor) -> float:
-    return (time.numel() - 1) / float(time[-1] - time[0])
+def sample_rate(time: torch.Tensor) -> float:
+    """The sample rate [Hz] of a record's time column (n,) [s], from its first and last finite times (NaN for fewer
+    than two or no span): every reader of a record's rate (the corruptions, the trigger alignment, the command check,
+    the bench lines) takes it from here."""
+    finite = time[torch.isfinite(time)]
+    span = float(finite[-1] - finite[0]) if finite.numel() > 1 else math.nan
+    return (time.numel() - 1) / span if span > 0 else math.nan
 
 
 def _delay(x: torch.Tensor | None, samples: int) -> torch.Tensor | None:
@@ -157,7 +162,7 @@ def stuck(time, command, position, current, severity, rng):
     "the acquisition starts late: every channel, command included, lags the test command",
 )
 def trigger_offset(time, command, position, current, severity, rng):
-    lag = round(severity * _rate(time))
+    lag = round(severity * sample_rate(time))
     return Record(time, _delay(command, lag), _delay(position, lag), _delay(current, lag))
 
 
@@ -168,7 +173,7 @@ def trigger_offset(time, command, position, current, severity, rng):
     "the current channel alone lags (another logger, a filter's delay)",
 )
 def current_lag(time, command, position, current, severity, rng):
-    return Record(time, command, position, _delay(current, round(severity * _rate(time))))
+    return Record(time, command, position, _delay(current, round(severity * sample_rate(time))))
 
 
 @register("time_reversal", (1.0,), "-", "every channel written backwards")

@@ -19,7 +19,7 @@ from ..metrics import finite_mean
 from ..surrogates.metrics import IDENTIFIED_R2
 from .bench_check import BenchCheck
 from .bench_lines import Line, find_lines, line_possible, remove_lines
-from .corruptions import Record
+from .corruptions import Record, sample_rate
 from .input_contract import InputContract
 from .loaded import as_loaded
 from .probe_calibration import ProbeCalibration
@@ -27,6 +27,7 @@ from .quality import held_out, verdict_error
 from .reason_text import reason_lines
 from .record_corrections import prepare_record
 from .rest_offset_check import offset_limit, offset_std, probe_offset, rest_still
+from .timing_check import timing_scan
 from .unexplained_check import checked, residual_floor
 
 # Relative noise always tolerated, whatever the calibration level: the noise estimate of a few noise-free
@@ -124,11 +125,10 @@ def remove_bench_lines(
 
     Hum is no fault of the actuator, and the FDI reads it as one: a 400 Hz hum of 20 % of the RMS current moved every
     answer of the reference's corruption suite out of its interval, unflagged."""
-    finite = torch.isfinite(time)
-    span = float(time[finite][-1] - time[finite][0]) if int(finite.sum()) > 1 else math.nan
-    if not span > 0:
+    rate = sample_rate(time)
+    if not rate > 0:
         return step, current, [], []
-    lines = find_lines(current[0], (time.numel() - 1) / span)
+    lines = find_lines(current[0], rate)
     if not lines:
         return step, current, [], []
     cleaned = remove_lines(current[0], time, lines).reshape(current.shape)
@@ -236,6 +236,16 @@ def diagnose(
     if bench is not None and not bench.ok:
         checks.reasons.append("bench")
         checks.messages.append(bench.message())
+    # the current's timing against the pipeline's own answer (a current-only record's trigger offset, a current
+    # delayed alone); with a baseline the rebased record carries its noise too: each shift's own estimate
+    timing = None
+    if contract.timing_ratio is not None:  # a pipeline without its own threshold is not scanned (timing_check.py)
+        timing = timing_scan(model, current[0], noise if bench_nominal is None else math.nan)
+    if timing is None:
+        checks.skipped.append("timing")
+    elif timing.off(model.sample_rate, contract.timing_ratio):
+        checks.reasons.append("timing")
+        checks.messages.append(timing.message(model.sample_rate))
     out = bool(checks.reasons)
     checks.messages.extend(reason_lines(checks.reasons))
     if out and (scale := scale_message(current[0], contract.nominal)) is not None:
@@ -264,6 +274,13 @@ def diagnose(
         else {"nrmse": command.nrmse, "best_lag_s": command.best_lag_s, "gain": command.gain, "ok": command.ok},
         "tracking_check": checks.tracking,
         "trigger_offset_s": fixed.trigger_offset_s,
+        "timing_check": None
+        if timing is None
+        else {
+            "best_shift_s": timing.lag_s(model.sample_rate),
+            "ratio": timing.ratio,
+            "ok": "timing" not in checks.reasons,
+        },
         "clock_error": fixed.clock_error,
         "bench_lines": [dataclasses.asdict(line) for line in lines],
         "probe_offset": offset,

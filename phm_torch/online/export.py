@@ -26,6 +26,7 @@ CALIBRATION_METADATA = (
     "unexplained_ratio_max",
     "verdict_prior_faulty",
     "spike_step_max",
+    "timing_ratio_max",
     "held_out_quality",  # the verdict's and the RUL's figures on held-out records (phm-predict's caveats)
 )
 

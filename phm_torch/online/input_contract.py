@@ -11,7 +11,9 @@ From the pipeline's own out-of-distribution flag, per internal check (:func:`pip
 * ``inconsistent`` - a pipeline with a consistency check (:mod:`.consistency`, analysis by synthesis): the
   record is not the one its own k_hat predicts (its scripted ``consistency(x)`` above 1).
 
-A pipeline whose flag fired for a reason none of these explains (another structure) gives ``pipeline``.
+A pipeline whose flag fired for a reason none of these explains (another structure) gives ``pipeline``. phm-predict's
+diagnosis adds ``timing`` (:mod:`.timing_check`: the record explained far better by the pipeline's own answer moved
+in time) and ``bench`` (:mod:`.bench_check`).
 
 From the record's other columns (skipped, and listed in ``checks_skipped``, for a current-only record):
 
@@ -74,11 +76,12 @@ import torch
 
 from ..metrics import finite_mean, nrmse
 from .command_check import CommandCheck, check_command, unit_hint
-from .corruptions import Record
+from .corruptions import Record, sample_rate
 from .fault_count import large_faults, no_large_fault
 from .rest_offset_check import REST_MIN, rest_offset, rest_window
 from .run_checks import run_reasons
 from .spike_check import SPIKE_STEP, has_spikes
+from .timing_check import TIMING_RATIO
 from .unexplained_check import UNEXPLAINED_RATIO, checked, unexplained_ratio
 
 PIPELINE_CHECKS = ("missing", "flat", "gappy_residual", "pod_residual", "roughness", "plateau", "inconsistent")
@@ -226,6 +229,7 @@ class InputContract:
     residual_floor: float | None = None  # [A] the ``unexplained`` check's r_0 (None: unchecked; diagnosis.contract_for)
     unexplained_ratio: float = UNEXPLAINED_RATIO  # its threshold (metadata ``unexplained_ratio_max``: never lower)
     spike_step: float = SPIKE_STEP  # the ``spikes`` check's step (metadata ``spike_step_max``: never lower)
+    timing_ratio: float | None = None  # the ``timing`` check's (metadata ``timing_ratio_max``; None: not calibrated)
 
     @classmethod
     def of(
@@ -239,6 +243,7 @@ class InputContract:
         usable = nominal is not None and bool(torch.isfinite(nominal).all()) and float(nominal.abs().max()) > 0
         bound, shape = metadata.get("drive_current_bound"), metadata.get("shape_correlation_min")
         ratio, step = metadata.get("unexplained_ratio_max"), metadata.get("spike_step_max")
+        timing = metadata.get("timing_ratio_max")
         return cls(
             command,
             tracking,
@@ -249,6 +254,7 @@ class InputContract:
             SHAPE_MIN if shape is None else min(SHAPE_MIN, float(shape)),
             unexplained_ratio=UNEXPLAINED_RATIO if ratio is None else max(UNEXPLAINED_RATIO, float(ratio)),
             spike_step=SPIKE_STEP if step is None else max(SPIKE_STEP, float(step)),
+            timing_ratio=None if timing is None else max(TIMING_RATIO, float(timing)),
         )
 
     def _tracking(self, record: Record, healthy: bool | None = None) -> dict[str, Any]:
@@ -345,7 +351,7 @@ class InputContract:
         if has_command and self.command is not None:
             n = min(record.command.numel(), current.numel())
             t = (record.time[:n] - record.time[0]).double()
-            rate = (record.time.numel() - 1) / float(record.time[-1] - record.time[0])
+            rate = sample_rate(record.time)
             seen = command_seen[:n]
             command = check_command(record.command[:n][seen], self.command(t)[seen], rate)
             if not command.ok:

@@ -1,7 +1,7 @@
 """One line for each reason a record is refused (``ood_reasons``), for the ``messages`` of phm-predict and phm-track.
 
-The checks with measured values of their own (``command``, ``tracking``, ``bench``) write their line where they fire
-(:mod:`.input_contract`, :mod:`.bench_check`); every other reason gets its line here, so a refused record always says
+The checks with measured values of their own (``command``, ``tracking``, ``bench``, ``timing``) write their line where
+they fire (:mod:`.input_contract`, :mod:`.bench_check`, :mod:`.timing_check`); every other reason gets its line here, so a refused record always says
 why in words, not only by name.
 """
 
@@ -35,7 +35,7 @@ REASON_TEXT = {
     "below the calibrated threshold)",
     "spikes": "single-sample spikes far above the record's noise and the current's own steps (EMI, switching)",
 }
-SELF_EXPLAINED = ("command", "tracking", "bench")  # they write their own line, with their measured values
+SELF_EXPLAINED = ("command", "tracking", "bench", "timing")  # they write their own line, with their measured values
 
 
 def reason_lines(reasons: Sequence[str]) -> list[str]:

@@ -18,7 +18,7 @@ import torch
 from ..metrics import finite_mean
 from .clock_alignment import align_clock
 from .command_check import NRMSE_TOLERANCE, command_lag, command_nrmse, lag_limit, shifted
-from .corruptions import Record
+from .corruptions import Record, sample_rate
 from .input_contract import REVERSED_CORRELATION, nominal_correlation
 
 
@@ -40,7 +40,7 @@ def align_trigger(
     if cmd is None or command is None or m < max(4, cmd.numel() // 2) or bool(torch.isfinite(cmd[m:]).any()):
         return record, None
     t = (record.time - record.time[0]).double()
-    rate = (t.numel() - 1) / float(t[-1])
+    rate = sample_rate(record.time)
     expected = command(t)
     lag = command_lag(cmd[:m], expected[:m], lag_limit(t.numel(), rate))
     if lag == 0:

@@ -28,6 +28,7 @@ from ...online.fdi_interval import interval_quality
 from ...online.input_contract import calibrate_shape_min
 from ...online.noise_threshold import calibrate_gappy_residual
 from ...online.spike_check import calibrate_spike_step
+from ...online.timing_check import calibrate_timing_ratio
 from ...online.unexplained_check import calibrate_ratio
 from ...online.verdict import verdict_quality
 from ...params import ActuatorParams
@@ -201,6 +202,7 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
         )
     metrics["unexplained_ratio_max"] = c.unexplained
     metrics["spike_step_max"] = c.spike_step
+    metrics["timing_ratio_max"] = c.timing
     export_metadata = {
         "provenance": prov,
         **calibration_metadata(calibration),  # as phm-export writes them: verdict_prior_faulty included
@@ -220,6 +222,9 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
         "export_metadata": export_metadata,
         "probe": signals[:8],
     }
+
+
+TIMING_RECORDS = 300  # held-out records the timing check's threshold is calibrated on
 
 
 def _calibrate(settings: EvaluateSettings, pipeline: OnlinePipeline, inp: SimpleNamespace) -> SimpleNamespace:
@@ -272,6 +277,9 @@ def _calibrate(settings: EvaluateSettings, pipeline: OnlinePipeline, inp: Simple
         shape_min=calibrate_shape_min(pipeline, near.signals, near.k_hat),
         unexplained=calibrate_ratio(pipeline, near.signals, near.k_hat),
         spike_step=calibrate_spike_step(pipeline, near.signals, near.k_hat),
+        # after the consistency thresholds: the scan reads their statistic (in-distribution held-out records, the
+        # first TIMING_RECORDS: ~0.1 s each)
+        timing=calibrate_timing_ratio(pipeline, band_signals[~band_ood][:TIMING_RECORDS], pipeline.sample_rate),
         near_rows={"held_out": near.held_out, "training": near.training},
         unidentified=unidentified,
         band=band,
@@ -366,6 +374,7 @@ def _calibration_record(
         "shape_correlation_min": c.shape_min,
         "unexplained_ratio_max": c.unexplained,
         "spike_step_max": c.spike_step,
+        "timing_ratio_max": c.timing,
         "consistency": c.consistency,
         "gappy_residual": c.gappy_residual,
         "damage": dict(settings.damage),

@@ -1,0 +1,154 @@
+"""The ``timing`` check: the record's current is read best moved in time, by the pipeline's own answer.
+
+The FDI reads the current's timing to the sample: on the reference actuator's pretrained pipeline a current 0.5 ms
+(10 samples) late left 235 of 250 val-like answers out of their intervals, unflagged, and 5 ms 232 of 250. A record
+with its command column is aligned on it (:func:`~.record_corrections.align_trigger`); a current-only record (the
+paper's own input) has nothing else to align on, and a current channel delayed alone (another logger, a filter's
+group delay) shows in no other column. Nothing in the current marks time without a model: faults move the current's
+own onset and its correlation with the nominal record by tens of samples (5-95 %: -19 to +50 on those records).
+
+The pipeline's consistency check does (analysis by synthesis, :mod:`.consistency`): its statistic compares the record
+with the one the FDI's own answer predicts. Moved back by its true delay, a delayed record is explained better than as
+it came; a record on time is explained best near where it is. :func:`timing_scan` reads the statistic for the record
+shifted by every ``step``-th sample within ``MAX_SHIFT_SHARE`` of its length, and the check fires where the best shift
+lies ``MIN_SHIFT_S`` or more away and explains the record the pipeline's threshold times better than no shift.
+
+Measured on the pretrained pipeline (``scripts/timing_check_eval.py``, docs/trust/timing_check_pretrained.json): over
+4,000 clean val-like records (0-3 % noise) the ratio of the records whose best shift lay that far reached 1.93 (0.997
+quantile 1.76); at its threshold of 1.877 the check refused 1 of them, and with the current delayed (500 records, 1 %
+noise) 9 % at 1 ms, 44 % at 2 ms, 92 % at 5 ms and 98 % at 10 ms (1 ms early: 22 %). The best shift lies within 4
+samples of the true delay on 72 % of the delayed records, so the record is refused, not corrected: moved back by the
+scan's shift, clean records read right on 58 % instead of 91 % (an answer needs its timing within about 2 samples).
+The ratio a pipeline's clean records reach is its own: the 270 V rudder's paper-scale pipeline (30 samples, 22 modes)
+explains 5 % of its clean records 1.8 x better at a far shift (ratios up to 7.9; 41 of those 50 answers wrong), and
+its answers hardly depend on 0.5-2 ms of timing (74 of 125 right at 0.5 ms late, 68 % clean). So the check fires only
+for a pipeline with its own threshold (metadata ``timing_ratio_max``): phm-evaluate calibrates it on held-out records
+(:func:`calibrate_timing_ratio`: the ``TIMING_QUANTILE`` of their ratios, never below ``TIMING_RATIO``),
+``scripts/add_timing_check.py`` gives it to a pipeline exported before, the shipped one among them; without it the
+check is skipped and listed in ``checks_skipped``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+
+from .command_check import shifted
+from .noise_threshold import conformal_quantile
+
+TIMING_RATIO = 1.8  # the least threshold: the 4,000 clean records reach 1.93 at a far shift (2 above 1.8)
+MIN_SHIFT_S = 3e-4  # [s] a best shift nearer than this is the answer's own jitter (clean records: within 6 samples)
+MAX_SHIFT_SHARE = 0.025  # the scan covers +- this share of the record (12.5 ms of the reference's 0.5 s)
+SCAN_POINTS = 5000  # the scan's step: the record's samples over this (2 samples of the reference's 10,001)
+CHUNK = 64  # shifted records per consistency call (larger batches cost more per record on 2 cores)
+# a pipeline's own threshold: this quantile of its held-out records' ratios (the 4,000 clean records above: 1.76 at
+# 0.997, 1.63 at 0.99; the 270 V rudder's paper-scale pipeline, 1,000 clean records: 7.6 at 0.99)
+TIMING_QUANTILE = 0.995
+
+
+@dataclass(frozen=True)
+class TimingScan:
+    """Outcome of :func:`timing_scan` for one record.
+
+    Attributes:
+        shift: the best shift [samples] (positive: the current lags the pipeline's grid, read ``x[i + shift]``).
+        ratio: the consistency statistic unshifted over its value at the best shift (>= 1).
+        statistic: the statistic unshifted (the ``inconsistent`` check's, > 1 flags).
+        best: the statistic at the best shift.
+    """
+
+    shift: int
+    ratio: float
+    statistic: float
+    best: float
+
+    def lag_s(self, sample_rate: float) -> float:
+        """The best shift in seconds at ``sample_rate`` [Hz]."""
+        return self.shift / sample_rate
+
+    def off(self, sample_rate: float, threshold: float = TIMING_RATIO) -> bool:
+        """Whether the check fires: the best shift ``MIN_SHIFT_S`` or more away (and 2 samples at least), the
+        record explained ``threshold`` times better there, and consistent with the answer as it came (statistic <= 1).
+        A record inconsistent as it came is refused ``inconsistent`` already, and its best shift need not be its
+        timing: the pretrained pipeline explains a current x2 best 2.1 ms late, and a shorted phase's record x1.5
+        1.8 ms late, 3.7 x better."""
+        far = abs(self.shift) >= max(2, math.ceil(MIN_SHIFT_S * sample_rate))
+        return bool(far and self.ratio >= threshold and self.statistic <= 1.0)
+
+    def message(self, sample_rate: float) -> str:
+        """One line for the user on a record the check refuses."""
+        lag = 1000.0 * self.lag_s(sample_rate)
+        way = f"lag the pipeline's time grid by {lag:.2f} ms" if lag > 0 else f"lead it by {-lag:.2f} ms"
+        return (
+            f"the current is explained {self.ratio:.2f} x better by the pipeline's own answer moved in time: it seems "
+            f"to {way} (a trigger offset, a logger's or filter's delay). The FDI reads timing to the sample, so the "
+            "answer is withheld: record the command column with the current (a trigger offset is then corrected), "
+            "or align the record and read it again"
+        )
+
+
+def can_scan(model: Any, n: int) -> bool:
+    """Whether ``model`` (a loaded pipeline) has a consistency check to scan with, for a full record of ``n``
+    samples."""
+    return bool(getattr(model, "has_consistency", False)) and n == int(getattr(model, "n_full", -1))
+
+
+def scan_shifts(n: int) -> list[int]:
+    """The shifts [samples] the scan reads for a record of ``n`` samples: every ``n // SCAN_POINTS``-th within
+    +- ``MAX_SHIFT_SHARE`` x n, 0 included."""
+    step = max(1, n // SCAN_POINTS)
+    reach = int(MAX_SHIFT_SHARE * n) // step * step
+    return list(range(-reach, reach + 1, step))
+
+
+@torch.no_grad()
+def timing_scan(model: Any, current: torch.Tensor, noise: float) -> TimingScan | None:
+    """The scan of one full record ``current`` (n_full,) [A] as the pipeline reads it (after any rebase), at its
+    estimated relative ``noise`` (NaN: each shifted record's own); None where the pipeline has no consistency
+    check or the statistic is not finite unshifted."""
+    n = current.numel()
+    if not can_scan(model, n):
+        return None
+    shifts = scan_shifts(n)
+    x = current.double().flatten()
+    dtype = model.times.dtype
+    stats = []
+    for start in range(0, len(shifts), CHUNK):
+        block = torch.stack([shifted(x, s) for s in shifts[start : start + CHUNK]]).to(dtype)
+        if math.isnan(noise):
+            stats.append(model.consistency(block))
+        else:
+            stats.append(model.consistency(block, torch.full((block.shape[0],), noise, dtype=dtype)))
+    stat = torch.cat(stats).double()
+    at_zero = float(stat[shifts.index(0)])
+    finite = torch.isfinite(stat)
+    if not math.isfinite(at_zero) or not bool(finite.any()):
+        return None
+    best = int(torch.argmin(torch.where(finite, stat, torch.full_like(stat, math.inf))))
+    least = float(stat[best])
+    ratio = at_zero / least if least > 0 else (1.0 if at_zero == 0 else math.inf)
+    return TimingScan(shifts[best], max(1.0, ratio), at_zero, least)
+
+
+def calibrate_timing_ratio(
+    pipeline: Any, signals: torch.Tensor, sample_rate: float, quantile: float = TIMING_QUANTILE
+) -> float | None:
+    """The check's threshold for a pipeline from held-out records (B, n_full) [A] on time, with their noise: the
+    split-conformal ``quantile`` of their ratios (1 for a record whose best shift lies too near to fire), never
+    below ``TIMING_RATIO`` (a pipeline's own records may only loosen it). None: no consistency check to scan with,
+    or no record."""
+    if signals.shape[0] == 0 or not can_scan(pipeline, signals.shape[1]):
+        return None
+    with torch.no_grad():
+        noise = pipeline.noise_level(signals.to(pipeline.times.dtype))
+    ratios = []
+    for record, level in zip(signals, noise.tolist()):
+        scan = timing_scan(pipeline, record, level)
+        if scan is not None:
+            ratios.append(scan.ratio if scan.off(sample_rate, threshold=1.0) else 1.0)
+    if not ratios:
+        return None
+    return max(TIMING_RATIO, conformal_quantile(torch.tensor(ratios, dtype=torch.float64), quantile))
