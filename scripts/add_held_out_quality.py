@@ -21,7 +21,6 @@ Writes ``<out stem>.held_out_quality.json`` (the figures, the store, the noise) 
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -29,8 +28,7 @@ import torch
 
 from phm_torch import provenance
 from phm_torch.data import DatasetStore
-from phm_torch.io.atomic import write_json
-from phm_torch.online.from_torchscript import pipeline_from_torchscript, rewrite_pipeline
+from phm_torch.online.from_torchscript import pipeline_from_torchscript, rewrite_arguments, rewrite_with_report
 from phm_torch.pipelines.evaluate.calibration import identifiability, noisy, within_drive_range
 from phm_torch.pipelines.evaluate.quality import held_out_quality
 
@@ -84,13 +82,7 @@ def measure(pipeline_path: Path, data_dir: Path, split: str, seed: int, noise: f
 
 
 def main(argv: list[str] | None = None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--pipeline", required=True, type=Path, help="the TorchScript pipeline file")
-    ap.add_argument("--data-dir", required=True, type=Path, help="an independent store of its actuator and command")
-    ap.add_argument("--out", required=True, type=Path, help="the pipeline written (.pt; .pt2 beside it)")
-    ap.add_argument("--split", default="val")
-    ap.add_argument("--formats", default="torchscript,export", help="comma-separated phm-export formats")
-    ap.add_argument("--seed", type=int, default=0, help="seeds the added noise")
+    ap = rewrite_arguments(__doc__)
     ap.add_argument(
         "--noise",
         type=float,
@@ -100,14 +92,10 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     figures = measure(args.pipeline, args.data_dir, args.split, args.seed, args.noise)
-    written = rewrite_pipeline(
-        args.pipeline,
-        args.out,
-        [f.strip() for f in args.formats.split(",") if f.strip()],
-        {"held_out_quality": figures["held_out_quality"], "identifiability": figures["identifiability"]},
+    metadata = {"held_out_quality": figures["held_out_quality"], "identifiability": figures["identifiability"]}
+    report = rewrite_with_report(
+        args.pipeline, args.out, args.formats, metadata, {**figures, "report": "held_out_quality"}
     )
-    report = {**figures, "pipeline": str(args.pipeline), "files": written["files"]}
-    write_json(args.out.with_suffix(".held_out_quality.json"), report)
     print(json.dumps(report, indent=2))
     return report
 

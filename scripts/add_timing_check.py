@@ -19,7 +19,6 @@ Writes ``<out stem>.timing_check.json`` (the threshold, its records' ratios, the
 
 from __future__ import annotations
 
-import argparse
 import json
 from pathlib import Path
 
@@ -27,9 +26,8 @@ import torch
 
 from phm_torch import provenance
 from phm_torch.data import DatasetStore
-from phm_torch.io.atomic import write_json
 from phm_torch.online.export import read_metadata
-from phm_torch.online.from_torchscript import rewrite_pipeline
+from phm_torch.online.from_torchscript import rewrite_arguments, rewrite_with_report
 from phm_torch.online.timing_check import TIMING_QUANTILE, calibrate_timing_ratio
 from phm_torch.pipelines.evaluate.calibration import noisy, within_drive_range
 from phm_torch.pipelines.evaluate.pipeline import TIMING_RECORDS
@@ -75,25 +73,13 @@ def measure(pipeline_path: Path, data_dir: Path, split: str, seed: int, records:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--pipeline", required=True, type=Path, help="the TorchScript pipeline file")
-    ap.add_argument("--data-dir", required=True, type=Path, help="an independent store of its actuator and command")
-    ap.add_argument("--out", required=True, type=Path, help="the pipeline written (.pt; .pt2 beside it)")
-    ap.add_argument("--split", default="val")
+    ap = rewrite_arguments(__doc__)
     ap.add_argument("--records", type=int, default=TIMING_RECORDS, help="in-distribution records calibrated on")
-    ap.add_argument("--formats", default="torchscript,export", help="comma-separated phm-export formats")
-    ap.add_argument("--seed", type=int, default=0, help="seeds the added noise")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     figures = measure(args.pipeline, args.data_dir, args.split, args.seed, args.records)
-    written = rewrite_pipeline(
-        args.pipeline,
-        args.out,
-        [f.strip() for f in args.formats.split(",") if f.strip()],
-        {"timing_ratio_max": figures["timing_ratio_max"]},
-    )
-    report = {**figures, "pipeline": str(args.pipeline), "files": written["files"]}
-    write_json(args.out.with_suffix(".timing_check.json"), report)
+    metadata = {"timing_ratio_max": figures["timing_ratio_max"]}
+    report = rewrite_with_report(args.pipeline, args.out, args.formats, metadata, {**figures, "report": "timing_check"})
     print(json.dumps(report, indent=2))
     return report
 

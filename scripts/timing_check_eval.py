@@ -12,17 +12,15 @@ The HF records are the corruption suite's clean ones (simulated once, cached und
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
-from phm_torch.io.atomic import atomic_open
-from phm_torch.online.corruption_suite import CACHE, PIPELINE, Case, clean_records, contract_of, judgement
+from phm_torch.io.atomic import write_json
+from phm_torch.online.corruption_suite import Case, clean_record_arguments, clean_records, contract_of, judgement
 from phm_torch.online.corruptions import Record
 from phm_torch.online.diagnosis import calibrated_interval, diagnose
 from phm_torch.online.timing_check import TIMING_RATIO
@@ -81,12 +79,7 @@ def tally(rows: list[dict[str, Any]], threshold: float | None = None, min_shift_
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--pipeline", type=Path, default=PIPELINE)
-    parser.add_argument("--vectors", type=int, default=500, help="fault vectors of the clean records")
-    parser.add_argument("--out", type=Path, default=Path("timing_check.json"))
-    parser.add_argument("--cache", type=Path, default=CACHE)
-    args = parser.parse_args(argv)
+    args = clean_record_arguments(__doc__.splitlines()[0], "timing_check.json").parse_args(argv)
     if args.vectors < 1:
         raise ValueError(f"--vectors must be >= 1, got {args.vectors}")
     torch.set_num_threads(1)
@@ -132,8 +125,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     }
     report["wall_s"] = round(time.perf_counter() - t0, 1)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_open(args.out, "w") as fh:
-        json.dump(report, fh, indent=1)
+    write_json(args.out, report)
     print(f"wrote {args.out} in {report['wall_s']} s")
     return report
 

@@ -12,6 +12,7 @@ records. The HF records are simulated once and cached under ``CACHE``.
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import math
@@ -166,6 +167,17 @@ def suite_records(
                 cmd = _Replayed(command, speed=1.0 + s)
             changed[kind][s] = _cases(_simulate(p, pair, cmd, cache, kind), model, SUITE_NOISE, rng)
     return base, changed
+
+
+def clean_record_arguments(description: str, out: str) -> argparse.ArgumentParser:
+    """The command line of a script that reads the clean val-like records of a pipeline's actuator
+    (``--pipeline``, ``--vectors``, ``--out`` defaulting to ``out``, ``--cache``); :func:`clean_records` reads them."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--pipeline", type=Path, default=PIPELINE)
+    parser.add_argument("--vectors", type=int, default=500, help="fault vectors of the clean records")
+    parser.add_argument("--out", type=Path, default=Path(out))
+    parser.add_argument("--cache", type=Path, default=CACHE)
+    return parser
 
 
 def clean_records(model: Any, path: Path, n: int = 500, cache: Path = CACHE, seed: int = 1) -> list[Case]:

@@ -22,6 +22,7 @@ nothing is unpickled.
 
 from __future__ import annotations
 
+import argparse
 import logging
 import math
 import os
@@ -362,3 +363,35 @@ def rewrite_pipeline(
         "max_abs_diff_by_format": checked["max_abs_diff"],
         "derived": derived,
     }
+
+
+def rewrite_arguments(description: str) -> argparse.ArgumentParser:
+    """The command line of a script that gives a pipeline file metadata measured on a store (``--pipeline``,
+    ``--data-dir``, ``--out``, ``--split``, ``--formats``, ``--seed``); :func:`rewrite_with_report` writes it."""
+    ap = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--pipeline", required=True, type=Path, help="the TorchScript pipeline file")
+    ap.add_argument("--data-dir", required=True, type=Path, help="an independent store of its actuator and command")
+    ap.add_argument("--out", required=True, type=Path, help="the pipeline written (.pt; .pt2 beside it)")
+    ap.add_argument("--split", default="val")
+    ap.add_argument("--formats", default="torchscript,export", help="comma-separated phm-export formats")
+    ap.add_argument("--seed", type=int, default=0, help="seeds the added noise")
+    return ap
+
+
+def rewrite_with_report(
+    path: str | os.PathLike,
+    out: str | os.PathLike,
+    formats: str,
+    metadata: Mapping[str, Any],
+    figures: Mapping[str, Any],
+) -> dict[str, Any]:
+    """A script's last step that gives a pipeline file ``path`` new ``metadata``: :func:`rewrite_pipeline` beside ``out``
+    in the comma-separated ``formats``, and the report (``figures`` with the input and the files written) as
+    ``<out stem>.<report name>.json``, ``figures["report"]`` naming it; returns the report."""
+    from ..io.atomic import write_json
+
+    written = rewrite_pipeline(path, out, [f.strip() for f in formats.split(",") if f.strip()], metadata)
+    report = {k: v for k, v in figures.items() if k != "report"}
+    report.update(pipeline=str(path), files=written["files"])
+    write_json(Path(out).with_suffix(f".{figures['report']}.json"), report)
+    return report
