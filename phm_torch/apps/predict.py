@@ -24,9 +24,11 @@ Each record holds:
   intervals above their highest calibrated level; ``null`` when the pipeline does not know that level);
 * ``ood_reasons``, every check of the input contract that fired (:mod:`phm_torch.online.input_contract`:
   the pipeline's own checks by name, ``command``, ``tracking``, ``sign``, ``offset``, ``shape``, ``noise``,
-  ``spikes``, ``gap``, ``stuck``, ``held``, ``bench``), ``checks_skipped`` (``command`` and ``tracking`` for a CSV without command or position
-  columns, a current-only record), ``command_check``, ``tracking_check`` and ``messages`` (one line per failed
-  check);
+  ``spikes``, ``gap``, ``stuck``, ``held``, ``bench``, ``timing``), ``checks_skipped`` (``command`` and ``tracking``
+  for a CSV without command or position columns, a current-only record; ``timing`` for a pipeline without its own
+  threshold or a format without the consistency statistic), ``command_check``, ``tracking_check``, ``timing_check``
+  (the shift [s] at which the pipeline's own answer explains the record best, how many times better than unshifted,
+  and whether the check passed: :mod:`phm_torch.online.timing_check`) and ``messages`` (one line per failed check);
 * what was corrected before the pipeline read the record, each said in ``messages``: ``bench_lines`` (sinusoids of
   one frequency, amplitude and phase through the whole record, hum on the probe, removed where the answer without
   them has no fault that makes one: :mod:`phm_torch.online.bench_lines`; each with ``frequency`` [Hz],
@@ -47,7 +49,8 @@ The record is computed by :func:`phm_torch.online.diagnosis.diagnose`.
 
 The model is a file written by ``phm-evaluate`` or ``phm-export`` in any of its formats (TorchScript ``.pt``,
 torch.export ``.pt2``, AOTInductor ``.aoti.pt2``, ONNX ``.onnx.zip`` (complete records only); :mod:`phm_torch.online.formats`), the format read from the
-file (``format=`` insists on one); the JSON is the same for every format (no unpickling). An empty or ``nan`` cell of a CSV's ``current`` column is a missing
+file (``format=`` insists on one); the JSON is the same for every format (no unpickling), but for the ``timing``
+check, which reads the TorchScript file's consistency statistic. An empty or ``nan`` cell of a CSV's ``current`` column is a missing
 sample, which the pipeline drops (too many, and the record is out of distribution). With ``baseline`` (healthy records of the measuring bench), every
 measurement is first moved onto the training model by the difference between that bench's healthy record
 and the training model's; that healthy record, read as measured, must land within ``BENCH_TOLERANCE`` interval
