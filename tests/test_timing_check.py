@@ -111,3 +111,22 @@ def test_the_calibration_keeps_the_default_on_records_on_time_and_loosens_on_rec
     assert calibrate_timing_ratio(model, late, RATE) == pytest.approx(scan.ratio, rel=1e-6)
     assert calibrate_timing_ratio(model, late, RATE, quantile=0.3) == TIMING_RATIO  # the one on time
     assert calibrate_timing_ratio(model, late[:0], RATE) is None  # nothing to calibrate on
+
+
+@pytest.mark.torchscript  # the shipped TorchScript file
+@pytest.mark.slow  # simulates 2 HF records (about a minute) and reads 56 records with their scans
+def test_the_evaluation_script_refuses_records_10_ms_late_and_keeps_the_clean_ones(tmp_path):
+    from script_module import script_module
+
+    script = script_module("timing_check_eval")
+    script.DELAYS_MS, script.FULL_DELAYS_MS = (10.0,), (10.0,)
+    with pytest.raises(ValueError, match="--vectors must be >= 1, got 0"):
+        script.main(["--vectors", "0"])
+    report = script.main(["--vectors", "2", "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "t.json")])
+    clean = report["cases"]["clean"]
+    assert clean["as_shipped"]["cases"] == 16 and clean["as_shipped"]["flagged_by_timing_alone"] == 0
+    assert clean["at_inf"]["flagged"] == clean["as_shipped"]["flagged"]  # without the check: the same flags
+    for key in ("current_only_+10ms", "full_current_alone_+10ms"):
+        late = report["cases"][key]
+        assert late["as_shipped"]["flagged"] == 2 and late["as_shipped"]["right_unflagged"] == 0, late
+    assert report["threshold"] == pytest.approx(read_metadata(PIPELINE)["timing_ratio_max"])
