@@ -21,7 +21,7 @@ import torch
 
 from phm_torch.io.atomic import write_json
 from phm_torch.online.corruption_suite import Case, clean_record_arguments, clean_records, contract_of, judgement
-from phm_torch.online.corruptions import Record
+from phm_torch.online.corruptions import Record, delayed
 from phm_torch.online.diagnosis import calibrated_interval, diagnose
 from phm_torch.online.timing_check import TIMING_RATIO
 
@@ -29,16 +29,6 @@ DELAYS_MS = (0.5, 1.0, 2.0, 5.0, 10.0, -1.0, -3.0)  # the current moved by this 
 FULL_DELAYS_MS = (0.5, 2.0, 5.0)  # the same with the record's command and position on time
 NOISE_INDEX = 2  # the clean records come at 0, 1, 2, 3 % noise, each twice: the first 1 % draw
 THRESHOLDS = (1.5, 1.6, 1.7, 1.8, 2.0, 2.5, float("inf"))  # inf: without the check
-
-
-def moved(current: torch.Tensor, samples: int) -> torch.Tensor:
-    """The current delayed by ``samples`` (its first value held before it), or advanced (negative: its last value
-    held after it), as a recorder triggered off by that much writes it."""
-    if samples > 0:
-        return torch.cat([current[:1].expand(samples), current[:-samples]])
-    if samples < 0:
-        return torch.cat([current[-samples:], current[-1:].expand(-samples)])
-    return current
 
 
 def read(model: Any, contract: Any, case: Case, record: Record) -> dict[str, Any]:
@@ -97,7 +87,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         lag = round(delay * 1e-3 * rate)
         key = f"current_only_{delay:+g}ms"
         runs[key] = [
-            read(model, contract, c, Record(c.record.time, None, None, moved(c.record.current, lag))) for c in cases
+            read(model, contract, c, Record(c.record.time, None, None, delayed(c.record.current, lag))) for c in cases
         ]
         print(json.dumps({key: tally(runs[key]), "s": round(time.perf_counter() - t0)}), flush=True)
     for delay in FULL_DELAYS_MS:
@@ -108,7 +98,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 model,
                 contract,
                 c,
-                Record(c.record.time, c.record.command, c.record.position, moved(c.record.current, lag)),
+                Record(c.record.time, c.record.command, c.record.position, delayed(c.record.current, lag)),
             )
             for c in cases
         ]

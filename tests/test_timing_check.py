@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from phm_torch.online.corruptions import Record
+from phm_torch.online.corruptions import Record, delayed
 from phm_torch.online.export import read_metadata
 from phm_torch.online.input_contract import InputContract
 from phm_torch.online.timing_check import (
@@ -63,13 +63,6 @@ def pretrained():
     return TorchScriptPipeline(module, read_metadata(PIPELINE)), noisy
 
 
-def _moved(x: torch.Tensor, samples: int) -> torch.Tensor:
-    """x delayed by ``samples`` (first value held) or advanced (negative: last value held)."""
-    if samples > 0:
-        return torch.cat([x[:1].expand(samples), x[:-samples]])
-    return torch.cat([x[-samples:], x[-1:].expand(-samples)])
-
-
 @pytest.mark.torchscript  # the shipped TorchScript file
 def test_phm_predict_refuses_a_current_only_record_moved_by_milliseconds_and_names_the_shift(pretrained):
     from phm_torch.online.diagnosis import diagnose
@@ -82,7 +75,7 @@ def test_phm_predict_refuses_a_current_only_record_moved_by_milliseconds_and_nam
     assert "timing" not in on_time["ood_reasons"] and on_time["timing_check"]["ok"]
     assert abs(on_time["timing_check"]["best_shift_s"]) < 3e-4
     for samples in (100, -60):  # 5 ms late, 3 ms early
-        out = diagnose(model, Record(t, None, None, _moved(noisy, samples)), contract)
+        out = diagnose(model, Record(t, None, None, delayed(noisy, samples)), contract)
         assert out["out_of_distribution"] and "timing" in out["ood_reasons"], (samples, out["ood_reasons"])
         assert out["timing_check"]["best_shift_s"] == pytest.approx(samples / RATE, abs=3e-4)
         assert out["timing_check"]["ratio"] >= TIMING_RATIO and not out["timing_check"]["ok"]
@@ -90,10 +83,10 @@ def test_phm_predict_refuses_a_current_only_record_moved_by_milliseconds_and_nam
     # with its command column on time, the current delayed alone is refused the same way
     command = contract.command
     assert command is None  # the pipeline's command is not needed to scan; a column without it is not checked
-    full = diagnose(model, Record(t, torch.zeros_like(t), None, _moved(noisy, 100)), contract)
+    full = diagnose(model, Record(t, torch.zeros_like(t), None, delayed(noisy, 100)), contract)
     assert "timing" in full["ood_reasons"]
     # a pipeline without its own threshold is not scanned: the check is listed as skipped
-    bare = diagnose(model, Record(t, None, None, _moved(noisy, 100)), InputContract.of(model, {}, None))
+    bare = diagnose(model, Record(t, None, None, delayed(noisy, 100)), InputContract.of(model, {}, None))
     assert bare["timing_check"] is None and "timing" in bare["checks_skipped"] and "timing" not in bare["ood_reasons"]
 
 
@@ -104,7 +97,7 @@ def test_the_calibration_keeps_the_default_on_records_on_time_and_loosens_on_rec
     g = torch.Generator().manual_seed(4)
     on_time = noisy + 0.01 * rms * torch.randn(noisy.numel(), generator=g, dtype=torch.float64)
     assert calibrate_timing_ratio(model, on_time.unsqueeze(0), RATE) == TIMING_RATIO
-    late = torch.stack([on_time, _moved(noisy, 100)])  # one of two records late: the 0.995 quantile is its ratio
+    late = torch.stack([on_time, delayed(noisy, 100)])  # one of two records late: the 0.995 quantile is its ratio
     noise = float(model.noise_level(late[1:].to(model.dtype))[0])
     scan = timing_scan(model, late[1], noise)
     assert scan.ratio > 2 * TIMING_RATIO

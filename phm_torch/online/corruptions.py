@@ -87,10 +87,13 @@ def sample_rate(time: torch.Tensor) -> float:
     return (time.numel() - 1) / span if span > 0 else math.nan
 
 
-def _delay(x: torch.Tensor | None, samples: int) -> torch.Tensor | None:
-    """x delayed by ``samples`` (> 0: starts late), the first value held before it."""
+def delayed(x: torch.Tensor | None, samples: int) -> torch.Tensor | None:
+    """x (n,) delayed by ``samples`` (> 0: starts late, its first value held before it; < 0: starts early, its last
+    value held after it), as a recorder triggered off by that much writes it."""
     if x is None or samples == 0:
         return x
+    if samples < 0:
+        return torch.cat([x[-samples:], x[-1:].expand(-samples)])
     return torch.cat([x[:1].expand(samples), x[:-samples]])
 
 
@@ -163,7 +166,7 @@ def stuck(time, command, position, current, severity, rng):
 )
 def trigger_offset(time, command, position, current, severity, rng):
     lag = round(severity * sample_rate(time))
-    return Record(time, _delay(command, lag), _delay(position, lag), _delay(current, lag))
+    return Record(time, delayed(command, lag), delayed(position, lag), delayed(current, lag))
 
 
 @register(
@@ -173,7 +176,7 @@ def trigger_offset(time, command, position, current, severity, rng):
     "the current channel alone lags (another logger, a filter's delay)",
 )
 def current_lag(time, command, position, current, severity, rng):
-    return Record(time, command, position, _delay(current, round(severity * sample_rate(time))))
+    return Record(time, command, position, delayed(current, round(severity * sample_rate(time))))
 
 
 @register("time_reversal", (1.0,), "-", "every channel written backwards")
