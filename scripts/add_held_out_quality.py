@@ -28,8 +28,9 @@ import torch
 
 from phm_torch import provenance
 from phm_torch.data import DatasetStore
+from phm_torch.drive_range import within_drive_range
 from phm_torch.online.from_torchscript import pipeline_from_torchscript, rewrite_arguments, rewrite_with_report
-from phm_torch.pipelines.evaluate.calibration import identifiability, noisy, within_drive_range
+from phm_torch.pipelines.evaluate.calibration import identifiability, noisy
 from phm_torch.pipelines.evaluate.quality import held_out_quality
 
 

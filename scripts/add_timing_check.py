@@ -26,10 +26,11 @@ import torch
 
 from phm_torch import provenance
 from phm_torch.data import DatasetStore
+from phm_torch.drive_range import within_drive_range
 from phm_torch.online.export import read_metadata
 from phm_torch.online.from_torchscript import rewrite_arguments, rewrite_with_report
 from phm_torch.online.timing_check import TIMING_QUANTILE, calibrate_timing_ratio
-from phm_torch.pipelines.evaluate.calibration import noisy, within_drive_range
+from phm_torch.pipelines.evaluate.calibration import noisy
 from phm_torch.pipelines.evaluate.pipeline import TIMING_RECORDS
 
 

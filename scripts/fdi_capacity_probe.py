@@ -25,10 +25,9 @@ import time
 import torch
 
 from phm_torch.data import DatasetStore
+from phm_torch.drive_range import drive_bound, within_drive_range
 from phm_torch.faults import FAULT_NAMES
 from phm_torch.io.atomic import write_json
-from phm_torch.pipelines.evaluate.calibration import within_drive_range
-from phm_torch.pipelines.train.data import drive_bound
 from phm_torch.surrogates.metrics import err_k
 
 

@@ -12,8 +12,9 @@ import torch
 from surrogate_data import write_store
 
 from phm_torch.apps.train import settings_from_config, train_surrogates
+from phm_torch.drive_range import drive_bound, within_drive_range
 from phm_torch.online.input_contract import InputContract
-from phm_torch.pipelines.train.data import drive_bound, load_data
+from phm_torch.pipelines.train.data import load_data
 from phm_torch.provenance import digest
 from phm_torch.surrogates.data import SplitData
 
@@ -24,6 +25,13 @@ def test_split_rows_and_peak_current():
     assert split.peak_current().tolist() == [3.0, 2.0, 0.5]
     kept = split.rows(split.peak_current() <= 2.0)
     assert len(kept) == 2 and kept.healthy.tolist() == [False, True] and kept.name == "train"
+
+
+def test_one_rule_for_within_the_drive_range_missing_samples_ignored():
+    current = torch.tensor([[0.0, -3.0, 1.0], [2.0, float("nan"), -1.0], [0.5, 0.5, 0.5]])
+    assert within_drive_range(current, 2.0).tolist() == [False, True, True]
+    assert within_drive_range(current, None).tolist() == [True, True, True]
+    assert within_drive_range(current[1], 1.5).tolist() is False  # one record (n,): a 0-d answer
 
 
 def test_drive_bound():

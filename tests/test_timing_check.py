@@ -4,6 +4,7 @@ refuses it with the reason ``timing`` and the shift it found; the scan's grid, i
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import pytest
@@ -28,6 +29,36 @@ def test_the_scan_reads_every_other_sample_within_a_fortieth_of_the_record():
     shifts = scan_shifts(10001)
     assert shifts[0] == -250 and shifts[-1] == 250 and 0 in shifts and set(map(abs, shifts)) <= set(range(0, 251, 2))
     assert scan_shifts(1000) == list(range(-25, 26))  # a short record: every sample
+
+
+class _Landscape:
+    """A pipeline stand-in whose consistency statistic is a known function of the shift it reads (the record is
+    arange(n), so the shifted copy's middle sample names its shift); counts the shifted records read."""
+
+    has_consistency, n_full, times = True, 10001, torch.zeros(1, dtype=torch.float64)
+
+    def __init__(self, statistic):
+        self.statistic, self.read = statistic, []
+
+    def consistency(self, block, noise=None):
+        shifts = (block[:, 5000] - 5000).round().long().tolist()
+        self.read += shifts
+        return torch.tensor([self.statistic(s) for s in shifts], dtype=torch.float64)
+
+
+@pytest.mark.parametrize("true_shift", [-247, -101, -3, 0, 37, 94, 250])
+def test_the_coarse_to_fine_scan_finds_the_step_by_step_minimum_with_a_third_of_the_reads(true_shift):
+    # a bowl a few samples wide around the record's true shift, on a floor of ripples (the answer's own jitter)
+    def bowl(s):
+        return 1.0 + 0.2 * math.sin(0.7 * s) ** 2 - 0.6 / (1.0 + ((s - true_shift) / 6.0) ** 2)
+
+    model = _Landscape(bowl)
+    scan = timing_scan(model, torch.arange(10001, dtype=torch.float64), 0.01)
+    grid = scan_shifts(10001)
+    best = min(grid, key=bowl)
+    assert scan.shift == best and scan.statistic == bowl(0) and scan.best == pytest.approx(bowl(best))
+    assert scan.ratio == pytest.approx(max(1.0, bowl(0) / bowl(best)))
+    assert set(model.read) <= set(grid) and len(set(model.read)) == len(model.read) < len(grid) / 3
 
 
 def test_the_check_fires_on_a_far_shift_that_explains_the_record_much_better():

@@ -74,6 +74,7 @@ from typing import Any
 
 import torch
 
+from ..drive_range import within_drive_range
 from ..metrics import finite_mean, nrmse
 from .command_check import CommandCheck, check_command, unit_hint
 from .corruptions import Record, sample_rate
@@ -291,7 +292,7 @@ class InputContract:
         reasons = []
         if not math.isnan(noise) and noise > self.noise_max:
             reasons.append("noise")
-        if self.current_bound is not None and float(current.double().nan_to_num(0.0).abs().max()) > self.current_bound:
+        if not bool(within_drive_range(current.reshape(1, -1), self.current_bound)[0]):
             reasons.append("overcurrent")
         runs = current if measured is None else measured
         if runs.numel() == int(getattr(model, "n_full", runs.numel())):  # runs of a full record's samples

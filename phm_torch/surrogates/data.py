@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from ..data.store import DatasetStore
+from ..drive_range import peak_current
 from ..faults import N_FAULTS
 
 READ_ROWS = 512  # rows per HDF5 read
@@ -42,7 +43,7 @@ class SplitData:
 
     def peak_current(self) -> torch.Tensor:
         """(n,) the largest |envelope current| of each record [A] (NaN samples ignored)."""
-        return self.current.nan_to_num(0.0).abs().amax(1)
+        return peak_current(self.current)
 
 
 def read_split(store: DatasetStore, name: str, n_samples: int, limit: int | None = None) -> SplitData:

@@ -30,14 +30,6 @@ def noisy(signals: torch.Tensor, noise: float, seed: int) -> torch.Tensor:
     return signals
 
 
-def within_drive_range(current: torch.Tensor, bound: float | None) -> torch.Tensor:
-    """(B,) True where a record's current (B, n) [A] stays within the pipeline's drive range ``bound`` [A] (all
-    True without one): beyond it the exported pipeline answers ``overcurrent``, so no calibration reads those."""
-    if bound is None:
-        return torch.ones(current.shape[0], dtype=torch.bool, device=current.device)
-    return current.abs().amax(1) <= float(bound)
-
-
 def fdi_band(pipeline: OnlinePipeline, signals: torch.Tensor, k: torch.Tensor, correct_median: bool) -> FDIBand | None:
     """The FDI band calibrated on held-out (noisy) signals, or None (with a warning: the full-flow band is
     then the physics band only, too narrow) when too few are usable."""

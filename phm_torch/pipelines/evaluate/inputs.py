@@ -13,9 +13,10 @@ from ... import provenance
 from ...assessment_record import same_labels
 from ...checks import build
 from ...data.store import DatasetStore
+from ...drive_range import within_drive_range
 from ...params import ActuatorParams
 from ...surrogates.bundle import SurrogateBundle
-from .calibration import noisy, tracking_ranges, within_drive_range
+from .calibration import noisy, tracking_ranges
 from .settings import EvaluateSettings
 
 log = logging.getLogger(__name__)

@@ -22,8 +22,9 @@ from typing import Any
 
 import torch
 
+from ...drive_range import within_drive_range
 from ...online.fault_count import no_large_fault
-from .calibration import noisy, within_drive_range
+from .calibration import noisy
 
 log = logging.getLogger(__name__)
 

@@ -12,6 +12,7 @@ import torch
 
 from ... import provenance
 from ...data.store import metadata_provenance
+from ...drive_range import drive_bound, within_drive_range
 from ...surrogates import POD, GappyPOD, rms
 from ...surrogates.data import SplitData, load_store
 from ...surrogates.gappy_pod import gappy_statistics
@@ -41,21 +42,6 @@ class StoreData:
     def beyond_range(self) -> int:
         """Training records beyond the drive range (0 without one, or when they were left out of the fits)."""
         return 0 if self.inside is None else int((~self.inside).sum())
-
-
-def drive_bound(actuator: dict[str, Any] | None, drive_range: float | None) -> float | None:
-    """``drive_range`` x the actuator's ``current_limit`` [A]; None where either is unknown.
-
-    A record beyond it is one a drive with overcurrent protection would not have finished: at k near 1 in two
-    phases the shorted pair's inductance is ~(1 - s)^2 of nominal, the current loop becomes unstable at the PWM
-    rate and the simulated envelope current swings through kiloamperes (8 % of the 270 V rudder actuator's
-    importance-sampled records above twice its 20 A limit, 0.4 % of the reference's above twice its 15 A).
-    Such records carry most of the training set's POD energy and inflated the out-of-distribution thresholds
-    calibrated on it (the rudder actuator's gappy-residual limit: 28 A with them, 5.0 A without)."""
-    if drive_range is None or not actuator:
-        return None
-    limit = (actuator.get("values") or {}).get("current_limit")
-    return None if limit is None else float(drive_range) * float(limit)
 
 
 @dataclass
@@ -95,7 +81,7 @@ def load_data(settings: TrainSettings, timing: dict[str, float]) -> StoreData:
             f"the store has {len(data['train'])}"
         )
     train, bound = data["train"], drive_bound(prov.get("actuator"), settings.drive_range)
-    inside = None if bound is None else train.peak_current() <= bound
+    inside = None if bound is None else within_drive_range(train.current, bound)
     if inside is not None:
         beyond, fitted = int((~inside).sum()), "left out of every fit" if settings.fit_within_drive_range else "kept"
         if int(inside.sum()) <= settings.n_modes:

@@ -21,6 +21,7 @@ import torch
 
 from ... import provenance
 from ...data.store import recorded_actuator
+from ...drive_range import within_drive_range
 from ...surrogates import SurrogateBundle
 from ...surrogates.classifiers.base import HealthClassifier
 from ...surrogates.evaluate import evaluate_classifier, evaluate_fdi, measure_latency, quartiles
@@ -61,7 +62,7 @@ def evaluate(
     )
     metrics, arrays = evaluate_fdi(pod, gappy, network, val.current, val.k, ev.noise, ev.missing, seed, nominal)
     if data.current_bound is not None:  # err_k of the val records a protected drive would have finished
-        inside = val.peak_current() <= data.current_bound
+        inside = within_drive_range(val.current, data.current_bound)
         metrics["val_beyond_drive_range"] = int((~inside).sum())
         metrics["err_k_in_drive_range"] = err_k(arrays["k_hat"][inside], val.k[inside]) if bool(inside.any()) else None
     t0 = time.perf_counter()
