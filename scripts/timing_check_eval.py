@@ -24,6 +24,7 @@ from phm_torch.online.corruption_suite import Case, clean_record_arguments, clea
 from phm_torch.online.corruptions import Record, delayed
 from phm_torch.online.diagnosis import calibrated_interval, diagnose
 from phm_torch.online.timing_check import TIMING_RATIO
+from phm_torch.online.timing_tolerance import tolerance_seconds
 
 DELAYS_MS = (0.5, 1.0, 2.0, 5.0, 10.0, -1.0, -3.0)  # the current moved by this (negative: it leads)
 FULL_DELAYS_MS = (0.5, 2.0, 5.0)  # the same with the record's command and position on time
@@ -31,10 +32,11 @@ NOISE_INDEX = 2  # the clean records come at 0, 1, 2, 3 % noise, each twice: the
 THRESHOLDS = (1.5, 1.6, 1.7, 1.8, 2.0, 2.5, float("inf"))  # inf: without the check
 
 
-def read(model: Any, contract: Any, case: Case, record: Record) -> dict[str, Any]:
-    """phm-predict's diagnosis of ``record`` judged against the case's truth, the timing check's values, and
-    whether any other check flagged it (so that other thresholds can be judged from the same run)."""
-    out = diagnose(model, record, contract)
+def read(model: Any, contract: Any, case: Case, record: Record, tolerance: float) -> dict[str, Any]:
+    """phm-predict's diagnosis of ``record`` (a current-only record's trigger ``tolerance`` [s]) judged against the
+    case's truth, the timing check's values, whether any other check flagged it (so that other thresholds can be
+    judged from the same run) and whether its verdict changed within the tolerance (said in its messages)."""
+    out = diagnose(model, record, contract, timing_tolerance_s=tolerance)
     if out["out_of_distribution"]:
         lower, upper = calibrated_interval(model, out)
         out = {**out, "k_interval": {n: [a, b] for n, a, b in zip(out["k_hat"], lower.tolist(), upper.tolist())}}
@@ -46,6 +48,7 @@ def read(model: Any, contract: Any, case: Case, record: Record) -> dict[str, Any
         "other_flag": bool([r for r in out["ood_reasons"] if r != "timing"]),
         "shift_s": timing.get("best_shift_s"),
         "ratio": timing.get("ratio"),
+        "verdict_unstable": not (out["timing_tolerance"] or {}).get("verdict_stable", True),
     }
 
 
@@ -63,13 +66,22 @@ def tally(rows: list[dict[str, Any]], threshold: float | None = None, min_shift_
         "cases": len(rows),
         "right_unflagged": sum(r["right"] and not f for r, f in zip(rows, flagged)),
         "wrong_unflagged": sum(not r["right"] and not f for r, f in zip(rows, flagged)),
+        # of those, the verdict said to change within the trigger tolerance
+        "wrong_unflagged_verdict_unstable": sum(
+            not r["right"] and not f and r.get("verdict_unstable", False) for r, f in zip(rows, flagged)
+        ),
         "flagged": sum(flagged),
         "flagged_by_timing_alone": sum(timing),
     }
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
-    args = clean_record_arguments(__doc__.splitlines()[0], "timing_check.json").parse_args(argv)
+    parser = clean_record_arguments(__doc__.splitlines()[0], "timing_check.json")
+    parser.add_argument(
+        "--timing-tolerance", type=float, default=None, help="[s] phm-predict's timing_tolerance (default: its own)"
+    )
+    args = parser.parse_args(argv)
+    tolerance = tolerance_seconds(args.timing_tolerance, "--timing-tolerance")
     if args.vectors < 1:
         raise ValueError(f"--vectors must be >= 1, got {args.vectors}")
     torch.set_num_threads(1)
@@ -78,16 +90,24 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     contract = contract_of(model, args.pipeline)
     clean = clean_records(model, args.pipeline, args.vectors, args.cache)
     rate = float(model.n_full - 1) / float(clean[0].record.time[-1] - clean[0].record.time[0])
-    report: dict[str, Any] = {"pipeline": str(args.pipeline), "threshold": contract.timing_ratio, "cases": {}}
+    report: dict[str, Any] = {
+        "pipeline": str(args.pipeline),
+        "threshold": contract.timing_ratio,
+        "timing_tolerance_s": tolerance,
+        "cases": {},
+    }
     runs: dict[str, list[dict[str, Any]]] = {}
-    runs["clean"] = [read(model, contract, c, Record(c.record.time, None, None, c.record.current)) for c in clean]
+    runs["clean"] = [
+        read(model, contract, c, Record(c.record.time, None, None, c.record.current), tolerance) for c in clean
+    ]
     print(json.dumps({"clean": tally(runs["clean"]), "s": round(time.perf_counter() - t0)}), flush=True)
     cases = clean[NOISE_INDEX * args.vectors : (NOISE_INDEX + 1) * args.vectors]
     for delay in DELAYS_MS:
         lag = round(delay * 1e-3 * rate)
         key = f"current_only_{delay:+g}ms"
         runs[key] = [
-            read(model, contract, c, Record(c.record.time, None, None, delayed(c.record.current, lag))) for c in cases
+            read(model, contract, c, Record(c.record.time, None, None, delayed(c.record.current, lag)), tolerance)
+            for c in cases
         ]
         print(json.dumps({key: tally(runs[key]), "s": round(time.perf_counter() - t0)}), flush=True)
     for delay in FULL_DELAYS_MS:
@@ -99,6 +119,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 contract,
                 c,
                 Record(c.record.time, c.record.command, c.record.position, delayed(c.record.current, lag)),
+                tolerance,
             )
             for c in cases
         ]

@@ -5,7 +5,10 @@ Each record holds:
 * ``k_hat`` {fault name: value} and ``k_interval`` {fault name: [lower, upper]}: per-parameter intervals of
   the actual k, 90 % coverage each by default, calibrated by phm-evaluate at several noise levels and
   taken at the record's estimated noise (``null`` out of distribution or for a pipeline exported without
-  them);
+  them); for a current-only record, whose trigger nothing aligns, the union over the readings within
+  ``timing_tolerance`` (0.5 ms by default; 0: an exact trigger), with ``timing_tolerance`` {``tolerance_s``,
+  ``readings``, ``verdict_stable``, ``healthy_share``} (:mod:`phm_torch.online.timing_tolerance`; ``null``
+  otherwise) and a line in ``messages`` where the verdict changes within it;
 * ``health_score`` (> 0 healthy; the pipeline's verdict score, from the verdict classifier of FDI
   estimates when the bundle has one), ``healthy`` and ``p_faulty``, the probability that the actuator is faulty
   given that score, calibrated on held-out records by phm-evaluate (``null`` out of distribution);
@@ -84,6 +87,7 @@ from ..online.loaded import LoadedPipeline, UnservedRecord, load_pipeline
 from ..online.probe_calibration import ProbeCalibration, fit_probe
 from ..online.quality import held_out, quality_warnings
 from ..online.record_corrections import polarity_reversal
+from ..online.timing_tolerance import tolerance_seconds
 from . import common
 
 log = logging.getLogger(__name__)
@@ -243,6 +247,7 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     quality = held_out(metadata)
     for line in quality_warnings(quality):
         log.warning("%s: %s", model_path, line)
+    tolerance = tolerance_seconds(cfg.get("timing_tolerance"))
     bench_nominal, probe = _bench_nominal(cfg, model)
     if bench_nominal is None and model.can_rebase:
         # a bench differing from the training model by 0.5 % of the current can turn 14 % of the faults
@@ -269,7 +274,15 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         try:
             record = {
                 "file": str(path),
-                **diagnose(model, _record(m, current), contract, bench_nominal, bench, probe=probe),
+                **diagnose(
+                    model,
+                    _record(m, current),
+                    contract,
+                    bench_nominal,
+                    bench,
+                    probe=probe,
+                    timing_tolerance_s=tolerance,
+                ),
             }
         except UnservedRecord as e:  # a format that serves complete records only (onnx)
             raise UnservedRecord(f"measurements: {str(path)!r}: {e}") from None
@@ -306,6 +319,7 @@ def predict(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "actuator": provenance.describe(prov["actuator"]),
         "command": provenance.describe(prov["command"]),
         "noise_above_calibration": sum(bool(r["noise_above_calibration"]) for r in records),
+        "timing_tolerance_s": tolerance,
         "held_out_quality": quality,
     }, {"records": records}
 

@@ -28,6 +28,7 @@ from .reason_text import reason_lines
 from .record_corrections import prepare_record
 from .rest_offset_check import offset_limit, offset_std, probe_offset, rest_still
 from .timing_check import timing_scan
+from .timing_tolerance import TIMING_TOLERANCE_S, read_within_tolerance
 from .unexplained_check import checked, residual_floor
 
 # Relative noise always tolerated, whatever the calibration level: the noise estimate of a few noise-free
@@ -175,6 +176,7 @@ def diagnose(
     keep_current: bool = False,
     probe: ProbeCalibration | None = None,
     remove_lines: bool = True,
+    timing_tolerance_s: float = TIMING_TOLERANCE_S,
 ) -> dict[str, Any]:
     """The diagnosis of one record by the exported pipeline ``model``, as a JSON-able dict (with ``keep_current``,
     also ``"current"``: the (1, n_full) record the pipeline read, aligned and rebased, a tensor for the caller).
@@ -192,6 +194,8 @@ def diagnose(
             ``bench_nominal`` then is read through): the record's current is read through it too.
         remove_lines: False reads a record with its bench lines (:func:`remove_bench_lines`; to measure what their
             removal does).
+        timing_tolerance_s: a current-only record's trigger tolerance [s]: its k intervals hold every reading within
+            it (:mod:`.timing_tolerance`; 0: the trigger is exact).
     """
     model = as_loaded(model)
     measured = record.current
@@ -208,6 +212,7 @@ def diagnose(
     if lines:
         record = Record(record.time, record.command, record.position, current[0].to(record.current.dtype))
     step, offset, offset_error = remove_probe_offset(model, current, bench_nominal, step, contract.nominal)
+    read = current if offset is None else current - offset  # what the step read, before any rebase
     k_hat, score, rul, ood, resid, current = step.k_hat, step.score, step.rul, step.ood, step.residual, step.current
     noise, p_faulty = float(step.noise[0]), float(step.p_faulty[0])  # noise as measured, before the baseline
     bounds = None if step.k_lower is None else torch.stack([step.k_lower, step.k_upper], -1)[0]
@@ -251,6 +256,19 @@ def diagnose(
     if out and (scale := scale_message(current[0], contract.nominal)) is not None:
         checks.messages.append(scale)
     trusted_bounds = bounds is not None and not out and bool(torch.isfinite(bounds).all())
+    tolerance = None
+    if trusted_bounds and record.command is None and timing_tolerance_s > 0:
+        tolerance = read_within_tolerance(model, read[0], model.sample_rate, timing_tolerance_s, bench_nominal)
+    if tolerance is not None:
+        bounds = torch.stack(
+            [
+                torch.minimum(bounds[:, 0].double(), tolerance.lower),
+                torch.maximum(bounds[:, 1].double(), tolerance.upper),
+            ],
+            -1,
+        )
+        if (line := tolerance.message()) is not None:
+            checks.messages.append(line)
     r = rul[0].tolist()
     censored = out or any(math.isnan(v) for v in r)
     rul_hours, rul_censored = (None, False) if censored else censor(r, model.horizon_hours)
@@ -274,6 +292,7 @@ def diagnose(
         else {"nrmse": command.nrmse, "best_lag_s": command.best_lag_s, "gain": command.gain, "ok": command.ok},
         "tracking_check": checks.tracking,
         "trigger_offset_s": fixed.trigger_offset_s,
+        "timing_tolerance": None if tolerance is None else tolerance.as_dict(),
         "timing_check": None
         if timing is None
         else {

@@ -51,7 +51,18 @@ def inspect_record(
     bench's healthy record ``bench_nominal`` (n_full,) [A] where given (phm-predict's ``baseline``). With a
     ``near_nominal`` FDI, an in-distribution record near nominal also gets ``k_near_nominal`` and its interval
     ``k_near_nominal_interval`` (:mod:`.near_nominal`), which the tracker reads instead of k_hat."""
-    found = diagnose(model, record, contract, bench_nominal, bench, keep_current=near_nominal is not None, probe=probe)
+    # at the record's own timing: the filter's measurement model is the pipeline's on-time intervals (the batched
+    # inspect_currents reads them so too), and phm-track's life figures were measured so
+    found = diagnose(
+        model,
+        record,
+        contract,
+        bench_nominal,
+        bench,
+        keep_current=near_nominal is not None,
+        probe=probe,
+        timing_tolerance_s=0.0,
+    )
     current = found.pop("current", None)
     if near_nominal is None or found["out_of_distribution"] or found["noise"] is None:
         return found
