@@ -219,6 +219,28 @@ def test_end_to_end_with_noise_and_missing_samples(tmp_path):
     assert all(bool(torch.isfinite(p.grad).all()) for p in module.network.parameters())
 
 
+def test_a_shifting_augment_reads_each_record_moved_by_its_own_shift_within_the_bound():
+    records = torch.arange(5 * 100, dtype=torch.float64).reshape(5, 100)  # record r, sample i: 100 r + i
+    indices = torch.tensor([0, 10, 50, 99])
+    torch.manual_seed(0)
+    samples = SignalAugment(noise=0.0, max_missing=0, max_shift=3).select(records, indices)
+    shift = samples[:, 1] - records[:, 10]  # the one shift of each record
+    assert (shift.abs() <= 3).all() and shift.unique().numel() > 1
+    held = (indices.double() + shift.unsqueeze(1)).clamp(0, 99)  # the ends held, as a trigger offset leaves them
+    torch.testing.assert_close(samples, records[:, :1] + held)
+    with pytest.raises(ValueError, match="model.augment.max_shift must be an integer >= 0"):
+        SignalAugment(max_shift=-1)
+    # the module takes full records and selects their samples: shifted in training, on time otherwise
+    gappy = GappyPOD(torch.linalg.qr(torch.randn(100, 4))[0], torch.zeros(100), indices)
+    module = FDIModule(FDIMLP(4, 5), gappy=gappy, augment=SignalAugment(noise=0.0, max_missing=0, max_shift=3))
+    batch = (records.float(), torch.zeros(5, 8), torch.ones(5))
+    on_time, _, _ = module._inputs(batch, train=False)
+    torch.testing.assert_close(on_time, gappy(gappy.select(records.float()))[0])
+    torch.manual_seed(1)
+    moved, _, _ = module._inputs(batch, train=True)
+    assert not torch.allclose(moved, on_time)
+
+
 def test_module_configuration_errors():
     net = FDIMLP(10, 5)
     with pytest.raises(ValueError, match="model.optimizer must be one of"):

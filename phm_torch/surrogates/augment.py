@@ -95,20 +95,30 @@ def drop_samples(
 class SignalAugment(nn.Module):
     """Random corruption of training samples: each signal gets noise of relative std drawn uniformly in
     [0, ``noise``] (times its RMS current) and a number of missing samples drawn uniformly in
-    {0, ..., ``max_missing``}.
+    {0, ..., ``max_missing``}; with ``max_shift``, its samples are first taken from the full record moved by a
+    number of samples drawn uniformly in {-max_shift, ..., max_shift} (a trigger that is not exact).
 
     Args:
         noise: largest relative noise std (0.01 = 1 % of the signal's RMS current).
         max_missing: largest number of missing samples per signal.
+        max_shift: largest shift [samples of the store's grid] (20 at 20 kHz: 1 ms); 0: records on time.
     """
 
-    def __init__(self, noise: float = 0.01, max_missing: int = 3):
+    def __init__(self, noise: float = 0.01, max_missing: int = 3, max_shift: int = 0):
         super().__init__()
         if not noise >= 0:
             raise ValueError(f"model.augment.noise must be >= 0, got {noise!r}")
-        if isinstance(max_missing, bool) or not isinstance(max_missing, int) or max_missing < 0:
-            raise ValueError(f"model.augment.max_missing must be an integer >= 0, got {max_missing!r}")
-        self.noise, self.max_missing = float(noise), max_missing
+        for name, value in (("max_missing", max_missing), ("max_shift", max_shift)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"model.augment.{name} must be an integer >= 0, got {value!r}")
+        self.noise, self.max_missing, self.max_shift = float(noise), max_missing, max_shift
+
+    def select(self, records: torch.Tensor, indices: torch.Tensor) -> torch.Tensor:
+        """The samples (B, n_w) at ``indices`` (n_w,) of full records (B, n_e), each record read moved by its own
+        random shift within +- ``max_shift`` (``x[i + shift]``, the end values held)."""
+        b, n = records.shape
+        shift = torch.randint(-self.max_shift, self.max_shift + 1, (b, 1), device=records.device)
+        return torch.gather(records, 1, (indices.unsqueeze(0) + shift).clamp(0, n - 1))
 
     def corrupt(self, samples: torch.Tensor, scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Corrupted copy of samples (B, n_w) [A], and the relative noise std (B,) each row got (what a

@@ -108,6 +108,9 @@ class FDIModule(L.LightningModule):
         if self.gappy is None:
             return batch[0], batch[1], None
         samples, k, scale = batch
+        if samples.shape[-1] != self.gappy.n_points:  # full records (model.augment.max_shift): select the samples
+            shifting = train and self.augment is not None and self.augment.max_shift > 0
+            samples = self.augment.select(samples, self.gappy.indices) if shifting else self.gappy.select(samples)
         noise = torch.zeros_like(scale)
         if train and self.augment is not None:
             samples, noise = self.augment.corrupt(samples, scale)

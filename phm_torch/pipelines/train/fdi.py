@@ -88,7 +88,10 @@ def fit_fdi(
         if int(settings.trainer["devices"]) != 1 or int(settings.trainer["num_nodes"]) != 1:
             raise ValueError("model.optimizer=lm runs on one device: set trainer.devices=1 and trainer.num_nodes=1")
     if model.end_to_end:
-        tensors_tr = monitor_src = (red.samples_tr, train.k, rms(train.current))
+        augment = getattr(module, "augment", None)
+        # shifted training records need the whole record: the module selects their samples (lightning_fdi.py)
+        inputs = train.current if augment is not None and augment.max_shift > 0 else red.samples_tr
+        tensors_tr = monitor_src = (inputs, train.k, rms(train.current))
         tensors_va = (red.samples_va, data.val.k, rms(data.val.current))
     else:  # monitored on gappy coefficients, as val is, whatever fit.inputs
         tensors_tr, monitor_src = (red.x_tr, train.k), (red.alpha_tr, train.k)
