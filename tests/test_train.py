@@ -256,6 +256,8 @@ def test_missing_split_and_config_errors(compose, tmp_path):
             r"verdict_max_missed_fault_rate must be in \[0, 1\), got 1.0",
         ),
         ("calibration.verdict_max_missed_fault_rate=-0.1", "verdict_max_missed_fault_rate must be >= 0, got -0.1"),
+        ("model.fit.shifted_copies=-1", "model.fit.shifted_copies must be >= 0, got -1"),
+        ("model.fit.max_shift=0", "model.fit.shifted_copies=4 needs model.fit.max_shift >= 1"),
     ):
         with pytest.raises(ValueError, match=message):
             train_surrogates(compose("train", [f"data_dir={store}", *QUICK, override]))
@@ -291,6 +293,33 @@ def test_verdict_calibrated_on_the_fdis_monitor_rows(store, compose, tmp_path):
     before, after = report["held_out_missed_fault_rate"]
     assert after <= 0.05 + 1.0 / report["n_faulty"] and after <= before
     assert report["threshold"] == pytest.approx(float(objects["bundle"].verdict_classifier.threshold))
+
+
+def test_shifted_copies_read_each_record_moved_and_reduced_as_the_inputs_are():
+    from types import SimpleNamespace
+
+    from phm_torch.pipelines.train.fdi import shifted_copies
+    from phm_torch.surrogates import POD, GappyPOD
+
+    records = torch.linspace(0.0, 1.0, 200, dtype=torch.float32).pow(2).repeat(6, 1) * torch.arange(1.0, 7.0)[:, None]
+    pod = POD(3).fit(records + 0.01 * torch.randn(records.shape, generator=torch.Generator().manual_seed(0)))
+    gappy = GappyPOD(pod.modes_, pod.mean_, torch.arange(10, 190, 20))
+    k = torch.rand(6, 8, generator=torch.Generator().manual_seed(1))
+    alpha = gappy(gappy.select(records))[0]
+    fit = SimpleNamespace(shifted_copies=2, max_shift=3, inputs="gappy")
+    x, y = shifted_copies([alpha, k], records, SimpleNamespace(gappy=gappy, pod=pod), fit, seed=0)
+    assert x.shape == (18, 3) and torch.equal(y, k.repeat(3, 1)) and torch.equal(x[:6], alpha)  # the records first
+    assert not torch.allclose(x[6:12], alpha)  # then each read moved (a rising record reads another level)
+    moved = [gappy(records[:, gappy.indices + s])[0] for s in range(-3, 4)]  # every shift within the bound
+    assert all(any(torch.allclose(row, m[i], atol=1e-5) for m in moved) for i, row in enumerate(x[6:12]))
+    full = shifted_copies(
+        [pod(records), k],
+        records,
+        SimpleNamespace(gappy=gappy, pod=pod),
+        SimpleNamespace(shifted_copies=1, max_shift=3, inputs="full"),
+        seed=0,
+    )[0]
+    assert full.shape == (12, 3)
 
 
 def test_threads_setting(compose):

@@ -63,6 +63,29 @@ def monitor_rows(n: int, fraction: float, seed: int) -> tuple[torch.Tensor, torc
     return perm[n_monitor:].sort().values, perm[:n_monitor].sort().values
 
 
+def shifted_copies(
+    fitted: list[torch.Tensor], records: torch.Tensor, red: Reduction, fit: Any, seed: int
+) -> list[torch.Tensor]:
+    """The fitting inputs and targets ``fitted`` [(B, n_in), (B, 8)] with ``fit.shifted_copies`` more copies of the
+    records (B, n_e) behind them, each read moved by its own random shift within +- ``fit.max_shift`` samples (the
+    end values held) and reduced as the inputs are (gappy coefficients of the selected samples, or the full
+    projection): a network fitted on them reads a trigger that far off as on time (docs/surrogates.md)."""
+    gen = torch.Generator().manual_seed(seed + 0x5A1F)
+    n = records.shape[1]
+    inputs, targets = [fitted[0]], [fitted[1]]
+    with torch.no_grad():
+        for _ in range(fit.shifted_copies):
+            shift = torch.randint(-fit.max_shift, fit.max_shift + 1, (records.shape[0], 1), generator=gen)
+            if fit.inputs == "gappy":
+                columns = (red.gappy.indices.unsqueeze(0) + shift).clamp(0, n - 1)
+                inputs.append(red.gappy(torch.gather(records, 1, columns))[0].to(fitted[0].dtype))
+            else:
+                columns = (torch.arange(n).unsqueeze(0) + shift).clamp(0, n - 1)
+                inputs.append(red.pod(torch.gather(records, 1, columns)).to(fitted[0].dtype))
+            targets.append(fitted[1])
+    return [torch.cat(inputs), torch.cat(targets)]
+
+
 def fit_fdi(
     settings: TrainSettings, data: StoreData, red: Reduction, loggers: list[Any], timing: dict[str, float]
 ) -> FDIFit:
@@ -96,7 +119,10 @@ def fit_fdi(
     else:  # monitored on gappy coefficients, as val is, whatever fit.inputs
         tensors_tr, monitor_src = (red.x_tr, train.k), (red.alpha_tr, train.k)
         tensors_va = (red.alpha_va, data.val.k)
-    ds_tr = TensorDataset(*(t[fit_rows] for t in tensors_tr))
+    fitted = [t[fit_rows] for t in tensors_tr]
+    if not model.end_to_end and fit.shifted_copies:
+        fitted = shifted_copies(fitted, train.current[fit_rows], red, fit, seed)
+    ds_tr = TensorDataset(*fitted)
     ds_va = TensorDataset(*(tensors_va if held_out is None else [t[held_out] for t in monitor_src]))
     gen = torch.Generator().manual_seed(seed)
     batch = fit.batch_size or len(ds_tr)

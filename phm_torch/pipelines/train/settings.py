@@ -8,6 +8,7 @@ value); :class:`FDIModel` is the ``_target_`` of the ``model`` node.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,16 +35,25 @@ class FitSettings:
         max_epochs: epochs at most (>= 1).  patience: epochs without a better monitored err_k before stopping.
         batch_size: training signals per step; ``None``: the whole set (LM needs it).
         inputs: ``gappy`` (coefficients from the selected samples) or ``full`` (the full projection).
+        shifted_copies: how many more copies of the fitting records the network is fitted on, each record read
+            moved by its own random shift within +- ``max_shift`` samples of the store's grid (a trigger that is not
+            exact; the end-to-end model's ``model.augment.max_shift`` draws one per batch instead). 0: none.
     """
 
     max_epochs: int
     patience: int
     batch_size: int | None
     inputs: str
+    shifted_copies: int = 0
+    max_shift: int = 0
 
     def __post_init__(self) -> None:
         _set(self, "max_epochs", integer(self.max_epochs, "model.fit.max_epochs", 1))
         _set(self, "patience", integer(self.patience, "model.fit.patience", 1))
+        _set(self, "shifted_copies", integer(self.shifted_copies, "model.fit.shifted_copies", 0))
+        _set(self, "max_shift", integer(self.max_shift, "model.fit.max_shift", 0))
+        if self.shifted_copies and not self.max_shift:
+            raise ValueError(f"model.fit.shifted_copies={self.shifted_copies} needs model.fit.max_shift >= 1")
         if self.batch_size is not None:
             _set(self, "batch_size", integer(self.batch_size, "model.fit.batch_size", 1))
         if self.inputs not in INPUTS:
@@ -69,10 +79,13 @@ class FDIModel:
         if not isinstance(fit, FitSettings):
             if not isinstance(fit, Mapping):
                 raise ValueError(f"model.fit must be a mapping, got {fit!r}")
-            unknown = sorted(set(fit) - {"max_epochs", "patience", "batch_size", "inputs"})
+            known = {f.name for f in dataclasses.fields(FitSettings)}
+            unknown = sorted(set(fit) - known)
             if unknown:
                 raise ValueError(f"model.fit: unknown setting(s) {unknown}")
-            fit = FitSettings(fit.get("max_epochs"), fit.get("patience"), fit.get("batch_size"), fit.get("inputs"))
+            required = ("max_epochs", "patience", "batch_size", "inputs")  # None where missing: named by the check
+            optional = {name: fit[name] for name in known - set(required) if name in fit}
+            fit = FitSettings(*(fit.get(name) for name in required), **optional)
         network = dict(network or {})
         for key in NETWORK_SIZE:
             if key in network:
@@ -80,6 +93,11 @@ class FDIModel:
         for key, home in NETWORK_NOISE.items():
             if key in network:
                 raise ValueError(f"model.network.{key}: it is {home} (one home per value)")
+        if end_to_end and fit.shifted_copies:
+            raise ValueError(
+                "model.fit.shifted_copies is for a network fitted on precomputed inputs; end to end, "
+                "model.augment.max_shift reads each batch's records moved"
+            )
         augment = module.get("augment")
         self.max_noise = float(augment.noise) if augment is not None else 0.0  # SignalAugment checks it
         if network.get("noise_input") and (not end_to_end or self.max_noise <= 0):
