@@ -322,6 +322,17 @@ def test_shifted_copies_read_each_record_moved_and_reduced_as_the_inputs_are():
     assert full.shape == (12, 3)
 
 
+def test_shifted_copies_are_for_precomputed_inputs_only():
+    from phm_torch.pipelines.train import FDIModel
+
+    fit = {"max_epochs": 5, "patience": 2, "batch_size": 8, "inputs": "gappy", "shifted_copies": 2, "max_shift": 3}
+    assert FDIModel(fit, None, end_to_end=False).fit.shifted_copies == 2
+    with pytest.raises(ValueError, match="model.fit.shifted_copies is for a network fitted on precomputed inputs"):
+        FDIModel(fit, None, end_to_end=True)
+    with pytest.raises(ValueError, match=r"model.fit: unknown setting\(s\) \['shift'\]"):
+        FDIModel({**fit, "shift": 1}, None, end_to_end=False)
+
+
 def test_threads_setting(compose):
     from phm_torch.apps import common
 
