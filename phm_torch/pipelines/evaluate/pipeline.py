@@ -278,7 +278,7 @@ def _calibrate(settings: EvaluateSettings, pipeline: OnlinePipeline, inp: Simple
         unexplained=calibrate_ratio(pipeline, near.signals, near.k_hat),
         spike_step=calibrate_spike_step(pipeline, near.signals, near.k_hat),
         # after the consistency thresholds: the scan reads their statistic (in-distribution held-out records, the
-        # first TIMING_RECORDS: ~0.1 s each)
+        # first TIMING_RECORDS: ~20 ms each on the reference, coarse to fine)
         timing=calibrate_timing_ratio(pipeline, band_signals[~band_ood][:TIMING_RECORDS], pipeline.sample_rate),
         near_rows={"held_out": near.held_out, "training": near.training},
         unidentified=unidentified,
