@@ -92,6 +92,13 @@ def drop_samples(
     return samples.masked_fill(rank < count.unsqueeze(-1), float("nan"))
 
 
+def shifted_samples(records: torch.Tensor, indices: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+    """The samples (B, n_w) at ``indices`` (n_w,) of records (B, n_e), each record read moved by its own ``shift``
+    (B, 1) [samples]: ``x[i + shift]``, the end values held (a trigger that is not exact, as a training record)."""
+    n = records.shape[1]
+    return torch.gather(records, 1, (indices.unsqueeze(0) + shift).clamp(0, n - 1))
+
+
 class SignalAugment(nn.Module):
     """Random corruption of training samples: each signal gets noise of relative std drawn uniformly in
     [0, ``noise``] (times its RMS current) and a number of missing samples drawn uniformly in
@@ -115,10 +122,9 @@ class SignalAugment(nn.Module):
 
     def select(self, records: torch.Tensor, indices: torch.Tensor) -> torch.Tensor:
         """The samples (B, n_w) at ``indices`` (n_w,) of full records (B, n_e), each record read moved by its own
-        random shift within +- ``max_shift`` (``x[i + shift]``, the end values held)."""
-        b, n = records.shape
-        shift = torch.randint(-self.max_shift, self.max_shift + 1, (b, 1), device=records.device)
-        return torch.gather(records, 1, (indices.unsqueeze(0) + shift).clamp(0, n - 1))
+        random shift within +- ``max_shift`` (:func:`shifted_samples`)."""
+        shift = torch.randint(-self.max_shift, self.max_shift + 1, (records.shape[0], 1), device=records.device)
+        return shifted_samples(records, indices, shift)
 
     def corrupt(self, samples: torch.Tensor, scale: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Corrupted copy of samples (B, n_w) [A], and the relative noise std (B,) each row got (what a

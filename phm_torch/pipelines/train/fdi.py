@@ -13,6 +13,7 @@ import torch
 from torch.utils.data import DataLoader, TensorDataset
 
 from ...surrogates import build_fdi_network, rms
+from ...surrogates.augment import shifted_samples
 from ...surrogates.lightning_fdi import FDIModule, KeepBest
 from .data import Reduction, StoreData
 from .settings import TrainSettings
@@ -71,17 +72,15 @@ def shifted_copies(
     end values held) and reduced as the inputs are (gappy coefficients of the selected samples, or the full
     projection): a network fitted on them reads a trigger that far off as on time (docs/surrogates.md)."""
     gen = torch.Generator().manual_seed(seed + 0x5A1F)
-    n = records.shape[1]
     inputs, targets = [fitted[0]], [fitted[1]]
     with torch.no_grad():
         for _ in range(fit.shifted_copies):
             shift = torch.randint(-fit.max_shift, fit.max_shift + 1, (records.shape[0], 1), generator=gen)
             if fit.inputs == "gappy":
-                columns = (red.gappy.indices.unsqueeze(0) + shift).clamp(0, n - 1)
-                inputs.append(red.gappy(torch.gather(records, 1, columns))[0].to(fitted[0].dtype))
+                reduced = red.gappy(shifted_samples(records, red.gappy.indices, shift))[0]
             else:
-                columns = (torch.arange(n).unsqueeze(0) + shift).clamp(0, n - 1)
-                inputs.append(red.pod(torch.gather(records, 1, columns)).to(fitted[0].dtype))
+                reduced = red.pod(shifted_samples(records, torch.arange(records.shape[1]), shift))
+            inputs.append(reduced.to(fitted[0].dtype))
             targets.append(fitted[1])
     return [torch.cat(inputs), torch.cat(targets)]
 
