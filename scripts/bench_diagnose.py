@@ -4,8 +4,9 @@ passes through, the pipeline's step and the ``timing`` check's scan on their own
     python scripts/bench_diagnose.py [--pipeline pretrained/online_surrogates_best.pt] [--repeats 5]
         [--threads 1] [--out scripts/bench_diagnose.json]
 
-The records are HF simulations of the pipeline's own actuator and command (from its provenance): nominal, dry
-friction x1.6, 40 % of phase A shorted, and backlash x20 with a gain drift, each at 1 % noise, current-only (the
+The records are the corruption suite's (``suite_records``: HF simulations of the pipeline's own actuator and command,
+from its provenance): nominal, dry friction x1.6, 40 % of phase A shorted, and backlash x20 with a gain drift, each
+at 1 % noise, current-only (the
 paper's input: the timing check runs) and with their command and position (the command and tracking checks run,
 a trigger offset is looked for). Each figure is the median over ``--repeats`` passes of every record (CSV reading
 excluded: scripts/bench_track.py measures it).
@@ -25,31 +26,11 @@ from typing import Any
 import torch
 
 from phm_torch.io.atomic import write_json
-from phm_torch.online.corruption_suite import CACHE, MOVES, PIPELINE, _simulate, contract_of, pipeline_conditions
+from phm_torch.online.corruption_suite import CACHE, PIPELINE, contract_of, suite_records
 from phm_torch.online.corruptions import Record
 from phm_torch.online.diagnosis import diagnose
 from phm_torch.online.loaded import load_pipeline
 from phm_torch.online.timing_check import scan_shifts, timing_scan
-
-NOISE = 0.01  # relative white noise of the records
-
-
-def records(path: Path, cache: Path) -> list[Record]:
-    """The benchmark's full records (time, command, position, current) of the pipeline's actuator, with noise."""
-    params, _, command = pipeline_conditions(path)
-    k = torch.tensor([params.nominal_faults] * len(MOVES), dtype=torch.float64)
-    for row, move in enumerate(MOVES):
-        for index, value in move.items():
-            k[row, index] = value
-    sim = _simulate(params, k, command, cache, "clean")
-    g = torch.Generator().manual_seed(0)
-    out = []
-    for i in range(k.shape[0]):
-        current = sim["current"][i]
-        rms = current.pow(2).mean().sqrt()
-        noisy = current + NOISE * rms * torch.randn(current.shape, generator=g, dtype=current.dtype)
-        out.append(Record(sim["time"], sim["command"][i], sim["position"][i], noisy))
-    return out
 
 
 def pass_ms(fn: Any, items: list[Any], repeats: int) -> dict[str, float]:
@@ -80,8 +61,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     torch.set_num_threads(args.threads)
     load_start = os.getloadavg()
     model = load_pipeline(str(args.pipeline))
-    contract = contract_of(torch.jit.load(str(args.pipeline)), args.pipeline)
-    full = records(args.pipeline, args.cache)
+    scripted = torch.jit.load(str(args.pipeline))
+    contract = contract_of(scripted, args.pipeline)
+    full = [case.record for case in suite_records(scripted, args.pipeline, args.cache, simulated=False)[0]]
     current_only = [Record(r.time, None, None, r.current) for r in full]
     untimed = dataclasses.replace(contract, timing_ratio=None)
     currents = [r.current.to(model.dtype).reshape(1, -1) for r in full]
@@ -91,7 +73,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             "pipeline": str(args.pipeline),
             "records": len(full),
             "samples": int(model.n_full),
-            "timing_shifts_read": len(scan_shifts(int(model.n_full))),
+            "timing_scan_grid": len(scan_shifts(int(model.n_full))),  # the shifts it may read (coarse to fine: ~71)
             "threads": args.threads,
             "repeats": args.repeats,
             "diagnose_current_only": pass_ms(lambda r: diagnose(model, r, contract), current_only, args.repeats),
