@@ -1,7 +1,7 @@
 """What the ``timing`` check (``phm_torch.online.timing_check``) does on val-like records of a pipeline's actuator, on
 phm-predict's path: clean records (0-3 % noise) for its false rejections, and the current delayed or advanced by a
 few milliseconds (a current-only record's trigger offset; with its command and position, the current channel
-delayed alone) for what it catches. Writes JSON: per case the right / wrong unflagged and flagged counts, the
+delayed alone) for what it catches; the 1 % records with their command and position on time ("clean_full"). Writes JSON: per case the right / wrong unflagged and flagged counts, the
 timing check's share, and the ratio's distribution on the clean records for choosing its threshold.
 
     python scripts/timing_check_eval.py [--pipeline pretrained/online_surrogates_best.pt] [--vectors 500]
@@ -42,6 +42,7 @@ def read(model: Any, contract: Any, case: Case, record: Record, tolerance: float
         out = {**out, "k_interval": {n: [a, b] for n, a, b in zip(out["k_hat"], lower.tolist(), upper.tolist())}}
     judged = judgement(out, case.k, case.healthy)
     timing = out["timing_check"] or {}
+    bounds = [b for name, b in (out["k_interval"] or {}).items() if name != "eccentricity_phase"]
     return {
         "right": judged["right"],
         "flagged": judged["flagged"],
@@ -49,6 +50,8 @@ def read(model: Any, contract: Any, case: Case, record: Record, tolerance: float
         "shift_s": timing.get("best_shift_s"),
         "ratio": timing.get("ratio"),
         "verdict_unstable": not (out["timing_tolerance"] or {}).get("verdict_stable", True),
+        # the mean width of the damages' intervals (the tolerance's cost)
+        "width": float(np.mean([b - a for a, b in bounds])) if bounds else None,
     }
 
 
@@ -72,7 +75,13 @@ def tally(rows: list[dict[str, Any]], threshold: float | None = None, min_shift_
         ),
         "flagged": sum(flagged),
         "flagged_by_timing_alone": sum(timing),
+        "median_width_unflagged": _median([r.get("width") for r, f in zip(rows, flagged) if not f]),
     }
+
+
+def _median(values: list[float | None]) -> float | None:
+    kept = [v for v in values if v is not None]
+    return float(np.median(kept)) if kept else None
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
@@ -102,6 +111,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ]
     print(json.dumps({"clean": tally(runs["clean"]), "s": round(time.perf_counter() - t0)}), flush=True)
     cases = clean[NOISE_INDEX * args.vectors : (NOISE_INDEX + 1) * args.vectors]
+    # the same records with their command and position: the tolerance's cost on full records on time
+    runs["clean_full"] = [read(model, contract, c, c.record, tolerance) for c in cases]
+    print(json.dumps({"clean_full": tally(runs["clean_full"]), "s": round(time.perf_counter() - t0)}), flush=True)
     for delay in DELAYS_MS:
         lag = round(delay * 1e-3 * rate)
         key = f"current_only_{delay:+g}ms"

@@ -1,6 +1,6 @@
-"""A current-only record's trigger tolerance (phm_torch/online/timing_tolerance.py): its k intervals hold every reading
-within it, so a record a fraction of a millisecond late keeps the truth inside them; a record with its command column
-(aligned on it) and a tolerance of 0 read as before; a bad tolerance is refused by name."""
+"""The current's timing tolerance (phm_torch/online/timing_tolerance.py): its k intervals hold every reading within it,
+so a current-only record a fraction of a millisecond late keeps the truth inside them, and so does a record whose
+current channel alone lags its command column; a tolerance of 0 reads as before; a bad tolerance is refused by name."""
 
 from __future__ import annotations
 
@@ -73,11 +73,11 @@ def test_a_record_half_a_millisecond_late_keeps_the_truth_inside_its_widened_int
     # the reference's nominal record lies near its health boundary (gain drift): its verdict changes within 1 ms,
     # and the record says so
     assert not tolerant["timing_tolerance"]["verdict_stable"]
-    assert any("verdict changes within the record's trigger tolerance" in m for m in tolerant["messages"])
+    assert any("verdict changes within the record's timing tolerance" in m for m in tolerant["messages"])
 
 
 @pytest.mark.torchscript
-def test_a_record_with_its_command_column_reads_at_its_aligned_timing(pretrained):
+def test_a_current_channel_lagging_its_command_column_is_read_within_the_tolerance(pretrained):
     from phm_torch.command import Chirp
     from phm_torch.online.diagnosis import contract_for, diagnose
 
@@ -85,5 +85,39 @@ def test_a_record_with_its_command_column_reads_at_its_aligned_timing(pretrained
     command = Chirp()
     contract = contract_for(model, model.metadata, command)
     t = torch.arange(noisy.numel(), dtype=torch.float64) / RATE
-    full = diagnose(model, Record(t, command(t), None, noisy), contract)
-    assert full["timing_tolerance"] is None
+    truth = torch.tensor(model.nominal.tolist(), dtype=torch.float64)[[FAULT_NAMES.index(n) for n in DAMAGE]]
+    lagging = Record(t, command(t), None, delayed(noisy, 10))  # the command on time, the current alone 0.5 ms late
+    exact = diagnose(model, lagging, contract, timing_tolerance_s=0.0)
+    tolerant = diagnose(model, lagging, contract)
+    assert exact["trigger_offset_s"] in (None, 0.0)  # the command column is on time: nothing to align
+    assert exact["timing_tolerance"] is None and not exact["out_of_distribution"]
+    inside = lambda b: bool(((truth >= b[:, 0] - 1e-9) & (truth <= b[:, 1] + 1e-9)).all())
+    assert not inside(_bounds(exact)) and inside(_bounds(tolerant))
+    assert tolerant["timing_tolerance"]["readings"] == 21
+    assert tolerant["k_hat"] == exact["k_hat"]
+    assert any("current channel's own delay" in m for m in tolerant["messages"])
+    assert not any("current-only record's trigger" in m for m in tolerant["messages"])
+
+
+@pytest.mark.torchscript
+def test_a_best_shift_beyond_the_tolerance_below_refusal_widens_the_intervals_to_its_reading(pretrained):
+    from phm_torch.online.diagnosis import contract_for, diagnose
+
+    model, _, noisy = pretrained
+    t = torch.arange(noisy.numel(), dtype=torch.float64) / RATE
+    truth = torch.tensor(model.nominal.tolist(), dtype=torch.float64)[[FAULT_NAMES.index(n) for n in DAMAGE]]
+    late = Record(t, None, None, delayed(noisy, 30))  # 1.5 ms late: beyond the tolerance
+    # a pipeline whose clean records reach a ratio of 2 (its threshold), and 1.3 at its widening quantile
+    loose = {key: v for key, v in model.metadata.items() if key != "timing_ratio_widen"} | {"timing_ratio_max": 2.0}
+    plain = diagnose(model, late, contract_for(model, loose, None))
+    widened = diagnose(model, late, contract_for(model, {**loose, "timing_ratio_widen": 1.3}, None))
+    assert not plain["out_of_distribution"] and not widened["out_of_distribution"]
+    scan = widened["timing_check"]
+    assert 1.3 <= scan["ratio"] < 2.0 and scan["best_shift_s"] > TIMING_TOLERANCE_S
+    assert plain["timing_tolerance"]["widened_to_s"] is None and plain["timing_tolerance"]["readings"] == 21
+    assert widened["timing_tolerance"]["widened_to_s"] == pytest.approx(scan["best_shift_s"])
+    assert widened["timing_tolerance"]["readings"] > 21
+    inside = lambda b: bool(((truth >= b[:, 0] - 1e-9) & (truth <= b[:, 1] + 1e-9)).all())
+    assert not inside(_bounds(plain)) and inside(_bounds(widened))  # the on-time reading is the best shift's
+    assert widened["k_hat"] == plain["k_hat"]  # the answer stays the reading as it came
+    assert any("explained better read as if 1.50 ms late" in m for m in widened["messages"])

@@ -5,10 +5,12 @@ Each record holds:
 * ``k_hat`` {fault name: value} and ``k_interval`` {fault name: [lower, upper]}: per-parameter intervals of
   the actual k, 90 % coverage each by default, calibrated by phm-evaluate at several noise levels and
   taken at the record's estimated noise (``null`` out of distribution or for a pipeline exported without
-  them); for a current-only record, whose trigger nothing aligns, the union over the readings within
-  ``timing_tolerance`` (0.5 ms by default; 0: an exact trigger), with ``timing_tolerance`` {``tolerance_s``,
-  ``readings``, ``verdict_stable``, ``healthy_share``} (:mod:`phm_torch.online.timing_tolerance`; ``null``
-  otherwise) and a line in ``messages`` where the verdict changes within it;
+  them), the union over the readings within ``timing_tolerance`` (1 ms by default; 0: an exact timing) of the
+  current's timing (a current-only record's trigger, which nothing aligns; with the command column, the current
+  channel's own lag) and, where the timing scan finds the record explained markedly better further off (below
+  refusal), around that shift too; with ``timing_tolerance`` {``tolerance_s``, ``readings``, ``verdict_stable``,
+  ``healthy_share``, ``widened_to_s``} (:mod:`phm_torch.online.timing_tolerance`; ``null`` otherwise) and a line
+  in ``messages`` where the verdict changes within them or the intervals were widened beyond the tolerance;
 * ``health_score`` (> 0 healthy; the pipeline's verdict score, from the verdict classifier of FDI
   estimates when the bundle has one), ``healthy`` and ``p_faulty``, the probability that the actuator is faulty
   given that score, calibrated on held-out records by phm-evaluate (``null`` out of distribution);

@@ -194,8 +194,9 @@ def diagnose(
             ``bench_nominal`` then is read through): the record's current is read through it too.
         remove_lines: False reads a record with its bench lines (:func:`remove_bench_lines`; to measure what their
             removal does).
-        timing_tolerance_s: a current-only record's trigger tolerance [s]: its k intervals hold every reading within
-            it (:mod:`.timing_tolerance`; 0: the trigger is exact).
+        timing_tolerance_s: the current's timing tolerance [s] (a current-only record's trigger; with the command
+            column, the current channel's own lag): its k intervals hold every reading within it
+            (:mod:`.timing_tolerance`; 0: the timing is exact).
     """
     model = as_loaded(model)
     measured = record.current
@@ -257,8 +258,18 @@ def diagnose(
         checks.messages.append(scale)
     trusted_bounds = bounds is not None and not out and bool(torch.isfinite(bounds).all())
     tolerance = None
-    if trusted_bounds and record.command is None and timing_tolerance_s > 0:
-        tolerance = read_within_tolerance(model, read[0], model.sample_rate, timing_tolerance_s, bench_nominal)
+    if trusted_bounds and timing_tolerance_s > 0:
+        # beyond the tolerance, the scan's best shift where it explains the record markedly better (below refusal)
+        widen = timing is not None and timing.widens(model.sample_rate, contract.timing_widen, timing_tolerance_s)
+        tolerance = read_within_tolerance(
+            model,
+            read[0],
+            model.sample_rate,
+            timing_tolerance_s,
+            bench_nominal,
+            record.command is None,
+            timing.shift if widen else None,
+        )
     if tolerance is not None:
         bounds = torch.stack(
             [
@@ -267,8 +278,9 @@ def diagnose(
             ],
             -1,
         )
-        if (line := tolerance.message()) is not None:
-            checks.messages.append(line)
+        for line in (tolerance.widened_message(), tolerance.message()):
+            if line is not None:
+                checks.messages.append(line)
     r = rul[0].tolist()
     censored = out or any(math.isnan(v) for v in r)
     rul_hours, rul_censored = (None, False) if censored else censor(r, model.horizon_hours)

@@ -1,4 +1,4 @@
-"""A current-only record's trigger tolerance: its k intervals widened to every reading within it.
+"""The current's timing tolerance: a record's k intervals widened to every reading within it.
 
 The FDI reads the current's timing to the sample, and its k intervals are calibrated on records exactly on time. On
 the pretrained pipeline (300 held-out records of the seed-77 store, 1 % noise) a current moved by 4 samples (0.2 ms)
@@ -19,8 +19,14 @@ inside its interval on 98 % of them on time and up to 1 ms off (median width 0.0
 and the verdict changes within the tolerance on 60 % of these near-boundary records (51 % at +-0.5 ms). On 500
 val-like vectors on phm-predict's path (``scripts/timing_check_eval.py``, docs/trust/timing_check_pretrained.json):
 wrong and unflagged, exact trigger -> 1 ms tolerance, 420 -> 188 of 4,000 clean records (119 of them with the verdict
-said to change), 465 -> 108 of 500 records 0.5 ms late (101), 450 -> 116 at 1 ms late (92). A bench whose trigger is
-exact sets the tolerance to 0.
+said to change), 465 -> 108 of 500 records 0.5 ms late (101), 450 -> 116 at 1 ms late (92).
+
+A record with its command column is aligned on it, but its current channel may still lag the command and position
+channels by its own delay (a probe's or anti-alias filter's group delay, a second logger): on the pretrained pipeline
+465 of 500 val-like records whose current alone lagged by 0.5 ms were answered wrong, unflagged, exactly as the
+current-only records 0.5 ms late. So the same tolerance holds for that channel's lag (since 2026-11-30): the aligned
+current is read at every shift within it. A bench whose trigger and channels are known to be aligned to the sample
+sets the tolerance to 0.
 """
 
 from __future__ import annotations
@@ -32,7 +38,7 @@ from typing import Any
 import torch
 
 from .command_check import shifted
-from .timing_check import scan_shifts
+from .timing_check import around, scan_shifts
 
 TIMING_TOLERANCE_S = 1e-3  # [s] phm-predict's default (conf/predict.yaml `timing_tolerance: null`)
 
@@ -64,6 +70,10 @@ class ToleranceReading:
         lower, upper: (8,) float64 the union's bounds.
         verdict_stable: whether every reading gave the same verdict (healthy / faulty).
         healthy_share: the share of the readings that gave "healthy".
+        current_only: whether the record came without its command column (its trigger is what the tolerance is for;
+            with one, the current channel's own lag).
+        widened_to_s: the timing scan's best shift [s] beyond the tolerance whose readings the union holds too
+            (:meth:`~.timing_check.TimingScan.widen_shifts`), None: the tolerance's readings alone.
     """
 
     tolerance_s: float
@@ -72,6 +82,8 @@ class ToleranceReading:
     upper: torch.Tensor
     verdict_stable: bool
     healthy_share: float
+    current_only: bool = True
+    widened_to_s: float | None = None
 
     def as_dict(self) -> dict[str, Any]:
         """The record's JSON field ``timing_tolerance`` (the bounds are in ``k_interval``)."""
@@ -80,16 +92,39 @@ class ToleranceReading:
             "readings": self.shifts,
             "verdict_stable": self.verdict_stable,
             "healthy_share": self.healthy_share,
+            "widened_to_s": self.widened_to_s,
         }
+
+    def widened_message(self) -> str | None:
+        """A line for the user where the intervals hold a reading beyond the tolerance, else None."""
+        if self.widened_to_s is None:
+            return None
+        lag = 1000.0 * self.widened_to_s
+        way = f"{lag:.2f} ms late" if lag > 0 else f"{-lag:.2f} ms early"
+        return (
+            f"the current is explained better read as if {way} than the timing tolerance of "
+            f"+-{1000.0 * self.tolerance_s:.2f} ms allows (not far enough to refuse the record): its k intervals hold "
+            "that reading too"
+        )
 
     def message(self) -> str | None:
         """A line for the user where the verdict changes within the tolerance, else None."""
         if self.verdict_stable:
             return None
-        return (
-            f"the verdict changes within the record's trigger tolerance of +-{1000.0 * self.tolerance_s:.2f} ms "
-            f"({100.0 * self.healthy_share:.0f} % of the readings healthy): a current-only record's timing is not "
-            "known to the sample; record the command column with the current (the trigger is then aligned on it)"
+        within = "the record's timing tolerance" if self.widened_to_s is None else "its timing tolerance and best shift"
+        head = (
+            f"the verdict changes within {within} of +-{1000.0 * self.tolerance_s:.2f} ms "
+            f"({100.0 * self.healthy_share:.0f} % of the readings healthy): "
+        )
+        if self.current_only:
+            return head + (
+                "a current-only record's trigger is not known to the sample; record the command column with the "
+                "current (the trigger is then aligned on it)"
+            )
+        return head + (
+            "the current channel's own delay against the command column (a probe's or filter's group delay, another "
+            "logger) is not known to the sample; where it is measured, remove it and set timing_tolerance to what is "
+            "left"
         )
 
 
@@ -100,11 +135,16 @@ def read_within_tolerance(
     sample_rate: float,
     tolerance_s: float,
     bench_nominal: torch.Tensor | None = None,
+    current_only: bool = True,
+    best_shift: int | None = None,
 ) -> ToleranceReading | None:
     """The record ``current`` (n_full,) [A] as the pipeline's step reads it (``bench_nominal``: the bench's healthy
-    record it is rebased with) read at every shift within +- ``tolerance_s``; None where the tolerance takes no shift
-    but 0 or the pipeline reports no k intervals."""
-    shifts = tolerance_shifts(current.numel(), sample_rate, tolerance_s)
+    record it is rebased with; ``current_only``: the record came without its command column) read at every shift
+    within +- ``tolerance_s`` and around ``best_shift`` [samples] (the timing scan's, where it widens the intervals:
+    :meth:`~.timing_check.TimingScan.widens`); None where that takes no shift but 0 or the pipeline reports no k
+    intervals."""
+    within = tolerance_shifts(current.numel(), sample_rate, tolerance_s)
+    shifts = sorted(set(within) | set([] if best_shift is None else around(current.numel(), best_shift)))
     if len(shifts) < 2:
         return None
     x = current.double().flatten()
@@ -116,4 +156,5 @@ def read_within_tolerance(
     upper = torch.nan_to_num(step.k_upper.double(), nan=-math.inf).amax(0)
     healthy = (step.score > 0).double()
     share = float(healthy.mean())
-    return ToleranceReading(tolerance_s, len(shifts), lower, upper, share in (0.0, 1.0), share)
+    best = None if best_shift is None else best_shift / sample_rate
+    return ToleranceReading(tolerance_s, len(shifts), lower, upper, share in (0.0, 1.0), share, current_only, best)
