@@ -1,6 +1,5 @@
-"""Give an exported pipeline that lacks them the ``timing`` check's thresholds phm-evaluate calibrates
-(``timing_ratio_max`` and ``timing_ratio_widen``, :mod:`phm_torch.online.timing_check`), from an independent store of
-its actuator and command.
+"""Give an exported pipeline that lacks it the ``timing`` check's threshold phm-evaluate calibrates
+(``timing_ratio_max``, :mod:`phm_torch.online.timing_check`), from an independent store of its actuator and command.
 
 The check reads a record again moved by every second sample and refuses it where the pipeline's own answer explains it
 far better moved; how much better a clean record can be explained is the pipeline's own, so the check runs only for a
@@ -30,7 +29,7 @@ from phm_torch.data import DatasetStore
 from phm_torch.drive_range import within_drive_range
 from phm_torch.online.export import read_metadata
 from phm_torch.online.from_torchscript import rewrite_arguments, rewrite_with_report
-from phm_torch.online.timing_check import TIMING_QUANTILE, WIDEN_QUANTILE, calibrate_timing_ratios
+from phm_torch.online.timing_check import TIMING_QUANTILE, calibrate_timing_ratio
 from phm_torch.pipelines.evaluate.calibration import noisy
 from phm_torch.pipelines.evaluate.pipeline import TIMING_RECORDS
 
@@ -62,13 +61,10 @@ def measure(pipeline_path: Path, data_dir: Path, split: str, seed: int, records:
     kept = signals[~ood][:records]
     if kept.shape[0] < 50:
         raise ValueError(f"split {split!r} of {data_dir}: {kept.shape[0]} in-distribution records, at least 50 needed")
-    thresholds = calibrate_timing_ratios(module, kept, float(module.sample_rate))
-    if thresholds is None:
-        raise ValueError(f"{pipeline_path}: its records of {data_dir} could not be scanned (their length?)")
+    threshold = calibrate_timing_ratio(module, kept, float(module.sample_rate))
     return {
-        **thresholds,
+        "timing_ratio_max": threshold,
         "quantile": TIMING_QUANTILE,
-        "widen_quantile": WIDEN_QUANTILE,
         "records": int(kept.shape[0]),
         "store": str(data_dir),
         "store_fingerprint": fingerprint,
@@ -83,7 +79,7 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
     figures = measure(args.pipeline, args.data_dir, args.split, args.seed, args.records)
-    metadata = {key: figures[key] for key in ("timing_ratio_max", "timing_ratio_widen")}
+    metadata = {"timing_ratio_max": figures["timing_ratio_max"]}
     report = rewrite_with_report(args.pipeline, args.out, args.formats, metadata, {**figures, "report": "timing_check"})
     print(json.dumps(report, indent=2))
     return report

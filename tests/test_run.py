@@ -128,9 +128,6 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     # the timing check's threshold: the pipeline's own, from its held-out records' scans (never below the default)
     timing = saved["evaluate"]["timing_ratio_max"]
     assert recorded.get("timing_ratio_max") == timing and (timing is None or timing >= 1.8)
-    widen = saved["evaluate"]["timing_ratio_widen"]  # the intervals' widening to a best shift: from the same scans
-    assert recorded.get("timing_ratio_widen") == widen and (widen is None) == (timing is None)
-    assert widen is None or 1.2 <= widen <= timing
     # phm-export rebuilds the same pipeline, FDI band included, from the bundle and rul_calibration.json
     calibration = json.loads((tmp_path / "evaluate" / "rul_calibration.json").read_text())
     assert calibration["fdi_deltas"] == saved["evaluate"]["fdi_band_deltas"]

@@ -259,8 +259,8 @@ def diagnose(
     trusted_bounds = bounds is not None and not out and bool(torch.isfinite(bounds).all())
     tolerance = None
     if trusted_bounds and timing_tolerance_s > 0:
-        # beyond the tolerance, the scan's best shift where it explains the record markedly better (below refusal)
-        widen = timing is not None and timing.widens(model.sample_rate, contract.timing_widen, timing_tolerance_s)
+        # beyond the tolerance, the scan's best shift (the record not refused: a timing the data allow)
+        widen = timing is not None and timing.widens(model.sample_rate, timing_tolerance_s)
         tolerance = read_within_tolerance(
             model,
             read[0],

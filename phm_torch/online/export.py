@@ -27,7 +27,6 @@ CALIBRATION_METADATA = (
     "verdict_prior_faulty",
     "spike_step_max",
     "timing_ratio_max",
-    "timing_ratio_widen",
     "held_out_quality",  # the verdict's and the RUL's figures on held-out records (phm-predict's caveats)
 )
 

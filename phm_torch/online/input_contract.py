@@ -82,7 +82,7 @@ from .fault_count import large_faults, no_large_fault
 from .rest_offset_check import REST_MIN, rest_offset, rest_window
 from .run_checks import run_reasons
 from .spike_check import SPIKE_STEP, has_spikes
-from .timing_check import TIMING_RATIO, WIDEN_RATIO_MIN
+from .timing_check import TIMING_RATIO
 from .unexplained_check import UNEXPLAINED_RATIO, checked, unexplained_ratio
 
 PIPELINE_CHECKS = ("missing", "flat", "gappy_residual", "pod_residual", "roughness", "plateau", "inconsistent")
@@ -231,9 +231,6 @@ class InputContract:
     unexplained_ratio: float = UNEXPLAINED_RATIO  # its threshold (metadata ``unexplained_ratio_max``: never lower)
     spike_step: float = SPIKE_STEP  # the ``spikes`` check's step (metadata ``spike_step_max``: never lower)
     timing_ratio: float | None = None  # the ``timing`` check's (metadata ``timing_ratio_max``; None: not calibrated)
-    # the scan's ratio above which a record's intervals hold its best shift's reading too (metadata
-    # ``timing_ratio_widen``; None: not calibrated, the intervals hold the timing tolerance's readings alone)
-    timing_widen: float | None = None
 
     @classmethod
     def of(
@@ -247,7 +244,7 @@ class InputContract:
         usable = nominal is not None and bool(torch.isfinite(nominal).all()) and float(nominal.abs().max()) > 0
         bound, shape = metadata.get("drive_current_bound"), metadata.get("shape_correlation_min")
         ratio, step = metadata.get("unexplained_ratio_max"), metadata.get("spike_step_max")
-        timing, widen = metadata.get("timing_ratio_max"), metadata.get("timing_ratio_widen")
+        timing = metadata.get("timing_ratio_max")
         return cls(
             command,
             tracking,
@@ -259,7 +256,6 @@ class InputContract:
             unexplained_ratio=UNEXPLAINED_RATIO if ratio is None else max(UNEXPLAINED_RATIO, float(ratio)),
             spike_step=SPIKE_STEP if step is None else max(SPIKE_STEP, float(step)),
             timing_ratio=None if timing is None else max(TIMING_RATIO, float(timing)),
-            timing_widen=None if widen is None or timing is None else max(WIDEN_RATIO_MIN, float(widen)),
         )
 
     def _tracking(self, record: Record, healthy: bool | None = None) -> dict[str, Any]:

@@ -73,7 +73,7 @@ class ToleranceReading:
         current_only: whether the record came without its command column (its trigger is what the tolerance is for;
             with one, the current channel's own lag).
         widened_to_s: the timing scan's best shift [s] beyond the tolerance whose readings the union holds too
-            (:meth:`~.timing_check.TimingScan.widen_shifts`), None: the tolerance's readings alone.
+            (:meth:`~.timing_check.TimingScan.widens`), None: the tolerance's readings alone.
     """
 
     tolerance_s: float
@@ -102,9 +102,9 @@ class ToleranceReading:
         lag = 1000.0 * self.widened_to_s
         way = f"{lag:.2f} ms late" if lag > 0 else f"{-lag:.2f} ms early"
         return (
-            f"the current is explained better read as if {way} than the timing tolerance of "
-            f"+-{1000.0 * self.tolerance_s:.2f} ms allows (not far enough to refuse the record): its k intervals hold "
-            "that reading too"
+            f"the current is explained best read as if {way}, beyond the timing tolerance of "
+            f"+-{1000.0 * self.tolerance_s:.2f} ms (not so much better that the record is refused): its k intervals "
+            "hold that reading too"
         )
 
     def message(self) -> str | None:

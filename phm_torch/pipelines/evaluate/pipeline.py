@@ -28,7 +28,7 @@ from ...online.fdi_interval import interval_quality
 from ...online.input_contract import calibrate_shape_min
 from ...online.noise_threshold import calibrate_gappy_residual
 from ...online.spike_check import calibrate_spike_step
-from ...online.timing_check import calibrate_timing_ratios
+from ...online.timing_check import calibrate_timing_ratio
 from ...online.unexplained_check import calibrate_ratio
 from ...online.verdict import verdict_quality
 from ...params import ActuatorParams
@@ -202,7 +202,7 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
         )
     metrics["unexplained_ratio_max"] = c.unexplained
     metrics["spike_step_max"] = c.spike_step
-    metrics.update(c.timing or {"timing_ratio_max": None, "timing_ratio_widen": None})
+    metrics["timing_ratio_max"] = c.timing
     export_metadata = {
         "provenance": prov,
         **calibration_metadata(calibration),  # as phm-export writes them: verdict_prior_faulty included
@@ -279,7 +279,7 @@ def _calibrate(settings: EvaluateSettings, pipeline: OnlinePipeline, inp: Simple
         spike_step=calibrate_spike_step(pipeline, near.signals, near.k_hat),
         # after the consistency thresholds: the scan reads their statistic (in-distribution held-out records, the
         # first TIMING_RECORDS: ~20 ms each on the reference, coarse to fine)
-        timing=calibrate_timing_ratios(pipeline, band_signals[~band_ood][:TIMING_RECORDS], pipeline.sample_rate),
+        timing=calibrate_timing_ratio(pipeline, band_signals[~band_ood][:TIMING_RECORDS], pipeline.sample_rate),
         near_rows={"held_out": near.held_out, "training": near.training},
         unidentified=unidentified,
         band=band,
@@ -374,7 +374,7 @@ def _calibration_record(
         "shape_correlation_min": c.shape_min,
         "unexplained_ratio_max": c.unexplained,
         "spike_step_max": c.spike_step,
-        **(c.timing or {"timing_ratio_max": None, "timing_ratio_widen": None}),
+        "timing_ratio_max": c.timing,
         "consistency": c.consistency,
         "gappy_residual": c.gappy_residual,
         "damage": dict(settings.damage),
