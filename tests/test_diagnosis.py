@@ -277,3 +277,28 @@ def test_a_position_range_of_a_units_factor_names_the_unit():
     # the command check names the unit too: a record whose command column was logged in degrees
     assert "command [deg]" in CommandCheck(18.97, 0.0, 57.30, False).reason()
     assert "written in" not in CommandCheck(0.31, 0.002, 1.02, False).reason()
+
+
+@pytest.mark.torchscript
+def test_a_tracked_inspections_near_nominal_interval_holds_its_readings_within_the_timing_tolerance():
+    """phm-track timing_tolerance=null: the near-nominal reading of a record 0.5 ms early is widened to its readings
+    within the tolerance, which hold the on-time record's reading; at 0 it is read at its own timing."""
+    from phm_torch.online.corruptions import delayed
+    from phm_torch.tracking.inspection import inspect_record
+    from phm_torch.tracking.near_nominal import NearNominalFDI
+
+    _, model, contract, _, _, clean, t, _ = _pretrained_nominal(0.01, 11)
+    near = NearNominalFDI.load(PIPELINE.with_suffix(".near_nominal.pt"))
+    on_time = inspect_record(model, Record(t, None, None, clean), contract, near_nominal=near)
+    late = Record(t, None, None, delayed(clean, -10))  # early: its rest window stays at rest (no offset read)
+    exact = inspect_record(model, late, contract, near_nominal=near)
+    tolerant = inspect_record(model, late, contract, near_nominal=near, timing_tolerance_s=1e-3)
+    assert exact["timing_tolerance"] is None and tolerant["timing_tolerance"]["readings"] >= 21
+
+    def bounds(found):
+        return torch.tensor([found["k_near_nominal_interval"][n] for n in FAULT_NAMES], dtype=torch.float64)
+
+    truth = torch.tensor([on_time["k_near_nominal"][n] for n in FAULT_NAMES], dtype=torch.float64)
+    inside = lambda b: bool(((b[:, 0] <= truth + 1e-9) & (truth <= b[:, 1] + 1e-9)).all())
+    assert not inside(bounds(exact)) and inside(bounds(tolerant))
+    assert tolerant["k_near_nominal"] == exact["k_near_nominal"]  # the reading itself: the record as it came

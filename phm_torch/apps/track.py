@@ -30,6 +30,7 @@ from ..online.diagnosis import contract_for
 from ..online.loaded import TorchScriptPipeline, load_pipeline
 from ..online.quality import held_out, quality_warnings
 from ..online.record_corrections import prepare_record
+from ..online.timing_tolerance import tolerance_seconds
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
 from ..tracking.companions import companion, missing_message
 from ..tracking.fleet_check import FleetCheckSettings, check_fleet, probe_in_fleet
@@ -38,6 +39,7 @@ from ..tracking.inspection import inspect_record
 from ..tracking.near_nominal import NearNominalFDI
 from ..tracking.response import fit_response, pairs_from_track, probe_k_hat
 from ..tracking.state import fingerprint
+from ..tracking.timing_spread import spread_message, timing_spread
 from ..tracking.tracker_check import TrackerCheck
 from . import common, schema
 from .predict import _bench_nominal, _pipeline_command, _read, _record  # phm-predict's record path, reused as is
@@ -157,6 +159,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     index = read_index(cfg.index)
     contract = contract_for(model, metadata, command)
     resample = bool(cfg.resample)
+    tolerance = tolerance_seconds(cfg.timing_tolerance, "timing_tolerance")
     bench_nominal, probe = _bench_nominal(cfg, loaded)  # phm-predict's baseline: the bench's healthy record(s)
     bench = None if bench_nominal is None else check_bench(loaded, bench_nominal)
     if bench_nominal is None and loaded.can_rebase:
@@ -178,7 +181,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             if found is None:
                 current, m = _read(str(row.path), loaded, resample)
                 record = _record(m, current)
-                found = inspect_record(loaded, record, contract, bench_nominal, bench, near, probe)
+                found = inspect_record(loaded, record, contract, bench_nominal, bench, near, probe, tolerance)
                 if keep is not None:  # the record as the pipeline read it (the same corrections, made again)
                     keep.append(prepare_record(record, contract.command, contract.nominal)[0].current.float())
                 # the messages say what was corrected as well as what was refused: "not fused" only for the latter
@@ -246,6 +249,8 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     common.write_json(out_dir / "track.json", result)
     common.write_json(out_dir / "fleet.json", {k: result[k] for k in ("pipeline", "actuator", "command", "fleet")})
     inspections = [i for a in actuators.values() for i in a["inspections"]]
+    if (line := spread_message(spread := timing_spread(inspections))) is not None:
+        log.warning(line)
     metrics: dict[str, Any] = {
         "actuators": len(actuators),
         "inspections": len(inspections),
@@ -257,6 +262,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "fleet_check": fleet,
         "damage_source": described["damage_source"],
         "tracker_check": None if check is None else check.to_json(),
+        "timing": spread,
         "out_dir": str(out_dir),
         "actuator": provenance.describe(prov["actuator"]),
         "command": provenance.describe(prov["command"]),

@@ -60,6 +60,13 @@ def tolerance_shifts(n: int, sample_rate: float, tolerance_s: float) -> list[int
     return [s for s in scan_shifts(n) if abs(s) <= reach + 1e-9]
 
 
+def reading_shifts(n: int, sample_rate: float, tolerance_s: float, best_shift: int | None = None) -> list[int]:
+    """The shifts [samples] a record of ``n`` samples is read at: :func:`tolerance_shifts`, and around ``best_shift``
+    (the timing scan's beyond the tolerance, :meth:`~.timing_check.TimingScan.widens`) where given."""
+    within = tolerance_shifts(n, sample_rate, tolerance_s)
+    return sorted(set(within) | set([] if best_shift is None else around(n, best_shift)))
+
+
 @dataclass(frozen=True)
 class ToleranceReading:
     """The union of a record's k intervals over the shifts within its trigger tolerance.
@@ -143,8 +150,7 @@ def read_within_tolerance(
     within +- ``tolerance_s`` and around ``best_shift`` [samples] (the timing scan's, where it widens the intervals:
     :meth:`~.timing_check.TimingScan.widens`); None where that takes no shift but 0 or the pipeline reports no k
     intervals."""
-    within = tolerance_shifts(current.numel(), sample_rate, tolerance_s)
-    shifts = sorted(set(within) | set([] if best_shift is None else around(current.numel(), best_shift)))
+    shifts = reading_shifts(current.numel(), sample_rate, tolerance_s, best_shift)
     if len(shifts) < 2:
         return None
     x = current.double().flatten()

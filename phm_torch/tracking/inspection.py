@@ -19,10 +19,11 @@ import torch
 
 from ..faults import FAULT_NAMES
 from ..online.bench_check import BenchCheck
-from ..online.corruptions import Record
+from ..online.corruptions import Record, delayed
 from ..online.diagnosis import NOISE_FLOOR, calibrated_interval, diagnose
 from ..online.input_contract import InputContract, pipeline_reasons
 from ..online.probe_calibration import ProbeCalibration
+from ..online.timing_tolerance import reading_shifts
 from .measurement import Z95
 from .near_nominal import NearNominalFDI
 
@@ -46,13 +47,14 @@ def inspect_record(
     bench: BenchCheck | None = None,
     near_nominal: NearNominalFDI | None = None,
     probe: ProbeCalibration | None = None,
+    timing_tolerance_s: float = 0.0,
 ) -> dict[str, Any]:
     """phm-predict's diagnosis of one record (the dict of :func:`diagnose`), moved onto the training model with the
     bench's healthy record ``bench_nominal`` (n_full,) [A] where given (phm-predict's ``baseline``). With a
     ``near_nominal`` FDI, an in-distribution record near nominal also gets ``k_near_nominal`` and its interval
-    ``k_near_nominal_interval`` (:mod:`.near_nominal`), which the tracker reads instead of k_hat."""
-    # at the record's own timing: the filter's measurement model is the pipeline's on-time intervals (the batched
-    # inspect_currents reads them so too), and phm-track's life figures were measured so
+    ``k_near_nominal_interval`` (:mod:`.near_nominal`), which the tracker reads instead of k_hat. With a
+    ``timing_tolerance_s`` (phm-track's ``timing_tolerance``) both intervals hold every reading within it, as
+    phm-predict's (:mod:`~phm_torch.online.timing_tolerance`); 0 reads the record at its own timing."""
     found = diagnose(
         model,
         record,
@@ -61,7 +63,7 @@ def inspect_record(
         bench,
         keep_current=near_nominal is not None,
         probe=probe,
-        timing_tolerance_s=0.0,
+        timing_tolerance_s=timing_tolerance_s,
     )
     current = found.pop("current", None)
     if near_nominal is None or found["out_of_distribution"] or found["noise"] is None:
@@ -84,7 +86,42 @@ def inspect_record(
             n: [a, b] for n, a, b in zip(FAULT_NAMES, lower[0].tolist(), upper[0].tolist())
         }
         found["k_near_nominal_not_identified"] = near_nominal.not_identified(found["noise"])
+        if found["timing_tolerance"] is not None:
+            _near_nominal_within_tolerance(near_nominal, m, float(model.sample_rate), current, k_pipeline, found)
     return found
+
+
+def _near_nominal_within_tolerance(
+    near_nominal: NearNominalFDI,
+    model: Any,
+    rate: float,
+    current: torch.Tensor,
+    k_pipeline: torch.Tensor,
+    found: dict[str, Any],
+) -> None:
+    """The near-nominal reading's interval widened, in ``found``, to its readings at every shift diagnose read the
+    record at (``found["timing_tolerance"]``: the tolerance, and the timing scan's best shift beyond it; ``rate``
+    [Hz] the pipeline's sample rate)."""
+    tolerance = found["timing_tolerance"]
+    best = tolerance.get("widened_to_s")
+    shifts = reading_shifts(
+        current.shape[-1], rate, tolerance["tolerance_s"], None if best is None else round(best * rate)
+    )
+    x = current.reshape(-1).double()
+    # the ends held, not missing: the network reads a record missing more than a few samples not at all
+    block = torch.stack([delayed(x, -s) for s in shifts]).to(current.dtype)
+    noise = torch.full((len(shifts),), float(found["noise"]), dtype=torch.float64)
+    with torch.no_grad():
+        alpha, readable = near_nominal.coefficients(model, block)
+        used, _, lower, upper = near_nominal.read(alpha, k_pipeline.expand(len(shifts), -1), noise)
+    keep = used & readable
+    if not bool(keep.any()):
+        return
+    bounds = found["k_near_nominal_interval"]
+    low, high = lower[keep].amin(0).tolist(), upper[keep].amax(0).tolist()
+    found["k_near_nominal_interval"] = {
+        n: [min(bounds[n][0], a), max(bounds[n][1], b)] for n, a, b in zip(FAULT_NAMES, low, high)
+    }
 
 
 def _with_offset_error(
