@@ -302,3 +302,26 @@ def test_a_tracked_inspections_near_nominal_interval_holds_its_readings_within_t
     inside = lambda b: bool(((b[:, 0] <= truth + 1e-9) & (truth <= b[:, 1] + 1e-9)).all())
     assert not inside(bounds(exact)) and inside(bounds(tolerant))
     assert tolerant["k_near_nominal"] == exact["k_near_nominal"]  # the reading itself: the record as it came
+
+
+@pytest.mark.torchscript
+def test_a_tracked_inspection_is_read_again_moved_back_by_its_timing_scan_shift():
+    """phm-track timing_align: near nominal the scan finds a record's timing to a sample or two; read moved back by
+    it, a record 0.5 ms early gives the on-time record's estimate (read as it came, a gain drift well off)."""
+    from phm_torch.online.corruptions import delayed
+    from phm_torch.online.diagnosis import contract_for
+    from phm_torch.online.export import read_metadata
+    from phm_torch.tracking.inspection import inspect_record
+    from phm_torch.tracking.timing_spread import ALIGN_TOLERANCE_S
+
+    _, model, _, _, _, clean, t, _ = _pretrained_nominal(0.01, 11)
+    contract = contract_for(model, read_metadata(PIPELINE), None)  # with the shipped timing threshold: the scan runs
+    gain = lambda d: d["k_hat"]["gain_drift"]
+    on_time = inspect_record(model, Record(t, None, None, clean), contract)
+    early = Record(t, None, None, delayed(clean, -10))
+    as_came = inspect_record(model, early, contract)
+    aligned = inspect_record(model, early, contract, align_timing=True)
+    assert as_came.get("timing_aligned_s") is None
+    assert aligned["timing_aligned_s"] == pytest.approx(-5e-4, abs=2.5e-4)  # within the scan's 4 samples
+    assert abs(gain(aligned) - gain(on_time)) < 0.5 * abs(gain(as_came) - gain(on_time))
+    assert aligned["timing_tolerance"]["tolerance_s"] == ALIGN_TOLERANCE_S  # read within the scan's own error

@@ -5,7 +5,15 @@ from __future__ import annotations
 
 import pytest
 
-from phm_torch.tracking.timing_spread import OFF_SHARE, spread_message, timing_spread
+from phm_torch.tracking.timing_spread import (
+    OFF_SHARE,
+    alignment_setting,
+    decide_alignment,
+    scan_shift,
+    spread_message,
+    spread_of,
+    timing_spread,
+)
 
 
 def _inspections(shifts, ood=()):
@@ -28,3 +36,24 @@ def test_a_jittered_fleet_is_warned_of_with_its_share_and_median_shift():
 
 def test_a_fleet_without_scans_has_no_spread():
     assert timing_spread(_inspections([None, None])) is None and spread_message(None) is None
+
+
+def test_the_alignment_setting_is_auto_true_or_false_and_refused_by_name_otherwise():
+    assert alignment_setting("auto") == "auto" and alignment_setting(True) is True and alignment_setting(False) is False
+    for bad in ("yes", 1, 0, None):
+        with pytest.raises(ValueError, match="timing_align must be auto, true or false"):
+            alignment_setting(bad)
+
+
+def test_auto_aligns_a_fleet_whose_first_inspections_timing_scatters():
+    def diagnosis(shift, ood=False, aligned=None):
+        return {"out_of_distribution": ood, "timing_check": {"best_shift_s": shift}, "timing_aligned_s": aligned}
+
+    on_time = [diagnosis(s) for s in (0.0, 1e-4, -1e-4, 0.0, 2e-4)]
+    jittered = [diagnosis(s) for s in (5e-4, -4e-4, 0.0, 1e-4, -5e-4)]
+    assert decide_alignment("auto", on_time) == (False, spread_of([0.0, 1e-4, -1e-4, 0.0, 2e-4]))
+    assert decide_alignment("auto", jittered)[0] and decide_alignment(False, jittered)[0] is False
+    assert decide_alignment(True, on_time)[0] is True
+    assert decide_alignment("auto", [diagnosis(5e-4, ood=True)]) == (False, None)  # refused: not counted
+    # an aligned inspection counts with the shift it was read at before (its re-read scan is then near 0)
+    assert spread_of([scan_shift(diagnosis(0.0, aligned=5e-4))])["share_off"] == 1.0

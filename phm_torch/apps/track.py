@@ -33,13 +33,13 @@ from ..online.record_corrections import prepare_record
 from ..online.timing_tolerance import tolerance_seconds
 from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
 from ..tracking.companions import companion, missing_message
-from ..tracking.fleet_check import FleetCheckSettings, check_fleet, probe_in_fleet
+from ..tracking.fleet_check import FleetCheckSettings, check_fleet, probe_in_fleet, refused
 from ..tracking.information_limit import information_limit, track_truth
 from ..tracking.inspection import inspect_record
 from ..tracking.near_nominal import NearNominalFDI
 from ..tracking.response import fit_response, pairs_from_track, probe_k_hat
 from ..tracking.state import fingerprint
-from ..tracking.timing_spread import spread_message, timing_spread
+from ..tracking.timing_spread import alignment_setting, decide_alignment, spread_message, timing_spread
 from ..tracking.tracker_check import TrackerCheck
 from . import common, schema
 from .predict import _bench_nominal, _pipeline_command, _read, _record  # phm-predict's record path, reused as is
@@ -160,6 +160,8 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     contract = contract_for(model, metadata, command)
     resample = bool(cfg.resample)
     tolerance = tolerance_seconds(cfg.timing_tolerance, "timing_tolerance")
+    setting = alignment_setting(cfg.timing_align)
+    align = {"on": setting is True}  # auto: decided on the fleet check's first inspections, read unaligned
     bench_nominal, probe = _bench_nominal(cfg, loaded)  # phm-predict's baseline: the bench's healthy record(s)
     bench = None if bench_nominal is None else check_bench(loaded, bench_nominal)
     if bench_nominal is None and loaded.can_rebase:
@@ -181,7 +183,9 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
             if found is None:
                 current, m = _read(str(row.path), loaded, resample)
                 record = _record(m, current)
-                found = inspect_record(loaded, record, contract, bench_nominal, bench, near, probe, tolerance)
+                found = inspect_record(
+                    loaded, record, contract, bench_nominal, bench, near, probe, tolerance, align["on"]
+                )
                 if keep is not None:  # the record as the pipeline read it (the same corrections, made again)
                     keep.append(prepare_record(record, contract.command, contract.nominal)[0].current.float())
                 # the messages say what was corrected as well as what was refused: "not fused" only for the latter
@@ -201,11 +205,15 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         fleet = probe_in_fleet(fleet, first_currents, loaded.nominal_record if loaded.can_rebase else None)
     first_currents.clear()
     _log_fleet_check(cfg, fleet)
+    if decide_alignment(setting, first_inspections.values())[0] and not align["on"]:
+        align["on"] = True  # timing_align=auto: the first inspections' timing is off; read every one again, aligned
+        first_inspections.clear()
+        log.warning("timing_align=auto: the first inspections' timing scatters; each is read moved back by its shift")
     if fleet["offset"] and cfg.fleet_check.action == "refuse":
         read = diagnose_rows
 
         def diagnose_rows(rows: list) -> list[dict[str, Any]]:  # every inspection refused: nothing is fused
-            return [_refused(d) for d in read(rows)]
+            return [refused(d) for d in read(rows)]
 
     out_dir = Path(cfg.out_dir)
     if cfg.response_out is not None and cfg.truth is None:
@@ -219,6 +227,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "baseline": None if bench_nominal is None else hashlib.sha256(bench_nominal.numpy().tobytes()).hexdigest(),
         "fleet_offset": fleet["offset"] and cfg.fleet_check.action == "refuse",
         "probe": None if probe is None else probe.as_dict(),  # a baseline's calibration (phm-predict's)
+        "timing": {"tolerance_s": tolerance, "align": setting},  # how each inspection was read
         # the companions' whole content: a resumed run with another response or near-nominal file is recomputed
         "near_nominal": None if near is None else _tensors_sha256(near.state_dict()),
         "response": None if response is None else fingerprint(response.to_json()),
@@ -249,7 +258,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     common.write_json(out_dir / "track.json", result)
     common.write_json(out_dir / "fleet.json", {k: result[k] for k in ("pipeline", "actuator", "command", "fleet")})
     inspections = [i for a in actuators.values() for i in a["inspections"]]
-    if (line := spread_message(spread := timing_spread(inspections))) is not None:
+    if (line := spread_message(spread := timing_spread(inspections), align["on"])) is not None:
         log.warning(line)
     metrics: dict[str, Any] = {
         "actuators": len(actuators),
@@ -262,7 +271,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "fleet_check": fleet,
         "damage_source": described["damage_source"],
         "tracker_check": None if check is None else check.to_json(),
-        "timing": spread,
+        "timing": None if spread is None else {**spread, "aligned": align["on"]},
         "out_dir": str(out_dir),
         "actuator": provenance.describe(prov["actuator"]),
         "command": provenance.describe(prov["command"]),
@@ -381,19 +390,6 @@ def _log_fleet_check(cfg: DictConfig, fleet: dict[str, Any]) -> None:
             fleet["n_actuators"],
             settings.min_actuators,
         )
-
-
-def _refused(diagnosis: dict[str, Any]) -> dict[str, Any]:
-    """A diagnosis made out of distribution by the fleet check: reported, never fused."""
-    reasons = [*diagnosis.get("ood_reasons", []), "fleet_offset"]
-    return {
-        **diagnosis,
-        "out_of_distribution": True,
-        "ood_reasons": reasons,
-        "k_interval": None,
-        "p_faulty": None,
-        "rul_hours": None,
-    }
 
 
 @hydra.main(config_path=common.CONFIG_PATH, config_name="track", version_base="1.3")

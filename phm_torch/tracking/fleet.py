@@ -88,7 +88,9 @@ def inspection_record(
         "snapshot_rul_censored": snap_censored,
         "noise": diagnosis.get("noise"),
         # the timing scan's best shift [s] (tracking/timing_spread.py: whether the fleet's records came on time)
-        "timing_best_shift_s": (diagnosis.get("timing_check") or {}).get("best_shift_s"),
+        "timing_best_shift_s": diagnosis.get(
+            "timing_aligned_s", (diagnosis.get("timing_check") or {}).get("best_shift_s")
+        ),
         # what phm-predict's path corrected (a trigger offset, a reversed probe) or refused, one line each
         "messages": list(diagnosis.get("messages", [])),
     }

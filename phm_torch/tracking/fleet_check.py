@@ -126,3 +126,16 @@ def probe_in_fleet(
             "within the intervals, but it biases every reading"
         )
     return out
+
+
+def refused(diagnosis: dict[str, Any]) -> dict[str, Any]:
+    """A diagnosis made out of distribution by the fleet check (reason ``fleet_offset``): reported, never fused."""
+    reasons = [*diagnosis.get("ood_reasons", []), "fleet_offset"]
+    return {
+        **diagnosis,
+        "out_of_distribution": True,
+        "ood_reasons": reasons,
+        "k_interval": None,
+        "p_faulty": None,
+        "rul_hours": None,
+    }

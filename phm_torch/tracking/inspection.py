@@ -26,6 +26,7 @@ from ..online.probe_calibration import ProbeCalibration
 from ..online.timing_tolerance import reading_shifts
 from .measurement import Z95
 from .near_nominal import NearNominalFDI
+from .timing_spread import ALIGN_TOLERANCE_S
 
 
 def require_calibrated(model: Any, source: str) -> None:
@@ -48,23 +49,41 @@ def inspect_record(
     near_nominal: NearNominalFDI | None = None,
     probe: ProbeCalibration | None = None,
     timing_tolerance_s: float = 0.0,
+    align_timing: bool = False,
 ) -> dict[str, Any]:
     """phm-predict's diagnosis of one record (the dict of :func:`diagnose`), moved onto the training model with the
     bench's healthy record ``bench_nominal`` (n_full,) [A] where given (phm-predict's ``baseline``). With a
     ``near_nominal`` FDI, an in-distribution record near nominal also gets ``k_near_nominal`` and its interval
     ``k_near_nominal_interval`` (:mod:`.near_nominal`), which the tracker reads instead of k_hat. With a
     ``timing_tolerance_s`` (phm-track's ``timing_tolerance``) both intervals hold every reading within it, as
-    phm-predict's (:mod:`~phm_torch.online.timing_tolerance`); 0 reads the record at its own timing."""
-    found = diagnose(
-        model,
-        record,
-        contract,
-        bench_nominal,
-        bench,
-        keep_current=near_nominal is not None,
-        probe=probe,
-        timing_tolerance_s=timing_tolerance_s,
-    )
+    phm-predict's (:mod:`~phm_torch.online.timing_tolerance`); 0 reads the record at its own timing. With
+    ``align_timing`` (phm-track's ``timing_align``) a record the timing scan reads best moved is read again moved
+    back by that shift (``timing_aligned_s``), where it stays in distribution, and every record within
+    ``ALIGN_TOLERANCE_S`` at least (the scan's own error near nominal)."""
+
+    if align_timing:  # an aligned record's timing is the scan's, within its own error: read within that too
+        timing_tolerance_s = max(timing_tolerance_s, ALIGN_TOLERANCE_S)
+
+    def read(r: Record) -> dict[str, Any]:
+        return diagnose(
+            model,
+            r,
+            contract,
+            bench_nominal,
+            bench,
+            keep_current=near_nominal is not None,
+            probe=probe,
+            timing_tolerance_s=timing_tolerance_s,
+        )
+
+    found = read(record)
+    scan = found["timing_check"]
+    if align_timing and scan is not None and not found["out_of_distribution"]:
+        lag = round(scan["best_shift_s"] * float(model.sample_rate))
+        if lag != 0:
+            again = read(Record(record.time, record.command, record.position, delayed(record.current, -lag)))
+            if not again["out_of_distribution"]:
+                found = {**again, "timing_aligned_s": scan["best_shift_s"]}
     current = found.pop("current", None)
     if near_nominal is None or found["out_of_distribution"] or found["noise"] is None:
         return found
