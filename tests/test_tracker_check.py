@@ -29,6 +29,19 @@ def test_figures_from_phm_track_metrics_round_trip_and_warn_only_where_short(tmp
     assert short.warnings({"verdict": "record", "faulty_at": "p5"})[-1].endswith("was not the one measured")
 
 
+def test_the_on_time_share_of_the_timing_scan_travels_with_the_figures_only_when_read_unaligned(tmp_path):
+    metrics = {"actuators": 40, "inspections": 700, "tracker": {"coverage_5_95": 0.9}}
+    timing = {"scanned": 700, "share_off": 0.012, "median_shift_s": 0.0, "median_abs_shift_s": 1e-4}
+    check = TrackerCheck.from_metrics({**metrics, "timing": {**timing, "aligned": False}}, RULE, {})
+    assert check.timing_share_off == 0.012
+    check.save(tmp_path / "c.json")
+    assert TrackerCheck.load(tmp_path / "c.json").timing_share_off == 0.012
+    assert (
+        TrackerCheck.from_metrics({**metrics, "timing": {**timing, "aligned": True}}, RULE, {}).timing_share_off is None
+    )
+    assert TrackerCheck.from_metrics(metrics, RULE, {}).timing_share_off is None  # no scan
+
+
 def test_bad_figures_and_files_are_named(tmp_path):
     with pytest.raises(ValueError, match="coverage_5_95 must be in"):
         TrackerCheck({"coverage_5_95": 41.0}, RULE, 6, 83)

@@ -248,6 +248,7 @@ def _tracked_by_rule(life_args: list[str], root: Path, near_nominal: str) -> dic
                     f"near_nominal={near_nominal}",
                     f"verdict={rule[0]}",
                     f"faulty_at={rule[1]}",
+                    "timing_align=false",  # on time: the share the scan reads off is the pipeline's own (tracker check)
                 ],
             )
         )[0]

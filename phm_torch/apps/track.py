@@ -39,7 +39,13 @@ from ..tracking.inspection import inspect_record
 from ..tracking.near_nominal import NearNominalFDI
 from ..tracking.response import fit_response, pairs_from_track, probe_k_hat
 from ..tracking.state import fingerprint
-from ..tracking.timing_spread import alignment_setting, decide_alignment, spread_message, timing_spread
+from ..tracking.timing_spread import (
+    alignment_setting,
+    decide_alignment,
+    fleet_threshold,
+    spread_message,
+    timing_spread,
+)
 from ..tracking.tracker_check import TrackerCheck
 from . import common, schema
 from .predict import _bench_nominal, _pipeline_command, _read, _record  # phm-predict's record path, reused as is
@@ -205,7 +211,8 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         fleet = probe_in_fleet(fleet, first_currents, loaded.nominal_record if loaded.can_rebase else None)
     first_currents.clear()
     _log_fleet_check(cfg, fleet)
-    if decide_alignment(setting, first_inspections.values())[0] and not align["on"]:
+    threshold = fleet_threshold(None if check is None else check.timing_share_off)  # None: timing not judged
+    if decide_alignment(setting, first_inspections.values(), threshold)[0] and not align["on"]:
         align["on"] = True  # timing_align=auto: the first inspections' timing is off; read every one again, aligned
         first_inspections.clear()
         log.warning("timing_align=auto: the first inspections' timing scatters; each is read moved back by its shift")
@@ -258,7 +265,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     common.write_json(out_dir / "track.json", result)
     common.write_json(out_dir / "fleet.json", {k: result[k] for k in ("pipeline", "actuator", "command", "fleet")})
     inspections = [i for a in actuators.values() for i in a["inspections"]]
-    if (line := spread_message(spread := timing_spread(inspections), align["on"])) is not None:
+    if (line := spread_message(spread := timing_spread(inspections), threshold, align["on"])) is not None:
         log.warning(line)
     metrics: dict[str, Any] = {
         "actuators": len(actuators),
@@ -271,7 +278,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         "fleet_check": fleet,
         "damage_source": described["damage_source"],
         "tracker_check": None if check is None else check.to_json(),
-        "timing": None if spread is None else {**spread, "aligned": align["on"]},
+        "timing": None if spread is None else {**spread, "aligned": align["on"], "threshold": threshold},
         "out_dir": str(out_dir),
         "actuator": provenance.describe(prov["actuator"]),
         "command": provenance.describe(prov["command"]),

@@ -40,6 +40,8 @@ class TrackerCheck:
         rule: the end-of-life rule they were measured under (``verdict``, ``faulty_at``).
         histories: run-to-failure histories tracked.   inspections: their inspections.
         pipeline: what it was measured for (``probe_k_hat``, ``source``), as an FDI response records it.
+        timing_share_off: the share of those (on-time) inspections the timing scan read best 0.3 ms or more away
+            (:mod:`.timing_spread`; None: not measured), from which phm-track judges a fleet's timing.
     """
 
     figures: Mapping[str, float | None]
@@ -47,6 +49,7 @@ class TrackerCheck:
     histories: int
     inspections: int
     pipeline: Mapping[str, Any] = field(default_factory=dict)
+    timing_share_off: float | None = None
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.figures) - set(FIGURES))
@@ -65,7 +68,9 @@ class TrackerCheck:
         """From phm-track's metrics of a run with truth (``tracker`` figures, ``actuators``, ``inspections``)."""
         scores = tracked.get("tracker") or {}
         figures = {name: None if scores.get(name) is None else float(scores[name]) for name in FIGURES}
-        return cls(figures, dict(rule), int(tracked["actuators"]), int(tracked["inspections"]), dict(pipeline))
+        timing = tracked.get("timing") or {}
+        share = None if timing.get("aligned", True) else float(timing["share_off"])  # read on time only
+        return cls(figures, dict(rule), int(tracked["actuators"]), int(tracked["inspections"]), dict(pipeline), share)
 
     def check_for(self, model: Any, source: str) -> None:
         """Raise ValueError unless these figures were measured with the pipeline ``model``."""
@@ -102,6 +107,7 @@ class TrackerCheck:
             "histories": self.histories,
             "inspections": self.inspections,
             "figures": dict(self.figures),
+            "timing_share_off": self.timing_share_off,
         }
 
     def save(self, path: str | os.PathLike) -> None:
@@ -114,7 +120,12 @@ class TrackerCheck:
         data = read_companion_json(path, FORMAT, "tracker check")
         try:
             return cls(
-                data["figures"], data["rule"], int(data["histories"]), int(data["inspections"]), data["pipeline"]
+                data["figures"],
+                data["rule"],
+                int(data["histories"]),
+                int(data["inspections"]),
+                data["pipeline"],
+                data.get("timing_share_off"),  # absent in a check written before 2026-11-30 (night)
             )
         except KeyError as exc:
             raise ValueError(f"tracker check {path}: {exc.args[0]!r} missing") from None
