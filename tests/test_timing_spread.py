@@ -67,5 +67,6 @@ def test_auto_aligns_a_fleet_whose_first_inspections_timing_scatters():
     assert decide_alignment("auto", jittered, None)[0] is False  # no threshold: never aligned by itself
     assert decide_alignment(True, on_time, None)[0] is True
     assert decide_alignment("auto", [diagnosis(5e-4, ood=True)], THRESHOLD) == (False, None)  # refused: not counted
+    assert decide_alignment("auto", jittered[:4], THRESHOLD)[0] is False  # too few first inspections to decide on
     # an aligned inspection counts with the shift it was read at before (its re-read scan is then near 0)
     assert spread_of([scan_shift(diagnosis(0.0, aligned=5e-4))])["share_off"] == 1.0

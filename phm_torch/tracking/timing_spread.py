@@ -26,6 +26,7 @@ from ..online.timing_check import MIN_SHIFT_S
 
 OFF_SHARE = 0.1  # a fleet read best moved 0.3 ms or more this much more often than on time is warned of (and aligned)
 UNTELLABLE = 0.5  # a pipeline whose own threshold would reach this cannot tell a fleet's timing from its own leaning
+MIN_SCANNED = 5  # first inspections auto decides on, at least (the fleet check's own minimum, min_actuators)
 ALIGN_SETTINGS = ("auto", True, False)
 # an aligned inspection is read within this too: near nominal the scan's best shift lay within 4 samples (0.2 ms at
 # 20 kHz) of the truth on 99.7 % of 288 on-time inspections (jittered fleet, aligned: coverage 67 % without it, 91 %)
@@ -84,11 +85,14 @@ def decide_alignment(
 ) -> tuple[bool, dict[str, Any] | None]:
     """Whether phm-track reads every inspection moved back by its scan shift, and the spread it decided on: ``auto``
     aligns where more than ``threshold`` (:func:`fleet_threshold`; None: never) of the fleet's first inspections
-    (``first``: their diagnoses, read unaligned) are read best 0.3 ms or more away."""
+    (``first``: their diagnoses, read unaligned; ``MIN_SCANNED`` of them at least) are read best 0.3 ms or more
+    away."""
     spread = spread_of(scan_shift(d) for d in first)
     if setting != "auto":
         return bool(setting), spread
-    return spread is not None and threshold is not None and spread["share_off"] > threshold, spread
+    if spread is None or threshold is None or spread["scanned"] < MIN_SCANNED:
+        return False, spread
+    return spread["share_off"] > threshold, spread
 
 
 def spread_message(spread: Mapping[str, Any] | None, threshold: float | None, aligned: bool = False) -> str | None:
