@@ -31,7 +31,7 @@ from ..online.loaded import TorchScriptPipeline, load_pipeline
 from ..online.quality import held_out, quality_warnings
 from ..online.record_corrections import prepare_record
 from ..online.timing_tolerance import tolerance_seconds
-from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, track_fleet
+from ..tracking import TrackerSettings, build_tracker, fleet_list, read_index, timing_spread, track_fleet
 from ..tracking.companions import companion, missing_message
 from ..tracking.fleet_check import FleetCheckSettings, check_fleet, probe_in_fleet, refused
 from ..tracking.information_limit import information_limit, track_truth
@@ -39,13 +39,6 @@ from ..tracking.inspection import inspect_record
 from ..tracking.near_nominal import NearNominalFDI
 from ..tracking.response import fit_response, pairs_from_track, probe_k_hat
 from ..tracking.state import fingerprint
-from ..tracking.timing_spread import (
-    alignment_setting,
-    decide_alignment,
-    fleet_threshold,
-    spread_message,
-    timing_spread,
-)
 from ..tracking.tracker_check import TrackerCheck
 from . import common, schema
 from .predict import _bench_nominal, _pipeline_command, _read, _record  # phm-predict's record path, reused as is
@@ -166,7 +159,7 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     contract = contract_for(model, metadata, command)
     resample = bool(cfg.resample)
     tolerance = tolerance_seconds(cfg.timing_tolerance, "timing_tolerance")
-    setting = alignment_setting(cfg.timing_align)
+    setting = timing_spread.alignment_setting(cfg.timing_align)
     align = {"on": setting is True}  # auto: decided on the fleet check's first inspections, read unaligned
     bench_nominal, probe = _bench_nominal(cfg, loaded)  # phm-predict's baseline: the bench's healthy record(s)
     bench = None if bench_nominal is None else check_bench(loaded, bench_nominal)
@@ -211,8 +204,10 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
         fleet = probe_in_fleet(fleet, first_currents, loaded.nominal_record if loaded.can_rebase else None)
     first_currents.clear()
     _log_fleet_check(cfg, fleet)
-    threshold = fleet_threshold(None if check is None else check.timing_share_off)  # None: timing not judged
-    if decide_alignment(setting, first_inspections.values(), threshold)[0] and not align["on"]:
+    threshold = timing_spread.fleet_threshold(
+        None if check is None else check.timing_share_off
+    )  # None: timing not judged
+    if timing_spread.decide_alignment(setting, first_inspections.values(), threshold)[0] and not align["on"]:
         align["on"] = True  # timing_align=auto: the first inspections' timing is off; read every one again, aligned
         first_inspections.clear()
         log.warning("timing_align=auto: the first inspections' timing scatters; each is read moved back by its shift")
@@ -265,7 +260,8 @@ def track(cfg: DictConfig) -> tuple[dict[str, Any], dict[str, Any]]:
     common.write_json(out_dir / "track.json", result)
     common.write_json(out_dir / "fleet.json", {k: result[k] for k in ("pipeline", "actuator", "command", "fleet")})
     inspections = [i for a in actuators.values() for i in a["inspections"]]
-    if (line := spread_message(spread := timing_spread(inspections), threshold, align["on"])) is not None:
+    spread = timing_spread.timing_spread(inspections)
+    if (line := timing_spread.spread_message(spread, threshold, align["on"])) is not None:
         log.warning(line)
     metrics: dict[str, Any] = {
         "actuators": len(actuators),

@@ -23,6 +23,7 @@ from .inspection import measurement, unread
 from .measurement import interval_scale, verdict_odds
 from .particle_filter import Posterior, Tracker
 from .state import fingerprint, load_state, save_state
+from .timing_spread import read_shift
 
 log = logging.getLogger(__name__)
 
@@ -88,9 +89,7 @@ def inspection_record(
         "snapshot_rul_censored": snap_censored,
         "noise": diagnosis.get("noise"),
         # the timing scan's best shift [s] (tracking/timing_spread.py: whether the fleet's records came on time)
-        "timing_best_shift_s": diagnosis.get(
-            "timing_aligned_s", (diagnosis.get("timing_check") or {}).get("best_shift_s")
-        ),
+        "timing_best_shift_s": read_shift(diagnosis),
         # what phm-predict's path corrected (a trigger offset, a reversed probe) or refused, one line each
         "messages": list(diagnosis.get("messages", [])),
     }

@@ -40,13 +40,17 @@ def alignment_setting(value: Any) -> str | bool:
     raise ValueError(f"timing_align must be auto, true or false, got {value!r}")
 
 
-def scan_shift(diagnosis: Mapping[str, Any]) -> float | None:
-    """The timing scan's best shift [s] of one in-distribution diagnosis (before any alignment), None without one."""
-    if diagnosis["out_of_distribution"]:
-        return None
+def read_shift(diagnosis: Mapping[str, Any]) -> float | None:
+    """The timing scan's best shift [s] of one diagnosis as it came, before any alignment (``track.json``'s
+    ``timing_best_shift_s``); None without a scan."""
     if diagnosis.get("timing_aligned_s") is not None:
         return float(diagnosis["timing_aligned_s"])
     return (diagnosis.get("timing_check") or {}).get("best_shift_s")
+
+
+def scan_shift(diagnosis: Mapping[str, Any]) -> float | None:
+    """:func:`read_shift` of an in-distribution diagnosis, None for one out of distribution."""
+    return None if diagnosis["out_of_distribution"] else read_shift(diagnosis)
 
 
 def spread_of(shifts: Iterable[float | None]) -> dict[str, Any] | None:
