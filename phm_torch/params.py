@@ -128,6 +128,14 @@ class ActuatorParams:
             )
 
     @property
+    def nyquist_attenuation_db(self) -> float:
+        """Gain [dB] of the envelope current's 2nd-order Butterworth filter at half the sample rate: how much of
+        what lies above the Nyquist frequency the filter removes before sampling (-40 dB on the reference; above
+        about -20 dB the sampled current aliases the PWM and commutation ripple)."""
+        ratio = self.sample_rate / 2 / self.filter_cutoff
+        return -10 * math.log10(1 + ratio**4)
+
+    @property
     def control_period(self) -> float:
         """Period of the discrete controller and of the PWM carrier [s]."""
         return 1.0 / self.pwm_frequency

@@ -120,6 +120,25 @@ def summary(report: dict) -> str:
     return "\n".join(lines)
 
 
+# The envelope filter should remove at least this much at the Nyquist frequency (a factor 10 in amplitude).
+ALIASING_LIMIT_DB = -20.0
+
+
+def acquisition_summary(acq: dict) -> str:
+    """One line on the sampling; a WARNING where the envelope filter lets the ripple alias into the records."""
+    line = (
+        f"acquisition: {acq['sample_rate_hz']:g} Hz, envelope filter {acq['filter_cutoff_hz']:g} Hz, "
+        f"{acq['nyquist_attenuation_db']:.1f} dB at the Nyquist frequency"
+    )
+    if acq["nyquist_attenuation_db"] > ALIASING_LIMIT_DB:
+        line += (
+            f"\nWARNING: the envelope filter removes less than {-ALIASING_LIMIT_DB:g} dB at half the sample rate: "
+            "the sampled current aliases the ripple above it (a phase-dependent error the model reproduces only "
+            "where its PWM phase matches the bench's); lower filter_cutoff or raise sample_rate if the bench allows"
+        )
+    return line
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--actuator", required=True, help="conf/actuator/<name>.yaml name, or a YAML path")
@@ -151,6 +170,11 @@ def main(argv: list[str] | None = None) -> int:
         log=lambda msg: print(msg, file=sys.stderr, flush=True),
     )
     report = {"actuator": actuator_record(act_name, params), "command": command_record(cmd_name, node), **check.run()}
+    report["acquisition"] = {
+        "sample_rate_hz": params.sample_rate,
+        "filter_cutoff_hz": params.filter_cutoff,
+        "nyquist_attenuation_db": round(params.nyquist_attenuation_db, 2),
+    }
     try:
         report["labels"] = label_visibility(params, *load_assessment(args.assessment, args.rotor_positions))
     except ValueError as err:  # e.g. an unstable nominal loop: no sweep to derive; the verdict above says why
@@ -159,6 +183,7 @@ def main(argv: list[str] | None = None) -> int:
     with atomic_open(out) as fh:
         json.dump(report, fh, indent=2)
     print(summary(report))
+    print(acquisition_summary(report["acquisition"]))
     error = report["labels"].get("error")
     print(f"labels (phi_a): not derived: {error}" if error else label_summary(report["labels"]))
     print(f"report: {out}")

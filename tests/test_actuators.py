@@ -238,3 +238,30 @@ def test_the_design_check_says_why_a_fault_is_invisible():
     assert "k3 at k = 1 reads exactly the nominal margins" in text and "even at 3 rotor positions" in text
     one = summary({**labels, "sweep": {**labels["sweep"], "rotor_positions": 1}, "absent": {}})
     assert "label with assessment.sweep.rotor_positions=3" in one
+
+
+@pytest.mark.parametrize(("rate", "cutoff"), [(20000.0, 1000.0), (2000.0, 1000.0), (5000.0, 1000.0)])
+def test_the_nyquist_attenuation_is_the_envelope_filters_gain_at_half_the_sample_rate(rate, cutoff):
+    """ActuatorParams.nyquist_attenuation_db against the simulator's own filter driven at f_s / 2 in steady state;
+    the design check warns where the filter removes less than 20 dB there (a 2 kHz bench behind a 1 kHz filter)."""
+    from script_module import script_module
+
+    from phm_torch.physics.sensors import ButterworthFilter
+
+    params = load_actuator("ema_reference", sample_rate=rate, filter_cutoff=cutoff, pwm_frequency=20000.0)
+    h, f = 1.0 / (40 * rate), rate / 2
+    filt = ButterworthFilter(cutoff, h, torch.float64, torch.device("cpu"))
+    state = (torch.zeros(1, dtype=torch.float64), torch.zeros(1, dtype=torch.float64))
+    n = round(40 / f / h)  # 40 periods: the transient (time constant ~ 1 / cutoff) has died out after 20
+    out = []
+    for i in range(n):
+        # the step's average input: the zero-order hold the simulator feeds the filter with
+        u = (math.cos(2 * math.pi * f * i * h) - math.cos(2 * math.pi * f * (i + 1) * h)) / (2 * math.pi * f * h)
+        state = filt.step(state, torch.tensor([u], dtype=torch.float64))
+        out.append(float(state[0]))
+    measured = 20 * math.log10(max(abs(v) for v in out[n // 2 :]))
+    assert measured == pytest.approx(params.nyquist_attenuation_db, abs=0.2)
+    line = script_module("check_actuator").acquisition_summary(
+        {"sample_rate_hz": rate, "filter_cutoff_hz": cutoff, "nyquist_attenuation_db": params.nyquist_attenuation_db}
+    )
+    assert ("WARNING" in line) == (params.nyquist_attenuation_db > -20.0) == (rate < 2 * cutoff * 10**0.5)
