@@ -15,6 +15,11 @@ the healthy fraction must lie in [0.15, 0.40].
 ``--classifier-heldout name=report.json`` (``scripts/classifier_heldout.py``) takes that actuator's classifier accuracy
 and missed-fault rate from thousands of independent labels instead of the val split's few hundred faulty vectors.
 
+``--bootstrap N`` (e.g. 1000) adds each figure's 95 % interval and each ratio's, resampling every run's evaluation
+splits (``phm_torch/report/figure_uncertainty.py``; the held-out labels and the workbench's cases binomially), and
+calls each ratio ``within``, ``outside`` or ``undecided`` (its interval straddles the factor). It holds the
+evaluation's sampling error alone, not a second training's.
+
 ``--figures name=cmp.json`` takes that actuator's figures from an earlier comparison: all of them when it has no
 ``--run`` (its run directory gone), else only those its run does not give (the LF fit, the workbench); actuators
 named by ``--figures`` come first (the base is the first name).
@@ -28,7 +33,10 @@ import math
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from phm_torch.io.atomic import atomic_open
+from phm_torch.report.figure_uncertainty import interval, proportion_draws, ratio_status, run_figure_draws
 
 HEALTHY_RANGE = (0.15, 0.40)
 # figure -> (where: train | evaluate | lf | workbench | manifest, key, smaller is better)
@@ -100,6 +108,39 @@ def figures(run: Path, lf: Path | None, bench: Path | None, heldout: Path | None
     return out
 
 
+def figure_draws(run: Path, bench: Path | None, heldout: Path | None, draws: int, seed: int) -> dict[str, np.ndarray]:
+    """Bootstrap draws of one actuator's figures (those its per-record files or counts give)."""
+    out = run_figure_draws(run, draws, seed)
+    if heldout is not None:
+        report = _read(heldout)
+        n, faulty = int(report["n"]), int(report["faulty"])
+        out["classifier_accuracy"] = proportion_draws(round(report["accuracy"] * n), n, draws, seed + 1)
+        out["classifier_missed_fault_rate"] = proportion_draws(int(report["missed"]), faulty, draws, seed + 2)
+    if bench is not None:
+        summary = _read(bench)["summary"]
+        cases = int(summary["effects"])
+        out["workbench_hit_rate"] = proportion_draws(round(summary["hit_rate"] * cases), cases, draws, seed + 3)
+    return out
+
+
+def with_intervals(
+    verdicts: dict[str, dict[str, Any]], draws: dict[str, dict[str, np.ndarray]], base_name: str, factor: float
+) -> None:
+    """Add each ratio's interval and status (within / outside / undecided) where both actuators have draws."""
+    base = draws.get(base_name, {})
+    for name, rows in verdicts.items():
+        for fig, row in rows.items():
+            a, b = base.get(fig), draws.get(name, {}).get(fig)
+            if a is not None and b is not None and fig != "healthy_fraction_train":
+                row.update(ratio_status(a, b, FIGURES[fig][2], factor))
+
+
+def status_tally(rows: dict[str, dict[str, Any]]) -> dict[str, int]:
+    """How many of an actuator's ratios are within, outside or undecided (those with an interval)."""
+    statuses = [row["status"] for row in rows.values() if "status" in row]
+    return {status: statuses.count(status) for status in ("within", "outside", "undecided")}
+
+
 def compare(table: dict[str, dict[str, Any]], factor: float) -> dict[str, dict[str, Any]]:
     """Per actuator after the first: per figure the ratio to the first's and whether it meets the target."""
     names = list(table)
@@ -129,7 +170,11 @@ def markdown(table: dict[str, dict[str, Any]], verdicts: dict[str, dict[str, Any
         cells = ["-" if table[n].get(fig) is None else f"{table[n][fig]:.4g}" for n in names]
         last = verdicts.get(names[-1], {}).get(fig, {}) if len(names) > 1 else {}
         ratio = "-" if last.get("ratio") is None else f"{last['ratio']:.2f}"
+        if "status" in last:
+            ratio += f" [{last['ratio_lo']:.2f}, {last['ratio_hi']:.2f}]"
         met = {True: "yes", False: "**no**", None: "-"}[last.get("met")]
+        if "status" in last:
+            met += f" ({last['status']})"
         lines.append(f"| {fig} | " + " | ".join(cells) + f" | {ratio} | {met} |")
     return "\n".join(lines)
 
@@ -142,6 +187,7 @@ def main() -> None:
     ap.add_argument("--figures", action="append", help="name=earlier comparison JSON (its figures of that actuator)")
     ap.add_argument("--classifier-heldout", action="append", help="name=classifier_heldout.py report JSON")
     ap.add_argument("--factor", type=float, default=1.3, help="allowed factor against the first actuator")
+    ap.add_argument("--bootstrap", type=int, default=0, help="draws for 95 %% intervals (0: none; e.g. 1000)")
     ap.add_argument("--out", type=Path, default=None, help="JSON written (atomically)")
     args = ap.parse_args()
     if not args.factor >= 1.0:
@@ -163,7 +209,24 @@ def main() -> None:
         own = figures(runs[name], lfs.get(name), benches.get(name), heldouts.get(name)) if name in runs else {}
         table[name] = {**earlier.get(name, {}), **{k: v for k, v in own.items() if v is not None}}
     verdicts = compare(table, args.factor)
+    intervals: dict[str, dict[str, list[float]]] = {}
+    if args.bootstrap:
+        if args.bootstrap < 100:
+            raise SystemExit(f"compare_actuators: error: --bootstrap must be 0 or >= 100, got {args.bootstrap}")
+        draws = {
+            name: figure_draws(runs[name], benches.get(name), heldouts.get(name), args.bootstrap, 10 * i)
+            for i, name in enumerate(table)
+            if name in runs
+        }
+        if names_without := [n for n in table if n not in runs]:
+            print(f"no intervals for {names_without}: their figures come from --figures, not a run")
+        with_intervals(verdicts, draws, next(iter(table)), args.factor)
+        intervals = {n: {f: list(interval(v)) for f, v in d.items()} for n, d in draws.items()}
     print(markdown(table, verdicts))
+    tally = {name: status_tally(rows) for name, rows in verdicts.items()}
+    for name, counts in tally.items():
+        if sum(counts.values()):
+            print(f"{name}: " + ", ".join(f"{n} {status}" for status, n in counts.items()) + " (95 % intervals)")
     if args.out:
         with atomic_open(args.out, "w") as fh:
             json.dump(
@@ -171,6 +234,9 @@ def main() -> None:
                     "factor": args.factor,
                     "figures": table,
                     "verdicts": verdicts,
+                    "intervals": intervals,
+                    "status_tally": tally,
+                    "bootstrap": args.bootstrap,
                     "runs": {k: str(v) for k, v in runs.items()},
                     "figures_from": {k: str(v) for k, v in _pairs(args.figures, "--figures").items()},
                     "classifier_from": {k: str(v) for k, v in heldouts.items()},
