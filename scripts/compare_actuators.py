@@ -16,7 +16,8 @@ the healthy fraction must lie in [0.15, 0.40].
 and missed-fault rate from thousands of independent labels instead of the val split's few hundred faulty vectors.
 
 ``--bootstrap N`` (e.g. 1000) adds each figure's 95 % interval and each ratio's, resampling every run's evaluation
-splits (``phm_torch/report/figure_uncertainty.py``; the held-out labels and the workbench's cases binomially), and
+splits (``phm_torch/report/figure_uncertainty.py``; every proportion, the held-out labels' and the workbench's cases
+included, from its counts' Jeffreys posterior), and
 calls each ratio ``within``, ``outside`` or ``undecided`` (its interval straddles the factor). It holds the
 evaluation's sampling error alone, not a second training's.
 

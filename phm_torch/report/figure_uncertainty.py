@@ -57,7 +57,7 @@ def _val_counts(a: Mapping[str, torch.Tensor]) -> dict[str, tuple[int, int]]:
 
 
 RUL_ERRORS = ("rul_err_median_true_k", "rul_err_median_full_flow")
-RUL_COVERAGES = {"rul_band_coverage_true_k": "true_k", "rul_band_coverage_full_flow": "full_flow"}
+RUL_COVERAGES = ("rul_band_coverage_true_k", "rul_band_coverage_full_flow")
 
 
 def _draw(n: int, draws: int, rng: np.random.Generator) -> torch.Tensor:
@@ -103,11 +103,11 @@ def run_figure_draws(run: Path, draws: int = 1000, seed: int = 0) -> dict[str, n
         table = [RULComparison(ref[rows], true_k[rows], flow[rows]).metrics() for rows in idx]
         for name in RUL_ERRORS:
             out[name] = np.array([m[name] for m in table])
-        usable = ref[:, 1] > 0
-        for i, (name, which) in enumerate(RUL_COVERAGES.items()):
-            est, r = {"true_k": true_k, "full_flow": flow}[which][usable], ref[usable, 1]
-            inside = int(((r >= est[:, 0]) & (r <= est[:, 2])).sum())
-            n = int(usable.sum())
+        # a coverage is a proportion of the vectors with a positive reference RUL: its count from the evaluation's own
+        full = RULComparison(ref, true_k, flow).metrics()
+        n = full["rul_vectors"] - full["rul_reference_faulty"]
+        for i, name in enumerate(RUL_COVERAGES):
+            inside = round(full[name] * n) if n else 0
             out[name] = proportion_draws(inside, n, draws, seed + 11 + i) if n else np.full(draws, math.nan)
     return out
 
