@@ -21,26 +21,11 @@ FDI network and the health classifier, and answers the online questions:
 Samples are the raw measured current [A] at ``bundle.sample_times`` [s] (indices ``bundle.indices``
 into the 20 kHz record of n_e samples); NaN marks a missing sample.
 
-File format (``save``/``load``): one ``torch.save`` file holding only plain containers of str, int,
-float, bool, None and tensors, read back with ``torch.load(weights_only=True)`` (never unpickled)::
-
-    {"format": "phm_torch.surrogate_bundle", "version": 1,
-     "meta": {"n_samples", "n_modes", "n_points", "n_hidden", "n_layers", "n_members", "input_scaling",
-              "noise_input", "default_noise", "max_noise", "sample_rate", "signal", "unit",
-              "fault_names", "health_convention", "selector": {"name", "params"},
-              "classifier": {"name", "params"}, "verdict_classifier": {"name", "params"} or None,
-              "forward_model": {ForwardSurrogate params} or None (absent: older bundles),
-              "gappy_ridge", "phm_torch_version", "extra": {...}},
-     "tensors": {"pod.mean_", "pod.modes_", "pod.singular_values_", "pod.energy_", "indices",
-                 "sample_times", "residual_threshold", "network.<state_dict>", "classifier.<state_dict>",
-                 "verdict_classifier.<state_dict>" and "forward_model.<state_dict>" (when it has them), and, for a Bayesian gappy layer,
-                 "gappy.noise_covariance", "gappy.prior_variance",
-                 and, when the store had one, "nominal_record"}}
+The file format (``save``/``load``) and the rebuilding of the parts are in :mod:`.bundle_file`.
 """
 
 from __future__ import annotations
 
-import io
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -51,20 +36,17 @@ from torch import nn
 
 from .. import __version__
 from ..faults import FAULT_NAMES
-from ..io.atomic import atomic_open
 from .augment import noise_level
-from .classifiers import HealthClassifier, build_classifier
-from .fdi_ensemble import FDIEnsemble, build_fdi_network
+from .bundle_file import _prefixed, _spec, read_bundle_file, rebuild_parts, write_bundle_file
+from .classifiers import HealthClassifier
+from .fdi_ensemble import FDIEnsemble
 from .fdi_mlp import FDIMLP
 from .forward import ForwardSurrogate
 from .full_signal_check import DEFAULT_PLATEAU_THRESHOLD, DEFAULT_ROUGHNESS_THRESHOLD, FullSignalCheck
 from .gappy_pod import GappyPOD
 from .pod import POD
 
-FORMAT = "phm_torch.surrogate_bundle"
-VERSION = 1
 HEALTH_CONVENTION = "health_score > 0: healthy; < 0: faulty"
-COMPARED = ("n_samples", "n_modes", "n_points", "n_hidden", "n_layers", "n_members")
 
 
 class SurrogateBundle(nn.Module):
@@ -284,12 +266,7 @@ class SurrogateBundle(nn.Module):
         for name in ("classifier", "verdict_classifier", "forward_model"):
             if getattr(self, name) is not None:
                 tensors.update({f"{name}.{k}": v.detach().cpu() for k, v in getattr(self, name).state_dict().items()})
-        buf = io.BytesIO()
-        torch.save({"format": FORMAT, "version": VERSION, "meta": self.metadata(), "tensors": tensors}, buf)
-        path = Path(path)
-        with atomic_open(path, "wb") as fh:
-            fh.write(buf.getvalue())
-        return path
+        return write_bundle_file(path, self.metadata(), tensors)
 
     @classmethod
     def load(
@@ -303,69 +280,13 @@ class SurrogateBundle(nn.Module):
                 the field (a checkpoint from another configuration).
         """
         path = Path(path)
-        if not path.is_file():
-            raise ValueError(f"surrogate bundle {str(path)!r} does not exist")
-        try:
-            blob = torch.load(path, map_location=map_location, weights_only=True)
-        except Exception as e:  # noqa: BLE001 - any unreadable file is the same user error
-            raise ValueError(f"{path}: not a readable surrogate bundle ({type(e).__name__}: {e})") from None
-        if not isinstance(blob, dict) or blob.get("format") != FORMAT:
-            raise ValueError(
-                f"{path}: not a surrogate bundle (format {blob.get('format') if isinstance(blob, dict) else None!r}, "
-                f"expected {FORMAT!r})"
-            )
-        if blob.get("version") != VERSION:
-            raise ValueError(f"{path}: bundle version {blob.get('version')!r} is not supported (expected {VERSION})")
-        meta, t = blob.get("meta"), blob.get("tensors")
-        if isinstance(meta, dict):
-            meta.setdefault("n_layers", 1)  # bundles written before the options: one network
-            meta.setdefault("n_members", 1)  # of one hidden layer, not noise-aware
-            meta.setdefault("noise_input", False)
-        required = (*COMPARED, "input_scaling", "sample_rate", "selector", "classifier", "gappy_ridge", "extra")
-        missing = [k for k in required if not isinstance(meta, dict) or k not in meta]
-        if missing or not isinstance(t, dict):
-            raise ValueError(f"{path}: incomplete surrogate bundle (meta lacks {missing})")
-        for key, want in (expect or {}).items():
-            if key not in COMPARED:
-                raise ValueError(f"expect: unknown field {key!r}; known: {list(COMPARED)}")
-            if want is not None and meta[key] != want:
-                raise ValueError(
-                    f"{path}: bundle from another configuration: {key}={meta[key]} in the file, {want} expected"
-                )
-        n_m = meta["n_modes"]
-        pod = POD(n_m)
-        for k in ("mean_", "modes_", "singular_values_", "energy_"):
-            setattr(pod, k, t[f"pod.{k}"])
-        if tuple(pod.modes_.shape) != (meta["n_samples"], n_m):
-            raise ValueError(
-                f"{path}: pod.modes_ has shape {tuple(pod.modes_.shape)}, meta says ({meta['n_samples']}, {n_m})"
-            )
-        noise_kwargs = {k: meta[k] for k in ("default_noise", "max_noise") if k in meta}
-        network = build_fdi_network(
-            n_m,
-            meta["n_hidden"],
-            meta["n_layers"],
-            meta["n_members"],
-            input_scaling=meta["input_scaling"],
-            noise_input=meta["noise_input"],
-            **noise_kwargs,
-        )
-        network.load_state_dict(_prefixed(t, "network."))
-        classifier = _classifier(meta["classifier"], _prefixed(t, "classifier."), path)
-        verdict_spec = meta.get("verdict_classifier")
-        verdict = None if verdict_spec is None else _classifier(verdict_spec, _prefixed(t, "verdict_classifier."), path)
-        forward_model = None
-        if meta.get("forward_model") is not None:
-            try:
-                forward_model = ForwardSurrogate(**meta["forward_model"])
-                forward_model.load_state_dict(_prefixed(t, "forward_model."))
-            except (TypeError, ValueError, RuntimeError) as e:
-                raise ValueError(f"{path}: forward_model: {e}") from None
+        meta, t = read_bundle_file(path, expect, map_location)
+        parts = rebuild_parts(meta, t, path)
         bundle = cls(
-            pod,
+            parts["pod"],
             t["indices"],
-            network,
-            classifier,
+            parts["network"],
+            parts["classifier"],
             meta["sample_rate"],
             float(t["residual_threshold"]),
             meta["gappy_ridge"],
@@ -374,32 +295,9 @@ class SurrogateBundle(nn.Module):
             float(t.get("full_residual_threshold", float("inf"))),
             _prefixed(t, "gappy.") or None,
             t.get("nominal_record"),
-            verdict,
-            forward_model.eval() if forward_model else None,
+            parts["verdict_classifier"],
+            parts["forward_model"],
             float(t.get("roughness_threshold", DEFAULT_ROUGHNESS_THRESHOLD)),
             float(t.get("plateau_threshold", DEFAULT_PLATEAU_THRESHOLD)),
         )
         return bundle.eval()
-
-
-def _spec(classifier: HealthClassifier | None) -> dict[str, Any] | None:
-    return None if classifier is None else {"name": classifier.name, "params": classifier.get_params()}
-
-
-def _classifier(spec: Mapping[str, Any], state: Mapping[str, torch.Tensor], path: Path) -> HealthClassifier:
-    """A fitted classifier rebuilt from its spec ``{"name", "params"}`` and its saved buffers."""
-    try:
-        classifier = build_classifier(spec["name"], **spec["params"])
-    except ValueError as e:
-        raise ValueError(f"{path}: {e}") from None
-    known = dict(classifier.named_buffers())
-    if set(state) != set(known):
-        raise ValueError(f"{path}: classifier tensors {sorted(state)} do not match {spec['name']}'s {sorted(known)}")
-    for k, v in state.items():  # fitted buffers may have other shapes than the unfitted twin's
-        owner, _, name = k.rpartition(".")  # a submodule's buffer (dotted name) is set on it
-        setattr(classifier.get_submodule(owner) if owner else classifier, name, v)
-    return classifier
-
-
-def _prefixed(tensors: Mapping[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
-    return {k[len(prefix) :]: v for k, v in tensors.items() if k.startswith(prefix)}
