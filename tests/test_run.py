@@ -118,6 +118,9 @@ def test_phm_run_tiny_end_to_end(tmp_path):
     assert 0.0 <= saved["train"]["err_k"] < 1.0
     assert saved["evaluate"]["export_max_abs_diff"] < 1e-5  # TorchScript reloads equal to eager
     assert saved["evaluate"]["fdi_band_n_used"] >= 10  # the full-flow band is calibrated on val
+    # every reference crossing inside the horizon is read as smooth or a jump (prognostics/crossings.py)
+    ev = saved["evaluate"]
+    assert 0 <= ev["rul_reference_jump_crossings"] <= ev["rul_reference_crossings"] <= ev["rul_vectors"]
     # the drive range (2 x the reference's 15 A) and the labels' phi_a travel from the store into the pipeline
     assert saved["train"]["drive_current_bound"] == 30.0 and saved["evaluate"]["calibration_beyond_drive_range"] >= 0
     recorded = read_metadata(saved["evaluate"]["export"])

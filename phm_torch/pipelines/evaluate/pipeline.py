@@ -33,6 +33,7 @@ from ...online.unexplained_check import calibrate_ratio
 from ...online.verdict import verdict_quality
 from ...params import ActuatorParams
 from ...prognostics import DeterministicRUL, RULEstimator
+from ...prognostics.crossings import crossing_metrics, reference_crossings
 from ...prognostics.evaluation import RULComparison
 from ...prognostics.plots import error_panels, rul_vs_expected
 from ...prognostics.reference import margin_score, reference_rul
@@ -135,6 +136,9 @@ def evaluate_rul(settings: EvaluateSettings) -> tuple[dict[str, Any], dict[str, 
     t_ref = time.perf_counter() - t0
     comparison = RULComparison(reference, true_k, full_flow.to(torch.float64))
     metrics: dict[str, Any] = comparison.metrics()
+    # how the reference crossings happen: the RUL from the true k cannot place a jump of phi_a's score
+    score = margin_score(build(assessment, "assessment", params=params))
+    metrics.update(crossing_metrics(reference, true_k, reference_crossings(damage, score, k, deltas[1], reference)))
     gauss = RULComparison(reference, mc.gaussian, full_flow.to(torch.float64)).metrics()
     physics = RULComparison(reference, true_k, physics_only).metrics()
     usable = reference[:, 1] > 0
