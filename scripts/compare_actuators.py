@@ -24,6 +24,10 @@ evaluation's sampling error alone, not a second training's.
 ``--figures name=cmp.json`` takes that actuator's figures from an earlier comparison: all of them when it has no
 ``--run`` (its run directory gone), else only those its run does not give (the LF fit, the workbench); actuators
 named by ``--figures`` come first (the base is the first name).
+
+Beside the figures, each run evaluated with phm-evaluate's crossing counts gets a line (and a ``crossings`` entry in
+the JSON): how many of its reference crossings are jumps of phi_a's margin score and the RUL error from the true k on
+each kind, so that a gap in that figure can be told apart as the assessment's or the classifier's.
 """
 
 from __future__ import annotations
@@ -180,6 +184,33 @@ def markdown(table: dict[str, dict[str, Any]], verdicts: dict[str, dict[str, Any
     return "\n".join(lines)
 
 
+CROSSING_KEYS = (
+    "rul_reference_crossings",
+    "rul_reference_jump_crossings",
+    "rul_err_median_true_k_smooth",
+    "rul_err_median_true_k_jump",
+)
+
+
+def crossings(run: Path) -> dict[str, float | int] | None:
+    """How a run's reference crossings happen (phm-evaluate's counts, prognostics/crossings.py): a RUL error from
+    the true k that sits on jumps of phi_a's margin score is the assessment's, not the classifier's. None for a run
+    evaluated before the counts existed."""
+    metrics = _read(run / "evaluate" / "metrics.json")
+    if not all(k in metrics for k in CROSSING_KEYS):
+        return None
+    return {k: metrics[k] for k in CROSSING_KEYS}
+
+
+def crossings_line(name: str, c: dict[str, float | int]) -> str:
+    pct = {k: f"{100 * c[k]:.2f} %" if c[k] == c[k] else "-" for k in CROSSING_KEYS[2:]}  # nan: no such crossing
+    return (
+        f"{name}: {c['rul_reference_jump_crossings']} of {c['rul_reference_crossings']} reference crossings jump; "
+        f"RUL from the true k {pct['rul_err_median_true_k_smooth']} on the smooth ones, "
+        f"{pct['rul_err_median_true_k_jump']} on the jumps"
+    )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--run", action="append", required=True, help="name=phm-run out_dir (the first is the base)")
@@ -228,6 +259,9 @@ def main() -> None:
     for name, counts in tally.items():
         if sum(counts.values()):
             print(f"{name}: " + ", ".join(f"{n} {status}" for status, n in counts.items()) + " (95 % intervals)")
+    reads = {name: c for name, path in runs.items() if (c := crossings(path)) is not None}
+    for name, c in reads.items():
+        print(crossings_line(name, c))
     if args.out:
         with atomic_open(args.out, "w") as fh:
             json.dump(
@@ -241,6 +275,7 @@ def main() -> None:
                     "runs": {k: str(v) for k, v in runs.items()},
                     "figures_from": {k: str(v) for k, v in _pairs(args.figures, "--figures").items()},
                     "classifier_from": {k: str(v) for k, v in heldouts.items()},
+                    "crossings": reads,
                 },
                 fh,
                 indent=2,

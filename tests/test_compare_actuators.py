@@ -10,13 +10,14 @@ from pathlib import Path
 SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "compare_actuators.py"
 
 
-def _run_dir(root: Path, err_k: float) -> Path:
+def _run_dir(root: Path, err_k: float, crossings: dict | None = None) -> Path:
     for sub in ("train", "evaluate", "data"):
         (root / sub).mkdir(parents=True)
     train = {"err_alpha_median": 0.02, "err_k": err_k, "classifier_accuracy": 0.99, "missed_fault_rate": 0.01}
     train.update(chain_accuracy=0.9, chain_missed_fault_rate=0.05, actuator="rudder (sha256 0)")
     (root / "train" / "metrics.json").write_text(json.dumps(train))
-    (root / "evaluate" / "metrics.json").write_text(json.dumps({"rul_err_median_true_k": 0.01}))
+    evaluate = {"rul_err_median_true_k": 0.01, **(crossings or {})}
+    (root / "evaluate" / "metrics.json").write_text(json.dumps(evaluate))
     (root / "data" / "manifest.json").write_text(json.dumps({"splits": {"train": {"count": 100, "healthy": 30}}}))
     return root
 
@@ -80,3 +81,23 @@ def test_the_classifier_figures_of_a_held_out_report_replace_the_val_splits(tmp_
         check=False,
     )
     assert bad.returncode != 0 and "--classifier-heldout needs a --run of ['x']" in bad.stderr
+
+
+def test_the_reference_crossings_of_each_run_are_reported_beside_the_figures(tmp_path):
+    """A run evaluated with the crossing counts gets its line and JSON entry; one evaluated before them gets none."""
+    counts = {
+        "rul_reference_crossings": 138,
+        "rul_reference_jump_crossings": 59,
+        "rul_err_median_true_k_smooth": 0.0183,
+        "rul_err_median_true_k_jump": 0.0929,
+    }
+    base = _run_dir(tmp_path / "reference_run", err_k=0.10)
+    run = _run_dir(tmp_path / "flap_run", err_k=0.11, crossings=counts)
+    out = tmp_path / "cmp.json"
+    args = ["--run", f"reference={base}", "--run", f"flap={run}", "--out", str(out)]
+    done = subprocess.run([sys.executable, str(SCRIPT), *args], check=True, capture_output=True, text=True)
+    assert (
+        "flap: 59 of 138 reference crossings jump; RUL from the true k 1.83 % on the smooth ones, 9.29 % on the jumps"
+        in done.stdout
+    )
+    assert json.loads(out.read_text())["crossings"] == {"flap": counts}
