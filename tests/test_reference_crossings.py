@@ -55,7 +55,7 @@ def test_the_score_is_read_on_the_exact_median_propagation_either_side_of_the_cr
         reference_crossings(damage, smooth, k, 0.0, ref, window_hours=0.0)
 
 
-def test_the_rul_error_is_split_by_the_kind_of_crossing():
+def test_the_rul_error_is_split_by_the_kind_of_crossing(caplog):
     """Two vectors cross smoothly and two by a jump; the true-k RULs err by 1 / 3 % and 10 / 20 %: the medians
     per kind (torch's median of two is the lower one) are 1 % and 10 %; a vector already faulty is no crossing."""
     damage = _damage()
@@ -70,9 +70,14 @@ def test_the_rul_error_is_split_by_the_kind_of_crossing():
     c = reference_crossings(damage, mixed, k, 0.0, ref)
     rel = torch.tensor([0.01, 0.03, 0.10, 0.20, 0.0], dtype=torch.float64)
     true_k = ref * (1 + rel).unsqueeze(1)
-    m = crossing_metrics(ref, true_k, c)
+    with caplog.at_level("WARNING", logger="phm_torch.prognostics.crossings"):
+        m = crossing_metrics(ref, true_k, c)
+    assert "jumps (by more than 0.10 within 10 h) at 2 of 4 reference crossings" in caplog.text
+    caplog.clear()
     assert m["rul_reference_crossings"] == 4 and m["rul_reference_jump_crossings"] == 2
     assert m["rul_err_median_true_k_smooth"] == pytest.approx(0.01, rel=1e-6)
     assert m["rul_err_median_true_k_jump"] == pytest.approx(0.10, rel=1e-6)
-    none = crossing_metrics(ref, true_k, reference_crossings(damage, smooth, k, 0.0, ref))
+    with caplog.at_level("WARNING", logger="phm_torch.prognostics.crossings"):
+        none = crossing_metrics(ref, true_k, reference_crossings(damage, smooth, k, 0.0, ref))
+    assert caplog.text == ""  # no jump, no warning
     assert none["rul_reference_jump_crossings"] == 0 and math.isnan(none["rul_err_median_true_k_jump"])

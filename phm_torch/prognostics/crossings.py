@@ -57,7 +57,8 @@ def reference_crossings(
 
     Returns:
         ``inside`` (B,) bool: the median reference RUL lies strictly inside (0, horizon), a crossing to read;
-        ``before``, ``after`` (B,) float64: the score at RUL - window and RUL + window (nan where not inside).
+        ``before``, ``after`` (B,) float64: the score at RUL - window and RUL + window (nan where not inside);
+        ``window_hours`` (0-dim): the window.
     """
     if not window_hours > 0:
         raise ValueError(f"window_hours must be > 0, got {window_hours!r}")
@@ -81,7 +82,7 @@ def reference_crossings(
             s = score(k).to(torch.float64)
         n = rows.numel()
         before[rows], after[rows] = s[:n], s[n:]
-    return {"inside": inside, "before": before, "after": after}
+    return {"inside": inside, "before": before, "after": after, "window_hours": torch.tensor(float(window_hours))}
 
 
 def crossing_metrics(
@@ -118,11 +119,12 @@ def crossing_metrics(
         log.warning(
             "the assessment's margin score jumps (by more than %.2f within %g h) at %d of %d reference crossings: "
             "there the binding reading switches to another feature of the response (e.g. a -3 dB bandwidth falling "
-            "from beyond the resonance into a sag of |T| near -3 dB), a boundary the score does not grade and "
-            "labels place only to hundredths of a dB; RUL from the true k: median error %.1f %% on the jumps, "
-            "%.1f %% on the smooth crossings (docs/own_actuator.md, 'Is a difference from the reference real?')",
+            "from beyond the resonance into a sag of |T| near -3 dB), a boundary the score does not grade and a "
+            "classifier places only roughly; RUL from the true k: median error %.1f %% on the jumps, %.1f %% on the "
+            "smooth crossings (docs/own_actuator.md §9, 'Is the RUL error from the true k the classifier's, or the "
+            "assessment's?')",
             jump,
-            WINDOW_HOURS,
+            float(crossings.get("window_hours", WINDOW_HOURS)),
             out["rul_reference_jump_crossings"],
             n,
             100 * out["rul_err_median_true_k_jump"],
