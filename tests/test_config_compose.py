@@ -24,7 +24,11 @@ from phm_torch.apps import schema
 from phm_torch.params import CONF_DIR, ActuatorParams, load_actuator
 
 APPS = sorted(p.stem for p in CONF_DIR.glob("*.yaml"))
-VARIANTS = {"defaults": [], "rudder": ["actuator=ema_hvdc_rudder", "command=chirp_hvdc_rudder"]}
+VARIANTS = {
+    "defaults": [],
+    "rudder": ["actuator=ema_hvdc_rudder", "command=chirp_hvdc_rudder"],
+    "flap": ["actuator=ema_115v_flap", "command=chirp_115v_flap"],
+}
 
 
 def runtime(cfg: DictConfig) -> dict[str, Any]:

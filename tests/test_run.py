@@ -349,19 +349,22 @@ def test_the_run_damage_law_reaches_every_stage_that_reads_one():
 
 
 @pytest.mark.slow
-def test_phm_run_on_the_second_actuator_end_to_end(tmp_path):
-    """`phm-run actuator=ema_hvdc_rudder command=chirp_hvdc_rudder` at a small scale: every stage runs on the
-    270 V actuator and its own chirp, the calibrated sampling keeps the healthy fraction in range (the rudder
-    reaches ~37 % at the distance-exponent bound, not the 30 % target), every artefact
-    records that actuator and command, and the workbench finds the hidden cogging of that motor (its own
-    slot order), on a record simulated for it."""
+@pytest.mark.parametrize(
+    ("actuator", "command"), [("ema_hvdc_rudder", "chirp_hvdc_rudder"), ("ema_115v_flap", "chirp_115v_flap")]
+)
+def test_phm_run_on_a_shipped_actuator_end_to_end(tmp_path, actuator, command):
+    """`phm-run actuator=<shipped> command=<its chirp>` at a small scale, for the 270 V rudder and the 115 V flap:
+    every stage runs on that actuator and its own chirp, the calibrated sampling keeps the healthy fraction in range
+    (the rudder reaches ~37 % at the distance-exponent bound, not the 30 % target), every artefact records that
+    actuator and command, and the workbench finds the hidden cogging of that motor (its own slot order), on a record
+    simulated for it."""
     from phm_torch.online.export import read_metadata
 
     cfg = compose_stage(
         "run",
         [
-            "actuator=ema_hvdc_rudder",
-            "command=chirp_hvdc_rudder",
+            f"actuator={actuator}",
+            f"command={command}",
             f"out_dir={tmp_path}",
             "stages=[cases,generate,train,evaluate,workbench,report]",  # tracking: the life test above
             (
@@ -382,14 +385,14 @@ def test_phm_run_on_the_second_actuator_end_to_end(tmp_path):
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert set(saved) >= {"cases", "generate", "train", "evaluate", "workbench", "report"}
     manifest = json.loads((tmp_path / "data" / "manifest.json").read_text())
-    assert manifest["provenance"]["actuator"]["name"] == "ema_hvdc_rudder"
-    assert manifest["provenance"]["command"]["name"] == "chirp_hvdc_rudder"
+    assert manifest["provenance"]["actuator"]["name"] == actuator
+    assert manifest["provenance"]["command"]["name"] == command
     assert 0.15 <= manifest["splits"]["train"]["healthy"] / manifest["splits"]["train"]["count"] <= 0.45
     sha = manifest["provenance"]["actuator"]["sha256"]
-    assert saved["train"]["actuator"] == saved["evaluate"]["actuator"] == f"ema_hvdc_rudder (sha256 {sha[:8]})"
+    assert saved["train"]["actuator"] == saved["evaluate"]["actuator"] == f"{actuator} (sha256 {sha[:8]})"
     calibration = json.loads((tmp_path / "evaluate" / "rul_calibration.json").read_text())
     assert calibration["provenance"]["actuator"]["sha256"] == sha
-    assert read_metadata(saved["evaluate"]["export"])["provenance"]["command"]["name"] == "chirp_hvdc_rudder"
+    assert read_metadata(saved["evaluate"]["export"])["provenance"]["command"]["name"] == command
     assert 0.0 <= saved["train"]["err_k"] < 1.0 and saved["evaluate"]["export_max_abs_diff"] < 1e-5
     report = json.loads((tmp_path / "workbench" / "report.json").read_text())
     assert report["candidates"][0]["effect"] == "cogging_torque"
