@@ -1,7 +1,6 @@
 """The shipped actuators other than the reference (conf/actuator/ema_hvdc_rudder.yaml, ema_115v_flap.yaml): physical
-consistency,
-loop margins at nominal, stability of every single fault at k = 1, HF-vs-LF agreement on its test command;
-and the design-check criteria of phm_torch/assessment/actuator_check.py."""
+consistency, loop margins at nominal, stability of every single fault at k = 1, HF-vs-LF agreement on its test
+command; and the design-check criteria of phm_torch/assessment/actuator_check.py."""
 
 from __future__ import annotations
 
@@ -78,7 +77,7 @@ def test_electrical_sizing_is_consistent(hvdc):
     w_speed = 2 * p.back_emf_constant * p.speed_gain / (p.motor_inertia + p.user_inertia / p.gear_ratio**2)
     assert w_current < 2 * math.pi * p.pwm_frequency / 4 / 4
     assert 4 < w_current / w_speed < 10
-    # Dry friction is a small fraction (< 2.5 %) of the peak motor torque (rudder 1 %, flap 2.3 %).
+    # Dry friction is a small fraction (< 2.5 %) of the peak motor torque (rudder 1.0 %, flap 2.1 %).
     assert p.static_friction < 0.025 * 2 * p.back_emf_constant * p.current_limit
 
 
